@@ -1,0 +1,67 @@
+"""Shared data types: cameras and scenes.
+
+Conventions used everywhere in b3dgs:
+- world-to-camera ``viewmat`` in the OpenCV convention (x right, y down, z forward);
+- pixel intrinsics ``K`` at the camera's current resolution, pixel centres at integer + 0.5;
+- images are float32 (H, W, 3) in [0, 1].
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+
+@dataclass
+class Camera:
+    """A pinhole camera with an optional ground-truth image."""
+
+    name: str
+    K: Tensor  # (3, 3) float32 pixel intrinsics
+    viewmat: Tensor  # (4, 4) float32 world-to-camera (OpenCV)
+    width: int
+    height: int
+    image: Optional[Tensor] = None  # (H, W, 3) float32 in [0, 1]
+
+    def __post_init__(self) -> None:
+        if tuple(self.K.shape) != (3, 3):
+            raise ValueError(f"Camera {self.name!r}: K must be (3, 3), got {tuple(self.K.shape)}")
+        if tuple(self.viewmat.shape) != (4, 4):
+            raise ValueError(f"Camera {self.name!r}: viewmat must be (4, 4), got {tuple(self.viewmat.shape)}")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"Camera {self.name!r}: width/height must be positive, got {self.width}x{self.height}")
+        if self.image is not None and tuple(self.image.shape) != (self.height, self.width, 3):
+            raise ValueError(
+                f"Camera {self.name!r}: image must be (H, W, 3) = ({self.height}, {self.width}, 3), "
+                f"got {tuple(self.image.shape)}"
+            )
+        if not torch.isfinite(self.K).all() or not torch.isfinite(self.viewmat).all():
+            raise ValueError(f"Camera {self.name!r}: K or viewmat contains NaN/Inf")
+
+    @property
+    def camtoworld(self) -> Tensor:
+        return torch.linalg.inv(self.viewmat.double()).float()
+
+    @property
+    def center(self) -> Tensor:
+        return self.camtoworld[:3, 3]
+
+    def with_image(self, image: Optional[Tensor]) -> "Camera":
+        return replace(self, image=image)
+
+
+@dataclass
+class Scene:
+    """A normalised multi-view scene: train/test cameras and optional initial points."""
+
+    name: str
+    train: list[Camera]
+    test: list[Camera]
+    points: Optional[Tensor] = None  # (M, 3) float32 initial points (SfM or ground truth)
+    point_colors: Optional[Tensor] = None  # (M, 3) float32 in [0, 1]
+    extent: float = 1.0  # radius of the camera rig after normalisation (3DGS "cameras_extent")
+    bounds_min: Tensor = field(default_factory=lambda: -torch.ones(3))  # (3,) for random init
+    bounds_max: Tensor = field(default_factory=lambda: torch.ones(3))  # (3,)
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
