@@ -1,0 +1,18 @@
+"""b3dgs: Bayesian 3D Gaussian Splatting on the CPU (PyTorch Lightning + Hydra)."""
+# PIL's PNG/zlib bindings must be loaded before pycolmap's (a zlib clash seen with pycolmap 4.2.1).
+import PIL.Image  # noqa: F401
+import PIL.PngImagePlugin  # noqa: F401
+
+__version__ = "0.1.0"
+
+
+def _register_resolvers() -> None:
+    from pathlib import Path
+
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.has_resolver("b3dgs.basename"):
+        OmegaConf.register_new_resolver("b3dgs.basename", lambda p: Path(str(p)).name if p else "scene")
+
+
+_register_resolvers()

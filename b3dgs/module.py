@@ -1,0 +1,271 @@
+"""``SplatModule``: the LightningModule that owns the Gaussians, the renderer and the optimizer."""
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections import OrderedDict
+from typing import Any, Mapping, Optional, Sequence
+
+import lightning as L
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from b3dgs.init import init_gaussians
+from b3dgs.ops import TopologyOps
+from b3dgs.plugin import Plugin, PosteriorBlock
+from b3dgs.render.render import RenderOutput, render
+from b3dgs.types import Camera, Scene
+
+log = logging.getLogger(__name__)
+
+PARAM_ORDER = ("means", "scales", "quats", "opacities", "sh0", "shN")
+
+
+def dssim_ssim(pred: Tensor, gt: Tensor) -> Tensor:
+    """Mean SSIM (11x11 Gaussian window, sigma 1.5) of (H, W, 3) images, via kornia."""
+    import kornia
+
+    a = pred.permute(2, 0, 1).unsqueeze(0)
+    b = gt.permute(2, 0, 1).unsqueeze(0)
+    return kornia.metrics.ssim(a, b, window_size=11, max_val=1.0).mean()
+
+
+class SplatModule(L.LightningModule):
+    """3DGS training with manual optimization.
+
+    One Adam optimizer holds one parameter group per Gaussian attribute (each with its own learning
+    rate and independent moments, equivalent to one Adam per group) so that Lightning's
+    ``global_step`` equals the training iteration. The means' learning rate decays exponentially and
+    is scaled by the scene extent, as in 3DGS. Loss: (1-λ)·L1 + λ·(1-SSIM).
+    """
+
+    def __init__(
+        self,
+        strategy: Plugin,
+        posterior: Optional[Mapping[str, PosteriorBlock]] = None,
+        sh_degree: int = 3,
+        sh_increase_every: int = 1000,
+        lambda_dssim: float = 0.2,
+        lr_means: float = 1.6e-4,
+        lr_means_final: float = 1.6e-6,
+        lr_scales: float = 5e-3,
+        lr_quats: float = 1e-3,
+        lr_opacities: float = 5e-2,
+        lr_sh0: float = 2.5e-3,
+        lr_shN: float = 2.5e-3 / 20,
+        background: Sequence[float] = (0.0, 0.0, 0.0),
+        renderer: str = "cpu",
+        init_max_points: Optional[int] = None,
+        init_num_random: int = 20000,
+        init_opacity: float = 0.1,
+        max_steps: int = 30000,
+        seed: int = 0,
+        name: str = "standard",
+    ) -> None:
+        super().__init__()
+        self.automatic_optimization = False
+        if not 0.0 <= lambda_dssim <= 1.0:
+            raise ValueError(f"model.lambda_dssim must be in [0, 1], got {lambda_dssim}")
+        if not 0 <= sh_degree <= 3:
+            raise ValueError(f"model.sh_degree must be in 0..3, got {sh_degree}")
+        if renderer not in ("cpu", "torch"):
+            raise ValueError(f"renderer must be 'cpu' or 'torch', got {renderer!r}")
+        if max_steps <= 0:
+            raise ValueError(f"trainer.max_steps must be > 0, got {max_steps}")
+        self.save_hyperparameters(ignore=["strategy", "posterior"])
+        self.strategy = strategy
+        self.posterior: "OrderedDict[str, PosteriorBlock]" = OrderedDict(posterior or {})
+        self.strategy.check_sanity()
+        for blk in self.posterior.values():
+            blk.check_sanity(max_steps=max_steps)
+        self.splats = nn.ParameterDict()
+        self.states: dict[str, dict] = {}
+        self.scene: Optional[Scene] = None
+        self.ops: Optional[TopologyOps] = None
+        self.block_time_s: dict[str, float] = {name: 0.0 for name in self.posterior}
+        self.register_buffer("bg", torch.tensor(list(background), dtype=torch.float32), persistent=False)
+
+    # ------------------------------------------------------------------ set-up
+    @property
+    def plugins(self) -> "OrderedDict[str, Plugin]":
+        p: "OrderedDict[str, Plugin]" = OrderedDict(strategy=self.strategy)
+        p.update(self.posterior)
+        return p
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.splats["means"].shape[0]) if "means" in self.splats else 0
+
+    def setup(self, stage: str) -> None:
+        if "means" in self.splats:
+            return
+        dm = self.trainer.datamodule if self._trainer is not None else None
+        if dm is None or getattr(dm, "scene", None) is None:
+            raise RuntimeError("SplatModule needs a datamodule exposing `.scene` (set up before the module)")
+        self.init_from_scene(dm.scene)
+
+    def init_from_scene(self, scene: Scene) -> None:
+        """Create the Gaussians and every plugin's state for ``scene``."""
+        self.scene = scene
+        g = torch.Generator().manual_seed(int(self.hparams.seed))
+        params = init_gaussians(
+            scene, self.hparams.sh_degree, self.hparams.init_max_points, self.hparams.init_num_random,
+            self.hparams.init_opacity, generator=g,
+        )
+        self._set_params(params)
+        self._init_states()
+
+    def _set_params(self, params: Mapping[str, Tensor]) -> None:
+        self.splats = nn.ParameterDict({k: nn.Parameter(params[k].contiguous()) for k in PARAM_ORDER})
+
+    def _init_states(self) -> None:
+        n = self.num_gaussians
+        self.states = {"core": {"ids": torch.arange(n), "parent_ids": torch.full((n,), -1, dtype=torch.long), "next_id": torch.tensor(n)}}
+        info = self._static_info()
+        for name, plugin in self.plugins.items():
+            self.states[name] = plugin.initialize_state(splats=self.splats, scene=self.scene, info=info)
+
+    def _static_info(self) -> dict:
+        extent = float(self.scene.extent) if self.scene is not None else 1.0
+        return {"scene_extent": extent, "max_steps": int(self.hparams.max_steps)}
+
+    def configure_optimizers(self):
+        hp = self.hparams
+        extent = float(self.scene.extent) if self.scene is not None else 1.0
+        lrs = {
+            "means": hp.lr_means * extent, "scales": hp.lr_scales, "quats": hp.lr_quats,
+            "opacities": hp.lr_opacities, "sh0": hp.lr_sh0, "shN": hp.lr_shN,
+        }
+        groups = [{"params": [self.splats[k]], "lr": lrs[k], "name": k} for k in PARAM_ORDER]
+        opt = torch.optim.Adam(groups, eps=1e-15)
+        return opt
+
+    def _torch_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        opt = self.optimizers()
+        opt = opt.optimizer if hasattr(opt, "optimizer") else opt
+        return {"gaussians": opt}
+
+    def _get_ops(self) -> TopologyOps:
+        if self.ops is None or self.ops.splats is not self.splats:
+            self.ops = TopologyOps(self.splats, self._torch_optimizers(), self.states, dict(self.plugins))
+        return self.ops
+
+    def means_lr(self, step: int) -> float:
+        """Exponential decay from ``lr_means`` to ``lr_means_final`` over ``max_steps``, times the extent."""
+        hp = self.hparams
+        t = min(max(step / max(hp.max_steps, 1), 0.0), 1.0)
+        lr = math.exp((1 - t) * math.log(hp.lr_means) + t * math.log(hp.lr_means_final))
+        extent = float(self.scene.extent) if self.scene is not None else 1.0
+        return lr * extent
+
+    def active_sh_degree(self, step: Optional[int] = None) -> int:
+        step = self.global_step if step is None else step
+        return min(self.hparams.sh_degree, step // max(self.hparams.sh_increase_every, 1))
+
+    # ------------------------------------------------------------------ rendering
+    def params(self) -> dict[str, Tensor]:
+        return {k: self.splats[k] for k in PARAM_ORDER}
+
+    def render_camera(self, camera: Camera, params: Optional[Mapping[str, Tensor]] = None, **kw) -> RenderOutput:
+        return render(
+            params if params is not None else self.params(), camera,
+            sh_degree=kw.pop("sh_degree", self.active_sh_degree()), background=self.bg,
+            backend=kw.pop("backend", self.hparams.renderer), **kw,
+        )
+
+    def transfer_batch_to_device(self, batch, device, dataloader_idx):
+        return batch  # cameras stay on the CPU
+
+    # ------------------------------------------------------------------ training
+    def training_step(self, batch: Camera, batch_idx: int):
+        cam = batch[0] if isinstance(batch, (list, tuple)) else batch
+        step = int(self.global_step)
+        opt = self.optimizers()
+        topt = opt.optimizer if hasattr(opt, "optimizer") else opt
+        for group in topt.param_groups:
+            if group.get("name") == "means":
+                group["lr"] = self.means_lr(step)
+        ops = self._get_ops()
+        ops.step = step
+        need_weights = any(getattr(b, "needs_weights", False) for b in self.posterior.values())
+        out = self.render_camera(cam, retain_means2d_grad=True, return_weights=need_weights)
+        gt = cam.image
+        l1 = (out.rgb - gt).abs().mean()
+        ssim = dssim_ssim(out.rgb, gt)
+        lam = self.hparams.lambda_dssim
+        loss = (1 - lam) * l1 + lam * (1 - ssim)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(
+                f"Non-finite loss at step {step} (camera {cam.name}); lower the learning rates or check the data"
+            )
+        info = {
+            **self._static_info(), "ops": ops, "camera": cam, "render": out, "means2d": out.means2d,
+            "radii": out.radii, "width": cam.width, "height": cam.height, "gt": gt, "loss": loss.detach(),
+            "l1": l1.detach(), "sq_err_sum": ((out.rgb.detach() - gt) ** 2).sum(), "num_values": gt.numel(),
+        }
+        optimizers = self._torch_optimizers()
+        self._call_hooks("step_pre_backward", optimizers, step, info)
+        self.manual_backward(loss)
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+        self._call_hooks("step_post_backward", optimizers, step, info)
+        self.log_dict(
+            {"train/loss": loss.detach(), "train/l1": l1.detach(), "train/num_gaussians": float(self.num_gaussians),
+             "train/lr_means": self.means_lr(step)},
+            on_step=True, prog_bar=False, logger=True, batch_size=1,
+        )
+        self.log("n", float(self.num_gaussians), prog_bar=True, logger=False, batch_size=1)
+        self.log("loss", loss.detach(), prog_bar=True, logger=False, batch_size=1)
+        return loss.detach()
+
+    def _call_hooks(self, hook: str, optimizers, step: int, info: dict) -> None:
+        # the strategy runs after the posterior blocks so that blocks see the pre-densification set
+        for name in list(self.posterior.keys()) + ["strategy"]:
+            plugin = self.plugins[name]
+            t0 = time.perf_counter()
+            getattr(plugin, hook)(splats=self.splats, optimizers=optimizers, state=self.states[name], step=step, info=info)
+            if name in self.block_time_s:
+                self.block_time_s[name] += time.perf_counter() - t0
+
+    # ------------------------------------------------------------------ checkpoints
+    def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        checkpoint["b3dgs"] = {
+            "states": self.states,
+            "removed": dict(self.ops.removed) if self.ops else {},
+            "added": dict(self.ops.added) if self.ops else {},
+            "block_time_s": dict(self.block_time_s),
+            "scene_extent": float(self.scene.extent) if self.scene is not None else None,
+        }
+
+    def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        sd = checkpoint["state_dict"]
+        shapes = {k: sd[f"splats.{k}"] for k in PARAM_ORDER if f"splats.{k}" in sd}
+        if len(shapes) != len(PARAM_ORDER):
+            raise ValueError("Checkpoint has no Gaussian parameters (splats.*); is it a b3dgs checkpoint?")
+        # resize before Lightning loads the state dict (the Gaussian count changes during training)
+        self.splats = nn.ParameterDict({k: nn.Parameter(torch.empty_like(v)) for k, v in shapes.items()})
+        extra = checkpoint.get("b3dgs", {})
+        self.states = extra.get("states", self.states)
+        self.block_time_s.update(extra.get("block_time_s", {}))
+        self.ops = None
+        self._restored_counts = (extra.get("removed", {}), extra.get("added", {}))
+
+    def on_train_start(self) -> None:
+        ops = self._get_ops()
+        removed, added = getattr(self, "_restored_counts", ({}, {}))
+        ops.removed.update(removed)
+        ops.added.update(added)
+
+    # ------------------------------------------------------------------ evaluation
+    @torch.no_grad()
+    def render_eval(self, camera: Camera) -> Tensor:
+        return self.render_camera(camera, sh_degree=self.active_sh_degree()).rgb.clamp(0, 1)
+
+    def export_extras(self) -> dict[str, Tensor]:
+        extras: dict[str, Tensor] = {}
+        for name, blk in self.posterior.items():
+            for k, v in blk.export(state=self.states[name]).items():
+                extras[k] = v
+        return extras

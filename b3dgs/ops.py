@@ -1,0 +1,168 @@
+"""Topology ops: clone, split, prune and opacity reset.
+
+They re-index every Gaussian parameter, the optimizer's moments and every plugin's per-Gaussian state
+(tensors whose first dimension is N), and keep a stable id and the parent's id for every Gaussian.
+"""
+from __future__ import annotations
+
+from collections import Counter
+from typing import Callable, Optional
+
+import torch
+from torch import Tensor, nn
+
+from b3dgs.render.projection import quat_to_rotmat
+
+
+def _reindex_tree(obj, index: Tensor, n_old: int):
+    if isinstance(obj, Tensor):
+        return obj[index] if obj.dim() >= 1 and obj.shape[0] == n_old else obj
+    if isinstance(obj, dict):
+        return {k: _reindex_tree(v, index, n_old) for k, v in obj.items()}
+    return obj
+
+
+def find_param_state(optimizer: torch.optim.Optimizer, param: Tensor):
+    for group in optimizer.param_groups:
+        for i, p in enumerate(group["params"]):
+            if p is param:
+                return group, i
+    return None, None
+
+
+class TopologyOps:
+    """Structural edits of a Gaussian set. One instance per training run; plugins reach it as ``info["ops"]``."""
+
+    def __init__(
+        self,
+        splats: nn.ParameterDict,
+        optimizers: dict[str, torch.optim.Optimizer],
+        states: dict[str, dict],
+        plugins: dict[str, object],
+        on_change: Optional[Callable[[], None]] = None,
+    ) -> None:
+        self.splats = splats
+        self.optimizers = optimizers
+        self.states = states  # name -> plugin state (includes "core": ids, parent_ids)
+        self.plugins = plugins  # name -> plugin (for on_topology)
+        self.removed: Counter[str] = Counter()
+        self.added: Counter[str] = Counter()
+        self.step = 0
+        self.on_change = on_change
+
+    @property
+    def num(self) -> int:
+        return int(self.splats["means"].shape[0])
+
+    # ------------------------------------------------------------------ primitive
+    def gather(self, index: Tensor, fresh: Tensor, overrides: Optional[dict[str, Tensor]] = None, op: str = "gather") -> None:
+        """Replace the set by rows ``index`` of the old one; rows flagged ``fresh`` are new children
+        (zeroed optimizer moments, new ids with the source row's id as parent). ``overrides`` maps a
+        parameter name to its full new (N', ...) tensor."""
+        n_old = self.num
+        index = index.long()
+        if index.dim() != 1 or fresh.shape != index.shape:
+            raise ValueError("gather: index and fresh must be 1-D and of equal length")
+        overrides = overrides or {}
+        for name in list(self.splats.keys()):
+            old = self.splats[name]
+            new_data = overrides[name].detach() if name in overrides else old.data[index]
+            new = nn.Parameter(new_data.contiguous(), requires_grad=old.requires_grad)
+            for opt in self.optimizers.values():
+                group, i = find_param_state(opt, old)
+                if group is None:
+                    continue
+                st = opt.state.pop(old, None)
+                if st:
+                    for key, v in list(st.items()):
+                        if isinstance(v, Tensor) and v.dim() >= 1 and v.shape[0] == n_old:
+                            v = v[index].clone()
+                            v[fresh] = 0
+                            st[key] = v
+                    opt.state[new] = st
+                group["params"][i] = new
+            self.splats[name] = new
+        core = self.states["core"]
+        parent_src = core["ids"][index]
+        for name, st in self.states.items():
+            self.states[name] = _reindex_tree(st, index, n_old)
+            st_new = self.states[name]
+            st.clear()
+            st.update(st_new)  # keep dict identity so plugins holding a reference stay valid
+        core = self.states["core"]
+        n_fresh = int(fresh.sum())
+        if n_fresh:
+            start = int(core["next_id"])
+            core["ids"][fresh] = torch.arange(start, start + n_fresh, dtype=torch.long)
+            core["parent_ids"][fresh] = parent_src[fresh]
+            core["next_id"] = torch.tensor(start + n_fresh)
+        info = {"op": op, "index": index, "fresh": fresh, "parent_ids": parent_src, "n_old": n_old}
+        for name, plugin in self.plugins.items():
+            plugin.on_topology(splats=self.splats, optimizers=self.optimizers, state=self.states[name], step=self.step, info=info)
+        if self.on_change is not None:
+            self.on_change()
+
+    # ------------------------------------------------------------------ 3DGS ops
+    def clone(self, mask: Tensor, reason: str = "densify") -> int:
+        """Duplicate the Gaussians in ``mask`` (3DGS clone of small, under-reconstructed Gaussians)."""
+        sel = torch.nonzero(mask, as_tuple=False).flatten()
+        if sel.numel() == 0:
+            return 0
+        n = self.num
+        index = torch.cat([torch.arange(n), sel])
+        fresh = torch.zeros(index.shape[0], dtype=torch.bool)
+        fresh[n:] = True
+        self.gather(index, fresh, op="clone")
+        self.added[reason] += sel.numel()
+        return sel.numel()
+
+    def split(self, mask: Tensor, n_children: int = 2, reason: str = "densify", scale_div: float = 1.6) -> int:
+        """Replace each Gaussian in ``mask`` by ``n_children`` children sampled from it, scales / ``scale_div``."""
+        sel = torch.nonzero(mask, as_tuple=False).flatten()
+        if sel.numel() == 0:
+            return 0
+        keep = torch.nonzero(~mask, as_tuple=False).flatten()
+        src = sel.repeat(n_children)
+        index = torch.cat([keep, src])
+        fresh = torch.zeros(index.shape[0], dtype=torch.bool)
+        fresh[keep.numel():] = True
+        sp = self.splats
+        scales = torch.exp(sp["scales"].data[src])
+        R = quat_to_rotmat(sp["quats"].data[src])
+        offset = (R @ (torch.randn_like(scales) * scales).unsqueeze(-1)).squeeze(-1)
+        means = torch.cat([sp["means"].data[keep], sp["means"].data[src] + offset])
+        log_scales = torch.cat([sp["scales"].data[keep], torch.log(scales / scale_div)])
+        self.gather(index, fresh, {"means": means, "scales": log_scales}, op="split")
+        self.added[reason] += src.numel()
+        self.removed[reason + "_split_parent"] += sel.numel()
+        return sel.numel()
+
+    def prune(self, mask: Tensor, reason: str) -> int:
+        """Remove the Gaussians in ``mask``; at least one Gaussian is always kept."""
+        n = self.num
+        if mask.shape != (n,):
+            raise ValueError(f"prune: mask must have shape ({n},), got {tuple(mask.shape)}")
+        mask = mask.clone()
+        if bool(mask.all()):
+            # keep the most opaque Gaussian so the model never becomes empty
+            mask[torch.argmax(self.splats["opacities"].data)] = False
+        k = int(mask.sum())
+        if k == 0:
+            return 0
+        keep = torch.nonzero(~mask, as_tuple=False).flatten()
+        self.gather(keep, torch.zeros(keep.numel(), dtype=torch.bool), op="prune")
+        self.removed[reason] += k
+        return k
+
+    def reset_opacity(self, value: float) -> None:
+        """Clamp opacities to at most ``value`` and zero their optimizer moments (3DGS opacity reset)."""
+        p = self.splats["opacities"]
+        logit = torch.logit(torch.tensor(value, dtype=p.dtype))
+        with torch.no_grad():
+            p.data.clamp_(max=float(logit))
+        for opt in self.optimizers.values():
+            st = opt.state.get(p)
+            if st:
+                for key, v in st.items():
+                    if isinstance(v, Tensor) and v.shape == p.shape:
+                        v.zero_()

@@ -1,0 +1,64 @@
+"""Plugin base classes: one keyword hook signature shared by every plugin kind.
+
+Every hook is called as ``hook(splats=, optimizers=, state=, step=, info=)``:
+- ``splats``: the ``nn.ParameterDict`` of Gaussian parameters (means, quats, scales, opacities, sh0, shN);
+- ``optimizers``: dict name -> torch optimizer;
+- ``state``: the plugin's own dict from ``initialize_state``; every tensor whose first dimension is N is
+  re-indexed by the core's topology ops (clone, split, prune), so per-Gaussian state follows the Gaussians;
+- ``step``: the training iteration (0-based);
+- ``info``: everything else (render outputs, image size, scene extent, ``ops`` for topology changes, ...).
+New needs go into ``info``, never into new arguments, so the core never branches on a plugin's type.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Optional
+
+import torch
+from torch import Tensor
+
+
+@dataclass
+class Plugin:
+    """Base of every plugin kind (strategies, posterior blocks). All hooks are no-ops by default."""
+
+    def check_sanity(self, **kwargs: Any) -> None:
+        """Validate configuration values; raise ValueError naming the bad field and the fix."""
+
+    def initialize_state(self, *, splats, scene, info: dict) -> dict:
+        return {}
+
+    def step_pre_backward(self, *, splats, optimizers, state, step, info) -> None:
+        pass
+
+    def step_post_backward(self, *, splats, optimizers, state, step, info) -> None:
+        pass
+
+    def on_topology(self, *, splats, optimizers, state, step, info) -> None:
+        """Called after clone/split/prune. ``info`` holds ``op``, ``index`` (N',) source rows,
+        ``fresh`` (N',) bool rows that are new children, and ``parent_ids``."""
+
+
+@dataclass
+class PosteriorBlock(Plugin):
+    """A posterior block: closed-form or approximate posterior updates around the optimizer."""
+
+    def sample(self, *, splats, state, n: int, generator: Optional[torch.Generator], params: dict, info: dict) -> dict:
+        """Return ``params`` with the attributes this block samples replaced by (n, N, ...) draws."""
+        return params
+
+    def posterior_mean(self, *, splats, state, params: dict) -> dict:
+        """Return ``params`` with this block's attributes at their posterior mean."""
+        return params
+
+    def aleatoric_variance(self, *, state) -> Optional[float]:
+        """Per-pixel aleatoric variance this block provides (noise posterior), or None."""
+        return None
+
+    def export(self, *, state) -> dict[str, Tensor]:
+        """Per-Gaussian summaries (N,) or (N, d) for PLY export and reports."""
+        return {}
+
+    def summary(self, *, state) -> dict[str, Any]:
+        """Scalar diagnostics for metrics.json."""
+        return {}

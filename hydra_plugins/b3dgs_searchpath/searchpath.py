@@ -1,0 +1,37 @@
+"""Hydra search-path plugin: config options contributed by installed packages.
+
+A package adds options to b3dgs's config groups by shipping ``its_pkg/conf/<group>/<name>.yaml`` and
+declaring one entry point::
+
+    [project.entry-points."b3dgs.conf"]
+    its_pkg = "its_pkg.conf"
+
+Each entry point's value is appended to the search path as ``pkg://<value>``. The plugin acts only
+when the primary config is b3dgs's own (Hydra runs every installed search-path plugin for every app).
+"""
+from __future__ import annotations
+
+from importlib.metadata import entry_points
+from pathlib import Path
+
+from hydra.core.config_search_path import ConfigSearchPath
+from hydra.plugins.search_path_plugin import SearchPathPlugin
+
+ENTRY_POINT_GROUP = "b3dgs.conf"
+_B3DGS_CONF = (Path(__file__).resolve().parents[2] / "conf").as_posix()
+
+
+def _is_b3dgs_app(search_path: ConfigSearchPath) -> bool:
+    for element in search_path.get_path():
+        path = str(element.path).replace("file://", "")
+        if element.provider == "main" and Path(path).resolve().as_posix() == _B3DGS_CONF:
+            return True
+    return False
+
+
+class B3dgsSearchPathPlugin(SearchPathPlugin):
+    def manipulate_search_path(self, search_path: ConfigSearchPath) -> None:
+        if not _is_b3dgs_app(search_path):
+            return
+        for ep in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
+            search_path.append(provider=f"b3dgs-ext-{ep.name}", path=f"pkg://{ep.value}")

@@ -1,0 +1,107 @@
+"""3DGS adaptive density control: clone, split, prune and opacity reset (Kerbl et al. 2023)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+from b3dgs.plugin import Plugin
+
+
+@dataclass
+class AdaptiveDensityControl(Plugin):
+    """Standard 3DGS densification.
+
+    Gaussians whose mean view-space positional gradient (in NDC units, as in 3DGS) exceeds
+    ``grad_threshold`` are cloned when small (max scale <= ``percent_dense`` x scene extent) and
+    split into two when large. Low-opacity Gaussians are pruned at every refinement; after the
+    first opacity reset, Gaussians that are huge in world or screen space are pruned too.
+    ``max_gaussians`` caps growth: when the candidates would exceed it, the highest-gradient
+    ones are densified first.
+    """
+
+    refine_start: int = 500
+    refine_stop: int = 15000
+    refine_every: int = 100
+    grad_threshold: float = 0.0002
+    percent_dense: float = 0.01
+    prune_opacity: float = 0.005
+    reset_every: int = 3000
+    max_screen_fraction: float = 0.15
+    max_world_scale: float = 0.1
+    max_gaussians: Optional[int] = 1_000_000
+
+    def check_sanity(self, **kwargs) -> None:
+        if self.refine_every <= 0:
+            raise ValueError("strategy.refine_every must be > 0")
+        if self.refine_start < 0 or self.refine_stop < self.refine_start:
+            raise ValueError("strategy.refine_start must be >= 0 and <= strategy.refine_stop")
+        if self.grad_threshold <= 0:
+            raise ValueError("strategy.grad_threshold must be > 0")
+        if not 0 < self.prune_opacity < 1:
+            raise ValueError("strategy.prune_opacity must be in (0, 1)")
+        if self.max_gaussians is not None and self.max_gaussians < 1:
+            raise ValueError("strategy.max_gaussians must be >= 1 or null")
+
+    def initialize_state(self, *, splats, scene, info):
+        n = splats["means"].shape[0]
+        return {
+            "grad2d": torch.zeros(n),
+            "count": torch.zeros(n),
+            "max_radii": torch.zeros(n),
+        }
+
+    def step_post_backward(self, *, splats, optimizers, state, step, info):
+        if step >= self.refine_stop:
+            return
+        means2d = info["means2d"]
+        if means2d.grad is None:
+            return
+        width, height = info["width"], info["height"]
+        g = means2d.grad[0].detach().clone()
+        g[:, 0] *= 0.5 * width
+        g[:, 1] *= 0.5 * height
+        radii = info["radii"][0]
+        vis = radii > 0
+        state["grad2d"][vis] += g[vis].norm(dim=-1)
+        state["count"][vis] += 1
+        state["max_radii"][vis] = torch.maximum(state["max_radii"][vis], radii[vis] / float(max(width, height)))
+
+        if step > self.refine_start and step % self.refine_every == 0:
+            self._refine(splats, state, step, info)
+            for k in ("grad2d", "count", "max_radii"):
+                state[k].zero_()
+        if step > 0 and step % self.reset_every == 0 and step < self.refine_stop:
+            info["ops"].reset_opacity(2.0 * self.prune_opacity)
+
+    @torch.no_grad()
+    def _refine(self, splats, state, step, info) -> None:
+        ops = info["ops"]
+        extent = info["scene_extent"]
+        avg = state["grad2d"] / state["count"].clamp_min(1)
+        high = avg > self.grad_threshold
+        small = torch.exp(splats["scales"]).amax(dim=-1) <= self.percent_dense * extent
+        clone = high & small
+        split = high & ~small
+        n = ops.num
+        if self.max_gaussians is not None:
+            budget = max(self.max_gaussians - n, 0)
+            # a clone adds one Gaussian, a split adds one net (two children replace the parent)
+            cand = torch.nonzero(clone | split, as_tuple=False).flatten()
+            if cand.numel() > budget:
+                order = torch.argsort(avg[cand], descending=True, stable=True)
+                chosen = torch.zeros_like(high)
+                chosen[cand[order[:budget]]] = True
+                clone &= chosen
+                split &= chosen
+        n_clone = int(clone.sum())
+        ops.clone(clone)
+        # the clones are appended; extend the split mask accordingly
+        split = torch.cat([split, torch.zeros(n_clone, dtype=torch.bool)])
+        ops.split(split)
+        prune = torch.sigmoid(splats["opacities"]) < self.prune_opacity
+        if step > self.reset_every:
+            prune |= state["max_radii"] > self.max_screen_fraction
+            prune |= torch.exp(splats["scales"]).amax(dim=-1) > self.max_world_scale * extent
+        ops.prune(prune, reason="opacity")
