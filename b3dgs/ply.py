@@ -1,0 +1,216 @@
+"""Gaussian splat export/import in the standard 3D Gaussian Splatting PLY layout.
+
+One ``vertex`` element, binary little-endian, all properties ``float`` (float32), in this order:
+
+``x y z  nx ny nz  f_dc_0..2  f_rest_0..(3K-1)  opacity  scale_0..2  rot_0..3  <extras>``
+
+* ``nx ny nz`` are zeros (the layout has them; nothing uses them);
+* ``f_dc_*`` are the degree-0 SH coefficients per colour channel;
+* ``f_rest_*`` are the remaining ``K`` SH coefficients, channel-major as in the reference 3DGS code:
+  ``f_rest_{c*K + j}`` is coefficient ``j`` of colour channel ``c`` (``K = 15`` for SH degree 3);
+* ``opacity`` is the pre-sigmoid logit, ``scale_*`` the log-scales, ``rot_*`` the quaternion ``w, x, y, z``
+  (as stored, not normalised);
+* extras follow as float32: a ``(N,)`` extra ``name`` becomes property ``name``, a ``(N, d)`` extra
+  becomes ``name_0 .. name_{d-1}``.
+
+:func:`read_ply` reverses this. Any vertex property outside the standard set is returned as an extra,
+``name_0 .. name_{d-1}`` (indices contiguous from 0, no plain ``name`` alongside) regrouped into an
+``(N, d)`` tensor; so a ``(N, 1)`` extra comes back as ``(N, 1)``.
+"""
+from __future__ import annotations
+
+import os
+import re
+from collections import OrderedDict
+from pathlib import Path
+from typing import Mapping, Optional
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from b3dgs.io import atomic_path
+
+__all__ = ["write_ply", "read_ply", "standard_property_names"]
+
+_BASE_BEFORE = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+_BASE_AFTER = ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+_NAME_RE = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*$")
+_REST_RE = re.compile(r"^f_rest_(\d+)$")
+_INDEXED_RE = re.compile(r"^(.+)_(\d+)$")
+
+
+def standard_property_names(num_rest: int) -> list[str]:
+    """The standard property names for ``num_rest`` SH rest coefficients per channel (K)."""
+    return _BASE_BEFORE + [f"f_rest_{i}" for i in range(3 * num_rest)] + _BASE_AFTER
+
+
+def _as_f32(name: str, x, shape: tuple) -> np.ndarray:
+    """Convert to a float32 numpy array and check the shape (-1 entries are free, checked by caller)."""
+    if isinstance(x, Tensor):
+        x = x.detach().cpu()
+        if x.dtype == torch.bfloat16:
+            x = x.float()
+        x = x.numpy()
+    a = np.asarray(x, dtype=np.float32)
+    if a.ndim != len(shape) or any(s != -1 and s != t for s, t in zip(shape, a.shape)):
+        want = "(" + ", ".join("N" if i == 0 else ("K" if s == -1 else str(s)) for i, s in enumerate(shape)) + ")"
+        raise ValueError(f"write_ply: {name} must have shape {want}, got {tuple(a.shape)}")
+    if not np.isfinite(a).all():
+        raise ValueError(f"write_ply: {name} contains NaN or Inf")
+    return a
+
+
+def write_ply(
+    path: str | os.PathLike,
+    means: Tensor,
+    scales_log: Tensor,
+    quats: Tensor,
+    opacity_logit: Tensor,
+    sh0: Tensor,
+    shN: Optional[Tensor] = None,
+    extra: Optional[Mapping[str, Tensor]] = None,
+) -> Path:
+    """Write Gaussians to ``path`` (atomically) in the standard 3DGS PLY layout; return the path.
+
+    Shapes: ``means`` (N, 3); ``scales_log`` (N, 3); ``quats`` (N, 4) as w, x, y, z; ``opacity_logit``
+    (N,) (an (N, 1) tensor is accepted); ``sh0`` (N, 3) DC coefficients ((N, 1, 3) accepted); ``shN``
+    (N, K, 3) rest coefficients, K >= 0 (None means K = 0); ``extra``: name -> (N,) or (N, d) values.
+    All values must be finite; they are stored as float32. Tensors may require grad (they are detached).
+    """
+    m = _as_f32("means", means, (-1, 3))
+    n = m.shape[0]
+    s = _as_f32("scales_log", scales_log, (n, 3))
+    q = _as_f32("quats", quats, (n, 4))
+    o = opacity_logit
+    if isinstance(o, (Tensor, np.ndarray)) and o.ndim == 2 and o.shape[1] == 1:
+        o = o[:, 0]
+    o = _as_f32("opacity_logit", o, (n,))
+    d = sh0
+    if isinstance(d, (Tensor, np.ndarray)) and d.ndim == 3 and d.shape[1] == 1:
+        d = d[:, 0]
+    d = _as_f32("sh0", d, (n, 3))
+    r = np.zeros((n, 0, 3), np.float32) if shN is None else _as_f32("shN", shN, (n, -1, 3))
+    k = r.shape[1]
+
+    names = standard_property_names(k)
+    columns: list[np.ndarray] = [m, np.zeros((n, 3), np.float32), d,
+                                 r.transpose(0, 2, 1).reshape(n, 3 * k),  # channel-major: c*K + j
+                                 o[:, None], s, q]
+    for key, val in (extra or {}).items():
+        if not isinstance(key, str) or not _NAME_RE.match(key):
+            raise ValueError(f"write_ply: extra name {key!r} is not a valid PLY property name")
+        ndim = val.ndim if hasattr(val, "ndim") else np.ndim(val)
+        if ndim == 1:
+            a = _as_f32(f"extra[{key!r}]", val, (n,))
+            names.append(key)
+            columns.append(a[:, None])
+        elif ndim == 2:
+            a = _as_f32(f"extra[{key!r}]", val, (n, -1))
+            names.extend(f"{key}_{i}" for i in range(a.shape[1]))
+            columns.append(a)
+        else:
+            raise ValueError(f"write_ply: extra[{key!r}] must have shape (N,) or (N, d), got {tuple(np.shape(val))}")
+    seen: set[str] = set()
+    for nm in names:
+        if nm in seen:
+            raise ValueError(f"write_ply: property name {nm!r} would appear twice (extra names clash)")
+        seen.add(nm)
+
+    data = np.concatenate(columns, axis=1) if n else np.zeros((0, len(names)), np.float32)
+    data = np.ascontiguousarray(data, dtype="<f4")
+    assert data.shape[1] == len(names)
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
+    header += [f"property float {nm}" for nm in names]
+    header.append("end_header")
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            f.write(("\n".join(header) + "\n").encode("ascii"))
+            f.write(data.tobytes())
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600; an export is meant to be shared
+    return path
+
+
+def read_ply(path: str | os.PathLike) -> dict:
+    """Read a standard 3DGS PLY file (any PLY encoding plyfile reads).
+
+    Returns ``{"means", "scales_log", "quats", "opacity_logit", "sh0", "shN", "extra"}`` with float32
+    tensors shaped as :func:`write_ply` takes them (``shN`` is (N, K, 3), K = 0 when there are no
+    ``f_rest_*``) and ``extra`` a dict name -> (N,) or (N, d). Raises ``FileNotFoundError`` for a
+    missing file and ``ValueError`` naming the problem for a malformed, truncated or incomplete file or
+    non-finite values.
+    """
+    from plyfile import PlyData, PlyParseError
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"PLY file {path} not found")
+    try:
+        with open(path, "rb") as f:
+            ply = PlyData.read(f, mmap=False)
+    except PlyParseError as e:
+        raise ValueError(f"{path}: not a readable PLY file ({e})") from e
+    except (ValueError, EOFError, UnicodeDecodeError, OSError) as e:
+        raise ValueError(f"{path}: not a readable PLY file (corrupt or truncated: {e})") from e
+    try:
+        vertex = ply["vertex"]
+    except KeyError:
+        raise ValueError(f"{path}: PLY file has no 'vertex' element") from None
+    arr = vertex.data
+    props = list(arr.dtype.names or ())
+    for p in props:
+        if arr.dtype[p].subdtype is not None or arr.dtype[p].kind not in "fiub":
+            raise ValueError(f"{path}: vertex property {p!r} is a list or non-numeric; expected scalars")
+
+    required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"] + _BASE_AFTER
+    for p in required:
+        if p not in props:
+            raise ValueError(f"{path}: PLY file lacks vertex property {p!r} required by the 3DGS layout")
+    rest_idx = sorted(int(mt.group(1)) for p in props if (mt := _REST_RE.match(p)))
+    if rest_idx != list(range(len(rest_idx))):
+        missing = sorted(set(range(max(rest_idx) + 1)) - set(rest_idx))
+        raise ValueError(f"{path}: PLY file lacks vertex property 'f_rest_{missing[0]}' (f_rest_* must be contiguous)")
+    if len(rest_idx) % 3:
+        raise ValueError(f"{path}: {len(rest_idx)} f_rest_* properties, not a multiple of 3 colour channels")
+    k = len(rest_idx) // 3
+    n = len(arr)
+
+    def cols(names: list[str]) -> np.ndarray:
+        if not names:
+            return np.zeros((n, 0), np.float32)
+        return np.stack([np.asarray(arr[nm], dtype=np.float32) for nm in names], axis=1)
+
+    out = {
+        "means": cols(["x", "y", "z"]),
+        "scales_log": cols(["scale_0", "scale_1", "scale_2"]),
+        "quats": cols(["rot_0", "rot_1", "rot_2", "rot_3"]),
+        "opacity_logit": cols(["opacity"])[:, 0],
+        "sh0": cols(["f_dc_0", "f_dc_1", "f_dc_2"]),
+        "shN": cols([f"f_rest_{i}" for i in range(3 * k)]).reshape(n, 3, k).transpose(0, 2, 1),
+    }
+
+    standard = set(standard_property_names(k))
+    others = [p for p in props if p not in standard]
+    groups: "OrderedDict[str, list[tuple[int, str]]]" = OrderedDict()
+    for p in others:
+        mt = _INDEXED_RE.match(p)
+        key = mt.group(1) if mt else p
+        groups.setdefault(key, []).append((int(mt.group(2)) if mt else -1, p))
+    extra: dict[str, np.ndarray] = OrderedDict()
+    for key, members in groups.items():
+        idx = sorted(i for i, _ in members)
+        if key not in others and idx == list(range(len(idx))):
+            extra[key] = cols([f"{key}_{i}" for i in idx])
+        else:  # not a clean name_0..name_{d-1} group: keep each property as it is
+            for _, p in members:
+                extra[p] = cols([p])[:, 0]
+
+    for name, a in list(out.items()) + [(f"extra[{k!r}]", v) for k, v in extra.items()]:
+        if not np.isfinite(a).all():
+            bad = int((~np.isfinite(a)).reshape(n, -1).any(axis=1).sum()) if n else 0
+            raise ValueError(f"{path}: {name} has non-finite values in {bad} of {n} vertices")
+
+    result = {key: torch.from_numpy(np.ascontiguousarray(v)) for key, v in out.items()}
+    result["extra"] = {key: torch.from_numpy(np.ascontiguousarray(v)) for key, v in extra.items()}
+    return result
