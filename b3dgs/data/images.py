@@ -1,0 +1,243 @@
+"""Image reading (PIL) and PNG writing (self-contained, stdlib ``zlib`` + ``struct``).
+
+Import-order hazard
+-------------------
+On this project's machines, importing ``pycolmap`` *before* PIL once made PIL's PNG encoder abort
+the whole process (``free(): invalid pointer`` inside zlib's ``deflateEnd``: two zlib builds
+clashing). To be immune whatever order a user imports in:
+
+* this module imports ``PIL.Image``, ``PIL.PngImagePlugin`` and PIL's C core ``PIL._imaging`` at
+  import time, and every b3dgs module that touches pycolmap imports this module first and only
+  imports ``pycolmap`` lazily, inside the function that needs it (see :func:`import_pycolmap`);
+* :func:`save_png` never uses PIL's encoder: PNG files are written by :func:`encode_png`, a small
+  encoder built on Python's own ``zlib`` and ``struct`` modules (8-bit gray / RGB / RGBA, filter
+  type 0), so writing images works even if pycolmap was imported before PIL.
+
+Reading uses PIL (decoding was never affected).
+"""
+from __future__ import annotations
+
+import os
+import struct
+import zlib
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import numpy as np
+
+# Import PIL (and its C core) eagerly, before anything can import pycolmap through b3dgs.
+import PIL.Image  # noqa: E402
+import PIL.PngImagePlugin  # noqa: F401,E402
+from PIL import _imaging  # noqa: F401,E402
+from PIL import Image, UnidentifiedImageError
+
+from b3dgs.io import atomic_path
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".bmp", ".tif", ".tiff", ".webp")
+
+__all__ = [
+    "IMAGE_EXTENSIONS",
+    "encode_png",
+    "image_size",
+    "import_pycolmap",
+    "list_images",
+    "load_image",
+    "save_png",
+    "target_size",
+]
+
+
+def import_pycolmap() -> Any:
+    """Import and return ``pycolmap``, making sure PIL (and its PNG plugin) is loaded first."""
+    import PIL.Image  # noqa: F401  (already imported above; explicit for clarity)
+    import PIL.PngImagePlugin  # noqa: F401
+
+    try:
+        import pycolmap
+    except ImportError as e:  # pragma: no cover - pycolmap is a hard dependency
+        raise ImportError("Reading COLMAP scenes needs pycolmap (`pip install pycolmap`).") from e
+    return pycolmap
+
+
+def target_size(width: int, height: int, max_side: Optional[int]) -> tuple[int, int]:
+    """Size (w, h) after downscaling so that the longest side is ``<= max_side`` (never upscales)."""
+    if max_side is None or max(width, height) <= max_side:
+        return int(width), int(height)
+    if max_side <= 0:
+        raise ValueError(f"max_side must be positive, got {max_side}")
+    s = max_side / max(width, height)
+    return max(1, int(round(width * s))), max(1, int(round(height * s)))
+
+
+def list_images(folder: str | os.PathLike) -> list[Path]:
+    """Image files directly inside ``folder``, sorted by name (hidden files skipped)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"Image folder not found: {folder}")
+    return sorted(
+        p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".") and p.suffix in IMAGE_EXTENSIONS
+    )
+
+
+def image_size(path: str | os.PathLike) -> tuple[int, int]:
+    """(width, height) of an image file, reading only its header."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"Image file not found: {path}")
+    try:
+        with Image.open(path) as im:
+            return int(im.width), int(im.height)
+    except (UnidentifiedImageError, OSError, ValueError) as e:
+        raise ValueError(f"Cannot read image {path}: {e}") from e
+
+
+def _to_float_rgb(im: Image.Image, background: Sequence[float]) -> np.ndarray:
+    """Decode a PIL image to float32 (H, W, 3) in [0, 1], compositing alpha over ``background``."""
+    mode = im.mode
+    if mode in ("I;16", "I;16B", "I;16L", "I"):
+        a = np.asarray(im, dtype=np.float32)
+        a = a / (65535.0 if a.max() > 255 else 255.0)
+        return np.repeat(np.clip(a, 0, 1)[..., None], 3, axis=2)
+    if mode == "F":
+        a = np.clip(np.asarray(im, dtype=np.float32), 0, 1)
+        return np.repeat(a[..., None], 3, axis=2)
+    has_alpha = mode in ("RGBA", "LA", "PA", "RGBa", "La") or (mode == "P" and "transparency" in im.info)
+    if has_alpha:
+        a = np.asarray(im.convert("RGBA"), dtype=np.float32) / 255.0
+        rgb, alpha = a[..., :3], a[..., 3:4]
+        bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
+        return np.ascontiguousarray(rgb * alpha + bg * (1.0 - alpha), dtype=np.float32)
+    if mode != "RGB":
+        im = im.convert("RGB")
+    return np.asarray(im, dtype=np.float32) / 255.0
+
+
+def _resize_float(img: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Area (box-filter) resize of a float32 (H, W, 3) image to ``size`` = (w, h) with PIL."""
+    chans = [
+        np.asarray(Image.fromarray(np.ascontiguousarray(img[..., c])).resize(size, Image.Resampling.BOX))
+        for c in range(img.shape[2])
+    ]
+    return np.clip(np.stack(chans, axis=-1), 0.0, 1.0).astype(np.float32)
+
+
+def load_image(
+    path: str | os.PathLike,
+    max_side: Optional[int] = None,
+    *,
+    size: Optional[tuple[int, int]] = None,
+    expected_size: Optional[tuple[int, int]] = None,
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+) -> np.ndarray:
+    """Decode an image once to float32 (H, W, 3) in [0, 1] at the target resolution.
+
+    Args:
+        path: image file.
+        max_side: downscale (area filter) so the longest side is ``<= max_side``; never upscales.
+        size: explicit output size (w, h), overrides ``max_side``.
+        expected_size: if given, the file's native (w, h) must equal it (else ``ValueError``).
+        background: RGB in [0, 1] that transparent pixels (RGBA, LA, P+transparency) are composited over.
+
+    Raises:
+        FileNotFoundError: the file does not exist.
+        ValueError: unreadable/corrupt file, or native size differing from ``expected_size``
+            (the message names the file).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"Image file not found: {path}")
+    try:
+        with Image.open(path) as im:
+            native = (int(im.width), int(im.height))
+            if expected_size is not None and tuple(int(v) for v in expected_size) != native:
+                raise _SizeMismatch(
+                    f"Image {path} is {native[0]}x{native[1]} but its camera says "
+                    f"{int(expected_size[0])}x{int(expected_size[1])} (w x h)"
+                )
+            im.load()
+            out_size = tuple(size) if size is not None else target_size(native[0], native[1], max_side)
+            if out_size == native and im.mode == "RGB":
+                return np.asarray(im, dtype=np.float32) / 255.0
+            if out_size != native and im.mode == "RGB":
+                # Area filter on 8-bit data, then convert (fast path for the common case).
+                return np.asarray(im.resize(out_size, Image.Resampling.BOX), dtype=np.float32) / 255.0
+            img = _to_float_rgb(im, background)
+    except _SizeMismatch as e:
+        raise ValueError(str(e)) from None
+    except (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
+        raise ValueError(f"Cannot read image {path}: {type(e).__name__}: {e}") from e
+    if out_size != native:
+        img = _resize_float(img, out_size)
+    return np.ascontiguousarray(img, dtype=np.float32)
+
+
+class _SizeMismatch(Exception):
+    pass
+
+
+# ----------------------------------------------------------------------------------------------
+# PNG writing (no PIL)
+# ----------------------------------------------------------------------------------------------
+
+
+def _png_chunk(tag: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+
+
+def _to_uint8(array: Any) -> np.ndarray:
+    if hasattr(array, "detach"):  # torch.Tensor, without importing torch here
+        array = array.detach().cpu().numpy()
+    a = np.asarray(array)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (3, 4)):
+        raise ValueError(f"save_png expects (H, W), (H, W, 1), (H, W, 3) or (H, W, 4); got shape {a.shape}")
+    if a.shape[0] == 0 or a.shape[1] == 0:
+        raise ValueError(f"save_png: empty image of shape {a.shape}")
+    if a.dtype == np.uint8:
+        return np.ascontiguousarray(a)
+    if a.dtype == np.bool_:
+        return a.astype(np.uint8) * 255
+    if np.issubdtype(a.dtype, np.integer):
+        raise ValueError(f"save_png: integer images must be uint8, got {a.dtype}")
+    a = a.astype(np.float64)
+    if not np.isfinite(a).all():
+        raise ValueError("save_png: image contains NaN/Inf")
+    return np.clip(np.round(a * 255.0), 0, 255).astype(np.uint8)
+
+
+def encode_png(array: Any, compress_level: int = 6) -> bytes:
+    """Encode an image to PNG bytes using only ``zlib`` and ``struct``.
+
+    ``array``: numpy array or torch tensor, (H, W) gray, (H, W, 3) RGB or (H, W, 4) RGBA; floats are
+    taken as [0, 1] (clipped, rounded to 8 bit), uint8 as is. Every row uses filter type 0 (None).
+    """
+    a = _to_uint8(array)
+    h, w = a.shape[:2]
+    color_type = 0 if a.ndim == 2 else (2 if a.shape[2] == 3 else 6)  # gray / RGB / RGBA
+    rows = a.reshape(h, -1)
+    raw = np.empty((h, rows.shape[1] + 1), dtype=np.uint8)
+    raw[:, 0] = 0  # filter type 0 for every scanline
+    raw[:, 1:] = rows
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, color_type, 0, 0, 0)
+    return b"".join(
+        [
+            b"\x89PNG\r\n\x1a\n",
+            _png_chunk(b"IHDR", ihdr),
+            _png_chunk(b"IDAT", zlib.compress(raw.tobytes(), compress_level)),
+            _png_chunk(b"IEND", b""),
+        ]
+    )
+
+
+def save_png(path: str | os.PathLike, image: Any, compress_level: int = 6) -> Path:
+    """Write ``image`` (numpy/torch, (H, W[, 1|3|4]), float in [0, 1] or uint8) as an 8-bit PNG, atomically.
+
+    The file is written to a temporary name in the same folder and renamed into place
+    (:func:`b3dgs.io.atomic_path`), so a reader never sees a partial file. PIL is not used.
+    """
+    data = encode_png(image, compress_level)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return path

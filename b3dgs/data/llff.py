@@ -1,0 +1,127 @@
+"""LLFF scenes: ``poses_bounds.npy`` + ``images/``.
+
+``poses_bounds.npy`` is (N, 17): a row-major 3x5 matrix ``[R | t | hwf]`` then ``near, far``. ``R``'s
+columns are the camera's axes in world coordinates in LLFF's ``[down, right, back]`` order, ``t`` the
+camera centre (camera-to-world), ``hwf = (height, width, focal)`` in pixels of the full-resolution
+images. Rows correspond to the image files of ``images/`` in sorted name order.
+
+OpenCV camera-to-world is ``[right, down, forward] = [col1, col0, -col2]``.
+
+The images may be a uniformly downscaled copy of the resolution in ``hwf`` (e.g. ``images_4``):
+the focal length is then scaled by the actual per-axis ratio; any other size mismatch raises.
+The principal point is the image centre.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from b3dgs.data.images import image_size, list_images
+from b3dgs.data.scene import FrameSpec, RawScene, materialize, select_evenly
+from b3dgs.io import atomic_path
+from b3dgs.types import Camera
+
+__all__ = ["load_llff", "read_llff", "write_llff"]
+
+
+def read_llff(
+    path: str | os.PathLike, images_dir: str = "images"
+) -> tuple[list[FrameSpec], np.ndarray]:
+    """Parse ``poses_bounds.npy``: (frames sorted by image name, bounds (N, 2) near/far)."""
+    root = Path(path)
+    if not root.is_dir():
+        raise FileNotFoundError(f"LLFF scene folder not found: {root}")
+    pb_path = root / "poses_bounds.npy"
+    if not pb_path.is_file():
+        raise FileNotFoundError(f"LLFF poses file not found: {pb_path}")
+    try:
+        pb = np.load(pb_path, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise ValueError(f"Cannot read {pb_path}: {e}") from e
+    if pb.ndim != 2 or pb.shape[1] != 17:
+        raise ValueError(f"{pb_path} must be (N, 17), got {pb.shape}")
+    pb = pb.astype(np.float64)
+    if not np.isfinite(pb).all():
+        bad = np.where(~np.isfinite(pb).all(axis=1))[0].tolist()
+        raise ValueError(f"{pb_path}: non-finite values in rows {bad}")
+    files = list_images(root / images_dir)
+    if len(files) != len(pb):
+        raise ValueError(f"{pb_path} has {len(pb)} poses but {root / images_dir} has {len(files)} images")
+    frames = []
+    for f, row in zip(files, pb):
+        m = row[:15].reshape(3, 5)
+        H, W, focal = m[:, 4]
+        if not (H > 0 and W > 0 and focal > 0):
+            raise ValueError(f"{pb_path}: invalid hwf {m[:, 4].tolist()} for {f.name}")
+        c2w = np.eye(4)
+        c2w[:3, 0] = m[:, 1]  # right
+        c2w[:3, 1] = m[:, 0]  # down
+        c2w[:3, 2] = -m[:, 2]  # forward = -back
+        c2w[:3, 3] = m[:, 3]
+        try:
+            viewmat = np.linalg.inv(c2w)
+        except np.linalg.LinAlgError as e:
+            raise ValueError(f"{pb_path}: singular pose for {f.name}") from e
+        W0, H0 = int(round(W)), int(round(H))
+        w, h = image_size(f)
+        if (w, h) != (W0, H0):
+            s = w / W0
+            if abs(H0 * s - h) > 1.0 or s > 1.0:
+                raise ValueError(
+                    f"Image {f} is {w}x{h} but poses_bounds.npy says {W0}x{H0} (w x h), "
+                    f"which is not a uniform downscale"
+                )
+        sx, sy = w / W, h / H
+        K = np.array([[focal * sx, 0.0, w / 2.0], [0.0, focal * sy, h / 2.0], [0.0, 0.0, 1.0]])
+        frames.append(FrameSpec(f.name, f, K, viewmat, w, h))
+    return frames, pb[:, 15:17].copy()
+
+
+def load_llff(
+    path: str | os.PathLike,
+    max_side: Optional[int] = None,
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+    max_images: Optional[int] = None,
+    images_dir: str = "images",
+) -> RawScene:
+    """Load an LLFF scene: cameras (K at the loaded size, OpenCV w2c) and images; no points."""
+    frames, bounds = read_llff(path, images_dir=images_dir)
+    keep = select_evenly(len(frames), max_images)
+    cams = materialize([frames[i] for i in keep], max_side=max_side, background=background)
+    near, far = np.median(bounds[keep], axis=0)
+    # LLFF's own focus depth (as in its spiral-path code), used when the optical axes do not meet
+    focus = 1.0 / (0.25 / near + 0.75 / far) if near > 0 and far > 0 else None
+    return RawScene(
+        name=Path(path).resolve().name, cameras=cams, extras={"bounds": bounds[keep], "focus_depth": focus}
+    )
+
+
+def write_llff(
+    path: str | os.PathLike,
+    cameras: Sequence[Camera],
+    near_far: Sequence[float] | np.ndarray = (0.1, 100.0),
+) -> Path:
+    """Write ``poses_bounds.npy`` for ``cameras`` (square pixels, centred principal point assumed).
+
+    Rows follow the cameras' order; the caller names the image files so that they sort the same
+    way. ``near_far`` is one (near, far) pair or an (N, 2) array.
+    """
+    rows = []
+    nf = np.broadcast_to(np.asarray(near_far, dtype=np.float64), (len(cameras), 2))
+    for cam, b in zip(cameras, nf):
+        c2w = np.linalg.inv(cam.viewmat.double().numpy())
+        m = np.zeros((3, 5))
+        m[:, 0] = c2w[:3, 1]  # down
+        m[:, 1] = c2w[:3, 0]  # right
+        m[:, 2] = -c2w[:3, 2]  # back
+        m[:, 3] = c2w[:3, 3]
+        m[:, 4] = (cam.height, cam.width, float(cam.K[0, 0]))
+        rows.append(np.concatenate([m.reshape(-1), b]))
+    out = Path(path) / "poses_bounds.npy"
+    with atomic_path(out) as tmp:
+        with open(tmp, "wb") as fh:
+            np.save(fh, np.asarray(rows, dtype=np.float64))
+    return out

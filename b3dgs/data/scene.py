@@ -1,0 +1,388 @@
+"""Shared scene preprocessing and the :func:`load_scene` dispatcher.
+
+Every format loader (COLMAP, ``transforms.json``, LLFF, synthetic) produces a :class:`RawScene`:
+cameras sorted by name, intrinsics at the loaded resolution, OpenCV world-to-camera poses in the
+format's own world frame, float32 images, optional initial points. :func:`load_scene` then applies
+the steps common to all formats:
+
+1. **normalisation** (``normalize=True``): translate so the mean camera centre is the origin, and
+   scale so ``extent`` = 1.1 x (max distance of a camera centre from that mean), i.e. the 3DGS
+   ``cameras_extent``, equals 1. Computed over *all* loaded cameras (train and test), so the world
+   frame does not depend on the split or on ``train_indices``. Poses and points get the same
+   similarity transform. ``normalize=False`` keeps the raw frame and reports the raw extent.
+2. **held-out split**: cameras sorted by name; index ``i`` is a test view iff ``i % test_every == 0``
+   (``test_every=0``: no test views).
+3. **train subset**: ``train_indices`` index into the sorted *train* list.
+4. **bounds** for random initialisation, see :func:`compute_bounds`.
+"""
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+import numpy as np
+import torch
+
+from b3dgs.data.images import load_image, target_size
+from b3dgs.types import Camera, Scene
+
+log = logging.getLogger(__name__)
+
+SCENE_KINDS = ("colmap", "transforms", "llff", "synthetic")
+
+__all__ = [
+    "SCENE_KINDS",
+    "FrameSpec",
+    "RawScene",
+    "compute_bounds",
+    "load_scene",
+    "look_at_point",
+    "materialize",
+    "normalize_scene",
+    "preprocess",
+    "select_evenly",
+    "split_indices",
+]
+
+
+@dataclass
+class FrameSpec:
+    """One view before its image is decoded: native-resolution intrinsics and OpenCV w2c pose."""
+
+    name: str
+    path: Path
+    K: np.ndarray  # (3, 3) float64 at (width, height)
+    viewmat: np.ndarray  # (4, 4) float64 world-to-camera, OpenCV
+    width: int
+    height: int
+
+
+@dataclass
+class RawScene:
+    """Loader output: cameras in the format's own world frame, sorted by name."""
+
+    name: str
+    cameras: list[Camera]
+    points: Optional[np.ndarray] = None  # (M, 3)
+    point_colors: Optional[np.ndarray] = None  # (M, 3) in [0, 1]
+    extras: dict[str, Any] = field(default_factory=dict)
+
+
+# ----------------------------------------------------------------------------------------------
+# helpers used by the loaders
+# ----------------------------------------------------------------------------------------------
+
+
+def select_evenly(n: int, max_images: Optional[int]) -> list[int]:
+    """Indices of ``max_images`` views spread evenly over ``n`` (all of them if ``None``)."""
+    if max_images is None or max_images >= n:
+        return list(range(n))
+    if max_images <= 0:
+        raise ValueError(f"max_images must be positive, got {max_images}")
+    return sorted(set(np.linspace(0, n - 1, max_images).round().astype(int).tolist()))
+
+
+def check_pose(name: str, viewmat: np.ndarray, tol: float = 1e-2) -> np.ndarray:
+    """Validate a 4x4 world-to-camera matrix; return it with an exactly orthonormal rotation."""
+    v = np.asarray(viewmat, dtype=np.float64)
+    if v.shape != (4, 4):
+        raise ValueError(f"Pose of {name!r} must be 4x4, got {v.shape}")
+    if not np.isfinite(v).all():
+        raise ValueError(f"Pose of {name!r} contains NaN/Inf")
+    R = v[:3, :3]
+    err = np.abs(R.T @ R - np.eye(3)).max()
+    det = np.linalg.det(R)
+    if err > tol or det <= 0:
+        raise ValueError(
+            f"Pose of {name!r} is not a rigid transform (|R^T R - I|max = {err:.3g}, det(R) = {det:.3g})"
+        )
+    u, _, vt = np.linalg.svd(R)
+    out = v.copy()
+    out[:3, :3] = u @ vt
+    out[3] = (0, 0, 0, 1)
+    return out
+
+
+def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """K for an image resized by (sx, sy) per axis (pixel-centre-at-0.5 convention: exact)."""
+    K = np.array(K, dtype=np.float64)
+    K[0, :] *= sx
+    K[1, :] *= sy
+    K[2] = (0, 0, 1)
+    return K
+
+
+def materialize(
+    frames: Sequence[FrameSpec],
+    max_side: Optional[int] = None,
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+) -> list[Camera]:
+    """Decode each frame's image once, at the target size, and build :class:`Camera` objects.
+
+    The image file's native size must equal the frame's (width, height). ``K`` is scaled by the
+    actual per-axis ratio ``new_w / w`` and ``new_h / h``.
+    """
+    cams = []
+    for f in frames:
+        w2, h2 = target_size(f.width, f.height, max_side)
+        img = load_image(f.path, size=(w2, h2), expected_size=(f.width, f.height), background=background)
+        K = scale_intrinsics(f.K, w2 / f.width, h2 / f.height)
+        cams.append(
+            Camera(
+                name=f.name,
+                K=torch.tensor(K, dtype=torch.float32),
+                viewmat=torch.tensor(check_pose(f.name, f.viewmat), dtype=torch.float32),
+                width=w2,
+                height=h2,
+                image=torch.from_numpy(img),
+            )
+        )
+    return cams
+
+
+# ----------------------------------------------------------------------------------------------
+# shared preprocessing
+# ----------------------------------------------------------------------------------------------
+
+
+def _centres_dirs(viewmats: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    R = viewmats[:, :3, :3]
+    t = viewmats[:, :3, 3]
+    centres = -np.einsum("nji,nj->ni", R, t)  # -R^T t
+    dirs = R[:, 2, :]  # optical axis (camera +z) in world coordinates
+    return centres, dirs
+
+
+def camera_extent(viewmats: np.ndarray) -> tuple[np.ndarray, float]:
+    """(mean camera centre, 1.1 x max distance of the centres from it)."""
+    centres, _ = _centres_dirs(viewmats)
+    mean = centres.mean(axis=0)
+    return mean, 1.1 * float(np.linalg.norm(centres - mean, axis=1).max())
+
+
+def normalize_scene(
+    viewmats: np.ndarray, points: Optional[np.ndarray]
+) -> tuple[np.ndarray, Optional[np.ndarray], float, np.ndarray, float]:
+    """Apply x' = s (x - m) to all poses and points.
+
+    Returns (viewmats', points', extent', m, s): m = mean camera centre, s = 1 / raw extent
+    (s = 1 when all cameras coincide), so the new extent is 1 (0 for coincident cameras).
+    A world-to-camera [R | t] becomes [R | s (R m + t)], which keeps the camera frame metric
+    consistent with the scaled world.
+    """
+    mean, extent = camera_extent(viewmats)
+    s = 1.0 / extent if extent > 1e-12 else 1.0
+    out = viewmats.copy()
+    R = out[:, :3, :3]
+    out[:, :3, 3] = s * (np.einsum("nij,j->ni", R, mean) + out[:, :3, 3])
+    pts = None if points is None else (s * (points - mean))
+    return out, pts, extent * s, mean, s
+
+
+def look_at_point(viewmats: np.ndarray, fallback_depth: Optional[float] = None) -> tuple[np.ndarray, bool]:
+    """Least-squares point closest to all optical axes: argmin_p sum_i |(I - d_i d_i^T)(p - c_i)|^2.
+
+    Returns (point, well_posed). It is not well posed when the axes are (nearly) parallel (smallest
+    eigenvalue of the mean projector < 1e-3) or when the solution lies behind most cameras
+    (diverging axes of a forward-facing capture). Then the fallback is the mean centre moved along
+    the mean viewing direction by ``fallback_depth`` if given (e.g. LLFF's focus depth from its
+    near/far bounds), else by the rig's radius (1 if all centres coincide).
+    """
+    centres, dirs = _centres_dirs(viewmats)
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c, d in zip(centres, dirs):
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c
+    n = len(centres)
+    if n >= 2 and np.linalg.eigvalsh(A / n).min() > 1e-3:
+        p = np.linalg.solve(A, b)
+        if np.median(np.einsum("ni,ni->n", p[None] - centres, dirs)) > 0:
+            return p, True
+    mean = centres.mean(axis=0)
+    d = dirs.mean(axis=0)
+    d = d / max(np.linalg.norm(d), 1e-12)
+    if fallback_depth is not None and fallback_depth > 0:
+        return mean + d * float(fallback_depth), False
+    r = float(np.linalg.norm(centres - mean, axis=1).max())
+    return mean + d * (r if r > 1e-12 else 1.0), False
+
+
+def compute_bounds(
+    viewmats: np.ndarray,
+    points: Optional[np.ndarray] = None,
+    percentiles: tuple[float, float] = (1.0, 99.0),
+    margin: float = 0.1,
+    camera_box_scale: float = 0.5,
+    fallback_depth: Optional[float] = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned box for random initialisation.
+
+    * With points (>= 10): per-axis 1st-99th percentiles of the points, widened on each side by
+      ``margin`` x (their span) (outliers of SfM are ignored).
+    * Without points: centred on the :func:`look_at_point` ``p`` of the optical axes, a cube of
+      half-size ``camera_box_scale`` x median_i |c_i - p| (half the typical viewing distance, 0.5 by
+      default): the subject the cameras look at, and whatever is within half the viewing distance
+      of it, lies inside; the cameras themselves stay outside. For the forward-facing ``fox``
+      capture this box holds the fox, in front of every camera. ``fallback_depth``: see
+      :func:`look_at_point`.
+    """
+    if points is not None and len(points) >= 10:
+        lo = np.percentile(points, percentiles[0], axis=0)
+        hi = np.percentile(points, percentiles[1], axis=0)
+        span = np.maximum(hi - lo, 1e-6)
+        return lo - margin * span, hi + margin * span
+    p, _ = look_at_point(viewmats, fallback_depth)
+    centres, _ = _centres_dirs(viewmats)
+    half = camera_box_scale * float(np.median(np.linalg.norm(centres - p, axis=1)))
+    if not half > 1e-9:
+        half = 1.0
+    return p - half, p + half
+
+
+def split_indices(n: int, test_every: int) -> tuple[list[int], list[int]]:
+    """(train, test) indices into a name-sorted list: ``i % test_every == 0`` is test; 0 means no test."""
+    if test_every < 0:
+        raise ValueError(f"test_every must be >= 0, got {test_every}")
+    if test_every == 0:
+        return list(range(n)), []
+    test = [i for i in range(n) if i % test_every == 0]
+    train = [i for i in range(n) if i % test_every != 0]
+    return train, test
+
+
+def preprocess(
+    raw: RawScene,
+    test_every: int = 8,
+    train_indices: Optional[Sequence[int]] = None,
+    normalize: bool = True,
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+) -> Scene:
+    """Normalise, split and bound a :class:`RawScene` (see the module docstring)."""
+    cams = sorted(raw.cameras, key=lambda c: c.name)
+    if not cams:
+        raise ValueError(f"Scene {raw.name!r} has no cameras")
+    names = [c.name for c in cams]
+    if len(set(names)) != len(names):
+        raise ValueError(f"Scene {raw.name!r} has duplicate image names")
+    viewmats = np.stack([c.viewmat.double().numpy() for c in cams])
+    points = None if raw.points is None else np.asarray(raw.points, dtype=np.float64).reshape(-1, 3)
+    colors = None if raw.point_colors is None else np.asarray(raw.point_colors, dtype=np.float32).reshape(-1, 3)
+    if points is not None and colors is not None and len(points) != len(colors):
+        raise ValueError(f"{len(points)} points but {len(colors)} point colours")
+    if points is not None and len(points) == 0:
+        points, colors = None, None
+    if points is not None and not np.isfinite(points).all():
+        keep = np.isfinite(points).all(axis=1)
+        log.warning("Dropping %d non-finite initial points", int((~keep).sum()))
+        points = points[keep]
+        colors = None if colors is None else colors[keep]
+
+    focus = raw.extras.get("focus_depth")
+    if normalize:
+        viewmats, points, extent, _, scale = normalize_scene(viewmats, points)
+        focus = None if focus is None else focus * scale
+        cams = [
+            Camera(c.name, c.K, torch.tensor(v, dtype=torch.float32), c.width, c.height, c.image)
+            for c, v in zip(cams, viewmats)
+        ]
+    else:
+        _, extent = camera_extent(viewmats)
+
+    train_idx, test_idx = split_indices(len(cams), test_every)
+    train = [cams[i] for i in train_idx]
+    test = [cams[i] for i in test_idx]
+    if train_indices is not None:
+        sel = [int(i) for i in train_indices]
+        bad = [i for i in sel if not 0 <= i < len(train)]
+        if bad:
+            raise IndexError(f"train_indices {bad} out of range for {len(train)} train views")
+        if len(set(sel)) != len(sel):
+            raise ValueError(f"train_indices contains duplicates: {sel}")
+        train = [train[i] for i in sel]
+    if not train:
+        raise ValueError(f"Scene {raw.name!r}: no train views (n={len(cams)}, test_every={test_every})")
+
+    lo, hi = compute_bounds(viewmats, points, fallback_depth=focus)
+    if colors is None and points is not None:
+        colors = np.full_like(points, 0.5, dtype=np.float32)
+    return Scene(
+        name=raw.name,
+        train=train,
+        test=test,
+        points=None if points is None else torch.tensor(points, dtype=torch.float32),
+        point_colors=None if colors is None else torch.tensor(np.clip(colors, 0, 1), dtype=torch.float32),
+        extent=float(extent),
+        bounds_min=torch.tensor(lo, dtype=torch.float32),
+        bounds_max=torch.tensor(hi, dtype=torch.float32),
+        background=tuple(float(x) for x in background),
+    )
+
+
+def load_scene(
+    kind: str,
+    path: str | os.PathLike | None,
+    max_side: Optional[int] = None,
+    test_every: int = 8,
+    train_indices: Optional[Sequence[int]] = None,
+    normalize: bool = True,
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+    max_images: Optional[int] = None,
+    **kind_kwargs: Any,
+) -> Scene:
+    """Load a scene of ``kind`` in {"colmap", "transforms", "llff", "synthetic"} and preprocess it.
+
+    Args:
+        kind: scene format.
+        path: scene folder (or ``transforms*.json`` file); ignored (may be None) for "synthetic".
+        max_side: downscale images so the longest side is ``<= max_side`` (K scaled to match).
+        test_every: every ``test_every``-th view in sorted name order is held out; 0 = none.
+        train_indices: indices into the sorted train list to keep (sparse/active-view studies).
+        normalize: centre on the mean camera centre and scale the camera extent to 1.
+        background: RGB in [0, 1]; transparent pixels are composited over it, and it is stored
+            on the Scene for rendering.
+        max_images: keep at most this many views, spread evenly over the sorted list, before
+            splitting (quick experiments); None keeps all.
+        **kind_kwargs: passed to the format loader (e.g. ``n_views``, ``resolution``, ``seed`` for
+            "synthetic"; ``images_dir`` for "colmap"/"llff"; ``sparse_dir`` for "colmap").
+    """
+    background = tuple(float(x) for x in background)
+    if len(background) != 3:
+        raise ValueError(f"background must be 3 floats, got {background}")
+    kind = str(kind).lower()
+    if kind != "synthetic":
+        if path is None or str(path) == "":
+            raise ValueError(f"load_scene(kind={kind!r}) needs a path")
+        if not Path(path).exists():
+            raise FileNotFoundError(f"Scene path not found: {path}")
+    common = dict(max_side=max_side, background=background, max_images=max_images)
+    if kind == "colmap":
+        from b3dgs.data.colmap import load_colmap
+
+        raw = load_colmap(path, **common, **kind_kwargs)
+    elif kind == "transforms":
+        from b3dgs.data.transforms import load_transforms
+
+        raw = load_transforms(path, **common, **kind_kwargs)
+    elif kind == "llff":
+        from b3dgs.data.llff import load_llff
+
+        raw = load_llff(path, **common, **kind_kwargs)
+    elif kind == "synthetic":
+        from b3dgs.data.synthetic import load_synthetic
+
+        raw = load_synthetic(**common, **kind_kwargs)
+    else:
+        raise ValueError(f"Unknown scene kind {kind!r}; expected one of {SCENE_KINDS}")
+    scene = preprocess(raw, test_every=test_every, train_indices=train_indices, normalize=normalize,
+                       background=background)
+    log.info(
+        "Loaded %s scene %r: %d train / %d test views, %s points, extent %.4g",
+        kind, scene.name, len(scene.train), len(scene.test),
+        0 if scene.points is None else len(scene.points), scene.extent,
+    )
+    return scene

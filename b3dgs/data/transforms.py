@@ -1,0 +1,173 @@
+"""instant-ngp / nerfstudio / Blender-synthetic ``transforms.json`` scenes.
+
+* Intrinsics: global keys, overridden per frame: ``fl_x, fl_y, cx, cy, w, h`` (instant-ngp,
+  nerfstudio) or Blender's ``camera_angle_x`` (``fx = w / 2 / tan(camera_angle_x / 2)``, ``fy`` from
+  ``camera_angle_y`` if present else ``fy = fx``; principal point at the image centre by default).
+  Missing ``w``/``h`` are read from the image header.
+* Poses: ``transform_matrix`` is an OpenGL/NeRF camera-to-world (x right, y up, z backwards); it is
+  converted to OpenCV by flipping the camera's y and z axes (``c2w[:3, 1:3] *= -1``), then inverted.
+* ``file_path`` is relative to the JSON file's folder, with or without an extension.
+* **Lens distortion is ignored**: ``k1, k2, k3, k4, p1, p2`` are *not* applied (the images are used
+  as if they were pinhole); when any is non-zero a single ``logging.warning`` reports that they are
+  ignored and their largest magnitudes. Fisheye / equirectangular ``camera_model`` raise ``ValueError``.
+* RGBA images are composited over the scene ``background``.
+* Optional ``ply_file_path`` (nerfstudio) gives initial points (xyz, and colours if present).
+* If ``path`` is a folder without ``transforms.json`` but with Blender's ``transforms_{train,val,test}.json``,
+  their frames are merged (the held-out split is then re-made by :func:`b3dgs.data.load_scene`).
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from b3dgs.data.images import image_size
+from b3dgs.data.scene import FrameSpec, RawScene, materialize, select_evenly
+
+log = logging.getLogger(__name__)
+
+DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+_UNSUPPORTED_MODELS = ("OPENCV_FISHEYE", "FISHEYE", "EQUIRECTANGULAR", "FISHEYE624")
+_EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".exr", ".webp")
+
+# OpenGL (x right, y up, z back) -> OpenCV (x right, y down, z forward) on the camera side.
+GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+
+__all__ = ["GL_TO_CV", "load_transforms", "read_transforms"]
+
+
+def _resolve_json(path: Path) -> list[Path]:
+    if path.is_file():
+        return [path]
+    if not path.is_dir():
+        raise FileNotFoundError(f"transforms scene not found: {path}")
+    if (path / "transforms.json").is_file():
+        return [path / "transforms.json"]
+    split = [path / f"transforms_{s}.json" for s in ("train", "val", "test")]
+    split = [p for p in split if p.is_file()]
+    if split:
+        return split
+    raise FileNotFoundError(f"No transforms.json (or transforms_train.json) in {path}")
+
+
+def _resolve_image(root: Path, file_path: str) -> Path:
+    p = root / file_path
+    if p.is_file():
+        return p
+    if p.suffix.lower() not in _EXTS:
+        for ext in _EXTS:
+            q = p.with_name(p.name + ext)
+            if q.is_file():
+                return q
+    raise FileNotFoundError(f"Image for file_path {file_path!r} not found (looked for {p} with/without extension)")
+
+
+def _read_ply(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
+    try:
+        from plyfile import PlyData
+    except ImportError as e:  # pragma: no cover
+        raise ImportError("Reading ply_file_path needs `plyfile`") from e
+    try:
+        v = PlyData.read(str(path))["vertex"]
+    except Exception as e:
+        raise ValueError(f"Cannot read point cloud {path}: {e}") from e
+    names = v.data.dtype.names
+    xyz = np.stack([np.asarray(v[k], dtype=np.float64) for k in ("x", "y", "z")], axis=1)
+    rgb = None
+    if all(k in names for k in ("red", "green", "blue")):
+        rgb = np.stack([np.asarray(v[k], dtype=np.float32) for k in ("red", "green", "blue")], axis=1)
+        if np.asarray(v["red"]).dtype == np.uint8 or rgb.max() > 1.0:
+            rgb = rgb / 255.0
+    return xyz, rgb
+
+
+def read_transforms(
+    path: str | os.PathLike,
+) -> tuple[list[FrameSpec], Optional[np.ndarray], Optional[np.ndarray], dict[str, float]]:
+    """Parse transforms JSON file(s): (frames sorted by name, points, colours, max |distortion| per key)."""
+    path = Path(path)
+    files = _resolve_json(path)
+    frames: list[FrameSpec] = []
+    distortion: dict[str, float] = {}
+    points = colors = None
+    for jf in files:
+        try:
+            meta = json.loads(jf.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValueError(f"Cannot parse {jf}: {e}") from e
+        root = jf.parent
+        if "frames" not in meta or not meta["frames"]:
+            raise ValueError(f"{jf} has no frames")
+        for i, fr in enumerate(meta["frames"]):
+            g = {**meta, **fr}  # per-frame keys override global ones
+            if "file_path" not in fr or "transform_matrix" not in fr:
+                raise ValueError(f"{jf}: frame {i} lacks file_path or transform_matrix")
+            model = str(g.get("camera_model", "OPENCV")).upper()
+            if model in _UNSUPPORTED_MODELS:
+                raise ValueError(f"{jf}: camera_model {model} is not a pinhole model; undistort the images first")
+            img_path = _resolve_image(root, fr["file_path"])
+            name = Path(os.path.relpath(img_path, path if path.is_dir() else root)).as_posix()
+            for k in DISTORTION_KEYS:
+                if k in g and g[k] is not None and float(g[k]) != 0.0:
+                    distortion[k] = max(distortion.get(k, 0.0), abs(float(g[k])))
+            if "w" in g and "h" in g:
+                w, h = int(round(float(g["w"]))), int(round(float(g["h"])))
+            else:
+                w, h = image_size(img_path)
+            if "fl_x" in g or "fl_y" in g:
+                fx = float(g.get("fl_x", g.get("fl_y")))
+                fy = float(g.get("fl_y", fx))
+            elif "camera_angle_x" in g:
+                fx = 0.5 * w / math.tan(0.5 * float(g["camera_angle_x"]))
+                fy = 0.5 * h / math.tan(0.5 * float(g["camera_angle_y"])) if "camera_angle_y" in g else fx
+            else:
+                raise ValueError(f"{jf}: frame {fr['file_path']!r} has no focal length (fl_x/fl_y or camera_angle_x)")
+            cx = float(g.get("cx", w / 2.0))
+            cy = float(g.get("cy", h / 2.0))
+            K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+            c2w = np.asarray(fr["transform_matrix"], dtype=np.float64)
+            if c2w.shape == (3, 4):
+                c2w = np.vstack([c2w, [0, 0, 0, 1]])
+            if c2w.shape != (4, 4):
+                raise ValueError(f"{jf}: transform_matrix of {fr['file_path']!r} has shape {c2w.shape}")
+            if not np.isfinite(c2w).all():
+                raise ValueError(f"{jf}: transform_matrix of {fr['file_path']!r} contains NaN/Inf")
+            c2w_cv = c2w @ GL_TO_CV
+            try:
+                viewmat = np.linalg.inv(c2w_cv)
+            except np.linalg.LinAlgError as e:
+                raise ValueError(f"{jf}: transform_matrix of {fr['file_path']!r} is singular") from e
+            frames.append(FrameSpec(name, img_path, K, viewmat, w, h))
+        if meta.get("ply_file_path") and points is None:
+            ply = root / meta["ply_file_path"]
+            if not ply.is_file():
+                raise FileNotFoundError(f"ply_file_path {ply} not found")
+            points, colors = _read_ply(ply)
+    frames.sort(key=lambda f: f.name)
+    return frames, points, colors, distortion
+
+
+def load_transforms(
+    path: str | os.PathLike,
+    max_side: Optional[int] = None,
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+    max_images: Optional[int] = None,
+) -> RawScene:
+    """Load a ``transforms.json`` scene (see the module docstring; distortion is ignored, with a warning)."""
+    frames, points, colors, distortion = read_transforms(path)
+    if distortion:
+        log.warning(
+            "transforms.json: lens distortion is IGNORED (images used as pinhole, not undistorted); "
+            "max |coefficient|: %s",
+            ", ".join(f"{k}={v:.3g}" for k, v in distortion.items()),
+        )
+    frames = [frames[i] for i in select_evenly(len(frames), max_images)]
+    cams = materialize(frames, max_side=max_side, background=background)
+    p = Path(path).resolve()
+    name = p.name if p.is_dir() else p.parent.name
+    return RawScene(name=name, cameras=cams, points=points, point_colors=colors, extras={"distortion": distortion})
