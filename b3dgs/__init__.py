@@ -13,6 +13,9 @@ def _register_resolvers() -> None:
 
     if not OmegaConf.has_resolver("b3dgs.basename"):
         OmegaConf.register_new_resolver("b3dgs.basename", lambda p: Path(str(p)).name if p else "scene")
+    if not OmegaConf.has_resolver("b3dgs.div"):
+        # integer division, for schedules that scale with trainer.max_steps (t_dp = max_steps / 6)
+        OmegaConf.register_new_resolver("b3dgs.div", lambda a, b: int(a) // int(b))
 
 
 _register_resolvers()

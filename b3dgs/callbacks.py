@@ -74,9 +74,11 @@ class CurveCallback(L.Callback):
         point = {"step": int(step), "train_time_s": round(self.train_time_s, 4), "psnr": sum(vals) / len(vals),
                  "num_gaussians": pl_module.num_gaussians}
         self.points.append(point)
-        pl_module.log_dict({"test/psnr": point["psnr"], "test/num_gaussians": float(point["num_gaussians"])},
-                           on_step=True, logger=True, batch_size=1)
         exp = getattr(trainer.logger, "experiment", None) if trainer.logger is not None else None
+        if hasattr(exp, "add_scalar"):
+            exp.add_scalar("test/psnr", point["psnr"], global_step=step)
+            exp.add_scalar("test/num_gaussians", point["num_gaussians"], global_step=step)
+            exp.add_scalar("test/psnr_vs_time", point["psnr"], global_step=int(round(point["train_time_s"] * 1000)))
         if self.log_images and first is not None and hasattr(exp, "add_image"):
             img = torch.cat([first[0], first[1]], dim=1).permute(2, 0, 1)
             exp.add_image("test/render_vs_gt", img, global_step=step)

@@ -13,6 +13,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from b3dgs.init import init_gaussians
+from b3dgs.metrics.image import ssim_separable
 from b3dgs.ops import TopologyOps
 from b3dgs.plugin import Plugin, PosteriorBlock
 from b3dgs.render.render import RenderOutput, render
@@ -21,15 +22,6 @@ from b3dgs.types import Camera, Scene
 log = logging.getLogger(__name__)
 
 PARAM_ORDER = ("means", "scales", "quats", "opacities", "sh0", "shN")
-
-
-def dssim_ssim(pred: Tensor, gt: Tensor) -> Tensor:
-    """Mean SSIM (11x11 Gaussian window, sigma 1.5) of (H, W, 3) images, via kornia."""
-    import kornia
-
-    a = pred.permute(2, 0, 1).unsqueeze(0)
-    b = gt.permute(2, 0, 1).unsqueeze(0)
-    return kornia.metrics.ssim(a, b, window_size=11, max_val=1.0).mean()
 
 
 class SplatModule(L.LightningModule):
@@ -193,7 +185,7 @@ class SplatModule(L.LightningModule):
         out = self.render_camera(cam, retain_means2d_grad=True, return_weights=need_weights)
         gt = cam.image
         l1 = (out.rgb - gt).abs().mean()
-        ssim = dssim_ssim(out.rgb, gt)
+        ssim = ssim_separable(out.rgb, gt)
         lam = self.hparams.lambda_dssim
         loss = (1 - lam) * l1 + lam * (1 - ssim)
         if not torch.isfinite(loss):
@@ -208,14 +200,17 @@ class SplatModule(L.LightningModule):
         optimizers = self._torch_optimizers()
         self._call_hooks("step_pre_backward", optimizers, step, info)
         self.manual_backward(loss)
+        # posterior blocks read gradients; densification (strategy) runs last, then Adam steps
+        # (parameters replaced by a topology change have no gradient and skip this one step, as in 3DGS)
+        self._call_hooks("step_post_backward", optimizers, step, info)
         opt.step()
         opt.zero_grad(set_to_none=True)
-        self._call_hooks("step_post_backward", optimizers, step, info)
-        self.log_dict(
-            {"train/loss": loss.detach(), "train/l1": l1.detach(), "train/num_gaussians": float(self.num_gaussians),
-             "train/lr_means": self.means_lr(step)},
-            on_step=True, prog_bar=False, logger=True, batch_size=1,
-        )
+        if self.logger is not None and step % max(self.trainer.log_every_n_steps, 1) == 0:
+            self.log_dict(
+                {"train/loss": loss.detach(), "train/l1": l1.detach(), "train/num_gaussians": float(self.num_gaussians),
+                 "train/lr_means": self.means_lr(step)},
+                on_step=True, prog_bar=False, logger=True, batch_size=1,
+            )
         self.log("n", float(self.num_gaussians), prog_bar=True, logger=False, batch_size=1)
         self.log("loss", loss.detach(), prog_bar=True, logger=False, batch_size=1)
         return loss.detach()

@@ -92,3 +92,23 @@ def ssim(pred: Tensor, gt: Tensor) -> Tensor:
     smap = kornia.metrics.ssim(a, b, window_size=SSIM_WINDOW, max_val=1.0, eps=0.0, padding="valid")
     val = smap.mean(dim=(1, 2, 3))
     return val if batched else val[0]
+
+
+def ssim_separable(pred: Tensor, gt: Tensor) -> Tensor:
+    """The same SSIM as :func:`ssim` for one (H, W, 3) pair, with the 11x11 Gaussian window applied as
+    two 1-D passes (kornia's Gaussian kernel): about 5x cheaper, for the training loss. Differentiable."""
+    if pred.shape != gt.shape or pred.dim() != 3 or pred.shape[-1] != 3:
+        raise ValueError(f"ssim_separable: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
+    k = kornia.filters.get_gaussian_kernel1d(SSIM_WINDOW, SSIM_SIGMA).to(pred.dtype).reshape(-1)
+    kx = k.view(1, 1, 1, -1).repeat(15, 1, 1, 1)
+    ky = k.view(1, 1, -1, 1).repeat(15, 1, 1, 1)
+    a = pred.permute(2, 0, 1).unsqueeze(0)
+    b = gt.to(pred.dtype).permute(2, 0, 1).unsqueeze(0)
+    x = torch.cat([a, b, a * a, b * b, a * b], dim=1)  # (1, 15, H, W)
+    x = torch.nn.functional.conv2d(torch.nn.functional.conv2d(x, kx, groups=15), ky, groups=15)
+    mu1, mu2, s11, s22, s12 = x.split(3, dim=1)
+    c1, c2 = 0.01**2, 0.03**2
+    mu1mu2, mu1s, mu2s = mu1 * mu2, mu1 * mu1, mu2 * mu2
+    num = (2 * mu1mu2 + c1) * (2 * (s12 - mu1mu2) + c2)
+    den = (mu1s + mu2s + c1) * ((s11 - mu1s) + (s22 - mu2s) + c2)
+    return (num / den).mean()

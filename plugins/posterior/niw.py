@@ -1,0 +1,195 @@
+"""NIW geometry posterior over each Gaussian's mean and covariance (paper Eq. 1-3)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from torch import Tensor
+
+from b3dgs.plugin import PosteriorBlock
+from b3dgs.posterior import niw as niwm
+from b3dgs.render.projection import covariance_3d
+
+D = 3
+
+
+@dataclass
+class NIWBlock(PosteriorBlock):
+    """NIW(m_n, κ_n, ν_n, S_n) over (μ_k, Σ_k) for every Gaussian k, updated in closed form (Eq. 2-3).
+
+    Prior: m0 = the Gaussian's centre at birth, κ0, ν0 = D + 2, S0 = Σ_birth (ν0 - D - 1) so that
+    E[Σ] under the prior is the covariance at birth.
+
+    Renderer-derived summaries (the paper's online path):
+    - N̂_k: EMA over training steps of o_k √(∏_d E[Σ_k]_dd) for the Gaussians visible in the step's
+      view, normalised so that the per-step values sum to the view's effective pixel count
+      (Σ_p α_p) times the number of training views; N̂ therefore sums to about the effective pixel
+      count of all training views;
+    - x̄_k: the current centre; C_k = 0.
+    The posterior is recomputed from the prior and these summaries every ``update_every`` steps
+    (Eq. 2-3 are a function of the summaries, so this is exact for the online path).
+
+    Children of a clone or split: the prior is re-centred at the child's birth (m0 = its centre,
+    S0 from its covariance) and the child inherits half its parent's N̂ (the parent's support is
+    shared by the two), so a child is neither maximally uncertain nor over-confident.
+
+    Posterior samples (``sample``) replace exactly two rendering parameters:
+    - the centre: μ^(s) ~ N(m_n, Σ^(s)/κ_n);
+    - the covariance (``cov_mode="relative"``, default): Σ_render^(s) = L_k W^(s) L_kᵀ where
+      L_k L_kᵀ is the rendered (point-estimate) covariance and W^(s) = E[Σ]^{-1/2} Σ^(s) E[Σ]^{-1/2}
+      is the IW draw whitened by its mean (its spread depends on ν_n only); ``"absolute"`` renders
+      Σ^(s) itself, ``"none"`` keeps the rendered covariance.
+    Opacity and colour are untouched. The posterior mean (μ = m_n, W = I) renders the point estimate
+    up to the κ0/(κ0+N̂) pull towards m0.
+
+    ``plugin_noise``: track the plug-in residual MSE σ̂² (EMA) and offer it as the aleatoric
+    variance, as in the paper's NIW rows; turn it off when a NoiseBlock supplies E[σ²].
+    """
+
+    kappa0: float = 0.01
+    nu0: float = 5.0
+    ema: float = 0.99
+    update_every: int = 10
+    t_niw: Optional[int] = None  # None: 0 (active from the start)
+    cov_mode: str = "relative"
+    plugin_noise: bool = True
+    mse_ema: float = 0.99
+
+    def check_sanity(self, max_steps: int = 0, **kw) -> None:
+        if self.kappa0 <= 0:
+            raise ValueError("posterior.niw.kappa0 must be > 0")
+        if self.nu0 <= D + 1:
+            raise ValueError(f"posterior.niw.nu0 must be > D + 1 = {D + 1} for a proper prior with finite E[Σ]")
+        if not 0 <= self.ema < 1:
+            raise ValueError("posterior.niw.ema must be in [0, 1)")
+        if self.update_every < 1:
+            raise ValueError("posterior.niw.update_every must be >= 1")
+        if self.cov_mode not in ("relative", "absolute", "none"):
+            raise ValueError("posterior.niw.cov_mode must be relative | absolute | none")
+
+    # ------------------------------------------------------------------ state
+    def _prior_for(self, splats, rows: Optional[Tensor] = None):
+        means = splats["means"].detach()
+        cov = covariance_3d(splats["quats"].detach(), splats["scales"].detach())
+        if rows is not None:
+            means, cov = means[rows], cov[rows]
+        nu0 = torch.full((means.shape[0],), float(self.nu0), dtype=torch.float64)
+        return means.double(), niwm.prior_scale_for_expected_cov(cov.double(), nu0)
+
+    def initialize_state(self, *, splats, scene, info):
+        m0, S0 = self._prior_for(splats)
+        n = m0.shape[0]
+        st = {
+            "m0": m0, "S0": S0, "N": torch.zeros(n, dtype=torch.float64),
+            "ediag": torch.diagonal(S0, dim1=-2, dim2=-1) / (self.nu0 - D - 1),
+            "mse": torch.tensor(0.0, dtype=torch.float64), "mse_n": torch.tensor(0.0, dtype=torch.float64),
+            "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0),
+        }
+        self._refresh(st, splats)
+        return st
+
+    def _t_niw(self, info) -> int:
+        return int(self.t_niw) if self.t_niw is not None else 0
+
+    # ------------------------------------------------------------------ updates
+    @torch.no_grad()
+    def step_post_backward(self, *, splats, optimizers, state, step, info):
+        if self.plugin_noise:
+            mse = float(info["sq_err_sum"]) / max(int(info["num_values"]), 1)
+            state["mse"] = self.mse_ema * state["mse"] + (1 - self.mse_ema) * mse
+            state["mse_n"] = self.mse_ema * state["mse_n"] + (1 - self.mse_ema)
+        if step < self._t_niw(info):
+            return
+        radii = info["radii"][0]
+        vis = radii > 0
+        if bool(vis.any()):
+            o = torch.sigmoid(splats["opacities"].detach()[vis]).double()
+            raw = o * torch.sqrt(torch.clamp(state["ediag"][vis].prod(-1), min=0.0))
+            total = float(raw.sum())
+            eff_pixels = float(info["render"].alpha.detach().sum())
+            target = torch.zeros_like(state["N"])
+            if total > 0 and eff_pixels > 0:
+                target[vis] = raw * (eff_pixels * float(state["n_views"]) / total)
+            state["N"].mul_(self.ema).add_((1 - self.ema) * target)
+        if step % self.update_every == 0:
+            self._refresh(state, splats)
+
+    @torch.no_grad()
+    def _refresh(self, state, splats) -> None:
+        """Eq. 2-3 with x̄ = current centre and C = 0."""
+        xbar = splats["means"].detach().double()
+        n = xbar.shape[0]
+        k0 = torch.full((n,), float(self.kappa0), dtype=torch.float64)
+        nu0 = torch.full((n,), float(self.nu0), dtype=torch.float64)
+        C = torch.zeros(n, D, D, dtype=torch.float64)
+        m_n, k_n, nu_n, S_n = niwm.niw_update(state["m0"], k0, nu0, state["S0"], state["N"], xbar, C)
+        state["m_n"], state["kappa_n"], state["nu_n"], state["S_n"] = m_n, k_n, nu_n, S_n
+        state["ediag"] = torch.diagonal(niwm.expected_cov(S_n, nu_n), dim1=-2, dim2=-1).clone()
+
+    @torch.no_grad()
+    def on_topology(self, *, splats, optimizers, state, step, info):
+        fresh = info["fresh"]
+        if not bool(fresh.any()):
+            return
+        rows = torch.nonzero(fresh, as_tuple=False).flatten()
+        m0, S0 = self._prior_for(splats, rows)
+        state["m0"][rows] = m0
+        state["S0"][rows] = S0
+        state["N"][rows] = 0.5 * state["N"][rows]
+        self._refresh(state, splats)
+
+    # ------------------------------------------------------------------ posterior use
+    def posterior(self, state, splats) -> dict[str, Tensor]:
+        self._refresh(state, splats)
+        return {k: state[k] for k in ("m_n", "kappa_n", "nu_n", "S_n")}
+
+    @torch.no_grad()
+    def sample(self, *, splats, state, n, generator, params, info):
+        post = self.posterior(state, splats)
+        mu, Sigma = niwm.sample_niw(post["m_n"], post["kappa_n"], post["nu_n"], post["S_n"], n, generator=generator)
+        out = dict(params)
+        dtype = splats["means"].dtype
+        out["means"] = mu.to(dtype)
+        if self.cov_mode != "none":
+            if self.cov_mode == "absolute":
+                covs = Sigma
+            else:
+                E = niwm.expected_cov(post["S_n"], post["nu_n"])
+                Le = niwm.safe_cholesky(E)  # E = Le Leᵀ
+                # W = Le^{-1} Σ Le^{-T} (whitened IW draw), rendered as L W Lᵀ with L the rendered Cholesky
+                X = torch.linalg.solve_triangular(Le.unsqueeze(0).expand_as(Sigma), Sigma, upper=False)
+                W = torch.linalg.solve_triangular(Le.unsqueeze(0).expand_as(Sigma), X.transpose(-1, -2), upper=False)
+                cov_r = covariance_3d(splats["quats"].detach(), splats["scales"].detach()).double()
+                Lr = niwm.safe_cholesky(cov_r)
+                covs = Lr @ W @ Lr.transpose(-1, -2)
+            out["covars"] = (0.5 * (covs + covs.transpose(-1, -2))).to(dtype)
+        return out
+
+    @torch.no_grad()
+    def posterior_mean(self, *, splats, state, params):
+        out = dict(params)
+        out["means"] = self.posterior(state, splats)["m_n"].to(splats["means"].dtype)
+        return out
+
+    def aleatoric_variance(self, *, state):
+        if not self.plugin_noise or float(state["mse_n"]) <= 0:
+            return None
+        return float(state["mse"] / state["mse_n"])  # bias-corrected EMA of the residual MSE
+
+    @torch.no_grad()
+    def export(self, *, state):
+        var_mu = niwm.mean_variance(state["S_n"], state["nu_n"], state["kappa_n"])
+        return {
+            "niw_pos_var": (torch.diagonal(var_mu, dim1=-2, dim2=-1).sum(-1) / D).float(),
+            "niw_kappa": state["kappa_n"].float(),
+            "niw_nu": state["nu_n"].float(),
+        }
+
+    def summary(self, *, state):
+        ex = self.export(state=state)
+        return {
+            "mean_count": float(state["N"].mean()) if state["N"].numel() else 0.0,
+            "median_pos_std": float(ex["niw_pos_var"].sqrt().median()) if state["N"].numel() else 0.0,
+            "sigma2_plugin": self.aleatoric_variance(state=state),
+        }

@@ -1,0 +1,74 @@
+"""Approximate opacity posterior around the optimizer (paper Table 1: "approximate refinement")."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+from b3dgs.plugin import PosteriorBlock
+from b3dgs.posterior import appearance as app
+
+
+@dataclass
+class OpacityBlock(PosteriorBlock):
+    """q(o_k) ≈ Beta(a_k, b_k), moment-matched to sigmoid(ℓ) with ℓ ~ N(ℓ̂_k, v_k): ℓ̂ is the optimizer's
+    logit and v_k a Laplace variance from the empirical Fisher (EMA of the squared loss gradient
+    w.r.t. the logit, times the number of training views) plus a prior precision.
+
+    Approximations: a diagonal Laplace/Fisher curvature, the EMA over minibatches, and the moment
+    match. The block does not move the point estimate; it supplies the variance that the DPMM
+    predictive path samples. Active after ``t_post`` (default max_steps / 2).
+    """
+
+    prior_precision: float = 1.0
+    ema: float = 0.99
+    t_post: Optional[int] = None
+
+    def check_sanity(self, max_steps: int = 0, **kw) -> None:
+        if self.prior_precision <= 0:
+            raise ValueError("posterior.opacity.prior_precision must be > 0")
+        if not 0 <= self.ema < 1:
+            raise ValueError("posterior.opacity.ema must be in [0, 1)")
+
+    def initialize_state(self, *, splats, scene, info):
+        self._max_steps = int(info.get("max_steps", 0))
+        n = splats["means"].shape[0]
+        return {"fisher": torch.zeros(n, dtype=torch.float64),
+                "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0)}
+
+    def _start(self) -> int:
+        return int(self.t_post) if self.t_post is not None else getattr(self, "_max_steps", 0) // 2
+
+    @torch.no_grad()
+    def step_post_backward(self, *, splats, optimizers, state, step, info):
+        if step < self._start():
+            return
+        g = splats["opacities"].grad
+        if g is None:
+            return
+        state["fisher"].mul_(self.ema).add_((1 - self.ema) * g.double().square() * float(state["n_views"]))
+
+    def logit_var(self, state):
+        return app.opacity_fisher_var(state["fisher"], self.prior_precision)
+
+    @torch.no_grad()
+    def sample(self, *, splats, state, n, generator, params, info):
+        """Logit draws ℓ ~ N(ℓ̂, v) (the Gaussian the Beta is matched to); inactive (-30) stay off."""
+        out = dict(params)
+        base = out["opacities"] if out["opacities"].dim() == 2 else out["opacities"].unsqueeze(0).expand(n, -1)
+        std = self.logit_var(state).sqrt().to(base.dtype)
+        eps = torch.randn(base.shape, generator=generator, dtype=base.dtype)
+        out["opacities"] = torch.where(base > -29.0, base + std * eps, base)
+        return out
+
+    def export(self, *, state):
+        # variance of the opacity itself under the moment-matched Beta
+        return {"opacity_var": self._opacity_var(state).float()}
+
+    def _opacity_var(self, state):
+        return state.get("_last_opvar", torch.zeros_like(state["fisher"]))
+
+    def summary(self, *, state):
+        v = self.logit_var(state)
+        return {"median_logit_var": float(v.median()) if v.numel() else 0.0}

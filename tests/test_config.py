@@ -1,0 +1,72 @@
+"""Every option of every config group composes, and its components build."""
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from hydra.utils import instantiate
+from omegaconf import OmegaConf
+
+from b3dgs.train import CONF_DIR, build_plugins
+
+GROUPS = sorted(p.name for p in Path(CONF_DIR).iterdir() if p.is_dir() and p.name != "hydra")
+
+
+def options(group):
+    return sorted(p.stem for p in (Path(CONF_DIR) / group).glob("*.yaml"))
+
+
+def compose_cfg(overrides):
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name="train", overrides=overrides, return_hydra_config=True)
+
+
+CASES = [(g, o) for g in GROUPS for o in options(g)]
+
+
+@pytest.mark.parametrize("group,option", CASES, ids=[f"{g}={o}" for g, o in CASES])
+def test_every_option_composes_and_builds(group, option, tmp_path):
+    overrides = [f"{group}={option}" if group != "posterior" else f"posterior=[{option}]"]
+    if group == "data" and option != "synthetic":
+        overrides.append(f"data.path={tmp_path}")
+    cfg = compose_cfg(overrides)
+    OmegaConf.resolve(cfg.hydra)  # interpolations in run dirs resolve
+    strategy, blocks = build_plugins(cfg)
+    strategy.check_sanity()
+    for blk in blocks.values():
+        blk.check_sanity(max_steps=int(cfg.trainer.max_steps))
+    if group == "data":
+        dm = instantiate(cfg.data)
+        assert dm.kind == option
+    if group == "model":
+        from b3dgs.train import build_module
+
+        module = build_module(cfg, strategy, blocks)
+        assert module.hparams.name == cfg.model.name
+    if group == "logger" and cfg.get("logger"):
+        instantiate(cfg.logger, save_dir=str(tmp_path))
+
+
+def test_model_selects_posterior_blocks():
+    assert not compose_cfg(["model=standard"]).get("posterior")
+    if "niw" in options("model"):
+        assert list(compose_cfg(["model=niw"]).posterior.keys()) == ["niw"]
+    if "dpmm" in options("model"):
+        cfg = compose_cfg(["model=dpmm"])
+        assert "niw" in cfg.posterior and "dp" in cfg.posterior
+        # the command line wins over the model's choice
+        assert list(compose_cfg(["model=dpmm", "posterior=[niw]"]).posterior.keys()) == ["niw"]
+        assert not compose_cfg(["model=dpmm", "posterior=[]"]).get("posterior")
+
+
+def test_bad_values_fail_clearly():
+    cfg = compose_cfg(["strategy.refine_every=0"])
+    strategy, _ = build_plugins(cfg)
+    with pytest.raises(ValueError, match="refine_every"):
+        strategy.check_sanity()
+    cfg = compose_cfg(["model.lambda_dssim=2"])
+    from b3dgs.train import build_module
+
+    with pytest.raises(ValueError, match="lambda_dssim"):
+        build_module(cfg, *build_plugins(cfg))
