@@ -153,7 +153,9 @@ class SplatModule(L.LightningModule):
         return lr * extent
 
     def active_sh_degree(self, step: Optional[int] = None) -> int:
-        step = self.global_step if step is None else step
+        if step is None:
+            # a module loaded from a checkpoint has no trainer: use the checkpoint's step
+            step = self.global_step if self._trainer is not None else getattr(self, "_loaded_step", self.hparams.max_steps)
         return min(self.hparams.sh_degree, step // max(self.hparams.sh_increase_every, 1))
 
     # ------------------------------------------------------------------ rendering

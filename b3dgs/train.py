@@ -44,6 +44,16 @@ def build_module(cfg: DictConfig, strategy, blocks):
     )
 
 
+def save_config(cfg: DictConfig, path: Path) -> None:
+    """The composed config (without Hydra's own node), resolved, written atomically."""
+    from b3dgs.io import atomic_path
+
+    plain = OmegaConf.to_container(cfg, resolve=True)
+    plain.pop("hydra", None)
+    with atomic_path(path) as tmp:
+        tmp.write_text(OmegaConf.to_yaml(OmegaConf.create(plain)))
+
+
 def resolve_resume(cfg: DictConfig, run_dir: Path) -> Optional[str]:
     resume = cfg.get("resume")
     if resume in (None, False, "null", ""):
@@ -68,6 +78,7 @@ def train(cfg: DictConfig) -> dict:
 
     run_dir = Path(cfg.trainer.default_root_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, run_dir / "config.yaml")
     seed = int(cfg.seed)
     # reset the global seed in every job: PL_GLOBAL_SEED survives between multirun jobs
     os.environ.pop("PL_GLOBAL_SEED", None)

@@ -1,0 +1,126 @@
+"""``b3dgs-eval``: uncertainty regimes and calibration metrics for one run (or an ensemble of runs).
+
+Writes ``uq.json`` shaped ``{regime: {cov95, cov95_err, ause_rmse, ause_mae, ece, nll, spearman,
+time_s, psnr, lpips, ..., per_view: [...]}}`` plus sparsification/reliability plots and
+render | GT | error | uncertainty panels (PNG and TensorBoard) into the run dir.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import time
+from pathlib import Path
+from typing import Optional
+
+import hydra
+import torch
+from omegaconf import DictConfig, ListConfig, OmegaConf
+from tqdm.auto import tqdm
+
+from b3dgs.io import write_json
+from b3dgs.train import CONF_DIR
+
+log = logging.getLogger(__name__)
+
+
+def regimes_from_cfg(cfg: DictConfig) -> dict:
+    from hydra.utils import instantiate
+
+    out = {}
+    for name, node in (cfg.get("uq") or {}).items():
+        if isinstance(node, DictConfig) and "_target_" in node:
+            out[name] = instantiate(node)
+    if not out:
+        raise ValueError("No uncertainty regime selected: pass uq=[native,proxy] (options: native, proxy, ensemble, ppu)")
+    return out
+
+
+def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Optional[int] = None,
+                panels: int = 3, out_dir: Optional[Path] = None) -> dict:
+    """Fit every regime on the loaded run(s) and score it on the test views."""
+    from b3dgs.metrics.image import psnr as psnr_fn
+    from b3dgs.metrics.lpips import get_lpips
+    from b3dgs.runs import load_run
+    from b3dgs.uq.metrics import evaluate_view, summarize, to_jsonable
+    from b3dgs.uq.plots import plot_reliability, plot_sparsification, plot_uncertainty_panel
+
+    if not run_dirs:
+        raise ValueError("run= must name at least one run dir")
+    first = load_run(run_dirs[0])
+    runs = [first] + [load_run(r, scene=first.scene) for r in run_dirs[1:]]
+    scene = first.scene
+    cams = scene.test[:max_views] if max_views else scene.test
+    if not cams:
+        raise ValueError("The scene has no test views (data.test_every=0?); nothing to evaluate")
+    out_dir = Path(out_dir or run_dirs[0])
+    lpips_model, lpips_reason = get_lpips()
+    train_times = [float((r.metrics or {}).get("train_time_s") or 0.0) for r in runs]
+    writer = None
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(out_dir / "tb_uq"))
+    except Exception as e:  # tensorboard missing: PNGs only
+        log.warning("TensorBoard unavailable (%s); panels are written as PNG only", e)
+    result: dict = {}
+    curves: dict = {}
+    for name, regime in regimes.items():
+        members = [r.module for r in runs] if name == "ensemble" or getattr(regime, "min_members", 0) else [first.module]
+        t0 = time.perf_counter()
+        regime.fit(members, scene)
+        gen = torch.Generator().manual_seed(int(seed))
+        per_view = []
+        for i, cam in enumerate(tqdm(cams, desc=f"uq {name}", leave=False)):
+            pred = regime.predict(cam, generator=gen)
+            row = evaluate_view(pred.mean, pred.var, cam.image)
+            row["name"] = cam.name
+            row["psnr"] = float(psnr_fn(pred.mean.clamp(0, 1), cam.image))
+            if lpips_model is not None:
+                row["lpips"] = float(lpips_model(pred.mean.clamp(0, 1), cam.image))
+            row["mean_epistemic"] = float(pred.epistemic.mean())
+            row["aleatoric"] = pred.aleatoric
+            per_view.append(row)
+            if i < panels:
+                err = (pred.mean - cam.image).abs().mean(-1)
+                img = plot_uncertainty_panel(pred.mean.clamp(0, 1), cam.image, err, pred.var.sqrt(),
+                                             out_dir / "uq" / f"{name}_{Path(cam.name).stem}.png",
+                                             title=f"{name}: {cam.name}")
+                if writer is not None:
+                    writer.add_image(f"uq/{name}/{cam.name}", torch.from_numpy(img).permute(2, 0, 1), 0)
+        elapsed = time.perf_counter() - t0
+        summ = summarize(per_view)
+        curves[name] = summ
+        summ = {k: v for k, v in summ.items() if k != "mean_curves"}
+        summ["spearman"] = summ.get("spearman_rho")
+        summ["time_s"] = round(elapsed, 3)
+        summ["train_time_s"] = round(sum(train_times) if name == "ensemble" else train_times[0], 3)
+        summ["samples"] = getattr(regime, "samples", None)
+        summ["runs"] = [str(r.path) for r in runs] if name == "ensemble" else [str(first.path)]
+        if lpips_model is None:
+            summ["lpips_reason"] = lpips_reason
+        result[name] = to_jsonable(summ)
+        log.info("%s: Cov@95 %.3f (|err| %.3f), AUSE-RMSE %.4f, ECE %.4f, NLL %.3f, %.1f s", name,
+                 summ.get("cov95", float("nan")), summ.get("cov95_err", float("nan")), summ.get("ause_rmse", float("nan")),
+                 summ.get("ece", float("nan")), summ.get("nll", float("nan")), elapsed)
+    if writer is not None:
+        writer.close()
+    plot_sparsification(curves, out_dir / "uq" / "sparsification.png")
+    plot_reliability(curves, out_dir / "uq" / "reliability.png")
+    result["_meta"] = {"nll_note": "NLL is comparable only within one uncertainty regime",
+                       "views": [c.name for c in cams], "seed": int(seed)}
+    write_json(out_dir / "uq.json", result)
+    return result
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="eval")
+def main(cfg: DictConfig) -> None:
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    runs = cfg.run
+    run_dirs = [str(r) for r in runs] if isinstance(runs, (ListConfig, list, tuple)) else [str(runs)]
+    evaluate_uq(run_dirs, regimes_from_cfg(cfg), seed=int(cfg.seed), max_views=cfg.get("max_views"),
+                panels=int(cfg.panels), out_dir=Path(cfg.out) if cfg.get("out") else None)
+
+
+if __name__ == "__main__":
+    main()

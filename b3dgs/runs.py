@@ -1,0 +1,60 @@
+"""Load a finished run dir (config.yaml + checkpoints/last.ckpt) back into a SplatModule."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from b3dgs.types import Scene
+
+
+@dataclass
+class LoadedRun:
+    path: Path
+    cfg: DictConfig
+    module: "object"  # SplatModule
+    scene: Scene
+    metrics: Optional[dict]
+
+
+def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Optional[str | Path] = None) -> LoadedRun:
+    """Rebuild the model of ``run_dir`` from its config and last checkpoint.
+
+    ``scene`` may be passed to share one loaded scene between several runs (ensembles).
+    """
+    import json
+
+    from hydra.utils import instantiate
+
+    from b3dgs.train import build_module, build_plugins
+
+    run_dir = Path(run_dir)
+    cfg_path = run_dir / "config.yaml"
+    if not cfg_path.exists():
+        raise FileNotFoundError(f"{run_dir} is not a b3dgs run dir: no config.yaml (train with b3dgs-train first)")
+    ckpt_path = Path(checkpoint) if checkpoint else run_dir / "checkpoints" / "last.ckpt"
+    if not ckpt_path.exists():
+        raise FileNotFoundError(f"No checkpoint at {ckpt_path}; the run may not have finished (resume with resume=auto)")
+    cfg = OmegaConf.load(cfg_path)
+    if scene is None:
+        dm = instantiate(cfg.data)
+        dm.setup("fit")
+        scene = dm.scene
+    strategy, blocks = build_plugins(cfg)
+    module = build_module(cfg, strategy, blocks)
+    module.scene = scene
+    try:
+        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+    except Exception as e:  # corrupt or truncated file
+        raise ValueError(f"Cannot read checkpoint {ckpt_path}: {e}") from e
+    module.on_load_checkpoint(ck)
+    module.load_state_dict(ck["state_dict"])
+    module._loaded_step = int(ck.get("global_step", 0))
+    module.eval()
+    metrics = None
+    if (run_dir / "metrics.json").exists():
+        metrics = json.loads((run_dir / "metrics.json").read_text())
+    return LoadedRun(run_dir, cfg, module, scene, metrics)

@@ -1,0 +1,76 @@
+"""Uncertainty regimes: a per-pixel predictive mean and variance for any camera.
+
+Every regime (native posterior, position-jitter proxy, deep ensemble, residual head) implements
+``fit(models, scene)`` once and ``predict(camera, generator)`` per view. Acquisition policies score
+candidate views through the same interface, so a new regime is usable everywhere at once.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from b3dgs.types import Camera, Scene
+
+
+@dataclass
+class Predictive:
+    """Per-pixel predictive distribution N(mean, var·I₃) of one view."""
+
+    mean: Tensor  # (H, W, 3) the prediction scored against the ground truth
+    var: Tensor  # (H, W) predictive variance per channel (epistemic + aleatoric)
+    epistemic: Tensor  # (H, W) the sample/member spread u_p alone
+    aleatoric: float  # the constant aleatoric term added to u_p (0 if none)
+
+
+@dataclass
+class UQRegime:
+    """Base of the uncertainty regimes; ``samples`` Monte-Carlo draws per view where relevant."""
+
+    samples: int = 50
+    chunk: int = 10  # samples rendered per batched call (bounds memory)
+
+    def check(self) -> None:
+        if self.samples < 1:
+            raise ValueError(f"{type(self).__name__}.samples must be >= 1, got {self.samples}")
+        if self.chunk < 1:
+            raise ValueError(f"{type(self).__name__}.chunk must be >= 1")
+
+    def fit(self, models: Sequence, scene: Scene) -> None:
+        self.check()
+        if not models:
+            raise ValueError(f"{type(self).__name__} needs at least one trained model")
+        self.models = list(models)
+        self.scene = scene
+
+    def predict(self, camera: Camera, generator: Optional[torch.Generator] = None) -> Predictive:
+        raise NotImplementedError
+
+
+def render_params(module) -> dict[str, Tensor]:
+    """The point-estimate parameters of a module, detached."""
+    return {k: v.detach() for k, v in module.params().items()}
+
+
+@torch.no_grad()
+def sample_spread(module, camera: Camera, draw, samples: int, chunk: int) -> tuple[Tensor, Tensor]:
+    """Render ``samples`` parameter draws in batched calls (shared tile binning per call).
+
+    ``draw(n)`` returns a params dict with (n, N, ...) sampled entries. Returns the sample mean image
+    (H, W, 3) and u_p = mean over samples and RGB of the squared deviation from it (H, W) (Eq. 4,
+    averaged over channels so that it is a per-channel variance).
+    """
+    imgs = []
+    left = samples
+    while left > 0:
+        n = min(chunk, left)
+        out = module.render_camera(camera, params=draw(n))
+        rgb = out.rgb if out.rgb.dim() == 4 else out.rgb.unsqueeze(0)
+        imgs.append(rgb.double())
+        left -= n
+    stack = torch.cat(imgs, dim=0)  # (S, H, W, 3)
+    mean = stack.mean(0)
+    u = (stack - mean).square().mean(dim=(0, 3))
+    return mean.float(), u.float()
