@@ -65,4 +65,4 @@ def init_gaussians(
     opac = torch.logit(torch.full((n,), float(init_opacity)))
     sh0 = rgb_to_sh0(cols.clamp(0, 1)).unsqueeze(1)
     shN = torch.zeros(n, (sh_degree + 1) ** 2 - 1, 3)
-    return {"means": pts.contiguous(), "quats": quats, "scales": scales, "opacities": opac, "sh0": sh0, "shN": shN}
+    return {"means": pts.clone().contiguous(), "quats": quats, "scales": scales, "opacities": opac, "sh0": sh0, "shN": shN}

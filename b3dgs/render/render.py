@@ -111,7 +111,9 @@ def render(
     else:
         colors = eval_sh(0, expand(sh0, 2), means_s)
     colors = torch.clamp_min(colors + 0.5, 0.0)
-    opac = expand(torch.sigmoid(params["opacities"]), 0)
+    # a Gaussian culled in one sample (radius 0) stays invisible there, even though the shared
+    # binning (union over samples) lists it
+    opac = expand(torch.sigmoid(params["opacities"]), 0) * (proj.radii > 0)
 
     if background is None:
         background = torch.zeros(3, dtype=dtype)

@@ -1,0 +1,122 @@
+"""JIT build / load of the C++ (OpenMP) rasterizer extension.
+
+The extension is compiled once with ``torch.utils.cpp_extension.load`` (ninja) into a per-user
+cache directory keyed by a hash of the sources, the compiler flags and the torch version:
+``$B3DGS_CACHE/<hash>`` if ``B3DGS_CACHE`` is set, else ``~/.cache/b3dgs/ext/<hash>``.
+Concurrent builds from several processes are serialised with an ``fcntl`` lock (released by the
+kernel even if a process dies, unlike torch's file baton, whose stale lock files we clear while
+holding our lock). Later processes import the built module directly without invoking ninja.
+"""
+from __future__ import annotations
+
+import hashlib
+import importlib.machinery
+import importlib.util
+import os
+import sys
+import threading
+from pathlib import Path
+from types import ModuleType
+from typing import Optional
+
+import torch
+
+_CSRC = Path(__file__).resolve().parent / "csrc"
+_SOURCES = [_CSRC / "rasterize.cpp"]
+_HASHED = [_CSRC / "rasterize.cpp", _CSRC / "kernels.h"]
+# Portable flags: no -march=native, no -ffast-math (NaN semantics must hold). FMA contraction off
+# so that float32 results track the pure-PyTorch backend as closely as possible.
+_CFLAGS = ("-O3", "-fopenmp", "-fno-math-errno", "-ffp-contract=off")
+_LDFLAGS = ("-fopenmp",)
+HINT = "use renderer=torch (pure PyTorch backend)"
+
+_module: Optional[ModuleType] = None
+_thread_lock = threading.Lock()
+
+
+def _build_hash() -> str:
+    h = hashlib.sha256()
+    for src in _HASHED:
+        h.update(src.name.encode())
+        h.update(src.read_bytes())
+    h.update(" ".join(_CFLAGS + _LDFLAGS).encode())
+    h.update(torch.__version__.encode())
+    h.update(sys.version.encode())
+    return h.hexdigest()[:16]
+
+
+def cache_dir() -> Path:
+    """Build directory of the current sources/flags/torch version."""
+    root = os.environ.get("B3DGS_CACHE")
+    base = Path(root).expanduser() if root else Path.home() / ".cache" / "b3dgs" / "ext"
+    return base / _build_hash()
+
+
+def _module_name() -> str:
+    return "b3dgs_rasterize_" + _build_hash()
+
+
+def _import_built(path: Path, name: str) -> ModuleType:
+    loader = importlib.machinery.ExtensionFileLoader(name, str(path))
+    spec = importlib.util.spec_from_file_location(name, str(path), loader=loader)
+    assert spec is not None
+    mod = importlib.util.module_from_spec(spec)
+    loader.exec_module(mod)
+    return mod
+
+
+def _build_locked(build_dir: Path, name: str, verbose: bool) -> ModuleType:
+    import fcntl
+
+    from torch.utils import cpp_extension
+
+    so_path = build_dir / f"{name}.so"
+    with open(build_dir / "b3dgs_build.lock", "w") as lock_file:
+        fcntl.flock(lock_file, fcntl.LOCK_EX)  # blocks while another process builds
+        try:
+            if so_path.exists():
+                return _import_built(so_path, name)
+            stale = build_dir / "lock"  # torch FileBaton left over by a killed build
+            if stale.exists():
+                stale.unlink()
+            return cpp_extension.load(
+                name=name,
+                sources=[str(s) for s in _SOURCES],
+                extra_cflags=list(_CFLAGS),
+                extra_ldflags=list(_LDFLAGS),
+                build_directory=str(build_dir),
+                verbose=verbose,
+            )
+        finally:
+            fcntl.flock(lock_file, fcntl.LOCK_UN)
+
+
+def load_extension(verbose: bool = False) -> ModuleType:
+    """Build (first time only) and load the C++ rasterizer; RuntimeError with a hint on failure."""
+    global _module
+    if _module is not None:
+        return _module
+    with _thread_lock:
+        if _module is not None:
+            return _module
+        try:
+            name = _module_name()
+            build_dir = cache_dir()
+            build_dir.mkdir(parents=True, exist_ok=True)
+            # Imports directly if an earlier process already built it (checked under the lock,
+            # so a half-linked .so is never imported).
+            _module = _build_locked(build_dir, name, verbose)
+        except Exception as e:  # noqa: BLE001 - compiler errors come as RuntimeError/OSError/...
+            raise RuntimeError(
+                f"b3dgs: could not build/load the C++ rasterizer extension ({type(e).__name__}):\n{e}\n"
+                f"Hint: {HINT}."
+            ) from e
+        return _module
+
+
+def is_available() -> bool:
+    try:
+        load_extension()
+        return True
+    except RuntimeError:
+        return False

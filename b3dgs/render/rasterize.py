@@ -1,0 +1,410 @@
+"""Tile rasterizer of 3D Gaussian splatting with two backends.
+
+``bin_gaussians`` assigns 2D Gaussians to 16x16 screen tiles (shared by all S samples: the union
+of their footprints, sorted by mean depth), and ``rasterize`` alpha-composites them front to back
+with the standard 3DGS rules:
+
+    pixel (px, py) has centre (px + 0.5, py + 0.5); walk the tile list with T = 1:
+      d = mean - centre; power = -0.5 (a dx^2 + c dy^2) - b dx dy; skip if power > 0
+      alpha = min(0.99, o exp(power)); skip if alpha < 1/255
+      test_T = T (1 - alpha); stop if test_T < 1e-4 (not composited)
+      w = alpha T; rgb += w colour; depth += w z; T = test_T
+    rgb += T background; alpha_out = 1 - T
+
+Backends: ``"torch"`` (pure PyTorch autograd, float32/float64, the gradcheck reference) and
+``"cpu"`` (C++/OpenMP forward and backward kernels, deterministic gradient reductions).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+from torch import Tensor
+from torch.utils.checkpoint import checkpoint
+
+MIN_ALPHA = 1.0 / 255.0
+MAX_ALPHA = 0.99
+MIN_T = 1e-4
+BACKENDS = ("cpu", "torch")
+# Elements (samples x tiles x Gaussians x pixels) per chunk of the torch backend; ~20 such
+# tensors are alive at once in the backward, i.e. ~0.6 GB in float64.
+_TORCH_CHUNK_ELEMS = 1 << 22
+
+
+@dataclass
+class TileBins:
+    tile_offsets: Tensor  # int64 (num_tiles + 1,), CSR offsets into flat_ids; tile t = ty * tiles_x + tx
+    flat_ids: Tensor  # int64 (P,), Gaussian indices, front-to-back within each tile
+    tiles_x: int
+    tiles_y: int
+    tile_size: int
+
+    @property
+    def num_pairs(self) -> int:
+        return int(self.flat_ids.numel())
+
+    @property
+    def num_tiles(self) -> int:
+        return self.tiles_x * self.tiles_y
+
+    def tile_counts(self) -> Tensor:
+        return self.tile_offsets[1:] - self.tile_offsets[:-1]
+
+
+@dataclass
+class RasterOutput:
+    rgb: Tensor  # (S, H, W, 3) colour composited over the background
+    alpha: Tensor  # (S, H, W) 1 - final transmittance
+    depth: Tensor  # (S, H, W) sum_i w_i z_i (not normalised by alpha)
+    weight_sum: Optional[Tensor] = None  # (S, N) sum over pixels of w_kp (detached)
+    weight_sq_sum: Optional[Tensor] = None  # (S, N) sum over pixels of w_kp^2 (detached)
+    n_contrib: Optional[Tensor] = None  # (S, H, W) int32, Gaussians composited per pixel
+
+
+# --------------------------------------------------------------------------------------------
+# Binning
+# --------------------------------------------------------------------------------------------
+def _shape_str(t: Tensor) -> str:
+    return str(tuple(t.shape))
+
+
+@torch.no_grad()
+def bin_gaussians(
+    means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = 16
+) -> TileBins:
+    """Shared tile binning of (S, N) projected Gaussians, sorted by tile, mean depth, then id.
+
+    Gaussian k goes to every tile overlapping the union over samples with ``radii > 0`` of
+    ``[x - r, x + r] x [y - r, y + r]`` (tiles floor((x - r)/ts) .. ceil((x + r)/ts) - 1, clamped).
+    """
+    if means2d.dim() != 3 or means2d.shape[-1] != 2:
+        raise ValueError(f"bin_gaussians: means2d must be (S, N, 2), got {_shape_str(means2d)}")
+    S, N = means2d.shape[:2]
+    if tuple(radii.shape) != (S, N):
+        raise ValueError(f"bin_gaussians: radii must be (S, N) = ({S}, {N}), got {_shape_str(radii)}")
+    if tuple(depths.shape) != (S, N):
+        raise ValueError(f"bin_gaussians: depths must be (S, N) = ({S}, {N}), got {_shape_str(depths)}")
+    if width <= 0 or height <= 0 or tile_size <= 0:
+        raise ValueError(f"bin_gaussians: bad width/height/tile_size {width}/{height}/{tile_size}")
+    tiles_x = (width + tile_size - 1) // tile_size
+    tiles_y = (height + tile_size - 1) // tile_size
+    num_tiles = tiles_x * tiles_y
+
+    m = means2d.detach().double()
+    r = radii.detach().double()
+    d = depths.detach().double()
+    x, y = m[..., 0], m[..., 1]
+    valid = (r > 0) & torch.isfinite(r) & torch.isfinite(x) & torch.isfinite(y) & torch.isfinite(d)
+    inf = math.inf
+    xmin = torch.where(valid, x - r, inf).amin(0)
+    xmax = torch.where(valid, x + r, -inf).amax(0)
+    ymin = torch.where(valid, y - r, inf).amin(0)
+    ymax = torch.where(valid, y + r, -inf).amax(0)
+    nvalid = valid.sum(0)
+    vis = nvalid > 0
+    zero = torch.zeros((), dtype=torch.float64)
+    xmin, xmax = torch.where(vis, xmin, zero), torch.where(vis, xmax, zero)
+    ymin, ymax = torch.where(vis, ymin, zero), torch.where(vis, ymax, zero)
+    tx0 = torch.floor(xmin / tile_size).clamp(0, tiles_x).long()
+    tx1 = torch.ceil(xmax / tile_size).clamp(0, tiles_x).long()
+    ty0 = torch.floor(ymin / tile_size).clamp(0, tiles_y).long()
+    ty1 = torch.ceil(ymax / tile_size).clamp(0, tiles_y).long()
+    wx = (tx1 - tx0).clamp_min(0)
+    wy = (ty1 - ty0).clamp_min(0)
+    counts = torch.where(vis, wx * wy, torch.zeros_like(wx))
+
+    # Rank of every Gaussian by (mean depth over valid samples, id).
+    dkey = torch.where(valid, d, zero).sum(0) / nvalid.clamp_min(1)
+    order = torch.sort(dkey, stable=True).indices
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(N, dtype=torch.int64)
+
+    gid = torch.repeat_interleave(torch.arange(N, dtype=torch.int64), counts)
+    P = int(gid.numel())
+    if P > 0:
+        starts = torch.cumsum(counts, 0) - counts
+        local = torch.arange(P, dtype=torch.int64) - starts[gid]
+        wxg = wx[gid]
+        tile = (ty0[gid] + torch.div(local, wxg, rounding_mode="floor")) * tiles_x + tx0[gid] + local % wxg
+        key = tile * max(N, 1) + rank[gid]
+        key, perm = torch.sort(key)
+        flat_ids = gid[perm]
+        tile_counts = torch.bincount(tile, minlength=num_tiles)
+    else:
+        flat_ids = torch.zeros(0, dtype=torch.int64)
+        tile_counts = torch.zeros(num_tiles, dtype=torch.int64)
+    tile_offsets = torch.zeros(num_tiles + 1, dtype=torch.int64)
+    torch.cumsum(tile_counts, 0, out=tile_offsets[1:])
+    return TileBins(tile_offsets, flat_ids, tiles_x, tiles_y, tile_size)
+
+
+# --------------------------------------------------------------------------------------------
+# Input validation
+# --------------------------------------------------------------------------------------------
+def _check_inputs(means2d, conics, colors, opacities, depths, bins, width, height, background, backend):
+    if backend not in BACKENDS:
+        raise ValueError(f"rasterize: backend must be one of {BACKENDS}, got {backend!r}")
+    if not isinstance(means2d, Tensor) or means2d.dim() != 3 or means2d.shape[-1] != 2:
+        raise ValueError(f"rasterize: means2d must be a (S, N, 2) tensor, got {_shape_str(means2d) if isinstance(means2d, Tensor) else type(means2d)}")
+    S, N = means2d.shape[:2]
+    dtype = means2d.dtype
+    if dtype not in (torch.float32, torch.float64):
+        raise ValueError(f"rasterize: means2d must be float32 or float64, got {dtype}")
+    expected = {"conics": (conics, (S, N, 3)), "colors": (colors, (S, N, 3)),
+                "opacities": (opacities, (S, N)), "depths": (depths, (S, N))}
+    for name, (t, shape) in expected.items():
+        if not isinstance(t, Tensor):
+            raise ValueError(f"rasterize: {name} must be a tensor, got {type(t)}")
+        if tuple(t.shape) != shape:
+            raise ValueError(f"rasterize: {name} must have shape {shape}, got {_shape_str(t)}")
+        if t.dtype != dtype:
+            raise ValueError(f"rasterize: {name} has dtype {t.dtype}, expected {dtype} (same as means2d)")
+    if not isinstance(background, Tensor) or tuple(background.shape) != (3,):
+        raise ValueError(f"rasterize: background must be a (3,) tensor, got "
+                         f"{_shape_str(background) if isinstance(background, Tensor) else type(background)}")
+    for name, t in (("means2d", means2d), ("conics", conics), ("colors", colors),
+                    ("opacities", opacities), ("depths", depths), ("background", background)):
+        if t.device.type != "cpu":
+            raise ValueError(f"rasterize: {name} must be on the CPU, got {t.device}")
+        if not bool(torch.isfinite(t.detach()).all()):
+            raise ValueError(f"rasterize: {name} contains NaN or Inf")
+    if width <= 0 or height <= 0:
+        raise ValueError(f"rasterize: width/height must be positive, got {width}x{height}")
+    ts = bins.tile_size
+    if bins.tiles_x != (width + ts - 1) // ts or bins.tiles_y != (height + ts - 1) // ts:
+        raise ValueError(f"rasterize: bins ({bins.tiles_x}x{bins.tiles_y} tiles of {ts}) do not match "
+                         f"the image size {width}x{height}")
+    if bins.tile_offsets.dtype != torch.int64 or tuple(bins.tile_offsets.shape) != (bins.num_tiles + 1,):
+        raise ValueError(f"rasterize: bins.tile_offsets must be int64 ({bins.num_tiles + 1},), got "
+                         f"{bins.tile_offsets.dtype} {_shape_str(bins.tile_offsets)}")
+    if bins.flat_ids.dtype != torch.int64 or bins.flat_ids.dim() != 1:
+        raise ValueError(f"rasterize: bins.flat_ids must be int64 (P,), got {bins.flat_ids.dtype} "
+                         f"{_shape_str(bins.flat_ids)}")
+    P = bins.num_pairs
+    if int(bins.tile_offsets[0]) != 0 or int(bins.tile_offsets[-1]) != P:
+        raise ValueError("rasterize: bins.tile_offsets must start at 0 and end at len(flat_ids)")
+    if P > 0 and (int(bins.flat_ids.min()) < 0 or int(bins.flat_ids.max()) >= N):
+        raise ValueError(f"rasterize: bins.flat_ids out of range for N={N} Gaussians (stale bins?)")
+
+
+# --------------------------------------------------------------------------------------------
+# Pure PyTorch backend
+# --------------------------------------------------------------------------------------------
+def _tile_pixel_centres(bins: TileBins, tiles: Tensor, width: int, height: int, dtype):
+    ts = bins.tile_size
+    local = torch.arange(ts * ts)
+    lx, ly = local % ts, local // ts
+    tx, ty = tiles % bins.tiles_x, tiles // bins.tiles_x
+    px = tx[:, None] * ts + lx[None, :]  # (Tc, ts*ts)
+    py = ty[:, None] * ts + ly[None, :]
+    inside = (px < width) & (py < height)
+    return px.to(dtype) + 0.5, py.to(dtype) + 0.5, inside
+
+
+def _torch_chunk(mx, my, ca, cb, cc, op, col, z, valid, pxc, pyc, inside, want_weights: bool):
+    """Composite one chunk: per-pair inputs (s, Tc, K[, 3]), pixel centres (Tc, Pix).
+
+    Returns rgb (s, Tc, Pix, 3) without background, depth (s, Tc, Pix), final T (s, Tc, Pix),
+    n_contrib (s, Tc, Pix) and, if requested, per-pair weight sums (s, Tc, K) x 2.
+    """
+    dx = mx[..., None] - pxc[None, :, None, :]  # (s, Tc, K, Pix)
+    dy = my[..., None] - pyc[None, :, None, :]
+    power = -0.5 * (ca[..., None] * dx * dx + cc[..., None] * dy * dy) - cb[..., None] * dx * dy
+    raw = op[..., None] * torch.exp(torch.clamp(power, max=0.0))
+    alpha = torch.clamp(raw, max=MAX_ALPHA)
+    with torch.no_grad():
+        ok = valid[..., None] & (power <= 0) & (alpha >= MIN_ALPHA)
+        a0 = torch.where(ok, alpha, torch.zeros_like(alpha))
+        # Stop rule: the inclusive transmittance is a non-increasing prefix product, so
+        # "composite while T (1 - alpha) >= 1e-4" keeps exactly where the cumprod is >= 1e-4.
+        keep = ok & (torch.cumprod(1.0 - a0, dim=-2) >= MIN_T)
+    alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
+    one_m = 1.0 - alpha
+    K = alpha.shape[-2]
+    if K > 0:
+        T_excl = torch.cumprod(torch.cat([torch.ones_like(one_m[..., :1, :]), one_m[..., :-1, :]], dim=-2), dim=-2)
+        T_final = T_excl[..., -1, :] * one_m[..., -1, :]
+    else:
+        T_excl = one_m
+        T_final = torch.ones(alpha.shape[:-2] + alpha.shape[-1:], dtype=alpha.dtype)
+    w = alpha * T_excl  # (s, Tc, K, Pix)
+    rgb = torch.einsum("stkp,stkc->stpc", w, col)
+    depth = torch.einsum("stkp,stk->stp", w, z)
+    with torch.no_grad():
+        n_contrib = keep.sum(-2, dtype=torch.int32)
+        if want_weights:
+            wd = w.detach() * inside[None, :, None, :]
+            wsum = wd.sum(-1)
+            wsq = (wd * wd).sum(-1)
+        else:
+            wsum = wsq = torch.zeros(0, dtype=alpha.dtype)
+    return rgb, depth, T_final, n_contrib, wsum, wsq
+
+
+def _plan_chunks(bins: TileBins, S: int, budget: int):
+    """Groups of tiles (sorted by decreasing count) and sample ranges so chunks fit the budget."""
+    counts = bins.tile_counts()
+    order = torch.argsort(counts, descending=True, stable=True)
+    cnt_sorted = counts[order].tolist()
+    npix = bins.tile_size * bins.tile_size
+    s_block = max(1, min(S, budget // max(1, max(cnt_sorted[0] if cnt_sorted else 1, 1) * npix)))
+    chunks = []
+    i = 0
+    nt = len(cnt_sorted)
+    while i < nt:
+        kmax = max(cnt_sorted[i], 1)
+        ntiles = max(1, budget // (s_block * kmax * npix))
+        j = min(nt, i + ntiles)
+        chunks.append((i, j, cnt_sorted[i]))
+        i = j
+    return order, chunks, s_block
+
+
+def _rasterize_torch(means2d, conics, colors, opacities, depths, bins, width, height, background,
+                     return_weights):
+    S, N = means2d.shape[:2]
+    dtype = means2d.dtype
+    ts, npix = bins.tile_size, bins.tile_size * bins.tile_size
+    num_tiles = bins.num_tiles
+    counts = bins.tile_counts()
+    order, chunks, s_block = _plan_chunks(bins, S, _TORCH_CHUNK_ELEMS)
+    need_grad = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (means2d, conics, colors, opacities, depths))
+    offsets = bins.tile_offsets
+    per_g = torch.cat([means2d, conics, opacities[..., None], colors, depths[..., None]], dim=-1)  # (S,N,10)
+
+    rgb_parts, depth_parts, T_parts, nc_parts = [], [], [], []
+    wsum = torch.zeros(S, N, dtype=dtype) if return_weights else None
+    wsq = torch.zeros(S, N, dtype=dtype) if return_weights else None
+    for s0 in range(0, S, s_block):
+        s1 = min(S, s0 + s_block)
+        rgb_s, depth_s, T_s, nc_s = [], [], [], []
+        for i, j, kmax in chunks:
+            tiles = order[i:j]
+            pxc, pyc, inside = _tile_pixel_centres(bins, tiles, width, height, dtype)
+            kk = torch.arange(kmax)
+            valid = kk[None, :] < counts[tiles][:, None]  # (Tc, K)
+            pos = (offsets[tiles][:, None] + kk[None, :]).clamp_max(max(bins.num_pairs - 1, 0))
+            gidx = torch.where(valid, bins.flat_ids[pos] if bins.num_pairs > 0 else pos, 0)  # (Tc, K)
+            data = per_g[s0:s1][:, gidx]  # (s, Tc, K, 10)
+            mx, my, ca, cb, cc, op = (data[..., q] for q in range(6))
+            col, z = data[..., 6:9], data[..., 9]
+            args = (mx, my, ca, cb, cc, op, col, z, valid, pxc, pyc, inside, return_weights)
+            if need_grad:
+                out = checkpoint(_torch_chunk, *args, use_reentrant=False)
+            else:
+                out = _torch_chunk(*args)
+            rgb_c, depth_c, T_c, nc_c, ws_c, wq_c = out
+            rgb_s.append(rgb_c)
+            depth_s.append(depth_c)
+            T_s.append(T_c)
+            nc_s.append(nc_c)
+            if return_weights and kmax > 0:
+                flat = gidx.reshape(-1)
+                ws_c = torch.where(valid, ws_c, 0).reshape(s1 - s0, -1)
+                wq_c = torch.where(valid, wq_c, 0).reshape(s1 - s0, -1)
+                wsum[s0:s1].index_add_(1, flat, ws_c)
+                wsq[s0:s1].index_add_(1, flat, wq_c)
+        rgb_parts.append(torch.cat(rgb_s, 1))
+        depth_parts.append(torch.cat(depth_s, 1))
+        T_parts.append(torch.cat(T_s, 1))
+        nc_parts.append(torch.cat(nc_s, 1))
+    inv = torch.empty_like(order)
+    inv[order] = torch.arange(num_tiles)
+
+    def to_image(x: Tensor) -> Tensor:  # (S, num_tiles(sorted), Pix, ...) -> (S, H, W, ...)
+        x = x.index_select(1, inv)
+        tail = x.shape[3:]
+        x = x.reshape((S, bins.tiles_y, bins.tiles_x, ts, ts) + tail)
+        x = x.permute((0, 1, 3, 2, 4) + tuple(range(5, 5 + len(tail))))
+        x = x.reshape((S, bins.tiles_y * ts, bins.tiles_x * ts) + tail)
+        return x[:, :height, :width]
+
+    T = to_image(torch.cat(T_parts, 0))
+    rgb = to_image(torch.cat(rgb_parts, 0)) + T[..., None] * background.to(dtype)
+    depth = to_image(torch.cat(depth_parts, 0))
+    n_contrib = to_image(torch.cat(nc_parts, 0))
+    return RasterOutput(rgb=rgb, alpha=1.0 - T, depth=depth, weight_sum=wsum, weight_sq_sum=wsq,
+                        n_contrib=n_contrib)
+
+
+# --------------------------------------------------------------------------------------------
+# C++ backend
+# --------------------------------------------------------------------------------------------
+class _RasterizeCPU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means2d, conics, colors, opacities, depths, background, tile_offsets, flat_ids,
+                geom, return_weights):
+        from b3dgs.render._ext import load_extension
+
+        ext = load_extension()
+        width, height, ts, tiles_x, tiles_y = geom
+        nthreads = torch.get_num_threads()
+        rgb, depth, T, last, nc, wsum, wsq = ext.forward(
+            means2d, conics, colors, opacities, depths, tile_offsets, flat_ids, background,
+            width, height, ts, tiles_x, tiles_y, bool(return_weights), nthreads)
+        ctx.geom = geom
+        ctx.save_for_backward(means2d, conics, colors, opacities, depths, background, tile_offsets,
+                              flat_ids, T, last)
+        alpha = 1.0 - T
+        ctx.mark_non_differentiable(nc, wsum, wsq)
+        return rgb, alpha, depth, nc, wsum, wsq
+
+    @staticmethod
+    def backward(ctx, g_rgb, g_alpha, g_depth, _g_nc, _g_ws, _g_wq):
+        from b3dgs.render._ext import load_extension
+
+        ext = load_extension()
+        means2d, conics, colors, opacities, depths, background, tile_offsets, flat_ids, T, last = ctx.saved_tensors
+        width, height, ts, tiles_x, tiles_y = ctx.geom
+        g_rgb = g_rgb.contiguous()
+        gm, gc, gcol, go, gz = ext.backward(
+            means2d, conics, colors, opacities, depths, tile_offsets, flat_ids, background, T, last,
+            g_rgb, g_depth.contiguous(), g_alpha.contiguous(), width, height, ts, tiles_x, tiles_y,
+            torch.get_num_threads())
+        g_bg = None
+        if ctx.needs_input_grad[5]:
+            g_bg = (g_rgb * T[..., None]).sum(dim=(0, 1, 2))
+        return gm, gc, gcol, go, gz, g_bg, None, None, None, None
+
+
+def _rasterize_cpu(means2d, conics, colors, opacities, depths, bins, width, height, background,
+                   return_weights):
+    geom = (int(width), int(height), int(bins.tile_size), int(bins.tiles_x), int(bins.tiles_y))
+    rgb, alpha, depth, nc, wsum, wsq = _RasterizeCPU.apply(
+        means2d.contiguous(), conics.contiguous(), colors.contiguous(), opacities.contiguous(),
+        depths.contiguous(), background.contiguous(), bins.tile_offsets.contiguous(),
+        bins.flat_ids.contiguous(), geom, bool(return_weights))
+    return RasterOutput(rgb=rgb, alpha=alpha, depth=depth,
+                        weight_sum=wsum if return_weights else None,
+                        weight_sq_sum=wsq if return_weights else None, n_contrib=nc)
+
+
+def rasterize(
+    means2d: Tensor,
+    conics: Tensor,
+    colors: Tensor,
+    opacities: Tensor,
+    depths: Tensor,
+    bins: TileBins,
+    width: int,
+    height: int,
+    background: Tensor,
+    backend: str = "cpu",
+    return_weights: bool = False,
+) -> RasterOutput:
+    """Alpha-composite binned 2D Gaussians (see the module docstring for the exact rules).
+
+    means2d (S, N, 2), conics (S, N, 3) = (a, b, c) of the inverse covariance, colors (S, N, 3),
+    opacities (S, N) in [0, 1], depths (S, N), background (3,). Differentiable w.r.t. means2d,
+    conics, colors, opacities, depths (and background) through rgb, alpha and depth.
+    """
+    _check_inputs(means2d, conics, colors, opacities, depths, bins, width, height, background, backend)
+    background = background.to(means2d.dtype)
+    if backend == "torch":
+        return _rasterize_torch(means2d, conics, colors, opacities, depths, bins, width, height,
+                                background, return_weights)
+    return _rasterize_cpu(means2d, conics, colors, opacities, depths, bins, width, height,
+                          background, return_weights)
