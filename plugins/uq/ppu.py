@@ -65,6 +65,7 @@ class PPUHead(UQRegime):
             feats, rgb = render_features(m, cam)
             data.append((feats, (rgb - cam.image).square().permute(2, 0, 1)))  # (3, H, W)
         opt = torch.optim.Adam(self.head.parameters(), lr=self.lr)
+        loss = torch.tensor(float("nan"))
         for it in range(self.steps):
             feats, r2 = data[int(torch.randint(len(data), (1,), generator=g))]
             logv = self.head(feats)[0]
