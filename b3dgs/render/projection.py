@@ -49,45 +49,41 @@ def quat_to_rotmat(quats: Tensor) -> Tensor:
 
 
 def covariance_3d(quats: Tensor, log_scales: Tensor) -> Tensor:
-    """Σ = R diag(s²) Rᵀ from quaternions and log-scales; (…, 3, 3)."""
+    """Σ = R diag(s²) Rᵀ from quaternions and log-scales; (…, 3, 3). Elementwise (no tiny batched matmuls)."""
     R = quat_to_rotmat(quats)
-    M = R * torch.exp(log_scales).unsqueeze(-2)
-    return M @ M.transpose(-1, -2)
+    M = R * torch.exp(log_scales).unsqueeze(-2)  # columns scaled: M = R diag(s)
+    return (M.unsqueeze(-2) * M.unsqueeze(-3)).sum(-1)  # Σ_ik = Σ_j M_ij M_kj
+
+
+def sh_basis(degree: int, dirs: Tensor) -> Tensor:
+    """Real SH basis values of degree 0..3 at unit directions (…, 3) -> (…, (degree+1)²)."""
+    if degree < 0 or degree > 3:
+        raise ValueError(f"SH degree must be in 0..3, got {degree}")
+    x, y, z = dirs[..., 0], dirs[..., 1], dirs[..., 2]
+    out = [torch.full_like(x, SH_C0)]
+    if degree >= 1:
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree >= 2:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        out += [SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * xz, SH_C2[4] * (xx - yy)]
+    if degree >= 3:
+        out += [
+            SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * xy * z, SH_C3[2] * y * (4 * zz - xx - yy),
+            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy),
+            SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3 * yy),
+        ]
+    return torch.stack(out, dim=-1)
 
 
 def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
     """Evaluate real SH of degree 0..3. coeffs (…, B, 3) with B >= (degree+1)², dirs (…, 3) unit."""
-    if degree < 0 or degree > 3:
-        raise ValueError(f"SH degree must be in 0..3, got {degree}")
-    out = SH_C0 * coeffs[..., 0, :]
+    nb = (degree + 1) ** 2
+    if coeffs.shape[-2] < nb:
+        raise ValueError(f"eval_sh: degree {degree} needs {nb} coefficients, got {coeffs.shape[-2]}")
     if degree == 0:
-        return out
-    x, y, z = dirs[..., 0:1], dirs[..., 1:2], dirs[..., 2:3]
-    out = out - SH_C1 * y * coeffs[..., 1, :] + SH_C1 * z * coeffs[..., 2, :] - SH_C1 * x * coeffs[..., 3, :]
-    if degree == 1:
-        return out
-    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-    out = (
-        out
-        + SH_C2[0] * xy * coeffs[..., 4, :]
-        + SH_C2[1] * yz * coeffs[..., 5, :]
-        + SH_C2[2] * (2 * zz - xx - yy) * coeffs[..., 6, :]
-        + SH_C2[3] * xz * coeffs[..., 7, :]
-        + SH_C2[4] * (xx - yy) * coeffs[..., 8, :]
-    )
-    if degree == 2:
-        return out
-    out = (
-        out
-        + SH_C3[0] * y * (3 * xx - yy) * coeffs[..., 9, :]
-        + SH_C3[1] * xy * z * coeffs[..., 10, :]
-        + SH_C3[2] * y * (4 * zz - xx - yy) * coeffs[..., 11, :]
-        + SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * coeffs[..., 12, :]
-        + SH_C3[4] * x * (4 * zz - xx - yy) * coeffs[..., 13, :]
-        + SH_C3[5] * z * (xx - yy) * coeffs[..., 14, :]
-        + SH_C3[6] * x * (xx - 3 * yy) * coeffs[..., 15, :]
-    )
-    return out
+        return SH_C0 * coeffs[..., 0, :]
+    basis = sh_basis(degree, dirs.detach() if not dirs.requires_grad else dirs)
+    return (basis.unsqueeze(-1) * coeffs[..., :nb, :]).sum(-2)
 
 
 def rgb_to_sh0(rgb: Tensor) -> Tensor:
@@ -129,15 +125,16 @@ def project(
     margin_x, margin_y = 0.3 * width / fx, 0.3 * height / fy
     tx = zs * torch.clamp(x / zs, -(cx / fx + margin_x), (width - cx) / fx + margin_x)
     ty = zs * torch.clamp(y / zs, -(cy / fy + margin_y), (height - cy) / fy + margin_y)
-    zero = torch.zeros_like(zs)
-    J = torch.stack(
-        [fx / zs, zero, -fx * tx / (zs * zs), zero, fy / zs, -fy * ty / (zs * zs)], dim=-1
-    ).reshape(zs.shape + (2, 3))
-    cov_cam = R @ cov3d @ R.T
-    cov2 = J @ cov_cam @ J.transpose(-1, -2)
-    a = cov2[..., 0, 0] + blur
-    b = cov2[..., 0, 1]
-    c = cov2[..., 1, 1] + blur
+    # J = [[fx/z, 0, -fx tx/z²], [0, fy/z, -fy ty/z²]]; cov2d = J (R Σ Rᵀ) Jᵀ written out elementwise
+    Rc = R.to(cov3d.dtype)
+    cov_cam = torch.einsum("ij,...jk,lk->...il", Rc, cov3d, Rc)
+    ja, jb = fx / zs, -fx * tx / (zs * zs)
+    jc, jd = fy / zs, -fy * ty / (zs * zs)
+    c00, c01, c02 = cov_cam[..., 0, 0], cov_cam[..., 0, 1], cov_cam[..., 0, 2]
+    c11, c12, c22 = cov_cam[..., 1, 1], cov_cam[..., 1, 2], cov_cam[..., 2, 2]
+    a = ja * ja * c00 + 2 * ja * jb * c02 + jb * jb * c22 + blur
+    b = ja * jc * c01 + ja * jd * c02 + jb * jc * c12 + jb * jd * c22
+    c = jc * jc * c11 + 2 * jc * jd * c12 + jd * jd * c22 + blur
     det = a * c - b * b
     valid = valid & (det > 0)
     det_s = torch.where(valid, det, torch.ones_like(det))
