@@ -263,6 +263,6 @@ class SplatModule(L.LightningModule):
     def export_extras(self) -> dict[str, Tensor]:
         extras: dict[str, Tensor] = {}
         for name, blk in self.posterior.items():
-            for k, v in blk.export(state=self.states[name]).items():
+            for k, v in blk.export(splats=self.splats, state=self.states[name]).items():
                 extras[k] = v
         return extras

@@ -55,7 +55,7 @@ class PosteriorBlock(Plugin):
         """Per-pixel aleatoric variance this block provides (noise posterior), or None."""
         return None
 
-    def export(self, *, state) -> dict[str, Tensor]:
+    def export(self, *, splats, state) -> dict[str, Tensor]:
         """Per-Gaussian summaries (N,) or (N, d) for PLY export and reports."""
         return {}
 

@@ -64,7 +64,7 @@ class ColorBlock(PosteriorBlock):
         out["sh0"] = sh0 + std.view(1, -1, 1, 1) * eps
         return out
 
-    def export(self, *, state):
+    def export(self, *, splats=None, state):
         return {"color_var": self.rgb_var(state).float()}
 
     def summary(self, *, state):

@@ -72,6 +72,7 @@ class DPBlock(PosteriorBlock):
         if self.prune:
             k = state["usage"].numel()
             mask = (state["e_pi"] < dpm.prune_threshold(k, self.prune_pi)) | (state["e_a"] < self.prune_activity)
+            state["last_pruned"] = torch.tensor(int(mask.sum()))
             info["ops"].prune(mask, reason="dp")
 
     @torch.no_grad()
@@ -82,7 +83,8 @@ class DPBlock(PosteriorBlock):
         elog = dpm.expected_log_pi(g1, g2)
         e_pi = dpm.expected_pi(g1, g2)
         prior_logit = float(torch.logit(torch.tensor(self.prior_active)))
-        e_a = dpm.activity_posterior(elog, counts[perm], prior_logit, self.gate_temperature)
+        tau = dpm.prune_threshold(counts.numel(), self.prune_pi)
+        e_a = dpm.activity_posterior(elog, counts[perm], prior_logit, self.gate_temperature, threshold=tau)
         state["g1"], state["g2"] = g1[inv], g2[inv]
         state["e_pi"], state["e_a"] = e_pi[inv], e_a[inv]
 
@@ -95,7 +97,7 @@ class DPBlock(PosteriorBlock):
         out["opacities"] = torch.where(a > 0, base, torch.full_like(base, -30.0))
         return out
 
-    def export(self, *, state):
+    def export(self, *, splats=None, state):
         return {"dp_e_pi": state["e_pi"].float(), "dp_e_a": state["e_a"].float()}
 
     def summary(self, *, state):

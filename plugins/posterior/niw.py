@@ -178,7 +178,7 @@ class NIWBlock(PosteriorBlock):
         return float(state["mse"] / state["mse_n"])  # bias-corrected EMA of the residual MSE
 
     @torch.no_grad()
-    def export(self, *, state):
+    def export(self, *, splats=None, state):
         var_mu = niwm.mean_variance(state["S_n"], state["nu_n"], state["kappa_n"])
         return {
             "niw_pos_var": (torch.diagonal(var_mu, dim1=-2, dim2=-1).sum(-1) / D).float(),
@@ -187,7 +187,7 @@ class NIWBlock(PosteriorBlock):
         }
 
     def summary(self, *, state):
-        ex = self.export(state=state)
+        ex = self.export(splats=None, state=state)
         return {
             "mean_count": float(state["N"].mean()) if state["N"].numel() else 0.0,
             "median_pos_std": float(ex["niw_pos_var"].sqrt().median()) if state["N"].numel() else 0.0,

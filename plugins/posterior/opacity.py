@@ -62,12 +62,11 @@ class OpacityBlock(PosteriorBlock):
         out["opacities"] = torch.where(base > -29.0, base + std * eps, base)
         return out
 
-    def export(self, *, state):
-        # variance of the opacity itself under the moment-matched Beta
-        return {"opacity_var": self._opacity_var(state).float()}
-
-    def _opacity_var(self, state):
-        return state.get("_last_opvar", torch.zeros_like(state["fisher"]))
+    @torch.no_grad()
+    def export(self, *, splats, state):
+        """Variance of the opacity under the moment-matched Beta(a, b)."""
+        a, b = app.opacity_beta_moment_match(splats["opacities"].detach().double(), self.logit_var(state))
+        return {"opacity_var": (a * b / ((a + b) ** 2 * (a + b + 1))).float()}
 
     def summary(self, *, state):
         v = self.logit_var(state)
