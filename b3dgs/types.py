@@ -42,11 +42,17 @@ class Camera:
 
     @property
     def camtoworld(self) -> Tensor:
-        return torch.linalg.inv(self.viewmat.double()).float()
+        """Inverse of the rigid ``viewmat``: [Rᵀ | -Rᵀt] (no general matrix inverse)."""
+        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
+        out = torch.eye(4, dtype=self.viewmat.dtype)
+        out[:3, :3] = R.T
+        out[:3, 3] = -R.T @ t
+        return out
 
     @property
     def center(self) -> Tensor:
-        return self.camtoworld[:3, 3]
+        """Camera centre in world coordinates, -Rᵀt."""
+        return -self.viewmat[:3, :3].T @ self.viewmat[:3, 3]
 
     def with_image(self, image: Optional[Tensor]) -> "Camera":
         return replace(self, image=image)

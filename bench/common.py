@@ -50,3 +50,41 @@ def write_results(name: str, payload: dict, text: str) -> Path:
         tmp.write_text(text + "\n")
     print(text)
     return RESULTS / f"{name}.json"
+
+
+SCENES = {
+    "ethiopian_head": ["data=colmap", "data.path={shared}/data/ethiopian_head"],
+    "fox": ["data=transforms", "data.path={shared}/data/fox"],
+    "synthetic": ["data=synthetic"],
+}
+QUICK = ["data.max_side=256", "trainer.max_steps=3000", "trainer.progress_bar=false", "logger=none",
+         "trainer.save_renders=false"]
+
+
+def shared_dir() -> Path:
+    import os
+
+    return Path(os.environ.get("B3DGS_SHARED", Path(__file__).resolve().parents[1].parent / "shared"))
+
+
+def train_run(run_dir: Path, overrides: list[str], timeout_s: int = 3600, force: bool = False) -> dict:
+    """Train one configuration in a subprocess (isolated, killable) unless ``run_dir`` already holds
+    a finished run; returns its metrics.json. Benchmarks are therefore resumable."""
+    import subprocess
+    import sys
+
+    metrics = run_dir / "metrics.json"
+    if metrics.exists() and not force:
+        return json.loads(metrics.read_text())
+    cmd = [sys.executable, "-m", "b3dgs.train", *overrides, f"hydra.run.dir={run_dir}"]
+    t0 = time.perf_counter()
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+    if res.returncode != 0:
+        raise RuntimeError(f"training failed ({' '.join(overrides)}):\n{res.stderr[-4000:]}")
+    out = json.loads(metrics.read_text())
+    out["wall_s"] = round(time.perf_counter() - t0, 2)
+    return out
+
+
+def scene_overrides(scene: str) -> list[str]:
+    return [o.format(shared=shared_dir()) for o in SCENES[scene]]

@@ -105,7 +105,7 @@ def render(
             deg = int((shN.shape[-2] + 1) ** 0.5) - 1
             nb = (deg + 1) ** 2
         coeffs = torch.cat([expand(sh0, 2), expand(shN, 2)[..., : nb - 1, :]], dim=-2)
-        cam_center = camera.camtoworld[:3, 3].to(dtype)
+        cam_center = camera.center.to(dtype)
         dirs = torch.nn.functional.normalize(means_s - cam_center, dim=-1)
         colors = eval_sh(deg, coeffs, dirs)
     else:
