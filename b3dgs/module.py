@@ -194,14 +194,23 @@ class SplatModule(L.LightningModule):
             raise FloatingPointError(
                 f"Non-finite loss at step {step} (camera {cam.name}); lower the learning rates or check the data"
             )
+        ops.per_gaussian = {}
         info = {
-            **self._static_info(), "ops": ops, "camera": cam, "render": out, "means2d": out.means2d,
-            "radii": out.radii, "width": cam.width, "height": cam.height, "gt": gt, "loss": loss.detach(),
+            **self._static_info(), "ops": ops, "camera": cam, "render": out, "per_gaussian": ops.per_gaussian,
+            "width": cam.width, "height": cam.height, "gt": gt, "loss": loss.detach(),
             "l1": l1.detach(), "sq_err_sum": ((out.rgb.detach() - gt) ** 2).sum(), "num_values": gt.numel(),
         }
         optimizers = self._torch_optimizers()
         self._call_hooks("step_pre_backward", optimizers, step, info)
         self.manual_backward(loss)
+        # per-Gaussian data of this step (S, N, ...), kept aligned by the topology ops
+        pg = ops.per_gaussian
+        pg["radii"] = out.radii
+        if out.means2d.grad is not None:
+            pg["means2d_grad"] = out.means2d.grad
+        if out.weight_sum is not None:
+            pg["weight_sum"] = out.weight_sum
+            pg["weight_sq_sum"] = out.weight_sq_sum
         # posterior blocks read gradients; densification (strategy) runs last, then Adam steps
         # (parameters replaced by a topology change have no gradient and skip this one step, as in 3DGS)
         self._call_hooks("step_post_backward", optimizers, step, info)

@@ -49,6 +49,9 @@ class TopologyOps:
         self.added: Counter[str] = Counter()
         self.step = 0
         self.on_change = on_change
+        # this step's per-Gaussian render data, (S, N, ...) tensors; re-indexed along N by every
+        # topology change so that plugins running later in the step see aligned values
+        self.per_gaussian: dict[str, Tensor] = {}
 
     @property
     def num(self) -> int:
@@ -84,11 +87,15 @@ class TopologyOps:
             self.splats[name] = new
         core = self.states["core"]
         parent_src = core["ids"][index]
-        for name, st in self.states.items():
-            self.states[name] = _reindex_tree(st, index, n_old)
-            st_new = self.states[name]
+        for st in self.states.values():
+            new_st = _reindex_tree(st, index, n_old)
             st.clear()
-            st.update(st_new)  # keep dict identity so plugins holding a reference stay valid
+            st.update(new_st)  # keep dict identity so plugins holding a reference stay valid
+        for key, v in list(self.per_gaussian.items()):
+            if isinstance(v, Tensor) and v.dim() >= 2 and v.shape[1] == n_old:
+                v = v[:, index].clone()
+                v[:, fresh] = 0
+                self.per_gaussian[key] = v
         core = self.states["core"]
         n_fresh = int(fresh.sum())
         if n_fresh:

@@ -6,7 +6,10 @@ Every hook is called as ``hook(splats=, optimizers=, state=, step=, info=)``:
 - ``state``: the plugin's own dict from ``initialize_state``; every tensor whose first dimension is N is
   re-indexed by the core's topology ops (clone, split, prune), so per-Gaussian state follows the Gaussians;
 - ``step``: the training iteration (0-based);
-- ``info``: everything else (render outputs, image size, scene extent, ``ops`` for topology changes, ...).
+- ``info``: everything else (render outputs, image size, scene extent, ``ops`` for topology changes, ...);
+  ``info["per_gaussian"]`` holds this step's per-Gaussian render data as (S, N, ...) tensors (``radii``,
+  ``means2d_grad``, ``weight_sum``, ``weight_sq_sum``), re-indexed by every topology change, so a plugin
+  running after another one's prune still sees aligned values.
 New needs go into ``info``, never into new arguments, so the core never branches on a plugin's type.
 """
 from __future__ import annotations

@@ -14,7 +14,7 @@ from typing import Any, Optional
 
 import hydra
 import torch
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, OmegaConf, open_dict
 
 from b3dgs.io import write_json
 
@@ -48,8 +48,10 @@ def save_config(cfg: DictConfig, path: Path) -> None:
     """The composed config (without Hydra's own node), resolved, written atomically."""
     from b3dgs.io import atomic_path
 
-    plain = OmegaConf.to_container(cfg, resolve=True)
-    plain.pop("hydra", None)
+    c = cfg.copy()
+    with open_dict(c):
+        c.pop("hydra", None)
+    plain = OmegaConf.to_container(c, resolve=True)
     with atomic_path(path) as tmp:
         tmp.write_text(OmegaConf.to_yaml(OmegaConf.create(plain)))
 

@@ -47,7 +47,7 @@ class ColorBlock(PosteriorBlock):
         state["sigma2"] = self.ema * state["sigma2"] + (1 - self.ema) * s2
         if step < self._start():
             return
-        wsq = info["render"].weight_sq_sum
+        wsq = info["per_gaussian"].get("weight_sq_sum")
         if wsq is not None:
             state["wsq"].mul_(self.ema).add_((1 - self.ema) * wsq[0].double() * float(state["n_views"]))
 

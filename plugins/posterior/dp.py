@@ -63,7 +63,7 @@ class DPBlock(PosteriorBlock):
 
     @torch.no_grad()
     def step_post_backward(self, *, splats, optimizers, state, step, info):
-        ws = info["render"].weight_sum
+        ws = info["per_gaussian"].get("weight_sum")
         if ws is not None:
             state["usage"].mul_(self.ema).add_((1 - self.ema) * ws[0].double() * float(state["n_views"]))
         if step < self._start() or step % self.cavi_every != 0:

@@ -101,7 +101,7 @@ class NIWBlock(PosteriorBlock):
             state["mse_n"] = self.mse_ema * state["mse_n"] + (1 - self.mse_ema)
         if step < self._t_niw(info):
             return
-        radii = info["radii"][0]
+        radii = info["per_gaussian"]["radii"][0]
         vis = radii > 0
         if bool(vis.any()):
             o = torch.sigmoid(splats["opacities"].detach()[vis]).double()

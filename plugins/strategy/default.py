@@ -55,14 +55,14 @@ class AdaptiveDensityControl(Plugin):
     def step_post_backward(self, *, splats, optimizers, state, step, info):
         if step >= self.refine_stop:
             return
-        means2d = info["means2d"]
-        if means2d.grad is None:
+        pg = info["per_gaussian"]
+        if "means2d_grad" not in pg:
             return
         width, height = info["width"], info["height"]
-        g = means2d.grad[0].detach().clone()
+        g = pg["means2d_grad"][0].detach().clone()
         g[:, 0] *= 0.5 * width
         g[:, 1] *= 0.5 * height
-        radii = info["radii"][0]
+        radii = pg["radii"][0]
         vis = radii > 0
         state["grad2d"][vis] += g[vis].norm(dim=-1)
         state["count"][vis] += 1
