@@ -1,0 +1,66 @@
+"""Cost of S native posterior samples on one view: S separate renders vs batched renders that
+share the tile binning, side by side in one run.
+
+    python bench/uq_sampling.py [--run RUN_DIR] [--samples 50] [--chunks 1 10 25 50]
+
+Without --run, a NIW model is initialised on the synthetic scene at 256 px. Writes
+bench/results/uq_sampling.json and a table with the speed-up against separate renders.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import machine, median_ms, table, write_results  # noqa: E402
+
+
+def build(run: str | None):
+    if run:
+        from b3dgs.runs import load_run
+
+        r = load_run(run)
+        return r.module, r.scene
+    from b3dgs.data import load_scene
+    from b3dgs.module import SplatModule
+    from plugins.posterior.niw import NIWBlock
+    from plugins.strategy.default import AdaptiveDensityControl
+
+    scene = load_scene("synthetic", None, max_side=256, resolution=256)
+    m = SplatModule(strategy=AdaptiveDensityControl(), posterior={"niw": NIWBlock()}, max_steps=3000)
+    m.init_from_scene(scene)
+    m.states["niw"]["N"].fill_(5.0)
+    m._loaded_step = 3000
+    return m, scene
+
+
+def main() -> None:
+    from plugins.uq.native import NativeUQ
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--run", default=None)
+    ap.add_argument("--samples", type=int, default=50)
+    ap.add_argument("--chunks", type=int, nargs="+", default=[1, 10, 25, 50])
+    args = ap.parse_args()
+    module, scene = build(args.run)
+    cam = scene.test[0]
+    rows = []
+    for chunk in args.chunks:
+        reg = NativeUQ(samples=args.samples, chunk=chunk)
+        reg.fit([module], scene)
+        ms = median_ms(lambda: reg.predict(cam, torch.Generator().manual_seed(0)), repeats=3, warmup=1)
+        rows.append({"samples": args.samples, "chunk": chunk, "ms": round(ms, 1), "gaussians": module.num_gaussians,
+                     "width": cam.width, "height": cam.height})
+        print(rows[-1], flush=True)
+    base = next(r["ms"] for r in rows if r["chunk"] == 1) if any(r["chunk"] == 1 for r in rows) else None
+    for r in rows:
+        r["speedup_vs_separate"] = round(base / r["ms"], 2) if base else None
+    text = table(rows, ["samples", "chunk", "gaussians", "width", "height", "ms", "speedup_vs_separate"])
+    write_results("uq_sampling", {"machine": machine(), "rows": rows}, text)
+
+
+if __name__ == "__main__":
+    main()
