@@ -114,7 +114,8 @@ def train(cfg: DictConfig) -> dict:
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*does not have many workers.*")
         warnings.filterwarnings("ignore", message=".*`training_step` returns.*")
-        trainer.fit(module, datamodule=dm, ckpt_path=resolve_resume(cfg, run_dir))
+        # our own checkpoints hold plugin states and config values, not only tensors
+        trainer.fit(module, datamodule=dm, ckpt_path=resolve_resume(cfg, run_dir), weights_only=False)
 
     # ------------------------------------------------------------ final evaluation and outputs
     lpips_model, lpips_reason = get_lpips()

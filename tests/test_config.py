@@ -9,17 +9,18 @@ from omegaconf import OmegaConf
 
 from b3dgs.train import CONF_DIR, build_plugins
 
-GROUPS = sorted(p.name for p in Path(CONF_DIR).iterdir() if p.is_dir() and p.name != "hydra")
+EVAL_GROUPS = {"uq"}  # groups of the b3dgs-eval app (conf/eval.yaml)
+GROUPS = sorted(p.name for p in Path(CONF_DIR).iterdir() if p.is_dir() and p.name not in {"hydra"} | EVAL_GROUPS)
 
 
 def options(group):
     return sorted(p.stem for p in (Path(CONF_DIR) / group).glob("*.yaml"))
 
 
-def compose_cfg(overrides):
+def compose_cfg(overrides, config_name="train"):
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose(config_name="train", overrides=overrides, return_hydra_config=True)
+        return compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
 
 
 CASES = [(g, o) for g in GROUPS for o in options(g)]
@@ -70,3 +71,21 @@ def test_bad_values_fail_clearly():
 
     with pytest.raises(ValueError, match="lambda_dssim"):
         build_module(cfg, *build_plugins(cfg))
+
+
+@pytest.mark.parametrize("option", options("uq"))
+def test_every_uq_option_builds(option):
+    from b3dgs.eval import regimes_from_cfg
+
+    cfg = compose_cfg(["run=/nonexistent", f"uq=[{option}]", "uq.samples=7"], config_name="eval")
+    regimes = regimes_from_cfg(cfg)
+    assert list(regimes) == [option]
+    if hasattr(regimes[option], "samples") and option in ("native", "proxy"):
+        assert regimes[option].samples == 7
+
+
+def test_eval_needs_a_regime():
+    from b3dgs.eval import regimes_from_cfg
+
+    with pytest.raises(ValueError, match="uq="):
+        regimes_from_cfg(compose_cfg(["run=/x", "uq=[]"], config_name="eval"))
