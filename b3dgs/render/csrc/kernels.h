@@ -13,12 +13,14 @@
 // Work is parallel over (sample, tile) items. Inside a tile the loop runs Gaussian-outer,
 // pixel-inner over the rows / columns where alpha can reach 1/255 (a conservative ellipse test);
 // every pixel still sees its Gaussians in list order, so the result equals the per-pixel walk.
-// The per-tile functions are compiled for AVX2 and baseline x86-64 (target_clones; no FMA, so
-// the results are bitwise identical on both paths).
+// The pixels of a row are processed as SIMD chunks of kLanes columns (branch-free: masks and
+// selects apply the skip / stop rules per lane). The per-tile functions are compiled for AVX2
+// and baseline x86-64 (target_clones; no FMA, so the results are bitwise identical on both paths).
 //
 // Determinism: each (tile, Gaussian) pair owns a gradient / weight slot written by exactly one
-// thread (pixels accumulated in a fixed order); a final pass sums the slots of every Gaussian in
-// pair order. Results are bitwise independent of the thread count.
+// thread (per-lane partial sums over the pixels in a fixed order, then a fixed tree over the
+// lanes); a final pass sums the slots of every Gaussian in pair order. Results are bitwise
+// independent of the thread count.
 #pragma once
 
 #include <omp.h>
@@ -27,6 +29,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <type_traits>
 #include <vector>
 
 namespace b3dgs {
@@ -45,26 +48,67 @@ constexpr double kPixMargin = 1e-3;
 #endif
 #define B3_INLINE inline __attribute__((always_inline))
 
-// exp for x <= 0. float: inline Cody-Waite + degree-6 polynomial (~1-2 ulp, result 0 below
-// -87); double: libm (exact reference for float64 comparisons with the PyTorch backend).
-B3_INLINE float exp_neg(float x) {
-  x = std::max(x, -87.0f);
-  const float t = x * 1.44269504088896341f;
-  const float n = (t + 12582912.0f) - 12582912.0f;  // round to nearest integer (|t| < 2^22)
-  float r = x - n * 0.693145751953125f;               // ln2 hi
-  r = r - n * 1.428606765330187045e-06f;              // ln2 lo
-  float p = 1.3981999507e-3f;
-  p = p * r + 8.3334519073e-3f;
+// Vector types (GCC vector extensions) of kLanes pixels: the per-pixel loops are written on whole
+// chunks of kLanes pixels with masks and selects, so that they run as SIMD code on both
+// target clones (the default clone splits the vectors into SSE halves; same arithmetic per lane).
+constexpr int kLanes = 8;  // pixels per chunk (fixed: also defines the gradient summation order)
+typedef int32_t VI __attribute__((vector_size(4 * kLanes)));  // int32 lanes (last, nc, columns)
+// Unaligned, aliasing views of kLanes consecutive array elements (loads / stores).
+typedef int32_t VIu __attribute__((vector_size(4 * kLanes), aligned(4), may_alias));
+template <typename scalar_t>
+struct Vec;
+template <>
+struct Vec<float> {
+  typedef float V __attribute__((vector_size(4 * kLanes)));
+  typedef float U __attribute__((vector_size(4 * kLanes), aligned(4), may_alias));
+  typedef int32_t M __attribute__((vector_size(4 * kLanes)));  // lane masks (0 / -1)
+};
+template <>
+struct Vec<double> {
+  typedef double V __attribute__((vector_size(8 * kLanes)));
+  typedef double U __attribute__((vector_size(8 * kLanes), aligned(8), may_alias));
+  typedef int64_t M __attribute__((vector_size(8 * kLanes)));
+};
+
+// True if any lane of the mask is set.
+B3_INLINE bool any_lane(const VI& m) {
+  typedef uint64_t U __attribute__((vector_size(4 * kLanes)));
+  const U u = (U)m;
+  uint64_t a = 0;
+  for (int l = 0; l < kLanes / 2; ++l) a |= u[l];
+  return a != 0;
+}
+
+// vec(p): the kLanes elements at p as one vector lvalue.
+B3_INLINE Vec<float>::U& vec(float* p) { return *reinterpret_cast<Vec<float>::U*>(p); }
+B3_INLINE Vec<double>::U& vec(double* p) { return *reinterpret_cast<Vec<double>::U*>(p); }
+B3_INLINE VIu& vec(int32_t* p) { return *reinterpret_cast<VIu*>(p); }
+
+// exp for x <= 0 (lanes with x > 0 give garbage, callers mask them out). float: inline
+// Cody-Waite + degree-6 polynomial (~1-2 ulp, result 0 for x <= -87 and for NaN); double: libm
+// per lane (exact reference for float64 comparisons with the PyTorch backend).
+B3_INLINE void exp_neg(const Vec<float>::V& xin, Vec<float>::V& out) {
+  typedef Vec<float>::V V;
+  typedef Vec<float>::M M;
+  const M ok = xin > -87.0f;  // false for x <= -87 and NaN
+  V x = ok ? xin : -87.0f;
+  x = x > 0.0f ? 0.0f : x;  // keeps the exponent in range on masked-out lanes
+  const V t = x * 1.44269504088896341f;
+  const V n = (t + 12582912.0f) - 12582912.0f;  // round to nearest integer (|t| < 2^22)
+  V r = x - n * 0.693145751953125f;               // ln2 hi
+  r = r - n * 1.428606765330187045e-06f;          // ln2 lo
+  V p = r * 1.3981999507e-3f + 8.3334519073e-3f;
   p = p * r + 4.1665795894e-2f;
   p = p * r + 1.6666665459e-1f;
   p = p * r + 5.0000001201e-1f;
   p = p * r * r + r + 1.0f;
-  const int32_t bits = ((int32_t)n + 127) << 23;
-  float scale;
-  std::memcpy(&scale, &bits, sizeof(float));
-  return x > -87.0f ? p * scale : 0.0f;
+  const M bits = (__builtin_convertvector(n, M) + 127) << 23;  // n in [-126, 0]
+  const V scale = (V)bits;
+  out = ok ? p * scale : 0.0f;
 }
-B3_INLINE double exp_neg(double x) { return std::exp(x); }
+B3_INLINE void exp_neg(const Vec<double>::V& x, Vec<double>::V& out) {
+  for (int l = 0; l < kLanes; ++l) out[l] = std::exp(x[l]);
+}
 
 struct Geometry {
   int S, N, W, H, ts, tiles_x, tiles_y;
@@ -111,7 +155,16 @@ struct TileCache {
               int64_t N, int s, int px0, int px1, int py0, int py1) {
     resize(K);
     const int64_t base = (int64_t)s * N;
+    constexpr int64_t kAhead = 16;  // prefetch distance (Gaussians are accessed in random order)
     for (int64_t k = 0; k < K; ++k) {
+      if (k + kAhead < K) {
+        const int64_t gp = base + ids[k + kAhead];
+        __builtin_prefetch(means + 2 * gp);
+        __builtin_prefetch(conics + 3 * gp);
+        __builtin_prefetch(colors + 3 * gp);
+        __builtin_prefetch(opac + gp);
+        __builtin_prefetch(depths + gp);
+      }
       const int64_t g = base + ids[k];
       const scalar_t gx = means[2 * g], gy = means[2 * g + 1];
       const scalar_t ca = conics[3 * g], cbv = conics[3 * g + 1], cc = conics[3 * g + 2];
@@ -161,7 +214,11 @@ struct TileCache {
   }
 };
 
-// Per-pixel state of one tile, row-major over the tile's in-image pixels (row stride tw).
+// Per-pixel state of one tile, row-major over the tile's in-image pixels with a row stride ps
+// rounded up to a multiple of kLanes (padding columns are never composited).
+static_assert(kMaxTile % kLanes == 0, "kMaxTile must be a multiple of kLanes");
+inline int padded_stride(int tw) { return (tw + kLanes - 1) / kLanes * kLanes; }
+
 template <typename scalar_t>
 struct FwdState {
   scalar_t T[kMaxTile * kMaxTile], Cr[kMaxTile * kMaxTile], Cg[kMaxTile * kMaxTile],
@@ -178,93 +235,110 @@ struct BwdState {
   int32_t last[kMaxTile * kMaxTile];
 };
 
+// Fixed-order (pairwise tree) sum of the kLanes lanes.
+template <typename V>
+B3_INLINE auto lane_sum(const V& v) -> typename std::remove_reference<decltype(v[0])>::type {
+  typename std::remove_reference<decltype(v[0])>::type s[kLanes];
+  for (int l = 0; l < kLanes; ++l) s[l] = v[l];
+  for (int w = kLanes / 2; w >= 1; w /= 2)
+    for (int l = 0; l < w; ++l) s[l] = s[l] + s[l + w];
+  return s[0];
+}
+
 // Composites the K Gaussians of a tile; st is initialised by the caller (T = 1, last = K, ...).
-// pair_w: (K, 2) per-pair (sum w, sum w^2) or nullptr.
+// ps: row stride of st (multiple of kLanes). pair_w: (K, 2) per-pair (sum w, sum w^2) or nullptr.
+// Each row [xa, xb) is processed in kLanes-aligned chunks, lanes outside it masked out; within a
+// chunk every lane follows the per-pixel rules with masks / selects instead of branches.
 template <typename scalar_t>
-B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int px0, int py0, int tw,
+B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int px0, int py0, int ps,
                                  int npix, FwdState<scalar_t>& st, scalar_t* pair_w) {
+  typedef typename Vec<scalar_t>::V V;
+  typedef typename Vec<scalar_t>::M M;
   const scalar_t min_alpha = (scalar_t)kMinAlpha, max_alpha = (scalar_t)kMaxAlpha;
   const scalar_t min_T = (scalar_t)kMinT, half = (scalar_t)0.5, mhalf = (scalar_t)-0.5;
+  const scalar_t zero = 0, one = 1;
   const int32_t KK = (int32_t)K;
-  scalar_t wbuf[kMaxTile];
+  VI iota;  // lane offsets 0, 1, ..., kLanes - 1
+  for (int l = 0; l < kLanes; ++l) iota[l] = l;
+  VI ndv = {};  // per-lane counts of terminated pixels
   int ndone = 0;
   for (int64_t k = 0; k < K && ndone < npix; ++k) {
     const int by0 = tc.y0[k], by1 = tc.y1[k];
-    if (tc.x0[k] >= tc.x1[k] || by0 >= by1) continue;
+    if (tc.x0[k] >= tc.x1[k] || by0 >= by1) {
+      if (pair_w) pair_w[2 * k] = pair_w[2 * k + 1] = 0;
+      continue;
+    }
     const scalar_t gx = tc.x[k], gy = tc.y[k], ca = tc.a[k], cbv = tc.b[k], cc = tc.c[k];
     const scalar_t go = tc.o[k];
     const scalar_t r = tc.cr[k], g = tc.cg[k], bl = tc.cb[k], zz = tc.z[k];
     const int32_t kk = (int32_t)k;
-    scalar_t wsum = 0, wsq = 0;
+    V wl = {}, ql = {};
     for (int yy = by0; yy < by1; ++yy) {
       int xa, xb;
       tc.row_range(k, yy, xa, xb);
-      const int n = xb - xa;
-      if (n <= 0) continue;
+      if (xb <= xa) continue;
       const scalar_t dy = gy - ((scalar_t)yy + half);
-      const int off = (yy - py0) * tw + (xa - px0);
-      scalar_t* __restrict__ Tp = st.T + off;
-      scalar_t* __restrict__ Crp = st.Cr + off;
-      scalar_t* __restrict__ Cgp = st.Cg + off;
-      scalar_t* __restrict__ Cbp = st.Cb + off;
-      scalar_t* __restrict__ Dp = st.D + off;
-      int32_t* __restrict__ lp = st.last + off;
-      int32_t* __restrict__ ncp = st.nc + off;
-      const scalar_t x0c = (scalar_t)xa + half;
-      if (pair_w)
-        for (int i = 0; i < n; ++i) wbuf[i] = 0;
-      int nd = 0;
-      for (int i = 0; i < n; ++i) {
-        if (lp[i] != KK) continue;  // pixel already terminated
-        const scalar_t dx = gx - (x0c + (scalar_t)i);
-        const scalar_t power = mhalf * (ca * dx * dx + cc * dy * dy) - cbv * dx * dy;
-        if (power > 0) continue;
-        const scalar_t alpha = std::min(max_alpha, go * exp_neg(power));
-        if (alpha < min_alpha) {
-          wbuf[i] = 0;
-          continue;
-        }
-        const scalar_t t0 = Tp[i];
-        const scalar_t test_T = t0 * (1 - alpha);
-        if (test_T < min_T) {
-          lp[i] = kk;
-          ++nd;
-          wbuf[i] = 0;
-          continue;
-        }
-        const scalar_t w = alpha * t0;
-        Crp[i] += w * r;
-        Cgp[i] += w * g;
-        Cbp[i] += w * bl;
-        Dp[i] += w * zz;
-        Tp[i] = test_T;
-        ncp[i] += 1;
-        wbuf[i] = w;
-      }
-      ndone += nd;
-      if (pair_w) {
-        for (int i = 0; i < n; ++i) {
-          wsum += wbuf[i];
-          wsq += wbuf[i] * wbuf[i];
-        }
+      const scalar_t cdy2 = cc * dy * dy;
+      const int lo = xa - px0, hi = xb - px0;
+      const int c0 = lo / kLanes * kLanes, c1 = (hi + kLanes - 1) / kLanes * kLanes;
+      const int row = (yy - py0) * ps;
+      for (int c = c0; c < c1; c += kLanes) {
+        const int off = row + c;
+        const VI col = iota + c;
+        const VI lv = vec(st.last + off);
+        const VI live_i = (lv == KK) & (col >= lo) & (col < hi);
+        if (!any_lane(live_i)) continue;  // all lanes terminated or outside the row range
+        const M live = __builtin_convertvector(live_i, M);
+        const V dx = gx - (__builtin_convertvector(col + px0, V) + half);
+        const V power = mhalf * (ca * dx * dx + cdy2) - cbv * dx * dy;
+        V G;
+        exp_neg(power, G);
+        const V ra = go * G;
+        const V alpha = ra < max_alpha ? ra : max_alpha;  // std::min(max_alpha, raw)
+        const M contrib = live & ~(power > zero) & ~(alpha < min_alpha);
+        const V t0 = vec(st.T + off);
+        const V test_T = t0 * (one - alpha);
+        const M stop = contrib & (test_T < min_T);
+        const M use = contrib & ~stop;
+        const V w = use ? alpha * t0 : zero;
+        const V cr = vec(st.Cr + off), cg = vec(st.Cg + off);
+        const V cb = vec(st.Cb + off), dd = vec(st.D + off);
+        vec(st.Cr + off) = use ? cr + w * r : cr;
+        vec(st.Cg + off) = use ? cg + w * g : cg;
+        vec(st.Cb + off) = use ? cb + w * bl : cb;
+        vec(st.D + off) = use ? dd + w * zz : dd;
+        vec(st.T + off) = use ? test_T : t0;
+        const VI stop_i = __builtin_convertvector(stop, VI);
+        vec(st.nc + off) = vec(st.nc + off) - __builtin_convertvector(use, VI);
+        vec(st.last + off) = stop_i ? kk : lv;
+        ndv -= stop_i;
+        wl += w;
+        ql += w * w;
       }
     }
+    ndone = 0;
+    for (int l = 0; l < kLanes; ++l) ndone += ndv[l];
     if (pair_w) {
-      pair_w[2 * k] = wsum;
-      pair_w[2 * k + 1] = wsq;
+      pair_w[2 * k] = lane_sum(wl);
+      pair_w[2 * k + 1] = lane_sum(ql);
     }
   }
 }
 
 // Reverse walk of a tile from list position kmax - 1 down to 0. pair_g: (kmax, 10) slots
-// (mean x, mean y, conic a, b, c, opacity, colour r, g, b, depth).
+// (mean x, mean y, conic a, b, c, opacity, colour r, g, b, depth). Chunks as in the forward; the
+// per-pair sums are accumulated per lane and the lanes summed in a fixed order at the end.
 template <typename scalar_t>
 B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, int px0, int py0,
-                                  int tw, BwdState<scalar_t>& st, scalar_t* pair_g) {
+                                  int ps, BwdState<scalar_t>& st, scalar_t* pair_g) {
+  typedef typename Vec<scalar_t>::V V;
+  typedef typename Vec<scalar_t>::M M;
   const scalar_t min_alpha = (scalar_t)kMinAlpha, max_alpha = (scalar_t)kMaxAlpha;
-  const scalar_t half = (scalar_t)0.5, mhalf = (scalar_t)-0.5;
+  const scalar_t half = (scalar_t)0.5, mhalf = (scalar_t)-0.5, zero = 0, one = 1;
+  VI iota;  // lane offsets 0, 1, ..., kLanes - 1
+  for (int l = 0; l < kLanes; ++l) iota[l] = l;
   for (int64_t k = kmax - 1; k >= 0; --k) {
-    scalar_t acc[10] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+    V a0 = {}, a1 = {}, a2 = {}, a3 = {}, a4 = {}, a5 = {}, a6 = {}, a7 = {}, a8 = {}, a9 = {};
     const int by0 = tc.y0[k], by1 = tc.y1[k];
     if (tc.x0[k] < tc.x1[k] && by0 < by1) {
       const scalar_t gx = tc.x[k], gy = tc.y[k], ca = tc.a[k], cbv = tc.b[k], cc = tc.c[k];
@@ -274,83 +348,90 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
       for (int yy = by0; yy < by1; ++yy) {
         int xa, xb;
         tc.row_range(k, yy, xa, xb);
-        const int n = xb - xa;
-        if (n <= 0) continue;
+        if (xb <= xa) continue;
         const scalar_t dy = gy - ((scalar_t)yy + half);
-        const int off = (yy - py0) * tw + (xa - px0);
-        scalar_t* __restrict__ Tp = st.T + off;
-        scalar_t* __restrict__ Rrp = st.Rr + off;
-        scalar_t* __restrict__ Rgp = st.Rg + off;
-        scalar_t* __restrict__ Rbp = st.Rb + off;
-        scalar_t* __restrict__ Rdp = st.Rd + off;
-        const scalar_t* __restrict__ grp = st.gr + off;
-        const scalar_t* __restrict__ ggp = st.gg + off;
-        const scalar_t* __restrict__ gbp = st.gb + off;
-        const scalar_t* __restrict__ gdp = st.gd + off;
-        const scalar_t* __restrict__ gap = st.gaT + off;
-        const int32_t* __restrict__ lp = st.last + off;
-        const scalar_t x0c = (scalar_t)xa + half;
-        for (int i = 0; i < n; ++i) {
-          if (kk >= lp[i]) continue;  // not composited (behind the termination point)
-          const scalar_t dx = gx - (x0c + (scalar_t)i);
-          const scalar_t power = mhalf * (ca * dx * dx + cc * dy * dy) - cbv * dx * dy;
-          if (power > 0) continue;
-          const scalar_t G = exp_neg(power);
-          const scalar_t raw = go * G;
-          const scalar_t alpha = std::min(max_alpha, raw);
-          if (alpha < min_alpha) continue;
-          const scalar_t one_m = 1 - alpha;
-          const scalar_t inv_om = 1 / one_m;
-          const scalar_t Ti = Tp[i] * inv_om;  // transmittance in front of this Gaussian
-          const scalar_t w = alpha * Ti;
-          const scalar_t gR = grp[i], gG = ggp[i], gB = gbp[i], gD = gdp[i];
-          const scalar_t rr = Rrp[i], rg = Rgp[i], rb = Rbp[i], rd = Rdp[i];
+        const scalar_t cdy2 = cc * dy * dy, hdy2 = mhalf * dy * dy;
+        const int lo = xa - px0, hi = xb - px0;
+        const int c0 = lo / kLanes * kLanes, c1 = (hi + kLanes - 1) / kLanes * kLanes;
+        const int row = (yy - py0) * ps;
+        for (int c = c0; c < c1; c += kLanes) {
+          const int off = row + c;
+          const VI col = iota + c;
+          // composited: in front of the termination point, power <= 0, alpha >= 1/255
+          const VI live_i = (kk < vec(st.last + off)) & (col >= lo) & (col < hi);
+          if (!any_lane(live_i)) continue;  // all lanes terminated earlier or outside the row
+          const M live = __builtin_convertvector(live_i, M);
+          const V dx = gx - (__builtin_convertvector(col + px0, V) + half);
+          const V power = mhalf * (ca * dx * dx + cdy2) - cbv * dx * dy;
+          V G;
+          exp_neg(power, G);
+          const V raw = go * G;
+          const V alpha = raw < max_alpha ? raw : max_alpha;  // std::min(max_alpha, raw)
+          const M use = live & ~(power > zero) & ~(alpha < min_alpha);
+          const V one_m = one - alpha;
+          const V inv_om = one / one_m;
+          const V t0 = vec(st.T + off);
+          const V Ti = t0 * inv_om;  // transmittance in front of this Gaussian
+          const V w = alpha * Ti;
+          const V gR = vec(st.gr + off), gG = vec(st.gg + off);
+          const V gB = vec(st.gb + off), gD = vec(st.gd + off);
+          const V rr = vec(st.Rr + off), rg = vec(st.Rg + off);
+          const V rb = vec(st.Rb + off), rd = vec(st.Rd + off);
           // d out / d alpha_i = T_i (c_i - R_i) for colour/depth (R: what lies behind, incl.
           // background), T_final / (1 - alpha_i) for alpha_out.
-          const scalar_t dal =
-              Ti * ((r - rr) * gR + (g - rg) * gG + (bl - rb) * gB + (zz - rd) * gD) + gap[i] * inv_om;
-          Rrp[i] = alpha * r + one_m * rr;
-          Rgp[i] = alpha * g + one_m * rg;
-          Rbp[i] = alpha * bl + one_m * rb;
-          Rdp[i] = alpha * zz + one_m * rd;
-          Tp[i] = Ti;
-          acc[6] += w * gR;
-          acc[7] += w * gG;
-          acc[8] += w * gB;
-          acc[9] += w * gD;
+          const V dal = Ti * ((r - rr) * gR + (g - rg) * gG + (bl - rb) * gB + (zz - rd) * gD) +
+                        vec(st.gaT + off) * inv_om;
+          vec(st.Rr + off) = use ? alpha * r + one_m * rr : rr;
+          vec(st.Rg + off) = use ? alpha * g + one_m * rg : rg;
+          vec(st.Rb + off) = use ? alpha * bl + one_m * rb : rb;
+          vec(st.Rd + off) = use ? alpha * zz + one_m * rd : rd;
+          vec(st.T + off) = use ? Ti : t0;
+          a6 += use ? w * gR : zero;
+          a7 += use ? w * gG : zero;
+          a8 += use ? w * gB : zero;
+          a9 += use ? w * gD : zero;
           // True derivative of the 0.99 clamp: zero when clamped.
-          if (raw <= max_alpha) {
-            const scalar_t dpow = alpha * dal;
-            acc[0] -= dpow * (ca * dx + cbv * dy);
-            acc[1] -= dpow * (cbv * dx + cc * dy);
-            acc[2] += dpow * (mhalf * dx * dx);
-            acc[3] -= dpow * (dx * dy);
-            acc[4] += dpow * (mhalf * dy * dy);
-            acc[5] += G * dal;
-          }
+          const M unc = use & (raw <= max_alpha);
+          const V dpow = alpha * dal;
+          a0 -= unc ? dpow * (ca * dx + cbv * dy) : zero;
+          a1 -= unc ? dpow * (cbv * dx + cc * dy) : zero;
+          a2 += unc ? dpow * (mhalf * dx * dx) : zero;
+          a3 -= unc ? dpow * (dx * dy) : zero;
+          a4 += unc ? dpow * hdy2 : zero;
+          a5 += unc ? G * dal : zero;
         }
       }
     }
-    for (int j = 0; j < 10; ++j) pair_g[10 * k + j] = acc[j];
+    scalar_t* pg = pair_g + 10 * k;
+    pg[0] = lane_sum(a0);
+    pg[1] = lane_sum(a1);
+    pg[2] = lane_sum(a2);
+    pg[3] = lane_sum(a3);
+    pg[4] = lane_sum(a4);
+    pg[5] = lane_sum(a5);
+    pg[6] = lane_sum(a6);
+    pg[7] = lane_sum(a7);
+    pg[8] = lane_sum(a8);
+    pg[9] = lane_sum(a9);
   }
 }
 
 // Instruction-set clones (identical arithmetic: no FMA contraction, -ffp-contract=off).
-B3_CLONES void forward_tile(const TileCache<float>& tc, int64_t K, int px0, int py0, int tw, int npix,
+B3_CLONES void forward_tile(const TileCache<float>& tc, int64_t K, int px0, int py0, int ps, int npix,
                             FwdState<float>& st, float* pair_w) {
-  forward_tile_body<float>(tc, K, px0, py0, tw, npix, st, pair_w);
+  forward_tile_body<float>(tc, K, px0, py0, ps, npix, st, pair_w);
 }
-B3_CLONES void forward_tile(const TileCache<double>& tc, int64_t K, int px0, int py0, int tw, int npix,
+B3_CLONES void forward_tile(const TileCache<double>& tc, int64_t K, int px0, int py0, int ps, int npix,
                             FwdState<double>& st, double* pair_w) {
-  forward_tile_body<double>(tc, K, px0, py0, tw, npix, st, pair_w);
+  forward_tile_body<double>(tc, K, px0, py0, ps, npix, st, pair_w);
 }
-B3_CLONES void backward_tile(const TileCache<float>& tc, int64_t kmax, int px0, int py0, int tw,
+B3_CLONES void backward_tile(const TileCache<float>& tc, int64_t kmax, int px0, int py0, int ps,
                              BwdState<float>& st, float* pair_g) {
-  backward_tile_body<float>(tc, kmax, px0, py0, tw, st, pair_g);
+  backward_tile_body<float>(tc, kmax, px0, py0, ps, st, pair_g);
 }
-B3_CLONES void backward_tile(const TileCache<double>& tc, int64_t kmax, int px0, int py0, int tw,
+B3_CLONES void backward_tile(const TileCache<double>& tc, int64_t kmax, int px0, int py0, int ps,
                              BwdState<double>& st, double* pair_g) {
-  backward_tile_body<double>(tc, kmax, px0, py0, tw, st, pair_g);
+  backward_tile_body<double>(tc, kmax, px0, py0, ps, st, pair_g);
 }
 
 inline void tile_rect(const Geometry& G, int t, int& px0, int& px1, int& py0, int& py1) {
@@ -381,20 +462,20 @@ void forward_impl(const Geometry& G, const scalar_t* means, const scalar_t* coni
       const int t = (int)(item % num_tiles);
       int px0, px1, py0, py1;
       tile_rect(G, t, px0, px1, py0, py1);
-      const int tw = px1 - px0, th = py1 - py0, npix = tw * th;
+      const int tw = px1 - px0, th = py1 - py0, npix = tw * th, ps = padded_stride(tw);
       const int64_t start = offsets[t], K = offsets[t + 1] - offsets[t];
       tc.gather(means, conics, colors, opac, depths, ids + start, K, G.N, s, px0, px1, py0, py1);
-      for (int p = 0; p < npix; ++p) {
+      for (int p = 0; p < th * ps; ++p) {
         st.T[p] = 1;
         st.Cr[p] = st.Cg[p] = st.Cb[p] = st.D[p] = 0;
         st.last[p] = (int32_t)K;
         st.nc[p] = 0;
       }
-      forward_tile(tc, K, px0, py0, tw, npix, st,
+      forward_tile(tc, K, px0, py0, ps, npix, st,
                    pair_w ? pair_w + 2 * ((int64_t)s * G.P + start) : nullptr);
       for (int yy = py0; yy < py1; ++yy) {
         for (int xx = px0; xx < px1; ++xx) {
-          const int p = (yy - py0) * tw + (xx - px0);
+          const int p = (yy - py0) * ps + (xx - px0);
           const int64_t pix = ((int64_t)s * G.H + yy) * G.W + xx;
           out_rgb[3 * pix] = st.Cr[p] + st.T[p] * bg[0];
           out_rgb[3 * pix + 1] = st.Cg[p] + st.T[p] * bg[1];
@@ -430,13 +511,13 @@ void backward_impl(const Geometry& G, const scalar_t* means, const scalar_t* con
       const int t = (int)(item % num_tiles);
       int px0, px1, py0, py1;
       tile_rect(G, t, px0, px1, py0, py1);
-      const int tw = px1 - px0;
+      const int tw = px1 - px0, ps = padded_stride(tw);
       const int64_t start = offsets[t], K = offsets[t + 1] - offsets[t];
       if (K == 0) continue;
       int64_t kmax = 0;
       for (int yy = py0; yy < py1; ++yy) {
         for (int xx = px0; xx < px1; ++xx) {
-          const int p = (yy - py0) * tw + (xx - px0);
+          const int p = (yy - py0) * ps + (xx - px0);
           const int64_t pix = ((int64_t)s * G.H + yy) * G.W + xx;
           st.T[p] = Tfin[pix];
           st.last[p] = lastbuf[pix];
@@ -458,7 +539,7 @@ void backward_impl(const Geometry& G, const scalar_t* means, const scalar_t* con
         for (int j = 0; j < 10; ++j) pg_tile[10 * k + j] = 0;
       if (kmax == 0) continue;
       tc.gather(means, conics, colors, opac, depths, ids + start, kmax, G.N, s, px0, px1, py0, py1);
-      backward_tile(tc, kmax, px0, py0, tw, st, pg_tile);
+      backward_tile(tc, kmax, px0, py0, ps, st, pg_tile);
     }
   }
 }
