@@ -43,6 +43,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=["ethiopian_head", "fox"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--ensemble-seeds", type=int, nargs="+", default=None,
+                    help="seeds of the standard runs forming the ensemble (default: --seeds)")
     ap.add_argument("--samples", type=int, default=50)
     ap.add_argument("--jitter", type=float, default=0.002)
     ap.add_argument("--out", default="outputs/bench")
@@ -73,6 +75,12 @@ def main() -> None:
             rows.append({"scene": scene, "seed": seed, "row": "niw (proxy)", **pick(r, "proxy")})
             rows.append({"scene": scene, "seed": seed, "row": "niw (native)", **pick(r, "native")})
             print(rows[-3:], flush=True)
+        if args.ensemble_seeds:
+            std_runs = []
+            for seed in args.ensemble_seeds:
+                run_dir = Path(args.out) / scene / "standard" / f"s{seed}"
+                train_run(run_dir, scene_overrides(scene) + QUICK + ["model=standard", f"seed={seed}"])
+                std_runs.append(str(run_dir))
         if len(std_runs) >= 2:
             r = evaluate_uq(std_runs, regimes(["ensemble"]), seed=0, max_views=args.max_views,
                             out_dir=Path(args.out) / scene / "ensemble")

@@ -28,7 +28,7 @@ class DPBlock(PosteriorBlock):
     alpha: float = 5.0
     cavi_every: int = 50
     t_dp: Optional[int] = None  # None: max_steps / 6
-    ema: float = 0.95
+    ema: float = 0.99
     prune_pi: float = 0.05
     prune_activity: float = 0.05
     prior_active: float = 0.5

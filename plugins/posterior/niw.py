@@ -50,7 +50,7 @@ class NIWBlock(PosteriorBlock):
     kappa0: float = 0.01
     nu0: float = 5.0
     ema: float = 0.99
-    update_every: int = 10
+    update_every: int = 100
     t_niw: Optional[int] = None  # None: 0 (active from the start)
     cov_mode: str = "relative"
     plugin_noise: bool = True
@@ -137,7 +137,7 @@ class NIWBlock(PosteriorBlock):
         state["m0"][rows] = m0
         state["S0"][rows] = S0
         state["N"][rows] = 0.5 * state["N"][rows]
-        self._refresh(state, splats)
+        # the posterior (m_n, S_n, ...) of new rows is refreshed at the next scheduled update or on use
 
     # ------------------------------------------------------------------ posterior use
     def posterior(self, state, splats) -> dict[str, Tensor]:
@@ -179,6 +179,8 @@ class NIWBlock(PosteriorBlock):
 
     @torch.no_grad()
     def export(self, *, splats=None, state):
+        if splats is not None:
+            self._refresh(state, splats)
         var_mu = niwm.mean_variance(state["S_n"], state["nu_n"], state["kappa_n"])
         return {
             "niw_pos_var": (torch.diagonal(var_mu, dim1=-2, dim2=-1).sum(-1) / D).float(),
