@@ -77,6 +77,7 @@ def train(cfg: DictConfig) -> dict:
     from b3dgs.callbacks import AtomicCheckpointIO, CurveCallback
     from b3dgs.evaluate import evaluate_views
     from b3dgs.metrics.lpips import get_lpips
+    from b3dgs.posterior.guards import guard_counts, reset_guards
 
     run_dir = Path(cfg.trainer.default_root_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -85,6 +86,7 @@ def train(cfg: DictConfig) -> dict:
     # reset the global seed in every job: PL_GLOBAL_SEED survives between multirun jobs
     os.environ.pop("PL_GLOBAL_SEED", None)
     L.seed_everything(seed, workers=True, verbose=False)
+    reset_guards()
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
 
@@ -132,6 +134,7 @@ def train(cfg: DictConfig) -> dict:
         "added": dict(module.ops.added) if module.ops else {},
         "block_time_s": {k: round(v, 4) for k, v in module.block_time_s.items()},
         "posterior": {name: blk.summary(state=module.states[name]) for name, blk in module.posterior.items()},
+        "numerical_guards": guard_counts(),  # how often each clamp / jitter / floor fired (never silent)
         "per_view": ev["per_view"],
     }
     write_json(run_dir / "metrics.json", metrics)
