@@ -20,7 +20,9 @@ from b3dgs.data.synthetic import load_synthetic
 from b3dgs.types import Camera
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = Path("/work/shared/data")
+from conftest import SHARED
+
+DATA = SHARED / "data"
 HEAD = DATA / "ethiopian_head"
 FOX = DATA / "fox"
 needs_head = pytest.mark.skipif(not (HEAD / "sparse" / "0").is_dir(), reason="ethiopian_head not available")

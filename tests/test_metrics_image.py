@@ -15,7 +15,9 @@ import torch
 from b3dgs.metrics import PSNR_CAP_DB, LPIPS, find_lpips_weights, get_lpips, load_lpips, psnr, ssim
 from b3dgs.metrics import lpips as lp
 
-SHARED_WEIGHTS = Path("/work/shared/lpips/lpips_alex.pth")
+from conftest import SHARED
+
+SHARED_WEIGHTS = SHARED / "lpips" / "lpips_alex.pth"
 needs_weights = pytest.mark.skipif(not SHARED_WEIGHTS.is_file(),
                                    reason=f"reference LPIPS weights {SHARED_WEIGHTS} not present on this machine")
 

