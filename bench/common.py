@@ -88,3 +88,27 @@ def train_run(run_dir: Path, overrides: list[str], timeout_s: int = 3600, force:
 
 def scene_overrides(scene: str) -> list[str]:
     return [o.format(shared=shared_dir()) for o in SCENES[scene]]
+
+
+def ensure_lpips(run_dir: Path, metrics: dict) -> dict:
+    """Fill in LPIPS for a finished run that was trained before the weights were available,
+    by re-rendering its test views from the checkpoint (the metrics.json is updated atomically)."""
+    if metrics.get("lpips") is not None:
+        return metrics
+    from b3dgs.evaluate import evaluate_views
+    from b3dgs.metrics.lpips import get_lpips
+    from b3dgs.runs import load_run
+
+    model, reason = get_lpips()
+    if model is None:
+        return metrics
+    run = load_run(run_dir)
+    ev = evaluate_views(run.module, run.scene.test, lpips_model=model, with_ssim=False)
+    metrics["lpips"] = ev["lpips"]
+    metrics["lpips_reason"] = None
+    by_name = {r["name"]: r for r in ev["per_view"]}
+    for row in metrics.get("per_view", []):
+        if row["name"] in by_name:
+            row["lpips"] = by_name[row["name"]]["lpips"]
+    write_json(run_dir / "metrics.json", metrics)
+    return metrics

@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import QUICK, machine, scene_overrides, table, train_run, write_results  # noqa: E402
+from common import QUICK, ensure_lpips, machine, scene_overrides, table, train_run, write_results  # noqa: E402
 
 METHODS = ["standard", "niw", "dpmm"]
 
@@ -34,6 +34,7 @@ def main() -> None:
             for method in args.methods:
                 run_dir = Path(args.out) / scene / method / f"s{seed}"
                 m = train_run(run_dir, scene_overrides(scene) + QUICK + [f"model={method}", f"seed={seed}", *args.extra])
+                m = ensure_lpips(run_dir, m)
                 rows.append({"scene": scene, "seed": seed, "method": method, "psnr": m["psnr"], "ssim": m["ssim"],
                              "lpips": m["lpips"], "num_gaussians": m["num_gaussians"], "fps": m["render_fps"],
                              "train_time_s": m["train_time_s"], "removed": m.get("removed", {}),

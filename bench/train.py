@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import QUICK, RESULTS, machine, scene_overrides, table, train_run, write_results  # noqa: E402
+from common import QUICK, ensure_lpips, RESULTS, machine, scene_overrides, table, train_run, write_results  # noqa: E402
 
 
 def main() -> None:
@@ -28,6 +28,7 @@ def main() -> None:
         for scene in args.scenes:
             run_dir = Path(args.out) / scene / "standard" / f"s{seed}"
             m = train_run(run_dir, scene_overrides(scene) + QUICK + ["model=standard", f"seed={seed}", *args.extra])
+            m = ensure_lpips(run_dir, m)
             rows.append({"scene": scene, "seed": seed, "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"],
                          "num_gaussians": m["num_gaussians"], "train_time_s": m["train_time_s"],
                          "render_fps": m["render_fps"]})

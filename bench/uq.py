@@ -45,6 +45,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--ensemble-seeds", type=int, nargs="+", default=None,
                     help="seeds of the standard runs forming the ensemble (default: --seeds)")
+    ap.add_argument("--ensemble-scenes", nargs="+", default=None, help="scenes that get an ensemble row (default: all)")
     ap.add_argument("--samples", type=int, default=50)
     ap.add_argument("--jitter", type=float, default=0.002)
     ap.add_argument("--out", default="outputs/bench")
@@ -75,7 +76,9 @@ def main() -> None:
             rows.append({"scene": scene, "seed": seed, "row": "niw (proxy)", **pick(r, "proxy")})
             rows.append({"scene": scene, "seed": seed, "row": "niw (native)", **pick(r, "native")})
             print(rows[-3:], flush=True)
-        if args.ensemble_seeds:
+        if args.ensemble_scenes is not None and scene not in args.ensemble_scenes:
+            std_runs = []
+        elif args.ensemble_seeds:
             std_runs = []
             for seed in args.ensemble_seeds:
                 run_dir = Path(args.out) / scene / "standard" / f"s{seed}"
