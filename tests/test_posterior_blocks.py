@@ -115,6 +115,8 @@ def test_short_training_with_posterior(tmp_path, model):
         for key in ("dp_e_pi", "dp_e_a", "opacity_var", "color_var"):
             assert key in ply["extra"]
         assert m["posterior"]["noise"]["sigma2_mean"] > 0
+        # the data (Fisher information) tightens the opacity posterior below its prior variance 1/τ₀ = 1
+        assert m["posterior"]["opacity"]["median_logit_var"] < 0.5
     else:
         assert m["posterior"]["niw"]["sigma2_plugin"] > 0
     # checkpoints carry the posterior state, so a resumed run keeps it

@@ -13,8 +13,8 @@ from b3dgs.posterior import appearance as app
 @dataclass
 class OpacityBlock(PosteriorBlock):
     """q(o_k) ≈ Beta(a_k, b_k), moment-matched to sigmoid(ℓ) with ℓ ~ N(ℓ̂_k, v_k): ℓ̂ is the optimizer's
-    logit and v_k a Laplace variance from the empirical Fisher (EMA of the squared loss gradient
-    w.r.t. the logit, times the number of training views) plus a prior precision.
+    logit and v_k a Laplace variance from the empirical Fisher (EMA over steps of the squared
+    per-view NLL gradient w.r.t. the logit, times the number of training views) plus a prior precision.
 
     Approximations: a diagonal Laplace/Fisher curvature, the EMA over minibatches, and the moment
     match. The block does not move the point estimate; it supplies the variance that the DPMM
@@ -47,7 +47,14 @@ class OpacityBlock(PosteriorBlock):
         g = splats["opacities"].grad
         if g is None:
             return
-        state["fisher"].mul_(self.ema).add_((1 - self.ema) * g.double().square() * float(state["n_views"]))
+        # The training loss is a pixel mean (L1 + D-SSIM); rescale its gradient to the per-view Gaussian
+        # NLL, Σ_p ||r_p||² / (2σ²), whose gradient is M / (2σ²) times that of the pixel-mean L2 loss
+        # (M values per view). This is an approximation: the L1/SSIM gradient stands in for the L2 one.
+        s2 = info.get("sigma2")
+        if s2 is None:
+            s2 = float(info["sq_err_sum"]) / max(int(info["num_values"]), 1)
+        scale = float(info["num_values"]) / (2.0 * max(float(s2), 1e-8))
+        state["fisher"].mul_(self.ema).add_((1 - self.ema) * (g.double() * scale).square() * float(state["n_views"]))
 
     def logit_var(self, state):
         return app.opacity_fisher_var(state["fisher"], self.prior_precision)
