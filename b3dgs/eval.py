@@ -65,7 +65,9 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     result: dict = {}
     curves: dict = {}
     for name, regime in regimes.items():
-        members = [r.module for r in runs] if name == "ensemble" or getattr(regime, "min_members", 0) else [first.module]
+        # regimes that combine several runs declare ``min_members``; the others use the first run
+        multi = bool(getattr(regime, "min_members", 0))
+        members = [r.module for r in runs] if multi else [first.module]
         t0 = time.perf_counter()
         regime.fit(members, scene)
         gen = torch.Generator().manual_seed(int(seed))
@@ -93,9 +95,9 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
         summ = {k: v for k, v in summ.items() if k != "mean_curves"}
         summ["spearman"] = summ.get("spearman_rho")
         summ["time_s"] = round(elapsed, 3)
-        summ["train_time_s"] = round(sum(train_times) if name == "ensemble" else train_times[0], 3)
+        summ["train_time_s"] = round(sum(train_times) if multi else train_times[0], 3)
         summ["samples"] = getattr(regime, "samples", None)
-        summ["runs"] = [str(r.path) for r in runs] if name == "ensemble" else [str(first.path)]
+        summ["runs"] = [str(r.path) for r in runs] if multi else [str(first.path)]
         if lpips_model is None:
             summ["lpips_reason"] = lpips_reason
         result[name] = to_jsonable(summ)
