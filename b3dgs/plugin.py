@@ -46,6 +46,11 @@ class Plugin:
 class PosteriorBlock(Plugin):
     """A posterior block: closed-form or approximate posterior updates around the optimizer."""
 
+    @staticmethod
+    def stage_start(t: Optional[int], info: dict, divisor: int) -> int:
+        """A stage threshold: ``t`` when configured, else max_steps // ``divisor`` (the canonical schedule)."""
+        return int(t) if t is not None else int(info.get("max_steps", 0)) // divisor
+
     def sample(self, *, splats, state, n: int, generator: Optional[torch.Generator], params: dict, info: dict) -> dict:
         """Return ``params`` with the attributes this block samples replaced by (n, N, ...) draws."""
         return params

@@ -31,13 +31,9 @@ class ColorBlock(PosteriorBlock):
             raise ValueError("posterior.color.prior_precision must be > 0")
 
     def initialize_state(self, *, splats, scene, info):
-        self._max_steps = int(info.get("max_steps", 0))
         n = splats["means"].shape[0]
         return {"wsq": torch.zeros(n, dtype=torch.float64), "sigma2": torch.tensor(1e-2, dtype=torch.float64),
                 "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0)}
-
-    def _start(self) -> int:
-        return int(self.t_post) if self.t_post is not None else getattr(self, "_max_steps", 0) // 2
 
     @torch.no_grad()
     def step_post_backward(self, *, splats, optimizers, state, step, info):
@@ -45,7 +41,7 @@ class ColorBlock(PosteriorBlock):
         if s2 is None:
             s2 = float(info["sq_err_sum"]) / max(int(info["num_values"]), 1)
         state["sigma2"] = self.ema * state["sigma2"] + (1 - self.ema) * s2
-        if step < self._start():
+        if step < self.stage_start(self.t_post, info, 2):
             return
         wsq = info["per_gaussian"].get("weight_sq_sum")
         if wsq is not None:

@@ -47,7 +47,6 @@ class DPBlock(PosteriorBlock):
             raise ValueError("posterior.dp.prior_active must be in (0, 1)")
 
     def initialize_state(self, *, splats, scene, info):
-        self._max_steps = int(info.get("max_steps", 0))
         n = splats["means"].shape[0]
         return {
             "usage": torch.zeros(n, dtype=torch.float64),
@@ -58,15 +57,12 @@ class DPBlock(PosteriorBlock):
             "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0),
         }
 
-    def _start(self) -> int:
-        return int(self.t_dp) if self.t_dp is not None else getattr(self, "_max_steps", 0) // 6
-
     @torch.no_grad()
     def step_post_backward(self, *, splats, optimizers, state, step, info):
         ws = info["per_gaussian"].get("weight_sum")
         if ws is not None:
             state["usage"].mul_(self.ema).add_((1 - self.ema) * ws[0].double() * float(state["n_views"]))
-        if step < self._start() or step % self.cavi_every != 0:
+        if step < self.stage_start(self.t_dp, info, 6) or step % self.cavi_every != 0:
             return
         self.cavi(state)
         if self.prune:

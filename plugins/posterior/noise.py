@@ -33,15 +33,11 @@ class NoiseBlock(PosteriorBlock):
             raise ValueError("posterior.noise.decay must be in [0, 1)")
 
     def initialize_state(self, *, splats, scene, info):
-        self._max_steps = int(info.get("max_steps", 0))
         return {"a": torch.tensor(self.a0, dtype=torch.float64), "b": torch.tensor(self.b0, dtype=torch.float64)}
-
-    def _start(self) -> int:
-        return int(self.t_noise) if self.t_noise is not None else getattr(self, "_max_steps", 0) // 6
 
     @torch.no_grad()
     def step_post_backward(self, *, splats, optimizers, state, step, info):
-        if step < self._start():
+        if step < self.stage_start(self.t_noise, info, 6):
             return
         a, b = ig.ig_update_ema(state["a"], state["b"], info["sq_err_sum"].double(), float(info["num_values"]),
                                 self.decay, a0=self.a0, b0=self.b0)

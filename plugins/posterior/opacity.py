@@ -32,17 +32,13 @@ class OpacityBlock(PosteriorBlock):
             raise ValueError("posterior.opacity.ema must be in [0, 1)")
 
     def initialize_state(self, *, splats, scene, info):
-        self._max_steps = int(info.get("max_steps", 0))
         n = splats["means"].shape[0]
         return {"fisher": torch.zeros(n, dtype=torch.float64),
                 "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0)}
 
-    def _start(self) -> int:
-        return int(self.t_post) if self.t_post is not None else getattr(self, "_max_steps", 0) // 2
-
     @torch.no_grad()
     def step_post_backward(self, *, splats, optimizers, state, step, info):
-        if step < self._start():
+        if step < self.stage_start(self.t_post, info, 2):
             return
         g = splats["opacities"].grad
         if g is None:
