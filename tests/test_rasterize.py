@@ -102,24 +102,34 @@ def rel_err(x, y):
 
 
 # ---------------------------------------------------------------------------------------------
-def test_binning_matches_brute_force():
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+@pytest.mark.parametrize("with_extent", [False, True])
+def test_binning_matches_brute_force(backend, with_extent, request):
+    if backend == "cpu":
+        request.getfixturevalue("cpu_ext")
     W, H = 50, 37
     means, conics, colors, opac, depths, radii = random_gaussians(2, 60, W, H, seed=3)
     radii[0, :10] = 0  # culled in sample 0 only: rect from sample 1
     radii[:, 10:15] = 0  # culled everywhere: never binned
-    bins = bin_gaussians(means, radii, depths, W, H)
+    g = torch.Generator().manual_seed(4)
+    extent = radii[..., None] * torch.rand(2, 60, 2, generator=g, dtype=radii.dtype) if with_extent else None
+    if with_extent:
+        extent[1, 20:25] = 0  # visible in sample 1 but never reaching alpha 1/255 there
+    ex = extent if with_extent else radii[..., None].expand(2, 60, 2)
+    bins = bin_gaussians(means, radii, depths, W, H, extent=extent, backend=backend)
     tx, ty = bins.tiles_x, bins.tiles_y
     assert (tx, ty) == (4, 3) and bins.tile_offsets.shape == (13,)
     lists = [[] for _ in range(tx * ty)]
     for k in range(60):
-        ok = [s for s in range(2) if radii[s, k] > 0]
+        vis = [s for s in range(2) if radii[s, k] > 0]
+        ok = [s for s in vis if ex[s, k, 0] > 0 and ex[s, k, 1] > 0]
         if not ok:
             continue
-        x0 = min(float(means[s, k, 0] - radii[s, k]) for s in ok)
-        x1 = max(float(means[s, k, 0] + radii[s, k]) for s in ok)
-        y0 = min(float(means[s, k, 1] - radii[s, k]) for s in ok)
-        y1 = max(float(means[s, k, 1] + radii[s, k]) for s in ok)
-        zk = sum(float(depths[s, k]) for s in ok) / len(ok)
+        x0 = min(float(means[s, k, 0] - ex[s, k, 0]) for s in ok)
+        x1 = max(float(means[s, k, 0] + ex[s, k, 0]) for s in ok)
+        y0 = min(float(means[s, k, 1] - ex[s, k, 1]) for s in ok)
+        y1 = max(float(means[s, k, 1] + ex[s, k, 1]) for s in ok)
+        zk = sum(float(depths[s, k]) for s in vis) / len(vis)
         for y in range(max(0, math.floor(y0 / 16)), min(ty, math.ceil(y1 / 16))):
             for x in range(max(0, math.floor(x0 / 16)), min(tx, math.ceil(x1 / 16))):
                 lists[y * tx + x].append((zk, k))

@@ -1,4 +1,4 @@
-"""JIT build / load of the C++ (OpenMP) rasterizer extension.
+"""JIT build / load of the C++ (OpenMP) render extension (preprocessing, binning, rasterizer).
 
 The extension is compiled once with ``torch.utils.cpp_extension.load`` (ninja) into a per-user
 cache directory keyed by a hash of the sources, the compiler flags and the torch version:
@@ -22,8 +22,8 @@ from typing import Optional
 import torch
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
-_SOURCES = [_CSRC / "rasterize.cpp"]
-_HASHED = [_CSRC / "rasterize.cpp", _CSRC / "kernels.h"]
+_SOURCES = [_CSRC / "ext.cpp"]
+_HASHED = [_CSRC / "ext.cpp", _CSRC / "kernels.h", _CSRC / "preprocess.h"]
 # Portable flags: no -march=native, no -ffast-math (NaN semantics must hold). FMA contraction off
 # so that float32 results track the pure-PyTorch backend as closely as possible.
 _CFLAGS = ("-O3", "-fopenmp", "-fno-math-errno", "-ffp-contract=off")

@@ -72,12 +72,16 @@ def _shape_str(t: Tensor) -> str:
 
 @torch.no_grad()
 def bin_gaussians(
-    means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = 16
+    means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = 16,
+    extent: Optional[Tensor] = None, backend: str = "torch",
 ) -> TileBins:
     """Shared tile binning of (S, N) projected Gaussians, sorted by tile, mean depth, then id.
 
     Gaussian k goes to every tile overlapping the union over samples with ``radii > 0`` of
-    ``[x - r, x + r] x [y - r, y + r]`` (tiles floor((x - r)/ts) .. ceil((x + r)/ts) - 1, clamped).
+    ``[x - ex, x + ex] x [y - ey, y + ey]`` (tiles floor((x - ex)/ts) .. ceil((x + ex)/ts) - 1,
+    clamped), with (ex, ey) = ``extent`` (S, N, 2) or (r, r) without it. The depth key of a Gaussian
+    is its mean depth over the samples where it is visible. ``backend="cpu"`` runs the same rule in
+    C++ (a stable counting sort by tile over the depth order).
     """
     if means2d.dim() != 3 or means2d.shape[-1] != 2:
         raise ValueError(f"bin_gaussians: means2d must be (S, N, 2), got {_shape_str(means2d)}")
@@ -88,22 +92,39 @@ def bin_gaussians(
         raise ValueError(f"bin_gaussians: depths must be (S, N) = ({S}, {N}), got {_shape_str(depths)}")
     if width <= 0 or height <= 0 or tile_size <= 0:
         raise ValueError(f"bin_gaussians: bad width/height/tile_size {width}/{height}/{tile_size}")
+    if extent is None:
+        extent = radii.detach()[..., None].expand(S, N, 2)
+    elif tuple(extent.shape) != (S, N, 2):
+        raise ValueError(f"bin_gaussians: extent must be (S, N, 2) = ({S}, {N}, 2), got {_shape_str(extent)}")
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     num_tiles = tiles_x * tiles_y
+    if backend == "cpu":
+        from b3dgs.render._ext import load_extension
+
+        dtype = means2d.dtype
+        offsets, flat_ids = load_extension().bin_tiles(
+            means2d.detach().contiguous(), radii.detach().to(dtype).contiguous(),
+            extent.detach().to(dtype).contiguous(), depths.detach().to(dtype).contiguous(),
+            width, height, tile_size)
+        return TileBins(offsets, flat_ids, tiles_x, tiles_y, tile_size)
+    if backend != "torch":
+        raise ValueError(f"bin_gaussians: backend must be one of {BACKENDS}, got {backend!r}")
 
     m = means2d.detach().double()
     r = radii.detach().double()
     d = depths.detach().double()
-    x, y = m[..., 0], m[..., 1]
+    e = extent.detach().double()
+    x, y, ex, ey = m[..., 0], m[..., 1], e[..., 0], e[..., 1]
     valid = (r > 0) & torch.isfinite(r) & torch.isfinite(x) & torch.isfinite(y) & torch.isfinite(d)
+    reach = valid & (ex > 0) & (ey > 0)  # visible samples that can reach alpha 1/255
     inf = math.inf
-    xmin = torch.where(valid, x - r, inf).amin(0)
-    xmax = torch.where(valid, x + r, -inf).amax(0)
-    ymin = torch.where(valid, y - r, inf).amin(0)
-    ymax = torch.where(valid, y + r, -inf).amax(0)
+    xmin = torch.where(reach, x - ex, inf).amin(0)
+    xmax = torch.where(reach, x + ex, -inf).amax(0)
+    ymin = torch.where(reach, y - ey, inf).amin(0)
+    ymax = torch.where(reach, y + ey, -inf).amax(0)
     nvalid = valid.sum(0)
-    vis = nvalid > 0
+    vis = reach.any(0)
     zero = torch.zeros((), dtype=torch.float64)
     xmin, xmax = torch.where(vis, xmin, zero), torch.where(vis, xmax, zero)
     ymin, ymax = torch.where(vis, ymin, zero), torch.where(vis, ymax, zero)

@@ -13,7 +13,7 @@ from typing import Mapping, Optional
 import torch
 from torch import Tensor
 
-from b3dgs.render.projection import covariance_3d, eval_sh, project
+from b3dgs.render.preprocess import preprocess
 from b3dgs.render.rasterize import TileBins, bin_gaussians, rasterize
 from b3dgs.types import Camera
 
@@ -81,46 +81,17 @@ def render(
     ``params`` may hold ``covars`` (…, N, 3, 3) instead of ``quats``/``scales`` (posterior samples of Σ).
     """
     S, N, batched = _check_params(params)
-    means = params["means"]
-    dtype = means.dtype
-
-    def expand(t: Tensor, tail: int) -> Tensor:
-        return t.expand((S,) + t.shape[-tail - 1:]) if t.dim() == tail + 2 else t.unsqueeze(0).expand((S,) + t.shape)
-
-    means_s = expand(means, 1)
-    cov3d = params["covars"] if "covars" in params else covariance_3d(params["quats"], params["scales"])
-    cov_s = expand(cov3d, 2)
-    proj = project(means_s, cov_s, camera.viewmat.to(dtype), camera.K.to(dtype), camera.width, camera.height, near)
-    means2d = proj.means2d
+    dtype = params["means"].dtype
+    pre = preprocess(params, camera, S, sh_degree, backend, near)
+    means2d = pre.means2d
     if retain_means2d_grad and means2d.requires_grad:
         means2d.retain_grad()
-
-    # View-dependent colour from SH, evaluated at the (possibly sampled) means.
-    deg = sh_degree
-    sh0 = params["sh0"]
-    shN = params.get("shN")
-    if shN is not None and shN.shape[-2] > 0 and deg > 0:
-        nb = (deg + 1) ** 2
-        if shN.shape[-2] + 1 < nb:
-            deg = int((shN.shape[-2] + 1) ** 0.5) - 1
-            nb = (deg + 1) ** 2
-        coeffs = torch.cat([expand(sh0, 2), expand(shN, 2)[..., : nb - 1, :]], dim=-2)
-        cam_center = camera.center.to(dtype)
-        dirs = torch.nn.functional.normalize(means_s - cam_center, dim=-1)
-        colors = eval_sh(deg, coeffs, dirs)
-    else:
-        colors = eval_sh(0, expand(sh0, 2), means_s)
-    colors = torch.clamp_min(colors + 0.5, 0.0)
-    # a Gaussian culled in one sample (radius 0) stays invisible there, even though the shared
-    # binning (union over samples) lists it
-    opac = expand(torch.sigmoid(params["opacities"]), 0) * (proj.radii > 0)
-
     if background is None:
         background = torch.zeros(3, dtype=dtype)
-    with torch.no_grad():
-        bins = bin_gaussians(means2d.detach(), proj.radii, proj.depths.detach(), camera.width, camera.height)
+    bins = bin_gaussians(means2d.detach(), pre.radii, pre.depths.detach(), camera.width, camera.height,
+                         extent=pre.extent, backend=backend)
     out = rasterize(
-        means2d, proj.conics, colors, opac, proj.depths, bins, camera.width, camera.height,
+        means2d, pre.conics, pre.colors, pre.opacities, pre.depths, bins, camera.width, camera.height,
         background.to(dtype), backend=backend, return_weights=return_weights,
     )
     depth = out.depth / out.alpha.clamp_min(1e-6)
@@ -128,6 +99,6 @@ def render(
     if not batched:
         rgb, alpha, depth = rgb[0], alpha[0], depth[0]
     return RenderOutput(
-        rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=proj.radii, depths=proj.depths, bins=bins,
+        rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=pre.radii, depths=pre.depths, bins=bins,
         weight_sum=out.weight_sum, weight_sq_sum=out.weight_sq_sum,
     )
