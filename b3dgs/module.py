@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from b3dgs.init import init_gaussians
-from b3dgs.metrics.image import ssim_separable
+from b3dgs.metrics.image import ssim_fused, ssim_separable
 from b3dgs.ops import TopologyOps
 from b3dgs.plugin import Plugin, PosteriorBlock
 from b3dgs.render.render import RenderOutput, render
@@ -187,7 +187,8 @@ class SplatModule(L.LightningModule):
         out = self.render_camera(cam, retain_means2d_grad=True, return_weights=need_weights)
         gt = cam.image
         l1 = (out.rgb - gt).abs().mean()
-        ssim = ssim_separable(out.rgb, gt)
+        # the C++ backend also computes the SSIM term in C++ (value and gradient in one pass)
+        ssim = (ssim_fused if self.hparams.renderer == "cpu" else ssim_separable)(out.rgb, gt)
         lam = self.hparams.lambda_dssim
         loss = (1 - lam) * l1 + lam * (1 - ssim)
         if not torch.isfinite(loss):

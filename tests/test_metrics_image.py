@@ -303,3 +303,21 @@ def test_separable_ssim_equals_kornia_ssim_with_gradients():
     g1, = torch.autograd.grad(s1, a)
     g2, = torch.autograd.grad(s2, a)
     assert torch.allclose(g1, g2, atol=1e-7)
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 1e-5)])
+def test_fused_ssim_equals_separable_value_and_gradient(dtype, tol):
+    """The C++ SSIM loss (value + gradient in one pass) equals the autograd reference."""
+    from b3dgs.metrics.image import ssim_fused, ssim_separable
+
+    g = torch.Generator().manual_seed(1)
+    a = torch.rand(37, 52, 3, generator=g, dtype=dtype, requires_grad=True)
+    b = (a.detach() + 0.2 * torch.randn(37, 52, 3, generator=g, dtype=dtype)).clamp(0, 1)
+    s1, s2 = ssim_separable(a, b), ssim_fused(a, b)
+    assert abs(float(s1) - float(s2)) <= tol
+    g1, = torch.autograd.grad(s1, a)
+    g2, = torch.autograd.grad(s2, a)
+    assert float((g1 - g2).abs().max()) <= tol * float(g1.abs().max()) * 10
+    assert float(ssim_fused(b, b)) == pytest.approx(1.0, abs=1e-12 if dtype == torch.float64 else 1e-6)
+    with pytest.raises(ValueError, match="H, W, 3"):
+        ssim_fused(a[..., :2], b[..., :2])

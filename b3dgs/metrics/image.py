@@ -19,7 +19,7 @@ import kornia
 import torch
 from torch import Tensor
 
-__all__ = ["PSNR_CAP_DB", "SSIM_WINDOW", "SSIM_SIGMA", "psnr", "ssim", "check_images"]
+__all__ = ["PSNR_CAP_DB", "SSIM_WINDOW", "SSIM_SIGMA", "psnr", "ssim", "ssim_separable", "ssim_fused", "check_images"]
 
 #: Upper bound returned by :func:`psnr` (dB). Equivalent to clamping the MSE at 1e-10.
 PSNR_CAP_DB = 100.0
@@ -99,7 +99,7 @@ def ssim_separable(pred: Tensor, gt: Tensor) -> Tensor:
     two 1-D passes (kornia's Gaussian kernel): about 5x cheaper, for the training loss. Differentiable."""
     if pred.shape != gt.shape or pred.dim() != 3 or pred.shape[-1] != 3:
         raise ValueError(f"ssim_separable: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
-    k = kornia.filters.get_gaussian_kernel1d(SSIM_WINDOW, SSIM_SIGMA).to(pred.dtype).reshape(-1)
+    k = kornia.filters.get_gaussian_kernel1d(SSIM_WINDOW, SSIM_SIGMA, dtype=pred.dtype).reshape(-1)
     kx = k.view(1, 1, 1, -1).repeat(15, 1, 1, 1)
     ky = k.view(1, 1, -1, 1).repeat(15, 1, 1, 1)
     a = pred.permute(2, 0, 1).unsqueeze(0)
@@ -112,3 +112,27 @@ def ssim_separable(pred: Tensor, gt: Tensor) -> Tensor:
     num = (2 * mu1mu2 + c1) * (2 * (s12 - mu1mu2) + c2)
     den = (mu1s + mu2s + c1) * ((s11 - mu1s) + (s22 - mu2s) + c2)
     return (num / den).mean()
+
+
+class _SSIMFused(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, pred: Tensor, gt: Tensor) -> Tensor:
+        from b3dgs.render._ext import load_extension
+
+        value, grad = load_extension().ssim_value_grad(pred.contiguous(), gt.contiguous(), ctx.needs_input_grad[0],
+                                                       torch.get_num_threads())
+        ctx.save_for_backward(grad)
+        return value
+
+    @staticmethod
+    def backward(ctx, g: Tensor):
+        (grad,) = ctx.saved_tensors
+        return g * grad, None
+
+
+def ssim_fused(pred: Tensor, gt: Tensor) -> Tensor:
+    """:func:`ssim_separable` computed by the C++ extension together with its gradient (one pass over
+    the image instead of ~20 autograd ops; the training loss of ``renderer=cpu``). gt gets no gradient."""
+    if pred.shape != gt.shape or pred.dim() != 3 or pred.shape[-1] != 3:
+        raise ValueError(f"ssim_fused: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
+    return _SSIMFused.apply(pred, gt.to(pred.dtype).detach())

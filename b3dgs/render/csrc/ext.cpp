@@ -1,9 +1,10 @@
 // Torch bindings of the CPU kernels: preprocessing and binning (preprocess.h), tile rasterizer
-// (kernels.h).
+// (kernels.h), SSIM loss with its gradient (ssim.h).
 #include <torch/extension.h>
 
 #include "kernels.h"
 #include "preprocess.h"
+#include "ssim.h"
 
 namespace {
 
@@ -258,6 +259,25 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor radii,
   return {offsets, flat};
 }
 
+std::vector<torch::Tensor> ssim_value_grad(torch::Tensor pred, torch::Tensor gt, bool want_grad,
+                                           int64_t nthreads) {
+  check_cpu_contig(pred, "pred");
+  check_cpu_contig(gt, "gt");
+  TORCH_CHECK(pred.dim() == 3 && pred.size(2) == 3 && pred.sizes() == gt.sizes(),
+              "ssim: expected two (H, W, 3) images of the same shape");
+  TORCH_CHECK(pred.scalar_type() == gt.scalar_type(), "ssim: pred and gt must have the same dtype");
+  const int H = (int)pred.size(0), W = (int)pred.size(1);
+  TORCH_CHECK(H >= b3dgs::kSsimWin && W >= b3dgs::kSsimWin, "ssim: images must be at least 11x11");
+  auto grad = want_grad ? torch::empty_like(pred) : torch::empty({0}, pred.options());
+  auto value = torch::empty({}, pred.options());
+  AT_DISPATCH_FLOATING_TYPES(pred.scalar_type(), "b3dgs_ssim", [&] {
+    value.fill_(b3dgs::ssim_value_grad<scalar_t>(pred.data_ptr<scalar_t>(), gt.data_ptr<scalar_t>(), H, W,
+                                                 want_grad ? grad.data_ptr<scalar_t>() : nullptr,
+                                                 (int)nthreads));
+  });
+  return {value, grad};
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -266,4 +286,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("preprocess_forward", &preprocess_forward, "projection + SH + opacity (CPU)");
   m.def("preprocess_backward", &preprocess_backward, "backward of preprocess_forward (CPU)");
   m.def("bin_tiles", &bin_tiles, "shared tile binning (CPU)");
+  m.def("ssim_value_grad", &ssim_value_grad, "mean SSIM and its gradient w.r.t. pred (CPU)");
 }
