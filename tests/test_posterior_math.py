@@ -190,6 +190,25 @@ def test_sample_niw_moments_and_spd():
     assert torch.equal(mu, mu2) and torch.equal(Sig, Sig2)
 
 
+def test_whitened_draw_is_a_function_of_the_bartlett_factor():
+    """E[Σ]^{-1/2} Σ E[Σ]^{-T/2} = (ν - D - 1)(A Aᵀ)^{-1}: what NIWBlock renders in relative mode."""
+    from b3dgs.posterior.niw import sample_niw_factors, tril_solve
+
+    rng = np.random.default_rng(7)
+    K, S = 4, 6
+    Sn = torch.tensor(_rand_spd(rng, K))
+    nu = torch.tensor([5.5, 8.0, 20.0, 100.0], dtype=F64)
+    mu, X, A = sample_niw_factors(torch.zeros(K, D, dtype=F64), 1.0, nu, Sn, S, generator=torch.Generator().manual_seed(3))
+    Sig = X.transpose(-1, -2) @ X
+    Le = torch.linalg.cholesky(expected_cov(Sn, nu))
+    Y = torch.linalg.solve_triangular(Le.expand(S, K, D, D), Sig, upper=False)
+    W_ref = torch.linalg.solve_triangular(Le.expand(S, K, D, D), Y.transpose(-1, -2), upper=False)
+    W = (nu - D - 1)[None, :, None, None] * torch.linalg.inv(A @ A.transpose(-1, -2))
+    assert torch.allclose(W, W_ref, rtol=1e-9, atol=1e-12)
+    B = torch.tensor(rng.normal(size=(S, K, D, 2)))
+    assert torch.allclose(tril_solve(A, B), torch.linalg.solve_triangular(A, B, upper=False), rtol=1e-12, atol=1e-12)
+
+
 def test_safe_cholesky_plain_matches_torch():
     rng = np.random.default_rng(6)
     A = torch.tensor(_rand_spd(rng, 5))

@@ -27,6 +27,9 @@ __all__ = [
     "posterior_mean_params",
     "safe_cholesky",
     "sample_niw",
+    "sample_niw_factors",
+    "bartlett_factor",
+    "tril_solve",
 ]
 
 Scalar = Union[float, int, torch.Tensor]
@@ -283,27 +286,53 @@ def safe_cholesky(A: torch.Tensor, jitters: Sequence[float] = CHOLESKY_JITTERS) 
     return L.reshape(shape).to(dtype)
 
 
-def sample_niw(
+def tril_solve(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
+    """A^{-1} B for lower-triangular A (..., D, D) and B (..., D, M), by forward substitution written
+    elementwise (vectorised over the batch; batched LAPACK calls on 3x3 blocks are far slower)."""
+    D = int(A.shape[-1])
+    rows = []
+    for i in range(D):
+        r = B[..., i, :]
+        for j in range(i):
+            r = r - A[..., i, j, None] * rows[j]
+        rows.append(r / A[..., i, i, None])
+    return torch.stack(rows, dim=-2)
+
+
+def bartlett_factor(nu: torch.Tensor, n_samples: int, D: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
+    """Lower-triangular Bartlett factors A (S, K, D, D) for degrees of freedom nu (K,):
+    A_ii = sqrt(chi2(nu - i + 1)), A_ij ~ N(0, 1) (i > j), so A A^T ~ Wishart(I, nu)."""
+    K = int(nu.shape[0])
+    df = nu[None, :, None] - torch.arange(D, dtype=_F64, device=nu.device)  # (1,K,D): nu - i + 1, i=1..D
+    shape_g = (0.5 * df).expand(n_samples, K, D).contiguous()
+    chi2 = 2.0 * torch._standard_gamma(shape_g, generator=generator)
+    low = ~(chi2 >= BARTLETT_CHI2_FLOOR)
+    if guard("sample_niw.bartlett_chi2_floor", low):
+        chi2 = torch.where(low, torch.full_like(chi2, BARTLETT_CHI2_FLOOR), chi2)
+    z_off = torch.randn(n_samples, K, D, D, dtype=_F64, device=nu.device, generator=generator)
+    return torch.diag_embed(torch.sqrt(chi2)) + torch.tril(z_off, diagonal=-1)
+
+
+def sample_niw_factors(
     m_n: torch.Tensor,
     kappa_n: Scalar,
     nu_n: Scalar,
     S_n: torch.Tensor,
     n_samples: int,
     generator: Optional[torch.Generator] = None,
-) -> Tuple[torch.Tensor, torch.Tensor]:
-    """Draw (mu, Sigma) ~ NIW(m_n, kappa_n, nu_n, S_n) for all K at once (samples for Eq. 4).
+) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Draws of NIW(m_n, kappa_n, nu_n, S_n) as factors: returns mu (S,K,D), X (S,K,D,D) with
+    Sigma = X^T X, and the Bartlett factor A (S,K,D,D), all float64.
 
-    Sigma ~ IW(S_n, nu_n) via Bartlett: with S_n = L L^T and A lower-triangular,
-    A_ii = sqrt(chi2(nu - i + 1)), A_ij ~ N(0,1) (i > j), W = L^{-T} A A^T L^{-1} ~ W(S_n^{-1}, nu),
-    hence Sigma = W^{-1} = X^T X with X = A^{-1} L^T (one triangular solve, no inverses);
-    mu = m_n + X^T z / sqrt(kappa_n), z ~ N(0, I), so Cov[mu | Sigma] = Sigma / kappa_n.
-    Returns mu (S,K,D), Sigma (S,K,D,D); deterministic given ``generator``.
-    Memory is O(S*K*D*D) float64: chunk over samples for very large K.
+    With S_n = L L^T and A A^T ~ W(I, nu): W = L^{-T} A A^T L^{-1} ~ W(S_n^{-1}, nu), hence
+    Sigma = W^{-1} = X^T X with X = A^{-1} L^T (no inverses); mu = m_n + X^T z / sqrt(kappa_n), z ~ N(0, I),
+    so Cov[mu | Sigma] = Sigma / kappa_n. The draw whitened by E[Sigma] = S_n / (nu - D - 1) is
+    (nu - D - 1) (A A^T)^{-1}, a function of A alone.
     """
     K, D = _kd("m_n", m_n)
     if not isinstance(n_samples, int) or n_samples < 1:
         raise ValueError(f"n_samples must be a positive int, got {n_samples!r}")
-    dtype, dev = _out_dtype(m_n), m_n.device
+    dev = m_n.device
     m = m_n.to(_F64)
     _require_finite("m_n", m)
     S = _mat("S_n", S_n, K, D)
@@ -315,18 +344,27 @@ def sample_niw(
     if guard("niw.kappa_floor", small):
         kap = torch.where(small, torch.full_like(kap, KAPPA_FLOOR), kap)
     L = safe_cholesky(S)  # S is float64 here, so L is float64 (K,D,D)
+    A = bartlett_factor(nu, n_samples, D, generator)
+    X = tril_solve(A, L.transpose(-1, -2).unsqueeze(0))
+    z = torch.randn(n_samples, K, D, dtype=_F64, device=dev, generator=generator)
+    mu = m[None] + (X * z[..., :, None]).sum(-2) / torch.sqrt(kap)[None, :, None]  # X^T z
+    return mu, X, A
 
-    ns = n_samples
-    df = nu[None, :, None] - torch.arange(D, dtype=_F64, device=dev)  # (1,K,D): nu - i + 1, i=1..D
-    shape_g = (0.5 * df).expand(ns, K, D).contiguous()
-    chi2 = 2.0 * torch._standard_gamma(shape_g, generator=generator)
-    low = ~(chi2 >= BARTLETT_CHI2_FLOOR)
-    if guard("sample_niw.bartlett_chi2_floor", low):
-        chi2 = torch.where(low, torch.full_like(chi2, BARTLETT_CHI2_FLOOR), chi2)
-    z_off = torch.randn(ns, K, D, D, dtype=_F64, device=dev, generator=generator)
-    A = torch.diag_embed(torch.sqrt(chi2)) + torch.tril(z_off, diagonal=-1)
-    X = torch.linalg.solve_triangular(A, L.transpose(-1, -2).expand(ns, K, D, D), upper=False)
-    Sigma = _sym(X.transpose(-1, -2) @ X)
-    z = torch.randn(ns, K, D, 1, dtype=_F64, device=dev, generator=generator)
-    mu = m[None] + (X.transpose(-1, -2) @ z).squeeze(-1) / torch.sqrt(kap)[None, :, None]
+
+def sample_niw(
+    m_n: torch.Tensor,
+    kappa_n: Scalar,
+    nu_n: Scalar,
+    S_n: torch.Tensor,
+    n_samples: int,
+    generator: Optional[torch.Generator] = None,
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Draw (mu, Sigma) ~ NIW(m_n, kappa_n, nu_n, S_n) for all K at once (samples for Eq. 4), by
+    Bartlett's decomposition (see :func:`sample_niw_factors`).
+    Returns mu (S,K,D), Sigma (S,K,D,D); deterministic given ``generator``.
+    Memory is O(S*K*D*D) float64: chunk over samples for very large K.
+    """
+    dtype = _out_dtype(m_n)
+    mu, X, _ = sample_niw_factors(m_n, kappa_n, nu_n, S_n, n_samples, generator)
+    Sigma = _sym((X.unsqueeze(-1) * X.unsqueeze(-2)).sum(-3))  # X^T X
     return mu.to(dtype), Sigma.to(dtype)

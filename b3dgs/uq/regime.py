@@ -62,15 +62,21 @@ def sample_spread(module, camera: Camera, draw, samples: int, chunk: int) -> tup
     (H, W, 3) and u_p = mean over samples and RGB of the squared deviation from it (H, W) (Eq. 4,
     averaged over channels so that it is a per-channel variance).
     """
-    imgs = []
+    # streaming moments about the first sample (no (S, H, W, 3) stack; exact enough in float64)
+    ref = total = total_sq = None
     left = samples
     while left > 0:
         n = min(chunk, left)
         out = module.render_camera(camera, params=draw(n))
-        rgb = out.rgb if out.rgb.dim() == 4 else out.rgb.unsqueeze(0)
-        imgs.append(rgb.double())
+        rgb = (out.rgb if out.rgb.dim() == 4 else out.rgb.unsqueeze(0)).double()
+        if ref is None:
+            ref = rgb[0].clone()
+            total, total_sq = torch.zeros_like(ref), torch.zeros_like(ref)
+        d = rgb - ref
+        total += d.sum(0)
+        total_sq += d.square().sum(0)
         left -= n
-    stack = torch.cat(imgs, dim=0)  # (S, H, W, 3)
-    mean = stack.mean(0)
-    u = (stack - mean).square().mean(dim=(0, 3))
+    dmean = total / samples
+    mean = ref + dmean
+    u = (total_sq / samples - dmean.square()).clamp_min(0.0).mean(-1)
     return mean.float(), u.float()

@@ -147,23 +147,23 @@ class NIWBlock(PosteriorBlock):
     @torch.no_grad()
     def sample(self, *, splats, state, n, generator, params, info):
         post = self.posterior(state, splats)
-        mu, Sigma = niwm.sample_niw(post["m_n"], post["kappa_n"], post["nu_n"], post["S_n"], n, generator=generator)
+        mu, X, A = niwm.sample_niw_factors(post["m_n"], post["kappa_n"], post["nu_n"], post["S_n"], n,
+                                           generator=generator)
         out = dict(params)
         dtype = splats["means"].dtype
         out["means"] = mu.to(dtype)
         if self.cov_mode != "none":
             if self.cov_mode == "absolute":
-                covs = Sigma
+                Y = X  # Σ = XᵀX
             else:
-                E = niwm.expected_cov(post["S_n"], post["nu_n"])
-                Le = niwm.safe_cholesky(E)  # E = Le Leᵀ
-                # W = Le^{-1} Σ Le^{-T} (whitened IW draw), rendered as L W Lᵀ with L the rendered Cholesky
-                X = torch.linalg.solve_triangular(Le.unsqueeze(0).expand_as(Sigma), Sigma, upper=False)
-                W = torch.linalg.solve_triangular(Le.unsqueeze(0).expand_as(Sigma), X.transpose(-1, -2), upper=False)
+                # W = E[Σ]^{-1/2} Σ E[Σ]^{-T/2} = c (A Aᵀ)^{-1}, c = ν_n - D - 1 (see sample_niw_factors);
+                # rendered as L W Lᵀ = YᵀY with Y = √c A^{-1} Lᵀ and L the rendered covariance's Cholesky
+                c = (post["nu_n"] - D - 1).clamp_min(niwm.EXPECTED_COV_DENOM_EPS)
                 cov_r = covariance_3d(splats["quats"].detach(), splats["scales"].detach()).double()
                 Lr = niwm.safe_cholesky(cov_r)
-                covs = Lr @ W @ Lr.transpose(-1, -2)
-            out["covars"] = (0.5 * (covs + covs.transpose(-1, -2))).to(dtype)
+                Y = niwm.tril_solve(A, Lr.transpose(-1, -2).unsqueeze(0)) * c.sqrt()[None, :, None, None]
+            covs = (Y.unsqueeze(-1) * Y.unsqueeze(-2)).sum(-3)  # YᵀY, symmetric by construction
+            out["covars"] = covs.to(dtype)
         return out
 
     @torch.no_grad()
