@@ -16,7 +16,8 @@ class AdaptiveDensityControl(Plugin):
     Gaussians whose mean view-space positional gradient (in NDC units, as in 3DGS) exceeds
     ``grad_threshold`` are cloned when small (max scale <= ``percent_dense`` x scene extent) and
     split into two when large. Low-opacity Gaussians are pruned at every refinement; after the
-    first opacity reset, Gaussians that are huge in world or screen space are pruned too.
+    first opacity reset (or after ``prune_big_after`` steps), Gaussians that are huge in world or
+    screen space are pruned too.
     ``max_gaussians`` caps growth: when the candidates would exceed it, the highest-gradient
     ones are densified first.
     """
@@ -31,6 +32,7 @@ class AdaptiveDensityControl(Plugin):
     max_screen_fraction: float = 0.15
     max_world_scale: float = 0.1
     max_gaussians: Optional[int] = 1_000_000
+    prune_big_after: Optional[int] = None  # step after which huge Gaussians are pruned (None: reset_every, as 3DGS)
 
     def check_sanity(self, **kwargs) -> None:
         if self.refine_every <= 0:
@@ -43,6 +45,8 @@ class AdaptiveDensityControl(Plugin):
             raise ValueError("strategy.prune_opacity must be in (0, 1)")
         if self.max_gaussians is not None and self.max_gaussians < 1:
             raise ValueError("strategy.max_gaussians must be >= 1 or null")
+        if self.prune_big_after is not None and self.prune_big_after < 0:
+            raise ValueError("strategy.prune_big_after must be >= 0 or null (null: after the first opacity reset)")
 
     def initialize_state(self, *, splats, scene, info):
         n = splats["means"].shape[0]
@@ -101,7 +105,7 @@ class AdaptiveDensityControl(Plugin):
         split = torch.cat([split, torch.zeros(n_clone, dtype=torch.bool)])
         ops.split(split)
         prune = torch.sigmoid(splats["opacities"]) < self.prune_opacity
-        if step > self.reset_every:
+        if step > (self.reset_every if self.prune_big_after is None else self.prune_big_after):
             prune |= state["max_radii"] > self.max_screen_fraction
             prune |= torch.exp(splats["scales"]).amax(dim=-1) > self.max_world_scale * extent
         ops.prune(prune, reason="opacity")
