@@ -1,5 +1,6 @@
 """Uncertainty comparison in the shape of the paper's Table 3: standard (proxy), NIW (proxy),
-NIW (native) and a 3-member deep ensemble of standard runs, on the shared scenes.
+NIW (native) and a 3-member deep ensemble of standard runs, on the shared scenes; plus the
+PPU-style residual head on the standard runs (a supplementary row, as in the paper).
 
     python bench/posterior.py --methods standard niw     # trains (or reuses) the runs first
     python bench/uq.py [--scenes ethiopian_head fox] [--seeds 0 1 2] [--samples 50]
@@ -23,12 +24,20 @@ PAPER = {  # Table 3 of the paper (13 scenes, 30k steps, GPU): for side-by-side 
     "ensemble (3)": {"psnr": 27.895, "lpips": 0.2070, "ause_rmse": 0.0191, "ece": 0.0277, "cov95_err": 0.454, "time_s": 2413},
 }
 KEYS = ["psnr", "lpips", "ause_rmse", "ause_mae", "ece", "cov95", "cov95_err", "nll", "spearman", "mean_epistemic",
-        "uq_time_s", "train_time_s"]
+        "aleatoric", "mse", "mean_var", "var_ratio", "uq_time_s", "train_time_s"]
 
 
 def pick(res: dict, regime: str) -> dict:
+    """The table columns of one regime, plus the calibration evidence: held-out MSE, the mean predictive
+    variance and their ratio (1 for calibrated Gaussian intervals; > 1 means the intervals are too narrow)."""
     r = res[regime]
     out = {k: r.get(k) for k in KEYS if k in r}
+    views = r.get("per_view") or []
+    if views:
+        out["mse"] = statistics.mean(v["rmse"] ** 2 for v in views)
+        out["mean_var"] = statistics.mean(v["mean_var"] for v in views)
+        out["var_ratio"] = out["mse"] / out["mean_var"] if out["mean_var"] > 0 else None
+        out["aleatoric"] = statistics.mean(float(v.get("aleatoric") or 0.0) for v in views)
     out["uq_time_s"] = r["time_s"]
     out["train_time_s"] = r["train_time_s"]
     return out
@@ -50,6 +59,9 @@ def main() -> None:
     ap.add_argument("--jitter", type=float, default=0.002)
     ap.add_argument("--out", default="outputs/bench")
     ap.add_argument("--max-views", type=int, default=None)
+    ap.add_argument("--jitter-sweep", type=float, nargs="*", default=[0.0005, 0.002, 0.008, 0.032],
+                    help="proxy jitter scales evaluated on each scene's seed-0 standard run (evidence for how the "
+                         "proxy's coverage depends on its one free parameter); pass nothing to skip")
     args = ap.parse_args()
 
     def regimes(names):
@@ -57,6 +69,7 @@ def main() -> None:
             "proxy": {"_target_": "plugins.uq.proxy.ProxyUQ", "samples": args.samples, "jitter": args.jitter},
             "native": {"_target_": "plugins.uq.native.NativeUQ", "samples": args.samples},
             "ensemble": {"_target_": "plugins.uq.ensemble.EnsembleUQ"},
+            "ppu": {"_target_": "plugins.uq.ppu.PPUHead", "steps": 300, "lr": 5e-3, "width": 16},
         })
         return {n: instantiate(cfg[n]) for n in names}
 
@@ -70,12 +83,13 @@ def main() -> None:
                 train_run(run_dir, scene_overrides(scene) + QUICK + [f"model={method}", f"seed={seed}"])
                 runs[method] = run_dir
             std_runs.append(str(runs["standard"]))
-            r = evaluate_uq([str(runs["standard"])], regimes(["proxy"]), seed=seed, max_views=args.max_views)
+            r = evaluate_uq([str(runs["standard"])], regimes(["proxy", "ppu"]), seed=seed, max_views=args.max_views)
             rows.append({"scene": scene, "seed": seed, "row": "standard (proxy)", **pick(r, "proxy")})
+            rows.append({"scene": scene, "seed": seed, "row": "standard (ppu head)", **pick(r, "ppu")})
             r = evaluate_uq([str(runs["niw"])], regimes(["proxy", "native"]), seed=seed, max_views=args.max_views)
             rows.append({"scene": scene, "seed": seed, "row": "niw (proxy)", **pick(r, "proxy")})
             rows.append({"scene": scene, "seed": seed, "row": "niw (native)", **pick(r, "native")})
-            print(rows[-3:], flush=True)
+            print(rows[-4:], flush=True)
         if args.ensemble_scenes is not None and scene not in args.ensemble_scenes:
             std_runs = []
         elif args.ensemble_seeds:
@@ -89,6 +103,17 @@ def main() -> None:
                             out_dir=Path(args.out) / scene / "ensemble")
             rows.append({"scene": scene, "seed": "all", "row": f"ensemble ({len(std_runs)})", **pick(r, "ensemble")})
             print(rows[-1], flush=True)
+
+    sweep = []
+    for scene in args.scenes if args.jitter_sweep else []:
+        run_dir = Path(args.out) / scene / "standard" / f"s{args.seeds[0]}"
+        for jit in args.jitter_sweep:
+            reg = {"proxy": instantiate(OmegaConf.create(
+                {"_target_": "plugins.uq.proxy.ProxyUQ", "samples": args.samples, "jitter": jit}))}
+            r = evaluate_uq([str(run_dir)], reg, seed=0, max_views=args.max_views,
+                            out_dir=Path(args.out) / scene / "proxy_sweep" / f"j{jit:g}", panels=0)
+            sweep.append({"scene": scene, "jitter": jit, **pick(r, "proxy")})
+            print(sweep[-1], flush=True)
 
     def mean(vals):
         vals = [v for v in vals if isinstance(v, (int, float))]
@@ -107,11 +132,18 @@ def main() -> None:
     cols = ["row", "psnr", "lpips", "ause_rmse", "ece", "cov95", "cov95_err", "nll", "spearman", "uq_time_s", "train_time_s"]
     text = "Scene means over seeds:\n" + table(scene_means, ["scene"] + cols)
     text += "\n\nMacro means over scenes (ours):\n" + table(macro, cols)
+    text += "\n\nCalibration evidence (scene means): held-out MSE, mean predictive variance, their ratio, " \
+            "the aleatoric term and the mean sample spread u_p:\n" + table(
+                scene_means, ["scene", "row", "mse", "mean_var", "var_ratio", "aleatoric", "mean_epistemic", "cov95"])
+    if sweep:
+        text += "\n\nProxy coverage against its jitter scale (seed-0 standard runs):\n" + table(
+            sweep, ["scene", "jitter", "cov95", "cov95_err", "ause_rmse", "ece", "var_ratio"])
     paper_rows = [{"row": k, **v} for k, v in PAPER.items()]
     text += "\n\nPaper Table 3 (13 scenes, 30k steps, for reference):\n" + table(
         paper_rows, ["row", "psnr", "lpips", "ause_rmse", "ece", "cov95_err", "time_s"])
     write_results("uq", {"machine": machine(), "rows": rows, "scene_means": scene_means, "macro": macro,
-                         "paper": PAPER, "samples": args.samples, "jitter": args.jitter}, text)
+                         "paper": PAPER, "samples": args.samples, "jitter": args.jitter, "proxy_jitter_sweep": sweep},
+                  text)
 
 
 if __name__ == "__main__":
