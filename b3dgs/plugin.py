@@ -15,7 +15,7 @@ New needs go into ``info``, never into new arguments, so the core never branches
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 import torch
 from torch import Tensor
@@ -54,6 +54,12 @@ class PosteriorBlock(Plugin):
     def sample(self, *, splats, state, n: int, generator: Optional[torch.Generator], params: dict, info: dict) -> dict:
         """Return ``params`` with the attributes this block samples replaced by (n, N, ...) draws."""
         return params
+
+    def sampler(self, *, splats, state) -> Callable[[int, Optional[torch.Generator], dict], dict]:
+        """A draw function ``draw(n, generator, params) -> params`` for repeated sampling from the current
+        (fixed) posterior, with any set-up done once; by default every draw calls :meth:`sample`."""
+        return lambda n, generator, params: self.sample(splats=splats, state=state, n=n, generator=generator,
+                                                        params=params, info={})
 
     def posterior_mean(self, *, splats, state, params: dict) -> dict:
         """Return ``params`` with this block's attributes at their posterior mean."""

@@ -137,3 +137,26 @@ def test_short_training_on_real_scene(tmp_path, model):
                              "strategy.refine_start=50", "strategy.refine_stop=150", "strategy.refine_every=50"]
                   + (["posterior.dp.t_dp=100", "posterior.dp.cavi_every=25"] if model == "dpmm" else []))
     assert m["psnr"] > 14.0 and m["num_gaussians"] > 0
+
+
+@pytest.mark.parametrize("cov_mode", ["relative", "absolute", "none"])
+def test_prepared_sampler_draws_what_sample_draws(scene, cov_mode):
+    """A block's prepared sampler (set-up once, used by uq=native for every chunk and view) gives the
+    same draws as one-off ``sample`` calls; the default sampler of any block delegates to ``sample``."""
+    m = module_with_blocks(scene, {"niw": NIWBlock(cov_mode=cov_mode), "opacity": OpacityBlock()})
+    m.states["niw"]["N"].fill_(3.0)
+    base = {k: v.detach() for k, v in m.params().items()}
+    for name, blk in m.posterior.items():
+        st = m.states[name]
+        a = blk.sample(splats=m.splats, state=st, n=4, generator=torch.Generator().manual_seed(5), params=base, info={})
+        draw = blk.sampler(splats=m.splats, state=st)
+        b = draw(4, torch.Generator().manual_seed(5), base)
+        assert a.keys() == b.keys()
+        for k in a:
+            assert torch.equal(a[k], b[k]), (name, k)
+    p = m.posterior["niw"].sampler(splats=m.splats, state=m.states["niw"])(3, torch.Generator().manual_seed(0), base)
+    assert p["means"].shape == (3,) + base["means"].shape
+    assert ("covars" in p) == (cov_mode != "none")
+    if cov_mode != "none":
+        assert torch.equal(p["covars"], p["covars"].transpose(-1, -2))
+        assert int(torch.linalg.cholesky_ex(p["covars"].double())[1].count_nonzero()) == 0

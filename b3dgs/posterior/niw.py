@@ -7,6 +7,7 @@ in float64 internally and return the dtype of their main input. Numerical guards
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Optional, Sequence, Tuple, Union
 
 import torch
@@ -28,6 +29,9 @@ __all__ = [
     "safe_cholesky",
     "sample_niw",
     "sample_niw_factors",
+    "NIWSampler",
+    "niw_sampler",
+    "draw_niw",
     "bartlett_factor",
     "tril_solve",
 ]
@@ -309,29 +313,26 @@ def bartlett_factor(nu: torch.Tensor, n_samples: int, D: int, generator: Optiona
     low = ~(chi2 >= BARTLETT_CHI2_FLOOR)
     if guard("sample_niw.bartlett_chi2_floor", low):
         chi2 = torch.where(low, torch.full_like(chi2, BARTLETT_CHI2_FLOOR), chi2)
-    z_off = torch.randn(n_samples, K, D, D, dtype=_F64, device=nu.device, generator=generator)
-    return torch.diag_embed(torch.sqrt(chi2)) + torch.tril(z_off, diagonal=-1)
+    rows, cols = torch.tril_indices(D, D, offset=-1, device=nu.device)
+    A = torch.diag_embed(torch.sqrt(chi2))
+    # only the D(D-1)/2 strictly-lower entries are drawn
+    A[..., rows, cols] = torch.randn(n_samples, K, rows.numel(), dtype=_F64, device=nu.device, generator=generator)
+    return A
 
 
-def sample_niw_factors(
-    m_n: torch.Tensor,
-    kappa_n: Scalar,
-    nu_n: Scalar,
-    S_n: torch.Tensor,
-    n_samples: int,
-    generator: Optional[torch.Generator] = None,
-) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Draws of NIW(m_n, kappa_n, nu_n, S_n) as factors: returns mu (S,K,D), X (S,K,D,D) with
-    Sigma = X^T X, and the Bartlett factor A (S,K,D,D), all float64.
+@dataclass
+class NIWSampler:
+    """Validated, factorised NIW(m_n, kappa_n, nu_n, S_n) ready for repeated draws (:func:`draw_niw`):
+    the set-up (checks, Cholesky of S_n, kappa floor) is done once. All float64."""
 
-    With S_n = L L^T and A A^T ~ W(I, nu): W = L^{-T} A A^T L^{-1} ~ W(S_n^{-1}, nu), hence
-    Sigma = W^{-1} = X^T X with X = A^{-1} L^T (no inverses); mu = m_n + X^T z / sqrt(kappa_n), z ~ N(0, I),
-    so Cov[mu | Sigma] = Sigma / kappa_n. The draw whitened by E[Sigma] = S_n / (nu - D - 1) is
-    (nu - D - 1) (A A^T)^{-1}, a function of A alone.
-    """
+    m: torch.Tensor  # (K, D)
+    kappa: torch.Tensor  # (K,) floored at KAPPA_FLOOR
+    nu: torch.Tensor  # (K,)
+    L: torch.Tensor  # (K, D, D) lower Cholesky factor of S_n
+
+
+def niw_sampler(m_n: torch.Tensor, kappa_n: Scalar, nu_n: Scalar, S_n: torch.Tensor) -> NIWSampler:
     K, D = _kd("m_n", m_n)
-    if not isinstance(n_samples, int) or n_samples < 1:
-        raise ValueError(f"n_samples must be a positive int, got {n_samples!r}")
     dev = m_n.device
     m = m_n.to(_F64)
     _require_finite("m_n", m)
@@ -343,12 +344,38 @@ def sample_niw_factors(
     small = ~(kap >= KAPPA_FLOOR)
     if guard("niw.kappa_floor", small):
         kap = torch.where(small, torch.full_like(kap, KAPPA_FLOOR), kap)
-    L = safe_cholesky(S)  # S is float64 here, so L is float64 (K,D,D)
-    A = bartlett_factor(nu, n_samples, D, generator)
-    X = tril_solve(A, L.transpose(-1, -2).unsqueeze(0))
-    z = torch.randn(n_samples, K, D, dtype=_F64, device=dev, generator=generator)
-    mu = m[None] + (X * z[..., :, None]).sum(-2) / torch.sqrt(kap)[None, :, None]  # X^T z
+    return NIWSampler(m, kap, nu, safe_cholesky(S))  # S is float64 here, so L is float64
+
+
+def draw_niw(sampler: NIWSampler, n_samples: int, generator: Optional[torch.Generator] = None
+             ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """n draws as factors: mu (S,K,D), X (S,K,D,D) with Sigma = X^T X, and the Bartlett factor A.
+
+    With S_n = L L^T and A A^T ~ W(I, nu): W = L^{-T} A A^T L^{-1} ~ W(S_n^{-1}, nu), hence
+    Sigma = W^{-1} = X^T X with X = A^{-1} L^T (no inverses); mu = m_n + X^T z / sqrt(kappa_n), z ~ N(0, I),
+    so Cov[mu | Sigma] = Sigma / kappa_n. The draw whitened by E[Sigma] = S_n / (nu - D - 1) is
+    (nu - D - 1) (A A^T)^{-1}, a function of A alone.
+    """
+    if not isinstance(n_samples, int) or n_samples < 1:
+        raise ValueError(f"n_samples must be a positive int, got {n_samples!r}")
+    K, D = sampler.m.shape
+    A = bartlett_factor(sampler.nu, n_samples, D, generator)
+    X = tril_solve(A, sampler.L.transpose(-1, -2).unsqueeze(0))
+    z = torch.randn(n_samples, K, D, dtype=_F64, device=sampler.m.device, generator=generator)
+    mu = sampler.m[None] + (X * z[..., :, None]).sum(-2) / torch.sqrt(sampler.kappa)[None, :, None]  # X^T z
     return mu, X, A
+
+
+def sample_niw_factors(
+    m_n: torch.Tensor,
+    kappa_n: Scalar,
+    nu_n: Scalar,
+    S_n: torch.Tensor,
+    n_samples: int,
+    generator: Optional[torch.Generator] = None,
+) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`draw_niw` of :func:`niw_sampler` (one-off draws)."""
+    return draw_niw(niw_sampler(m_n, kappa_n, nu_n, S_n), n_samples, generator)
 
 
 def sample_niw(

@@ -146,25 +146,33 @@ class NIWBlock(PosteriorBlock):
 
     @torch.no_grad()
     def sample(self, *, splats, state, n, generator, params, info):
+        return self.sampler(splats=splats, state=state)(n, generator, params)
+
+    @torch.no_grad()
+    def sampler(self, *, splats, state):
+        """Posterior draws of the centre and (per ``cov_mode``) the rendered covariance; the posterior
+        refresh and the Cholesky factors are computed once per sampler."""
         post = self.posterior(state, splats)
-        mu, X, A = niwm.sample_niw_factors(post["m_n"], post["kappa_n"], post["nu_n"], post["S_n"], n,
-                                           generator=generator)
-        out = dict(params)
+        prep = niwm.niw_sampler(post["m_n"], post["kappa_n"], post["nu_n"], post["S_n"])
         dtype = splats["means"].dtype
-        out["means"] = mu.to(dtype)
-        if self.cov_mode != "none":
-            if self.cov_mode == "absolute":
-                Y = X  # Σ = XᵀX
-            else:
-                # W = E[Σ]^{-1/2} Σ E[Σ]^{-T/2} = c (A Aᵀ)^{-1}, c = ν_n - D - 1 (see sample_niw_factors);
-                # rendered as L W Lᵀ = YᵀY with Y = √c A^{-1} Lᵀ and L the rendered covariance's Cholesky
-                c = (post["nu_n"] - D - 1).clamp_min(niwm.EXPECTED_COV_DENOM_EPS)
-                cov_r = covariance_3d(splats["quats"].detach(), splats["scales"].detach()).double()
-                Lr = niwm.safe_cholesky(cov_r)
-                Y = niwm.tril_solve(A, Lr.transpose(-1, -2).unsqueeze(0)) * c.sqrt()[None, :, None, None]
-            covs = (Y.unsqueeze(-1) * Y.unsqueeze(-2)).sum(-3)  # YᵀY, symmetric by construction
-            out["covars"] = covs.to(dtype)
-        return out
+        if self.cov_mode == "relative":
+            # W = E[Σ]^{-1/2} Σ E[Σ]^{-T/2} = c (A Aᵀ)^{-1}, c = ν_n - D - 1 (see draw_niw); rendered as
+            # L W Lᵀ = YᵀY with Y = √c A^{-1} Lᵀ and L the rendered covariance's Cholesky factor
+            sqrt_c = (post["nu_n"] - D - 1).clamp_min(niwm.EXPECTED_COV_DENOM_EPS).sqrt()[None, :, None, None]
+            cov_r = covariance_3d(splats["quats"].detach(), splats["scales"].detach()).double()
+            LrT = niwm.safe_cholesky(cov_r).transpose(-1, -2).unsqueeze(0)
+
+        @torch.no_grad()
+        def draw(n, generator, params):
+            mu, X, A = niwm.draw_niw(prep, n, generator)
+            out = dict(params)
+            out["means"] = mu.to(dtype)
+            if self.cov_mode != "none":
+                Y = X if self.cov_mode == "absolute" else niwm.tril_solve(A, LrT) * sqrt_c  # Σ = YᵀY
+                out["covars"] = (Y.unsqueeze(-1) * Y.unsqueeze(-2)).sum(-3).to(dtype)  # symmetric by construction
+            return out
+
+        return draw
 
     @torch.no_grad()
     def posterior_mean(self, *, splats, state, params):

@@ -23,6 +23,9 @@ class NativeUQ(UQRegime):
             raise ValueError("uq=native needs a model trained with posterior blocks (model=niw or model=dpmm); "
                              "use uq=proxy for a standard model")
         self.sigma2 = 0.0
+        # one prepared draw function per block: posterior set-up once, not per chunk or view
+        self.samplers = [blk.sampler(splats=m.splats, state=m.states[name]) for name, blk in m.posterior.items()]
+        self.base = render_params(m)
         for name, blk in m.posterior.items():
             v = blk.aleatoric_variance(state=m.states[name])
             if v is not None:
@@ -31,12 +34,11 @@ class NativeUQ(UQRegime):
     @torch.no_grad()
     def predict(self, camera, generator=None):
         m = self.models[0]
-        base = render_params(m)
 
         def draw(n):
-            p = dict(base)
-            for name, blk in m.posterior.items():
-                p = blk.sample(splats=m.splats, state=m.states[name], n=n, generator=generator, params=p, info={})
+            p = dict(self.base)
+            for sampler in self.samplers:
+                p = sampler(n, generator, p)
             return p
 
         _, u = sample_spread(m, camera, draw, self.samples, self.chunk)
