@@ -23,7 +23,7 @@ import torch
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
 _SOURCES = [_CSRC / "ext.cpp"]
-_HASHED = [_CSRC / "ext.cpp", _CSRC / "kernels.h", _CSRC / "preprocess.h", _CSRC / "ssim.h"]
+_HASHED = [_CSRC / "ext.cpp", _CSRC / "kernels.h", _CSRC / "preprocess.h", _CSRC / "ssim.h", _CSRC / "sampling.h"]
 # Portable flags: no -march=native, no -ffast-math (NaN semantics must hold). FMA contraction off
 # so that float32 results track the pure-PyTorch backend as closely as possible.
 _CFLAGS = ("-O3", "-fopenmp", "-fno-math-errno", "-ffp-contract=off")

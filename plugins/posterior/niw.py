@@ -9,6 +9,7 @@ from torch import Tensor
 
 from b3dgs.plugin import PosteriorBlock
 from b3dgs.posterior import niw as niwm
+from b3dgs.posterior.guards import guard
 from b3dgs.render.projection import covariance_3d
 
 D = 3
@@ -55,6 +56,7 @@ class NIWBlock(PosteriorBlock):
     cov_mode: str = "relative"
     plugin_noise: bool = True
     mse_ema: float = 0.99
+    sampler_backend: str = "auto"  # posterior draws: "cpu" (C++, one pass), "torch" (reference) or "auto"
 
     def check_sanity(self, max_steps: int = 0, **kw) -> None:
         if self.kappa0 <= 0:
@@ -67,6 +69,8 @@ class NIWBlock(PosteriorBlock):
             raise ValueError("posterior.niw.update_every must be >= 1")
         if self.cov_mode not in ("relative", "absolute", "none"):
             raise ValueError("posterior.niw.cov_mode must be relative | absolute | none")
+        if self.sampler_backend not in ("auto", "cpu", "torch"):
+            raise ValueError("posterior.niw.sampler_backend must be auto | cpu | torch")
 
     # ------------------------------------------------------------------ state
     def _prior_for(self, splats, rows: Optional[Tensor] = None):
@@ -162,10 +166,26 @@ class NIWBlock(PosteriorBlock):
             cov_r = covariance_3d(splats["quats"].detach(), splats["scales"].detach()).double()
             LrT = niwm.safe_cholesky(cov_r).transpose(-1, -2).unsqueeze(0)
 
+        ext = self._sampling_extension()
+        if ext is not None:
+            mode = {"none": 0, "absolute": 1, "relative": 2}[self.cov_mode]
+            empty = torch.zeros(0, dtype=torch.float64)
+            args = (prep.m.contiguous(), prep.kappa.contiguous(), prep.nu.contiguous(), prep.L.contiguous(),
+                    LrT[0].contiguous() if mode == 2 else empty, sqrt_c.reshape(-1).contiguous() if mode == 2 else empty)
+
         @torch.no_grad()
         def draw(n, generator, params):
-            mu, X, A = niwm.draw_niw(prep, n, generator)
             out = dict(params)
+            if ext is not None:
+                seed = int(torch.randint(0, 2**62, (1,), generator=generator))
+                means, covs, floored = ext.niw_draw(*args, n, mode, niwm.BARTLETT_CHI2_FLOOR, seed,
+                                                    dtype == torch.float64, torch.get_num_threads())
+                guard("sample_niw.bartlett_chi2_floor", int(floored))
+                out["means"] = means
+                if mode:
+                    out["covars"] = covs
+                return out
+            mu, X, A = niwm.draw_niw(prep, n, generator)
             out["means"] = mu.to(dtype)
             if self.cov_mode != "none":
                 Y = X if self.cov_mode == "absolute" else niwm.tril_solve(A, LrT) * sqrt_c  # Σ = YᵀY
@@ -173,6 +193,16 @@ class NIWBlock(PosteriorBlock):
             return out
 
         return draw
+
+    def _sampling_extension(self):
+        """The C++ extension for ``sampler_backend`` cpu/auto (auto falls back to torch if it cannot load)."""
+        if self.sampler_backend == "torch":
+            return None
+        from b3dgs.render._ext import is_available, load_extension
+
+        if self.sampler_backend == "cpu" or is_available():
+            return load_extension()
+        return None
 
     @torch.no_grad()
     def posterior_mean(self, *, splats, state, params):

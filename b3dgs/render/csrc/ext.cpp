@@ -1,9 +1,10 @@
 // Torch bindings of the CPU kernels: preprocessing and binning (preprocess.h), tile rasterizer
-// (kernels.h), SSIM loss with its gradient (ssim.h).
+// (kernels.h), SSIM loss with its gradient (ssim.h), NIW posterior draws (sampling.h).
 #include <torch/extension.h>
 
 #include "kernels.h"
 #include "preprocess.h"
+#include "sampling.h"
 #include "ssim.h"
 
 namespace {
@@ -278,6 +279,32 @@ std::vector<torch::Tensor> ssim_value_grad(torch::Tensor pred, torch::Tensor gt,
   return {value, grad};
 }
 
+std::vector<torch::Tensor> niw_draw(torch::Tensor m, torch::Tensor kappa, torch::Tensor nu, torch::Tensor L,
+                                    torch::Tensor LrT, torch::Tensor sqrt_c, int64_t S, int64_t cov_mode,
+                                    double chi2_floor, int64_t seed, bool out_double, int64_t nthreads) {
+  for (auto& pr : {std::make_pair(&m, "m_n"), std::make_pair(&kappa, "kappa_n"), std::make_pair(&nu, "nu_n"),
+                   std::make_pair(&L, "L"), std::make_pair(&LrT, "LrT"), std::make_pair(&sqrt_c, "sqrt_c")}) {
+    check_cpu_contig(*pr.first, pr.second);
+    TORCH_CHECK(pr.first->scalar_type() == torch::kFloat64, pr.second, " must be float64");
+  }
+  const int64_t K = m.size(0);
+  TORCH_CHECK(m.dim() == 2 && m.size(1) == 3 && L.numel() == 9 * K, "niw_draw: expected m (K, 3), L (K, 3, 3)");
+  TORCH_CHECK(cov_mode >= 0 && cov_mode <= 2, "niw_draw: cov_mode must be 0 (none), 1 (absolute) or 2 (relative)");
+  TORCH_CHECK(cov_mode != 2 || (LrT.numel() == 9 * K && sqrt_c.numel() == K), "niw_draw: relative mode needs LrT, sqrt_c");
+  auto opts = torch::dtype(out_double ? torch::kFloat64 : torch::kFloat32);
+  auto means = torch::empty({S, K, 3}, opts);
+  auto covs = cov_mode ? torch::empty({S, K, 3, 3}, opts) : torch::empty({0}, opts);
+  int64_t floored = 0;
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "b3dgs_niw_draw", [&] {
+    floored = b3dgs::niw_draw<scalar_t>(
+        m.data_ptr<double>(), kappa.data_ptr<double>(), nu.data_ptr<double>(), L.data_ptr<double>(),
+        cov_mode == 2 ? LrT.data_ptr<double>() : nullptr, cov_mode == 2 ? sqrt_c.data_ptr<double>() : nullptr,
+        K, S, (int)cov_mode, chi2_floor, (uint64_t)seed, means.data_ptr<scalar_t>(),
+        cov_mode ? covs.data_ptr<scalar_t>() : nullptr, (int)nthreads);
+  });
+  return {means, covs, torch::tensor(floored)};
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
@@ -287,4 +314,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("preprocess_backward", &preprocess_backward, "backward of preprocess_forward (CPU)");
   m.def("bin_tiles", &bin_tiles, "shared tile binning (CPU)");
   m.def("ssim_value_grad", &ssim_value_grad, "mean SSIM and its gradient w.r.t. pred (CPU)");
+  m.def("niw_draw", &niw_draw, "NIW posterior draws: means and rendered covariances (CPU)");
 }
