@@ -1,4 +1,4 @@
-"""JIT build / load of the C++ (OpenMP) render extension (preprocessing, binning, rasterizer).
+"""JIT build / load of the C++ (OpenMP) extension: preprocessing, binning, rasterizer, SSIM loss, NIW draws.
 
 The extension is compiled once with ``torch.utils.cpp_extension.load`` (ninja) into a per-user
 cache directory keyed by a hash of the sources, the compiler flags and the torch version:
@@ -92,7 +92,7 @@ def _build_locked(build_dir: Path, name: str, verbose: bool) -> ModuleType:
 
 
 def load_extension(verbose: bool = False) -> ModuleType:
-    """Build (first time only) and load the C++ rasterizer; RuntimeError with a hint on failure."""
+    """Build (first time only) and load the C++ extension; RuntimeError with a hint on failure."""
     global _module
     if _module is not None:
         return _module
@@ -108,7 +108,7 @@ def load_extension(verbose: bool = False) -> ModuleType:
             _module = _build_locked(build_dir, name, verbose)
         except Exception as e:  # noqa: BLE001 - compiler errors come as RuntimeError/OSError/...
             raise RuntimeError(
-                f"b3dgs: could not build/load the C++ rasterizer extension ({type(e).__name__}):\n{e}\n"
+                f"b3dgs: could not build/load the C++ extension ({type(e).__name__}):\n{e}\n"
                 f"Hint: {HINT}."
             ) from e
         return _module
