@@ -1,0 +1,305 @@
+"""``b3dgs-report``: read finished run dirs and write report.md, report.html (self-contained) and
+report.json with the PNG figures beside them. ``build_report(cfg)`` does the work; ``main()`` is the
+Hydra entry point (``conf/report.yaml``)."""
+from __future__ import annotations
+
+import logging
+import math
+import sys
+from pathlib import Path
+from typing import Any, Optional
+
+import hydra
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
+from b3dgs.io import atomic_path, write_json
+from b3dgs.report import analysis as A
+from b3dgs.report import plots
+from b3dgs.report.collect import ReportError, Run, group, load_runs, method_order
+from b3dgs.report.document import Figure, Heading, Para, Table, fmt, to_html, to_markdown
+from b3dgs.train import CONF_DIR
+
+log = logging.getLogger(__name__)
+
+__all__ = ["build_report", "main"]
+
+SPECS = {"psnr": ".3f", "ssim": ".4f", "lpips": ".4f", "ause_rmse": ".4f", "ece": ".4f", "cov95": ".3f",
+         "num_gaussians": ",.0f", "render_fps": ".1f", "train_time_s": ".1f"}
+
+
+def _clean(x: Any) -> Any:
+    """JSON-safe copy: NaN/Inf -> None, tuple keys -> strings."""
+    if isinstance(x, dict):
+        return {str(k): _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, Path):
+        return str(x)
+    return x
+
+
+def _as_list(v) -> list:
+    if v is None:
+        return []
+    if isinstance(v, (list, tuple, ListConfig)):
+        return [str(x) for x in v]
+    return [str(v)]
+
+
+def _p(v: Optional[float]) -> str:
+    return fmt(v, ".3g")
+
+
+# ------------------------------------------------------------------------------------------------ tables
+def macro_table(rows: dict[str, dict], caption: str, cols=None) -> Table:
+    cols = cols or [c for c in A.COLUMNS]
+    header = ["Method"] + [label for _, label, _ in cols] + ["scenes", "runs"]
+    body = []
+    for m, r in rows.items():
+        body.append([m] + [fmt(r.get(k), SPECS.get(k, ".4g")) + ("*" if k in r.get("partial", {}) else "")
+                           for k, _, _ in cols] + [str(r["n_scenes"]), str(r["n_runs"])])
+    note = "Macro means over scenes of per-scene seed means (the paper's Table 1 aggregation)."
+    if any(r.get("partial") for r in rows.values()):
+        note += " * = logged on fewer scenes than the method ran (mean over those scenes only)."
+    return Table(header, body, caption, note)
+
+
+def paired_table(results: list[dict], caption: str) -> Table:
+    header = ["Metric", "Mean Δ", "CI", "CI method", "Scene wins / losses", "p (2-sided)", "p floor 2/2ⁿ",
+              "p (1-sided)", "scenes (pairs)"]
+    rows = []
+    for r in results:
+        ci = r["ci"]
+        ci_s = "—" if ci["low"] is None else f"[{ci['low']:+.4g}, {ci['high']:+.4g}]"
+        how = (ci["method"] or "none") + (f" ({ci['reason']})" if ci.get("reason") else "")
+        wl = f"{r['wins']} / {r['losses']}" + (f" ({r['ties']} tied)" if r["ties"] else "")
+        rows.append([r["metric"], fmt(r["mean"], ".4g", signed=True), ci_s, how, wl, _p(r["p_two_sided"]),
+                     _p(r["p_floor"]), _p(r["p_one_sided"]), f"{r['n']} ({r['n_pairs']})"])
+    note = ("Cluster bootstrap over scenes (scipy.stats.bootstrap on per-scene mean differences); exact sign-flip "
+            "permutation p over scene means (scipy.stats.permutation_test, permutation_type='samples', "
+            "n_resamples=inf). With n scenes no two-sided p can fall below 2/2ⁿ: a p at that floor is the "
+            "strongest result n scenes can give, not evidence of a large effect. Wins count the favourable "
+            "direction (lower is better for LPIPS).")
+    return Table(header, rows, caption, note)
+
+
+def per_scene_table(ps: dict, methods: list[str], caption: str) -> Table:
+    rows = []
+    for scene, by_m in ps.items():
+        rows.append([scene] + [("—" if m not in by_m or by_m[m]["mean"] is None else
+                                f"{by_m[m]['mean']:.3f}" + (f" ± {by_m[m]['sem']:.3f}" if by_m[m]["sem"] else "")
+                                + f" (n={by_m[m]['n']})") for m in methods])
+    return Table(["Scene"] + methods, rows, caption, "Seed mean ± SEM over seeds (n seeds).")
+
+
+# ------------------------------------------------------------------------------------------------ sections
+class Builder:
+    def __init__(self, cfg: DictConfig, out: Path):
+        self.cfg, self.out = cfg, out
+        self.blocks: list = []
+        self.figures: list[str] = []
+        self.boot = dict(OmegaConf.to_container(cfg.bootstrap, resolve=True))
+
+    def figure(self, path: Path, caption: str) -> None:
+        self.blocks.append(Figure(path, caption))
+        self.figures.append(path.name)
+
+    def pairs(self, runs: list[Run], metrics, regime_of=None) -> list[dict]:
+        a, b = [str(x) for x in self.cfg.pair]
+        return [A.paired(runs, a, b, m, (regime_of or {}).get(m), **self.boot) for m in metrics]
+
+    def canonical(self, runs: list[Run]) -> dict:
+        cfg, B = self.cfg, self.blocks
+        methods = method_order(r.method for r in runs)
+        table = A.canonical_table(runs, str(cfg.uq_regime))
+        B += [Heading("Canonical benchmark"),
+              macro_table(table, f"Canonical table (AUSE, ECE, Cov@95 from the '{cfg.uq_regime}' uq.json regime)")]
+        ps = A.per_scene(runs, "psnr")
+        B.append(per_scene_table(ps, methods, "Per-scene PSNR (dB)"))
+        out: dict = {"table": table, "per_scene_psnr": ps}
+        a, b = [str(x) for x in cfg.pair]
+        if {a, b} <= set(methods):
+            res = self.pairs(runs, [str(m) for m in cfg.paired_metrics])
+            B += [Heading(f"Paired analysis: {a} − {b}", 3), paired_table(res, f"{a} − {b}, scene-level")]
+            self.figure(plots.plot_paired(res, self.out / "paired.png"),
+                        f"Per-scene Δ ({a} − {b}): bars per scene, the mean (line) and its bootstrap CI (band).")
+            out["paired"] = res
+        else:
+            B.append(Para(f"No paired analysis: pair={[a, b]} needs both methods; found {methods} "
+                          "(choose two with pair=[A,B])."))
+        B.append(Heading("Error against run time", 3))
+        cv = A.curves(runs, "psnr")
+        out["curves"] = {"psnr": cv}
+        if cv:
+            self.figure(plots.plot_curves(cv, self.out / "curves_psnr.png"),
+                        "Test PSNR against training seconds (evaluation excluded), seed mean ± 1 SEM, one panel per scene.")
+        cl = A.curves(runs, "lpips")
+        if cl:
+            out["curves"]["lpips"] = cl
+            self.figure(plots.plot_curves(cl, self.out / "curves_lpips.png", "test LPIPS"),
+                        "Test LPIPS against training seconds, seed mean ± 1 SEM.")
+        else:
+            B.append(Para("LPIPS is not logged in curve.json (the curve callback records PSNR and #Gaussians), "
+                          "so only the final LPIPS appears, in the tables."))
+        pa = A.pareto(runs)
+        out["pareto"] = pa
+        self.figure(plots.plot_pareto(pa, self.out / "pareto.png"),
+                    "Final PSNR against train time, #Gaussians and render FPS (per-scene seed means; the last row "
+                    "is the macro mean). Ringed points joined by a dashed line form the Pareto frontier.")
+        fr = [float(f) for f in cfg.time_fractions]
+        tt = A.time_to_target(runs, fr)
+        out["time_to_target"] = tt
+        keys = [f"t{round(f * 100):d}" for f in fr]
+        B.append(Table(["Method"] + [f"time to {k[1:]}% of gain (s)" for k in keys] + ["final train time (s)"],
+                       [[m] + [fmt(r[k], ".1f") for k in keys] + [fmt(r["train_time_s"], ".1f")] for m, r in tt.items()],
+                       "Time to target",
+                       "Per run: first training time at which test PSNR reaches the fraction of its final gain over the "
+                       "first logged point (linear interpolation between logged points); seed means, macro mean."))
+        return out
+
+    def ood(self, runs: list[Run]) -> Optional[dict]:
+        from b3dgs.report.ood import ood_study
+
+        o = self.cfg.ood
+        regimes = _as_list(o.get("regimes")) or None
+        if not any(r.uq for r in runs):
+            self.blocks += [Heading("OOD support deficit"),
+                            Para("No uq.json in these runs: run b3dgs-eval run=RUN uq=[proxy,native] (or "
+                                 "bench/studies.py --uq) to add the per-view uncertainties.")]
+            return None
+        res = ood_study(runs, float(o.quantile), str(o.score), regimes)
+        q = float(o.quantile)
+        rows = [[k, fmt(v["auroc"], ".3f"), fmt(v["auprc"], ".3f"), fmt(v["prevalence"], ".2f"),
+                 fmt(v["gap"], ".3g", signed=True), str(v["n_scenes"]), str(v["n_runs"])] for k, v in res["rows"].items()]
+        self.blocks += [Heading("OOD support deficit"), Table(
+            ["Detector (method (regime))", "AUROC", "AUPRC", "OOD share", "OOD − ID gap", "scenes", "runs"], rows,
+            f"Support-deficit OOD: ID = best-supported {q:.3g} quantile of test views, OOD = worst {q:.3g}",
+            f"Support score = distance to the nearest training camera centre / scene extent. Detector: per-view "
+            f"'{o.score}' from uq.json. Per run AUROC/AUPRC (scikit-learn; AUPRC's chance level is the OOD share), "
+            "seed means per scene, macro mean over scenes. Geometric support only, not semantic novelty.")]
+        if res["skipped"]:
+            self.blocks.append(Para("Skipped: " + "; ".join(res["skipped"])))
+        if res["views"]:
+            self.figure(plots.plot_ood(res["views"], self.out / "ood.png"),
+                        "Per-view uncertainty against support score; green ID, red OOD, grey ignored middle band.")
+        return res
+
+    def sparse(self, runs: list[Run], canonical: list[Run]) -> dict:
+        """Sparse-view confirmation and compactness tables; the 'all' budget comes from canonical runs."""
+        levels = sorted({r.level for r in runs if r.level != "all"}, key=int)
+        by_level = {lv: [r for r in runs if r.level == lv] for lv in levels}
+        all_runs = [r for r in runs if r.level == "all"] or canonical
+        if all_runs:
+            by_level["all"] = all_runs
+        a, b = [str(x) for x in self.cfg.pair]
+        table: dict = {}
+        q_rows, c_rows = [], []
+        methods = method_order(r.method for rs in by_level.values() for r in rs)
+        for lv, rs in by_level.items():
+            table[lv] = {m: A.macro_row(v, str(self.cfg.uq_regime)) for (m,), v in group(rs, "method").items()}
+            pp = A.paired(rs, a, b, "psnr", **self.boot)
+            pl = A.paired(rs, a, b, "lpips", **self.boot)
+            table[lv]["_paired"] = {"psnr": pp, "lpips": pl}
+            get = lambda m, k: table[lv].get(m, {}).get(k)  # noqa: E731
+            q_rows.append([str(lv)] + [fmt(get(m, "psnr"), ".3f") for m in methods]
+                          + [fmt(get(m, "lpips"), ".4f") for m in methods]
+                          + [fmt(pp["mean"], ".3f", signed=True), f"{pp['wins']} / {pp['n']}", f"{pl['wins']} / {pl['n']}",
+                             _p(pp["p_two_sided"])])
+            c_rows.append([str(lv)] + [fmt(get(m, "num_gaussians"), ",.0f") for m in methods]
+                          + [fmt(get(m, "render_fps"), ".1f") for m in methods]
+                          + [fmt(get(m, "train_time_s"), ".1f") for m in methods])
+        self.blocks += [
+            Heading("Sparse views"),
+            Table(["Budget"] + [f"{m} PSNR" for m in methods] + [f"{m} LPIPS" for m in methods]
+                  + [f"ΔPSNR ({a}−{b})", f"{a} PSNR wins", f"{a} LPIPS wins", "p (2-sided)"], q_rows,
+                  "Sparse-view confirmation (macro means over scenes of seed means)",
+                  "Budget = train views, spread evenly over the sorted train list; 'all' = the canonical runs. "
+                  "Wins are scene means over seeds out of the scenes with both methods."),
+            Table(["Budget"] + [f"{m} Gauss." for m in methods] + [f"{m} FPS" for m in methods]
+                  + [f"{m} time (s)" for m in methods], c_rows, "Sparse-view compactness, throughput and run time")]
+        plot_tab = {lv: {m: v for m, v in t.items() if not m.startswith("_")} for lv, t in table.items()}
+        self.figure(plots.plot_levels(plot_tab, self.out / "sparse.png", "train views"),
+                    "Sparse views: macro PSNR and train time against the train-view budget.")
+        return table
+
+    def level_study(self, name: str, runs: list[Run], caption: str) -> dict:
+        """A study with one variable (init cap or a user's ``study.level``): macro table and paired rows per level."""
+        out: dict = {}
+        self.blocks.append(Heading(caption))
+        cols = [c for c in A.COLUMNS if c[0] in ("psnr", "ssim", "lpips", "cov95", "num_gaussians", "train_time_s")]
+        for (lv,), rs in group(runs, "level").items():
+            rows = {m: A.macro_row(v, str(self.cfg.uq_regime)) for (m,), v in
+                    sorted(group(rs, "method").items(), key=lambda kv: method_order(r.method for r in rs).index(kv[0][0]))}
+            res = self.pairs(rs, ["psnr", "lpips", "cov95"], {"cov95": str(self.cfg.uq_regime)})
+            self.blocks += [macro_table(rows, f"{name} = {lv}", cols),
+                            paired_table(res, f"{name} = {lv}: paired {self.cfg.pair[0]} − {self.cfg.pair[1]}")]
+            out[str(lv)] = {"table": rows, "paired": res}
+        return out
+
+
+def build_report(cfg: DictConfig) -> dict[str, Path]:
+    """Write the report for ``cfg`` (conf/report.yaml); returns the written paths."""
+    patterns = _as_list(cfg.get("runs"))
+    if not patterns:
+        raise ReportError("runs= is empty: pass a glob of run dirs, e.g. b3dgs-report runs='outputs/bench/**'")
+    out = Path(str(cfg.out))
+    out.mkdir(parents=True, exist_ok=True)
+    runs, unfinished = load_runs(patterns, str(cfg.get("on_duplicate", "error")))
+    bld = Builder(cfg, out)
+    studies = group(runs, "study")
+    canonical = studies.pop(("canonical",), [])
+    protocols = sorted({f"{r.study}: {r.config.get('trainer', {}).get('max_steps')} steps, "
+                        f"max_side {r.config.get('data', {}).get('max_side')}" for r in runs})
+    bld.blocks.append(Para(
+        f"{len(runs)} finished runs from runs={patterns}"
+        + (f" ({len(unfinished)} unfinished run dirs without metrics.json skipped)" if unfinished else "")
+        + f"; scenes {sorted({r.scene for r in runs})}, methods {method_order(r.method for r in runs)}, seeds "
+        f"{sorted({r.seed for r in runs})}; protocols: {'; '.join(protocols)}. Grouped by each run's own config "
+        "(data.name, model.name, seed; study from study.name / data.train_indices)."))
+    data: dict = {"runs": [{"path": str(r.path), "study": r.study, "level": r.level, "scene": r.scene,
+                            "method": r.method, "seed": r.seed, "uq_regimes": sorted(r.uq)} for r in runs],
+                  "unfinished": [str(u) for u in unfinished], "config": OmegaConf.to_container(cfg, resolve=True)}
+    if canonical:
+        data["canonical"] = bld.canonical(canonical)
+        if cfg.ood.enabled:
+            data["ood"] = bld.ood(canonical)
+    else:
+        bld.blocks.append(Para("No canonical runs (every run belongs to a study)."))
+    data["studies"] = {}
+    for (study,), rs in studies.items():
+        if study == "sparse":
+            data["studies"]["sparse"] = bld.sparse(rs, canonical)
+        elif study == "initcap":
+            data["studies"]["initcap"] = bld.level_study("init cap", rs, "Constrained initialisation")
+        else:
+            data["studies"][study] = bld.level_study(f"{study} level", rs, f"Study: {study}")
+    data["figures"] = bld.figures
+    title = str(cfg.get("title", "b3dgs report"))
+    paths = {"md": out / "report.md", "html": out / "report.html", "json": out / "report.json"}
+    with atomic_path(paths["md"]) as tmp:
+        tmp.write_text(to_markdown(title, bld.blocks) + "\n")
+    with atomic_path(paths["html"]) as tmp:
+        tmp.write_text(to_html(title, bld.blocks))
+    write_json(paths["json"], _clean(data))
+    log.info("Report of %d runs -> %s", len(runs), out)
+    return paths
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="report")
+def _hydra_main(cfg: DictConfig) -> None:
+    try:
+        paths = build_report(cfg)
+    except ReportError as e:
+        print(f"b3dgs-report: error: {e}", file=sys.stderr)
+        sys.exit(2)
+    print(f"b3dgs-report: wrote {paths['md']}, {paths['html']}, {paths['json']}")
+
+
+def main() -> None:
+    _hydra_main()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,172 @@
+"""Finished run dirs: finding them, reading them, and keying them by their own config.
+
+A run dir holds ``config.yaml`` (the composed config written by ``b3dgs-train``); ``metrics.json`` is
+its done marker. A run is keyed by (study, level, scene, method, seed), all read from ``config.yaml``:
+
+* scene = ``data.name``, method = ``model.name``, seed = ``seed``;
+* study = ``study.name`` when the run carries one (``+study.name=...``), else ``sparse`` when
+  ``data.train_indices`` is set, else ``canonical``;
+* level = the study's variable: the number of train views (``sparse``), ``model.init_max_points``
+  (``initcap``), else ``study.level`` (or None).
+"""
+from __future__ import annotations
+
+import glob
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional, Sequence
+
+from omegaconf import OmegaConf
+
+__all__ = ["ReportError", "Run", "find_runs", "load_runs", "group", "METHOD_ORDER", "method_order"]
+
+METHOD_ORDER = ["standard", "niw", "dpmm", "mcmc"]
+
+
+class ReportError(ValueError):
+    """Bad input to the report (the CLI prints it as one line)."""
+
+
+@dataclass
+class Run:
+    path: Path
+    config: dict
+    metrics: dict
+    curve: list = field(default_factory=list)  # curve.json points
+    uq: dict = field(default_factory=dict)  # regime -> summary with per_view (uq.json without _meta)
+    study: str = "canonical"
+    level: Any = None
+    scene: str = ""
+    method: str = ""
+    seed: int = 0
+
+    @property
+    def key(self) -> tuple:
+        return (self.study, self.level, self.scene, self.method, self.seed)
+
+    def value(self, name: str, regime: Optional[str] = None) -> Optional[float]:
+        """A scalar of metrics.json, or of uq.json's ``regime`` when given (None if absent)."""
+        src = self.metrics if regime is None else self.uq.get(regime, {})
+        v = src.get(name)
+        return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
+
+
+def method_order(methods) -> list[str]:
+    """Known methods in the paper's order, then the others alphabetically."""
+    ms = set(methods)
+    return [m for m in METHOD_ORDER if m in ms] + sorted(ms - set(METHOD_ORDER))
+
+
+def _is_run_dir(p: Path) -> bool:
+    return p.is_dir() and (p / "config.yaml").is_file() and not any(part.startswith(".") for part in p.parts[-1:])
+
+
+def find_runs(patterns: Sequence[str]) -> tuple[list[Path], list[Path], list[Path]]:
+    """(finished run dirs, unfinished run dirs, other uq.json files) matched by the globs.
+
+    A pattern may name run dirs (``outputs/bench/**``, ``**`` recurses), a metrics.json file or a folder
+    holding runs somewhere below it.
+    """
+    runs: set[Path] = set()
+    uqs: set[Path] = set()
+    for pat in patterns:
+        for m in glob.glob(os.path.expanduser(str(pat)), recursive=True):
+            p = Path(m)
+            if p.is_file():
+                if p.name == "uq.json":
+                    uqs.add(p.resolve())
+                p = p.parent
+            if _is_run_dir(p):
+                runs.add(p.resolve())
+            elif p.is_dir() and "**" not in str(pat):
+                runs.update(c.parent.resolve() for c in p.rglob("config.yaml") if _is_run_dir(c.parent))
+                uqs.update(u.resolve() for u in p.rglob("uq.json"))
+    finished = sorted(r for r in runs if (r / "metrics.json").is_file())
+    unfinished = sorted(r for r in runs if not (r / "metrics.json").is_file())
+    others = sorted(u for u in uqs if u.parent not in runs)
+    return finished, unfinished, others
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as e:
+        raise ReportError(f"cannot read {path}: {e}") from e
+
+
+def classify(cfg: dict) -> tuple[str, Any]:
+    """(study, level) of a run from its config (see the module docstring)."""
+    tag = cfg.get("study") or {}
+    ti = (cfg.get("data") or {}).get("train_indices")
+    study = str(tag.get("name") or ("sparse" if ti is not None else "canonical"))
+    if study == "sparse":
+        return study, (len(ti) if ti is not None else "all")
+    if study == "initcap":
+        return study, (cfg.get("model") or {}).get("init_max_points")
+    return study, tag.get("level")
+
+
+def read_run(path: Path) -> Run:
+    """One finished run dir -> :class:`Run` (ReportError naming the file if it is malformed)."""
+    try:
+        cfg = OmegaConf.to_container(OmegaConf.load(path / "config.yaml"), resolve=False)
+    except Exception as e:  # yaml errors come in many types
+        raise ReportError(f"cannot read {path / 'config.yaml'}: {e}") from e
+    metrics = _read_json(path / "metrics.json")
+    try:
+        scene, method, seed = str(cfg["data"]["name"]), str(cfg["model"]["name"]), int(cfg["seed"])
+    except (KeyError, TypeError, ValueError) as e:
+        raise ReportError(f"{path / 'config.yaml'} lacks data.name, model.name or seed ({e}); "
+                          "is it a b3dgs-train run dir?") from e
+    curve = _read_json(path / "curve.json").get("points", []) if (path / "curve.json").is_file() else []
+    uq = _read_json(path / "uq.json") if (path / "uq.json").is_file() else {}
+    uq = {k: v for k, v in uq.items() if not k.startswith("_") and isinstance(v, dict)}
+    study, level = classify(cfg)
+    return Run(path, cfg, metrics, curve, uq, study, level, scene, method, seed)
+
+
+def _attach_uq(runs: list[Run], uq_files: Sequence[Path]) -> None:
+    """uq.json files outside run dirs (e.g. a deep ensemble's) join the run they name first."""
+    by_path = {r.path: r for r in runs}
+    for f in uq_files:
+        for regime, summ in _read_json(f).items():
+            if regime.startswith("_") or not isinstance(summ, dict):
+                continue
+            for member in (summ.get("runs") or [])[:1]:
+                owner = by_path.get(Path(member).resolve())
+                if owner is not None and regime not in owner.uq:
+                    owner.uq[regime] = summ
+
+
+def load_runs(patterns: Sequence[str] | str, on_duplicate: str = "error") -> tuple[list[Run], list[Path]]:
+    """Finished runs matched by the glob(s), one per key, and the unfinished run dirs skipped."""
+    patterns = [patterns] if isinstance(patterns, (str, os.PathLike)) else list(patterns)
+    finished, unfinished, uq_files = find_runs(patterns)
+    if not finished:
+        extra = f" ({len(unfinished)} unfinished: no metrics.json)" if unfinished else ""
+        raise ReportError(f"no finished run dirs matched runs={patterns}{extra}; pass a glob of b3dgs-train "
+                          "run dirs, e.g. runs='outputs/bench/**' (quote it so the shell does not expand it)")
+    keyed: dict[tuple, Run] = {}
+    for path in finished:
+        run = read_run(path)
+        old = keyed.get(run.key)
+        if old is not None:
+            if on_duplicate != "newest":
+                raise ReportError(f"two finished runs share (study, level, scene, method, seed)={run.key}: "
+                                  f"{old.path} and {run.path}; narrow runs= or pass on_duplicate=newest")
+            newer = (run.path / "metrics.json").stat().st_mtime > (old.path / "metrics.json").stat().st_mtime
+            run = run if newer else old
+        keyed[run.key] = run
+    runs = sorted(keyed.values(), key=lambda r: (r.study, str(r.level), r.scene, r.method, r.seed))
+    _attach_uq(runs, uq_files)
+    return runs, unfinished
+
+
+def group(runs: Sequence[Run], *fields: str) -> dict[tuple, list[Run]]:
+    """Runs grouped by the given attributes (insertion order of first appearance)."""
+    out: dict[tuple, list[Run]] = {}
+    for r in runs:
+        out.setdefault(tuple(getattr(r, f) for f in fields), []).append(r)
+    return out

@@ -1,0 +1,143 @@
+"""The paper's bounded studies at the quick protocol, resumably, then ``b3dgs-report`` over all runs.
+
+    python bench/studies.py                          # the grid of conf/report.yaml `studies` (hours on 2 cores)
+    python bench/studies.py --studies sparse --scenes fox --seeds 0
+    python bench/studies.py --scenes synthetic --seeds 0 --budgets 8 all --max-steps 100 --out /tmp/b --report /tmp/b/report
+
+Studies (grid defaults from conf/report.yaml):
+* canonical: standard / NIW / DPMM, ``outputs/bench/<scene>/<method>/s<seed>`` (shared with bench/posterior.py
+  and bench/uq.py); with ``--uq`` each gets a uq.json (the OOD support-deficit study reads it).
+* sparse: train-view budgets, ``data.train_indices`` = the budget's views spread evenly over the sorted train list
+  (``select_evenly``), ``+study.name=sparse``; the budget ``all`` is the canonical run.
+* initcap: ``model.init_max_points=<cap>`` for standard and NIW, ``+study.name=initcap``.
+
+A run dir with metrics.json is finished and reused, so an interrupted grid resumes. The report is written to
+``--report`` (default bench/results/report/).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import QUICK, RESULTS, scene_overrides, train_run  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+STUDIES = OmegaConf.load(ROOT / "conf" / "report.yaml").studies
+
+
+def n_train_views(overrides: list[str]) -> int:
+    """Train views of the scene these overrides select (loads the scene once)."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from hydra.utils import instantiate
+
+    from b3dgs.train import CONF_DIR
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name="train", overrides=[o for o in overrides if o.startswith("data")])
+    dm = instantiate(cfg.data)
+    dm.setup("fit")
+    return len(dm.scene.train)
+
+
+def plan(args) -> list[tuple[Path, list[str], str]]:
+    """(run dir, overrides, study) for every run of the requested studies."""
+    from b3dgs.data.scene import select_evenly
+
+    protocol = QUICK + [f"trainer.max_steps={args.max_steps}", f"trainer.eval_every={max(1, args.max_steps // 12)}"] \
+        if args.max_steps else list(QUICK)
+    out = Path(args.out)
+    jobs = []
+    for scene in args.scenes:
+        base = scene_overrides(scene) + protocol + list(args.extra)
+        n_train = n_train_views(base) if "sparse" in args.studies else None
+        for seed in args.seeds:
+            common = base + [f"seed={seed}"]
+            if "canonical" in args.studies or ("sparse" in args.studies and "all" in args.budgets):
+                for m in args.methods:
+                    jobs.append((out / scene / m / f"s{seed}", common + [f"model={m}"], "canonical"))
+            for b in [b for b in args.budgets if b != "all"] if "sparse" in args.studies else []:
+                idx = select_evenly(n_train, int(b))
+                for m in STUDIES.sparse.methods:
+                    jobs.append((out / "sparse" / f"b{b}" / scene / m / f"s{seed}",
+                                 common + [f"model={m}", f"data.train_indices=[{','.join(map(str, idx))}]",
+                                           "+study.name=sparse"], "sparse"))
+            if "initcap" in args.studies:
+                for m in STUDIES.initcap.methods:
+                    jobs.append((out / "initcap" / f"c{args.cap}" / scene / m / f"s{seed}",
+                                 common + [f"model={m}", f"model.init_max_points={args.cap}", "+study.name=initcap"],
+                                 "initcap"))
+    seen, unique = set(), []
+    for j in jobs:
+        if j[0] not in seen:
+            seen.add(j[0])
+            unique.append(j)
+    return unique
+
+
+def ensure_uq(run_dir: Path, method: str, samples: int, seed: int) -> None:
+    """uq.json for a canonical run (regimes per method from conf/report.yaml), unless it exists."""
+    from hydra.utils import instantiate
+
+    from b3dgs.eval import evaluate_uq
+
+    if (run_dir / "uq.json").exists():
+        return
+    names = list(STUDIES.uq_regimes.get(method, ["proxy"]))
+    cfg = OmegaConf.create({
+        "proxy": {"_target_": "plugins.uq.proxy.ProxyUQ", "samples": samples, "jitter": 0.002},
+        "native": {"_target_": "plugins.uq.native.NativeUQ", "samples": samples},
+    })
+    evaluate_uq([str(run_dir)], {n: instantiate(cfg[n]) for n in names}, seed=seed, panels=0)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--studies", nargs="+", default=["canonical", "sparse", "initcap"],
+                    choices=["canonical", "sparse", "initcap"])
+    ap.add_argument("--scenes", nargs="+", default=list(STUDIES.scenes))
+    ap.add_argument("--seeds", type=int, nargs="+", default=list(STUDIES.seeds))
+    ap.add_argument("--methods", nargs="+", default=list(STUDIES.sparse.methods), help="canonical methods")
+    ap.add_argument("--budgets", nargs="+", default=[str(b) for b in STUDIES.sparse.budgets])
+    ap.add_argument("--cap", type=int, default=int(STUDIES.initcap.cap))
+    ap.add_argument("--max-steps", type=int, default=None, help="override the quick protocol's 3000 steps (smoke tests)")
+    ap.add_argument("--uq", action="store_true", help="add uq.json to canonical runs (OOD study)")
+    ap.add_argument("--uq-samples", type=int, default=50)
+    ap.add_argument("--out", default="outputs/bench")
+    ap.add_argument("--report", default=str(RESULTS / "report"))
+    ap.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every run")
+    ap.add_argument("--dry-run", action="store_true", help="list the runs (and whether they are finished) only")
+    args = ap.parse_args()
+    jobs = plan(args)
+    todo = [j for j in jobs if not (j[0] / "metrics.json").exists()]
+    print(f"{len(jobs)} runs, {len(jobs) - len(todo)} finished, {len(todo)} to train", flush=True)
+    for run_dir, overrides, study in jobs:
+        if args.dry_run:
+            print(("done " if (run_dir / "metrics.json").exists() else "todo ") + str(run_dir))
+            continue
+        m = train_run(run_dir, overrides)
+        print(f"{study:9s} {run_dir}: PSNR {m['psnr']:.3f}, {m['train_time_s']:.1f} s", flush=True)
+        if args.uq and study == "canonical":
+            ensure_uq(run_dir, m["method"], args.uq_samples, int(m["seed"]))
+    if args.dry_run:
+        return
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from b3dgs.report.app import build_report
+    from b3dgs.train import CONF_DIR
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name="report", overrides=[f"runs=[{args.out}/**]", f"out={args.report}"])
+    paths = build_report(cfg)
+    print(f"report: {paths['md']}")
+
+
+if __name__ == "__main__":
+    main()

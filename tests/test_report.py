@@ -1,0 +1,277 @@
+"""b3dgs-report: statistics wrappers on known answers, grouping by config, a report from small synthetic
+run dirs, the CLI's one-line errors, and (slow) a real short training run and a headless-browser check."""
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+
+from b3dgs.report.collect import ReportError, load_runs
+from b3dgs.report.ood import label_views, support_scores
+from b3dgs.report.stats import bootstrap_ci, paired_stats, pareto_front, sign_flip_p, time_to_fraction
+from b3dgs.train import CONF_DIR
+
+ROOT = Path(__file__).resolve().parents[1]
+# a small procedural scene: 24 views, every 4th a test view (6), 32 px
+DATA = {"_target_": "b3dgs.data.datamodule.SceneDataModule", "kind": "synthetic", "path": None, "max_side": 32,
+        "test_every": 4, "train_indices": None, "normalize": True, "background": [0.0, 0.0, 0.0],
+        "max_images": None, "n_views": 24}
+TEST_VIEWS = [f"view_{i:03d}" for i in range(0, 24, 4)]
+
+
+# ------------------------------------------------------------------------------------------ statistics
+def test_sign_flip_all_positive_n6_gives_the_floor():
+    d = [0.1, 0.2, 0.05, 0.3, 0.01, 0.4]
+    assert sign_flip_p(d) == pytest.approx(2 / 64)
+    assert sign_flip_p(d, "greater") == pytest.approx(1 / 64)
+    r = paired_stats(d)
+    assert r["p_floor"] == pytest.approx(2 / 64) and r["p_two_sided"] == pytest.approx(r["p_floor"])
+    assert (r["wins"], r["losses"], r["ties"]) == (6, 0, 0)
+
+
+def test_sign_flip_symmetric_pair_and_single_unit():
+    assert sign_flip_p([1.0, -1.0]) == pytest.approx(1.0)  # flips give means {0, 0, 1, -1}
+    # three units, one negative: the statistic 1/3*(3+2-1)=4/3 is reached or exceeded by 2 of 8 patterns
+    assert sign_flip_p([3.0, 2.0, -1.0], "greater") == pytest.approx(2 / 8)
+    assert sign_flip_p([0.5]) is None
+
+
+def test_bootstrap_bca_percentile_fallback_and_degenerate():
+    rng = np.random.default_rng(1)
+    d = rng.normal(0.03, 0.02, size=13)
+    bca = bootstrap_ci(d, bca_min_n=6)
+    assert bca["method"] == "BCa" and bca["low"] < d.mean() < bca["high"]
+    few = bootstrap_ci([0.1, 0.3], bca_min_n=6)
+    assert few["method"] == "percentile" and "too few" in few["reason"]
+    assert 0.1 <= few["low"] <= few["high"] <= 0.3
+    assert bootstrap_ci([0.2])["low"] is None
+    assert bootstrap_ci([0.2, 0.2, 0.2])["method"] == "degenerate"
+
+
+def test_paired_direction_for_lower_is_better():
+    r = paired_stats([-0.01, -0.02, 0.005], higher_is_better=False)
+    assert (r["wins"], r["losses"]) == (2, 1)
+    assert r["p_one_sided"] == pytest.approx(sign_flip_p([-0.01, -0.02, 0.005], "less"))
+
+
+def test_pareto_front_and_time_to_fraction():
+    # cost, value: (1, 10) and (2, 12) are non-dominated, (3, 11) is dominated by (2, 12)
+    assert pareto_front([3, 1, 2], [11, 10, 12]) == [1, 2]
+    pts = [{"train_time_s": 0.0, "psnr": 10.0}, {"train_time_s": 10.0, "psnr": 20.0}, {"train_time_s": 20.0, "psnr": 20.0}]
+    assert time_to_fraction(pts, 0.95) == pytest.approx(9.5)
+    assert time_to_fraction(pts[:1], 0.95) is None
+
+
+# ------------------------------------------------------------------------------------------ fixtures
+def write_run(path: Path, scene: str, method: str, seed: int, psnr: float, *, lpips=0.2, t=100.0, n=1000,
+              fps=100.0, data=None, study=None, init_max_points=100000, uq=None, max_steps=300) -> Path:
+    """A run dir shaped like b3dgs-train's: config.yaml, metrics.json (done marker), curve.json, uq.json."""
+    path.mkdir(parents=True, exist_ok=True)
+    cfg = {"posterior": {}, "data": {**DATA, "name": scene, **(data or {})},
+           "model": {"_target_": "b3dgs.module.SplatModule", "name": method, "init_max_points": init_max_points},
+           "trainer": {"max_steps": max_steps, "eval_every": 100}, "seed": seed, "threads": None, "resume": None}
+    if study:
+        cfg["study"] = {"name": study}
+    (path / "config.yaml").write_text(yaml.safe_dump(cfg))
+    pts = [{"step": s, "train_time_s": t * s / max_steps, "psnr": psnr - 6.0 * (1 - s / max_steps) ** 2,
+            "num_gaussians": n} for s in range(100, max_steps + 1, 100)]
+    (path / "curve.json").write_text(json.dumps({"x": "train_time_s", "points": pts}))
+    if uq is not None:
+        (path / "uq.json").write_text(json.dumps(uq))
+    metrics = {"method": method, "scene": scene, "seed": seed, "steps": max_steps, "psnr": psnr, "ssim": 0.9,
+               "lpips": lpips, "lpips_reason": None, "num_gaussians": n, "train_time_s": t, "render_fps": fps,
+               "renderer": "cpu", "num_train_views": 18, "num_test_views": 6,
+               "per_view": [{"name": v, "psnr": psnr} for v in TEST_VIEWS]}
+    (path / "metrics.json").write_text(json.dumps(metrics))
+    return path
+
+
+def report_cfg(runs, out, *extra):
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name="report", overrides=[f"runs={runs}", f"out={out}", *extra])
+
+
+# ------------------------------------------------------------------------------------------ grouping
+def test_grouping_reads_the_config_not_folder_names(tmp_path):
+    # folder names lie on purpose: the config decides
+    write_run(tmp_path / "niw_s5", "sceneA", "standard", 1, 20.0)
+    write_run(tmp_path / "x" / "y", "sceneB", "niw", 2, 21.0)
+    write_run(tmp_path / "sparse8", "sceneA", "niw", 0, 18.0, data={"train_indices": [0, 5, 10]})
+    write_run(tmp_path / "cap", "sceneA", "niw", 0, 19.0, study="initcap", init_max_points=500)
+    (tmp_path / "unfinished").mkdir()
+    (tmp_path / "unfinished" / "config.yaml").write_text((tmp_path / "niw_s5" / "config.yaml").read_text())
+    hyd = tmp_path / "niw_s5" / ".hydra"
+    hyd.mkdir()
+    (hyd / "config.yaml").write_text("a: 1\n")
+    runs, unfinished = load_runs(str(tmp_path / "**"))
+    keys = {r.key for r in runs}
+    assert keys == {("canonical", None, "sceneA", "standard", 1), ("canonical", None, "sceneB", "niw", 2),
+                    ("sparse", 3, "sceneA", "niw", 0), ("initcap", 500, "sceneA", "niw", 0)}
+    assert [p.name for p in unfinished] == ["unfinished"]
+    # a folder (no glob) is searched below
+    assert len(load_runs(str(tmp_path))[0]) == 4
+
+
+def test_duplicate_keys_error_or_newest(tmp_path):
+    write_run(tmp_path / "a", "sceneA", "standard", 0, 20.0)
+    time.sleep(0.05)
+    write_run(tmp_path / "b", "sceneA", "standard", 0, 22.0)
+    with pytest.raises(ReportError, match="share"):
+        load_runs(str(tmp_path / "*"))
+    runs, _ = load_runs(str(tmp_path / "*"), on_duplicate="newest")
+    assert len(runs) == 1 and runs[0].metrics["psnr"] == 22.0
+
+
+def test_no_runs_is_a_one_line_error(tmp_path):
+    pattern = str(tmp_path / "nothing" / "**")
+    res = subprocess.run([sys.executable, "-m", "b3dgs.report.app", f"runs={pattern}", f"out={tmp_path / 'r'}"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert res.returncode == 2
+    err = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert len(err) == 1 and pattern in err[0] and "runs=" in err[0] and "Traceback" not in res.stderr
+
+
+# ------------------------------------------------------------------------------------------ OOD
+def test_support_scores_match_camera_geometry():
+    from b3dgs.data.scene import load_scene
+
+    s = support_scores({**DATA, "name": "sceneA"})
+    scene = load_scene("synthetic", None, max_side=32, test_every=4, n_views=24)
+    train = np.stack([c.center.numpy() for c in scene.train])
+    assert sorted(s) == TEST_VIEWS
+    for c in scene.test:
+        assert s[c.name] == pytest.approx(np.linalg.norm(train - c.center.numpy(), axis=1).min() / scene.extent, rel=1e-5)
+    lab = label_views([0.1, 0.2, 0.3, 0.4, 0.5, 0.6], 1 / 3)
+    assert lab.tolist() == [0, 0, -1, -1, 1, 1]
+    with pytest.raises(ReportError):
+        label_views([0.1, 0.2], 0.5)
+
+
+# ------------------------------------------------------------------------------------------ report
+def synthetic_bench(root: Path) -> dict:
+    """Three scenes, unbalanced seeds, NIW better by known per-scene deltas; uq.json whose NIW uncertainty
+    grows with the support score (a perfect OOD detector) and whose standard one shrinks with it."""
+    support = support_scores({**DATA, "name": "sceneA"})  # the three scenes share the geometry
+    rising = {"per_view": [{"name": v, "mean_var": support[v]} for v in TEST_VIEWS], "ause_rmse": 0.02, "ece": 0.05,
+              "cov95": 0.9}
+    falling = {"per_view": [{"name": v, "mean_var": 1.0 / support[v]} for v in TEST_VIEWS], "ause_rmse": 0.03,
+               "ece": 0.06, "cov95": 0.8}
+    base = {"sceneA": 20.0, "sceneB": 25.0, "sceneC": 30.0}
+    delta = {"sceneA": 0.1, "sceneB": 0.2, "sceneC": 0.3}
+    seeds = {"sceneA": [0, 1, 2], "sceneB": [0], "sceneC": [0, 1]}
+    for scene, ss in seeds.items():
+        for s in ss:
+            write_run(root / scene / "standard" / f"s{s}", scene, "standard", s, base[scene] + 0.01 * s, t=100.0,
+                      n=1000, fps=100.0, uq={"proxy": falling, "_meta": {}})
+            write_run(root / scene / "niw" / f"s{s}", scene, "niw", s, base[scene] + 0.01 * s + delta[scene],
+                      lpips=0.19, t=102.0, n=1100, fps=95.0, uq={"proxy": rising, "_meta": {}})
+        for b in (2, 4):
+            for m in ("standard", "niw"):
+                write_run(root / "sparse" / scene / m / f"b{b}", scene, m, 0, base[scene] - 8 + b,
+                          data={"train_indices": list(range(b))})
+    return {"base": base, "delta": delta, "seeds": seeds}
+
+
+def test_report_from_synthetic_runs(tmp_path):
+    truth = synthetic_bench(tmp_path / "runs")
+    out = tmp_path / "report"
+    from b3dgs.report.app import build_report
+
+    paths = build_report(report_cfg(f"{tmp_path / 'runs'}/**", out))
+    data = json.loads(paths["json"].read_text())
+    # canonical: macro mean of per-scene seed means (not the pooled mean over runs)
+    std = data["canonical"]["table"]["standard"]
+    seed_means = [truth["base"][s] + 0.01 * np.mean(ss) for s, ss in truth["seeds"].items()]
+    assert std["psnr"] == pytest.approx(np.mean(seed_means))
+    assert std["n_scenes"] == 3 and std["n_runs"] == 6 and std["ause_rmse"] == pytest.approx(0.03)
+    # paired: niw − standard per scene = the known deltas; 3 scenes all positive -> p = floor = 2/8
+    p = {r["metric"]: r for r in data["canonical"]["paired"]}
+    assert p["psnr"]["per_scene"] == pytest.approx(truth["delta"])
+    assert p["psnr"]["mean"] == pytest.approx(0.2)
+    assert p["psnr"]["p_two_sided"] == pytest.approx(0.25) and p["psnr"]["p_floor"] == pytest.approx(0.25)
+    assert p["psnr"]["ci"]["method"] == "percentile"  # 3 scenes < bca_min_n
+    assert p["lpips"]["wins"] == 3
+    # OOD: rising uncertainty detects OOD perfectly, falling uncertainty never does
+    rows = data["ood"]["rows"]
+    assert rows["niw (proxy)"]["auroc"] == pytest.approx(1.0) and rows["niw (proxy)"]["gap"] > 0
+    assert rows["standard (proxy)"]["auroc"] == pytest.approx(0.0)
+    # sparse study: budgets 2, 4 and 'all' (the canonical runs)
+    assert list(data["studies"]["sparse"]) == ["2", "4", "all"]
+    assert data["studies"]["sparse"]["4"]["niw"]["psnr"] == pytest.approx(np.mean([v - 4 for v in truth["base"].values()]))
+    # curves and time to target from curve.json
+    cv = data["canonical"]["curves"]["psnr"]["sceneA"]["standard"]
+    assert cv["n_seeds"] == 3 and len(cv["t"]) == 3 and cv["sem"][0] is not None
+    assert data["canonical"]["time_to_target"]["standard"]["t95"] < 100.0
+    # every figure exists, is a PNG, and is embedded in the HTML; tables are in both documents
+    html = paths["html"].read_text()
+    md = paths["md"].read_text()
+    assert data["figures"] and len(re.findall(r'<img src="data:image/png;base64,', html)) == len(data["figures"])
+    for f in data["figures"]:
+        assert (out / f).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+        assert f"]({f})" in md
+    assert html.count("<table>") == len(re.findall(r"^\|---", md, re.M)) >= 6
+    assert "p floor" in md and "percentile" in md
+
+
+# ------------------------------------------------------------------------------------------ slow
+@pytest.mark.slow
+def test_report_on_real_short_training_runs(tmp_path):
+    for m in ("standard", "niw"):
+        res = subprocess.run([sys.executable, "-m", "b3dgs.train", "trainer=quick", "trainer.max_steps=60",
+                              "trainer.eval_every=20", "logger=none", "trainer.progress_bar=false",
+                              "trainer.save_renders=false", "data.max_side=48", f"model={m}",
+                              f"hydra.run.dir={tmp_path / 'runs' / m}"], capture_output=True, text=True, cwd=ROOT,
+                             timeout=600)
+        assert res.returncode == 0, res.stderr[-2000:]
+    res = subprocess.run([sys.executable, "-m", "b3dgs.report.app", f"runs={tmp_path / 'runs'}/**",
+                          f"out={tmp_path / 'rep'}"], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    data = json.loads((tmp_path / "rep" / "report.json").read_text())
+    assert set(data["canonical"]["table"]) == {"standard", "niw"}
+    assert data["canonical"]["curves"]["psnr"]["synthetic"]["niw"]["step"] == [20, 40, 60]
+
+
+CHECK_JS = """<script>window.addEventListener('load', () => {
+  const imgs = [...document.images].map(i => i.complete && i.naturalWidth > 0 ? i.naturalWidth : 0);
+  const tables = [...document.querySelectorAll('table')].map(t => t.rows.length > 1 && t.offsetHeight > 0 ? t.rows.length : 0);
+  const pre = document.createElement('pre'); pre.id = 'check';
+  pre.textContent = JSON.stringify({imgs, tables}); document.body.appendChild(pre);
+});</script>"""
+
+
+def chromium() -> str | None:
+    return next((shutil.which(n) for n in ("chromium", "chromium-browser") if shutil.which(n)), None)
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(chromium() is None, reason="chromium not installed (apt-get install -y chromium)")
+def test_report_html_renders_in_headless_chromium(tmp_path):
+    synthetic_bench(tmp_path / "runs")
+    from b3dgs.report.app import build_report
+
+    paths = build_report(report_cfg(f"{tmp_path / 'runs'}/**", tmp_path / "report"))
+    probe = tmp_path / "probe.html"
+    probe.write_text(paths["html"].read_text().replace("</body>", CHECK_JS + "</body>"))
+    flags = [chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",
+             f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=10000"]
+    dom = subprocess.run(flags + ["--dump-dom", probe.as_uri()], capture_output=True, text=True, timeout=120).stdout
+    found = re.search(r'<pre id="check">(.*?)</pre>', dom)
+    assert found, f"no check output in the DOM: {dom[:500]}"
+    check = json.loads(found.group(1).replace("&quot;", '"'))
+    n_fig = len(json.loads(paths["json"].read_text())["figures"])
+    assert len(check["imgs"]) == n_fig and all(w > 0 for w in check["imgs"]), check
+    assert len(check["tables"]) >= 6 and all(n > 1 for n in check["tables"]), check
+    shot = Path(os.environ.get("B3DGS_REPORT_SCREENSHOT", tmp_path / "report.png"))
+    subprocess.run(flags + ["--window-size=1280,2400", f"--screenshot={shot}", paths["html"].as_uri()],
+                   capture_output=True, timeout=120)
+    assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
