@@ -2,7 +2,8 @@
 
 Writes ``uq.json`` shaped ``{regime: {cov95, cov95_err, ause_rmse, ause_mae, ece, nll, spearman,
 time_s, psnr, lpips, ..., per_view: [...]}}`` plus sparsification/reliability plots and
-render | GT | error | uncertainty panels (PNG and TensorBoard) into the run dir.
+render | GT | error | uncertainty panels (PNG and TensorBoard) into the run dir. Known errors print
+``b3dgs-eval: error: <problem> (fix: <what to do>)`` and exit with code 2.
 """
 from __future__ import annotations
 
@@ -73,7 +74,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
         gen = torch.Generator().manual_seed(int(seed))
         per_view = []
         for i, cam in enumerate(tqdm(cams, desc=f"uq {name}", leave=False)):
-            pred = regime.predict(cam, generator=gen)
+            pred = regime.predict(cam, generator=gen).cpu()
             row = evaluate_view(pred.mean, pred.var, cam.image)
             row["name"] = cam.name
             row["psnr"] = float(psnr_fn(pred.mean.clamp(0, 1), cam.image))
@@ -115,13 +116,26 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="eval")
-def main(cfg: DictConfig) -> None:
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
-    runs = cfg.run
-    run_dirs = [str(r) for r in runs] if isinstance(runs, (ListConfig, list, tuple)) else [str(runs)]
-    evaluate_uq(run_dirs, regimes_from_cfg(cfg), seed=int(cfg.seed), max_views=cfg.get("max_views"),
-                panels=int(cfg.panels), out_dir=Path(cfg.out) if cfg.get("out") else None)
+def hydra_main(cfg: DictConfig) -> None:
+    from b3dgs.errors import known_errors, quiet_known_noise
+    from b3dgs.validation import validate_config
+
+    with known_errors("b3dgs-eval", cfg):
+        quiet_known_noise()
+        validate_config(cfg, app="eval")
+        if cfg.get("threads"):
+            torch.set_num_threads(int(cfg.threads))
+        runs = cfg.run
+        run_dirs = [str(r) for r in runs] if isinstance(runs, (ListConfig, list, tuple)) else [str(runs)]
+        evaluate_uq(run_dirs, regimes_from_cfg(cfg), seed=int(cfg.seed), max_views=cfg.get("max_views"),
+                    panels=int(cfg.panels), out_dir=Path(cfg.out) if cfg.get("out") else None)
+
+
+def main() -> None:
+    """``b3dgs-eval``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
+    from b3dgs.errors import run_cli
+
+    run_cli("b3dgs-eval", hydra_main)
 
 
 if __name__ == "__main__":

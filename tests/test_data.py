@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import logging
+import re
 import os
 import subprocess
 import sys
@@ -502,3 +503,119 @@ def test_datamodule():
     assert epoch_order(dm.train_dataloader()) == e1  # reproducible from the global seed
     assert [c.name for c in dm.val_dataloader()] == [c.name for c in dm.scene.test]
     assert [c.name for c in dm.test_dataloader()] == [c.name for c in dm.scene.test]
+
+
+# ------------------------------------------------------------------------------------------------
+# input checks: intrinsics, mixed sizes, near plane, damaged COLMAP files
+# ------------------------------------------------------------------------------------------------
+
+
+def _transforms_scene(root: Path, meta_keys: dict, sizes: list[tuple[int, int]], scale: float = 1.0) -> Path:
+    """A transforms.json scene of synthetic poses (positions x ``scale``) with one image per size."""
+    import json
+
+    raw = load_synthetic(n_views=len(sizes), resolution=16, seed=2)
+    frames = []
+    for i, (cam, (w, h)) in enumerate(zip(raw.cameras, sizes)):
+        save_png(root / f"f_{i}.png", np.full((h, w, 3), 0.5))
+        c2w = np.linalg.inv(cam.viewmat.double().numpy()) @ np.diag([1.0, -1, -1, 1])
+        c2w[:3, 3] *= scale
+        frames.append({"file_path": f"f_{i}.png", "transform_matrix": c2w.tolist()})
+    (root / "transforms.json").write_text(json.dumps({**meta_keys, "frames": frames}))
+    return root
+
+
+@pytest.mark.parametrize("keys,text", [
+    ({"fl_x": 0.0, "fl_y": 0.0, "cx": 8, "cy": 8, "w": 16, "h": 16}, "focal lengths fx=0"),
+    ({"fl_x": -20.0, "fl_y": -20.0, "cx": 8, "cy": 8, "w": 16, "h": 16}, "focal lengths fx=-20"),
+    ({"fl_x": float("nan"), "cx": 8, "cy": 8, "w": 16, "h": 16}, "focal lengths fx=nan"),
+    ({"fl_x": 20.0, "cx": 40, "cy": 8, "w": 16, "h": 16}, "principal point (40, 8) outside"),
+])
+def test_bad_intrinsics_refused(tmp_path, keys, text):
+    from b3dgs.errors import B3dgsError
+
+    _transforms_scene(tmp_path, keys, [(16, 16)] * 4)
+    with pytest.raises(B3dgsError, match=re.escape(text)) as ei:
+        load_scene("transforms", str(tmp_path), test_every=0)
+    assert "(fix: " in str(ei.value)
+
+
+def test_mixed_sizes_without_wh_scale_shared_intrinsics(tmp_path, caplog):
+    from b3dgs.errors import B3dgsError
+
+    keys = {"fl_x": 40.0, "fl_y": 40.0, "cx": 16.0, "cy": 12.0}  # fit 32x24
+    (tmp_path / "a").mkdir()
+    _transforms_scene(tmp_path / "a", keys, [(32, 24), (16, 12), (32, 24), (16, 12)])
+    with caplog.at_level(logging.WARNING):
+        s = load_scene("transforms", str(tmp_path / "a"), test_every=0, normalize=False)
+    by_w = {c.width: c.K for c in s.train}
+    assert torch.allclose(by_w[32], torch.tensor([[40.0, 0, 16], [0, 40, 12], [0, 0, 1]]))
+    assert torch.allclose(by_w[16], torch.tensor([[20.0, 0, 8], [0, 20, 6], [0, 0, 1]]))
+    assert "no w/h" in caplog.text
+    (tmp_path / "b").mkdir()
+    _transforms_scene(tmp_path / "b", keys, [(32, 24), (16, 20), (32, 24)])  # not a rescale of 32x24
+    with pytest.raises(B3dgsError, match="add .w. and .h."):
+        load_scene("transforms", str(tmp_path / "b"), test_every=0)
+
+
+def test_near_plane_guard(tmp_path, caplog):
+    from b3dgs.errors import B3dgsError
+
+    keys = {"fl_x": 20.0, "cx": 8, "cy": 8, "w": 16, "h": 16}
+    _transforms_scene(tmp_path, keys, [(16, 16)] * 6, scale=1e-4)
+    with pytest.raises(B3dgsError, match=r"near plane.*fix: data.normalize=true"):
+        load_scene("transforms", str(tmp_path), test_every=0, normalize=False)
+    s = load_scene("transforms", str(tmp_path), test_every=0, normalize=True)  # the fix works
+    assert s.extent == pytest.approx(1.0)
+    with caplog.at_level(logging.WARNING):  # a larger near plane than the depth warns first, then refuses
+        load_scene("transforms", str(tmp_path), test_every=0, near_plane=0.05)
+    assert "close to the renderer's near plane" in caplog.text
+    with pytest.raises(B3dgsError, match="near plane"):
+        load_scene("transforms", str(tmp_path), test_every=0, near_plane=1.0)
+
+
+def test_load_scene_refuses_bad_max_side_and_background():
+    from b3dgs.errors import B3dgsError
+
+    for bad in (0, -3):
+        with pytest.raises(B3dgsError, match="max_side"):
+            load_scene("synthetic", None, max_side=bad, n_views=4, resolution=8)
+    with pytest.raises(B3dgsError, match="background"):
+        load_scene("synthetic", None, background=(2.0, -1.0, 0.5), n_views=4, resolution=8)
+
+
+def _damaged_model(tmp_path: Path, name: str, keep) -> Path:
+    import shutil
+
+    d = tmp_path / "sparse" / "0"
+    shutil.copytree(HEAD / "sparse" / "0", d)
+    p = d / name
+    data = p.read_bytes()
+    p.chmod(0o644)
+    p.write_bytes(data[: keep(len(data))])
+    return d
+
+
+@needs_head
+@pytest.mark.parametrize("name,keep,text", [
+    ("points3D.bin", lambda n: n // 2, "truncated"),
+    ("points3D.bin", lambda n: 12, "3D points"),
+    ("images.bin", lambda n: n - 10, "truncated"),
+    ("cameras.bin", lambda n: 10, "truncated"),
+    ("cameras.bin", lambda n: 4, "shorter than its 8-byte header"),
+])
+def test_damaged_colmap_files_refused_before_pycolmap(tmp_path, name, keep, text):
+    import time
+
+    from b3dgs.data.colmap import check_colmap_binary
+    from b3dgs.errors import B3dgsError
+
+    check_colmap_binary(HEAD / "sparse" / "0")  # the intact model passes
+    d = _damaged_model(tmp_path, name, keep)
+    t0 = time.perf_counter()
+    with pytest.raises(B3dgsError, match=text) as ei:
+        check_colmap_binary(d)
+    assert name in str(ei.value) and time.perf_counter() - t0 < 5.0
+    (tmp_path / "images").symlink_to(HEAD / "images")
+    with pytest.raises(B3dgsError, match=text):  # the loader checks before pycolmap reads anything
+        load_scene("colmap", str(tmp_path), max_side=16)

@@ -6,11 +6,18 @@ as the 3DGS preprocessing does.
 
 pycolmap is imported lazily, inside :func:`read_colmap`, and only after PIL (see
 :mod:`b3dgs.data.images` for why).
+
+Before pycolmap sees a binary model, :func:`check_colmap_binary` walks ``cameras.bin``, ``images.bin``
+and ``points3D.bin`` record by record (counts, record sizes, the exact file size): pycolmap trusts the
+counts in the headers, so a truncated ``points3D.bin`` once made it reserve memory without bound, and a
+short ``images.bin`` loaded silently. ``rigs.bin`` / ``frames.bin`` (COLMAP 3.12+) get a header check.
 """
 from __future__ import annotations
 
 import logging
+import mmap
 import os
+import struct
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -18,12 +25,13 @@ import numpy as np
 
 from b3dgs.data.images import import_pycolmap  # imports PIL first
 from b3dgs.data.scene import FrameSpec, RawScene, materialize, select_evenly
+from b3dgs.errors import B3dgsError
 
 log = logging.getLogger(__name__)
 
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 
-__all__ = ["find_sparse_dir", "load_colmap", "read_colmap"]
+__all__ = ["check_colmap_binary", "find_sparse_dir", "load_colmap", "read_colmap"]
 
 
 def _has_model(d: Path) -> bool:
@@ -45,6 +53,122 @@ def find_sparse_dir(root: Path, sparse_dir: Optional[str] = None) -> Path:
         f"No COLMAP model (cameras/images/points3D .bin or .txt) found in "
         f"{', '.join(str(c) for c in cand)}"
     )
+
+
+def _camera_param_counts() -> dict[int, int]:
+    """COLMAP camera model id -> number of parameters, from pycolmap's own model table."""
+    pycolmap = import_pycolmap()
+    out = {}
+    for name, mid in pycolmap.CameraModelId.__members__.items():
+        try:
+            out[int(mid)] = len(pycolmap.Camera.create_from_model_name(1, name, 1.0, 2, 2).params)
+        except Exception:  # INVALID and models pycolmap cannot build
+            continue
+    return out
+
+
+class _Reader:
+    """Bounds-checked little-endian reads from a memory-mapped file (no read past its end)."""
+
+    def __init__(self, path: Path, buf):
+        self.path, self.buf, self.pos = path, buf, 0
+
+    def remaining(self) -> int:
+        return len(self.buf) - self.pos
+
+    def bad(self, what: str) -> B3dgsError:
+        return B3dgsError(
+            f"COLMAP file {self.path} is damaged: {what} (at byte {self.pos} of {len(self.buf)})",
+            "re-export the model (e.g. `colmap model_converter --output_type BIN`) or restore the file")
+
+    def skip(self, n: int, what: str) -> None:
+        if n < 0 or n > self.remaining():
+            raise self.bad(f"truncated inside {what}")
+        self.pos += n
+
+    def unpack(self, fmt: str, what: str) -> tuple:
+        n = struct.calcsize(fmt)
+        if n > self.remaining():
+            raise self.bad(f"truncated inside {what}")
+        out = struct.unpack_from(fmt, self.buf, self.pos)
+        self.pos += n
+        return out
+
+    def count(self, min_record: int, what: str) -> int:
+        (n,) = self.unpack("<Q", f"the {what} count")
+        if n * min_record > self.remaining():
+            raise self.bad(f"header says {n} {what} but only {self.remaining()} bytes follow "
+                           f"(at least {min_record} per record): truncated")
+        return n
+
+    def name(self, what: str) -> None:
+        end = self.buf.find(b"\0", self.pos)
+        if end < 0:
+            raise self.bad(f"unterminated name in {what}")
+        self.pos = end + 1
+
+    def done(self) -> None:
+        if self.remaining():
+            raise self.bad(f"{self.remaining()} unexpected bytes after the last record")
+
+
+def _walk(path: Path, walker) -> None:
+    size = path.stat().st_size
+    if size < 8:
+        raise B3dgsError(f"COLMAP file {path} is damaged: {size} bytes, shorter than its 8-byte header",
+                         "re-export the model (e.g. `colmap model_converter --output_type BIN`) or restore the file")
+    with open(path, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as buf:
+        r = _Reader(path, buf)
+        walker(r)
+
+
+def _walk_cameras(r: _Reader) -> None:
+    nparams = _camera_param_counts()
+    for i in range(r.count(24, "cameras")):
+        _, model_id, w, h = r.unpack("<iiQQ", f"camera {i}")
+        if model_id not in nparams:
+            raise r.bad(f"camera {i} has the unknown model id {model_id}")
+        if not (0 < w < 2**20 and 0 < h < 2**20):
+            raise r.bad(f"camera {i} has the size {w}x{h}")
+        r.skip(8 * nparams[model_id], f"the parameters of camera {i}")
+    r.done()
+
+
+def _walk_images(r: _Reader) -> None:
+    for i in range(r.count(73, "images")):
+        r.skip(64, f"the pose of image {i}")
+        r.name(f"image {i}")
+        (n2d,) = r.unpack("<Q", f"the point count of image {i}")
+        r.skip(24 * n2d, f"the 2D points of image {i}")
+    r.done()
+
+
+def _walk_points(r: _Reader) -> None:
+    for i in range(r.count(51, "3D points")):
+        r.skip(43, f"3D point {i}")
+        (track,) = r.unpack("<Q", f"the track length of 3D point {i}")
+        r.skip(8 * track, f"the track of 3D point {i}")
+    r.done()
+
+
+def _walk_header(r: _Reader) -> None:
+    r.count(8, "records")
+
+
+def check_colmap_binary(model_dir: str | os.PathLike) -> None:
+    """Walk the binary model files of ``model_dir`` and raise :class:`B3dgsError` naming a damaged one.
+
+    Every record of cameras/images/points3D.bin is bounds-checked and the files must end exactly after
+    their last record; rigs.bin / frames.bin (if present) must have a plausible record count.
+    A text model (``.txt``) is left to pycolmap.
+    """
+    d = Path(model_dir)
+    walkers = {"cameras": _walk_cameras, "images": _walk_images, "points3D": _walk_points,
+               "rigs": _walk_header, "frames": _walk_header}
+    for stem, walker in walkers.items():
+        p = d / f"{stem}.bin"
+        if p.is_file():
+            _walk(p, walker)
 
 
 def _intrinsics(cam: Any, image_name: str) -> np.ndarray:
@@ -78,6 +202,7 @@ def read_colmap(
     if not img_root.is_dir():
         raise FileNotFoundError(f"COLMAP image folder not found: {img_root}")
     model_dir = find_sparse_dir(root, sparse_dir)
+    check_colmap_binary(model_dir)
     pycolmap = import_pycolmap()
     try:
         rec = pycolmap.Reconstruction(str(model_dir))

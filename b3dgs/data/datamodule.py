@@ -6,7 +6,7 @@ from typing import Any, Optional, Sequence
 import lightning as L
 from torch.utils.data import DataLoader, Dataset
 
-from b3dgs.data.scene import load_scene
+from b3dgs.data.scene import NEAR_PLANE, load_scene
 from b3dgs.types import Camera, Scene
 
 __all__ = ["CameraDataset", "SceneDataModule", "camera_collate"]
@@ -54,7 +54,8 @@ class SceneDataModule(L.LightningDataModule):
       ``torch.manual_seed`` makes the order reproducible); batch size 1, the batch *is* the Camera.
     * ``val_dataloader`` / ``test_dataloader``: the held-out cameras in sorted order.
 
-    Arguments mirror :func:`b3dgs.data.load_scene`; ``name`` (optional) overrides the scene name;
+    Arguments mirror :func:`b3dgs.data.load_scene` (``near_plane``: the renderer's, for the near-plane
+    guard); ``name`` (optional) overrides the scene name;
     extra keyword arguments go to the format loader (e.g. ``n_views``, ``resolution``, ``seed``).
     A prebuilt ``scene`` may be passed instead (then nothing is loaded).
     """
@@ -71,6 +72,7 @@ class SceneDataModule(L.LightningDataModule):
         max_images: Optional[int] = None,
         name: Optional[str] = None,
         scene: Optional[Scene] = None,
+        near_plane: float = NEAR_PLANE,
         **kind_kwargs: Any,
     ):
         super().__init__()
@@ -84,6 +86,7 @@ class SceneDataModule(L.LightningDataModule):
         self.background = tuple(float(x) for x in _plain(background))
         self.max_images = None if max_images is None else int(max_images)
         self.name = name
+        self.near_plane = float(near_plane)
         self.kind_kwargs = {k: _plain(v) for k, v in kind_kwargs.items()}
         self._scene: Optional[Scene] = scene
 
@@ -106,6 +109,7 @@ class SceneDataModule(L.LightningDataModule):
             normalize=self.normalize,
             background=self.background,
             max_images=self.max_images,
+            near_plane=self.near_plane,
             **self.kind_kwargs,
         )
         if self.name:

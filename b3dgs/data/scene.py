@@ -14,6 +14,12 @@ the steps common to all formats:
    (``test_every=0``: no test views).
 3. **train subset**: ``train_indices`` index into the sorted *train* list.
 4. **bounds** for random initialisation, see :func:`compute_bounds`.
+5. **near-plane guard**: the renderer drops everything closer than ``NEAR_PLANE`` to a camera; a scene
+   whose content lies that close (e.g. a raw scene of extent 4e-4 with ``normalize=False``) is refused,
+   and one within ``NEAR_WARN`` x ``NEAR_PLANE`` gets a warning (see :func:`check_near_plane`).
+
+Every loader's intrinsics pass :func:`check_intrinsics` (positive finite focal lengths, principal
+point inside the image) in :func:`materialize`.
 """
 from __future__ import annotations
 
@@ -27,17 +33,33 @@ import numpy as np
 import torch
 
 from b3dgs.data.images import load_image, target_size
+from b3dgs.errors import B3dgsError
 from b3dgs.types import Camera, Scene
 
 log = logging.getLogger(__name__)
 
-SCENE_KINDS = ("colmap", "transforms", "llff", "synthetic")
+# kind -> "module:function" of its loader (imported on use)
+LOADERS = {
+    "colmap": "b3dgs.data.colmap:load_colmap",
+    "transforms": "b3dgs.data.transforms:load_transforms",
+    "llff": "b3dgs.data.llff:load_llff",
+    "synthetic": "b3dgs.data.synthetic:load_synthetic",
+}
+SCENE_KINDS = tuple(LOADERS)
+NEAR_PLANE = 0.01  # the renderer's near plane (``b3dgs.render.render.render(near=0.01)``)
+NEAR_REFUSE = 3.0  # refuse when the median camera-to-scene distance is below NEAR_REFUSE x NEAR_PLANE
+NEAR_WARN = 30.0  # warn below NEAR_WARN x NEAR_PLANE
 
 __all__ = [
+    "LOADERS",
+    "NEAR_PLANE",
     "SCENE_KINDS",
     "FrameSpec",
     "RawScene",
+    "check_intrinsics",
+    "check_near_plane",
     "compute_bounds",
+    "get_loader",
     "load_scene",
     "look_at_point",
     "materialize",
@@ -106,6 +128,41 @@ def check_pose(name: str, viewmat: np.ndarray, tol: float = 1e-2) -> np.ndarray:
     return out
 
 
+def check_intrinsics(name: str, K: np.ndarray, width: int, height: int) -> None:
+    """Refuse a view whose focal lengths are not positive and finite or whose principal point lies
+    outside its ``width`` x ``height`` image (both at the same resolution)."""
+    K = np.asarray(K, dtype=np.float64)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    fix = ("correct the intrinsics of this view in the scene files: focal lengths in pixels (> 0) and the "
+           "principal point inside the image, given for the image size they were measured at")
+    if not (width >= 1 and height >= 1):
+        raise B3dgsError(f"view {name!r} has the image size {width}x{height}", fix)
+    if not (np.isfinite([fx, fy]).all() and fx > 0 and fy > 0):
+        raise B3dgsError(f"view {name!r} has the focal lengths fx={fx:.6g}, fy={fy:.6g}; they must be positive "
+                         f"and finite", fix)
+    if not (np.isfinite([cx, cy]).all() and 0.0 <= cx <= width and 0.0 <= cy <= height):
+        raise B3dgsError(f"view {name!r} has its principal point ({cx:.6g}, {cy:.6g}) outside its "
+                         f"{width}x{height} image", fix)
+
+
+def check_near_plane(name: str, viewmats: np.ndarray, lo: np.ndarray, hi: np.ndarray, normalize: bool,
+                     near: float = NEAR_PLANE) -> float:
+    """Median distance from the cameras to the centre of the initialisation box; refuse the scene if
+    it is below ``NEAR_REFUSE`` x ``near`` (the renderer would drop nearly everything), warn below
+    ``NEAR_WARN`` x ``near``."""
+    centres, _ = _centres_dirs(viewmats)
+    depth = float(np.median(np.linalg.norm(centres - 0.5 * (lo + hi), axis=1)))
+    fix = ("data.normalize=true (scales the scene so its camera extent is 1)" if not normalize else
+           "rescale the scene: its cameras are closer to their subject than the renderer can draw")
+    if depth < NEAR_REFUSE * near:
+        raise B3dgsError(f"scene {name!r}: the cameras are {depth:.3g} from the scene, inside the renderer's "
+                         f"near plane ({near:g}); every render would be nearly black", fix)
+    if depth < NEAR_WARN * near:
+        log.warning("Scene %r: the cameras are %.3g from the scene, close to the renderer's near plane (%g); "
+                    "Gaussians nearer than it are not drawn (fix: %s)", name, depth, near, fix)
+    return depth
+
+
 def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     """K for an image resized by (sx, sy) per axis (pixel-centre-at-0.5 convention: exact)."""
     K = np.array(K, dtype=np.float64)
@@ -127,6 +184,7 @@ def materialize(
     """
     cams = []
     for f in frames:
+        check_intrinsics(f.name, f.K, f.width, f.height)
         w2, h2 = target_size(f.width, f.height, max_side)
         img = load_image(f.path, size=(w2, h2), expected_size=(f.width, f.height), background=background)
         K = scale_intrinsics(f.K, w2 / f.width, h2 / f.height)
@@ -261,6 +319,7 @@ def preprocess(
     train_indices: Optional[Sequence[int]] = None,
     normalize: bool = True,
     background: Sequence[float] = (0.0, 0.0, 0.0),
+    near_plane: float = NEAR_PLANE,
 ) -> Scene:
     """Normalise, split and bound a :class:`RawScene` (see the module docstring)."""
     cams = sorted(raw.cameras, key=lambda c: c.name)
@@ -308,6 +367,7 @@ def preprocess(
         raise ValueError(f"Scene {raw.name!r}: no train views (n={len(cams)}, test_every={test_every})")
 
     lo, hi = compute_bounds(viewmats, points, fallback_depth=focus)
+    check_near_plane(raw.name, viewmats, lo, hi, normalize, near_plane)
     if colors is None and points is not None:
         colors = np.full_like(points, 0.5, dtype=np.float32)
     return Scene(
@@ -323,6 +383,16 @@ def preprocess(
     )
 
 
+def get_loader(kind: str):
+    """The format loader function of scene ``kind`` (one of :data:`SCENE_KINDS`)."""
+    import importlib
+
+    if kind not in LOADERS:
+        raise ValueError(f"Unknown scene kind {kind!r}; expected one of {SCENE_KINDS}")
+    module, func = LOADERS[kind].split(":")
+    return getattr(importlib.import_module(module), func)
+
+
 def load_scene(
     kind: str,
     path: str | os.PathLike | None,
@@ -332,6 +402,7 @@ def load_scene(
     normalize: bool = True,
     background: Sequence[float] = (0.0, 0.0, 0.0),
     max_images: Optional[int] = None,
+    near_plane: float = NEAR_PLANE,
     **kind_kwargs: Any,
 ) -> Scene:
     """Load a scene of ``kind`` in {"colmap", "transforms", "llff", "synthetic"} and preprocess it.
@@ -347,12 +418,17 @@ def load_scene(
             on the Scene for rendering.
         max_images: keep at most this many views, spread evenly over the sorted list, before
             splitting (quick experiments); None keeps all.
+        near_plane: the renderer's near plane, for the guard of :func:`check_near_plane`.
         **kind_kwargs: passed to the format loader (e.g. ``n_views``, ``resolution``, ``seed`` for
             "synthetic"; ``images_dir`` for "colmap"/"llff"; ``sparse_dir`` for "colmap").
     """
     background = tuple(float(x) for x in background)
-    if len(background) != 3:
-        raise ValueError(f"background must be 3 floats, got {background}")
+    if len(background) != 3 or not all(0.0 <= b <= 1.0 for b in background):
+        raise B3dgsError(f"background must be 3 floats in [0, 1] (RGB), got {list(background)}",
+                         "pass background=[0,0,0] (black) or [1,1,1] (white)")
+    if max_side is not None and not int(max_side) > 0:
+        raise B3dgsError(f"max_side must be a positive pixel count, got {max_side}",
+                         "pass max_side=256 (longest image side) or null for the full resolution")
     kind = str(kind).lower()
     if kind != "synthetic":
         if path is None or str(path) == "":
@@ -360,26 +436,10 @@ def load_scene(
         if not Path(path).exists():
             raise FileNotFoundError(f"Scene path not found: {path}")
     common = dict(max_side=max_side, background=background, max_images=max_images)
-    if kind == "colmap":
-        from b3dgs.data.colmap import load_colmap
-
-        raw = load_colmap(path, **common, **kind_kwargs)
-    elif kind == "transforms":
-        from b3dgs.data.transforms import load_transforms
-
-        raw = load_transforms(path, **common, **kind_kwargs)
-    elif kind == "llff":
-        from b3dgs.data.llff import load_llff
-
-        raw = load_llff(path, **common, **kind_kwargs)
-    elif kind == "synthetic":
-        from b3dgs.data.synthetic import load_synthetic
-
-        raw = load_synthetic(**common, **kind_kwargs)
-    else:
-        raise ValueError(f"Unknown scene kind {kind!r}; expected one of {SCENE_KINDS}")
+    loader = get_loader(kind)
+    raw = loader(**common, **kind_kwargs) if kind == "synthetic" else loader(path, **common, **kind_kwargs)
     scene = preprocess(raw, test_every=test_every, train_indices=train_indices, normalize=normalize,
-                       background=background)
+                       background=background, near_plane=near_plane)
     log.info(
         "Loaded %s scene %r: %d train / %d test views, %s points, extent %.4g",
         kind, scene.name, len(scene.train), len(scene.test),

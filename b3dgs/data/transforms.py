@@ -3,7 +3,11 @@
 * Intrinsics: global keys, overridden per frame: ``fl_x, fl_y, cx, cy, w, h`` (instant-ngp,
   nerfstudio) or Blender's ``camera_angle_x`` (``fx = w / 2 / tan(camera_angle_x / 2)``, ``fy`` from
   ``camera_angle_y`` if present else ``fy = fx``; principal point at the image centre by default).
-  Missing ``w``/``h`` are read from the image header.
+  Missing ``w``/``h`` are read from the image header. Shared (top-level) ``fl_x``/``cx``... without
+  ``w``/``h`` over images of *different* sizes are taken to refer to the image size whose centre is
+  nearest to ``(cx, cy)``, and scaled to each other size of the same aspect ratio (with a warning);
+  any other mix is refused (add ``w`` and ``h``). :func:`b3dgs.data.scene.check_intrinsics` then
+  refuses non-positive focal lengths and principal points outside the image.
 * Poses: ``transform_matrix`` is an OpenGL/NeRF camera-to-world (x right, y up, z backwards); it is
   converted to OpenCV by flipping the camera's y and z axes (``c2w[:3, 1:3] *= -1``), then inverted.
 * ``file_path`` is relative to the JSON file's folder, with or without an extension.
@@ -27,7 +31,8 @@ from typing import Optional, Sequence
 import numpy as np
 
 from b3dgs.data.images import image_size
-from b3dgs.data.scene import FrameSpec, RawScene, materialize, select_evenly
+from b3dgs.data.scene import FrameSpec, RawScene, materialize, scale_intrinsics, select_evenly
+from b3dgs.errors import B3dgsError
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +91,31 @@ def _read_ply(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
     return xyz, rgb
 
 
+def _rescale_shared_intrinsics(jf: Path, meta: dict, frames: list[FrameSpec], unsized: list[int]) -> None:
+    """Frames ``unsized`` use top-level pixel intrinsics without ``w``/``h``; if their images differ in
+    size, scale K from the size the intrinsics fit (image centre nearest the principal point) to each."""
+    sizes = sorted({(frames[i].width, frames[i].height) for i in unsized})
+    if len(sizes) < 2:
+        return
+    fix = f"add \"w\" and \"h\" (the image size the intrinsics refer to) to {jf.name}, or per-frame intrinsics"
+    if "cx" not in meta or "cy" not in meta:
+        raise B3dgsError(f"{jf}: images of sizes {', '.join(f'{w}x{h}' for w, h in sizes)} share one focal length "
+                         f"but the file gives no w/h or principal point to tell which size it belongs to", fix)
+    cx, cy = float(meta["cx"]), float(meta["cy"])
+    ref_w, ref_h = min(sizes, key=lambda s: abs(cx - s[0] / 2) + abs(cy - s[1] / 2))
+    for i in unsized:
+        f = frames[i]
+        if (f.width, f.height) == (ref_w, ref_h):
+            continue
+        sx, sy = f.width / ref_w, f.height / ref_h
+        if abs(sx / sy - 1.0) > 0.01:
+            raise B3dgsError(f"{jf}: image {f.name} is {f.width}x{f.height}, not a rescaled {ref_w}x{ref_h} (the "
+                             f"size the shared intrinsics fit), and the file has no w/h", fix)
+        f.K = scale_intrinsics(f.K, sx, sy)
+    log.warning("%s has no w/h and images of sizes %s: shared intrinsics taken for %dx%d and scaled to the others",
+                jf, ", ".join(f"{w}x{h}" for w, h in sizes), ref_w, ref_h)
+
+
 def read_transforms(
     path: str | os.PathLike,
 ) -> tuple[list[FrameSpec], Optional[np.ndarray], Optional[np.ndarray], dict[str, float]]:
@@ -103,6 +133,8 @@ def read_transforms(
         root = jf.parent
         if "frames" not in meta or not meta["frames"]:
             raise ValueError(f"{jf} has no frames")
+        first = len(frames)
+        unsized: list[int] = []  # frames with top-level pixel intrinsics but no w/h
         for i, fr in enumerate(meta["frames"]):
             g = {**meta, **fr}  # per-frame keys override global ones
             if "file_path" not in fr or "transform_matrix" not in fr:
@@ -119,6 +151,9 @@ def read_transforms(
                 w, h = int(round(float(g["w"]))), int(round(float(g["h"])))
             else:
                 w, h = image_size(img_path)
+                if not any(k in fr for k in ("fl_x", "fl_y", "cx", "cy", "camera_angle_x")) and (
+                        "fl_x" in meta or "fl_y" in meta):
+                    unsized.append(len(frames) - first)
             if "fl_x" in g or "fl_y" in g:
                 fx = float(g.get("fl_x", g.get("fl_y")))
                 fy = float(g.get("fl_y", fx))
@@ -143,6 +178,7 @@ def read_transforms(
             except np.linalg.LinAlgError as e:
                 raise ValueError(f"{jf}: transform_matrix of {fr['file_path']!r} is singular") from e
             frames.append(FrameSpec(name, img_path, K, viewmat, w, h))
+        _rescale_shared_intrinsics(jf, meta, frames[first:], unsized)
         if meta.get("ply_file_path") and points is None:
             ply = root / meta["ply_file_path"]
             if not ply.is_file():

@@ -1,0 +1,230 @@
+"""One-line errors and a quiet log for b3dgs's commands.
+
+A known problem raises :class:`B3dgsError` ``(problem, fix)``; the console entry points print it as
+``<prog>: error: <problem> (fix: <fix>)`` and exit with code 2. The full traceback is printed only
+with ``HYDRA_FULL_ERROR=1`` or ``b3dgs.debug=true`` on the command line.
+
+Besides :class:`B3dgsError`, "known" errors are Hydra's composition errors (bad override, unknown
+option), OmegaConf's missing values, missing files, and ``ValueError`` / ``IndexError``
+raised deliberately by b3dgs's own code (the raising frame is in ``b3dgs`` or
+``plugins``): their messages already name the problem. Anything else is a bug and keeps its traceback.
+
+:func:`quiet_known_noise` silences known-harmless library warnings and Lightning INFO lines by name.
+"""
+from __future__ import annotations
+
+import difflib
+import os
+import sys
+import traceback
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Callable, Iterable, Optional
+
+EXIT_CODE = 2
+DEBUG_KEY = "b3dgs.debug"
+_OWN_ROOTS = tuple(str(Path(__file__).resolve().parents[1] / d) for d in ("b3dgs", "plugins"))
+
+__all__ = ["B3dgsError", "EXIT_CODE", "did_you_mean", "format_error", "known_errors", "quiet_known_noise", "run_cli"]
+
+
+class B3dgsError(ValueError):
+    """A known problem with its fix; ``str()`` is ``"<problem> (fix: <fix>)"``.
+
+    Subclasses ``ValueError`` so callers that catch bad-value errors keep working.
+    """
+
+    def __init__(self, problem: str, fix: str):
+        self.problem = str(problem).strip()
+        self.fix = str(fix).strip()
+        super().__init__(f"{self.problem} (fix: {self.fix})")
+
+
+def did_you_mean(word: str, choices: Iterable[str]) -> str:
+    """``"; did you mean X?"`` for the closest of ``choices``, else ``""``."""
+    close = difflib.get_close_matches(str(word), sorted(set(map(str, choices))), n=1, cutoff=0.6)
+    return f"; did you mean {close[0]}?" if close else ""
+
+
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _raised_by_us(exc: BaseException) -> bool:
+    tb = exc.__traceback__
+    last = None
+    while tb is not None:
+        last = tb
+        tb = tb.tb_next
+    if last is None:
+        return False
+    return str(Path(last.tb_frame.f_code.co_filename).resolve()).startswith(_OWN_ROOTS)
+
+
+def _hydra_error(exc: BaseException) -> Optional[B3dgsError]:
+    """A one-line form of Hydra's composition errors (bad override, unknown option or key)."""
+    try:
+        from hydra.errors import HydraException, OverrideParseException
+    except ImportError:  # pragma: no cover
+        return None
+    if isinstance(exc, OverrideParseException):
+        return B3dgsError(f"cannot parse the override {_one_line(exc)}",
+                          "write overrides as key=value, group=option or +key=value")
+    if not isinstance(exc, HydraException):
+        return None
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]
+    cause = exc.__cause__
+    if cause is not None:
+        lines += [ln.strip() for ln in str(cause).splitlines() if ln.strip()]
+    head = lines[0] if lines else type(exc).__name__
+    text = " ".join(lines)
+    if "Could not override" in head or "Could not append" in head or "not in struct" in text:
+        key = head.split("'")[1] if "'" in head else head
+        return B3dgsError(f"unknown config key {key}",
+                          "check its spelling; `--cfg job` prints every key of the composed config")
+    if "Could not find" in head or "In '" in head:
+        avail = [ln for ln in lines[1:] if not ln.startswith(("Config search path", "provider=", "In "))]
+        opts = " ".join(avail)[:200]
+        return B3dgsError(_one_line(head), f"pick an existing option{': ' + opts if opts else ''}")
+    return B3dgsError(_one_line(head), "correct the config override named above")
+
+
+def format_error(exc: BaseException) -> Optional[str]:
+    """``"<problem> (fix: <fix>)"`` for a known error, ``None`` for anything else (a bug)."""
+    if isinstance(exc, B3dgsError):
+        return _one_line(exc)
+    h = _hydra_error(exc)
+    if h is not None:
+        return _one_line(h)
+    try:
+        from hydra.errors import InstantiationException
+        from omegaconf.errors import MissingMandatoryValue
+    except ImportError:  # pragma: no cover
+        InstantiationException = MissingMandatoryValue = ()  # type: ignore
+    if isinstance(exc, MissingMandatoryValue):
+        key = getattr(exc, "full_key", None) or "a value"
+        return f"{key} is not set (fix: pass {key}=VALUE on the command line)"
+    if isinstance(exc, InstantiationException) and exc.__cause__ is not None:
+        inner = format_error(exc.__cause__)
+        if inner is not None:
+            return inner
+    if isinstance(exc, FileNotFoundError):
+        return f"{_one_line(exc)} (fix: check the path)"
+    if isinstance(exc, (ValueError, IndexError)) and _raised_by_us(exc):
+        msg = _one_line(exc)
+        return msg if "(fix:" in msg else f"{msg} (fix: correct the input named above)"
+    return None
+
+
+_USER_ENV = "B3DGS_USER_HYDRA_FULL_ERROR"  # the user's HYDRA_FULL_ERROR while run_cli overrides it
+
+
+def _debug_requested(argv: list[str]) -> bool:
+    if os.environ.get(_USER_ENV, os.environ.get("HYDRA_FULL_ERROR", "")) not in ("", "0"):
+        return True
+    for a in argv:
+        k, _, v = a.lstrip("+~").partition("=")
+        if k == DEBUG_KEY and v.strip().lower() in ("true", "1", "yes", "on"):
+            return True
+    return False
+
+
+def _report(prog: str, e: BaseException) -> None:
+    msg = format_error(e)
+    if msg is None:
+        traceback.print_exception(e)
+        sys.stderr.write(f"{prog}: unexpected error (a bug); rerun with {DEBUG_KEY}=true for the full traceback\n")
+        sys.exit(1)
+    sys.stderr.write(f"{prog}: error: {msg}\n")
+    sys.stderr.flush()
+    sys.exit(EXIT_CODE)
+
+
+@contextmanager
+def known_errors(prog: str, cfg=None):
+    """Inside a Hydra task: a known error becomes one line on stderr and ``SystemExit(2)`` (which Hydra
+    passes on untouched); unknown errors and debug mode (``b3dgs.debug=true``) re-raise."""
+    debug = _debug_requested(sys.argv[1:])
+    if cfg is not None and not debug:
+        try:
+            debug = bool(cfg.get("b3dgs", {}).get("debug", False))
+        except Exception:  # noqa: BLE001
+            debug = False
+    try:
+        yield
+    except Exception as e:  # noqa: BLE001
+        if debug or format_error(e) is None:
+            raise
+        _report(prog, e)
+
+
+def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str]] = None) -> None:
+    """Call a ``@hydra.main`` function; print known composition errors (bad override, unknown option)
+    as one line and exit with code 2. Errors inside the task are handled by :func:`known_errors`.
+
+    Hydra is asked (through its own ``HYDRA_FULL_ERROR`` switch) to pass exceptions on, so that they
+    reach this handler instead of Hydra's multi-line report.
+    """
+    argv = sys.argv[1:] if argv is None else argv
+    debug = _debug_requested(argv)
+    old = os.environ.get("HYDRA_FULL_ERROR")
+    os.environ[_USER_ENV] = old or ""
+    os.environ["HYDRA_FULL_ERROR"] = "1"
+    try:
+        if debug:
+            hydra_main()  # HYDRA_FULL_ERROR=1 or b3dgs.debug=true: Hydra passes the full traceback on
+        else:
+            try:
+                hydra_main()
+            except Exception as e:  # noqa: BLE001 - composition errors; task errors end in known_errors
+                _report(prog, e)
+    finally:
+        os.environ.pop(_USER_ENV, None)
+        if old is None:
+            os.environ.pop("HYDRA_FULL_ERROR", None)
+        else:
+            os.environ["HYDRA_FULL_ERROR"] = old
+
+
+# ---------------------------------------------------------------------------------------------- quiet log
+
+# Known-harmless library warnings (message regexes), silenced by name; any other warning still shows.
+HARMLESS_WARNINGS = (
+    r"You passed in a `val_dataloader` but have no `validation_step`",  # we train only; eval is ours
+    r"`isinstance\(treespec, LeafSpec\)` is deprecated",  # Lightning internals vs newer torch
+    r"The number of training batches \(\d+\) is smaller than the logging interval",
+    r"You have overridden `transfer_batch_to_device` in `LightningModule`",  # the module's is the one meant
+    r"Using ModelCheckpoint with manual optimization and every_n_train_steps",  # post-step state is intended
+)
+# Known-harmless Lightning INFO lines (message prefixes).
+HARMLESS_INFO = ("GPU available:", "TPU available:", "HPU available:", "💡 Tip:", "`Trainer.fit` stopped: `max_steps=")
+
+
+class _HarmlessInfoFilter:
+    """Drops Lightning's hardware summary, its product tips and the 'max_steps reached' line."""
+
+    def filter(self, record) -> bool:
+        return not str(record.getMessage()).lstrip().startswith(HARMLESS_INFO)
+
+
+def quiet_known_noise() -> None:
+    """Silence known-harmless warnings and Lightning INFO lines, and stop Lightning's own console
+    handler from printing every line a second time (call after Hydra has configured logging)."""
+    import logging
+    import warnings
+
+    import lightning  # noqa: F401  (its package logger installs a console handler on import)
+
+    for pattern in HARMLESS_WARNINGS:
+        warnings.filterwarnings("ignore", message=pattern)
+    if logging.getLogger().handlers:  # Hydra's handlers print (and file) every record once
+        for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
+            lg = logging.getLogger(name)
+            for h in list(lg.handlers):
+                if type(h) is logging.StreamHandler:
+                    lg.removeHandler(h)
+            lg.propagate = True
+    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
+        lg = logging.getLogger(name)
+        if not any(isinstance(f, _HarmlessInfoFilter) for f in lg.filters):
+            lg.addFilter(_HarmlessInfoFilter())

@@ -1,0 +1,136 @@
+"""Config validation before the scene loads, one-line errors, and the quiet-log filters."""
+from __future__ import annotations
+
+import logging
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+
+from b3dgs.errors import B3dgsError, _HarmlessInfoFilter, format_error
+from b3dgs.train import CONF_DIR
+from b3dgs.validation import check_checkpoint, validate_config
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def cfg_of(overrides, config_name="train"):
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name=config_name, overrides=overrides, return_hydra_config=True)
+
+
+def options(group):
+    return sorted(p.stem for p in (Path(CONF_DIR) / group).glob("*.yaml"))
+
+
+@pytest.mark.parametrize("over", [[f"model={m}"] for m in options("model")] + [[f"renderer={r}"] for r in options("renderer")]
+                         + [["trainer=quick", "+data.n_views=16", "data.test_every=0"]])
+def test_shipped_configs_pass(over):
+    validate_config(cfg_of(over))
+
+
+BAD = [  # (overrides, text the one-line message must contain)
+    (["+trainer.max_stpes=50"], "did you mean max_steps"),
+    (["+strategy.refine_evry=5"], "strategy.refine_evry"),
+    (["+data.nviews=16"], "did you mean n_views"),
+    (["+model.lr_mean=1"], "model.lr_mean"),
+    (["+foo=1"], "unknown config key foo"),
+    (["posterior=[niw,niw]"], "niw more than once"),
+    (["data.max_side=0"], "data.max_side=0"),
+    (["data.max_side=-3"], "data.max_side=-3"),
+    (["data.background=[2,-1,0.5]"], "data.background"),
+    (["model.background=[0,0]"], "model.background"),
+    (["data.test_every=-1"], "data.test_every"),
+    (["data.train_indices=[1,1]"], "data.train_indices"),
+    (["data=colmap"], "data.path is not set"),
+    (["data=transforms", "data.path=/nonexistent/scene"], "does not exist"),
+    (["model.init_opacity=1.0"], "model.init_opacity"),
+    (["model.sh_degree=4"], "model.sh_degree"),
+    (["model.lambda_dssim=2"], "model.lambda_dssim"),
+    (["model.lr_means=-1"], "model.lr_means"),
+    (["trainer.max_steps=0"], "trainer.max_steps"),
+    (["trainer.max_steps=abc"], "an integer"),
+    (["trainer.progress_bar=maybe"], "true or false"),
+    (["strategy.refine_every=0"], "strategy.refine_every"),
+    (["model=niw", "posterior.niw.kappa0=-1"], "posterior.niw.kappa0"),
+    (["+posterior.bogus.x=1"], "posterior.bogus"),
+    (["renderer.near=0"], "renderer.near"),
+    (["seed=abc"], "seed"),
+    (["threads=0"], "threads"),
+    (["resume=/nonexistent/last.ckpt"], "no such checkpoint"),
+]
+
+
+@pytest.mark.parametrize("over,text", BAD, ids=[" ".join(o) for o, _ in BAD])
+def test_bad_values_refused_with_a_fix(over, text):
+    with pytest.raises(B3dgsError) as ei:
+        validate_config(cfg_of(over))
+    msg = str(ei.value)
+    assert text in msg
+    assert "(fix: " in msg and "\n" not in msg
+
+
+def test_eval_checks(tmp_path):
+    with pytest.raises(B3dgsError, match="uq.samples=1"):
+        validate_config(cfg_of([f"run={tmp_path}", "uq.samples=1"], "eval"), app="eval")
+    with pytest.raises(B3dgsError, match="not a b3dgs run dir"):
+        validate_config(cfg_of([f"run={tmp_path}"], "eval"), app="eval")
+    (tmp_path / "config.yaml").write_text("seed: 0\n")
+    with pytest.raises(B3dgsError, match="last.ckpt does not exist"):
+        validate_config(cfg_of([f"run={tmp_path}"], "eval"), app="eval")
+    with pytest.raises(B3dgsError, match="needs >= 2 run dirs"):
+        validate_config(cfg_of([f"run=[{tmp_path}]", "uq=[ensemble]"], "eval"), app="eval")
+
+
+def test_damaged_checkpoint_is_named(tmp_path):
+    import torch
+
+    good = tmp_path / "good.ckpt"
+    torch.save({"state_dict": {"x": torch.zeros(1000)}}, good)
+    check_checkpoint(good, "fix")
+    bad = tmp_path / "bad.ckpt"
+    bad.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    with pytest.raises(B3dgsError, match=r"bad\.ckpt is damaged"):
+        check_checkpoint(bad, "fix")
+    with pytest.raises(B3dgsError, match="damaged"):
+        validate_config(cfg_of([f"resume={bad}"]))
+
+
+def test_format_error_known_and_unknown():
+    assert format_error(B3dgsError("p", "f")) == "p (fix: f)"
+    assert format_error(FileNotFoundError("no such file x")).startswith("no such file x (fix:")
+    assert format_error(RuntimeError("boom")) is None  # a bug keeps its traceback
+    assert format_error(ValueError("raised by a library")) is None  # not raised by b3dgs's own code
+
+
+def test_harmless_lightning_info_dropped():
+    f = _HarmlessInfoFilter()
+    rec = lambda m: logging.LogRecord("lightning.pytorch.utilities.rank_zero", logging.INFO, "", 0, m, None, None)  # noqa: E731
+    assert not f.filter(rec("💡 Tip: For seamless cloud logging ... litlogger"))
+    assert not f.filter(rec("GPU available: False, used: False"))
+    assert f.filter(rec("Restoring states from the checkpoint path at x.ckpt"))
+
+
+def _cli(*args):
+    import os
+
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    return subprocess.run([sys.executable, "-m", "b3dgs.train", *args], capture_output=True, text=True, timeout=300,
+                          cwd=REPO, env=env)
+
+
+def test_cli_one_line_error_and_debug(tmp_path):
+    res = _cli("+trainer.max_stpes=50", f"hydra.run.dir={tmp_path}/a")
+    assert res.returncode == 2, res.stderr[-2000:]
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert lines == [lines[0]] and lines[0].startswith("b3dgs-train: error: unknown config key trainer.max_stpes")
+    assert "(fix: " in lines[0]
+    res = _cli("trainer=nope", f"hydra.run.dir={tmp_path}/b")  # Hydra's composition error, one line too
+    assert res.returncode == 2 and res.stderr.strip().count("\n") == 0, res.stderr
+    assert "trainer/nope" in res.stderr
+    res = _cli("data.max_side=0", "b3dgs.debug=true", f"hydra.run.dir={tmp_path}/c")
+    assert res.returncode != 0 and "Traceback" in res.stderr and "data.max_side=0" in res.stderr
