@@ -8,8 +8,10 @@ Studies (grid defaults from conf/report.yaml):
 * canonical: standard / NIW / DPMM, ``outputs/bench/<scene>/<method>/s<seed>`` (shared with bench/posterior.py
   and bench/uq.py); with ``--uq`` each gets a uq.json (the OOD support-deficit study reads it).
 * sparse: train-view budgets, ``data.train_indices`` = the budget's views spread evenly over the sorted train list
-  (``select_evenly``), ``+study.name=sparse``; the budget ``all`` is the canonical run.
-* initcap: ``model.init_max_points=<cap>`` for standard and NIW, ``+study.name=initcap``.
+  (``select_evenly``); the budget ``all`` is the canonical run.
+* initcap: ``model.init_max_points=<cap>`` for standard and NIW.
+
+The report recognises the studies from each run's config (``data.train_indices``, ``model.init_max_points``).
 
 A run dir with metrics.json is finished and reused, so an interrupted grid resumes. The report is written to
 ``--report`` (default bench/results/report/).
@@ -65,12 +67,12 @@ def plan(args) -> list[tuple[Path, list[str], str]]:
                 idx = select_evenly(n_train, int(b))
                 for m in STUDIES.sparse.methods:
                     jobs.append((out / "sparse" / f"b{b}" / scene / m / f"s{seed}",
-                                 common + [f"model={m}", f"data.train_indices=[{','.join(map(str, idx))}]",
-                                           "+study.name=sparse"], "sparse"))
+                                 common + [f"model={m}", f"data.train_indices=[{','.join(map(str, idx))}]"],
+                                 "sparse"))
             if "initcap" in args.studies:
                 for m in STUDIES.initcap.methods:
                     jobs.append((out / "initcap" / f"c{args.cap}" / scene / m / f"s{seed}",
-                                 common + [f"model={m}", f"model.init_max_points={args.cap}", "+study.name=initcap"],
+                                 common + [f"model={m}", f"model.init_max_points={args.cap}"],
                                  "initcap"))
     seen, unique = set(), []
     for j in jobs:

@@ -107,7 +107,7 @@ def test_grouping_reads_the_config_not_folder_names(tmp_path):
     write_run(tmp_path / "niw_s5", "sceneA", "standard", 1, 20.0)
     write_run(tmp_path / "x" / "y", "sceneB", "niw", 2, 21.0)
     write_run(tmp_path / "sparse8", "sceneA", "niw", 0, 18.0, data={"train_indices": [0, 5, 10]})
-    write_run(tmp_path / "cap", "sceneA", "niw", 0, 19.0, study="initcap", init_max_points=500)
+    write_run(tmp_path / "cap", "sceneA", "niw", 0, 19.0, init_max_points=500)
     (tmp_path / "unfinished").mkdir()
     (tmp_path / "unfinished" / "config.yaml").write_text((tmp_path / "niw_s5" / "config.yaml").read_text())
     hyd = tmp_path / "niw_s5" / ".hydra"
@@ -160,7 +160,8 @@ def test_support_scores_match_camera_geometry():
 # ------------------------------------------------------------------------------------------ report
 def synthetic_bench(root: Path) -> dict:
     """Three scenes, unbalanced seeds, NIW better by known per-scene deltas; uq.json whose NIW uncertainty
-    grows with the support score (a perfect OOD detector) and whose standard one shrinks with it."""
+    grows with the support score (a perfect OOD detector) and whose standard one shrinks with it; sparse
+    (budgets 2, 4) and init-cap (500 points) runs."""
     support = support_scores({**DATA, "name": "sceneA"})  # the three scenes share the geometry
     rising = {"per_view": [{"name": v, "mean_var": support[v]} for v in TEST_VIEWS], "ause_rmse": 0.02, "ece": 0.05,
               "cov95": 0.9}
@@ -179,6 +180,8 @@ def synthetic_bench(root: Path) -> dict:
             for m in ("standard", "niw"):
                 write_run(root / "sparse" / scene / m / f"b{b}", scene, m, 0, base[scene] - 8 + b,
                           data={"train_indices": list(range(b))})
+        for m, d in (("standard", 0.0), ("niw", 0.05)):
+            write_run(root / "initcap" / scene / m, scene, m, 0, base[scene] - 1 + d, init_max_points=500)
     return {"base": base, "delta": delta, "seeds": seeds}
 
 
@@ -208,6 +211,9 @@ def test_report_from_synthetic_runs(tmp_path):
     # sparse study: budgets 2, 4 and 'all' (the canonical runs)
     assert list(data["studies"]["sparse"]) == ["2", "4", "all"]
     assert data["studies"]["sparse"]["4"]["niw"]["psnr"] == pytest.approx(np.mean([v - 4 for v in truth["base"].values()]))
+    # init cap (recognised from model.init_max_points): paired niw − standard = +0.05 on every scene
+    cap = {r["metric"]: r for r in data["studies"]["initcap"]["500"]["paired"]}
+    assert cap["psnr"]["mean"] == pytest.approx(0.05) and cap["psnr"]["wins"] == 3
     # curves and time to target from curve.json
     cv = data["canonical"]["curves"]["psnr"]["sceneA"]["standard"]
     assert cv["n_seeds"] == 3 and len(cv["t"]) == 3 and cv["sem"][0] is not None

@@ -257,7 +257,7 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
         + (f" ({len(unfinished)} unfinished run dirs without metrics.json skipped)" if unfinished else "")
         + f"; scenes {sorted({r.scene for r in runs})}, methods {method_order(r.method for r in runs)}, seeds "
         f"{sorted({r.seed for r in runs})}; protocols: {'; '.join(protocols)}. Grouped by each run's own config "
-        "(data.name, model.name, seed; study from study.name / data.train_indices)."))
+        "(data.name, model.name, seed; study from data.train_indices / model.init_max_points)."))
     data: dict = {"runs": [{"path": str(r.path), "study": r.study, "level": r.level, "scene": r.scene,
                             "method": r.method, "seed": r.seed, "uq_regimes": sorted(r.uq)} for r in runs],
                   "unfinished": [str(u) for u in unfinished], "config": OmegaConf.to_container(cfg, resolve=True)}

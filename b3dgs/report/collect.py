@@ -4,8 +4,9 @@ A run dir holds ``config.yaml`` (the composed config written by ``b3dgs-train``)
 its done marker. A run is keyed by (study, level, scene, method, seed), all read from ``config.yaml``:
 
 * scene = ``data.name``, method = ``model.name``, seed = ``seed``;
-* study = ``study.name`` when the run carries one (``+study.name=...``), else ``sparse`` when
-  ``data.train_indices`` is set, else ``canonical``;
+* study = ``sparse`` when ``data.train_indices`` is set, else ``initcap`` when ``model.init_max_points``
+  is below the standard model's default (``conf/model/standard.yaml``), else ``canonical``; a ``study``
+  node (``name``, ``level``) in the config, where one is allowed, wins;
 * level = the study's variable: the number of train views (``sparse``), ``model.init_max_points``
   (``initcap``), else ``study.level`` (or None).
 """
@@ -15,6 +16,7 @@ import glob
 import json
 import os
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -96,11 +98,24 @@ def _read_json(path: Path) -> Any:
         raise ReportError(f"cannot read {path}: {e}") from e
 
 
+@lru_cache(maxsize=1)
+def default_init_cap() -> Optional[int]:
+    """``model.init_max_points`` of conf/model/standard.yaml (the models inherit it); None if unreadable."""
+    from b3dgs.train import CONF_DIR
+
+    try:
+        return int(OmegaConf.load(Path(CONF_DIR) / "model" / "standard.yaml").model.init_max_points)
+    except Exception:  # a changed or missing option file: no init-cap inference
+        return None
+
+
 def classify(cfg: dict) -> tuple[str, Any]:
     """(study, level) of a run from its config (see the module docstring)."""
     tag = cfg.get("study") or {}
     ti = (cfg.get("data") or {}).get("train_indices")
-    study = str(tag.get("name") or ("sparse" if ti is not None else "canonical"))
+    cap, default = (cfg.get("model") or {}).get("init_max_points"), default_init_cap()
+    capped = isinstance(cap, int) and default is not None and cap < default
+    study = str(tag.get("name") or ("sparse" if ti is not None else "initcap" if capped else "canonical"))
     if study == "sparse":
         return study, (len(ti) if ti is not None else "all")
     if study == "initcap":
