@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import logging
-import time
 from pathlib import Path
 from typing import Any, Optional
 
@@ -10,6 +9,7 @@ import lightning as L
 import torch
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
+from b3dgs.device import timed_clock
 from b3dgs.io import atomic_path, write_json
 
 log = logging.getLogger(__name__)
@@ -44,11 +44,11 @@ class CurveCallback(L.Callback):
         self.points = list(state_dict.get("points", []))
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
-        self._t0 = time.perf_counter()
+        self._t0 = timed_clock(pl_module.device)  # CUDA: queued work is waited for before reading the clock
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         if self._t0 is not None:
-            self.train_time_s += time.perf_counter() - self._t0
+            self.train_time_s += timed_clock(pl_module.device) - self._t0
             self._t0 = None
         step = trainer.global_step
         if self.eval_every > 0 and step % self.eval_every == 0 and self.cameras:
@@ -67,7 +67,7 @@ class CurveCallback(L.Callback):
         vals = []
         first = None
         for cam in self.cameras:
-            pred = pl_module.render_eval(cam)
+            pred = pl_module.render_eval(cam).cpu()
             vals.append(float(psnr(pred, cam.image)))
             if first is None:
                 first = (pred, cam.image)

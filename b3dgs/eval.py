@@ -74,7 +74,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
         gen = torch.Generator().manual_seed(int(seed))
         per_view = []
         for i, cam in enumerate(tqdm(cams, desc=f"uq {name}", leave=False)):
-            pred = regime.predict(cam, generator=gen)
+            pred = regime.predict(cam, generator=gen).cpu()
             row = evaluate_view(pred.mean, pred.var, cam.image)
             row["name"] = cam.name
             row["psnr"] = float(psnr_fn(pred.mean.clamp(0, 1), cam.image))

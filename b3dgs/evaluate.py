@@ -2,12 +2,12 @@
 from __future__ import annotations
 
 import logging
-import time
 from pathlib import Path
 from typing import Optional, Sequence
 
 import torch
 
+from b3dgs.device import timed_clock
 from b3dgs.metrics.image import psnr, ssim
 from b3dgs.types import Camera
 
@@ -31,9 +31,10 @@ def evaluate_views(
     for cam in cameras:
         if cam.image is None:
             raise ValueError(f"evaluate: camera {cam.name!r} has no ground-truth image")
-        t0 = time.perf_counter()
+        t0 = timed_clock(module.device)
         pred = module.render_eval(cam)
-        render_s += time.perf_counter() - t0
+        render_s += timed_clock(module.device) - t0
+        pred = pred.cpu()
         gt = cam.image
         row = {"name": cam.name, "psnr": float(psnr(pred, gt))}
         if with_ssim:

@@ -12,11 +12,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from b3dgs.device import move_tree
 from b3dgs.init import init_gaussians
-from b3dgs.metrics.image import ssim_fused, ssim_separable
 from b3dgs.ops import TopologyOps
 from b3dgs.plugin import Plugin, PosteriorBlock
-from b3dgs.render.render import RenderOutput, render
+from b3dgs.render.render import RenderOutput
+from b3dgs.render.renderers import Renderer, make_renderer
 from b3dgs.types import Camera, Scene
 
 log = logging.getLogger(__name__)
@@ -30,7 +31,9 @@ class SplatModule(L.LightningModule):
     One Adam optimizer holds one parameter group per Gaussian attribute (each with its own learning
     rate and independent moments, equivalent to one Adam per group) so that Lightning's
     ``global_step`` equals the training iteration. The means' learning rate decays exponentially and
-    is scaled by the scene extent, as in 3DGS. Loss: (1-λ)·L1 + λ·(1-SSIM).
+    is scaled by the scene extent, as in 3DGS. Loss: (1-λ)·L1 + λ·(1-SSIM), with the SSIM the renderer
+    prefers. The renderer is a plugin object (``renderer=auto|cpu|torch|gsplat``); plugin states and
+    cameras follow the module to its device.
     """
 
     def __init__(
@@ -48,7 +51,7 @@ class SplatModule(L.LightningModule):
         lr_sh0: float = 2.5e-3,
         lr_shN: float = 2.5e-3 / 20,
         background: Sequence[float] = (0.0, 0.0, 0.0),
-        renderer: str = "cpu",
+        renderer: "Renderer | str" = "auto",
         init_max_points: Optional[int] = None,
         init_num_random: int = 20000,
         init_opacity: float = 0.1,
@@ -62,11 +65,10 @@ class SplatModule(L.LightningModule):
             raise ValueError(f"model.lambda_dssim must be in [0, 1], got {lambda_dssim}")
         if not 0 <= sh_degree <= 3:
             raise ValueError(f"model.sh_degree must be in 0..3, got {sh_degree}")
-        if renderer not in ("cpu", "torch"):
-            raise ValueError(f"renderer must be 'cpu' or 'torch', got {renderer!r}")
         if max_steps <= 0:
             raise ValueError(f"trainer.max_steps must be > 0, got {max_steps}")
-        self.save_hyperparameters(ignore=["strategy", "posterior"])
+        self.save_hyperparameters(ignore=["strategy", "posterior", "renderer"])
+        self.renderer: Renderer = make_renderer(renderer)
         self.strategy = strategy
         self.posterior: "OrderedDict[str, PosteriorBlock]" = OrderedDict(posterior or {})
         self.strategy.check_sanity()
@@ -77,6 +79,7 @@ class SplatModule(L.LightningModule):
         self.scene: Optional[Scene] = None
         self.ops: Optional[TopologyOps] = None
         self.block_time_s: dict[str, float] = {name: 0.0 for name in self.posterior}
+        self._camera_cache: dict[int, tuple[Camera, Camera]] = {}
         self.register_buffer("bg", torch.tensor(list(background), dtype=torch.float32), persistent=False)
 
     # ------------------------------------------------------------------ set-up
@@ -108,13 +111,16 @@ class SplatModule(L.LightningModule):
         )
         self._set_params(params)
         self._init_states()
+        self.states = move_tree(self.states, self.splats["means"].device)
 
     def _set_params(self, params: Mapping[str, Tensor]) -> None:
         self.splats = nn.ParameterDict({k: nn.Parameter(params[k].contiguous()) for k in PARAM_ORDER})
 
     def _init_states(self) -> None:
         n = self.num_gaussians
-        self.states = {"core": {"ids": torch.arange(n), "parent_ids": torch.full((n,), -1, dtype=torch.long), "next_id": torch.tensor(n)}}
+        dev = self.splats["means"].device
+        self.states = {"core": {"ids": torch.arange(n, device=dev), "parent_ids": torch.full((n,), -1, dtype=torch.long, device=dev),
+                                "next_id": torch.tensor(n, device=dev)}}
         info = self._static_info()
         for name, plugin in self.plugins.items():
             self.states[name] = plugin.initialize_state(splats=self.splats, scene=self.scene, info=info)
@@ -163,14 +169,34 @@ class SplatModule(L.LightningModule):
         return {k: self.splats[k] for k in PARAM_ORDER}
 
     def render_camera(self, camera: Camera, params: Optional[Mapping[str, Tensor]] = None, **kw) -> RenderOutput:
-        return render(
-            params if params is not None else self.params(), camera,
-            sh_degree=kw.pop("sh_degree", self.active_sh_degree()), background=self.bg,
-            backend=kw.pop("backend", self.hparams.renderer), **kw,
+        return self.renderer.render(
+            params if params is not None else self.params(), self.device_camera(camera),
+            sh_degree=kw.pop("sh_degree", self.active_sh_degree()), background=self.bg, **kw,
         )
 
+    def device_camera(self, camera: Camera) -> Camera:
+        """``camera`` on the splats' device; device copies are cached per camera object."""
+        dev = self.splats["means"].device if "means" in self.splats else self.bg.device
+        if camera.viewmat.device == dev:
+            return camera
+        hit = self._camera_cache.get(id(camera))
+        if hit is not None and hit[0] is camera and hit[1].viewmat.device == dev:
+            return hit[1]
+        moved = camera.to(dev)
+        self._camera_cache[id(camera)] = (camera, moved)
+        return moved
+
     def transfer_batch_to_device(self, batch, device, dataloader_idx):
-        return batch  # cameras stay on the CPU
+        return self.device_camera(batch) if isinstance(batch, Camera) else batch
+
+    def _apply(self, fn, *args, **kwargs):
+        # plugin states are plain dicts of tensors: they follow the parameters' device (never their dtype)
+        out = super()._apply(fn, *args, **kwargs)
+        if "means" in self.splats and self.states:
+            dev = self.splats["means"].device
+            for name in list(self.states):
+                self.states[name].update(move_tree(self.states[name], dev))
+        return out
 
     # ------------------------------------------------------------------ training
     def training_step(self, batch: Camera, batch_idx: int):
@@ -183,12 +209,19 @@ class SplatModule(L.LightningModule):
                 group["lr"] = self.means_lr(step)
         ops = self._get_ops()
         ops.step = step
-        need_weights = any(getattr(b, "needs_weights", False) for b in self.posterior.values())
-        out = self.render_camera(cam, retain_means2d_grad=True, return_weights=need_weights)
+        need_weights = any(b.needs_weights for b in self.posterior.values())
+        try:
+            out = self.render_camera(cam, retain_means2d_grad=True, return_weights=need_weights)
+        except ValueError as e:
+            if "NaN or Inf" not in str(e):
+                raise
+            raise FloatingPointError(
+                f"step {step}, camera {cam.name}: the renderer got NaN/Inf Gaussian attributes ({e}); the "
+                f"optimisation diverged (fix: lower the learning rates, e.g. model.lr_means, or check the data)") from e
+        cam = self.device_camera(cam)
         gt = cam.image
         l1 = (out.rgb - gt).abs().mean()
-        # the C++ backend also computes the SSIM term in C++ (value and gradient in one pass)
-        ssim = (ssim_fused if self.hparams.renderer == "cpu" else ssim_separable)(out.rgb, gt)
+        ssim = self.renderer.ssim(out.rgb, gt)
         lam = self.hparams.lambda_dssim
         loss = (1 - lam) * l1 + lam * (1 - ssim)
         if not torch.isfinite(loss):
@@ -207,8 +240,9 @@ class SplatModule(L.LightningModule):
         # per-Gaussian data of this step (S, N, ...), kept aligned by the topology ops
         pg = ops.per_gaussian
         pg["radii"] = out.radii
-        if out.means2d.grad is not None:
-            pg["means2d_grad"] = out.means2d.grad
+        m2g = out.means2d_grad
+        if m2g is not None:
+            pg["means2d_grad"] = m2g
         if out.weight_sum is not None:
             pg["weight_sum"] = out.weight_sum
             pg["weight_sq_sum"] = out.weight_sq_sum

@@ -100,9 +100,9 @@ class TopologyOps:
         n_fresh = int(fresh.sum())
         if n_fresh:
             start = int(core["next_id"])
-            core["ids"][fresh] = torch.arange(start, start + n_fresh, dtype=torch.long)
+            core["ids"][fresh] = torch.arange(start, start + n_fresh, dtype=torch.long, device=core["ids"].device)
             core["parent_ids"][fresh] = parent_src[fresh]
-            core["next_id"] = torch.tensor(start + n_fresh)
+            core["next_id"] = torch.tensor(start + n_fresh, device=core["ids"].device)
         info = {"op": op, "index": index, "fresh": fresh, "parent_ids": parent_src, "n_old": n_old}
         for name, plugin in self.plugins.items():
             plugin.on_topology(splats=self.splats, optimizers=self.optimizers, state=self.states[name], step=self.step, info=info)
@@ -116,8 +116,8 @@ class TopologyOps:
         if sel.numel() == 0:
             return 0
         n = self.num
-        index = torch.cat([torch.arange(n), sel])
-        fresh = torch.zeros(index.shape[0], dtype=torch.bool)
+        index = torch.cat([torch.arange(n, device=sel.device), sel])
+        fresh = torch.zeros(index.shape[0], dtype=torch.bool, device=sel.device)
         fresh[n:] = True
         self.gather(index, fresh, op="clone")
         self.added[reason] += sel.numel()
@@ -131,7 +131,7 @@ class TopologyOps:
         keep = torch.nonzero(~mask, as_tuple=False).flatten()
         src = sel.repeat(n_children)
         index = torch.cat([keep, src])
-        fresh = torch.zeros(index.shape[0], dtype=torch.bool)
+        fresh = torch.zeros(index.shape[0], dtype=torch.bool, device=sel.device)
         fresh[keep.numel():] = True
         sp = self.splats
         scales = torch.exp(sp["scales"].data[src])
@@ -157,14 +157,14 @@ class TopologyOps:
         if k == 0:
             return 0
         keep = torch.nonzero(~mask, as_tuple=False).flatten()
-        self.gather(keep, torch.zeros(keep.numel(), dtype=torch.bool), op="prune")
+        self.gather(keep, torch.zeros(keep.numel(), dtype=torch.bool, device=keep.device), op="prune")
         self.removed[reason] += k
         return k
 
     def reset_opacity(self, value: float) -> None:
         """Clamp opacities to at most ``value`` and zero their optimizer moments (3DGS opacity reset)."""
         p = self.splats["opacities"]
-        logit = torch.logit(torch.tensor(value, dtype=p.dtype))
+        logit = torch.logit(torch.tensor(value, dtype=torch.float64))
         with torch.no_grad():
             p.data.clamp_(max=float(logit))
         for opt in self.optimizers.values():

@@ -15,7 +15,7 @@ New needs go into ``info``, never into new arguments, so the core never branches
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, Optional
+from typing import Any, Callable, ClassVar, Optional
 
 import torch
 from torch import Tensor
@@ -23,7 +23,14 @@ from torch import Tensor
 
 @dataclass
 class Plugin:
-    """Base of every plugin kind (strategies, posterior blocks). All hooks are no-ops by default."""
+    """Base of every plugin kind (strategies, posterior blocks). All hooks are no-ops by default.
+
+    What the core reads from a plugin is declared here: ``needs_weights`` asks the renderer for the
+    per-Gaussian compositing sums Σ_p w_kp and Σ_p w_kp² (``info["per_gaussian"]``) every step.
+    State tensors must be created on the splats' device (``splats["means"].device``).
+    """
+
+    needs_weights: ClassVar[bool] = False
 
     def check_sanity(self, **kwargs: Any) -> None:
         """Validate configuration values; raise ValueError naming the bad field and the fix."""

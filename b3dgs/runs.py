@@ -1,6 +1,7 @@
 """Load a finished run dir (config.yaml + checkpoints/last.ckpt) back into a SplatModule."""
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -9,6 +10,20 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from b3dgs.types import Scene
+
+log = logging.getLogger(__name__)
+
+
+def _run_renderer(cfg: DictConfig):
+    """The run's own renderer when it runs on this machine, else ``renderer=auto`` (said in the log)."""
+    from b3dgs.render.renderers import RendererUnavailable, auto_renderer
+    from b3dgs.train import build_renderer
+
+    try:
+        return build_renderer(cfg.get("renderer"))
+    except RendererUnavailable as e:
+        log.warning("%s; scoring with renderer=auto instead", e)
+        return auto_renderer()
 
 
 @dataclass
@@ -20,10 +35,13 @@ class LoadedRun:
     metrics: Optional[dict]
 
 
-def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Optional[str | Path] = None) -> LoadedRun:
+def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Optional[str | Path] = None,
+             renderer=None) -> LoadedRun:
     """Rebuild the model of ``run_dir`` from its config and last checkpoint.
 
-    ``scene`` may be passed to share one loaded scene between several runs (ensembles).
+    ``scene`` may be passed to share one loaded scene between several runs (ensembles). ``renderer``
+    (a renderer plugin) overrides the run's own, e.g. to score a CPU-trained run with gsplat; the module
+    is moved to the renderer's device.
     """
     import json
 
@@ -44,7 +62,9 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
         dm.setup("fit")
         scene = dm.scene
     strategy, blocks = build_plugins(cfg)
-    module = build_module(cfg, strategy, blocks)
+    if renderer is None:
+        renderer = _run_renderer(cfg)
+    module = build_module(cfg, strategy, blocks, renderer)
     module.scene = scene
     try:
         ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
@@ -54,6 +74,7 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
     module.load_state_dict(ck["state_dict"])
     module._loaded_step = int(ck.get("global_step", 0))
     module.eval()
+    module.to(module.renderer.device)
     metrics = None
     if (run_dir / "metrics.json").exists():
         metrics = json.loads((run_dir / "metrics.json").read_text())

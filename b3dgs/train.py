@@ -37,13 +37,44 @@ def build_plugins(cfg: DictConfig):
     return strategy, blocks
 
 
-def build_module(cfg: DictConfig, strategy, blocks):
+def build_renderer(node) -> "Renderer":
+    """The renderer plugin of a config's ``renderer`` node, checked to run on this machine.
+
+    Run dirs written before renderers were plugins hold ``renderer: {backend: cpu|torch}``.
+    """
+    from hydra.utils import instantiate
+
+    from b3dgs.render.renderers import make_renderer
+
+    if node is None or isinstance(node, str):
+        renderer = make_renderer(node or "auto")
+    elif "_target_" in node:
+        renderer = instantiate(node)
+    else:
+        renderer = make_renderer(str(node.get("backend", "auto")))
+    renderer.check_available()
+    return renderer
+
+
+def build_module(cfg: DictConfig, strategy, blocks, renderer=None):
     from hydra.utils import instantiate
 
     return instantiate(cfg.model, _partial_=True)(
-        strategy=strategy, posterior=blocks, renderer=cfg.renderer.backend,
+        strategy=strategy, posterior=blocks, renderer=renderer if renderer is not None else build_renderer(cfg.get("renderer")),
         max_steps=int(cfg.trainer.max_steps), seed=int(cfg.seed),
     )
+
+
+def resolve_accelerator(requested: Optional[str], renderer) -> str:
+    """Lightning's accelerator for ``trainer.accelerator``: ``auto`` follows the renderer's device."""
+    want = renderer.device.type
+    req = str(requested or "auto")
+    if req == "auto":
+        return want
+    if {"gpu": "cuda"}.get(req, req) != want:
+        raise ValueError(f"trainer.accelerator={req} does not match renderer={renderer.name}, which runs on {want} "
+                         f"(fix: trainer.accelerator=auto, or pick a renderer for {req})")
+    return req
 
 
 def save_config(cfg: DictConfig, path: Path) -> None:
@@ -100,10 +131,13 @@ def train(cfg: DictConfig) -> dict:
     dm.setup("fit")
     scene = dm.scene
     strategy, blocks = build_plugins(cfg)
-    module = build_module(cfg, strategy, blocks)
+    renderer = build_renderer(cfg.get("renderer"))
+    module = build_module(cfg, strategy, blocks, renderer)
     module.init_from_scene(scene)
-    log.info("Scene %s: %d train / %d test views, %d initial Gaussians, extent %.3f",
-             scene.name, len(scene.train), len(scene.test), module.num_gaussians, scene.extent)
+    accelerator = resolve_accelerator(cfg.trainer.get("accelerator"), renderer)
+    log.info("Scene %s: %d train / %d test views, %d initial Gaussians, extent %.3f; renderer %s on %s",
+             scene.name, len(scene.train), len(scene.test), module.num_gaussians, scene.extent, renderer.name,
+             renderer.device)
 
     tcfg = cfg.trainer
     curve = CurveCallback(scene.test, eval_every=int(tcfg.eval_every), out_dir=run_dir,
@@ -112,7 +146,7 @@ def train(cfg: DictConfig) -> dict:
                            every_n_train_steps=int(tcfg.checkpoint_every), save_last=True, save_top_k=0 if not tcfg.get("keep_checkpoints") else -1)
     logger = instantiate(cfg.logger, save_dir=str(run_dir)) if cfg.get("logger") else False
     trainer = L.Trainer(
-        max_steps=int(tcfg.max_steps), accelerator="cpu", devices=1, logger=logger,
+        max_steps=int(tcfg.max_steps), accelerator=accelerator, devices=1, logger=logger,
         callbacks=[curve, ckpt], default_root_dir=str(run_dir), limit_val_batches=0, num_sanity_val_steps=0,
         enable_progress_bar=bool(tcfg.progress_bar), log_every_n_steps=int(tcfg.log_every),
         plugins=[AtomicCheckpointIO()], enable_model_summary=False, deterministic=False,
@@ -132,7 +166,7 @@ def train(cfg: DictConfig) -> dict:
         "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": ev.get("lpips"),
         "lpips_reason": None if lpips_model is not None else lpips_reason,
         "num_gaussians": module.num_gaussians, "train_time_s": round(curve.train_time_s, 3),
-        "render_fps": ev["render_fps"], "renderer": cfg.renderer.backend,
+        "render_fps": ev["render_fps"], "renderer": renderer.describe(),
         "num_train_views": len(scene.train), "num_test_views": len(scene.test),
         "removed": dict(module.ops.removed) if module.ops else {},
         "added": dict(module.ops.added) if module.ops else {},

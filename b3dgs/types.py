@@ -7,6 +7,7 @@ Conventions used everywhere in b3dgs:
 """
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, field, replace
 from typing import Optional
 
@@ -44,7 +45,7 @@ class Camera:
     def camtoworld(self) -> Tensor:
         """Inverse of the rigid ``viewmat``: [Rᵀ | -Rᵀt] (no general matrix inverse)."""
         R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
-        out = torch.eye(4, dtype=self.viewmat.dtype)
+        out = torch.eye(4, dtype=self.viewmat.dtype, device=self.viewmat.device)
         out[:3, :3] = R.T
         out[:3, 3] = -R.T @ t
         return out
@@ -56,6 +57,16 @@ class Camera:
 
     def with_image(self, image: Optional[Tensor]) -> "Camera":
         return replace(self, image=image)
+
+    def to(self, device: "torch.device | str") -> "Camera":
+        """This camera with K, viewmat and image on ``device`` (itself if already there)."""
+        device = torch.device(device)
+        if self.viewmat.device == device:
+            return self
+        moved = copy.copy(self)  # already validated: no second pass over the image on the new device
+        moved.K, moved.viewmat = self.K.to(device), self.viewmat.to(device)
+        moved.image = None if self.image is None else self.image.to(device, non_blocking=True)
+        return moved
 
 
 @dataclass

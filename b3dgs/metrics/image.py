@@ -99,7 +99,7 @@ def ssim_separable(pred: Tensor, gt: Tensor) -> Tensor:
     two 1-D passes (kornia's Gaussian kernel): about 5x cheaper, for the training loss. Differentiable."""
     if pred.shape != gt.shape or pred.dim() != 3 or pred.shape[-1] != 3:
         raise ValueError(f"ssim_separable: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
-    k = kornia.filters.get_gaussian_kernel1d(SSIM_WINDOW, SSIM_SIGMA, dtype=pred.dtype).reshape(-1)
+    k = kornia.filters.get_gaussian_kernel1d(SSIM_WINDOW, SSIM_SIGMA, device=pred.device, dtype=pred.dtype).reshape(-1)
     kx = k.view(1, 1, 1, -1).repeat(15, 1, 1, 1)
     ky = k.view(1, 1, -1, 1).repeat(15, 1, 1, 1)
     a = pred.permute(2, 0, 1).unsqueeze(0)

@@ -12,6 +12,7 @@ from typing import Optional, Sequence, Tuple, Union
 
 import torch
 
+from b3dgs.device import randn
 from .guards import guard
 
 __all__ = [
@@ -309,14 +310,15 @@ def bartlett_factor(nu: torch.Tensor, n_samples: int, D: int, generator: Optiona
     K = int(nu.shape[0])
     df = nu[None, :, None] - torch.arange(D, dtype=_F64, device=nu.device)  # (1,K,D): nu - i + 1, i=1..D
     shape_g = (0.5 * df).expand(n_samples, K, D).contiguous()
-    chi2 = 2.0 * torch._standard_gamma(shape_g, generator=generator)
+    gdev = generator.device if generator is not None else nu.device  # draws on the generator's device
+    chi2 = 2.0 * torch._standard_gamma(shape_g.to(gdev), generator=generator).to(nu.device)
     low = ~(chi2 >= BARTLETT_CHI2_FLOOR)
     if guard("sample_niw.bartlett_chi2_floor", low):
         chi2 = torch.where(low, torch.full_like(chi2, BARTLETT_CHI2_FLOOR), chi2)
     rows, cols = torch.tril_indices(D, D, offset=-1, device=nu.device)
     A = torch.diag_embed(torch.sqrt(chi2))
     # only the D(D-1)/2 strictly-lower entries are drawn
-    A[..., rows, cols] = torch.randn(n_samples, K, rows.numel(), dtype=_F64, device=nu.device, generator=generator)
+    A[..., rows, cols] = randn((n_samples, K, rows.numel()), generator=generator, dtype=_F64, device=nu.device)
     return A
 
 
@@ -361,7 +363,7 @@ def draw_niw(sampler: NIWSampler, n_samples: int, generator: Optional[torch.Gene
     K, D = sampler.m.shape
     A = bartlett_factor(sampler.nu, n_samples, D, generator)
     X = tril_solve(A, sampler.L.transpose(-1, -2).unsqueeze(0))
-    z = torch.randn(n_samples, K, D, dtype=_F64, device=sampler.m.device, generator=generator)
+    z = randn((n_samples, K, D), generator=generator, dtype=_F64, device=sampler.m.device)
     mu = sampler.m[None] + (X * z[..., :, None]).sum(-2) / torch.sqrt(sampler.kappa)[None, :, None]  # X^T z
     return mu, X, A
 

@@ -15,6 +15,7 @@ import importlib.util
 import os
 import sys
 import threading
+import warnings
 from pathlib import Path
 from types import ModuleType
 from typing import Optional
@@ -42,11 +43,12 @@ def _build_hash() -> str:
     h.update(" ".join(_CFLAGS + _LDFLAGS).encode())
     h.update(torch.__version__.encode())
     h.update(sys.version.encode())
+    h.update(os.environ.get("CXX", "c++").encode())  # the compiler torch's build uses
     return h.hexdigest()[:16]
 
 
 def cache_dir() -> Path:
-    """Build directory of the current sources/flags/torch version."""
+    """Build directory of the current sources, flags, compiler ($CXX) and torch version."""
     root = os.environ.get("B3DGS_CACHE")
     base = Path(root).expanduser() if root else Path.home() / ".cache" / "b3dgs" / "ext"
     return base / _build_hash()
@@ -112,6 +114,19 @@ def load_extension(verbose: bool = False) -> ModuleType:
                 f"Hint: {HINT}."
             ) from e
         return _module
+
+
+_WARNED: set[str] = set()
+
+
+def warn_fallback(error: Exception, fallback: str) -> None:
+    """One warning per fallback naming the compiler error (a failed build is never silent)."""
+    from b3dgs.render.renderers import first_compiler_error
+
+    msg = f"b3dgs: the C++ extension did not build ({first_compiler_error(str(error))}); {fallback}"
+    if msg not in _WARNED:
+        _WARNED.add(msg)
+        warnings.warn(msg, RuntimeWarning, stacklevel=3)
 
 
 def is_available() -> bool:

@@ -67,13 +67,14 @@ def _preprocess_torch(params: Mapping[str, Tensor], camera: Camera, S: int, deg:
     dtype = means.dtype
     means_s = _expand(means, S, 1)
     cov3d = params["covars"] if "covars" in params else covariance_3d(params["quats"], params["scales"])
-    proj = project(means_s, _expand(cov3d, S, 2), camera.viewmat.to(dtype), camera.K.to(dtype),
+    dev = means.device
+    proj = project(means_s, _expand(cov3d, S, 2), camera.viewmat.to(dev, dtype), camera.K.to(dev, dtype),
                    camera.width, camera.height, near)
     sh0 = params["sh0"]
     if deg > 0:
         nb = (deg + 1) ** 2
         coeffs = torch.cat([_expand(sh0, S, 2), _expand(params["shN"], S, 2)[..., : nb - 1, :]], dim=-2)
-        dirs = torch.nn.functional.normalize(means_s - camera.center.to(dtype), dim=-1)
+        dirs = torch.nn.functional.normalize(means_s - camera.center.to(dev, dtype), dim=-1)
         colors = eval_sh(deg, coeffs, dirs)
     else:
         colors = eval_sh(0, _expand(sh0, S, 2), means_s)
@@ -149,12 +150,13 @@ def _preprocess_cpu(params: Mapping[str, Tensor], camera: Camera, S: int, deg: i
     return Preprocessed(*outs)
 
 
+_BACKENDS = {"cpu": _preprocess_cpu, "torch": _preprocess_torch}
+
+
 def preprocess(params: Mapping[str, Tensor], camera: Camera, S: int, sh_degree: int = 3, backend: str = "cpu",
                near: float = 0.01) -> Preprocessed:
     """Project, colour and bound every Gaussian for ``camera`` (validated ``params``; S samples)."""
-    deg = effective_sh_degree(sh_degree, params.get("shN"))
-    if backend == "cpu":
-        return _preprocess_cpu(params, camera, S, deg, near)
-    if backend == "torch":
-        return _preprocess_torch(params, camera, S, deg, near)
-    raise ValueError(f"preprocess: backend must be 'cpu' or 'torch', got {backend!r}")
+    fn = _BACKENDS.get(backend)
+    if fn is None:
+        raise ValueError(f"preprocess: backend must be one of {sorted(_BACKENDS)}, got {backend!r}")
+    return fn(params, camera, S, effective_sh_degree(sh_degree, params.get("shN")), near)

@@ -98,19 +98,27 @@ def bin_gaussians(
         raise ValueError(f"bin_gaussians: extent must be (S, N, 2) = ({S}, {N}, 2), got {_shape_str(extent)}")
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
-    num_tiles = tiles_x * tiles_y
-    if backend == "cpu":
-        from b3dgs.render._ext import load_extension
-
-        dtype = means2d.dtype
-        offsets, flat_ids = load_extension().bin_tiles(
-            means2d.detach().contiguous(), radii.detach().to(dtype).contiguous(),
-            extent.detach().to(dtype).contiguous(), depths.detach().to(dtype).contiguous(),
-            width, height, tile_size)
-        return TileBins(offsets, flat_ids, tiles_x, tiles_y, tile_size)
-    if backend != "torch":
+    fn = _BIN_BACKENDS.get(backend)
+    if fn is None:
         raise ValueError(f"bin_gaussians: backend must be one of {BACKENDS}, got {backend!r}")
+    return fn(means2d, radii, depths, extent, width, height, tile_size, tiles_x, tiles_y)
 
+
+def _bin_cpu(means2d, radii, depths, extent, width, height, tile_size, tiles_x, tiles_y) -> TileBins:
+    from b3dgs.render._ext import load_extension
+
+    dtype = means2d.dtype
+    offsets, flat_ids = load_extension().bin_tiles(
+        means2d.detach().contiguous(), radii.detach().to(dtype).contiguous(),
+        extent.detach().to(dtype).contiguous(), depths.detach().to(dtype).contiguous(),
+        width, height, tile_size)
+    return TileBins(offsets, flat_ids, tiles_x, tiles_y, tile_size)
+
+
+def _bin_torch(means2d, radii, depths, extent, width, height, tile_size, tiles_x, tiles_y) -> TileBins:
+    S, N = means2d.shape[:2]
+    num_tiles = tiles_x * tiles_y
+    dev = means2d.device
     m = means2d.detach().double()
     r = radii.detach().double()
     d = depths.detach().double()
@@ -125,7 +133,7 @@ def bin_gaussians(
     ymax = torch.where(reach, y + ey, -inf).amax(0)
     nvalid = valid.sum(0)
     vis = reach.any(0)
-    zero = torch.zeros((), dtype=torch.float64)
+    zero = torch.zeros((), dtype=torch.float64, device=dev)
     xmin, xmax = torch.where(vis, xmin, zero), torch.where(vis, xmax, zero)
     ymin, ymax = torch.where(vis, ymin, zero), torch.where(vis, ymax, zero)
     tx0 = torch.floor(xmin / tile_size).clamp(0, tiles_x).long()
@@ -140,13 +148,13 @@ def bin_gaussians(
     dkey = torch.where(valid, d, zero).sum(0) / nvalid.clamp_min(1)
     order = torch.sort(dkey, stable=True).indices
     rank = torch.empty_like(order)
-    rank[order] = torch.arange(N, dtype=torch.int64)
+    rank[order] = torch.arange(N, dtype=torch.int64, device=dev)
 
-    gid = torch.repeat_interleave(torch.arange(N, dtype=torch.int64), counts)
+    gid = torch.repeat_interleave(torch.arange(N, dtype=torch.int64, device=dev), counts)
     P = int(gid.numel())
     if P > 0:
         starts = torch.cumsum(counts, 0) - counts
-        local = torch.arange(P, dtype=torch.int64) - starts[gid]
+        local = torch.arange(P, dtype=torch.int64, device=dev) - starts[gid]
         wxg = wx[gid]
         tile = (ty0[gid] + torch.div(local, wxg, rounding_mode="floor")) * tiles_x + tx0[gid] + local % wxg
         key = tile * max(N, 1) + rank[gid]
@@ -154,11 +162,14 @@ def bin_gaussians(
         flat_ids = gid[perm]
         tile_counts = torch.bincount(tile, minlength=num_tiles)
     else:
-        flat_ids = torch.zeros(0, dtype=torch.int64)
-        tile_counts = torch.zeros(num_tiles, dtype=torch.int64)
-    tile_offsets = torch.zeros(num_tiles + 1, dtype=torch.int64)
+        flat_ids = torch.zeros(0, dtype=torch.int64, device=dev)
+        tile_counts = torch.zeros(num_tiles, dtype=torch.int64, device=dev)
+    tile_offsets = torch.zeros(num_tiles + 1, dtype=torch.int64, device=dev)
     torch.cumsum(tile_counts, 0, out=tile_offsets[1:])
     return TileBins(tile_offsets, flat_ids, tiles_x, tiles_y, tile_size)
+
+
+_BIN_BACKENDS = {"cpu": _bin_cpu, "torch": _bin_torch}
 
 
 # --------------------------------------------------------------------------------------------
@@ -187,8 +198,10 @@ def _check_inputs(means2d, conics, colors, opacities, depths, bins, width, heigh
                          f"{_shape_str(background) if isinstance(background, Tensor) else type(background)}")
     for name, t in (("means2d", means2d), ("conics", conics), ("colors", colors),
                     ("opacities", opacities), ("depths", depths), ("background", background)):
-        if t.device.type != "cpu":
-            raise ValueError(f"rasterize: {name} must be on the CPU, got {t.device}")
+        need = _BACKEND_DEVICE_TYPE[backend] or means2d.device.type
+        if t.device != means2d.device or t.device.type != need:
+            raise ValueError(f"rasterize: {name} is on {t.device}; the {backend} backend needs every input on "
+                             f"one {need} device")
         if not bool(torch.isfinite(t.detach()).all()):
             raise ValueError(f"rasterize: {name} contains NaN or Inf")
     if width <= 0 or height <= 0:
@@ -215,7 +228,7 @@ def _check_inputs(means2d, conics, colors, opacities, depths, bins, width, heigh
 # --------------------------------------------------------------------------------------------
 def _tile_pixel_centres(bins: TileBins, tiles: Tensor, width: int, height: int, dtype):
     ts = bins.tile_size
-    local = torch.arange(ts * ts)
+    local = torch.arange(ts * ts, device=tiles.device)
     lx, ly = local % ts, local // ts
     tx, ty = tiles % bins.tiles_x, tiles // bins.tiles_x
     px = tx[:, None] * ts + lx[None, :]  # (Tc, ts*ts)
@@ -249,7 +262,7 @@ def _torch_chunk(mx, my, ca, cb, cc, op, col, z, valid, pxc, pyc, inside, want_w
         T_final = T_excl[..., -1, :] * one_m[..., -1, :]
     else:
         T_excl = one_m
-        T_final = torch.ones(alpha.shape[:-2] + alpha.shape[-1:], dtype=alpha.dtype)
+        T_final = torch.ones(alpha.shape[:-2] + alpha.shape[-1:], dtype=alpha.dtype, device=alpha.device)
     w = alpha * T_excl  # (s, Tc, K, Pix)
     rgb = torch.einsum("stkp,stkc->stpc", w, col)
     depth = torch.einsum("stkp,stk->stp", w, z)
@@ -260,7 +273,7 @@ def _torch_chunk(mx, my, ca, cb, cc, op, col, z, valid, pxc, pyc, inside, want_w
             wsum = wd.sum(-1)
             wsq = (wd * wd).sum(-1)
         else:
-            wsum = wsq = torch.zeros(0, dtype=alpha.dtype)
+            wsum = wsq = torch.zeros(0, dtype=alpha.dtype, device=alpha.device)
     return rgb, depth, T_final, n_contrib, wsum, wsq
 
 
@@ -297,15 +310,16 @@ def _rasterize_torch(means2d, conics, colors, opacities, depths, bins, width, he
     per_g = torch.cat([means2d, conics, opacities[..., None], colors, depths[..., None]], dim=-1)  # (S,N,10)
 
     rgb_parts, depth_parts, T_parts, nc_parts = [], [], [], []
-    wsum = torch.zeros(S, N, dtype=dtype) if return_weights else None
-    wsq = torch.zeros(S, N, dtype=dtype) if return_weights else None
+    dev = means2d.device
+    wsum = torch.zeros(S, N, dtype=dtype, device=dev) if return_weights else None
+    wsq = torch.zeros(S, N, dtype=dtype, device=dev) if return_weights else None
     for s0 in range(0, S, s_block):
         s1 = min(S, s0 + s_block)
         rgb_s, depth_s, T_s, nc_s = [], [], [], []
         for i, j, kmax in chunks:
             tiles = order[i:j]
             pxc, pyc, inside = _tile_pixel_centres(bins, tiles, width, height, dtype)
-            kk = torch.arange(kmax)
+            kk = torch.arange(kmax, device=dev)
             valid = kk[None, :] < counts[tiles][:, None]  # (Tc, K)
             pos = (offsets[tiles][:, None] + kk[None, :]).clamp_max(max(bins.num_pairs - 1, 0))
             gidx = torch.where(valid, bins.flat_ids[pos] if bins.num_pairs > 0 else pos, 0)  # (Tc, K)
@@ -333,7 +347,7 @@ def _rasterize_torch(means2d, conics, colors, opacities, depths, bins, width, he
         T_parts.append(torch.cat(T_s, 1))
         nc_parts.append(torch.cat(nc_s, 1))
     inv = torch.empty_like(order)
-    inv[order] = torch.arange(num_tiles)
+    inv[order] = torch.arange(num_tiles, device=order.device)
 
     def to_image(x: Tensor) -> Tensor:  # (S, num_tiles(sorted), Pix, ...) -> (S, H, W, ...)
         x = x.index_select(1, inv)
@@ -424,8 +438,9 @@ def rasterize(
     """
     _check_inputs(means2d, conics, colors, opacities, depths, bins, width, height, background, backend)
     background = background.to(means2d.dtype)
-    if backend == "torch":
-        return _rasterize_torch(means2d, conics, colors, opacities, depths, bins, width, height,
-                                background, return_weights)
-    return _rasterize_cpu(means2d, conics, colors, opacities, depths, bins, width, height,
-                          background, return_weights)
+    return _RASTER_BACKENDS[backend](means2d, conics, colors, opacities, depths, bins, width, height, background,
+                                     return_weights)
+
+
+_RASTER_BACKENDS = {"cpu": _rasterize_cpu, "torch": _rasterize_torch}
+_BACKEND_DEVICE_TYPE = {"cpu": "cpu", "torch": None}  # None: any device

@@ -29,16 +29,24 @@ class RenderOutput:
     means2d: Tensor  # (S, N, 2); retains grad when requested (densification statistics)
     radii: Tensor  # (S, N) screen radii in pixels, 0 where culled
     depths: Tensor  # (S, N) camera-space depth
-    bins: TileBins
+    bins: Optional[TileBins]  # our tile lists (None for backends that keep their own)
     weight_sum: Optional[Tensor] = None  # (S, N) sum_p w_kp
     weight_sq_sum: Optional[Tensor] = None  # (S, N) sum_p w_kp^2
+    means2d_source: Optional[Tensor] = None  # the tensor the backend differentiates (when not means2d itself)
 
     @property
     def visible(self) -> Tensor:
         return self.radii > 0
 
+    @property
+    def means2d_grad(self) -> Optional[Tensor]:
+        """d loss / d means2d as (S, N, 2) after backward (with ``retain_means2d_grad``), else None."""
+        src = self.means2d if self.means2d_source is None else self.means2d_source
+        return None if src.grad is None else src.grad.reshape(self.means2d.shape)
 
-def _check_params(params: Mapping[str, Tensor]) -> tuple[int, int, bool]:
+
+def check_render_params(params: Mapping[str, Tensor]) -> tuple[int, int, bool]:
+    """Validate parameter shapes; returns (S, N, batched)."""
     required = ("means", "opacities", "sh0") + (() if "covars" in params else ("quats", "scales"))
     missing = [k for k in required if k not in params]
     if missing:
@@ -80,19 +88,19 @@ def render(
 
     ``params`` may hold ``covars`` (…, N, 3, 3) instead of ``quats``/``scales`` (posterior samples of Σ).
     """
-    S, N, batched = _check_params(params)
+    S, N, batched = check_render_params(params)
     dtype = params["means"].dtype
     pre = preprocess(params, camera, S, sh_degree, backend, near)
     means2d = pre.means2d
     if retain_means2d_grad and means2d.requires_grad:
         means2d.retain_grad()
     if background is None:
-        background = torch.zeros(3, dtype=dtype)
+        background = torch.zeros(3, dtype=dtype, device=means2d.device)
     bins = bin_gaussians(means2d.detach(), pre.radii, pre.depths.detach(), camera.width, camera.height,
                          extent=pre.extent, backend=backend)
     out = rasterize(
         means2d, pre.conics, pre.colors, pre.opacities, pre.depths, bins, camera.width, camera.height,
-        background.to(dtype), backend=backend, return_weights=return_weights,
+        background.to(means2d.device, dtype), backend=backend, return_weights=return_weights,
     )
     depth = out.depth / out.alpha.clamp_min(1e-6)
     rgb, alpha = out.rgb, out.alpha

@@ -24,6 +24,10 @@ class Predictive:
     epistemic: Tensor  # (H, W) the sample/member spread u_p alone
     aleatoric: float  # the constant aleatoric term added to u_p (0 if none)
 
+    def cpu(self) -> "Predictive":
+        """This prediction with its images on the CPU (where the metrics and ground truth live)."""
+        return Predictive(self.mean.cpu(), self.var.cpu(), self.epistemic.cpu(), self.aleatoric)
+
 
 @dataclass
 class UQRegime:

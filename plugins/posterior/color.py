@@ -2,10 +2,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import ClassVar, Optional
 
 import torch
 
+from b3dgs.device import randn
 from b3dgs.plugin import PosteriorBlock
 from b3dgs.posterior import appearance as app
 from b3dgs.render.projection import SH_C0
@@ -24,16 +25,17 @@ class ColorBlock(PosteriorBlock):
     prior_precision: float = 1.0
     ema: float = 0.99
     t_post: Optional[int] = None
-    needs_weights: bool = True
+    needs_weights: ClassVar[bool] = True
 
     def check_sanity(self, max_steps: int = 0, **kw) -> None:
         if self.prior_precision <= 0:
             raise ValueError("posterior.color.prior_precision must be > 0")
 
     def initialize_state(self, *, splats, scene, info):
-        n = splats["means"].shape[0]
-        return {"wsq": torch.zeros(n, dtype=torch.float64), "sigma2": torch.tensor(1e-2, dtype=torch.float64),
-                "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0)}
+        n, dev = splats["means"].shape[0], splats["means"].device
+        return {"wsq": torch.zeros(n, dtype=torch.float64, device=dev),
+                "sigma2": torch.tensor(1e-2, dtype=torch.float64, device=dev),
+                "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0, device=dev)}
 
     @torch.no_grad()
     def step_post_backward(self, *, splats, optimizers, state, step, info):
@@ -56,7 +58,7 @@ class ColorBlock(PosteriorBlock):
         out = dict(params)
         sh0 = out["sh0"] if out["sh0"].dim() == 4 else out["sh0"].unsqueeze(0).expand(n, -1, -1, -1)
         std = (self.rgb_var(state).sqrt() / SH_C0).to(sh0.dtype)
-        eps = torch.randn(sh0.shape, generator=generator, dtype=sh0.dtype)
+        eps = randn(sh0.shape, generator=generator, dtype=sh0.dtype, device=sh0.device)
         out["sh0"] = sh0 + std.view(1, -1, 1, 1) * eps
         return out
 

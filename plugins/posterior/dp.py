@@ -2,10 +2,11 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import ClassVar, Optional
 
 import torch
 
+from b3dgs.device import bernoulli
 from b3dgs.plugin import PosteriorBlock
 from b3dgs.posterior import dp as dpm
 
@@ -34,7 +35,7 @@ class DPBlock(PosteriorBlock):
     prior_active: float = 0.5
     gate_temperature: float = 1.0
     prune: bool = True
-    needs_weights: bool = True
+    needs_weights: ClassVar[bool] = True
 
     def check_sanity(self, max_steps: int = 0, **kw) -> None:
         if self.alpha <= 0:
@@ -47,14 +48,14 @@ class DPBlock(PosteriorBlock):
             raise ValueError("posterior.dp.prior_active must be in (0, 1)")
 
     def initialize_state(self, *, splats, scene, info):
-        n = splats["means"].shape[0]
+        n, dev = splats["means"].shape[0], splats["means"].device
         return {
-            "usage": torch.zeros(n, dtype=torch.float64),
-            "g1": torch.ones(n, dtype=torch.float64),
-            "g2": torch.full((n,), float(self.alpha), dtype=torch.float64),
-            "e_pi": torch.full((n,), 1.0 / max(n, 1), dtype=torch.float64),
-            "e_a": torch.ones(n, dtype=torch.float64),
-            "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0),
+            "usage": torch.zeros(n, dtype=torch.float64, device=dev),
+            "g1": torch.ones(n, dtype=torch.float64, device=dev),
+            "g2": torch.full((n,), float(self.alpha), dtype=torch.float64, device=dev),
+            "e_pi": torch.full((n,), 1.0 / max(n, 1), dtype=torch.float64, device=dev),
+            "e_a": torch.ones(n, dtype=torch.float64, device=dev),
+            "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0, device=dev),
         }
 
     @torch.no_grad()
@@ -68,7 +69,7 @@ class DPBlock(PosteriorBlock):
         if self.prune:
             k = state["usage"].numel()
             mask = (state["e_pi"] < dpm.prune_threshold(k, self.prune_pi)) | (state["e_a"] < self.prune_activity)
-            state["last_pruned"] = torch.tensor(int(mask.sum()))
+            state["last_pruned"] = mask.sum()
             info["ops"].prune(mask, reason="dp")
 
     @torch.no_grad()
@@ -88,7 +89,7 @@ class DPBlock(PosteriorBlock):
     def sample(self, *, splats, state, n, generator, params, info):
         """Activity draws a_k ~ Bernoulli(E[a_k]); inactive Gaussians render with zero opacity."""
         out = dict(params)
-        a = torch.bernoulli(state["e_a"].float().expand(n, -1), generator=generator)
+        a = bernoulli(state["e_a"].float().expand(n, -1), generator)
         base = out["opacities"] if out["opacities"].dim() == 2 else out["opacities"].unsqueeze(0).expand(n, -1)
         out["opacities"] = torch.where(a > 0, base, torch.full_like(base, -30.0))
         return out

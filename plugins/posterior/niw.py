@@ -78,17 +78,18 @@ class NIWBlock(PosteriorBlock):
         cov = covariance_3d(splats["quats"].detach(), splats["scales"].detach())
         if rows is not None:
             means, cov = means[rows], cov[rows]
-        nu0 = torch.full((means.shape[0],), float(self.nu0), dtype=torch.float64)
+        nu0 = torch.full((means.shape[0],), float(self.nu0), dtype=torch.float64, device=means.device)
         return means.double(), niwm.prior_scale_for_expected_cov(cov.double(), nu0)
 
     def initialize_state(self, *, splats, scene, info):
         m0, S0 = self._prior_for(splats)
-        n = m0.shape[0]
+        n, dev = m0.shape[0], m0.device
         st = {
-            "m0": m0, "S0": S0, "N": torch.zeros(n, dtype=torch.float64),
+            "m0": m0, "S0": S0, "N": torch.zeros(n, dtype=torch.float64, device=dev),
             "ediag": torch.diagonal(S0, dim1=-2, dim2=-1) / (self.nu0 - D - 1),
-            "mse": torch.tensor(0.0, dtype=torch.float64), "mse_n": torch.tensor(0.0, dtype=torch.float64),
-            "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0),
+            "mse": torch.tensor(0.0, dtype=torch.float64, device=dev),
+            "mse_n": torch.tensor(0.0, dtype=torch.float64, device=dev),
+            "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0, device=dev),
         }
         self._refresh(st, splats)
         return st
@@ -99,23 +100,22 @@ class NIWBlock(PosteriorBlock):
     # ------------------------------------------------------------------ updates
     @torch.no_grad()
     def step_post_backward(self, *, splats, optimizers, state, step, info):
+        # tensor arithmetic only (no host synchronisation per step on a GPU)
         if self.plugin_noise:
-            mse = float(info["sq_err_sum"]) / max(int(info["num_values"]), 1)
+            mse = info["sq_err_sum"].double() / max(int(info["num_values"]), 1)
             state["mse"] = self.mse_ema * state["mse"] + (1 - self.mse_ema) * mse
             state["mse_n"] = self.mse_ema * state["mse_n"] + (1 - self.mse_ema)
         if step < self._t_niw(info):
             return
-        radii = info["per_gaussian"]["radii"][0]
-        vis = radii > 0
-        if bool(vis.any()):
-            o = torch.sigmoid(splats["opacities"].detach()[vis]).double()
-            raw = o * torch.sqrt(torch.clamp(state["ediag"][vis].prod(-1), min=0.0))
-            total = float(raw.sum())
-            eff_pixels = float(info["render"].alpha.detach().sum())
-            target = torch.zeros_like(state["N"])
-            if total > 0 and eff_pixels > 0:
-                target[vis] = raw * (eff_pixels * float(state["n_views"]) / total)
-            state["N"].mul_(self.ema).add_((1 - self.ema) * target)
+        vis = info["per_gaussian"]["radii"][0] > 0
+        o = torch.sigmoid(splats["opacities"].detach()).double() * vis
+        raw = o * torch.sqrt(torch.clamp(state["ediag"].prod(-1), min=0.0))
+        total = raw.sum()
+        eff_pixels = info["render"].alpha.detach().sum().double()
+        ok = (total > 0) & (eff_pixels > 0)
+        target = raw * torch.where(ok, eff_pixels * state["n_views"].double() / torch.where(ok, total, 1.0), 0.0)
+        keep = torch.where(vis.any(), self.ema, 1.0)  # no visible Gaussian: the counts stay as they are
+        state["N"].mul_(keep).add_((1 - keep) * target)
         if step % self.update_every == 0:
             self._refresh(state, splats)
 
@@ -124,9 +124,10 @@ class NIWBlock(PosteriorBlock):
         """Eq. 2-3 with x̄ = current centre and C = 0."""
         xbar = splats["means"].detach().double()
         n = xbar.shape[0]
-        k0 = torch.full((n,), float(self.kappa0), dtype=torch.float64)
-        nu0 = torch.full((n,), float(self.nu0), dtype=torch.float64)
-        C = torch.zeros(n, D, D, dtype=torch.float64)
+        dev = xbar.device
+        k0 = torch.full((n,), float(self.kappa0), dtype=torch.float64, device=dev)
+        nu0 = torch.full((n,), float(self.nu0), dtype=torch.float64, device=dev)
+        C = torch.zeros(n, D, D, dtype=torch.float64, device=dev)
         m_n, k_n, nu_n, S_n = niwm.niw_update(state["m0"], k0, nu0, state["S0"], state["N"], xbar, C)
         state["m_n"], state["kappa_n"], state["nu_n"], state["S_n"] = m_n, k_n, nu_n, S_n
         state["ediag"] = torch.diagonal(niwm.expected_cov(S_n, nu_n), dim1=-2, dim2=-1).clone()
@@ -166,7 +167,7 @@ class NIWBlock(PosteriorBlock):
             cov_r = covariance_3d(splats["quats"].detach(), splats["scales"].detach()).double()
             LrT = niwm.safe_cholesky(cov_r).transpose(-1, -2).unsqueeze(0)
 
-        ext = self._sampling_extension()
+        ext = self._sampling_extension(splats["means"].device)
         if ext is not None:
             mode = {"none": 0, "absolute": 1, "relative": 2}[self.cov_mode]
             empty = torch.zeros(0, dtype=torch.float64)
@@ -194,15 +195,20 @@ class NIWBlock(PosteriorBlock):
 
         return draw
 
-    def _sampling_extension(self):
-        """The C++ extension for ``sampler_backend`` cpu/auto (auto falls back to torch if it cannot load)."""
-        if self.sampler_backend == "torch":
+    def _sampling_extension(self, device: torch.device):
+        """The C++ extension for ``sampler_backend`` cpu/auto on CPU tensors; auto uses the torch path on
+        other devices, and falls back to it (with one warning naming the compiler error) if the build failed."""
+        if self.sampler_backend == "torch" or (self.sampler_backend == "auto" and device.type != "cpu"):
             return None
-        from b3dgs.render._ext import is_available, load_extension
+        from b3dgs.render._ext import load_extension, warn_fallback
 
-        if self.sampler_backend == "cpu" or is_available():
+        try:
             return load_extension()
-        return None
+        except RuntimeError as e:
+            if self.sampler_backend == "cpu":
+                raise
+            warn_fallback(e, "the NIW posterior sampler uses its float64 torch path")
+            return None
 
     @torch.no_grad()
     def posterior_mean(self, *, splats, state, params):

@@ -33,7 +33,9 @@ class NoiseBlock(PosteriorBlock):
             raise ValueError("posterior.noise.decay must be in [0, 1)")
 
     def initialize_state(self, *, splats, scene, info):
-        return {"a": torch.tensor(self.a0, dtype=torch.float64), "b": torch.tensor(self.b0, dtype=torch.float64)}
+        dev = splats["means"].device
+        return {"a": torch.tensor(self.a0, dtype=torch.float64, device=dev),
+                "b": torch.tensor(self.b0, dtype=torch.float64, device=dev)}
 
     @torch.no_grad()
     def step_post_backward(self, *, splats, optimizers, state, step, info):

@@ -6,6 +6,7 @@ from typing import Optional
 
 import torch
 
+from b3dgs.device import randn
 from b3dgs.plugin import PosteriorBlock
 from b3dgs.posterior import appearance as app
 
@@ -32,9 +33,9 @@ class OpacityBlock(PosteriorBlock):
             raise ValueError("posterior.opacity.ema must be in [0, 1)")
 
     def initialize_state(self, *, splats, scene, info):
-        n = splats["means"].shape[0]
-        return {"fisher": torch.zeros(n, dtype=torch.float64),
-                "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0)}
+        n, dev = splats["means"].shape[0], splats["means"].device
+        return {"fisher": torch.zeros(n, dtype=torch.float64, device=dev),
+                "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0, device=dev)}
 
     @torch.no_grad()
     def step_post_backward(self, *, splats, optimizers, state, step, info):
@@ -61,7 +62,7 @@ class OpacityBlock(PosteriorBlock):
         out = dict(params)
         base = out["opacities"] if out["opacities"].dim() == 2 else out["opacities"].unsqueeze(0).expand(n, -1)
         std = self.logit_var(state).sqrt().to(base.dtype)
-        eps = torch.randn(base.shape, generator=generator, dtype=base.dtype)
+        eps = randn(base.shape, generator=generator, dtype=base.dtype, device=base.device)
         out["opacities"] = torch.where(base > -29.0, base + std * eps, base)
         return out
 

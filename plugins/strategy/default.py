@@ -49,11 +49,11 @@ class AdaptiveDensityControl(Plugin):
             raise ValueError("strategy.prune_big_after must be >= 0 or null (null: after the first opacity reset)")
 
     def initialize_state(self, *, splats, scene, info):
-        n = splats["means"].shape[0]
+        n, dev = splats["means"].shape[0], splats["means"].device
         return {
-            "grad2d": torch.zeros(n),
-            "count": torch.zeros(n),
-            "max_radii": torch.zeros(n),
+            "grad2d": torch.zeros(n, device=dev),
+            "count": torch.zeros(n, device=dev),
+            "max_radii": torch.zeros(n, device=dev),
         }
 
     def step_post_backward(self, *, splats, optimizers, state, step, info):
@@ -102,7 +102,7 @@ class AdaptiveDensityControl(Plugin):
         n_clone = int(clone.sum())
         ops.clone(clone)
         # the clones are appended; extend the split mask accordingly
-        split = torch.cat([split, torch.zeros(n_clone, dtype=torch.bool)])
+        split = torch.cat([split, torch.zeros(n_clone, dtype=torch.bool, device=split.device)])
         ops.split(split)
         prune = torch.sigmoid(splats["opacities"]) < self.prune_opacity
         if step > (self.reset_every if self.prune_big_after is None else self.prune_big_after):

@@ -19,7 +19,7 @@ def render_features(module, camera) -> torch.Tensor:
         out = module.render_camera(camera)
         rgb = out.rgb.clamp(0, 1)
         depth = out.depth * (out.alpha > 0.5)
-        med = depth[depth > 0].median() if bool((depth > 0).any()) else torch.tensor(1.0)
+        med = depth[depth > 0].median() if bool((depth > 0).any()) else torch.ones((), device=depth.device)
         gx = torch.zeros_like(rgb[..., 0])
         gy = torch.zeros_like(rgb[..., 0])
         gx[:, 1:] = (rgb[:, 1:] - rgb[:, :-1]).abs().mean(-1)
@@ -59,13 +59,13 @@ class PPUHead(UQRegime):
         m = self.models[0]
         g = torch.Generator().manual_seed(int(self.seed))
         torch.manual_seed(int(self.seed))
-        self.head = ResidualHead(self.width)
+        self.head = ResidualHead(self.width).to(m.device)
         data = []
         for cam in scene.train:
             feats, rgb = render_features(m, cam)
-            data.append((feats, (rgb - cam.image).square().permute(2, 0, 1)))  # (3, H, W)
+            data.append((feats, (rgb - m.device_camera(cam).image).square().permute(2, 0, 1)))  # (3, H, W)
         opt = torch.optim.Adam(self.head.parameters(), lr=self.lr)
-        loss = torch.tensor(float("nan"))
+        loss = torch.full((), float("nan"), device=m.device)
         for it in range(self.steps):
             feats, r2 = data[int(torch.randint(len(data), (1,), generator=g))]
             logv = self.head(feats)[0]
@@ -73,7 +73,7 @@ class PPUHead(UQRegime):
             opt.zero_grad()
             loss.backward()
             opt.step()
-        self.final_loss = float(loss)
+        self.final_loss = float(loss.detach())
         self.head.eval()
 
     @torch.no_grad()

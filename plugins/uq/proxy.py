@@ -5,6 +5,7 @@ from dataclasses import dataclass
 
 import torch
 
+from b3dgs.device import randn
 from b3dgs.uq.regime import Predictive, UQRegime, render_params, sample_spread
 
 
@@ -31,7 +32,7 @@ class ProxyUQ(UQRegime):
         def draw(n):
             p = dict(base)
             means = base["means"]
-            noise = torch.randn((n,) + tuple(means.shape), generator=generator, dtype=means.dtype)
+            noise = randn((n,) + tuple(means.shape), generator=generator, dtype=means.dtype, device=means.device)
             p["means"] = means.unsqueeze(0) + sigma * noise
             return p
 

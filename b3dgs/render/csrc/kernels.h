@@ -236,9 +236,11 @@ struct BwdState {
 };
 
 // Fixed-order (pairwise tree) sum of the kLanes lanes.
-template <typename V>
-B3_INLINE auto lane_sum(const V& v) -> typename std::remove_reference<decltype(v[0])>::type {
-  typename std::remove_reference<decltype(v[0])>::type s[kLanes];
+// The element type comes from Vec<scalar_t>, never from decltype(v[0]): GCC 13 and clang type a
+// const vector's subscript as a const reference, GCC 12 as a plain value.
+template <typename scalar_t>
+B3_INLINE scalar_t lane_sum(const typename Vec<scalar_t>::V& v) {
+  scalar_t s[kLanes];
   for (int l = 0; l < kLanes; ++l) s[l] = v[l];
   for (int w = kLanes / 2; w >= 1; w /= 2)
     for (int l = 0; l < w; ++l) s[l] = s[l] + s[l + w];
@@ -319,8 +321,8 @@ B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int p
     ndone = 0;
     for (int l = 0; l < kLanes; ++l) ndone += ndv[l];
     if (pair_w) {
-      pair_w[2 * k] = lane_sum(wl);
-      pair_w[2 * k + 1] = lane_sum(ql);
+      pair_w[2 * k] = lane_sum<scalar_t>(wl);
+      pair_w[2 * k + 1] = lane_sum<scalar_t>(ql);
     }
   }
 }
@@ -403,16 +405,16 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
       }
     }
     scalar_t* pg = pair_g + 10 * k;
-    pg[0] = lane_sum(a0);
-    pg[1] = lane_sum(a1);
-    pg[2] = lane_sum(a2);
-    pg[3] = lane_sum(a3);
-    pg[4] = lane_sum(a4);
-    pg[5] = lane_sum(a5);
-    pg[6] = lane_sum(a6);
-    pg[7] = lane_sum(a7);
-    pg[8] = lane_sum(a8);
-    pg[9] = lane_sum(a9);
+    pg[0] = lane_sum<scalar_t>(a0);
+    pg[1] = lane_sum<scalar_t>(a1);
+    pg[2] = lane_sum<scalar_t>(a2);
+    pg[3] = lane_sum<scalar_t>(a3);
+    pg[4] = lane_sum<scalar_t>(a4);
+    pg[5] = lane_sum<scalar_t>(a5);
+    pg[6] = lane_sum<scalar_t>(a6);
+    pg[7] = lane_sum<scalar_t>(a7);
+    pg[8] = lane_sum<scalar_t>(a8);
+    pg[9] = lane_sum<scalar_t>(a9);
   }
 }
 

@@ -1,0 +1,44 @@
+"""Device helpers: move plugin state trees, synchronise before reading a clock."""
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import torch
+
+
+def move_tree(obj: Any, device: torch.device) -> Any:
+    """``obj`` (nested dicts / lists of tensors) with every tensor on ``device`` (dtypes unchanged)."""
+    if isinstance(obj, torch.Tensor):
+        return obj.to(device)
+    if isinstance(obj, dict):
+        return {k: move_tree(v, device) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(move_tree(v, device) for v in obj)
+    return obj
+
+
+def synchronize(device: "torch.device | str | None" = None) -> None:
+    """Wait for queued kernels on a CUDA device (a no-op on the CPU), so that a clock reads real time."""
+    dev = torch.device(device) if device is not None else None
+    if (dev is None or dev.type == "cuda") and torch.cuda.is_available() and torch.cuda.is_initialized():
+        torch.cuda.synchronize(dev)
+
+
+def timed_clock(device: "torch.device | str | None" = None) -> float:
+    """``time.perf_counter()`` after :func:`synchronize`."""
+    synchronize(device)
+    return time.perf_counter()
+
+
+def randn(shape, *, generator: "torch.Generator | None" = None, dtype=torch.float32, device=None) -> torch.Tensor:
+    """Standard normal draws made on ``generator``'s device and delivered on ``device`` (a CPU generator
+    gives the same numbers whatever device the model is on)."""
+    gdev = generator.device if generator is not None else device
+    return torch.randn(shape, generator=generator, dtype=dtype, device=gdev).to(device)
+
+
+def bernoulli(p: torch.Tensor, generator: "torch.Generator | None" = None) -> torch.Tensor:
+    """Bernoulli(p) draws made on ``generator``'s device, returned on ``p``'s device."""
+    gdev = generator.device if generator is not None else p.device
+    return torch.bernoulli(p.to(gdev), generator=generator).to(p.device)

@@ -1,0 +1,126 @@
+"""gsplat (CUDA) behind our render contract, and per-Gaussian weight sums from a pixel-pair list.
+
+gsplat 1.5.3's ``rasterization`` takes leading batch dimensions, so the S samples of a batched
+render (posterior draws, jitter) are one call with batch shape (S,) and one camera. We call it with
+``packed=False`` so that ``radii``/``means2d`` stay (…, C, N, …) and line up with our (S, N) layout.
+
+gsplat does not return Σ_p w_kp and Σ_p w_kp²; :func:`weight_sums` computes them from the
+(Gaussian, pixel) pairs that ``rasterize_to_indices_in_range`` lists front to back, with the same
+α rule as gsplat's compositing. It is plain PyTorch (so it is tested on the CPU against our own
+rasterizer) and runs only when a block asks for weights.
+"""
+from __future__ import annotations
+
+from typing import Mapping, Optional
+
+import torch
+from torch import Tensor
+
+from b3dgs.render.preprocess import effective_sh_degree
+from b3dgs.render.render import RenderOutput, check_render_params
+from b3dgs.types import Camera
+
+GSPLAT_MAX_ALPHA = 0.999
+_ALL_BATCHES = 1 << 30  # "every batch of every tile" for rasterize_to_indices_in_range (a uint32)
+
+
+def _lead(t: Tensor, S: int, tail: int) -> Tensor:
+    """(…, N, *tail) with an optional sample dimension -> (S, N, *tail) (a view where possible)."""
+    return t.expand((S,) + t.shape[-tail - 1:]) if t.dim() == tail + 2 else t.unsqueeze(0).expand((S,) + t.shape)
+
+
+def weight_sums(gauss_ids: Tensor, pixel_ids: Tensor, image_ids: Tensor, means2d: Tensor, conics: Tensor,
+                opacities: Tensor, width: int, height: int, max_alpha: float = GSPLAT_MAX_ALPHA) -> tuple[Tensor, Tensor]:
+    """Σ_p w_kp and Σ_p w_kp² per image and Gaussian, from the composited (Gaussian, pixel) pairs.
+
+    gauss_ids, pixel_ids (row-major in the image), image_ids: (M,) pairs, front to back within each
+    pixel; means2d (I, N, 2), conics (I, N, 3), opacities (I, N). w = α·T with α = min(max_alpha,
+    o·exp(-q/2)) at the pixel centre and T the product of (1 - α) of the pixel's earlier pairs
+    (a segmented product, taken in log space in float64). Returns two (I, N) float64 tensors.
+    """
+    I, N = opacities.shape
+    if means2d.shape != (I, N, 2) or conics.shape != (I, N, 3):
+        raise ValueError(f"weight_sums: means2d {tuple(means2d.shape)} / conics {tuple(conics.shape)} do not "
+                         f"match opacities (I, N) = ({I}, {N})")
+    dev = opacities.device
+    wsum = torch.zeros(I * N, dtype=torch.float64, device=dev)
+    wsq = torch.zeros(I * N, dtype=torch.float64, device=dev)
+    M = int(gauss_ids.numel())
+    if M == 0:
+        return wsum.view(I, N), wsq.view(I, N)
+    pix_key = image_ids.long() * (width * height) + pixel_ids.long()
+    order = torch.sort(pix_key, stable=True).indices  # keeps the front-to-back order within a pixel
+    pix_key = pix_key[order]
+    flat = image_ids.long()[order] * N + gauss_ids.long()[order]
+    pid = pixel_ids.long()[order]
+    m = means2d.detach().reshape(-1, 2).double()[flat]
+    c = conics.detach().reshape(-1, 3).double()[flat]
+    o = opacities.detach().reshape(-1).double()[flat]
+    dx = m[:, 0] - ((pid % width).double() + 0.5)
+    dy = m[:, 1] - (torch.div(pid, width, rounding_mode="floor").double() + 0.5)
+    sigma = 0.5 * (c[:, 0] * dx * dx + c[:, 2] * dy * dy) + c[:, 1] * dx * dy
+    alpha = torch.clamp(o * torch.exp(-sigma), max=max_alpha)
+    log_keep = torch.log1p(-alpha)
+    incl = torch.cumsum(log_keep, 0)
+    excl = incl - log_keep
+    starts = torch.ones(M, dtype=torch.bool, device=dev)
+    starts[1:] = pix_key[1:] != pix_key[:-1]
+    idx = torch.arange(M, device=dev)
+    seg_first = torch.cummax(torch.where(starts, idx, torch.zeros_like(idx)), 0).values
+    w = alpha * torch.exp(excl - excl[seg_first])  # T before this pair, within its pixel
+    wsum.index_add_(0, flat, w)
+    wsq.index_add_(0, flat, w * w)
+    return wsum.view(I, N), wsq.view(I, N)
+
+
+def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: int = 3,
+                  background: Optional[Tensor] = None, return_weights: bool = False,
+                  retain_means2d_grad: bool = False, near: float = 0.01, tile_size: int = 16,
+                  eps2d: float = 0.3) -> RenderOutput:
+    """Render with ``gsplat.rasterization`` (CUDA, float32); see the module docstring."""
+    from gsplat import rasterization
+    from gsplat.cuda._wrapper import rasterize_to_indices_in_range
+
+    S, N, batched = check_render_params(params)
+    means = _lead(params["means"], S, 1)
+    dev, dtype = means.device, means.dtype
+    if dev.type != "cuda" or dtype != torch.float32:
+        raise ValueError(f"renderer=gsplat needs float32 CUDA tensors, got {dtype} on {dev} "
+                         "(fix: let the trainer move the model, or use renderer=torch on this device)")
+    deg = effective_sh_degree(sh_degree, params.get("shN"))
+    sh = _lead(params["sh0"], S, 2)
+    if deg > 0:
+        sh = torch.cat([sh, _lead(params["shN"], S, 2)[..., : (deg + 1) ** 2 - 1, :]], dim=-2)
+    if "covars" in params:
+        quats = scales = None
+        covars = _lead(params["covars"], S, 2)
+    else:
+        quats, scales, covars = _lead(params["quats"], S, 1), torch.exp(_lead(params["scales"], S, 1)), None
+    opac = torch.sigmoid(_lead(params["opacities"], S, 0))
+    viewmats = camera.viewmat.to(dev, dtype).expand(S, 1, 4, 4)
+    Ks = camera.K.to(dev, dtype).expand(S, 1, 3, 3)
+    bg = torch.zeros(3, device=dev, dtype=dtype) if background is None else background.to(dev, dtype)
+    W, H = int(camera.width), int(camera.height)
+    img, alphas, meta = rasterization(
+        means, quats, scales, opac, sh, viewmats, Ks, W, H, near_plane=near, eps2d=eps2d, sh_degree=deg,
+        packed=False, tile_size=tile_size, backgrounds=bg.expand(S, 1, 3), render_mode="RGB+ED",
+        covars=covars, rasterize_mode="classic")
+    m2d = meta["means2d"]  # (S, 1, N, 2); its .grad is the densification statistic
+    if retain_means2d_grad and m2d.requires_grad:
+        m2d.retain_grad()
+    radii = meta["radii"]
+    radii = (radii.amax(-1) if radii.dim() == 4 else radii)[:, 0].to(dtype)  # (S, N) larger screen radius
+    wsum = wsq = None
+    if return_weights:
+        with torch.no_grad():
+            gids, pids, iids = rasterize_to_indices_in_range(
+                0, _ALL_BATCHES, torch.ones(S, 1, H, W, device=dev, dtype=dtype), m2d.detach(), meta["conics"],
+                meta["opacities"], W, H, tile_size, meta["isect_offsets"], meta["flatten_ids"])
+            ws, wq = weight_sums(gids, pids, iids, m2d.detach()[:, 0], meta["conics"][:, 0], meta["opacities"][:, 0],
+                                 W, H)
+            wsum, wsq = ws.to(dtype), wq.to(dtype)
+    rgb, depth, alpha = img[:, 0, ..., :3], img[:, 0, ..., 3], alphas[:, 0, ..., 0]
+    if not batched:
+        rgb, alpha, depth = rgb[0], alpha[0], depth[0]
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, means2d=m2d[:, 0], radii=radii, depths=meta["depths"][:, 0],
+                        bins=None, weight_sum=wsum, weight_sq_sum=wsq, means2d_source=m2d)

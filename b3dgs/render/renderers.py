@@ -1,0 +1,217 @@
+"""Renderer plugins: one object per backend, selected with ``renderer=auto|cpu|torch|gsplat``.
+
+Every renderer offers the same contract, so the trainer, the posterior blocks, the UQ regimes and
+the benchmarks never ask which backend they hold:
+
+- ``render(params, camera, sh_degree=, background=, return_weights=, retain_means2d_grad=)``
+  returns a :class:`~b3dgs.render.render.RenderOutput` ((S, N) per-Gaussian tensors; images
+  (H, W, …), or (S, H, W, …) when a parameter carries a sample dimension S);
+- ``ssim(pred, gt)``: the differentiable SSIM it prefers for the training loss;
+- ``device``: where the splats must live;
+- the capabilities it declares (``supports_weights``, ``supports_means2d_grad``, ``supports_samples``).
+
+``CPURenderer`` runs our C++/OpenMP kernels, ``TorchRenderer`` the pure-PyTorch reference (any
+device), ``GsplatRenderer`` gsplat's CUDA rasterizer. :func:`auto_renderer` picks gsplat when CUDA
+and gsplat are present, else the C++ backend, else torch, and says which and why.
+"""
+from __future__ import annotations
+
+import importlib.util
+import logging
+import re
+from dataclasses import dataclass
+from typing import Any, ClassVar, Mapping, Optional
+
+import torch
+from torch import Tensor
+
+from b3dgs.render.render import RenderOutput, render
+from b3dgs.types import Camera
+
+log = logging.getLogger(__name__)
+
+
+class RendererUnavailable(RuntimeError):
+    """The configured renderer cannot run on this machine (the message names the fix)."""
+
+
+@dataclass
+class Renderer:
+    """Base of the renderer plugins. ``near``: near-plane depth (scene units) below which Gaussians are culled."""
+
+    near: float = 0.01
+
+    name: ClassVar[str] = "base"
+    supports_weights: ClassVar[bool] = True  # per-Gaussian Σ_p w_kp and Σ_p w_kp² on request
+    supports_means2d_grad: ClassVar[bool] = True  # gradient of the 2-D means (densification)
+    supports_samples: ClassVar[bool] = True  # parameters with a leading sample dimension S
+    max_alpha: ClassVar[float] = 0.99  # the compositing cap of α
+
+    def __post_init__(self) -> None:
+        if not (self.near > 0 and self.near < float("inf")):
+            raise ValueError(f"renderer.near must be a positive number, got {self.near} (fix: e.g. renderer.near=0.01)")
+
+    @property
+    def device(self) -> torch.device:
+        raise NotImplementedError
+
+    def check_available(self) -> None:
+        """Raise :class:`RendererUnavailable` (naming the fix) if this renderer cannot run here."""
+
+    def render(self, params: Mapping[str, Tensor], camera: Camera, *, sh_degree: int = 3,
+               background: Optional[Tensor] = None, return_weights: bool = False,
+               retain_means2d_grad: bool = False) -> RenderOutput:
+        raise NotImplementedError
+
+    def ssim(self, pred: Tensor, gt: Tensor) -> Tensor:
+        from b3dgs.metrics.image import ssim_separable
+
+        return ssim_separable(pred, gt)
+
+    def describe(self) -> dict[str, Any]:
+        """What metrics.json records about the renderer."""
+        return {"name": self.name, "device": str(self.device), "near": self.near, "max_alpha": self.max_alpha}
+
+
+@dataclass
+class CPURenderer(Renderer):
+    """Our C++/OpenMP kernels (projection + SH, binning, rasterizer, fused SSIM), deterministic for any
+    thread count. Compiled on first use into ``~/.cache/b3dgs/ext``."""
+
+    name: ClassVar[str] = "cpu"
+
+    @property
+    def device(self) -> torch.device:
+        return torch.device("cpu")
+
+    def check_available(self) -> None:
+        from b3dgs.render._ext import load_extension
+
+        try:
+            load_extension()
+        except RuntimeError as e:
+            raise RendererUnavailable(
+                f"renderer=cpu: the C++ extension did not build ({first_compiler_error(str(e))}) "
+                "(fix: renderer=torch, or install a C++ compiler with OpenMP)") from e
+
+    def render(self, params, camera, *, sh_degree=3, background=None, return_weights=False,
+               retain_means2d_grad=False) -> RenderOutput:
+        return render(params, camera, sh_degree=sh_degree, background=background, backend="cpu",
+                      return_weights=return_weights, retain_means2d_grad=retain_means2d_grad, near=self.near)
+
+    def ssim(self, pred: Tensor, gt: Tensor) -> Tensor:
+        from b3dgs.metrics.image import ssim_fused
+
+        return ssim_fused(pred, gt)
+
+
+@dataclass
+class TorchRenderer(Renderer):
+    """The pure-PyTorch reference (float64 ``gradcheck``-able), on the CPU or a CUDA device.
+    ``device``: ``auto`` (CUDA when available), ``cpu``, ``cuda`` or ``cuda:N``."""
+
+    device_name: str = "auto"
+    name: ClassVar[str] = "torch"
+
+    @property
+    def device(self) -> torch.device:
+        if self.device_name == "auto":
+            return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+        return torch.device(self.device_name)
+
+    def check_available(self) -> None:
+        if self.device.type == "cuda" and not torch.cuda.is_available():
+            raise RendererUnavailable(f"renderer=torch: device {self.device_name} requested but CUDA is not "
+                                      "available (fix: renderer.device_name=cpu or auto)")
+
+    def render(self, params, camera, *, sh_degree=3, background=None, return_weights=False,
+               retain_means2d_grad=False) -> RenderOutput:
+        return render(params, camera, sh_degree=sh_degree, background=background, backend="torch",
+                      return_weights=return_weights, retain_means2d_grad=retain_means2d_grad, near=self.near)
+
+
+def gsplat_available() -> bool:
+    return torch.cuda.is_available() and importlib.util.find_spec("gsplat") is not None
+
+
+@dataclass
+class GsplatRenderer(Renderer):
+    """gsplat's CUDA rasterizer (``pip install -e ".[cuda]"``), unpacked layout (``packed=False``).
+
+    S posterior samples are one call with a leading batch dimension (``covars=`` for covariance
+    draws). Per-Gaussian weight sums, which gsplat does not return, come from its per-pixel
+    intersection list (:func:`b3dgs.render.gsplat_backend.weight_sums`) and are computed only when
+    asked for. Semantics differ slightly from ours: α is capped at 0.999 (ours 0.99).
+    """
+
+    device_name: str = "cuda"
+    tile_size: int = 16
+    eps2d: float = 0.3  # the screen-space blur added to every 2-D covariance (ours: 0.3 px)
+    name: ClassVar[str] = "gsplat"
+    max_alpha: ClassVar[float] = 0.999
+
+    @property
+    def device(self) -> torch.device:
+        return torch.device(self.device_name)
+
+    def check_available(self) -> None:
+        if not torch.cuda.is_available():
+            raise RendererUnavailable("renderer=gsplat needs a CUDA GPU, and none is visible "
+                                      "(fix: renderer=auto picks the C++ CPU backend here)")
+        if importlib.util.find_spec("gsplat") is None:
+            raise RendererUnavailable('renderer=gsplat: gsplat is not installed (fix: pip install -e ".[cuda]")')
+
+    def render(self, params, camera, *, sh_degree=3, background=None, return_weights=False,
+               retain_means2d_grad=False) -> RenderOutput:
+        from b3dgs.render.gsplat_backend import render_gsplat
+
+        return render_gsplat(params, camera, sh_degree=sh_degree, background=background,
+                             return_weights=return_weights, retain_means2d_grad=retain_means2d_grad,
+                             near=self.near, tile_size=self.tile_size, eps2d=self.eps2d)
+
+
+_COMPILER_ERROR = re.compile(r"error:.*")
+
+
+def first_compiler_error(message: str) -> str:
+    """The first ``error:`` line of a failed build's output (or the message's first line)."""
+    m = _COMPILER_ERROR.search(message)
+    line = m.group(0) if m else (message.strip().splitlines() or ["unknown error"])[0]
+    return line.strip()[:300]
+
+
+def auto_renderer(near: float = 0.01) -> Renderer:
+    """gsplat when CUDA and gsplat are available, else the C++ backend, else the torch reference.
+
+    A failed C++ build is never silent: one warning names the compiler error and the fallback.
+    """
+    if gsplat_available():
+        chosen: Renderer = GsplatRenderer(near=near)
+        reason = "CUDA and gsplat are available"
+    else:
+        cpu = CPURenderer(near=near)
+        try:
+            cpu.check_available()
+            chosen, reason = cpu, ("no CUDA GPU" if not torch.cuda.is_available()
+                                   else 'CUDA without gsplat (pip install -e ".[cuda]" for the fast path)')
+        except RendererUnavailable as e:
+            from b3dgs.render._ext import warn_fallback
+
+            chosen = TorchRenderer(near=near)
+            reason = "the C++ extension did not build"
+            warn_fallback(e.__cause__ or e, "renderer=auto falls back to renderer=torch (pure PyTorch, about 40x "
+                                            "slower on the CPU; fix the compiler error above for the fast path)")
+    log.info("renderer=auto -> %s on %s (%s)", chosen.name, chosen.device, reason)
+    return chosen
+
+
+RENDERERS = {"cpu": CPURenderer, "torch": TorchRenderer, "gsplat": GsplatRenderer, "auto": auto_renderer}
+
+
+def make_renderer(spec: "str | Renderer") -> Renderer:
+    """A renderer object from itself or from its option name (``auto``, ``cpu``, ``torch``, ``gsplat``)."""
+    if isinstance(spec, Renderer):
+        return spec
+    if spec not in RENDERERS:
+        raise ValueError(f"unknown renderer {spec!r} (fix: renderer= one of {sorted(RENDERERS)})")
+    return RENDERERS[spec]()
