@@ -15,20 +15,25 @@ from b3dgs.io import atomic_path, write_json
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def median_ms(fn: Callable[[], None], repeats: int = 7, warmup: int = 2) -> float:
+def median_ms(fn: Callable[[], None], repeats: int = 7, warmup: int = 2, device=None) -> float:
+    """Median wall time of ``fn`` in ms (CUDA work is waited for on ``device``)."""
+    from b3dgs.device import timed_clock
+
     for _ in range(warmup):
         fn()
     times = []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = timed_clock(device)
         fn()
-        times.append((time.perf_counter() - t0) * 1000)
+        times.append((timed_clock(device) - t0) * 1000)
     return statistics.median(times)
 
 
 def machine() -> dict:
+    """Where a benchmark ran: Python, torch, threads, CPU, and the GPU when CUDA is present."""
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
     return {"python": platform.python_version(), "torch": torch.__version__, "threads": torch.get_num_threads(),
-            "machine": platform.machine(), "processor": platform.processor()}
+            "machine": platform.machine(), "processor": platform.processor(), "cuda_device": gpu}
 
 
 def table(rows: Sequence[dict], cols: Sequence[str]) -> str:

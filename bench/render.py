@@ -1,10 +1,12 @@
 """Renderer benchmark: forward and forward+backward of the full render (projection, binning,
-rasterization) for both backends, side by side in one run, at 256x256.
+rasterization) for every renderer plugin available here, side by side in one run, at 256x256.
 
-    python bench/render.py [--sizes 10000 50000 100000] [--checkpoint RUN_DIR/checkpoints/last.ckpt]
+    python bench/render.py [--sizes 10000 50000 100000] [--renderers cpu torch gsplat]
+                           [--checkpoint RUN_DIR/checkpoints/last.ckpt]
 
-Writes bench/results/render.json (rows {backend, n, width, height, fwd_ms, fwdbwd_ms, pairs}) and a
-table. Medians after warm-up; backends are interleaved per size so machine noise hits both alike.
+Writes bench/results/render.json (rows {renderer, device, n, width, height, fwd_ms, fwdbwd_ms, pairs})
+and a table. Medians after warm-up (CUDA synchronised); renderers are interleaved per size so machine
+noise hits all alike. gsplat rows appear when CUDA and gsplat are present.
 """
 from __future__ import annotations
 
@@ -18,7 +20,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import machine, median_ms, table, write_results  # noqa: E402
 
-from b3dgs.render.render import render  # noqa: E402
+from b3dgs.render.renderers import Renderer, gsplat_available, make_renderer  # noqa: E402
 from b3dgs.types import Camera  # noqa: E402
 
 
@@ -42,37 +44,45 @@ def camera(width: int = 256, height: int = 256) -> Camera:
     return Camera("bench", K, torch.eye(4), width, height)
 
 
-def time_case(params: dict, cam: Camera, backend: str, sh_degree: int) -> dict:
-    p = {k: v.clone().requires_grad_(True) for k, v in params.items()}
-    fwd = lambda: render(p, cam, sh_degree=sh_degree, backend=backend)  # noqa: E731
+def time_case(params: dict, cam: Camera, renderer: Renderer, sh_degree: int) -> dict:
+    dev = renderer.device
+    p = {k: v.to(dev).clone().requires_grad_(True) for k, v in params.items()}
+    cam = cam.to(dev)
+    fwd = lambda: renderer.render(p, cam, sh_degree=sh_degree)  # noqa: E731
 
     def fwdbwd():
-        out = render(p, cam, sh_degree=sh_degree, backend=backend, retain_means2d_grad=True)
+        out = renderer.render(p, cam, sh_degree=sh_degree, retain_means2d_grad=True)
         out.rgb.sum().backward()
 
-    reps = 7 if backend == "cpu" else 3
+    reps = 3 if renderer.name == "torch" else 7
     with torch.no_grad():
-        f_ms = median_ms(fwd, repeats=reps, warmup=1)
-    fb_ms = median_ms(fwdbwd, repeats=reps, warmup=1)
+        f_ms = median_ms(fwd, repeats=reps, warmup=1, device=dev)
+    fb_ms = median_ms(fwdbwd, repeats=reps, warmup=1, device=dev)
     with torch.no_grad():
-        pairs = fwd().bins.num_pairs
-    return {"backend": backend, "n": int(params["means"].shape[0]), "width": cam.width, "height": cam.height,
-            "fwd_ms": round(f_ms, 2), "fwdbwd_ms": round(fb_ms, 2), "pairs": int(pairs)}
+        bins = fwd().bins
+    return {"backend": renderer.name, "device": str(dev), "n": int(params["means"].shape[0]), "width": cam.width,
+            "height": cam.height, "fwd_ms": round(f_ms, 2), "fwdbwd_ms": round(fb_ms, 2),
+            "pairs": None if bins is None else int(bins.num_pairs)}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 50_000, 100_000])
-    ap.add_argument("--backends", nargs="+", default=["cpu", "torch"])
+    ap.add_argument("--renderers", "--backends", nargs="+", default=None,
+                    help="renderer options (default: cpu, torch, and gsplat when CUDA and gsplat are present)")
     ap.add_argument("--checkpoint", type=str, default=None, help="also time a trained checkpoint's test views")
     ap.add_argument("--name", default="render")
     args = ap.parse_args()
+    names = args.renderers or (["cpu", "torch"] + (["gsplat"] if gsplat_available() else []))
+    renderers = [make_renderer(n) for n in names]
+    for r in renderers:
+        r.check_available()
     rows = []
     cam = camera()
     for n in args.sizes:
         params = random_gaussians(n)
-        for backend in args.backends:
-            row = time_case(params, cam, backend, sh_degree=3)
+        for renderer in renderers:
+            row = time_case(params, cam, renderer, sh_degree=3)
             row["scene"] = "random"
             rows.append(row)
             print(row, flush=True)
@@ -82,21 +92,23 @@ def main() -> None:
         run = load_run(Path(args.checkpoint).parent.parent, checkpoint=args.checkpoint)
         params = {k: v.detach() for k, v in run.module.params().items()}
         tcam = run.scene.test[0]
-        for backend in args.backends:
-            row = time_case(params, tcam, backend, sh_degree=run.module.active_sh_degree())
+        for renderer in renderers:
+            row = time_case(params, tcam, renderer, sh_degree=run.module.active_sh_degree())
             row["scene"] = f"trained:{run.scene.name}"
             rows.append(row)
             print(row, flush=True)
-    ratios = []
+    ratios = []  # speed-up of each renderer over the pure-torch reference on the CPU, same size, same run
     for n in args.sizes:
-        c = [r for r in rows if r["n"] == n and r["backend"] == "cpu" and r["scene"] == "random"]
-        t = [r for r in rows if r["n"] == n and r["backend"] == "torch" and r["scene"] == "random"]
-        if c and t:
-            ratios.append({"n": n, "fwd_speedup": round(t[0]["fwd_ms"] / c[0]["fwd_ms"], 2),
-                           "fwdbwd_speedup": round(t[0]["fwdbwd_ms"] / c[0]["fwdbwd_ms"], 2)})
-    text = table(rows, ["scene", "backend", "n", "width", "height", "pairs", "fwd_ms", "fwdbwd_ms"])
+        ref = [r for r in rows if r["n"] == n and r["backend"] == "torch" and r["device"] == "cpu"
+               and r["scene"] == "random"]
+        for r in rows:
+            if ref and r["n"] == n and r["scene"] == "random" and r is not ref[0]:
+                ratios.append({"n": n, "renderer": f"{r['backend']}@{r['device']}",
+                               "fwd_speedup": round(ref[0]["fwd_ms"] / r["fwd_ms"], 2),
+                               "fwdbwd_speedup": round(ref[0]["fwdbwd_ms"] / r["fwdbwd_ms"], 2)})
+    text = table(rows, ["scene", "backend", "device", "n", "width", "height", "pairs", "fwd_ms", "fwdbwd_ms"])
     if ratios:
-        text += "\n\n" + table(ratios, ["n", "fwd_speedup", "fwdbwd_speedup"])
+        text += "\n\n" + table(ratios, ["n", "renderer", "fwd_speedup", "fwdbwd_speedup"])
     write_results(args.name, {"machine": machine(), "rows": rows, "speedups": ratios}, text)
 
 

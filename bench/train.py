@@ -1,9 +1,11 @@
-"""Standard 3DGS at the quick protocol on the shared scenes: PSNR against training time.
+"""Training at the quick protocol on the shared scenes: PSNR against training time, per model and device.
 
-    python bench/train.py [--scenes ethiopian_head fox] [--seeds 0] [--out outputs/bench]
+    python bench/train.py [--scenes ethiopian_head fox] [--seeds 0] [--models standard] [--out outputs/bench]
+    python bench/train.py --device cuda --scenes fox --models standard niw dpmm     # on a GPU machine
 
-Writes bench/results/train.json (final metrics and the curves) and bench/results/train.png.
-Runs are resumable: a finished run dir is reused.
+Writes bench/results/train.json (train_cuda.json for --device cuda: final metrics, the curves and the
+device) and the matching .png. Runs are resumable: a finished run dir is reused. With several models,
+the table adds each model's training time relative to standard of the same scene and seed.
 """
 from __future__ import annotations
 
@@ -21,19 +23,33 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", default=["ethiopian_head", "fox"])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--out", default="outputs/bench")
+    ap.add_argument("--models", nargs="+", default=["standard"], help="standard, niw, dpmm")
+    ap.add_argument("--device", choices=["cpu", "cuda"], default="cpu",
+                    help="cpu: renderer=cpu; cuda: renderer=gsplat (the GPU path of renderer=auto)")
     ap.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every run")
     args = ap.parse_args()
+    renderer = {"cpu": "cpu", "cuda": "gsplat"}[args.device]
+    suffix = "" if args.device == "cpu" else f"_{args.device}"
     rows, curves = [], {}
     for seed in args.seeds:
         for scene in args.scenes:
-            run_dir = Path(args.out) / scene / "standard" / f"s{seed}"
-            m = train_run(run_dir, scene_overrides(scene) + QUICK + ["model=standard", f"seed={seed}", *args.extra])
-            m = ensure_lpips(run_dir, m)
-            rows.append({"scene": scene, "seed": seed, "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"],
-                         "num_gaussians": m["num_gaussians"], "train_time_s": m["train_time_s"],
-                         "render_fps": m["render_fps"]})
-            curves[f"{scene}/s{seed}"] = json.loads((run_dir / "curve.json").read_text())["points"]
-            print(rows[-1], flush=True)
+            for model in args.models:
+                run_dir = Path(args.out) / scene / f"{model}{suffix}" / f"s{seed}"
+                m = train_run(run_dir, scene_overrides(scene) + QUICK + [f"model={model}", f"seed={seed}",
+                                                                          f"renderer={renderer}", *args.extra])
+                m = ensure_lpips(run_dir, m)
+                rend = m.get("renderer")
+                rows.append({"scene": scene, "model": model, "seed": seed, "device": args.device,
+                             "renderer": rend.get("name") if isinstance(rend, dict) else rend,
+                             "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"],
+                             "num_gaussians": m["num_gaussians"], "train_time_s": m["train_time_s"],
+                             "render_fps": m["render_fps"]})
+                curves[f"{scene}/{model}/s{seed}"] = json.loads((run_dir / "curve.json").read_text())["points"]
+                print(rows[-1], flush=True)
+    base = {(r["scene"], r["seed"]): r["train_time_s"] for r in rows if r["model"] == "standard"}
+    for r in rows:
+        b = base.get((r["scene"], r["seed"]))
+        r["time_vs_standard"] = round(r["train_time_s"] / b, 4) if b else None
     import matplotlib
 
     matplotlib.use("Agg")
@@ -45,12 +61,14 @@ def main() -> None:
     ax.set_xlabel("training time (s)")
     ax.set_ylabel("test PSNR (dB)")
     ax.legend(fontsize=7)
-    ax.set_title("Standard 3DGS, quick protocol (256 px, 3000 steps)", fontsize=9)
-    fig.tight_layout()
     RESULTS.mkdir(parents=True, exist_ok=True)
-    fig.savefig(RESULTS / "train.png")
-    text = table(rows, ["scene", "seed", "psnr", "ssim", "lpips", "num_gaussians", "train_time_s", "render_fps"])
-    write_results("train", {"machine": machine(), "rows": rows, "curves": curves}, text)
+    ax.set_title(f"Quick protocol (256 px, 3000 steps) on {args.device}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(RESULTS / f"train{suffix}.png")
+    text = table(rows, ["scene", "model", "seed", "device", "renderer", "psnr", "ssim", "lpips", "num_gaussians",
+                        "train_time_s", "time_vs_standard", "render_fps"])
+    write_results(f"train{suffix}", {"machine": machine(), "device": args.device, "rows": rows, "curves": curves},
+                  text)
 
 
 if __name__ == "__main__":
