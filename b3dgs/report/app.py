@@ -70,7 +70,7 @@ def paired_table(results: list[dict], caption: str) -> Table:
     header = ["Metric", "Mean Δ", "CI", "CI method", "Scene wins / losses", "p (2-sided)", "p floor 2/2ⁿ",
               "p (1-sided)", "scenes (pairs)"]
     rows = []
-    for r in results:
+    for r in (r for r in results if r["n"]):  # metrics neither method logged are left out
         ci = r["ci"]
         ci_s = "—" if ci["low"] is None else f"[{ci['low']:+.4g}, {ci['high']:+.4g}]"
         how = (ci["method"] or "none") + (f" ({ci['reason']})" if ci.get("reason") else "")
