@@ -447,10 +447,10 @@ def validate_config(cfg: DictConfig, app: str = "train") -> None:
         _check_eval(cfg)
         return
     _check_posterior_list(cfg)
+    _check_renderer(cfg)  # before data: data.near_plane interpolates renderer.near
     _check_data(cfg)
     _check_model(cfg)
     _check_trainer(cfg)
-    _check_renderer(cfg)
     _check_plugins(cfg)
     if isinstance(cfg.get("logger"), DictConfig) and "_target_" in cfg.logger:
         _check_target_node(cfg.logger, "logger")
