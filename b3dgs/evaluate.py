@@ -8,7 +8,8 @@ from typing import Optional, Sequence
 import torch
 
 from b3dgs.device import timed_clock
-from b3dgs.metrics.image import psnr, ssim
+from b3dgs.metrics.image import SSIM_WINDOW, psnr, ssim
+from b3dgs.metrics.lpips import _MIN_SIZE as LPIPS_MIN_SIDE
 from b3dgs.types import Camera
 
 log = logging.getLogger(__name__)
@@ -37,9 +38,9 @@ def evaluate_views(
         pred = pred.cpu()
         gt = cam.image
         row = {"name": cam.name, "psnr": float(psnr(pred, gt))}
-        if with_ssim:
+        if with_ssim and min(gt.shape[:2]) >= SSIM_WINDOW:
             row["ssim"] = float(ssim(pred, gt))
-        if lpips_model is not None:
+        if lpips_model is not None and min(gt.shape[:2]) >= LPIPS_MIN_SIDE:
             row["lpips"] = float(lpips_model(pred, gt))
         per_view.append(row)
         if render_dir is not None:
@@ -52,4 +53,6 @@ def evaluate_views(
         if vals:
             out[key] = float(sum(vals) / len(vals))
     out["render_fps"] = len(per_view) / render_s if render_s > 0 else None
+    if lpips_model is not None and "lpips" not in out and per_view:
+        out["lpips_reason"] = f"test views smaller than {LPIPS_MIN_SIDE}x{LPIPS_MIN_SIDE} (AlexNet needs that much)"
     return out
