@@ -11,6 +11,7 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor, nn
 
+from b3dgs.posterior.guards import guard
 from b3dgs.render.projection import quat_to_rotmat
 
 
@@ -151,8 +152,9 @@ class TopologyOps:
             raise ValueError(f"prune: mask must have shape ({n},), got {tuple(mask.shape)}")
         mask = mask.clone()
         if bool(mask.all()):
-            # keep the most opaque Gaussian so the model never becomes empty
+            # keep the most opaque Gaussian so the model never becomes empty (a floor: counted)
             mask[torch.argmax(self.splats["opacities"].data)] = False
+            guard("ops.prune_keep_one", 1)
         k = int(mask.sum())
         if k == 0:
             return 0

@@ -6,6 +6,7 @@ Inputs may carry a leading sample dimension S (or 1, shared by all samples); out
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Mapping, Optional
 
@@ -20,6 +21,9 @@ MIN_ALPHA = 1.0 / 255.0
 _K2_MARGIN = 2e-3
 _COV6_ROWS = (0, 0, 0, 1, 1, 2)
 _COV6_COLS = (0, 1, 2, 1, 2, 2)
+# Quaternions whose squared norm would under- or overflow (largest |component| outside [_QUAT_LO,
+# _QUAT_HI]) are divided by that component first: the rotation is unchanged, its norm computable.
+_QUAT_LO, _QUAT_HI = 1e-15, 1e15
 
 
 @dataclass
@@ -56,6 +60,62 @@ def binning_extent(cov2d: Tensor, opacities: Tensor, radii: Tensor) -> Tensor:
     ey = torch.minimum(r, torch.sqrt(k2 * cov2d[..., 2].double()) * (1.0 + 1e-6) + 1e-3)
     ext = torch.stack([ex, ey], dim=-1)
     return torch.where(ok[..., None], ext, torch.zeros_like(ext)).to(radii.dtype)
+
+
+def _guarded_quats(quats: Tensor) -> Tensor:
+    """Quaternions whose norm the kernels can take: rescale rows of extreme norm (exact, counted as
+    ``render.quat_rescale``); zero rows keep the kernels' floor max(|q|, 1e-12), i.e. the identity
+    rotation, counted as ``render.quat_zero``."""
+    from b3dgs.posterior.guards import guard
+
+    with torch.no_grad():
+        amax = quats.detach().abs().amax(-1, keepdim=True)
+        zero = amax == 0
+        extreme = ~zero & ((amax < _QUAT_LO) | (amax > _QUAT_HI))
+    guard("render.quat_zero", zero)
+    if guard("render.quat_rescale", extreme):
+        # normalize(q / m) = normalize(q) for any m > 0, so a detached m keeps the gradient exact
+        quats = torch.where(extreme, quats / torch.where(extreme, amax, torch.ones_like(amax)), quats)
+    return quats
+
+
+def _guarded_log_scales(params: Mapping[str, Tensor], camera: Camera, near: float) -> Tensor:
+    """Log-scales capped where the 2-D covariance would overflow the dtype (counted as ``render.scale_clamp``).
+
+    With |tx/z| clamped to the view (3DGS), the Jacobian's rows have norm <= (f + 1.3 max(W, H)) / z, so
+    a scale s <= z sqrt(A / 3) / (f + 1.3 max(W, H)), with A = sqrt(dtype max) / 4, keeps the entries of
+    the 2-D covariance below A and their determinant finite. Only Gaussians tens of orders of magnitude
+    larger than their distance to the camera are touched; ordinary inputs pass unchanged.
+    """
+    from b3dgs.posterior.guards import guard
+
+    log_scales, means = params["scales"], params["means"]
+    with torch.no_grad():
+        vm = camera.viewmat.to(means.device, means.dtype)
+        z = (means.detach() @ vm[2, :3] + vm[2, 3]).clamp_min(near)  # ([S,] N)
+        if z.dim() > log_scales.dim() - 1:
+            z = z.amin(0)  # per-sample means, shared scales: the nearest sample bounds
+        K = camera.K
+        f = float(max(K[0, 0], K[1, 1]))
+        big = math.sqrt(torch.finfo(log_scales.dtype).max) / 4.0
+        log_cap = math.log(math.sqrt(big / 3.0) / (f + 1.3 * max(camera.width, camera.height)))
+        cap = (torch.log(z) + log_cap).unsqueeze(-1).to(log_scales.dtype)
+        over = log_scales.detach() > cap
+    if guard("render.scale_clamp", over):
+        log_scales = torch.where(over, cap, log_scales)
+    return log_scales
+
+
+def guarded_params(params: Mapping[str, Tensor], camera: Camera, near: float) -> Mapping[str, Tensor]:
+    """``params`` with the counted guards of :func:`_guarded_quats` and :func:`_guarded_log_scales`
+    applied (the same tensors where none fires); both backends render the result."""
+    if "covars" in params:
+        return params
+    quats = _guarded_quats(params["quats"])
+    scales = _guarded_log_scales(params, camera, near)
+    if quats is params["quats"] and scales is params["scales"]:
+        return params
+    return dict(params, quats=quats, scales=scales)
 
 
 def _expand(t: Tensor, S: int, tail: int) -> Tensor:
@@ -159,4 +219,5 @@ def preprocess(params: Mapping[str, Tensor], camera: Camera, S: int, sh_degree: 
     fn = _BACKENDS.get(backend)
     if fn is None:
         raise ValueError(f"preprocess: backend must be one of {sorted(_BACKENDS)}, got {backend!r}")
+    params = guarded_params(params, camera, near)
     return fn(params, camera, S, effective_sh_degree(sh_degree, params.get("shN")), near)
