@@ -16,7 +16,7 @@ from typing import Mapping, Optional
 import torch
 from torch import Tensor
 
-from b3dgs.render.preprocess import effective_sh_degree
+from b3dgs.render.preprocess import effective_sh_degree, guarded_params
 from b3dgs.render.render import RenderOutput, check_render_params
 from b3dgs.types import Camera
 
@@ -82,6 +82,7 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
     from gsplat.cuda._wrapper import rasterize_to_indices_in_range
 
     S, N, batched = check_render_params(params)
+    params = guarded_params(params, camera, near)  # the same counted quaternion / scale guards as our backends
     means = _lead(params["means"], S, 1)
     dev, dtype = means.device, means.dtype
     if dev.type != "cuda" or dtype != torch.float32:
