@@ -1,12 +1,31 @@
-"""Lightning callbacks: training clock, PSNR-vs-time curve, atomic checkpoint writing."""
+"""Lightning callbacks: training clock, PSNR-vs-time curve, checkpoints and exact resume.
+
+* :class:`CurveCallback`: training wall-clock time and the test PSNR / #Gaussians curve.
+* :class:`ResumeState`: every RNG (torch CPU and CUDA, numpy, python ``random``), the numerical-guard
+  counters and the train view sampler's position go into each checkpoint and are restored right before
+  the first step after a resume, so that a resumed run is bit-identical to an uninterrupted one.
+* :class:`RunCheckpoint`: ``checkpoints/last.ckpt`` (always that name, overwritten atomically) every
+  ``every_n_steps`` steps, every ``every_s`` seconds of training wall-clock, and at the end.
+
+Test hook: with the environment variable ``B3DGS_TEST_KILL_AT_STEP=K``, :class:`RunCheckpoint` kills its
+own process with SIGKILL right after step ``K`` (after that step's checkpoint, if one is due), like a
+``kill -9``; ``tests/test_resume.py`` uses it. It has no other use.
+"""
 from __future__ import annotations
 
 import logging
+import os
+import random
+import shutil
+import signal
+import time
 from pathlib import Path
 from typing import Any, Optional
 
 import lightning as L
+import numpy as np
 import torch
+from lightning.pytorch.callbacks import Checkpoint
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from b3dgs.device import timed_clock
@@ -21,6 +40,131 @@ class AtomicCheckpointIO(TorchCheckpointIO):
     def save_checkpoint(self, checkpoint: dict[str, Any], path, storage_options: Optional[Any] = None) -> None:
         with atomic_path(path) as tmp:
             torch.save(checkpoint, tmp)
+
+
+KILL_ENV = "B3DGS_TEST_KILL_AT_STEP"
+
+
+def _train_sampler(trainer) -> Any:
+    """The train loader's resumable sampler (``None`` for another loader)."""
+    from b3dgs.data.datamodule import ResumableRandomSampler
+
+    try:
+        loader = trainer.train_dataloader
+    except Exception:  # noqa: BLE001 - no loader yet
+        return None
+    sampler = getattr(loader, "sampler", None)
+    return sampler if isinstance(sampler, ResumableRandomSampler) else None
+
+
+def rng_state() -> dict[str, Any]:
+    """Every RNG the training may draw from."""
+    state = {"torch": torch.get_rng_state(), "numpy": np.random.get_state(), "python": random.getstate()}
+    if torch.cuda.is_available() and torch.cuda.is_initialized():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    torch.set_rng_state(state["torch"])
+    np.random.set_state(state["numpy"])
+    random.setstate(state["python"])
+    if state.get("cuda") is not None and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def _set_guard_counts(counts: dict[str, int], calls: dict[str, int]) -> None:
+    from b3dgs.posterior import guards
+
+    with guards._lock:  # noqa: SLF001 - the counters are module state; restore them as saved
+        guards._counts.clear()
+        guards._counts.update({str(k): int(v) for k, v in counts.items()})
+        guards._fired_calls.clear()
+        guards._fired_calls.update({str(k): int(v) for k, v in calls.items()})
+
+
+class ResumeState(L.Callback):
+    """Saves the RNG states and the numerical-guard counters with every checkpoint and restores them at
+    the first training step after a resume; tells the train sampler how many views each step consumed
+    (its own ``state_dict`` is saved by Lightning with the train loader)."""
+
+    def __init__(self) -> None:
+        self._pending: Optional[dict] = None
+
+    def state_dict(self) -> dict:
+        from b3dgs.posterior.guards import guard_calls, guard_counts
+
+        return {"rng": rng_state(), "guards": guard_counts(), "guard_calls": guard_calls()}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        self._pending = dict(state_dict)
+
+    def _restore(self) -> None:
+        if self._pending is None:
+            return
+        st, self._pending = self._pending, None
+        set_rng_state(st["rng"])
+        _set_guard_counts(st.get("guards", {}), st.get("guard_calls", {}))
+
+    def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
+        # restored here, not at load time: nothing between the load and this step may draw from them
+        self._restore()
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        sampler = _train_sampler(trainer)
+        if sampler is not None:
+            sampler.mark_consumed(batch_idx + 1)
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        self._restore()  # a resumed run that had nothing left to train
+
+
+class RunCheckpoint(Checkpoint):
+    """``dirpath/last.ckpt`` every ``every_n_steps`` steps, every ``every_s`` seconds of wall-clock
+    (``None`` / 0: off) and at the end of training; with ``keep``, also ``step<N>.ckpt`` at each multiple of
+    ``every_n_steps``. Files are overwritten in place (written atomically by :class:`AtomicCheckpointIO`):
+    there is never a ``last-v1.ckpt``. Runs after the other callbacks (Lightning orders checkpoint
+    callbacks last), so a checkpoint holds the curve point and guard counts of its own step."""
+
+    def __init__(self, dirpath: Path, every_n_steps: Optional[int] = None, every_s: Optional[float] = None,
+                 keep: bool = False):
+        self.dirpath = Path(dirpath)
+        self.every_n_steps = int(every_n_steps or 0)
+        self.every_s = float(every_s or 0.0)
+        self.keep = bool(keep)
+        self.last_path = self.dirpath / "last.ckpt"
+        self._saved_step = -1
+        self._t_last: Optional[float] = None
+        kill = os.environ.get(KILL_ENV)
+        self._kill_at = int(kill) if kill else None
+
+    def save(self, trainer) -> None:
+        step = int(trainer.global_step)
+        self._saved_step = step  # the step this process last saved
+        trainer.save_checkpoint(self.last_path, weights_only=False)
+        if self.keep and self.every_n_steps and step % self.every_n_steps == 0:
+            from b3dgs.io import atomic_path
+
+            with atomic_path(self.dirpath / f"step{step}.ckpt") as tmp:
+                shutil.copyfile(self.last_path, tmp)
+        self._t_last = time.monotonic()
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        self._t_last = time.monotonic()
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        step = int(trainer.global_step)
+        due = bool(self.every_n_steps) and step % self.every_n_steps == 0
+        if not due and self.every_s > 0 and self._t_last is not None:
+            due = time.monotonic() - self._t_last >= self.every_s
+        if due and step != self._saved_step:
+            self.save(trainer)
+        if self._kill_at is not None and step >= self._kill_at:
+            os.kill(os.getpid(), signal.SIGKILL)
+
+    def on_train_end(self, trainer, pl_module) -> None:
+        if int(trainer.global_step) != self._saved_step:
+            self.save(trainer)
 
 
 class CurveCallback(L.Callback):

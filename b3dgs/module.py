@@ -271,8 +271,27 @@ class SplatModule(L.LightningModule):
                 self.block_time_s[name] += time.perf_counter() - t0
 
     # ------------------------------------------------------------------ checkpoints
+    def run_identity(self) -> dict:
+        """Model, posterior blocks, strategy and scene fingerprint: what a checkpoint must share with the
+        run that resumes or evaluates it (:mod:`b3dgs.checkpoint`)."""
+        from b3dgs.checkpoint import run_identity
+
+        return run_identity(self.hparams, self.strategy, self.posterior, self.scene)
+
+    def check_checkpoint_identity(self, checkpoint: Mapping[str, Any], what: str, fix: str) -> None:
+        """Refuse a checkpoint of another model, posterior, strategy, scene or schedule with a one-line
+        ``ValueError`` ``"<what> does not match: <reason> (fix: pass <key=value> or <fix>)"``."""
+        from b3dgs.checkpoint import identity_mismatch
+
+        saved = (checkpoint.get("b3dgs") or {}).get("identity")
+        bad = identity_mismatch(saved, self.run_identity())
+        if bad is not None:
+            problem, want = bad
+            raise ValueError(f"{what} does not match this run: {problem} (fix: pass {want}, or {fix})")
+
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint["b3dgs"] = {
+            "identity": self.run_identity(),
             "states": self.states,
             "removed": dict(self.ops.removed) if self.ops else {},
             "added": dict(self.ops.added) if self.ops else {},
@@ -285,6 +304,9 @@ class SplatModule(L.LightningModule):
         shapes = {k: sd[f"splats.{k}"] for k in PARAM_ORDER if f"splats.{k}" in sd}
         if len(shapes) != len(PARAM_ORDER):
             raise ValueError("Checkpoint has no Gaussian parameters (splats.*); is it a b3dgs checkpoint?")
+        # niw -> standard would keep the niw state, standard -> dpmm would fail later with a KeyError
+        self.check_checkpoint_identity(checkpoint, "the checkpoint",
+                                       "use a checkpoint of this model, posterior, strategy and scene")
         # resize before Lightning loads the state dict (the Gaussian count changes during training)
         self.splats = nn.ParameterDict({k: nn.Parameter(torch.empty_like(v)) for k, v in shapes.items()})
         extra = checkpoint.get("b3dgs", {})

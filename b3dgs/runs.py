@@ -70,12 +70,36 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
         ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
     except Exception as e:  # corrupt or truncated file
         raise ValueError(f"Cannot read checkpoint {ckpt_path}: {e}") from e
+    metrics = None
+    if (run_dir / "metrics.json").exists():
+        metrics = json.loads((run_dir / "metrics.json").read_text())
+    if checkpoint is None:  # the run's own last.ckpt must be the model its metrics.json describes
+        check_run_checkpoint(run_dir, ck, metrics)
+    module.check_checkpoint_identity(
+        ck, f"{ckpt_path}", f"keep each run dir's config.yaml and checkpoints from one b3dgs-train run "
+        f"(train it again with `b3dgs-train ... hydra.run.dir={run_dir} overwrite=true`)")
     module.on_load_checkpoint(ck)
     module.load_state_dict(ck["state_dict"])
     module._loaded_step = int(ck.get("global_step", 0))
     module.eval()
     module.to(module.renderer.device)
-    metrics = None
-    if (run_dir / "metrics.json").exists():
-        metrics = json.loads((run_dir / "metrics.json").read_text())
     return LoadedRun(run_dir, cfg, module, scene, metrics)
+
+
+def check_run_checkpoint(run_dir: Path, ck: dict, metrics: Optional[dict]) -> None:
+    """Refuse a run dir whose ``checkpoints/last.ckpt`` is not the model its ``metrics.json`` describes
+    (global step, Gaussian count and, where recorded, the parameter digest), or that has no
+    ``metrics.json`` (an unfinished run: ``metrics.json`` is written last)."""
+    from b3dgs.checkpoint import checkpoint_record
+
+    ckpt_path = run_dir / "checkpoints" / "last.ckpt"
+    if metrics is None:
+        raise ValueError(f"{run_dir} holds an unfinished run: no metrics.json (fix: finish it with "
+                         f"`b3dgs-train ... hydra.run.dir={run_dir} resume=auto`, or pass its checkpoint explicitly)")
+    have = checkpoint_record(ck)
+    want = metrics.get("checkpoint") or {"global_step": metrics.get("steps"), "num_gaussians": metrics.get("num_gaussians")}
+    for key in ("global_step", "num_gaussians", "params_sha256"):
+        if want.get(key) is not None and want[key] != have[key]:
+            raise ValueError(f"{ckpt_path} is not the model of {run_dir / 'metrics.json'}: {key} {have[key]} in the "
+                             f"checkpoint, {want[key]} in metrics.json (fix: train the run again with `b3dgs-train ... "
+                             f"hydra.run.dir={run_dir} overwrite=true`, or remove the stray checkpoint)")

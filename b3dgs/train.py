@@ -102,12 +102,95 @@ def resolve_resume(cfg: DictConfig, run_dir: Path) -> Optional[str]:
     return str(p)
 
 
-def train(cfg: DictConfig) -> dict:
-    import lightning as L
-    from lightning.pytorch.callbacks import ModelCheckpoint
-    from lightning.pytorch.loggers import TensorBoardLogger
+#: what marks a dir as holding a run, and what ``overwrite=true`` removes (Hydra's own ``.hydra/`` and
+#: job log belong to the new run and stay)
+RUN_MARKERS = ("config.yaml", "checkpoints", "metrics.json")
+RUN_OUTPUTS = RUN_MARKERS + ("curve.json", "curve.png", "point_cloud.ply", "renders", "tb", "uq.json", "uq", "tb_uq")
 
-    from b3dgs.callbacks import AtomicCheckpointIO, CurveCallback
+
+def _remove_outputs(run_dir: Path, names=RUN_OUTPUTS) -> None:
+    import shutil
+
+    for name in names:
+        p = run_dir / name
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        elif p.exists() or p.is_symlink():
+            p.unlink()
+
+
+def prepare_run_dir(cfg: DictConfig, run_dir: Path) -> tuple[Optional[str], bool]:
+    """``(checkpoint to resume from or None, whether to remove the old run's outputs first)``.
+
+    A dir that already holds a run (config.yaml, checkpoints/ or metrics.json) is refused unless
+    ``resume=auto`` (or ``resume=`` one of its own checkpoints) continues it or ``overwrite=true``
+    replaces it; nothing is removed here (the caller removes after every other check has passed).
+    """
+    overwrite = cfg.get("overwrite", False)
+    if not isinstance(overwrite, bool):
+        raise ValueError(f"overwrite={overwrite} is invalid: it must be true or false "
+                         "(fix: pass overwrite=true to replace the run in the run dir, or leave it out)")
+    resume = cfg.get("resume")
+    resuming = resume not in (None, False, "null", "")
+    if overwrite and resuming:
+        raise ValueError(f"resume={resume} and overwrite=true contradict each other (fix: pass resume=auto to "
+                         "continue the run in the run dir, or overwrite=true to replace it, not both)")
+    held = [n for n in RUN_MARKERS if (run_dir / n).exists()]
+    if overwrite:
+        return None, bool(held)
+    ckpt = resolve_resume(cfg, run_dir)
+    if not held:
+        return ckpt, False
+    if resume in ("auto", True):
+        if ckpt is None and (run_dir / "metrics.json").exists():
+            raise ValueError(f"{run_dir} holds a finished run but no checkpoints/last.ckpt to resume from "
+                             "(fix: pass overwrite=true to train it again, or another hydra.run.dir)")
+        return ckpt, False
+    own = (run_dir / "checkpoints").resolve()
+    if ckpt is not None and Path(ckpt).resolve().parent == own:
+        return ckpt, False
+    raise ValueError(f"{run_dir} already holds a run ({', '.join(held)}) (fix: pass resume=auto to continue it, "
+                     "overwrite=true to replace it, or another hydra.run.dir)")
+
+
+def check_resume(module, ckpt_path: str) -> None:
+    """Refuse to resume a checkpoint of another model, posterior, strategy, scene, schedule or seed."""
+    try:
+        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False, mmap=True)
+    except Exception as e:  # noqa: BLE001 - damaged file: say which and how to go on
+        raise ValueError(f"cannot read the checkpoint {ckpt_path} ({type(e).__name__}) (fix: pass resume=PATH to an "
+                         "intact .ckpt, or overwrite=true to start afresh)") from None
+    module.check_checkpoint_identity(
+        ck, f"resume: the checkpoint {ckpt_path}",
+        "start afresh with overwrite=true or another hydra.run.dir (a resume continues the same run exactly)")
+
+
+def _checkpoint_every_s(tcfg) -> Optional[float]:
+    v = tcfg.get("checkpoint_every_s")
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:
+        raise ValueError(f"trainer.checkpoint_every_s={v} is invalid: it must be a number of seconds >= 0 or null "
+                         "(fix: pass trainer.checkpoint_every_s=300, or 0 / null for step-based checkpoints only)")
+    return float(v)
+
+
+def train(cfg: DictConfig) -> dict:
+    """Train one model into its run dir; returns the metrics dict.
+
+    Run dir contract: ``config.yaml`` first, ``checkpoints/last.ckpt`` (never ``last-v1.ckpt``) every
+    ``trainer.checkpoint_every`` steps and ``trainer.checkpoint_every_s`` seconds and at the end, then the
+    renders, ``point_cloud.ply`` and the curve files, and ``metrics.json`` last, as the "done" marker (it
+    records the final checkpoint's step, Gaussian count and parameter digest). A resume (``resume=auto``)
+    is exact: it continues bit for bit as the uninterrupted run would (RNGs, view sampler, guard
+    counters and plugin states are in the checkpoint), and is refused for another model, posterior,
+    strategy, scene, ``trainer.max_steps`` or seed.
+    """
+    import lightning as L
+    from lightning.pytorch.loggers import TensorBoardLogger  # noqa: F401 - logger=tensorboard targets it
+
+    from b3dgs.callbacks import AtomicCheckpointIO, CurveCallback, ResumeState, RunCheckpoint
+    from b3dgs.checkpoint import checkpoint_record
     from b3dgs.evaluate import evaluate_views
     from b3dgs.metrics.lpips import get_lpips
     from b3dgs.posterior.guards import guard_counts, reset_guards
@@ -115,8 +198,9 @@ def train(cfg: DictConfig) -> dict:
 
     validate_config(cfg, app="train")
     run_dir = Path(cfg.trainer.default_root_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, run_dir / "config.yaml")
+    tcfg = cfg.trainer
+    every_s = _checkpoint_every_s(tcfg)
+    ckpt_path, clear = prepare_run_dir(cfg, run_dir)
     seed = int(cfg.seed)
     # reset the global seed in every job: PL_GLOBAL_SEED survives between multirun jobs
     os.environ.pop("PL_GLOBAL_SEED", None)
@@ -135,32 +219,49 @@ def train(cfg: DictConfig) -> dict:
     module = build_module(cfg, strategy, blocks, renderer)
     module.init_from_scene(scene)
     accelerator = resolve_accelerator(cfg.trainer.get("accelerator"), renderer)
+    if ckpt_path is not None:
+        check_resume(module, ckpt_path)
+    # every check has passed: only now is the run dir changed
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if clear:
+        log.warning("overwrite=true: removing the previous run's outputs from %s", run_dir)
+        _remove_outputs(run_dir)
+    else:
+        _remove_outputs(run_dir, ("metrics.json",))  # the done marker comes back when this run finishes
+    save_config(cfg, run_dir / "config.yaml")
     log.info("Scene %s: %d train / %d test views, %d initial Gaussians, extent %.3f; renderer %s on %s",
              scene.name, len(scene.train), len(scene.test), module.num_gaussians, scene.extent, renderer.name,
              renderer.device)
 
-    tcfg = cfg.trainer
     curve = CurveCallback(scene.test, eval_every=int(tcfg.eval_every), out_dir=run_dir,
                           max_eval_views=tcfg.get("curve_max_views"))
-    ckpt = ModelCheckpoint(dirpath=run_dir / "checkpoints", filename="step{step}", auto_insert_metric_name=False,
-                           every_n_train_steps=int(tcfg.checkpoint_every), save_last=True, save_top_k=0 if not tcfg.get("keep_checkpoints") else -1)
+    ckpt = RunCheckpoint(run_dir / "checkpoints", every_n_steps=int(tcfg.checkpoint_every), every_s=every_s,
+                         keep=bool(tcfg.get("keep_checkpoints")))
     logger = instantiate(cfg.logger, save_dir=str(run_dir)) if cfg.get("logger") else False
     trainer = L.Trainer(
         max_steps=int(tcfg.max_steps), accelerator=accelerator, devices=1, logger=logger,
-        callbacks=[curve, ckpt], default_root_dir=str(run_dir), limit_val_batches=0, num_sanity_val_steps=0,
-        enable_progress_bar=bool(tcfg.progress_bar), log_every_n_steps=int(tcfg.log_every),
+        callbacks=[curve, ResumeState(), ckpt], default_root_dir=str(run_dir), limit_val_batches=0,
+        num_sanity_val_steps=0, enable_progress_bar=bool(tcfg.progress_bar), log_every_n_steps=int(tcfg.log_every),
         plugins=[AtomicCheckpointIO()], enable_model_summary=False, deterministic=False,
     )
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*does not have many workers.*")
         warnings.filterwarnings("ignore", message=".*`training_step` returns.*")
         # our own checkpoints hold plugin states and config values, not only tensors
-        trainer.fit(module, datamodule=dm, ckpt_path=resolve_resume(cfg, run_dir), weights_only=False)
+        trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
 
     # ------------------------------------------------------------ final evaluation and outputs
+    # written in this order, each atomically: renders, PLY, curve, then metrics.json (the done marker)
+    final = checkpoint_record(torch.load(ckpt.last_path, map_location="cpu", weights_only=False, mmap=True))
     lpips_model, lpips_reason = get_lpips()
     ev = evaluate_views(module, scene.test, lpips_model=lpips_model,
                         render_dir=run_dir / "renders" if tcfg.get("save_renders", True) else None)
+    from b3dgs.ply import write_ply
+
+    sp = module.splats
+    write_ply(run_dir / "point_cloud.ply", sp["means"].data, sp["scales"].data, sp["quats"].data, sp["opacities"].data,
+              sp["sh0"].data[:, 0], sp["shN"].data, extra=module.export_extras())
+    curve.write()
     metrics = {
         "method": cfg.model.get("name", "custom"), "scene": scene.name, "seed": seed, "steps": int(trainer.global_step),
         "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": ev.get("lpips"),
@@ -173,15 +274,10 @@ def train(cfg: DictConfig) -> dict:
         "block_time_s": {k: round(v, 4) for k, v in module.block_time_s.items()},
         "posterior": {name: blk.summary(state=module.states[name]) for name, blk in module.posterior.items()},
         "numerical_guards": guard_counts(),  # how often each clamp / jitter / floor fired (never silent)
+        "checkpoint": final,  # b3dgs-eval refuses a last.ckpt that is not this model
         "per_view": ev["per_view"],
     }
     write_json(run_dir / "metrics.json", metrics)
-    from b3dgs.ply import write_ply
-
-    sp = module.splats
-    write_ply(run_dir / "point_cloud.ply", sp["means"].data, sp["scales"].data, sp["quats"].data, sp["opacities"].data,
-              sp["sh0"].data[:, 0], sp["shN"].data, extra=module.export_extras())
-    curve.write()
     log.info("Done: PSNR %s dB, SSIM %s, LPIPS %s, %d Gaussians, %.1f s training -> %s",
              "n/a" if metrics["psnr"] is None else f"{metrics['psnr']:.3f}", metrics["ssim"], metrics["lpips"], metrics["num_gaussians"], metrics["train_time_s"], run_dir)
     return metrics

@@ -1,15 +1,16 @@
 """Lightning DataModule over a :class:`~b3dgs.types.Scene`: one camera per step."""
 from __future__ import annotations
 
-from typing import Any, Optional, Sequence
+from typing import Any, Iterator, Optional, Sequence
 
 import lightning as L
-from torch.utils.data import DataLoader, Dataset
+import torch
+from torch.utils.data import DataLoader, Dataset, Sampler
 
 from b3dgs.data.scene import NEAR_PLANE, load_scene
 from b3dgs.types import Camera, Scene
 
-__all__ = ["CameraDataset", "SceneDataModule", "camera_collate"]
+__all__ = ["CameraDataset", "ResumableDataLoader", "ResumableRandomSampler", "SceneDataModule", "camera_collate"]
 
 
 class CameraDataset(Dataset):
@@ -32,6 +33,79 @@ def camera_collate(batch: list[Camera]) -> Camera:
     return batch[0]
 
 
+class ResumableRandomSampler(Sampler[int]):
+    """Each index once per epoch in a random order, reshuffled every epoch, resumable mid-epoch.
+
+    The order comes from the sampler's own ``torch.Generator`` (seeded from torch's global RNG when the
+    sampler is made, so ``seed_everything`` makes it reproducible), never from the global RNG during
+    training. :meth:`state_dict` holds the generator, the current epoch's permutation and the position
+    in it; an iterator started after :meth:`load_state_dict` yields the rest of that epoch, and the next
+    one draws the next permutation, exactly as the uninterrupted sampler would.
+
+    The position is the number of indices *consumed*: a loader that fetches ahead (Lightning prefetches
+    one batch) reports consumption with :meth:`mark_consumed` (``b3dgs.callbacks.ResumeState`` does, from
+    the batch index); without such reports it is the number of indices yielded.
+    """
+
+    def __init__(self, n: int, seed: Optional[int] = None):
+        self.n = int(n)
+        if seed is None:
+            seed = int(torch.empty((), dtype=torch.int64).random_().item())
+        self.generator = torch.Generator()
+        self.generator.manual_seed(int(seed))
+        self.perm: Optional[list[int]] = None
+        self.epoch = 0  # permutations drawn so far
+        self._yielded = 0
+        self._consumed: Optional[int] = None
+
+    def __len__(self) -> int:
+        return self.n
+
+    @property
+    def position(self) -> int:
+        """Indices of the current permutation consumed (or yielded, when nobody reports consumption)."""
+        return self._yielded if self._consumed is None else self._consumed
+
+    def mark_consumed(self, k: int) -> None:
+        """``k`` indices of the current epoch's permutation have been used for training."""
+        self._consumed = int(k)
+
+    def __iter__(self) -> Iterator[int]:
+        if self.perm is None or self.position >= self.n:
+            self.perm = torch.randperm(self.n, generator=self.generator).tolist()
+            self.epoch += 1
+            self._yielded, self._consumed = 0, None
+        perm, start = self.perm, self.position
+        self._yielded = start
+        for i in range(start, self.n):
+            self._yielded = i + 1
+            yield perm[i]
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"n": self.n, "generator": self.generator.get_state(), "perm": self.perm, "epoch": self.epoch,
+                "position": self.position}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        if int(state["n"]) != self.n:
+            raise ValueError(f"the checkpoint's view sampler has {state['n']} train views, this scene {self.n} "
+                             "(fix: resume with the data settings of the checkpoint's run)")
+        self.generator.set_state(state["generator"])
+        self.perm = None if state["perm"] is None else [int(i) for i in state["perm"]]
+        self.epoch = int(state["epoch"])
+        self._yielded, self._consumed = int(state["position"]), None
+
+
+class ResumableDataLoader(DataLoader):
+    """A DataLoader whose sampler's position goes into Lightning checkpoints (Lightning saves and restores
+    the ``state_dict`` of any train loader that has one, before iterating it)."""
+
+    def state_dict(self) -> dict[str, Any]:
+        return {"sampler": self.sampler.state_dict()}
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        self.sampler.load_state_dict(state["sampler"])
+
+
 def _plain(x: Any) -> Any:
     """OmegaConf containers -> plain Python (without importing omegaconf eagerly)."""
     if x is None or isinstance(x, (str, int, float, bool)):
@@ -50,8 +124,9 @@ class SceneDataModule(L.LightningDataModule):
     """Loads a scene once in :meth:`setup` and serves cameras.
 
     * ``train_dataloader``: each train camera once per epoch, in a random order reshuffled every
-      epoch (``shuffle=True`` draws from torch's global RNG, so ``lightning.seed_everything`` /
-      ``torch.manual_seed`` makes the order reproducible); batch size 1, the batch *is* the Camera.
+      epoch (a :class:`ResumableRandomSampler`, seeded from torch's global RNG, so
+      ``lightning.seed_everything`` / ``torch.manual_seed`` makes the order reproducible; its position is
+      saved in checkpoints, so a resumed run sees the same views); batch size 1, the batch *is* the Camera.
     * ``val_dataloader`` / ``test_dataloader``: the held-out cameras in sorted order.
 
     Arguments mirror :func:`b3dgs.data.load_scene` (``near_plane``: the renderer's, for the near-plane
@@ -89,6 +164,7 @@ class SceneDataModule(L.LightningDataModule):
         self.near_plane = float(near_plane)
         self.kind_kwargs = {k: _plain(v) for k, v in kind_kwargs.items()}
         self._scene: Optional[Scene] = scene
+        self.train_sampler: Optional[ResumableRandomSampler] = None  # made by train_dataloader()
 
     @property
     def scene(self) -> Scene:
@@ -126,7 +202,11 @@ class SceneDataModule(L.LightningDataModule):
         )
 
     def train_dataloader(self) -> DataLoader:
-        return self._loader(self.scene.train, shuffle=True)
+        self.train_sampler = ResumableRandomSampler(len(self.scene.train))
+        # every iter() of a DataLoader draws a worker base seed from its ``generator`` (the global RNG if
+        # none): a private one keeps epoch starts off the global RNG, which a resumed run restores exactly
+        return ResumableDataLoader(CameraDataset(self.scene.train), batch_size=1, sampler=self.train_sampler,
+                                   num_workers=0, collate_fn=camera_collate, generator=torch.Generator())
 
     def val_dataloader(self) -> DataLoader:
         return self._loader(self.scene.test, shuffle=False)

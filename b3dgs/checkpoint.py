@@ -1,0 +1,155 @@
+"""What a checkpoint says about its run, so that a resume or an evaluation can refuse a mismatch.
+
+A b3dgs checkpoint holds, under ``checkpoint["b3dgs"]["identity"]`` (:func:`run_identity`): the model
+name and hyper-parameters (``trainer.max_steps`` and ``seed`` among them), the posterior blocks (names
+and settings), the strategy's settings and a scene fingerprint (:func:`scene_fingerprint`). A resume
+(``b3dgs-train resume=...``) and ``b3dgs-eval``'s ``load_run`` compare it with the run being built
+(:func:`identity_mismatch`) and refuse any difference with a one-line reason.
+
+``metrics.json`` records the final checkpoint's global step, Gaussian count and a digest of the Gaussian
+parameters (:func:`params_digest`), so that a run dir whose ``last.ckpt`` is not the model its metrics
+describe is refused too.
+"""
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+from typing import Any, Mapping, Optional
+
+import torch
+
+__all__ = ["checkpoint_record", "identity_mismatch", "params_digest", "plugin_config", "run_identity",
+           "scene_fingerprint"]
+
+PARAM_ORDER = ("means", "scales", "quats", "opacities", "sh0", "shN")
+
+
+def _plain(v: Any) -> Any:
+    """JSON-comparable form of a plugin / hyper-parameter value."""
+    if v is None or isinstance(v, (bool, int, str)):
+        return v
+    if isinstance(v, float):
+        return v if math.isfinite(v) else repr(v)
+    if isinstance(v, Mapping):
+        return {str(k): _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if isinstance(v, torch.Tensor):
+        return _plain(v.detach().cpu().tolist())
+    try:  # OmegaConf containers
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+
+        if isinstance(v, (DictConfig, ListConfig)):
+            return _plain(OmegaConf.to_container(v, resolve=True))
+    except ImportError:  # pragma: no cover
+        pass
+    return repr(v)
+
+
+def plugin_config(plugin: Any) -> dict:
+    """``{"_target_": class path, field: value, ...}`` of a (dataclass) plugin."""
+    cls = type(plugin)
+    out: dict[str, Any] = {"_target_": f"{cls.__module__}.{cls.__qualname__}"}
+    if dataclasses.is_dataclass(plugin):
+        for f in dataclasses.fields(plugin):
+            out[f.name] = _plain(getattr(plugin, f.name))
+    return out
+
+
+def _round(x: float) -> float:
+    return float(f"{float(x):.6g}")
+
+
+def scene_fingerprint(scene: Any) -> Optional[str]:
+    """sha256 of the scene name, the train / test camera names, image sizes and intrinsics (6 significant
+    digits) and the number of train views; ``None`` without a scene."""
+    if scene is None:
+        return None
+
+    def cams(cs):
+        return [[c.name, int(c.width), int(c.height), [_round(v) for v in c.K.reshape(-1)[[0, 4, 2, 5]].tolist()]]
+                for c in cs]
+
+    rec = {"name": str(scene.name), "num_train": len(scene.train), "train": cams(scene.train), "test": cams(scene.test)}
+    return hashlib.sha256(json.dumps(rec, sort_keys=True).encode()).hexdigest()[:16]
+
+
+def run_identity(hparams: Mapping[str, Any], strategy: Any, posterior: Mapping[str, Any], scene: Any) -> dict:
+    """What must agree between a checkpoint and the run that resumes or evaluates it."""
+    hp = _plain(dict(hparams))
+    return {"model": hp.get("name"), "posterior": {str(k): plugin_config(b) for k, b in posterior.items()},
+            "scene": scene_fingerprint(scene), "strategy": plugin_config(strategy), "hparams": hp}
+
+
+def _hp_path(key: str) -> str:
+    return {"max_steps": "trainer.max_steps", "seed": "seed", "name": "model.name"}.get(key, f"model.{key}")
+
+
+def _first_diff(a: Mapping, b: Mapping) -> Optional[str]:
+    """The first key both hold with different values (a key only one side has is a field added or removed
+    by a code change since the checkpoint was written, not a different setting)."""
+    for k in sorted(set(a) & set(b)):
+        if a[k] != b[k]:
+            return k
+    return None
+
+
+def _show(v: Any) -> str:
+    return "null" if v is None else (json.dumps(v) if isinstance(v, (list, dict)) else str(v))
+
+
+def identity_mismatch(saved: Optional[Mapping], current: Mapping) -> Optional[tuple[str, str]]:
+    """``(problem, key=value to pass)`` for the first way ``current`` differs from a checkpoint's
+    ``saved`` identity, or ``None`` when they agree (or the checkpoint predates identities)."""
+    if not saved:
+        return None
+    if saved.get("model") != current.get("model"):
+        return (f"it holds a model={saved.get('model')} run, this run is model={current.get('model')}",
+                f"model={saved.get('model')}")
+    sp, cp = saved.get("posterior") or {}, current.get("posterior") or {}
+    if list(sp) != list(cp):
+        want = f"posterior=[{','.join(sp)}]"
+        return f"its posterior blocks are [{', '.join(sp)}], this run's [{', '.join(cp)}]", want
+    if saved.get("scene") and current.get("scene") and saved["scene"] != current["scene"]:
+        return ("it was trained on another scene (scene fingerprint: names, image sizes, intrinsics and number "
+                "of train views differ)", "the checkpoint's data.* settings")
+    sh, ch = saved.get("hparams") or {}, current.get("hparams") or {}
+    for key in ("max_steps", "seed"):
+        if sh.get(key) != ch.get(key):
+            return (f"it was trained with {_hp_path(key)}={_show(sh.get(key))}, this run has {_hp_path(key)}="
+                    f"{_show(ch.get(key))}", f"{_hp_path(key)}={_show(sh.get(key))}")
+    ss, cs = saved.get("strategy") or {}, current.get("strategy") or {}
+    k = _first_diff(ss, cs)
+    if k is not None:
+        path = "strategy" if k == "_target_" else f"strategy.{k}"
+        return (f"its {path} is {_show(ss.get(k))}, this run's {_show(cs.get(k))}", f"{path}={_show(ss.get(k))}")
+    for name in sp:
+        k = _first_diff(sp[name], cp[name])
+        if k is not None:
+            path = f"posterior.{name}.{k}"
+            return (f"its {path} is {_show(sp[name].get(k))}, this run's {_show(cp[name].get(k))}",
+                    f"{path}={_show(sp[name].get(k))}")
+    k = _first_diff(sh, ch)
+    if k is not None:
+        return (f"its {_hp_path(k)} is {_show(sh.get(k))}, this run's {_show(ch.get(k))}",
+                f"{_hp_path(k)}={_show(sh.get(k))}")
+    return None
+
+
+def params_digest(tensors: Mapping[str, torch.Tensor], prefix: str = "") -> str:
+    """sha256 (16 hex digits) of the Gaussian parameters' dtypes, shapes and bytes."""
+    h = hashlib.sha256()
+    for k in PARAM_ORDER:
+        t = tensors[prefix + k].detach().to("cpu").contiguous()
+        h.update(f"{k}:{t.dtype}:{tuple(t.shape)};".encode())
+        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()[:16]
+
+
+def checkpoint_record(checkpoint: Mapping[str, Any]) -> dict:
+    """What ``metrics.json`` says about its run's final checkpoint (``"checkpoint"``)."""
+    sd = checkpoint["state_dict"]
+    return {"global_step": int(checkpoint.get("global_step", 0)), "num_gaussians": int(sd["splats.means"].shape[0]),
+            "params_sha256": params_digest(sd, prefix="splats.")}
