@@ -13,6 +13,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from b3dgs.device import move_tree
+from b3dgs.errors import B3dgsError
 from b3dgs.init import init_gaussians
 from b3dgs.ops import TopologyOps
 from b3dgs.plugin import Plugin, PosteriorBlock
@@ -215,9 +216,9 @@ class SplatModule(L.LightningModule):
         except ValueError as e:
             if "NaN or Inf" not in str(e):
                 raise
-            raise FloatingPointError(
-                f"step {step}, camera {cam.name}: the renderer got NaN/Inf Gaussian attributes ({e}); the "
-                f"optimisation diverged (fix: lower the learning rates, e.g. model.lr_means, or check the data)") from e
+            raise B3dgsError(f"step {step}, camera {cam.name}: the optimisation diverged (NaN/Inf Gaussian attributes "
+                             f"reached the renderer: {e})",
+                             "lower the learning rates, e.g. model.lr_means, or check the data") from e
         cam = self.device_camera(cam)
         gt = cam.image
         l1 = (out.rgb - gt).abs().mean()
@@ -225,9 +226,8 @@ class SplatModule(L.LightningModule):
         lam = self.hparams.lambda_dssim
         loss = (1 - lam) * l1 + lam * (1 - ssim)
         if not torch.isfinite(loss):
-            raise FloatingPointError(
-                f"Non-finite loss at step {step} (camera {cam.name}); lower the learning rates or check the data"
-            )
+            raise B3dgsError(f"non-finite loss at step {step} (camera {cam.name})",
+                             "lower the learning rates, e.g. model.lr_means, or check the data")
         ops.per_gaussian = {}
         info = {
             **self._static_info(), "ops": ops, "camera": cam, "render": out, "per_gaussian": ops.per_gaussian,

@@ -81,7 +81,9 @@ def train_run(run_dir: Path, overrides: list[str], timeout_s: int = 3600, force:
     metrics = run_dir / "metrics.json"
     if metrics.exists() and not force:
         return json.loads(metrics.read_text())
-    cmd = [sys.executable, "-m", "b3dgs.train", *overrides, f"hydra.run.dir={run_dir}"]
+    # an interrupted run dir resumes where it stopped; force starts it afresh
+    cmd = [sys.executable, "-m", "b3dgs.train", *overrides, f"hydra.run.dir={run_dir}",
+           "overwrite=true" if force else "resume=auto"]
     t0 = time.perf_counter()
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
     if res.returncode != 0:
