@@ -81,6 +81,9 @@ class SplatModule(L.LightningModule):
         self.ops: Optional[TopologyOps] = None
         self.block_time_s: dict[str, float] = {name: 0.0 for name in self.posterior}
         self._camera_cache: dict[int, tuple[Camera, Camera]] = {}
+        # True when the next checkpoint load starts a new training round whose training set may have grown
+        # (views acquired from the candidate pool): the identity check then compares the view pool
+        self.allow_new_views = False
         self.register_buffer("bg", torch.tensor(list(background), dtype=torch.float32), persistent=False)
 
     # ------------------------------------------------------------------ set-up
@@ -128,7 +131,15 @@ class SplatModule(L.LightningModule):
 
     def _static_info(self) -> dict:
         extent = float(self.scene.extent) if self.scene is not None else 1.0
-        return {"scene_extent": extent, "max_steps": int(self.hparams.max_steps)}
+        # max_steps: the run's TOTAL budget (schedules continue across training rounds); num_train_views:
+        # the current training set, which grows when views are acquired between rounds
+        return {"scene_extent": extent, "max_steps": int(self.hparams.max_steps),
+                "num_train_views": len(self.scene.train) if self.scene is not None else None}
+
+    def set_scene(self, scene: Scene) -> None:
+        """Continue with ``scene`` (e.g. the training set plus views acquired between rounds): the Gaussians,
+        plugin states and optimizer are kept; view counts follow ``len(scene.train)`` from the next step."""
+        self.scene = scene
 
     def configure_optimizers(self):
         hp = self.hparams
@@ -147,12 +158,23 @@ class SplatModule(L.LightningModule):
         return {"gaussians": opt}
 
     def _get_ops(self) -> TopologyOps:
-        if self.ops is None or self.ops.splats is not self.splats:
-            self.ops = TopologyOps(self.splats, self._torch_optimizers(), self.states, dict(self.plugins))
+        """The topology ops of the live parameters, states and optimizer: rebuilt whenever any of them was
+        replaced (a second ``trainer.fit`` or a checkpoint load makes a new Adam), so clone, split and prune
+        always edit the optimizer that steps next; the removed/added counters carry over."""
+        optimizers = self._torch_optimizers()
+        ops = self.ops
+        if (ops is None or ops.splats is not self.splats or ops.states is not self.states
+                or set(ops.optimizers) != set(optimizers)
+                or any(ops.optimizers[k] is not v for k, v in optimizers.items())):
+            self.ops = TopologyOps(self.splats, optimizers, self.states, dict(self.plugins))
+            if ops is not None:
+                self.ops.removed.update(ops.removed)
+                self.ops.added.update(ops.added)
         return self.ops
 
     def means_lr(self, step: int) -> float:
-        """Exponential decay from ``lr_means`` to ``lr_means_final`` over ``max_steps``, times the extent."""
+        """Exponential decay from ``lr_means`` to ``lr_means_final`` over ``max_steps`` (the TOTAL budget,
+        also when trained in rounds: ``step`` is the global step, which continues), times the extent."""
         hp = self.hparams
         t = min(max(step / max(hp.max_steps, 1), 0.0), 1.0)
         lr = math.exp((1 - t) * math.log(hp.lr_means) + t * math.log(hp.lr_means_final))
@@ -283,15 +305,36 @@ class SplatModule(L.LightningModule):
         ``ValueError`` ``"<what> does not match: <reason> (fix: pass <key=value> or <fix>)"``."""
         from b3dgs.checkpoint import identity_mismatch
 
-        saved = (checkpoint.get("b3dgs") or {}).get("identity")
-        bad = identity_mismatch(saved, self.run_identity())
+        extra = checkpoint.get("b3dgs") or {}
+        saved, current = extra.get("identity"), self.run_identity()
+        if self.allow_new_views and saved:
+            # a new round: the training set may hold acquired views; the pool (train + candidates + test) must agree
+            if extra.get("pool") is not None and extra.get("pool") != self.pool_fingerprint():
+                raise ValueError(f"{what} does not match this run: it was trained on another view pool (scene "
+                                 f"name, train + candidate + test cameras) (fix: {fix})")
+            saved, current = {k: v for k, v in saved.items() if k != "scene"}, {k: v for k, v in current.items() if k != "scene"}
+        bad = identity_mismatch(saved, current)
         if bad is not None:
             problem, want = bad
             raise ValueError(f"{what} does not match this run: {problem} (fix: pass {want}, or {fix})")
 
+    def pool_fingerprint(self) -> Optional[str]:
+        """Fingerprint of the whole view pool (train + candidates, and test): what training rounds share."""
+        from types import SimpleNamespace
+
+        from b3dgs.checkpoint import scene_fingerprint
+
+        sc = self.scene
+        if sc is None:
+            return None
+        pool = sorted(list(sc.train) + list(getattr(sc, "candidates", None) or []), key=lambda c: c.name)
+        return scene_fingerprint(SimpleNamespace(name=sc.name, train=pool, test=sc.test))
+
     def on_save_checkpoint(self, checkpoint: dict[str, Any]) -> None:
         checkpoint["b3dgs"] = {
             "identity": self.run_identity(),
+            "pool": self.pool_fingerprint(),
+            "train_views": [c.name for c in self.scene.train] if self.scene is not None else None,
             "states": self.states,
             "removed": dict(self.ops.removed) if self.ops else {},
             "added": dict(self.ops.added) if self.ops else {},
@@ -318,6 +361,7 @@ class SplatModule(L.LightningModule):
     def on_train_start(self) -> None:
         ops = self._get_ops()
         removed, added = getattr(self, "_restored_counts", ({}, {}))
+        self._restored_counts = ({}, {})  # applied once (a later fit of this module carries the live counters)
         ops.removed.update(removed)
         ops.added.update(added)
 

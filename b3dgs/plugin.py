@@ -55,8 +55,21 @@ class PosteriorBlock(Plugin):
 
     @staticmethod
     def stage_start(t: Optional[int], info: dict, divisor: int) -> int:
-        """A stage threshold: ``t`` when configured, else max_steps // ``divisor`` (the canonical schedule)."""
+        """A stage threshold: ``t`` when configured, else max_steps // ``divisor`` (the canonical schedule).
+
+        ``max_steps`` is the run's TOTAL step budget (``info["max_steps"]``), also when it is trained in rounds
+        (the rounds continue the global step), so the thresholds never restart."""
         return int(t) if t is not None else int(info.get("max_steps", 0)) // divisor
+
+    @staticmethod
+    def train_views(state: dict, info: dict) -> float:
+        """The number of views in the current training set: ``info["num_train_views"]`` (filled by the core
+        every step, so it follows views acquired between training rounds), kept in ``state["n_views"]``
+        (the value at initialisation until the first step, and for callers without the info key)."""
+        n = info.get("num_train_views")
+        if n is not None and "n_views" in state:
+            state["n_views"].fill_(float(n))
+        return float(n) if n is not None else float(state["n_views"])
 
     def sample(self, *, splats, state, n: int, generator: Optional[torch.Generator], params: dict, info: dict) -> dict:
         """Return ``params`` with the attributes this block samples replaced by (n, N, ...) draws."""

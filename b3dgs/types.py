@@ -82,3 +82,6 @@ class Scene:
     bounds_min: Tensor = field(default_factory=lambda: -torch.ones(3))  # (3,) for random init
     bounds_max: Tensor = field(default_factory=lambda: torch.ones(3))  # (3,)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    # views outside ``train_indices`` (active-view studies): cameras WITHOUT images (``image=None``); their
+    # images stay in a :class:`b3dgs.data.scene.CandidateStore` that only the study driver holds
+    candidates: list[Camera] = field(default_factory=list)

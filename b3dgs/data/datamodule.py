@@ -57,6 +57,7 @@ class ResumableRandomSampler(Sampler[int]):
         self.epoch = 0  # permutations drawn so far
         self._yielded = 0
         self._consumed: Optional[int] = None
+        self.allow_resize = False  # a checkpoint of a smaller training set may be loaded (training rounds)
 
     def __len__(self) -> int:
         return self.n
@@ -86,6 +87,11 @@ class ResumableRandomSampler(Sampler[int]):
                 "position": self.position}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
+        if int(state["n"]) != self.n and self.allow_resize:
+            # a new training round with more views: keep the generator's stream, start a fresh epoch
+            self.generator.set_state(state["generator"])
+            self.perm, self.epoch, self._yielded, self._consumed = None, int(state["epoch"]), 0, None
+            return
         if int(state["n"]) != self.n:
             raise ValueError(f"the checkpoint's view sampler has {state['n']} train views, this scene {self.n} "
                              "(fix: resume with the data settings of the checkpoint's run)")
@@ -165,6 +171,7 @@ class SceneDataModule(L.LightningDataModule):
         self.kind_kwargs = {k: _plain(v) for k, v in kind_kwargs.items()}
         self._scene: Optional[Scene] = scene
         self.train_sampler: Optional[ResumableRandomSampler] = None  # made by train_dataloader()
+        self.allow_new_views = False  # a new training round: the sampler may resume from fewer train views
 
     @property
     def scene(self) -> Scene:
@@ -203,6 +210,7 @@ class SceneDataModule(L.LightningDataModule):
 
     def train_dataloader(self) -> DataLoader:
         self.train_sampler = ResumableRandomSampler(len(self.scene.train))
+        self.train_sampler.allow_resize = self.allow_new_views
         # every iter() of a DataLoader draws a worker base seed from its ``generator`` (the global RNG if
         # none): a private one keeps epoch starts off the global RNG, which a resumed run restores exactly
         return ResumableDataLoader(CameraDataset(self.scene.train), batch_size=1, sampler=self.train_sampler,

@@ -47,7 +47,7 @@ class ColorBlock(PosteriorBlock):
             return
         wsq = info["per_gaussian"].get("weight_sq_sum")
         if wsq is not None:
-            state["wsq"].mul_(self.ema).add_((1 - self.ema) * wsq[0].double() * float(state["n_views"]))
+            state["wsq"].mul_(self.ema).add_((1 - self.ema) * wsq[0].double() * self.train_views(state, info))
 
     def rgb_var(self, state):
         return app.color_posterior_var(state["wsq"], state["sigma2"], self.prior_precision)

@@ -113,7 +113,7 @@ class NIWBlock(PosteriorBlock):
         total = raw.sum()
         eff_pixels = info["render"].alpha.detach().sum().double()
         ok = (total > 0) & (eff_pixels > 0)
-        target = raw * torch.where(ok, eff_pixels * state["n_views"].double() / torch.where(ok, total, 1.0), 0.0)
+        target = raw * torch.where(ok, eff_pixels * self.train_views(state, info) / torch.where(ok, total, 1.0), 0.0)
         keep = torch.where(vis.any(), self.ema, 1.0)  # no visible Gaussian: the counts stay as they are
         state["N"].mul_(keep).add_((1 - keep) * target)
         if step % self.update_every == 0:

@@ -51,7 +51,7 @@ class OpacityBlock(PosteriorBlock):
         if s2 is None:
             s2 = float(info["sq_err_sum"]) / max(int(info["num_values"]), 1)
         scale = float(info["num_values"]) / (2.0 * max(float(s2), 1e-8))
-        state["fisher"].mul_(self.ema).add_((1 - self.ema) * (g.double() * scale).square() * float(state["n_views"]))
+        state["fisher"].mul_(self.ema).add_((1 - self.ema) * (g.double() * scale).square() * self.train_views(state, info))
 
     def logit_var(self, state):
         return app.opacity_fisher_var(state["fisher"], self.prior_precision)

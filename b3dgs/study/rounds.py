@@ -1,0 +1,94 @@
+"""Training in rounds: fit to a step, change the training set, fit on from the same model state.
+
+A round is one ``trainer.fit`` up to ``stop_step`` of the run's TOTAL budget ``cfg.trainer.max_steps``
+(the module's ``max_steps``): every schedule (means-lr decay, posterior stage thresholds, the
+``${b3dgs.div:${trainer.max_steps},k}`` values, the strategy's refine window) is keyed to the global step
+and the total budget, so a later round continues them. A round starts from the previous round's
+``last.ckpt``: the same Gaussians, Adam moments, plugin states, RNGs and view-sampler stream (a grown
+training set starts a fresh epoch of the sampler). Fitting to k then on to T on the same views is the
+same run as fitting to T at once (``tests/test_rounds.py``).
+"""
+from __future__ import annotations
+
+import logging
+import os
+import warnings
+from pathlib import Path
+from typing import Optional
+
+import torch
+from omegaconf import DictConfig
+
+from b3dgs.types import Scene
+
+log = logging.getLogger(__name__)
+
+
+def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt_path: Optional[str] = None,
+              new_round: bool = False, checkpoint_every: Optional[int] = None):
+    """Train ``cfg``'s model on ``scene.train`` up to global step ``stop_step`` and return the module.
+
+    ``ckpt_path``: continue from this checkpoint (an interrupted round, or the previous round when
+    ``new_round``: then the training set may hold views the checkpoint's run did not have, from the same
+    view pool). ``run_dir/checkpoints/last.ckpt`` is written every ``checkpoint_every`` steps (default
+    ``cfg.trainer.checkpoint_every``), every ``trainer.checkpoint_every_s`` seconds and at the end.
+    """
+    import lightning as L
+
+    from b3dgs.callbacks import AtomicCheckpointIO, ResumeState, RunCheckpoint
+    from b3dgs.data.datamodule import SceneDataModule
+    from b3dgs.posterior.guards import reset_guards
+    from b3dgs.train import _checkpoint_every_s, build_module, build_plugins, build_renderer, resolve_accelerator
+
+    total = int(cfg.trainer.max_steps)
+    if not 0 < int(stop_step) <= total:
+        raise ValueError(f"a round must stop within the total budget: stop_step={stop_step}, trainer.max_steps={total}")
+    os.environ.pop("PL_GLOBAL_SEED", None)
+    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
+    if ckpt_path is None:
+        reset_guards()
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    strategy, blocks = build_plugins(cfg)
+    renderer = build_renderer(cfg.get("renderer"))
+    module = build_module(cfg, strategy, blocks, renderer)
+    module.init_from_scene(scene)
+    module.allow_new_views = bool(new_round)
+    dm = SceneDataModule(scene=scene)
+    dm.allow_new_views = bool(new_round)
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    every = int(checkpoint_every if checkpoint_every is not None else cfg.trainer.checkpoint_every)
+    ckpt = RunCheckpoint(run_dir / "checkpoints", every_n_steps=every, every_s=_checkpoint_every_s(cfg.trainer))
+    trainer = L.Trainer(
+        max_steps=int(stop_step), accelerator=resolve_accelerator(cfg.trainer.get("accelerator"), renderer), devices=1,
+        logger=False, callbacks=[ResumeState(), ckpt], default_root_dir=str(run_dir), limit_val_batches=0,
+        num_sanity_val_steps=0, enable_progress_bar=bool(cfg.trainer.get("progress_bar", False)),
+        plugins=[AtomicCheckpointIO()], enable_model_summary=False, deterministic=False, enable_checkpointing=True,
+    )
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+        warnings.filterwarnings("ignore", message=".*`training_step` returns.*")
+        trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
+    module.allow_new_views = False
+    module.last_checkpoint = str(ckpt.last_path)
+    return module
+
+
+def load_round(cfg: DictConfig, scene: Scene, ckpt_path: str):
+    """A module holding ``ckpt_path``'s model for scoring or evaluation (no trainer; on the renderer's device)."""
+    from b3dgs.train import build_module, build_plugins, build_renderer
+
+    strategy, blocks = build_plugins(cfg)
+    renderer = build_renderer(cfg.get("renderer"))
+    module = build_module(cfg, strategy, blocks, renderer)
+    module.init_from_scene(scene)
+    ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+    module.allow_new_views = True
+    module.on_load_checkpoint(ck)
+    module.allow_new_views = False
+    module.load_state_dict(ck["state_dict"])
+    module._loaded_step = int(ck.get("global_step", 0))
+    module.to(renderer.device)
+    module.eval()
+    return module

@@ -1,0 +1,113 @@
+"""Training in rounds (issue 11 §1): fit, acquire, fit on from the same model state."""
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+
+from b3dgs.study.rounds import fit_round
+from b3dgs.train import CONF_DIR
+
+STEPS = 60
+BASE = ["data.max_side=32", "+data.n_views=24", f"trainer.max_steps={STEPS}", "trainer.checkpoint_every=1000",
+        "trainer.checkpoint_every_s=0", "trainer.progress_bar=false", "logger=none", "strategy.refine_start=10",
+        "strategy.refine_every=10", "strategy.refine_stop=50", "model.sh_increase_every=20", "seed=3", "threads=1",
+        "renderer=cpu"]
+
+
+def _cfg(extra=()):
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name="train", overrides=[*BASE, *extra])
+
+
+def _scene(cfg, n_train=None):
+    from hydra.utils import instantiate
+
+    dm = instantiate(cfg.data)
+    dm.setup("fit")
+    sc = dm.scene
+    if n_train is not None:
+        import dataclasses
+
+        sc = dataclasses.replace(sc, train=sc.train[:n_train], candidates=sc.train[n_train:])
+    return sc
+
+
+def _params(m):
+    return {k: v.detach().clone() for k, v in m.splats.items()}
+
+
+def _aligned(m):
+    """Adam state, parameters and every per-Gaussian plugin state agree on N and on object identity."""
+    n = m.num_gaussians
+    opt = m.ops.optimizers["gaussians"]
+    live = m.optimizers().optimizer if hasattr(m.optimizers(), "optimizer") else m.optimizers()
+    assert opt is live, "topology ops hold a stale optimizer"
+    for g in opt.param_groups:
+        p = g["params"][0]
+        assert p is m.splats[g["name"]], g["name"]
+        st = opt.state.get(p, {})
+        for k, v in st.items():
+            if torch.is_tensor(v) and v.dim() >= 1:
+                assert v.shape == p.shape, (g["name"], k)
+    assert m.states["core"]["ids"].shape[0] == n
+    for name, st in m.states.items():
+        for k, v in st.items():
+            if torch.is_tensor(v) and v.dim() >= 1 and name != "core":
+                assert v.shape[0] == n, (name, k, v.shape, n)
+
+
+@pytest.mark.parametrize("model", ["standard", "niw"])
+def test_fit_acquire_nothing_fit_equals_single_fit(tmp_path, model):
+    cfg = _cfg([f"model={model}"])
+    scene = _scene(cfg)
+    one = fit_round(cfg, scene, tmp_path / "one", STEPS)
+    a = fit_round(cfg, scene, tmp_path / "two", 25)
+    assert a.num_gaussians > 0
+    b = fit_round(cfg, scene, tmp_path / "two", STEPS, ckpt_path=str(tmp_path / "two/checkpoints/last.ckpt"),
+                  new_round=True)
+    pa, pb = _params(one), _params(b)
+    assert one.num_gaussians == b.num_gaussians
+    for k in pa:
+        assert torch.equal(pa[k], pb[k]), k
+    for name in one.states:
+        for k, v in one.states[name].items():
+            if torch.is_tensor(v):
+                assert torch.equal(v, b.states[name][k]), (name, k)
+
+
+def test_second_round_with_more_views_and_densification_stays_aligned(tmp_path):
+    cfg = _cfg(["model=dpmm", "posterior.dp.t_dp=5", "posterior.dp.cavi_every=5"])
+    small = _scene(cfg, n_train=12)
+    m1 = fit_round(cfg, small, tmp_path / "r", 25)
+    assert m1.states["dp"]["n_views"].item() == 12
+    import dataclasses
+
+    big = dataclasses.replace(small, train=small.train + small.candidates[:6], candidates=small.candidates[6:])
+    m2 = fit_round(cfg, big, tmp_path / "r", STEPS, ckpt_path=str(tmp_path / "r/checkpoints/last.ckpt"), new_round=True)
+    assert int(m2.global_step) == STEPS
+    assert sum(m2.ops.added.values()) > sum(m1.ops.added.values()), "round 2 densified"
+    _aligned(m2)
+    for name in ("niw", "dp", "opacity", "color"):
+        assert m2.states[name]["n_views"].item() == 18, name  # follows the grown training set
+    # means lr continued the decay of the total budget
+    assert m2.means_lr(STEPS) < m2.means_lr(25)
+
+
+def test_refit_same_module_follows_the_live_optimizer(tmp_path):
+    """A second trainer.fit on the same module makes a new Adam: topology ops must edit that one."""
+    import lightning as L
+
+    from b3dgs.data.datamodule import SceneDataModule
+
+    cfg = _cfg()
+    scene = _scene(cfg)
+    m = fit_round(cfg, scene, tmp_path / "a", 30)
+    old_ops = m.ops
+    old_opt = old_ops.optimizers["gaussians"]
+    tr = L.Trainer(max_steps=STEPS, logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                   enable_model_summary=False, limit_val_batches=0, num_sanity_val_steps=0, accelerator="cpu")
+    dm = SceneDataModule(scene=scene)
+    tr.fit(m, datamodule=dm)
+    assert m.ops.optimizers["gaussians"] is not old_opt
+    _aligned(m)
