@@ -193,6 +193,7 @@ def read_colmap(
     path: str | os.PathLike,
     images_dir: str = "images",
     sparse_dir: Optional[str] = None,
+    point_tracks: bool = False,
 ) -> tuple[list[FrameSpec], Optional[np.ndarray], Optional[np.ndarray]]:
     """Parse a COLMAP model: (frames sorted by image name, points xyz (M, 3), colours (M, 3) in [0, 1])."""
     root = Path(path)
@@ -231,6 +232,11 @@ def read_colmap(
         pts = list(rec.points3D.values())
         points = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
         colors = np.array([p.color for p in pts], dtype=np.float32).reshape(-1, 3) / 255.0
+    if point_tracks:  # the image names that observed each point (init_points_from_train_only)
+        names = {i: im.name for i, im in rec.images.items()}
+        tracks = [sorted({names[e.image_id] for e in p.track.elements if e.image_id in names}) for p in pts] \
+            if points is not None else None
+        return frames, points, colors, tracks
     return frames, points, colors
 
 
@@ -241,13 +247,16 @@ def load_colmap(
     max_images: Optional[int] = None,
     images_dir: str = "images",
     sparse_dir: Optional[str] = None,
+    point_tracks: bool = False,
 ) -> RawScene:
     """Load a COLMAP scene: cameras (K at the loaded size, OpenCV w2c), images, SfM points.
 
     Raises ``ValueError`` for distorted camera models (undistort first), size mismatches between
     an image file and its camera, unreadable images; ``FileNotFoundError`` for missing folders/files.
     """
-    frames, points, colors = read_colmap(path, images_dir=images_dir, sparse_dir=sparse_dir)
+    out = read_colmap(path, images_dir=images_dir, sparse_dir=sparse_dir, point_tracks=point_tracks)
+    frames, points, colors = out[:3]
     frames = [frames[i] for i in select_evenly(len(frames), max_images)]
     cams = materialize(frames, max_side=max_side, background=background)
-    return RawScene(name=Path(path).resolve().name, cameras=cams, points=points, point_colors=colors)
+    extras = {"point_views": out[3]} if point_tracks and out[3] is not None else {}
+    return RawScene(name=Path(path).resolve().name, cameras=cams, points=points, point_colors=colors, extras=extras)

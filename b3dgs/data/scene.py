@@ -320,8 +320,14 @@ def preprocess(
     normalize: bool = True,
     background: Sequence[float] = (0.0, 0.0, 0.0),
     near_plane: float = NEAR_PLANE,
+    init_points_from_train_only: bool = False,
 ) -> Scene:
-    """Normalise, split and bound a :class:`RawScene` (see the module docstring)."""
+    """Normalise, split and bound a :class:`RawScene` (see the module docstring).
+
+    With ``train_indices``, the other train views become ``scene.candidates``: cameras without images,
+    whose images go to a :class:`CandidateStore` that :func:`take_candidate_store` hands to the study
+    driver. ``init_points_from_train_only`` keeps only the initial points seen by >= 2 of the selected train
+    views (see :func:`filter_points_to_train`)."""
     cams = sorted(raw.cameras, key=lambda c: c.name)
     if not cams:
         raise ValueError(f"Scene {raw.name!r} has no cameras")
@@ -362,7 +368,13 @@ def preprocess(
             raise IndexError(f"train_indices {bad} out of range for {len(train)} train views")
         if len(set(sel)) != len(sel):
             raise ValueError(f"train_indices contains duplicates: {sel}")
-        train = [train[i] for i in sel]
+        pool, train = train, [train[i] for i in sel]
+        candidates = [c for i, c in enumerate(pool) if i not in set(sel)]
+    else:
+        candidates = []
+    point_filter = None
+    if init_points_from_train_only and points is not None:
+        points, colors, point_filter = filter_points_to_train(raw, points, colors, train)
     if not train:
         raise ValueError(f"Scene {raw.name!r}: no train views (n={len(cams)}, test_every={test_every})")
 
@@ -370,7 +382,7 @@ def preprocess(
     check_near_plane(raw.name, viewmats, lo, hi, normalize, near_plane)
     if colors is None and points is not None:
         colors = np.full_like(points, 0.5, dtype=np.float32)
-    return Scene(
+    scene = Scene(
         name=raw.name,
         train=train,
         test=test,
@@ -381,6 +393,79 @@ def preprocess(
         bounds_max=torch.tensor(hi, dtype=torch.float32),
         background=tuple(float(x) for x in background),
     )
+    if candidates:  # active-view pool: cameras only; the images go to the driver's store
+        scene.candidates = [c.with_image(None) for c in candidates]
+        scene._candidate_store = CandidateStore({c.name: c.image for c in candidates})
+    if point_filter is not None:
+        scene._candidate_store = getattr(scene, "_candidate_store", None) or CandidateStore({})
+        scene._candidate_store.point_filter = point_filter
+    return scene
+
+
+class CandidateStore:
+    """The images of the candidate views of an active-view study, by view name.
+
+    Only the study driver holds it (:func:`take_candidate_store` removes it from the scene before any model
+    or policy sees the scene): it reads an image when a view is acquired, and for the analysis-only
+    ``oracle``. ``reads`` counts every access (the leak test checks it).
+    """
+
+    def __init__(self, images: dict):
+        self._images = dict(images)
+        self.reads: list[str] = []
+        self.point_filter: Optional[dict] = None  # what init_points_from_train_only kept
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._images
+
+    def image(self, name: str) -> torch.Tensor:
+        self.reads.append(name)
+        return self._images[name]
+
+    def acquire(self, camera: Camera) -> Camera:
+        """``camera`` with its ground-truth image: the view joins the training set."""
+        return camera.with_image(self.image(camera.name))
+
+
+def take_candidate_store(scene: Scene) -> CandidateStore:
+    """Remove the candidates' image store from ``scene`` and return it (an empty one if there is none)."""
+    store = scene.__dict__.pop("_candidate_store", None)
+    return store if store is not None else CandidateStore({})
+
+
+def filter_points_to_train(raw: RawScene, points: np.ndarray, colors: Optional[np.ndarray], train: Sequence[Camera]):
+    """Keep the initial points observed by at least two of the ``train`` views, so that a sparse start does
+    not inherit geometry only the candidate views saw. COLMAP scenes (``raw.extras["point_views"]``: the
+    image names of each point's track, from pycolmap) use the tracks. Scenes without tracks (synthetic,
+    transforms with a PLY) use visibility instead: a point counts as observed by a view when it projects
+    inside the image in front of the camera (no occlusion test, so this keeps slightly more).
+    Returns (points, colors, report)."""
+    names = {c.name for c in train}
+    total = len(points)
+    tracks = raw.extras.get("point_views")
+    if tracks is not None:
+        finite = np.isfinite(np.asarray(raw.points, dtype=np.float64).reshape(-1, 3)).all(axis=1)
+        tracks = [t for t, f in zip(tracks, finite) if f]  # aligned with the finite points kept above
+        seen = np.array([sum(1 for n in t if n in names) for t in tracks], dtype=np.int64)
+        method = "sfm_tracks"
+    else:
+        seen = np.zeros(total, dtype=np.int64)
+        P = torch.tensor(points, dtype=torch.float64)
+        for c in train:
+            v, K = c.viewmat.double(), c.K.double()
+            x = P @ v[:3, :3].T + v[:3, 3]
+            z = x[:, 2]
+            uv = (x[:, :2] / z.clamp_min(1e-9)[:, None]) @ K[:2, :2].T + K[:2, 2]
+            ok = (z > NEAR_PLANE) & (uv[:, 0] >= 0) & (uv[:, 0] < c.width) & (uv[:, 1] >= 0) & (uv[:, 1] < c.height)
+            seen += ok.numpy().astype(np.int64)
+        method = "frustum_visibility"
+    keep = seen >= 2
+    report = {"method": method, "total": int(total), "kept": int(keep.sum()), "train_views": len(names)}
+    log.info("init_points_from_train_only: kept %d of %d initial points (seen by >= 2 of %d train views, %s)",
+             report["kept"], total, len(names), method)
+    if not keep.any():
+        return None, None, report  # random initialisation in the bounds
+    return points[keep], None if colors is None else colors[keep], report
 
 
 def get_loader(kind: str):
@@ -403,6 +488,7 @@ def load_scene(
     background: Sequence[float] = (0.0, 0.0, 0.0),
     max_images: Optional[int] = None,
     near_plane: float = NEAR_PLANE,
+    init_points_from_train_only: bool = False,
     **kind_kwargs: Any,
 ) -> Scene:
     """Load a scene of ``kind`` in {"colmap", "transforms", "llff", "synthetic"} and preprocess it.
@@ -437,9 +523,12 @@ def load_scene(
             raise FileNotFoundError(f"Scene path not found: {path}")
     common = dict(max_side=max_side, background=background, max_images=max_images)
     loader = get_loader(kind)
+    if init_points_from_train_only and kind == "colmap":
+        kind_kwargs = {**kind_kwargs, "point_tracks": True}  # which images observed each SfM point
     raw = loader(**common, **kind_kwargs) if kind == "synthetic" else loader(path, **common, **kind_kwargs)
     scene = preprocess(raw, test_every=test_every, train_indices=train_indices, normalize=normalize,
-                       background=background, near_plane=near_plane)
+                       background=background, near_plane=near_plane,
+                       init_points_from_train_only=init_points_from_train_only)
     log.info(
         "Loaded %s scene %r: %d train / %d test views, %s points, extent %.4g",
         kind, scene.name, len(scene.train), len(scene.test),

@@ -1,0 +1,175 @@
+"""Acquisition policies (active view selection): the base class and the scoring context a policy gets.
+
+A policy is a plugin like any other: ``plugins/acquisition/<name>.py`` (one dataclass deriving from
+:class:`AcquisitionPolicy`) plus ``conf/acquisition/<name>.yaml`` (``_target_`` and its fields); an
+installed package adds one through the ``b3dgs.conf`` entry point. The study driver reads only what
+the class declares:
+
+- ``family``: the phase-1 model family it starts from (``standard`` or ``niw``; configurable per row);
+- ``members``: how many phase-1 models of that family (seeds s, s+1, ...) it scores with (the first one
+  continues training);
+- ``uses_ground_truth``: True only for the analysis-only ``oracle``; every other policy is refused the
+  candidates' images.
+
+A policy gets candidate cameras (pose and intrinsics, ``image=None``) and a :class:`ScoringContext`:
+render functions, detached parameters and fitted uncertainty regimes of the phase-1 model(s), the
+training cameras (training data, with their images) and, for the oracle alone, the candidates' ground
+truth. It never gets the LightningModule, the data module or the store of candidate images.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable, ClassVar, Optional, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from b3dgs.errors import B3dgsError
+from b3dgs.types import Camera
+
+__all__ = ["AcquisitionPolicy", "ScoringContext", "Selection", "downscale_camera", "downscale_image", "top_k"]
+
+
+@dataclass
+class Selection:
+    """A policy's answer: candidate positions in pick order, and a score per candidate (None: the policy
+    ranks without scores, e.g. uniform spacing)."""
+
+    indices: list[int]
+    scores: Optional[list[float]] = None
+
+
+def top_k(scores: Tensor, budget: int) -> list[int]:
+    """The ``budget`` highest scores, ties broken by position (deterministic)."""
+    s = scores.detach().double().cpu()
+    order = sorted(range(len(s)), key=lambda i: (-float(s[i]), i))
+    return order[: int(budget)]
+
+
+@dataclass
+class AcquisitionPolicy:
+    """Base of the acquisition policies: score candidates, pick the top ``budget``."""
+
+    family: str = "standard"
+    members: int = 1
+    uses_ground_truth: ClassVar[bool] = False
+
+    def check(self) -> None:
+        if self.family not in ("standard", "niw"):
+            raise B3dgsError(f"acquisition family={self.family!r} is not a phase-1 model family",
+                             "pass family=standard or family=niw")
+        if int(self.members) < 1:
+            raise B3dgsError(f"{type(self).__name__}.members={self.members} must be >= 1", "pass members=1 (or 3 for ensemble)")
+
+    def score(self, ctx: "ScoringContext", candidates: Sequence[Camera]) -> Tensor:
+        """(K,) scores, higher = acquire first."""
+        raise NotImplementedError
+
+    def select(self, ctx: "ScoringContext", candidates: Sequence[Camera], budget: int) -> Selection:
+        scores = self.score(ctx, candidates)
+        return Selection(top_k(scores, budget), [float(v) for v in scores.detach().double().cpu()])
+
+
+# ---------------------------------------------------------------------------------------------- context
+def downscale_camera(camera: Camera, max_side: Optional[int]) -> Camera:
+    """``camera`` rendered at most ``max_side`` pixels on its longest side (K scaled per axis); no image."""
+    from b3dgs.data.scene import scale_intrinsics
+
+    w, h = int(camera.width), int(camera.height)
+    if not max_side or max(w, h) <= int(max_side):
+        return Camera(camera.name, camera.K, camera.viewmat, w, h, None)
+    s = int(max_side) / max(w, h)
+    w2, h2 = max(1, round(w * s)), max(1, round(h * s))
+    K = torch.tensor(scale_intrinsics(camera.K.double().cpu().numpy(), w2 / w, h2 / h), dtype=camera.K.dtype,
+                     device=camera.K.device)
+    return Camera(camera.name, K, camera.viewmat, w2, h2, None)
+
+
+def downscale_image(image: Tensor, width: int, height: int) -> Tensor:
+    """(H, W, 3) -> (height, width, 3) by area averaging (the image's own device and dtype)."""
+    if tuple(image.shape[:2]) == (height, width):
+        return image
+    x = image.permute(2, 0, 1).unsqueeze(0)
+    return F.interpolate(x, size=(height, width), mode="area")[0].permute(1, 2, 0).contiguous()
+
+
+class ScoringContext:
+    """What a policy may use to score candidates (see the module docstring).
+
+    ``models``: the phase-1 module(s) of the policy's family (member 0 continues); they stay private.
+    ``train``: the current training cameras with their images; ``score_max_side``: candidates and
+    training views are scored at this resolution (None: full); ``ground_truth``: a function name ->
+    image, given only to a policy that declares ``uses_ground_truth`` (the oracle).
+    """
+
+    def __init__(self, models: Sequence[Any], train: Sequence[Camera], score_max_side: Optional[int] = None,
+                 extent: float = 1.0, seed: int = 0, ground_truth: Optional[Callable[[str], Tensor]] = None):
+        self._models = list(models)
+        self._gt = ground_truth
+        self.score_max_side = score_max_side
+        self.extent = float(extent)
+        self.seed = int(seed)
+        self.train = [self._small_train(c) for c in train]
+        self._regimes: dict[int, Any] = {}
+
+    # ---------------------------------------------------------------- cameras and renders
+    @property
+    def num_members(self) -> int:
+        return len(self._models)
+
+    @property
+    def device(self) -> torch.device:
+        return self._models[0].splats["means"].device
+
+    def camera(self, camera: Camera) -> Camera:
+        """``camera`` at the scoring resolution (never with an image)."""
+        return downscale_camera(camera, self.score_max_side)
+
+    def _small_train(self, c: Camera) -> Camera:
+        small = downscale_camera(c, self.score_max_side)
+        return small.with_image(None if c.image is None else downscale_image(c.image, small.width, small.height))
+
+    def generator(self, salt: int = 0) -> torch.Generator:
+        return torch.Generator(device="cpu").manual_seed(self.seed * 1000003 + salt)
+
+    def params(self, member: int = 0, requires_grad: bool = False) -> dict[str, Tensor]:
+        """Copies of the point-estimate parameters (leaf tensors, own dtype and device)."""
+        return {k: v.detach().clone().requires_grad_(requires_grad) for k, v in self._models[member].params().items()}
+
+    def render(self, camera: Camera, member: int = 0, params: Optional[dict] = None, grad: bool = False):
+        """Render ``camera`` at the scoring resolution (``params``: another parameter set, e.g. from
+        :meth:`params` with gradients; ``grad``: keep the autograd graph)."""
+        m = self._models[member]
+        with torch.set_grad_enabled(grad):
+            return m.render_camera(self.camera(camera), params=params)
+
+    # ---------------------------------------------------------------- uncertainty regimes
+    def fit_regime(self, regime, member: int = 0):
+        """``regime`` (a :class:`b3dgs.uq.regime.UQRegime`) fitted on the phase-1 model and the training
+        views at the scoring resolution (cached per regime object)."""
+        from types import SimpleNamespace
+
+        key = id(regime)
+        if key not in self._regimes:
+            scene = SimpleNamespace(train=self.train, test=[], extent=self.extent, candidates=[])
+            regime.fit([self._models[member]], scene)
+            self._regimes[key] = regime
+        return self._regimes[key]
+
+    def predict(self, regime, camera: Camera, salt: int = 0):
+        """The fitted ``regime``'s prediction for ``camera`` at the scoring resolution."""
+        return self.fit_regime(regime).predict(self.camera(camera), generator=self.generator(salt))
+
+    # ---------------------------------------------------------------- ground truth (oracle only)
+    def ground_truth(self, camera: Camera) -> Tensor:
+        if self._gt is None:
+            raise B3dgsError(f"a policy asked for the ground truth of candidate {camera.name!r}",
+                             "only a policy that declares uses_ground_truth (the analysis-only oracle) gets it")
+        small = self.camera(camera)
+        return downscale_image(self._gt(camera.name).to(self.device), small.width, small.height)
+
+
+def camera_centres(cameras: Sequence[Camera]) -> np.ndarray:
+    return np.stack([c.center.double().cpu().numpy() for c in cameras]) if cameras else np.zeros((0, 3))

@@ -1,0 +1,343 @@
+"""``b3dgs-study active``: fixed-budget active view selection (paper section 3.2, Table 2).
+
+Protocol per scene and seed s: ``initial_views`` training views evenly spaced over the sorted training list
+(the same for every policy); phase 1 trains each model family the policies start from (standard, niw) for
+``max_steps // phase1_divisor`` steps, once, shared by every policy (the ensemble's extra members are the
+family's phase-1 models of seeds s+1, s+2, shared with those seeds' rows); each policy scores the candidate
+pool (cameras only) and picks ``acquire`` views; its run continues the phase-1 model (member s) on the grown
+training set to ``trainer.max_steps`` (same Gaussians, Adam moments and schedules) and is evaluated on the
+test views.
+
+Everything is resumable: phase-1 models and finished rows (``result.json``) are never retrained, a row's
+selection is saved before its second round (``selection.json``), and an interrupted round resumes from its
+``checkpoints/last.ckpt``. Outputs per scene: ``study.json``, ``study.md`` and ``plots/``
+(:mod:`b3dgs.study.report`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any, Optional
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf, open_dict
+
+from b3dgs.io import write_json
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------------------------------- config
+def _compose(config_name: str, overrides: list[str]) -> DictConfig:
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from b3dgs.train import CONF_DIR
+
+    if GlobalHydra.instance().is_initialized():
+        return compose(config_name=config_name, overrides=overrides)
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name=config_name, overrides=overrides)
+
+
+def family_config(cfg: DictConfig, family: str, seed: int) -> DictConfig:
+    """A ``b3dgs-train``-shaped config: the study's data, renderer, strategy and trainer with ``model=family``."""
+    fam = _compose("train", [f"model={family}", *[str(o) for o in (cfg.get("model_overrides") or [])]])
+    out = OmegaConf.create({"data": cfg.data, "renderer": cfg.renderer, "strategy": cfg.strategy,
+                            "trainer": cfg.trainer, "model": fam.model, "posterior": fam.get("posterior") or {},
+                            "seed": int(seed), "threads": cfg.get("threads")})
+    return out
+
+
+def load_policy(name: str, settings: Optional[DictConfig] = None):
+    """(label, policy) for ``name`` or ``name@family`` from ``conf/acquisition/<name>.yaml`` (or a package's)."""
+    from hydra.utils import instantiate
+
+    from b3dgs.errors import B3dgsError
+
+    base, _, family = str(name).partition("@")
+    try:
+        node = _compose("study", [f"+acquisition@policy={base}"]).policy
+    except Exception as e:  # noqa: BLE001 - unknown option: one line with the fix
+        raise B3dgsError(f"unknown acquisition policy {base!r} ({type(e).__name__})",
+                         "pass policies=[...] of conf/acquisition/<name>.yaml (uniform, farthest, ensemble, ppu, "
+                         "fisher, proxy, native, oracle) or a package's") from None
+    with open_dict(node):
+        if settings is not None and settings.get(base) is not None:
+            node.merge_with(settings.get(base))
+        if family:
+            node.family = family
+    policy = instantiate(node, _convert_="all")
+    policy.check()
+    label = base if not family else f"{base}@{family}"
+    return label, policy
+
+
+# ---------------------------------------------------------------------------------------------- views
+def pca_angles(cameras) -> np.ndarray:
+    """Angle of every camera centre in the plane of the first two principal components (deterministic sign)."""
+    xy = pca_xy(cameras)
+    return np.arctan2(xy[:, 1], xy[:, 0])
+
+
+def pca_xy(cameras) -> np.ndarray:
+    """(n, 2) camera centres in the plane of their first two principal components (a top view)."""
+    from b3dgs.acquisition import camera_centres
+
+    c = camera_centres(cameras)
+    c = c - c.mean(0)
+    _, _, vt = np.linalg.svd(c, full_matrices=False)
+    basis = vt[:2]
+    for i in range(2):  # sign convention: the largest |coefficient| positive
+        if basis[i][np.argmax(np.abs(basis[i]))] < 0:
+            basis[i] = -basis[i]
+    return c @ basis.T
+
+
+def initial_views(cfg: DictConfig, train) -> tuple[list[int], list[str]]:
+    """(indices into the sorted train list of the initial views, names of the views in the hole)."""
+    from b3dgs.data.scene import select_evenly
+
+    n = len(train)
+    k = int(cfg.initial_views)
+    if k + int(cfg.acquire) > n:
+        from b3dgs.errors import B3dgsError
+
+        raise B3dgsError(f"the scene has {n} training views, fewer than initial_views + acquire = {k + int(cfg.acquire)}",
+                         "pass a smaller initial_views / acquire, or a scene with more views")
+    init = select_evenly(n, k)
+    hole: list[str] = []
+    if cfg.variant == "support_hole":
+        order = np.argsort(pca_angles(train), kind="stable")
+        width = max(1, int(math.ceil(float(cfg.hole_fraction) * n)))
+        hole_idx = set(order[:width].tolist())
+        hole = sorted(train[i].name for i in hole_idx)
+        init = [i for i in init if i not in hole_idx]
+    elif cfg.variant != "standard":
+        from b3dgs.errors import B3dgsError
+
+        raise B3dgsError(f"variant={cfg.variant} is unknown", "pass variant=standard or variant=support_hole")
+    return init, hole
+
+
+# ---------------------------------------------------------------------------------------------- study
+class ActiveStudy:
+    """One scene: phase-1 models, rows (policy × seed), results; see the module docstring."""
+
+    def __init__(self, cfg: DictConfig):
+        from hydra.utils import instantiate
+
+        from b3dgs.data.scene import take_candidate_store
+
+        self.cfg = cfg
+        self.total = int(cfg.trainer.max_steps)
+        self.phase1 = self.total // int(cfg.phase1_divisor)
+        if not 0 < self.phase1 < self.total:
+            from b3dgs.errors import B3dgsError
+
+            raise B3dgsError(f"phase 1 would be {self.phase1} of {self.total} steps",
+                             "pass trainer.max_steps >= 2 and phase1_divisor >= 2")
+        full = instantiate(cfg.data)
+        full.setup("fit")
+        self.pool_train = full.scene.train
+        self.init_idx, self.hole = initial_views(cfg, self.pool_train)
+        data = OmegaConf.create(OmegaConf.to_container(cfg.data, resolve=True))
+        with open_dict(data):
+            data.train_indices = self.init_idx
+            data.init_points_from_train_only = bool(cfg.init_points_from_train_only)
+        dm = instantiate(data)
+        dm.setup("fit")
+        self.scene = dm.scene
+        # the candidates' images: read by this driver only (acquisition, oracle, contact sheet)
+        self.store = take_candidate_store(self.scene)
+        self.out = Path(str(cfg.out_dir)) / self.scene.name
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.labels_policies = self._policies()
+        self._phase1_meta: dict[str, dict] = {}
+
+    def _policies(self) -> list[tuple[str, Any]]:
+        rows = [load_policy(n, self.cfg.get("policy_settings")) for n in self.cfg.policies]
+        families = []
+        for _, p in rows:
+            if p.family not in families:
+                families.append(p.family)
+        have = {(type(p), p.family) for _, p in rows}
+        for base in self.cfg.get("family_baselines") or []:
+            for fam in families:
+                label, p = load_policy(f"{base}@{fam}", self.cfg.get("policy_settings"))
+                if (type(p), fam) not in have:
+                    rows.append((label, p))
+                    have.add((type(p), fam))
+        # a label names the family when the policy's default family differs, e.g. uniform@niw
+        out = []
+        for label, p in rows:
+            base = label.partition("@")[0]
+            default = load_policy(base)[1].family
+            out.append((base if p.family == default else f"{base}@{p.family}", p))
+        return out
+
+    # ------------------------------------------------------------------ phase 1
+    def phase1_dir(self, family: str, seed: int) -> Path:
+        return self.out / "phase1" / f"{family}_s{seed}"
+
+    def phase1_model(self, family: str, seed: int) -> str:
+        """The phase-1 checkpoint of ``family`` and ``seed`` (trained once; an interrupted one resumes)."""
+        from b3dgs.study.rounds import fit_round
+
+        d = self.phase1_dir(family, seed)
+        done = d / "phase1.json"
+        ckpt = d / "checkpoints" / "last.ckpt"
+        if done.exists():
+            return str(ckpt)
+        t0 = time.perf_counter()
+        log.info("phase 1: %s seed %d, %d steps on %d views", family, seed, self.phase1, len(self.scene.train))
+        fit_round(family_config(self.cfg, family, seed), self.scene, d, self.phase1,
+                  ckpt_path=str(ckpt) if ckpt.exists() else None)
+        write_json(done, {"family": family, "seed": seed, "steps": self.phase1, "train_time_s": time.perf_counter() - t0,
+                          "train_views": [c.name for c in self.scene.train]})
+        return str(ckpt)
+
+    def phase1_time(self, family: str, seed: int) -> float:
+        return float(json.loads((self.phase1_dir(family, seed) / "phase1.json").read_text())["train_time_s"])
+
+    def scoring_models(self, family: str, seed: int, members: int):
+        from b3dgs.study.rounds import load_round
+
+        return [load_round(family_config(self.cfg, family, seed + i), self.scene, self.phase1_model(family, seed + i))
+                for i in range(members)]
+
+    def oracle_errors(self, family: str, seed: int) -> dict[str, float]:
+        """The phase-1 model's current render error on every candidate (analysis only, cached)."""
+        path = self.phase1_dir(family, seed) / "oracle.json"
+        if path.exists():
+            return json.loads(path.read_text())
+        _, oracle = load_policy("oracle", self.cfg.get("policy_settings"))
+        ctx = self.context(self.scoring_models(family, seed, 1), oracle, seed)
+        scores = oracle.score(ctx, self.scene.candidates)
+        out = {c.name: float(s) for c, s in zip(self.scene.candidates, scores)}
+        write_json(path, out)
+        return out
+
+    def context(self, models, policy, seed: int):
+        from b3dgs.acquisition import ScoringContext
+
+        return ScoringContext(models, self.scene.train, self.cfg.acquisition.get("score_max_side"), self.scene.extent,
+                              seed, ground_truth=self.store.image if policy.uses_ground_truth else None)
+
+    # ------------------------------------------------------------------ rows
+    def run_row(self, label: str, policy, seed: int) -> dict:
+        from b3dgs.study.rounds import fit_round
+
+        d = self.out / f"{label}_s{seed}"
+        res_path = d / "result.json"
+        if res_path.exists():  # a finished row is never retrained
+            return json.loads(res_path.read_text())
+        d.mkdir(parents=True, exist_ok=True)
+        sel_path = d / "selection.json"
+        cands = self.scene.candidates
+        if sel_path.exists():
+            sel = json.loads(sel_path.read_text())
+        else:
+            models = self.scoring_models(policy.family, seed, int(policy.members))
+            ctx = self.context(models, policy, seed)
+            t0 = time.perf_counter()
+            s = policy.select(ctx, cands, int(self.cfg.acquire))
+            dt = time.perf_counter() - t0
+            scores = None if s.scores is None else {c.name: float(v) for c, v in zip(cands, s.scores)}
+            top = None if scores is None else sorted(scores.items(), key=lambda kv: (-kv[1], kv[0]))[:10]
+            sel = {"policy": label, "seed": seed, "family": policy.family, "selected": [cands[i].name for i in s.indices],
+                   "scores": scores, "top10": top, "scoring_time_s": dt, "members": int(policy.members),
+                   "uses_ground_truth": bool(policy.uses_ground_truth)}
+            write_json(sel_path, sel)
+            del models, ctx
+        by_name = {c.name: c for c in cands}
+        acquired = [self.store.acquire(by_name[n]) for n in sel["selected"]]
+        scene2 = dataclasses.replace(self.scene, train=list(self.scene.train) + acquired,
+                                     candidates=[c for c in cands if c.name not in set(sel["selected"])])
+        own = d / "checkpoints" / "last.ckpt"
+        cfg_f = family_config(self.cfg, policy.family, seed)
+        t0 = time.perf_counter()
+        if own.exists():  # an interrupted second round
+            module = fit_round(cfg_f, scene2, d, self.total, ckpt_path=str(own))
+        else:
+            module = fit_round(cfg_f, scene2, d, self.total, ckpt_path=self.phase1_model(policy.family, seed), new_round=True)
+        t_round2 = time.perf_counter() - t0
+        ev = self.evaluate(module)
+        res = {**sel, "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": ev.get("lpips"),
+               "train_time_s": self.phase1_time(policy.family, seed) + t_round2, "round2_time_s": t_round2,
+               "num_gaussians": module.num_gaussians, "steps": int(module.global_step),
+               "hole_hits": sum(1 for n in sel["selected"] if n in set(self.hole)) if self.hole else None}
+        write_json(res_path, res)
+        return res
+
+    def evaluate(self, module) -> dict:
+        from b3dgs.evaluate import evaluate_views
+        from b3dgs.metrics.lpips import get_lpips
+
+        lp, _ = get_lpips()
+        module.eval()
+        return evaluate_views(module, self.scene.test, lpips_model=lp)
+
+    # ------------------------------------------------------------------ all
+    def run(self) -> dict:
+        meta = {"scene": self.scene.name, "variant": str(self.cfg.variant), "initial_views": [c.name for c in self.scene.train],
+                "candidates": [c.name for c in self.scene.candidates], "hole": self.hole,
+                "test_views": [c.name for c in self.scene.test], "phase1_steps": self.phase1, "total_steps": self.total,
+                "acquire": int(self.cfg.acquire), "score_max_side": self.cfg.acquisition.get("score_max_side"),
+                "point_filter": self.store.point_filter, "policies": [l for l, _ in self.labels_policies],
+                "pool_train_views": [c.name for c in self.pool_train]}
+        write_json(self.out / "meta.json", meta)
+        xy = pca_xy(self.pool_train)
+        write_json(self.out / "layout.json", {"xy": {c.name: [float(a), float(b)] for c, (a, b) in zip(self.pool_train, xy)},
+                                              "initial": meta["initial_views"], "hole": self.hole})
+        for seed in [int(s) for s in self.cfg.seeds]:
+            for label, policy in self.labels_policies:
+                res = self.run_row(label, policy, seed)
+                log.info("%s s%d: PSNR %.3f, picked %s", label, seed, res["psnr"] or float("nan"), res["selected"])
+            if self.cfg.get("oracle", True):
+                for fam in sorted({p.family for _, p in self.labels_policies}):
+                    self.oracle_errors(fam, seed)
+        from b3dgs.study.report import write_report
+
+        return write_report(self.out, plots=bool(self.cfg.get("plots", True)), store=self.store)
+
+
+def run_study(cfg: DictConfig) -> dict:
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    return ActiveStudy(cfg).run()
+
+
+CONF_DIR = str(Path(__file__).resolve().parents[2] / "conf")
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="study")
+def hydra_main(cfg: DictConfig) -> Optional[float]:
+    from b3dgs.errors import known_errors, quiet_known_noise
+
+    with known_errors("b3dgs-study", cfg):
+        quiet_known_noise()
+        run_study(cfg)
+    return None
+
+
+def main() -> None:
+    """``b3dgs-study active ...`` (the first argument names the study; ``active`` is the only one)."""
+    from b3dgs.errors import run_cli
+
+    if len(sys.argv) < 2 or sys.argv[1] != "active":
+        print("usage: b3dgs-study active data=... [policies=[...]] [seeds=[0,1,2]] [hydra overrides]", file=sys.stderr)
+        raise SystemExit(2)
+    del sys.argv[1]
+    run_cli("b3dgs-study", hydra_main)
+
+
+if __name__ == "__main__":
+    main()

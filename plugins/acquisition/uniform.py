@@ -1,0 +1,16 @@
+"""Uniform: deterministic even spacing over the remaining candidates (sorted by name)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from b3dgs.acquisition import AcquisitionPolicy, Selection
+from b3dgs.data.scene import select_evenly
+
+
+@dataclass
+class UniformPolicy(AcquisitionPolicy):
+    """``budget`` candidates evenly spaced over the name-sorted pool (no scores, no model needed)."""
+
+    def select(self, ctx, candidates, budget):
+        order = sorted(range(len(candidates)), key=lambda i: candidates[i].name)
+        return Selection([order[i] for i in select_evenly(len(order), int(budget))], None)
