@@ -246,3 +246,13 @@ def test_study_resumes_after_interruption_between_and_within_rounds(tmp_path):
     meta = json.loads((sc / "meta.json").read_text())
     assert meta["hole"] and not set(meta["hole"]) & set(meta["initial_views"])
     assert (sc / "study.md").read_text().count("|") > 10
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (Path(CONF_DIR) / "acquisition").glob("*.yaml")))
+def test_every_acquisition_option_builds(name):
+    from b3dgs.acquisition import AcquisitionPolicy
+
+    GlobalHydra.instance().clear()
+    pol = _policy(name)
+    assert isinstance(pol, AcquisitionPolicy) and pol.family in ("standard", "niw")
+    assert pol.uses_ground_truth == (name == "oracle")

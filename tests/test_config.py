@@ -10,7 +10,9 @@ from omegaconf import OmegaConf
 from b3dgs.train import CONF_DIR, build_plugins
 
 EVAL_GROUPS = {"uq"}  # groups of the b3dgs-eval app (conf/eval.yaml)
-GROUPS = sorted(p.name for p in Path(CONF_DIR).iterdir() if p.is_dir() and p.name not in {"hydra"} | EVAL_GROUPS)
+STUDY_GROUPS = {"acquisition"}  # groups of the b3dgs-study app (conf/study.yaml; tests/test_acquisition.py builds each)
+GROUPS = sorted(p.name for p in Path(CONF_DIR).iterdir()
+                if p.is_dir() and p.name not in {"hydra"} | EVAL_GROUPS | STUDY_GROUPS)
 
 
 def options(group):
