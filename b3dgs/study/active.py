@@ -11,7 +11,7 @@ test views.
 Everything is resumable: phase-1 models and finished rows (``result.json``) are never retrained, a row's
 selection is saved before its second round (``selection.json``), and an interrupted round resumes from its
 ``checkpoints/last.ckpt``. Outputs per scene: ``study.json``, ``study.md`` and ``plots/``
-(:mod:`b3dgs.study.report`).
+(:mod:`b3dgs.study.active_tables`).
 """
 from __future__ import annotations
 
@@ -304,7 +304,7 @@ class ActiveStudy:
             if self.cfg.get("oracle", True):
                 for fam in sorted({p.family for _, p in self.labels_policies}):
                     self.oracle_errors(fam, seed)
-        from b3dgs.study.report import write_report
+        from b3dgs.study.active_tables import write_report
 
         return write_report(self.out, plots=bool(self.cfg.get("plots", True)), store=self.store)
 
