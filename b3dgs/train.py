@@ -278,8 +278,11 @@ def train(cfg: DictConfig) -> dict:
         "per_view": ev["per_view"],
     }
     write_json(run_dir / "metrics.json", metrics)
-    log.info("Done: PSNR %s dB, SSIM %s, LPIPS %s, %d Gaussians, %.1f s training -> %s",
-             "n/a" if metrics["psnr"] is None else f"{metrics['psnr']:.3f}", metrics["ssim"], metrics["lpips"], metrics["num_gaussians"], metrics["train_time_s"], run_dir)
+    def fmt(v, digits):
+        return "n/a" if v is None else f"{v:.{digits}f}"
+
+    log.info("Done: PSNR %s dB, SSIM %s, LPIPS %s, %d Gaussians, %.1f s training -> %s", fmt(metrics["psnr"], 3),
+             fmt(metrics["ssim"], 4), fmt(metrics["lpips"], 4), metrics["num_gaussians"], metrics["train_time_s"], run_dir)
     return metrics
 
 
