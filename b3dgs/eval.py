@@ -37,23 +37,35 @@ def regimes_from_cfg(cfg: DictConfig) -> dict:
 
 
 def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Optional[int] = None,
-                panels: int = 3, out_dir: Optional[Path] = None) -> dict:
-    """Fit every regime on the loaded run(s) and score it on the test views."""
+                panels: int = 3, out_dir: Optional[Path] = None, loaded: Optional[list] = None,
+                meta: Optional[dict] = None) -> dict:
+    """Fit every regime on the loaded run(s) and score it on the test views.
+
+    Regimes with an epistemic part (``has_epistemic``) are also scored on that part alone
+    (:func:`b3dgs.uq.metrics.epistemic_view`: ``epi_ause_rmse``, ``epi_spearman_sq``, ...; over the views
+    ``epi_view_spearman`` and ``epistemic_fraction``); what a regime's ``fit`` estimated goes under
+    ``fit``. ``loaded``: already loaded runs (:class:`b3dgs.runs.LoadedRun`, e.g. with a posterior
+    setting changed after loading) used instead of loading ``run_dirs``; ``meta``: extra ``_meta`` entries.
+    """
     from b3dgs.metrics.image import psnr as psnr_fn
     from b3dgs.metrics.lpips import get_lpips
     from b3dgs.runs import load_run
-    from b3dgs.uq.metrics import evaluate_view, summarize, to_jsonable
+    from b3dgs.uq.metrics import epistemic_summary, epistemic_view, evaluate_view, summarize, to_jsonable
     from b3dgs.uq.plots import plot_reliability, plot_sparsification, plot_uncertainty_panel
 
-    if not run_dirs:
-        raise ValueError("run= must name at least one run dir")
-    first = load_run(run_dirs[0])
-    runs = [first] + [load_run(r, scene=first.scene) for r in run_dirs[1:]]
+    if loaded:
+        runs = list(loaded)
+        first = runs[0]
+    else:
+        if not run_dirs:
+            raise ValueError("run= must name at least one run dir")
+        first = load_run(run_dirs[0])
+        runs = [first] + [load_run(r, scene=first.scene) for r in run_dirs[1:]]
     scene = first.scene
     cams = scene.test[:max_views] if max_views else scene.test
     if not cams:
         raise ValueError("The scene has no test views (data.test_every=0?); nothing to evaluate")
-    out_dir = Path(out_dir or run_dirs[0])
+    out_dir = Path(out_dir or first.path)
     lpips_model, lpips_reason = get_lpips()
     train_times = [float((r.metrics or {}).get("train_time_s") or 0.0) for r in runs]
     writer = None
@@ -82,6 +94,8 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
                 row["lpips"] = float(lpips_model(pred.mean.clamp(0, 1), cam.image))
             row["mean_epistemic"] = float(pred.epistemic.mean())
             row["aleatoric"] = pred.aleatoric
+            if regime.has_epistemic:
+                row.update(epistemic_view(pred.epistemic, pred.mean, cam.image, pred.var, seed=int(seed)))
             per_view.append(row)
             if i < panels:
                 err = (pred.mean - cam.image).abs().mean(-1)
@@ -95,6 +109,10 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
         curves[name] = summ
         summ = {k: v for k, v in summ.items() if k != "mean_curves"}
         summ["spearman"] = summ.get("spearman_rho")
+        summ["has_epistemic"] = bool(regime.has_epistemic)
+        if regime.has_epistemic:
+            summ.update(epistemic_summary(per_view))
+        summ["fit"] = dict(getattr(regime, "fit_info", None) or {})
         summ["time_s"] = round(elapsed, 3)
         summ["train_time_s"] = round(sum(train_times) if multi else train_times[0], 3)
         summ["samples"] = getattr(regime, "samples", None)
@@ -110,7 +128,8 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     plot_sparsification(curves, out_dir / "uq" / "sparsification.png")
     plot_reliability(curves, out_dir / "uq" / "reliability.png")
     result["_meta"] = {"nll_note": "NLL is comparable only within one uncertainty regime",
-                       "views": [c.name for c in cams], "seed": int(seed)}
+                       "views": [c.name for c in cams], "seed": int(seed),
+                       "calib_views": [c.name for c in getattr(scene, "calib", None) or []], **(meta or {})}
     write_json(out_dir / "uq.json", result)
     return result
 

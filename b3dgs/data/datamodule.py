@@ -136,7 +136,7 @@ class SceneDataModule(L.LightningDataModule):
     * ``val_dataloader`` / ``test_dataloader``: the held-out cameras in sorted order.
 
     Arguments mirror :func:`b3dgs.data.load_scene` (``near_plane``: the renderer's, for the near-plane
-    guard); ``name`` (optional) overrides the scene name;
+    guard; ``calib_every``: calibration views held out of training, ``scene.calib``); ``name`` (optional) overrides the scene name;
     extra keyword arguments go to the format loader (e.g. ``n_views``, ``resolution``, ``seed``).
     A prebuilt ``scene`` may be passed instead (then nothing is loaded).
     """
@@ -154,6 +154,7 @@ class SceneDataModule(L.LightningDataModule):
         name: Optional[str] = None,
         scene: Optional[Scene] = None,
         near_plane: float = NEAR_PLANE,
+        calib_every: Optional[int] = None,
         **kind_kwargs: Any,
     ):
         super().__init__()
@@ -168,6 +169,7 @@ class SceneDataModule(L.LightningDataModule):
         self.max_images = None if max_images is None else int(max_images)
         self.name = name
         self.near_plane = float(near_plane)
+        self.calib_every = None if calib_every is None else int(calib_every)  # calibration hold-out (scene.calib)
         self.kind_kwargs = {k: _plain(v) for k, v in kind_kwargs.items()}
         self._scene: Optional[Scene] = scene
         self.train_sampler: Optional[ResumableRandomSampler] = None  # made by train_dataloader()
@@ -193,6 +195,7 @@ class SceneDataModule(L.LightningDataModule):
             background=self.background,
             max_images=self.max_images,
             near_plane=self.near_plane,
+            calib_every=self.calib_every,
             **self.kind_kwargs,
         )
         if self.name:

@@ -12,7 +12,11 @@ the steps common to all formats:
    similarity transform. ``normalize=False`` keeps the raw frame and reports the raw extent.
 2. **held-out split**: cameras sorted by name; index ``i`` is a test view iff ``i % test_every == 0``
    (``test_every=0``: no test views).
-3. **train subset**: ``train_indices`` index into the sorted *train* list.
+3. **calibration split** (``calib_every``, off by default): the ``calib_every``-th, 2·``calib_every``-th,
+   ... view of the sorted *train* list (train positions ``j`` with ``(j + 1) % calib_every == 0``) is
+   moved to ``scene.calib`` (cameras with images, never trained on and never a test view), see
+   :func:`split_calibration`; then the **train subset**: ``train_indices`` index into the remaining
+   sorted train list.
 4. **bounds** for random initialisation, see :func:`compute_bounds`.
 5. **near-plane guard**: the renderer drops everything closer than ``NEAR_PLANE`` to a camera; a scene
    whose content lies that close (e.g. a raw scene of extent 4e-4 with ``normalize=False``) is refused,
@@ -66,6 +70,7 @@ __all__ = [
     "normalize_scene",
     "preprocess",
     "select_evenly",
+    "split_calibration",
     "split_indices",
 ]
 
@@ -313,6 +318,20 @@ def split_indices(n: int, test_every: int) -> tuple[list[int], list[int]]:
     return train, test
 
 
+def split_calibration(train: Sequence[Camera], calib_every: Optional[int]) -> tuple[list[Camera], list[Camera]]:
+    """(train, calib): every ``calib_every``-th view of the sorted train list (positions ``j`` with
+    ``(j + 1) % calib_every == 0``) is a calibration view; ``None`` or 0 holds none out. Only train views
+    are ever taken, so a calibration view is never a test view."""
+    if not calib_every:
+        return list(train), []
+    if isinstance(calib_every, bool) or not isinstance(calib_every, int) or calib_every < 2:
+        raise B3dgsError(f"data.calib_every={calib_every} is not a hold-out period: it must be an integer >= 2 "
+                         "(every n-th training view becomes a calibration view)",
+                         "pass data.calib_every=16, or null for no calibration views")
+    calib = [c for j, c in enumerate(train) if (j + 1) % calib_every == 0]
+    return [c for j, c in enumerate(train) if (j + 1) % calib_every != 0], calib
+
+
 def preprocess(
     raw: RawScene,
     test_every: int = 8,
@@ -320,6 +339,7 @@ def preprocess(
     normalize: bool = True,
     background: Sequence[float] = (0.0, 0.0, 0.0),
     near_plane: float = NEAR_PLANE,
+    calib_every: Optional[int] = None,
     init_points_from_train_only: bool = False,
 ) -> Scene:
     """Normalise, split and bound a :class:`RawScene` (see the module docstring).
@@ -361,6 +381,7 @@ def preprocess(
     train_idx, test_idx = split_indices(len(cams), test_every)
     train = [cams[i] for i in train_idx]
     test = [cams[i] for i in test_idx]
+    train, calib = split_calibration(train, calib_every)
     if train_indices is not None:
         sel = [int(i) for i in train_indices]
         bad = [i for i in sel if not 0 <= i < len(train)]
@@ -393,6 +414,7 @@ def preprocess(
         bounds_max=torch.tensor(hi, dtype=torch.float32),
         background=tuple(float(x) for x in background),
     )
+    scene.calib = calib  # calibration views (data.calib_every); [] when off
     if candidates:  # active-view pool: cameras only; the images go to the driver's store
         scene.candidates = [c.with_image(None) for c in candidates]
         scene._candidate_store = CandidateStore({c.name: c.image for c in candidates})
@@ -488,6 +510,7 @@ def load_scene(
     background: Sequence[float] = (0.0, 0.0, 0.0),
     max_images: Optional[int] = None,
     near_plane: float = NEAR_PLANE,
+    calib_every: Optional[int] = None,
     init_points_from_train_only: bool = False,
     **kind_kwargs: Any,
 ) -> Scene:
@@ -505,6 +528,8 @@ def load_scene(
         max_images: keep at most this many views, spread evenly over the sorted list, before
             splitting (quick experiments); None keeps all.
         near_plane: the renderer's near plane, for the guard of :func:`check_near_plane`.
+        calib_every: hold out every ``calib_every``-th train view as a calibration view
+            (``scene.calib``; see :func:`split_calibration`); None or 0: none.
         **kind_kwargs: passed to the format loader (e.g. ``n_views``, ``resolution``, ``seed`` for
             "synthetic"; ``images_dir`` for "colmap"/"llff"; ``sparse_dir`` for "colmap").
     """
@@ -527,11 +552,12 @@ def load_scene(
         kind_kwargs = {**kind_kwargs, "point_tracks": True}  # which images observed each SfM point
     raw = loader(**common, **kind_kwargs) if kind == "synthetic" else loader(path, **common, **kind_kwargs)
     scene = preprocess(raw, test_every=test_every, train_indices=train_indices, normalize=normalize,
-                       background=background, near_plane=near_plane,
+                       background=background, near_plane=near_plane, calib_every=calib_every,
                        init_points_from_train_only=init_points_from_train_only)
     log.info(
-        "Loaded %s scene %r: %d train / %d test views, %s points, extent %.4g",
+        "Loaded %s scene %r: %d train / %d test%s views, %s points, extent %.4g",
         kind, scene.name, len(scene.train), len(scene.test),
+        f" / {len(scene.calib)} calibration" if scene.calib else "",
         0 if scene.points is None else len(scene.points), scene.extent,
     )
     return scene

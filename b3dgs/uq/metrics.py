@@ -59,6 +59,13 @@ Metrics
   is drawn without replacement with ``numpy.random.default_rng(seed)`` (default seed 0), so the value is
   deterministic. rho is NaN if either variable is constant on the scored pixels.
 
+Epistemic part alone (:func:`epistemic_view`, :func:`epistemic_summary`), for regimes whose variance is
+``u_p`` plus a constant (native: ``u_p + σ̂²``): the AUSE of ``u_p`` (RMSE and MAE), the Spearman rho
+(``scipy.stats.spearmanr``) of ``u_p`` with the per-pixel squared error ``s_p``, the view's mean ``u_p``
+and its share of the mean predictive variance; over the views, rho between the per-view mean ``u_p``
+and the per-view MSE, and the epistemic fraction (sum of the views' mean ``u_p`` over the sum of their
+mean variance).
+
 Scene summaries (:func:`summarize`): every scalar, AUSE and ECE included, is computed *per view* and then
 averaged over views (a macro average); pixels are never pooled across views.
 """
@@ -87,6 +94,8 @@ __all__ = [
     "gaussian_nll",
     "spearman_rho",
     "evaluate_view",
+    "epistemic_view",
+    "epistemic_summary",
     "summarize",
     "to_jsonable",
 ]
@@ -419,6 +428,60 @@ def evaluate_view(mean: Any, var: Any, gt: Any, mask: Any = None, *,
             "calibration": {"levels": p, "observed": obs},
         },
     }
+
+
+def _spearmanr(x: np.ndarray, y: np.ndarray, max_pixels: int | None, seed: int) -> tuple[float, int]:
+    """scipy's Spearman rho (average ranks for ties), on a deterministic subset of at most ``max_pixels``;
+    NaN when either side is constant."""
+    import warnings
+
+    from scipy.stats import spearmanr
+
+    if max_pixels is not None and x.size > max_pixels:
+        idx = np.sort(np.random.default_rng(seed).choice(x.size, size=int(max_pixels), replace=False))
+        x, y = x[idx], y[idx]
+    if x.size < 2 or np.all(x == x[0]) or np.all(y == y[0]):
+        return float("nan"), int(x.size)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rho = spearmanr(x, y).statistic
+    return float(rho), int(x.size)
+
+
+def epistemic_view(epistemic: Any, mean: Any, gt: Any, var: Any = None, mask: Any = None, *,
+                   fractions: Iterable[float] | None = None,
+                   max_spearman_pixels: int | None = DEFAULT_MAX_SPEARMAN_PIXELS, seed: int = 0) -> dict:
+    """The epistemic part ``u_p`` (H, W) of one view scored alone: ``epi_ause_rmse`` / ``epi_ause_mae``
+    (AUSE of the order of ``u_p``, raw convention), ``epi_spearman_sq`` (scipy Spearman rho of ``u_p``
+    with the squared error ``s_p``), ``mean_epistemic``, ``mse`` (mean ``s_p``) and, with ``var``,
+    ``epi_fraction`` = mean ``u_p`` / mean ``var``."""
+    m, u, g = _validate(mean, epistemic, gt, mask)
+    a, s = per_pixel_errors(m, g)
+    out = {
+        "epi_ause_rmse": sparsification(u, s, "rmse", fractions)["ause"],
+        "epi_ause_mae": sparsification(u, a, "mae", fractions)["ause"],
+        "mean_epistemic": float(u.mean()),
+        "mse": float(s.mean()),
+    }
+    out["epi_spearman_sq"], out["epi_spearman_n"] = _spearmanr(u, s, max_spearman_pixels, seed)
+    if var is not None:
+        _, v, _ = _validate(mean, var, gt, mask)
+        mv = float(v.mean())
+        out["epi_fraction"] = float(u.mean()) / mv if mv > 0 else float("nan")
+    return out
+
+
+def epistemic_summary(per_view: Sequence[dict]) -> dict:
+    """Over the views of :func:`epistemic_view` rows (each also holding ``mean_var``):
+    ``epi_view_spearman`` -- scipy Spearman rho between the per-view mean ``u_p`` and the per-view MSE
+    (NaN with fewer than 3 views or a constant side), ``epi_view_n`` and ``epistemic_fraction`` = the
+    sum of the views' mean ``u_p`` over the sum of their mean predictive variance."""
+    u = np.array([float(d["mean_epistemic"]) for d in per_view])
+    e = np.array([float(d["mse"]) for d in per_view])
+    v = np.array([float(d.get("mean_var", np.nan)) for d in per_view])
+    rho = _spearmanr(u, e, None, 0)[0] if len(per_view) >= 3 else float("nan")
+    frac = float(u.sum() / v.sum()) if np.all(np.isfinite(v)) and v.sum() > 0 else float("nan")
+    return {"epi_view_spearman": rho, "epi_view_n": len(per_view), "epistemic_fraction": frac}
 
 
 def _is_scalar(x: Any) -> bool:

@@ -7,7 +7,7 @@ candidate views through the same interface, so a new regime is usable everywhere
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import ClassVar, Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -31,8 +31,14 @@ class Predictive:
 
 @dataclass
 class UQRegime:
-    """Base of the uncertainty regimes; ``samples`` Monte-Carlo draws per view where relevant."""
+    """Base of the uncertainty regimes; ``samples`` Monte-Carlo draws per view where relevant.
 
+    ``has_epistemic``: whether ``Predictive.epistemic`` carries a spread of its own (False for
+    ``uq=constant``); ``b3dgs-eval`` scores that part alone for the regimes that have it. ``fit_info``:
+    what ``fit`` estimated (scalars, view names), copied into ``uq.json``.
+    """
+
+    has_epistemic: ClassVar[bool] = True
     samples: int = 50
     chunk: int = 10  # samples rendered per batched call (bounds memory)
 
@@ -48,6 +54,7 @@ class UQRegime:
             raise ValueError(f"{type(self).__name__} needs at least one trained model")
         self.models = list(models)
         self.scene = scene
+        self.fit_info: dict = {}
 
     def predict(self, camera: Camera, generator: Optional[torch.Generator] = None) -> Predictive:
         raise NotImplementedError

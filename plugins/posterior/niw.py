@@ -46,6 +46,13 @@ class NIWBlock(PosteriorBlock):
 
     ``plugin_noise``: track the plug-in residual MSE σ̂² (EMA) and offer it as the aleatoric
     variance, as in the paper's NIW rows; turn it off when a NoiseBlock supplies E[σ²].
+
+    ``count_scale`` (c, default 1 = the paper): the posterior refresh uses c·N̂_k in place of N̂_k in
+    Eq. 2-3 (the stored summary ``state["N"]`` is unchanged). Because N̂ is normalised to the effective
+    pixel count it is large, and the posterior concentrates as E[Σ] ≈ S0/(c N̂), Var[μ] ≈ S0/(c N̂)²
+    while c N̂ ≫ ν0; c < 1 widens the posterior (Var[μ] ∝ 1/c²) and pulls m_n towards m0 by
+    κ0/(κ0 + c N̂). A trained run's posterior can be re-evaluated at another c without retraining: set
+    ``count_scale`` on the loaded block (every use of the posterior refreshes it from the summaries).
     """
 
     kappa0: float = 0.01
@@ -57,6 +64,7 @@ class NIWBlock(PosteriorBlock):
     plugin_noise: bool = True
     mse_ema: float = 0.99
     sampler_backend: str = "auto"  # posterior draws: "cpu" (C++, one pass), "torch" (reference) or "auto"
+    count_scale: float = 1.0  # c in N̂ <- c·N̂ at the posterior refresh (Eq. 2-3); 1 = the paper
 
     def check_sanity(self, max_steps: int = 0, **kw) -> None:
         if self.kappa0 <= 0:
@@ -71,6 +79,8 @@ class NIWBlock(PosteriorBlock):
             raise ValueError("posterior.niw.cov_mode must be relative | absolute | none")
         if self.sampler_backend not in ("auto", "cpu", "torch"):
             raise ValueError("posterior.niw.sampler_backend must be auto | cpu | torch")
+        if not (isinstance(self.count_scale, (int, float)) and 0 < float(self.count_scale) < float("inf")):
+            raise ValueError(f"posterior.niw.count_scale must be a finite number > 0, got {self.count_scale}")
 
     # ------------------------------------------------------------------ state
     def _prior_for(self, splats, rows: Optional[Tensor] = None):
@@ -121,14 +131,15 @@ class NIWBlock(PosteriorBlock):
 
     @torch.no_grad()
     def _refresh(self, state, splats) -> None:
-        """Eq. 2-3 with x̄ = current centre and C = 0."""
+        """Eq. 2-3 with N̂ ← count_scale·N̂, x̄ = current centre and C = 0."""
         xbar = splats["means"].detach().double()
         n = xbar.shape[0]
         dev = xbar.device
         k0 = torch.full((n,), float(self.kappa0), dtype=torch.float64, device=dev)
         nu0 = torch.full((n,), float(self.nu0), dtype=torch.float64, device=dev)
         C = torch.zeros(n, D, D, dtype=torch.float64, device=dev)
-        m_n, k_n, nu_n, S_n = niwm.niw_update(state["m0"], k0, nu0, state["S0"], state["N"], xbar, C)
+        m_n, k_n, nu_n, S_n = niwm.niw_update(state["m0"], k0, nu0, state["S0"],
+                                                 state["N"] * float(self.count_scale), xbar, C)
         state["m_n"], state["kappa_n"], state["nu_n"], state["S_n"] = m_n, k_n, nu_n, S_n
         state["ediag"] = torch.diagonal(niwm.expected_cov(S_n, nu_n), dim1=-2, dim2=-1).clone()
 

@@ -31,8 +31,11 @@ class NativeUQ(UQRegime):
             if v is not None:
                 self.sigma2 = float(v)
 
+        self.fit_info["sigma2_plugin"] = self.sigma2
+
     @torch.no_grad()
-    def predict(self, camera, generator=None):
+    def spread(self, camera, generator=None):
+        """(point-estimate render (H, W, 3), u_p (H, W)) of one view: Eq. 4 over ``samples`` draws."""
         m = self.models[0]
 
         def draw(n):
@@ -42,5 +45,9 @@ class NativeUQ(UQRegime):
             return p
 
         _, u = sample_spread(m, camera, draw, self.samples, self.chunk)
-        mean = m.render_eval(camera)
+        return m.render_eval(camera), u
+
+    @torch.no_grad()
+    def predict(self, camera, generator=None):
+        mean, u = self.spread(camera, generator)
         return Predictive(mean=mean, var=u + self.sigma2, epistemic=u, aleatoric=self.sigma2)

@@ -47,12 +47,15 @@ class ResidualHead(nn.Module):
 @dataclass
 class PPUHead(UQRegime):
     """Trains a residual head on the frozen checkpoint's training views with the Gaussian NLL of the
-    per-channel residuals (one variance per pixel); the backbone is never updated. var = exp(head)."""
+    per-channel residuals (one variance per pixel); the backbone is never updated.
+    var = exp(head) + ``var_floor``: the floor keeps the NLL bounded below where a residual is exactly 0
+    (e.g. a black background rendered black), which otherwise drives the head to -inf and the loss to NaN."""
 
     steps: int = 300
     lr: float = 5e-3
     width: int = 16
     seed: int = 0
+    var_floor: float = 1e-8
 
     def fit(self, models, scene):
         super().fit(models, scene)
@@ -68,8 +71,8 @@ class PPUHead(UQRegime):
         loss = torch.full((), float("nan"), device=m.device)
         for it in range(self.steps):
             feats, r2 = data[int(torch.randint(len(data), (1,), generator=g))]
-            logv = self.head(feats)[0]
-            loss = 0.5 * (logv + r2 * torch.exp(-logv)).mean()
+            v = torch.exp(self.head(feats)[0]) + self.var_floor
+            loss = 0.5 * (torch.log(v) + r2 / v).mean()
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -80,5 +83,5 @@ class PPUHead(UQRegime):
     def predict(self, camera, generator=None):
         m = self.models[0]
         feats, rgb = render_features(m, camera)
-        var = torch.exp(self.head(feats)[0])
+        var = torch.exp(self.head(feats)[0]) + self.var_floor
         return Predictive(mean=rgb, var=var, epistemic=var, aleatoric=0.0)
