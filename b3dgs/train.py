@@ -269,6 +269,7 @@ def train(cfg: DictConfig) -> dict:
         "num_gaussians": module.num_gaussians, "train_time_s": round(curve.train_time_s, 3),
         "render_fps": ev["render_fps"], "renderer": renderer.describe(),
         "num_train_views": len(scene.train), "num_test_views": len(scene.test),
+        "calib_views": [c.name for c in scene.calib],
         "removed": dict(module.ops.removed) if module.ops else {},
         "added": dict(module.ops.added) if module.ops else {},
         "block_time_s": {k: round(v, 4) for k, v in module.block_time_s.items()},

@@ -85,3 +85,5 @@ class Scene:
     # views outside ``train_indices`` (active-view studies): cameras WITHOUT images (``image=None``); their
     # images stay in a :class:`b3dgs.data.scene.CandidateStore` that only the study driver holds
     candidates: list[Camera] = field(default_factory=list)
+    # training views held out for calibration (``data.calib_every``): with images, never trained on, never test
+    calib: list[Camera] = field(default_factory=list)

@@ -144,7 +144,7 @@ def test_calibration_never_renders_a_test_view(scene):
 
 def test_calibrated_regimes_refuse_a_run_without_calibration_views(scene):
     m = make_module(scene, {"niw": NIWBlock()})
-    bare = dataclasses.replace(scene)  # dataclass fields only: no calibration views
+    bare = dataclasses.replace(scene, calib=[])  # the same scene without calibration views
     for cls in (NativeCalibratedUQ, NativeConformalUQ):
         with pytest.raises(B3dgsError) as e:
             cls(samples=2).fit([m], bare)

@@ -414,7 +414,7 @@ def preprocess(
         bounds_max=torch.tensor(hi, dtype=torch.float32),
         background=tuple(float(x) for x in background),
     )
-    scene.calib = calib  # calibration views (data.calib_every); [] when off
+    scene.calib = list(calib)  # calibration views (data.calib_every); [] when off
     if candidates:  # active-view pool: cameras only; the images go to the driver's store
         scene.candidates = [c.with_image(None) for c in candidates]
         scene._candidate_store = CandidateStore({c.name: c.image for c in candidates})
