@@ -280,3 +280,23 @@ def test_calib_run_trains_without_its_calibration_views_and_uq_json_reports_them
     assert saved["native_calibrated"]["epi_ause_rmse"] == pytest.approx(saved["native"]["epi_ause_rmse"], rel=0.2)
     assert not saved["constant"]["has_epistemic"] and "epi_ause_rmse" not in saved["constant"]
     assert saved["constant"]["fit"]["sigma2"] > 0 and res["constant"]["samples"] == 0
+
+
+def test_native_count_scale_override_widens_draws_and_leaves_the_model_alone(scene):
+    """uq=native with count_scale draws from a copy of the block and state: more spread, same trained model."""
+    from plugins.uq.native import NativeUQ
+
+    m = make_module(scene, {"niw": NIWBlock()})
+    m.states["niw"]["N"].fill_(1e5)  # a trained model's counts (the prior alone does not depend on c)
+    m.posterior["niw"].posterior(m.states["niw"], m.splats)  # its posterior as training leaves it
+    before = {k: v.clone() for k, v in m.states["niw"].items() if torch.is_tensor(v)}
+    cam = scene.test[0]
+    u = {}
+    for c in (None, 0.01):
+        reg = NativeUQ(samples=8, chunk=4, count_scale=c)
+        reg.fit([m], scene)
+        u[c] = float(reg.predict(cam, generator=torch.Generator().manual_seed(0)).epistemic.mean())
+    assert u[0.01] > 2 * u[None] > 0
+    assert m.posterior["niw"].count_scale == 1.0
+    for k, v in before.items():
+        assert torch.equal(m.states["niw"][k], v), k
