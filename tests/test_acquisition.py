@@ -1,12 +1,10 @@
 """Acquisition policies (issue 11 §2-3): known answers on small cases, no ground-truth leak, plugins from
 an installed package, and the study's resume between rounds."""
-import importlib
 import json
 import math
 import os
 import subprocess
 import sys
-import textwrap
 from pathlib import Path
 
 import pytest
@@ -175,12 +173,9 @@ def test_no_policy_but_oracle_reaches_candidate_images(hole_setup):
 
 def test_external_package_adds_an_acquisition_policy(tmp_path, monkeypatch):
     from b3dgs.study.active import load_policy
+    from tests.fake_package import install_conf_package
 
-    pkg = tmp_path / "b3dgs_acq_demo"
-    (pkg / "conf" / "acquisition").mkdir(parents=True)
-    for d in (pkg, pkg / "conf", pkg / "conf" / "acquisition"):
-        (d / "__init__.py").write_text("")
-    (pkg / "pol.py").write_text(textwrap.dedent('''
+    install_conf_package(tmp_path, monkeypatch, "b3dgs_acq_demo", "acquisition", "pol", '''
         from dataclasses import dataclass
         import torch
         from b3dgs.acquisition import AcquisitionPolicy
@@ -190,14 +185,7 @@ def test_external_package_adds_an_acquisition_policy(tmp_path, monkeypatch):
             """A user's policy: the candidates in reverse name order."""
             def score(self, ctx, candidates):
                 return torch.arange(len(candidates), dtype=torch.float64)
-    '''))
-    (pkg / "conf" / "acquisition" / "lastfirst.yaml").write_text("_target_: b3dgs_acq_demo.pol.LastFirst\nfamily: niw\n")
-    dist = tmp_path / "b3dgs_acq_demo-0.1.dist-info"
-    dist.mkdir()
-    (dist / "METADATA").write_text("Metadata-Version: 2.1\nName: b3dgs-acq-demo\nVersion: 0.1\n")
-    (dist / "entry_points.txt").write_text("[b3dgs.conf]\nb3dgs_acq_demo = b3dgs_acq_demo.conf\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    importlib.invalidate_caches()
+    ''', {"lastfirst": "_target_: b3dgs_acq_demo.pol.LastFirst\nfamily: niw\n"})
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         label, pol = load_policy("lastfirst")

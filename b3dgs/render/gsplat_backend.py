@@ -16,17 +16,12 @@ from typing import Mapping, Optional
 import torch
 from torch import Tensor
 
-from b3dgs.render.preprocess import effective_sh_degree, guarded_params
+from b3dgs.render.preprocess import effective_sh_degree, expand_samples, guarded_params
 from b3dgs.render.render import RenderOutput, check_render_params
 from b3dgs.types import Camera
 
 GSPLAT_MAX_ALPHA = 0.999
 _ALL_BATCHES = 1 << 30  # "every batch of every tile" for rasterize_to_indices_in_range (a uint32)
-
-
-def _lead(t: Tensor, S: int, tail: int) -> Tensor:
-    """(…, N, *tail) with an optional sample dimension -> (S, N, *tail) (a view where possible)."""
-    return t.expand((S,) + t.shape[-tail - 1:]) if t.dim() == tail + 2 else t.unsqueeze(0).expand((S,) + t.shape)
 
 
 def weight_sums(gauss_ids: Tensor, pixel_ids: Tensor, image_ids: Tensor, means2d: Tensor, conics: Tensor,
@@ -83,21 +78,22 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
 
     S, N, batched = check_render_params(params)
     params = guarded_params(params, camera, near)  # the same counted quaternion / scale guards as our backends
-    means = _lead(params["means"], S, 1)
+    means = expand_samples(params["means"], S, 1)
     dev, dtype = means.device, means.dtype
     if dev.type != "cuda" or dtype != torch.float32:
         raise ValueError(f"renderer=gsplat needs float32 CUDA tensors, got {dtype} on {dev} "
                          "(fix: let the trainer move the model, or use renderer=torch on this device)")
     deg = effective_sh_degree(sh_degree, params.get("shN"))
-    sh = _lead(params["sh0"], S, 2)
+    sh = expand_samples(params["sh0"], S, 2)
     if deg > 0:
-        sh = torch.cat([sh, _lead(params["shN"], S, 2)[..., : (deg + 1) ** 2 - 1, :]], dim=-2)
+        sh = torch.cat([sh, expand_samples(params["shN"], S, 2)[..., : (deg + 1) ** 2 - 1, :]], dim=-2)
     if "covars" in params:
         quats = scales = None
-        covars = _lead(params["covars"], S, 2)
+        covars = expand_samples(params["covars"], S, 2)
     else:
-        quats, scales, covars = _lead(params["quats"], S, 1), torch.exp(_lead(params["scales"], S, 1)), None
-    opac = torch.sigmoid(_lead(params["opacities"], S, 0))
+        quats, covars = expand_samples(params["quats"], S, 1), None
+        scales = torch.exp(expand_samples(params["scales"], S, 1))
+    opac = torch.sigmoid(expand_samples(params["opacities"], S, 0))
     viewmats = camera.viewmat.to(dev, dtype).expand(S, 1, 4, 4)
     Ks = camera.K.to(dev, dtype).expand(S, 1, 3, 3)
     bg = torch.zeros(3, device=dev, dtype=dtype) if background is None else background.to(dev, dtype)

@@ -118,30 +118,31 @@ def guarded_params(params: Mapping[str, Tensor], camera: Camera, near: float) ->
     return dict(params, quats=quats, scales=scales)
 
 
-def _expand(t: Tensor, S: int, tail: int) -> Tensor:
+def expand_samples(t: Tensor, S: int, tail: int) -> Tensor:
+    """(…, N, *tail) with an optional sample dimension -> (S, N, *tail), a view (shared by both backends)."""
     return t.expand((S,) + t.shape[-tail - 1:]) if t.dim() == tail + 2 else t.unsqueeze(0).expand((S,) + t.shape)
 
 
 def _preprocess_torch(params: Mapping[str, Tensor], camera: Camera, S: int, deg: int, near: float) -> Preprocessed:
     means = params["means"]
     dtype = means.dtype
-    means_s = _expand(means, S, 1)
+    means_s = expand_samples(means, S, 1)
     cov3d = params["covars"] if "covars" in params else covariance_3d(params["quats"], params["scales"])
     dev = means.device
-    proj = project(means_s, _expand(cov3d, S, 2), camera.viewmat.to(dev, dtype), camera.K.to(dev, dtype),
+    proj = project(means_s, expand_samples(cov3d, S, 2), camera.viewmat.to(dev, dtype), camera.K.to(dev, dtype),
                    camera.width, camera.height, near)
     sh0 = params["sh0"]
     if deg > 0:
         nb = (deg + 1) ** 2
-        coeffs = torch.cat([_expand(sh0, S, 2), _expand(params["shN"], S, 2)[..., : nb - 1, :]], dim=-2)
+        coeffs = torch.cat([expand_samples(sh0, S, 2), expand_samples(params["shN"], S, 2)[..., : nb - 1, :]], dim=-2)
         dirs = torch.nn.functional.normalize(means_s - camera.center.to(dev, dtype), dim=-1)
         colors = eval_sh(deg, coeffs, dirs)
     else:
-        colors = eval_sh(0, _expand(sh0, S, 2), means_s)
+        colors = eval_sh(0, expand_samples(sh0, S, 2), means_s)
     colors = torch.clamp_min(colors + 0.5, 0.0)
     # a Gaussian culled in one sample (radius 0) stays invisible there, even though the shared
     # binning (union over samples) may list it
-    opac = _expand(torch.sigmoid(params["opacities"]), S, 0) * (proj.radii > 0)
+    opac = expand_samples(torch.sigmoid(params["opacities"]), S, 0) * (proj.radii > 0)
     extent = binning_extent(proj.cov2d.detach(), opac.detach(), proj.radii)
     return Preprocessed(proj.means2d, proj.conics, colors, opac, proj.depths, proj.radii, extent)
 
