@@ -26,11 +26,15 @@ class Plugin:
     """Base of every plugin kind (strategies, posterior blocks). All hooks are no-ops by default.
 
     What the core reads from a plugin is declared here: ``needs_weights`` asks the renderer for the
-    per-Gaussian compositing sums Σ_p w_kp and Σ_p w_kp² (``info["per_gaussian"]``) every step.
-    State tensors must be created on the splats' device (``splats["means"].device``).
+    per-Gaussian compositing sums Σ_p w_kp and Σ_p w_kp² (``info["per_gaussian"]``) every step;
+    ``changes_training`` = False promises that the plugin only observes training (it never edits splats,
+    optimizers, gradients or the topology), so a model with it trains bit for bit like one without it
+    (``tests/test_rounds.py`` checks every plugin that promises it; the active-view study then shares
+    such runs). State tensors must be created on the splats' device (``splats["means"].device``).
     """
 
     needs_weights: ClassVar[bool] = False
+    changes_training: ClassVar[bool] = True
 
     def check_sanity(self, **kwargs: Any) -> None:
         """Validate configuration values; raise ValueError naming the bad field and the fix."""

@@ -236,6 +236,25 @@ def test_study_resumes_after_interruption_between_and_within_rounds(tmp_path):
     assert (sc / "study.md").read_text().count("|") > 10
 
 
+def test_study_shares_a_second_round_only_when_it_is_the_same_run(tmp_path):
+    """uniform@niw picks what uniform picks and NIW only observes training: shared, and the sharing is
+    exact (a study with share_training=false trains it and gets the same PSNR to the bit)."""
+    base = [a for a in STUDY if not a.startswith(("policies=", "variant="))] + ["policies=[uniform,uniform@niw]"]
+
+    def run(out, *extra):
+        r = subprocess.run([sys.executable, "-m", "b3dgs.study.active", *base, *extra, f"out_dir={out}"],
+                           capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, r.stderr[-3000:]
+        return {p: json.loads((out / "synthetic" / f"{p}_s0" / "result.json").read_text()) for p in ("uniform", "uniform@niw")}
+
+    shared = run(tmp_path / "a")
+    assert shared["uniform@niw"]["training_shared_with"] == "uniform"
+    assert not (tmp_path / "a" / "synthetic" / "uniform@niw_s0" / "checkpoints").exists()
+    trained = run(tmp_path / "b", "share_training=false")
+    assert "training_shared_with" not in trained["uniform@niw"]
+    assert trained["uniform@niw"]["psnr"] == trained["uniform"]["psnr"] == shared["uniform@niw"]["psnr"]
+
+
 @pytest.mark.parametrize("name", sorted(p.stem for p in (Path(CONF_DIR) / "acquisition").glob("*.yaml")))
 def test_every_acquisition_option_builds(name):
     from b3dgs.acquisition import AcquisitionPolicy

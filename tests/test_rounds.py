@@ -111,3 +111,31 @@ def test_refit_same_module_follows_the_live_optimizer(tmp_path):
     tr.fit(m, datamodule=dm)
     assert m.ops.optimizers["gaussians"] is not old_opt
     _aligned(m)
+
+
+def _observers():
+    """conf/posterior/<name>.yaml blocks whose class promises ``changes_training = False``."""
+    from hydra.utils import get_class
+    from omegaconf import OmegaConf
+
+    out = []
+    for p in sorted((Path(CONF_DIR) / "posterior").glob("*.yaml")):
+        node = next(iter(OmegaConf.load(p).values()))
+        if not get_class(node["_target_"]).changes_training:
+            out.append(p.stem)
+    return out
+
+
+@pytest.mark.parametrize("block", _observers())
+def test_blocks_that_promise_not_to_change_training_train_bit_for_bit_like_standard(tmp_path, block):
+    """The declaration the study relies on to share runs: densification, SH schedule and all."""
+    assert "niw" in _observers()  # the promise is made where the paper says so (NIW reads summaries only)
+    ref = _cfg()
+    sc = _scene(ref)
+    a = fit_round(ref, sc, tmp_path / "std", STEPS)
+    b = fit_round(_cfg([f"posterior=[{block}]"]), sc, tmp_path / block, STEPS)
+    assert list(b.posterior) == [block], "the block was not built"
+    pa, pb = _params(a), _params(b)
+    assert a.num_gaussians == b.num_gaussians
+    for k in pa:
+        assert torch.equal(pa[k], pb[k]), k

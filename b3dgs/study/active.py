@@ -257,6 +257,14 @@ class ActiveStudy:
                    "uses_ground_truth": bool(policy.uses_ground_truth)}
             write_json(sel_path, sel)
             del models, ctx
+        twin = self.training_twin(label, policy.family, seed, sel["selected"])
+        if twin is not None:  # the same training run exists: share it, never retrain it
+            res = {**sel, **{k: twin[k] for k in ("psnr", "ssim", "lpips", "train_time_s", "round2_time_s",
+                                                  "num_gaussians", "steps")},
+                   "training_shared_with": twin["policy"],
+                   "hole_hits": sum(1 for n in sel["selected"] if n in set(self.hole)) if self.hole else None}
+            write_json(res_path, res)
+            return res
         by_name = {c.name: c for c in cands}
         acquired = [self.store.acquire(by_name[n]) for n in sel["selected"]]
         scene2 = dataclasses.replace(self.scene, train=list(self.scene.train) + acquired,
@@ -276,6 +284,34 @@ class ActiveStudy:
                "hole_hits": sum(1 for n in sel["selected"] if n in set(self.hole)) if self.hole else None}
         write_json(res_path, res)
         return res
+
+    def training_signature(self, family: str, seed: int) -> str:
+        """The family's training config with the posterior blocks that promise not to change training
+        (``changes_training = False``, tested in ``tests/test_rounds.py``) left out, and without its name."""
+        from hydra.utils import get_class
+
+        d = OmegaConf.to_container(family_config(self.cfg, family, seed), resolve=True)
+        d["model"].pop("name", None)
+        d["posterior"] = {k: v for k, v in (d.get("posterior") or {}).items()
+                          if get_class(v["_target_"]).changes_training}
+        return json.dumps(d, sort_keys=True, default=str)
+
+    def training_twin(self, label: str, family: str, seed: int, selected: list[str]) -> Optional[dict]:
+        """A finished, separately trained row of this seed whose second round is the same run: the same
+        training signature and the same acquired views in the same order (e.g. ``uniform@niw`` and
+        ``uniform``, since NIW only observes training). None when ``share_training`` is off."""
+        if not self.cfg.get("share_training", True):
+            return None
+        mine = self.training_signature(family, seed)
+        for other, pol in self.labels_policies:
+            path = self.out / f"{other}_s{seed}" / "result.json"
+            if other == label or not path.exists():
+                continue
+            res = json.loads(path.read_text())
+            if res.get("training_shared_with") is None and res["selected"] == list(selected) \
+                    and self.training_signature(pol.family, seed) == mine:
+                return res
+        return None
 
     def evaluate(self, module) -> dict:
         from b3dgs.evaluate import evaluate_views

@@ -57,6 +57,8 @@ def summarize(out: Path) -> dict:
         ent: dict[str, Any] = {"family": rs[0]["family"], "n_seeds": len(rs), "oracle": bool(rs[0].get("uses_ground_truth"))}
         for k in ("psnr", "ssim", "lpips", "train_time_s", "scoring_time_s"):
             ent[k], ent[k + "_sem"] = _mean_sem([r.get(k) for r in rs])
+        twins = sorted({r["training_shared_with"] for r in rs if r.get("training_shared_with")})
+        ent["training_shared_with"] = twins or None
         hh = [r.get("hole_hits") for r in rs if r.get("hole_hits") is not None]
         ent["hole_hits"] = float(np.mean(hh)) if hh else None
         rhos = []
@@ -102,12 +104,16 @@ def markdown(summary: dict) -> str:
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for pol, e in sorted(summary["table"].items(), key=lambda kv: (kv[1]["family"] != "standard", kv[1]["family"])):
         name = f"{pol} (ORACLE, analysis only)" if e["oracle"] else pol
+        if e.get("training_shared_with"):
+            name += f" (same run as {', '.join(e['training_shared_with'])})"
         lines.append(f"| {e['family']} | {name} | {_fmt(e['psnr'], e['psnr_sem'])} | {_fmt(e['ssim'], e['ssim_sem'], 4)} | "
                      f"{_fmt(e['lpips'], e['lpips_sem'], 4)} | {_fmt(e['spearman_vs_oracle'], e['spearman_vs_oracle_sem'], 2)} | "
                      f"{_fmt(e['train_time_s'], nd=1)} | {_fmt(e['scoring_time_s'], nd=1)} | "
                      f"{_fmt(e['hole_hits'], nd=1)} |")
     lines += ["", "Mean ± SEM over seeds. ρ: Spearman correlation of the policy's candidate scores with the phase-1 "
-              "model's current render error on each candidate (the oracle's score; how informative the score is).", ""]
+              "model's current render error on each candidate (the oracle's score; how informative the score is). "
+              "'Same run as X': the row acquired X's views in X's order and its model trains bit for bit like X's "
+              "(its posterior blocks only observe training), so X's second round is its result.", ""]
     if summary["paired"]:
         lines += ["| paired | ΔPSNR (dB) | scene-seed wins |", "| --- | --- | --- |"]
         for k, v in summary["paired"].items():
@@ -197,8 +203,7 @@ def make_plots(out: Path, summary: dict, store=None) -> None:
                     ax.axis("off")
                     if j < len(r["selected"]) and r["selected"][j] in store:
                         ax.imshow(store.image(r["selected"][j]).clamp(0, 1).cpu().numpy())
-                if True:
-                    axes[i, 0].set_title(r["policy"], fontsize=7, loc="left")
+                axes[i, 0].set_title(r["policy"], fontsize=7, loc="left")
             fig.tight_layout()
             fig.savefig(pdir / "contact_sheet.png", dpi=100)
             plt.close(fig)

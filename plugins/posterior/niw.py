@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import ClassVar, Optional
 
 import torch
 from torch import Tensor
@@ -54,6 +54,8 @@ class NIWBlock(PosteriorBlock):
     κ0/(κ0 + c N̂). A trained run's posterior can be re-evaluated at another c without retraining: set
     ``count_scale`` on the loaded block (every use of the posterior refreshes it from the summaries).
     """
+
+    changes_training: ClassVar[bool] = False  # it reads summaries; splats, optimizers, gradients untouched
 
     kappa0: float = 0.01
     nu0: float = 5.0

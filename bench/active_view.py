@@ -1,0 +1,290 @@
+"""The active-view study (``b3dgs-study active``) on the shared scenes, and its cross-scene table.
+
+    python bench/active_view.py                              # ethiopian_head + fox, seeds 0 1 2, quick protocol
+    python bench/active_view.py --aggregate-only             # only rebuild the tables and plots
+    python bench/active_view.py --scenes fox --seeds 0 --jobs 1
+
+One worker per scene (``--jobs`` scenes at a time, ``threads=1`` each, so two scenes use the two cores);
+its seeds run one after another (the seeds of one scene share phase-1 models, so they never run at once).
+Every study is resumable (finished rows are never retrained), so an interrupted run of this script
+picks up where it stopped. Writes ``bench/results/active_view.{json,md}`` and
+``bench/results/active_view/`` (per-scene study.md, plots, and the cross-scene plots).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import shutil
+import subprocess
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import RESULTS, SCENES, machine, shared_dir, write_results  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+NAME = "active_view"
+
+# The paper's Table 2 (13 scenes x 3 seeds, 16 -> 32 views, 10k + 20k iterations on a GPU): PSNR, SSIM, LPIPS, time.
+PAPER = {"uniform": (19.940, 0.6307, 0.3485, 873.9), "ensemble": (20.389, 0.6367, 0.3428, 1531.2),
+         "ppu": (20.487, 0.6457, 0.3376, 960.9), "uniform@niw": (20.011, 0.6305, 0.3486, 1009.2),
+         "proxy": (20.441, 0.6519, 0.3341, 888.7), "native": (20.842, 0.6577, 0.3282, 1233.1)}
+PAPER_PAIRED = {"native-ensemble": "+0.453 (29/39 scene-seeds, 10/13 scenes)", "native-proxy": "+0.401",
+                "native-ppu": "+0.355", "ensemble-uniform": "+0.449"}
+PAIRS = (("native", "ensemble"), ("native", "proxy"), ("native", "ppu"), ("native", "uniform@niw"),
+         ("ensemble", "uniform"), ("fisher", "ensemble"), ("farthest", "uniform"), ("oracle", "uniform"))
+PAPER_JACCARD = {"native|proxy": 0.056, "native|ensemble": 0.059}
+
+
+def run_scene(scene: str, seeds: list[int], study_out: Path, extra: list[str]) -> dict:
+    """Run the study for ``scene``, one seed after another; returns {seed: wall seconds} of the seeds run."""
+    logs = study_out / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    walls = {}
+    for seed in seeds:
+        cmd = [sys.executable, "-m", "b3dgs.study.active", "active",
+               *[o.format(shared=shared_dir()) for o in SCENES[scene]], "renderer=cpu", f"seeds=[{seed}]",
+               f"out_dir={study_out}", "threads=1", "plots=false", *extra]
+        t0 = time.perf_counter()
+        with open(logs / f"{scene}_s{seed}.log", "a") as log:
+            r = subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+        walls[seed] = time.perf_counter() - t0
+        print(f"{scene} s{seed}: exit {r.returncode}, {walls[seed] / 60:.1f} min (log {logs / f'{scene}_s{seed}.log'})",
+              flush=True)
+        if r.returncode != 0:
+            raise SystemExit(f"the study failed on {scene} seed {seed}: see {logs / f'{scene}_s{seed}.log'}")
+    return walls
+
+
+def _ms(xs):
+    xs = [float(x) for x in xs if x is not None]
+    if not xs:
+        return None, None
+    return float(np.mean(xs)), (float(np.std(xs, ddof=1) / math.sqrt(len(xs))) if len(xs) > 1 else 0.0)
+
+
+def compute_per_seed(out: Path, scene_summary: dict) -> dict:
+    """Compute each seed of one scene costs: the phase-1 models it is the first to use (the ensemble's
+    members s+1, s+2 are charged to the first seed that needs them), every row's second round (a shared
+    row costs nothing) and its scoring. Evaluation time is not recorded per row and is left out."""
+    charged: set = set()
+    res = {}
+    for seed in scene_summary["seeds"]:
+        rows = [r for r in scene_summary["runs"] if int(r["seed"]) == seed]
+        p1 = 0.0
+        for r in rows:
+            for i in range(int(r.get("members", 1))):
+                key = (r["family"], seed + i)
+                path = out / "phase1" / f"{key[0]}_s{key[1]}" / "phase1.json"
+                if key not in charged and path.exists():
+                    charged.add(key)
+                    p1 += float(json.loads(path.read_text())["train_time_s"])
+        r2 = sum(float(r.get("round2_time_s") or 0) for r in rows if not r.get("training_shared_with"))
+        sc = sum(float(r.get("scoring_time_s") or 0) for r in rows)
+        res[seed] = {"phase1_s": p1, "round2_s": r2, "scoring_s": sc, "total_s": p1 + r2 + sc, "rows": len(rows)}
+    return res
+
+
+def aggregate(scenes: list[str], study_out: Path, walls: dict) -> dict:
+    from b3dgs.study.active_tables import write_report
+
+    per_scene = {}
+    for scene in scenes:
+        out = study_out / scene
+        if not (out / "meta.json").exists():
+            continue
+        s = write_report(out, plots=True, store=None)
+        dst = RESULTS / NAME / scene
+        dst.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(out / "study.md", dst / "study.md")
+        shutil.copy2(out / "study.json", dst / "study.json")
+        for png in (out / "plots").glob("*.png"):
+            shutil.copy2(png, dst / png.name)
+        per_scene[scene] = s
+    policies = []
+    for s in per_scene.values():
+        for p in s["table"]:
+            if p not in policies:
+                policies.append(p)
+    table = {}
+    for p in policies:
+        ents = [s["table"][p] for s in per_scene.values() if p in s["table"]]
+        e = {"family": ents[0]["family"], "oracle": ents[0]["oracle"], "scenes": len(ents),
+             "training_shared_with": ents[0].get("training_shared_with")}
+        for k in ("psnr", "ssim", "lpips", "train_time_s", "scoring_time_s", "spearman_vs_oracle"):
+            vals = [x[k] for x in ents if x.get(k) is not None]
+            e[k] = float(np.mean(vals)) if vals else None
+        # SEM over seeds of the per-seed macro mean (the paper's teaser error bars)
+        seeds = sorted({int(r["seed"]) for s in per_scene.values() for r in s["runs"] if r["policy"] == p})
+        per_seed = []
+        for sd in seeds:
+            v = [r["psnr"] for s in per_scene.values() for r in s["runs"] if r["policy"] == p and int(r["seed"]) == sd]
+            if len(v) == len(ents):
+                per_seed.append(float(np.mean(v)))
+        e["psnr_sem_seeds"] = _ms(per_seed)[1]
+        e["n_seeds"] = len(seeds)
+        table[p] = e
+    paired = {}
+    for a, b in PAIRS:
+        d, scene_means = [], []
+        for scene, s in per_scene.items():
+            by = {(r["policy"], int(r["seed"])): r for r in s["runs"]}
+            ds = [by[(a, sd)]["psnr"] - by[(b, sd)]["psnr"] for sd in s["seeds"] if (a, sd) in by and (b, sd) in by]
+            dl = [by[(a, sd)]["lpips"] - by[(b, sd)]["lpips"] for sd in s["seeds"] if (a, sd) in by and (b, sd) in by
+                  and by[(a, sd)].get("lpips") is not None and by[(b, sd)].get("lpips") is not None]
+            if ds:
+                d += [(scene, x) for x in ds]
+                scene_means.append((scene, float(np.mean(ds)), float(np.mean(dl)) if dl else None))
+        if d:
+            vals = [x for _, x in d]
+            m, sem = _ms(vals)
+            lp = [x for _, _, x in scene_means if x is not None]
+            paired[f"{a}-{b}"] = {"delta_psnr": m, "sem": sem, "wins": int(sum(x > 0 for x in vals)), "n": len(vals),
+                                  "scene_wins": int(sum(x > 0 for _, x, _ in scene_means)), "n_scenes": len(scene_means),
+                                  "delta_lpips": float(np.mean(lp)) if lp else None,
+                                  "per_scene": {sc: x for sc, x, _ in scene_means}, "paper": PAPER_PAIRED.get(f"{a}-{b}")}
+    jac = {}
+    for k in ("native|proxy", "native|ensemble", "proxy|ensemble", "native|fisher", "native|oracle", "ensemble|oracle"):
+        vals = []
+        for s in per_scene.values():
+            a, b = k.split("|")
+            v = s["jaccard"].get(f"{a}|{b}", s["jaccard"].get(f"{b}|{a}"))
+            if v is not None:
+                vals.append(v)
+        if vals:
+            jac[k] = {"mean": float(np.mean(vals)), "paper": PAPER_JACCARD.get(k)}
+    compute = {f"{sc}/s{sd}": c for sc, s in per_scene.items() for sd, c in compute_per_seed(study_out / sc, s).items()}
+    for key, w in walls.items():
+        compute.setdefault(key, {})["wall_s"] = w
+    return {"machine": machine(), "scenes": list(per_scene), "table": table, "paired": paired, "jaccard": jac,
+            "compute": compute, "per_scene": {sc: {k: v for k, v in s.items() if k != "runs"} for sc, s in per_scene.items()},
+            "runs": {sc: s["runs"] for sc, s in per_scene.items()}}
+
+
+def _f(v, nd=3, sign=False):
+    if v is None:
+        return "—"
+    return f"{v:+.{nd}f}" if sign else f"{v:.{nd}f}"
+
+
+def markdown(res: dict) -> str:
+    t = res["table"]
+    seeds = sorted({int(r["seed"]) for runs in res["runs"].values() for r in runs})
+    order = sorted(t, key=lambda p: (t[p]["oracle"], t[p]["family"] != "standard", p))
+    lines = ["# Active view selection, 16 → 32 views (quick protocol: 256 px, 1000 + 2000 steps, CPU)", "",
+             f"Scenes {res['scenes']}, seeds {seeds}. Macro mean over scenes of per-scene seed means; ± is the SEM over "
+             "seeds of the per-seed macro mean (the paper's teaser bars). Paper: Table 2 (13 scenes × 3 seeds, 10k + 20k "
+             "iterations, GPU). Time: our phase 1 + second round of the row's model (s, 1 thread); scoring apart.", "",
+             "| family | policy | PSNR ↑ | SSIM ↑ | LPIPS ↓ | ρ score vs oracle error | train s | scoring s | "
+             "paper PSNR | paper SSIM | paper LPIPS | paper time s |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for p in order:
+        e = t[p]
+        pp = PAPER.get(p)
+        name = p + (" (ORACLE: uses ground truth, analysis only)" if e["oracle"] else "")
+        if e.get("training_shared_with"):
+            name += f" (same run as {', '.join(e['training_shared_with'])})"
+        sem = e.get("psnr_sem_seeds")
+        lines.append(f"| {e['family']} | {name} | {_f(e['psnr'])}{'' if sem is None else f' ± {sem:.3f}'} | "
+                     f"{_f(e['ssim'], 4)} | {_f(e['lpips'], 4)} | {_f(e['spearman_vs_oracle'], 2)} | "
+                     f"{_f(e['train_time_s'], 0)} | {_f(e['scoring_time_s'], 1)} | "
+                     + (" | ".join([f"{pp[0]:.3f}", f"{pp[1]:.4f}", f"{pp[2]:.4f}", f"{pp[3]:.1f}"]) if pp else "— | — | — | —")
+                     + " |")
+    lines += ["", "ρ: Spearman correlation, over the candidates, of the policy's score with the phase-1 model's current "
+              "render error on each candidate (the oracle's score): how informative the score is. "
+              "'Same run as X': identical acquired views and a bit-identical training run (NIW only observes training).",
+              "", "## Paired differences (scene-seed pairs)", "",
+              "| pair | ΔPSNR dB (± SEM) | scene-seed wins | scene-mean wins | ΔLPIPS | per scene ΔPSNR | paper ΔPSNR |",
+              "| --- | --- | --- | --- | --- | --- | --- |"]
+    for k, v in res["paired"].items():
+        per = ", ".join(f"{sc} {x:+.3f}" for sc, x in v["per_scene"].items())
+        lines.append(f"| {k.replace('-', ' − ')} | {_f(v['delta_psnr'], sign=True)} ± {v['sem']:.3f} | {v['wins']}/{v['n']} | "
+                     f"{v['scene_wins']}/{v['n_scenes']} | {_f(v['delta_lpips'], 4, sign=True)} | {per} | "
+                     f"{v['paper'] or '—'} |")
+    if res["jaccard"]:
+        lines += ["", "## Overlap of the selected views (Jaccard, mean over scene-seeds)", "", "| pair | ours | paper |",
+                  "| --- | --- | --- |"]
+        lines += [f"| {k.replace('|', ' / ')} | {v['mean']:.3f} | {_f(v['paper'])} |" for k, v in res["jaccard"].items()]
+    lines += ["", "## Compute per scene-seed", "",
+              "Phase-1 models first trained for that seed, every row's second round (shared rows cost nothing) and "
+              "scoring; evaluation excluded. 1 thread per study, two scenes at once on the 2 cores.", "",
+              "| scene/seed | rows | phase 1 s | round 2 s | scoring s | total min | job wall min |", "| --- | --- | --- | --- | --- | --- | --- |"]
+    for k, c in sorted(res["compute"].items()):
+        if "total_s" not in c:
+            continue
+        lines.append(f"| {k} | {c['rows']} | {c['phase1_s']:.0f} | {c['round2_s']:.0f} | {c['scoring_s']:.0f} | "
+                     f"{c['total_s'] / 60:.1f} | {_f(c.get('wall_s') and c['wall_s'] / 60, 1)} |")
+    lines += ["", "Plots: `active_view/psnr.png` (final PSNR per policy ± SEM over seeds), `active_view/psnr_time.png` "
+              "(final PSNR against compute), per scene `active_view/<scene>/{psnr,layout}.png`."]
+    return "\n".join(lines) + "\n"
+
+
+def plots(res: dict) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = res["table"]
+    names = [p for p in sorted(t, key=lambda p: (t[p]["oracle"], t[p]["family"] != "standard", p)) if t[p]["psnr"] is not None]
+    d = RESULTS / NAME
+    d.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(1.2 + 0.85 * len(names), 3.4))
+    m = [t[p]["psnr"] for p in names]
+    e = [t[p].get("psnr_sem_seeds") or 0 for p in names]
+    col = ["0.5" if t[p]["oracle"] else ("tab:blue" if t[p]["family"] == "standard" else "tab:orange") for p in names]
+    ax.bar(range(len(names)), m, yerr=e, color=col, capsize=3)
+    ax.set_xticks(range(len(names)), names, rotation=30, ha="right")
+    ax.set_ylim(min(a - b for a, b in zip(m, e)) - 0.4, max(a + b for a, b in zip(m, e)) + 0.2)
+    ax.set_ylabel("final test PSNR (dB), macro over scenes")
+    ax.set_title(f"16 → 32 views, {', '.join(res['scenes'])}: ±1 SEM over seeds\nblue standard, orange NIW, grey oracle",
+                 fontsize=9)
+    fig.tight_layout()
+    fig.savefig(d / "psnr.png", dpi=120)
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(5.2, 3.8))
+    for p in names:
+        x = (t[p]["train_time_s"] or 0) + (t[p]["scoring_time_s"] or 0)
+        ax.scatter([x], [t[p]["psnr"]], color=col[names.index(p)])
+        ax.annotate(p, (x, t[p]["psnr"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+    ax.set_xlabel("phase 1 + round 2 + scoring (s, 1 thread), macro mean")
+    ax.set_ylabel("final test PSNR (dB)")
+    ax.set_title("error against run time, per policy", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(d / "psnr_time.png", dpi=120)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scenes", nargs="+", default=["ethiopian_head", "fox"], choices=sorted(SCENES))
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--jobs", type=int, default=2, help="scenes run at once (one thread each)")
+    ap.add_argument("--study-out", default=str(ROOT / "outputs" / "study"))
+    ap.add_argument("--aggregate-only", action="store_true")
+    ap.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every study")
+    args = ap.parse_args()
+    out = Path(args.study_out)
+    walls_path = out / "walls.json"
+    walls = json.loads(walls_path.read_text()) if walls_path.exists() else {}
+    if not args.aggregate_only:
+        with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
+            futs = {sc: ex.submit(run_scene, sc, args.seeds, out, args.extra) for sc in args.scenes}
+            for sc, f in futs.items():
+                for sd, w in f.result().items():
+                    walls[f"{sc}/s{sd}"] = w
+        from b3dgs.io import write_json
+
+        write_json(walls_path, walls)
+    res = aggregate(args.scenes, out, walls)
+    plots(res)
+    write_results(NAME, res, markdown(res))
+
+
+if __name__ == "__main__":
+    main()
