@@ -49,7 +49,7 @@ def run_scene(scene: str, seeds: list[int], study_out: Path, extra: list[str]) -
     for seed in seeds:
         cmd = [sys.executable, "-m", "b3dgs.study.active", "active",
                *[o.format(shared=shared_dir()) for o in SCENES[scene]], "renderer=cpu", f"seeds=[{seed}]",
-               f"out_dir={study_out}", "threads=1", "plots=false", *extra]
+               f"out_dir={study_out}", "threads=1", *extra]
         t0 = time.perf_counter()
         with open(logs / f"{scene}_s{seed}.log", "a") as log:
             r = subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)

@@ -5,6 +5,7 @@ import math
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -253,6 +254,28 @@ def test_study_shares_a_second_round_only_when_it_is_the_same_run(tmp_path):
     trained = run(tmp_path / "b", "share_training=false")
     assert "training_shared_with" not in trained["uniform@niw"]
     assert trained["uniform@niw"]["psnr"] == trained["uniform"]["psnr"] == shared["uniform@niw"]["psnr"]
+
+
+def test_phase1_lock_serialises_jobs_that_share_a_phase1_model(tmp_path):
+    """Parallel seed jobs (``-m`` with a parallel launcher) share the ensemble's phase-1 members: the second
+    job waits for the first instead of training the same model into the same directory."""
+    pytest.importorskip("fcntl")
+    from b3dgs.study.active import phase1_lock
+
+    d = tmp_path / "phase1" / "standard_s1"
+    code = ("import sys, time; from pathlib import Path; from b3dgs.study.active import phase1_lock\n"
+            f"with phase1_lock(Path({str(d)!r})):\n"
+            f"    Path({str(tmp_path / 'held')!r}).write_text('1'); time.sleep(1.5)\n"
+            f"    Path({str(tmp_path / 'child_end')!r}).write_text(repr(time.time()))\n")
+    child = subprocess.Popen([sys.executable, "-c", code])
+    deadline = time.time() + 60
+    while not (tmp_path / "held").exists():
+        assert time.time() < deadline and child.poll() is None, "the child never took the lock"
+        time.sleep(0.02)
+    with phase1_lock(d):
+        got = time.time()
+    child.wait(timeout=60)
+    assert got >= float((tmp_path / "child_end").read_text())
 
 
 @pytest.mark.parametrize("name", sorted(p.stem for p in (Path(CONF_DIR) / "acquisition").glob("*.yaml")))

@@ -15,6 +15,7 @@ selection is saved before its second round (``selection.json``), and an interrup
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -128,6 +129,24 @@ def initial_views(cfg: DictConfig, train) -> tuple[list[int], list[str]]:
 
 
 # ---------------------------------------------------------------------------------------------- study
+@contextlib.contextmanager
+def phase1_lock(run_dir: Path):
+    """An exclusive lock on ``run_dir`` across processes (``fcntl.flock``: released when the holder exits,
+    also when it is killed), so two jobs never train the same phase-1 model; a no-op without ``fcntl``."""
+    try:
+        import fcntl
+    except ImportError:  # Windows: seeds of one scene must then run one after another
+        yield
+        return
+    run_dir.parent.mkdir(parents=True, exist_ok=True)
+    with open(run_dir.parent / f".{run_dir.name}.lock", "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
 class ActiveStudy:
     """One scene: phase-1 models, rows (policy × seed), results; see the module docstring."""
 
@@ -189,13 +208,19 @@ class ActiveStudy:
 
     def phase1_model(self, family: str, seed: int) -> str:
         """The phase-1 checkpoint of ``family`` and ``seed`` (trained once; an interrupted one resumes)."""
-        from b3dgs.study.rounds import fit_round
-
         d = self.phase1_dir(family, seed)
         done = d / "phase1.json"
         ckpt = d / "checkpoints" / "last.ckpt"
         if done.exists():
             return str(ckpt)
+        with phase1_lock(d):  # seeds run as parallel jobs share phase-1 models (the ensemble's members)
+            if done.exists():  # another job trained it while this one waited
+                return str(ckpt)
+            return self._train_phase1(family, seed, d, done, ckpt)
+
+    def _train_phase1(self, family: str, seed: int, d: Path, done: Path, ckpt: Path) -> str:
+        from b3dgs.study.rounds import fit_round
+
         t0 = time.perf_counter()
         log.info("phase 1: %s seed %d, %d steps on %d views", family, seed, self.phase1, len(self.scene.train))
         fit_round(family_config(self.cfg, family, seed), self.scene, d, self.phase1,

@@ -11,7 +11,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from b3dgs.io import write_json
+from b3dgs.io import atomic_path, write_json
 
 PAIRS = (("native", "ensemble"), ("native", "proxy"))
 
@@ -130,7 +130,8 @@ def write_report(out: Path, plots: bool = True, store=None) -> dict:
     out = Path(out)
     summary = summarize(out)
     write_json(out / "study.json", summary)
-    (out / "study.md").write_text(markdown(summary))
+    with atomic_path(out / "study.md") as tmp:  # concurrent seed jobs each rewrite it when they finish
+        tmp.write_text(markdown(summary))
     if plots and summary["runs"]:
         try:
             make_plots(out, summary, store)
