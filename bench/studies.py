@@ -13,6 +13,11 @@ Studies (grid defaults from conf/report.yaml):
 
 The report recognises the studies from each run's config (``data.train_indices``, ``model.init_max_points``).
 
+A run of the sparse or init-cap grid that is the same training run as an earlier one (NIW and standard: NIW
+only observes training, ``changes_training = False``) is not retrained: its dir gets its own config.yaml and
+the twin's metrics with ``training_shared_with`` (``--no-share`` trains it anyway). Canonical runs are always
+trained (their NIW posterior feeds uq.json).
+
 A run dir with metrics.json is finished and reused, so an interrupted grid resumes. The report is written to
 ``--report`` (default bench/results/report/).
 """
@@ -82,6 +87,67 @@ def plan(args) -> list[tuple[Path, list[str], str]]:
     return unique
 
 
+def _compose_train(overrides: list[str]):
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from b3dgs.train import CONF_DIR
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name="train", overrides=overrides)
+
+
+def training_signature(overrides: list[str]) -> str:
+    """The run's training config without its model name and without the posterior blocks that promise
+    not to change training (``changes_training = False``, tested bit for bit in tests/test_rounds.py)."""
+    import json
+
+    from hydra.utils import get_class
+
+    d = OmegaConf.to_container(_compose_train([*overrides, "trainer.default_root_dir=."]), resolve=True)
+    d["model"].pop("name", None)
+    d["posterior"] = {k: v for k, v in (d.get("posterior") or {}).items() if get_class(v["_target_"]).changes_training}
+    return json.dumps(d, sort_keys=True, default=str)
+
+
+def twins(jobs, studies=("sparse", "initcap")) -> dict[Path, Path]:
+    """run dir -> the earlier run dir of the same study whose training is the same run (e.g. NIW and
+    standard: NIW only observes training). Canonical runs are always trained (their NIW posterior feeds
+    uq.json); the bounded studies read PSNR, SSIM, LPIPS and counts only."""
+    sig: dict[str, Path] = {}
+    out = {}
+    for run_dir, overrides, study in jobs:
+        if study not in studies:
+            continue
+        k = study + training_signature(overrides)
+        if k in sig:
+            out[run_dir] = sig[k]
+        else:
+            sig[k] = run_dir
+    return out
+
+
+def write_shared(run_dir: Path, overrides: list[str], twin: Path) -> dict:
+    """A run dir for a run that is the same training run as ``twin``: its own composed config.yaml and
+    twin's metrics (and curve) with ``training_shared_with`` naming the twin. No checkpoint is written."""
+    import json
+    import shutil
+
+    from b3dgs.io import write_json
+    from b3dgs.train import save_config
+
+    cfg = _compose_train([*overrides, f"trainer.default_root_dir={run_dir}"])
+    run_dir.mkdir(parents=True, exist_ok=True)
+    save_config(cfg, run_dir / "config.yaml")
+    if (twin / "curve.json").exists():
+        shutil.copy2(twin / "curve.json", run_dir / "curve.json")
+    m = json.loads((twin / "metrics.json").read_text())
+    m.update({"method": str(cfg.model.name), "training_shared_with": str(twin)})
+    write_json(run_dir / "metrics.json", m)  # last: the done marker
+    return m
+
+
 def ensure_uq(run_dir: Path, method: str, samples: int, seed: int) -> None:
     """uq.json for a canonical run (regimes per method from conf/report.yaml), unless it exists."""
     from hydra.utils import instantiate
@@ -114,13 +180,22 @@ def main() -> None:
     ap.add_argument("--report", default=str(RESULTS / "report"))
     ap.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every run")
     ap.add_argument("--dry-run", action="store_true", help="list the runs (and whether they are finished) only")
+    ap.add_argument("--no-share", dest="share", action="store_false",
+                    help="train sparse/initcap runs that are the same training run as another (NIW = standard) anyway")
     args = ap.parse_args()
     jobs = plan(args)
+    shared = twins(jobs) if args.share else {}
     todo = [j for j in jobs if not (j[0] / "metrics.json").exists()]
-    print(f"{len(jobs)} runs, {len(jobs) - len(todo)} finished, {len(todo)} to train", flush=True)
+    print(f"{len(jobs)} runs, {len(jobs) - len(todo)} finished, {len(todo)} to do "
+          f"({len([j for j in todo if j[0] in shared])} of them the same training run as another: shared)", flush=True)
     for run_dir, overrides, study in jobs:
         if args.dry_run:
-            print(("done " if (run_dir / "metrics.json").exists() else "todo ") + str(run_dir))
+            print(("done " if (run_dir / "metrics.json").exists() else "todo ") + str(run_dir)
+                  + (f" (shares {shared[run_dir]})" if run_dir in shared else ""))
+            continue
+        if run_dir in shared and not (run_dir / "metrics.json").exists():
+            m = write_shared(run_dir, overrides, shared[run_dir])
+            print(f"{study:9s} {run_dir}: same training run as {shared[run_dir]} (shared)", flush=True)
             continue
         m = train_run(run_dir, overrides)
         print(f"{study:9s} {run_dir}: PSNR {m['psnr']:.3f}, {m['train_time_s']:.1f} s", flush=True)

@@ -281,3 +281,21 @@ def test_report_html_renders_in_headless_chromium(tmp_path):
     subprocess.run(flags + ["--window-size=1280,2400", f"--screenshot={shot}", paths["html"].as_uri()],
                    capture_output=True, timeout=120)
     assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_study_grid_shares_runs_that_are_the_same_training_run(tmp_path):
+    """bench/studies.py: the init-cap NIW run is the standard run (NIW only observes training), so it is
+    written as a shared run dir (its own config, the twin's metrics) and the report says so."""
+    out, rep = tmp_path / "b", tmp_path / "rep"
+    res = subprocess.run([sys.executable, "bench/studies.py", "--studies", "initcap", "--scenes", "synthetic",
+                          "--seeds", "0", "--max-steps", "40", "--cap", "200", "--out", str(out), "--report", str(rep),
+                          "--extra", "data.max_side=32", "renderer=cpu"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    niw = out / "initcap" / "c200" / "synthetic" / "niw" / "s0"
+    std = out / "initcap" / "c200" / "synthetic" / "standard" / "s0"
+    m = json.loads((niw / "metrics.json").read_text())
+    assert m["training_shared_with"] == str(std) and m["method"] == "niw"
+    assert not (niw / "checkpoints").exists() and (std / "checkpoints").exists()
+    assert "model:\n" in (niw / "config.yaml").read_text() and "name: niw" in (niw / "config.yaml").read_text()
+    assert "same training run as another" in (rep / "report.md").read_text()

@@ -258,8 +258,16 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
         + f"; scenes {sorted({r.scene for r in runs})}, methods {method_order(r.method for r in runs)}, seeds "
         f"{sorted({r.seed for r in runs})}; protocols: {'; '.join(protocols)}. Grouped by each run's own config "
         "(data.name, model.name, seed; study from data.train_indices / model.init_max_points)."))
+    shared = [r for r in runs if r.metrics.get("training_shared_with")]
+    if shared:
+        bld.blocks.append(Para(
+            f"{len(shared)} run(s) are the same training run as another and share its metrics "
+            f"(`training_shared_with` in metrics.json; methods {method_order({r.method for r in shared})}): their "
+            "posterior blocks only observe training (changes_training = False, tested bit for bit), so their "
+            "differences to that run are zero by construction, not measured evidence."))
     data: dict = {"runs": [{"path": str(r.path), "study": r.study, "level": r.level, "scene": r.scene,
-                            "method": r.method, "seed": r.seed, "uq_regimes": sorted(r.uq)} for r in runs],
+                            "method": r.method, "seed": r.seed, "uq_regimes": sorted(r.uq),
+                            "training_shared_with": r.metrics.get("training_shared_with")} for r in runs],
                   "unfinished": [str(u) for u in unfinished], "config": OmegaConf.to_container(cfg, resolve=True)}
     if canonical:
         data["canonical"] = bld.canonical(canonical)
