@@ -39,6 +39,13 @@ PAPER_PAIRED = {"native-ensemble": "+0.453 (29/39 scene-seeds, 10/13 scenes)", "
 PAIRS = (("native", "ensemble"), ("native", "proxy"), ("native", "ppu"), ("native", "uniform@niw"),
          ("ensemble", "uniform"), ("fisher", "ensemble"), ("farthest", "uniform"), ("oracle", "uniform"))
 PAPER_JACCARD = {"native|proxy": 0.056, "native|ensemble": 0.059}
+ORDER = ("uniform", "farthest", "ensemble", "ppu", "fisher", "uniform@niw", "proxy", "native", "oracle")
+
+
+def row_order(table: dict) -> list[str]:
+    """Table 2's order: standard rows, NIW rows, then the oracle; other policies after their family's."""
+    return sorted(table, key=lambda p: (table[p]["oracle"], table[p]["family"] != "standard",
+                                        ORDER.index(p) if p in ORDER else len(ORDER), p))
 
 
 def run_scene(scene: str, seeds: list[int], study_out: Path, extra: list[str]) -> dict:
@@ -90,6 +97,52 @@ def compute_per_seed(out: Path, scene_summary: dict) -> dict:
     return res
 
 
+def camera_geometry(scene: str) -> tuple[dict, float]:
+    """{view name: camera centre} for the scene's train and test views, and the scene extent."""
+    from b3dgs.acquisition import camera_centres
+    from b3dgs.study.active import _compose
+
+    from hydra.utils import instantiate
+
+    cfg = _compose("study", [o.format(shared=shared_dir()) for o in SCENES[scene]])
+    dm = instantiate(cfg.data)
+    dm.setup("fit")
+    cams = list(dm.scene.train) + list(dm.scene.test)
+    return dict(zip([c.name for c in cams], camera_centres(cams))), float(dm.scene.extent)
+
+
+def support_distance(train: list[str], test: list[str], centres: dict, extent: float) -> float:
+    """Mean over test views of the distance from its camera centre to the nearest training camera centre,
+    / extent (the report's OOD support score, averaged): how well the final training set covers the test
+    views. scipy's cKDTree for the neighbours."""
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(np.stack([centres[n] for n in train])).query(np.stack([centres[n] for n in test]))
+    return float(np.mean(d) / extent)
+
+
+def add_support(per_scene: dict) -> dict:
+    """Each row's test support distance after acquisition, and per scene the Spearman correlation over the
+    rows of one seed between PSNR and that distance (mean over seeds): does coverage explain the ranking?"""
+    from scipy.stats import spearmanr
+
+    out = {}
+    for scene, s in per_scene.items():
+        meta = s["meta"]
+        centres, extent = camera_geometry(scene)
+        init = list(meta["initial_views"])
+        for r in s["runs"]:
+            r["support_distance"] = support_distance(init + list(r["selected"]), meta["test_views"], centres, extent)
+        rhos = []
+        for sd in s["seeds"]:
+            rows = [r for r in s["runs"] if int(r["seed"]) == sd and r.get("psnr") is not None]
+            if len(rows) >= 4:
+                rhos.append(float(spearmanr([r["psnr"] for r in rows], [r["support_distance"] for r in rows]).statistic))
+        out[scene] = {"initial": support_distance(init, meta["test_views"], centres, extent),
+                      "psnr_vs_support_spearman": float(np.mean(rhos)) if rhos else None, "per_seed": rhos}
+    return out
+
+
 def aggregate(scenes: list[str], study_out: Path, walls: dict) -> dict:
     from b3dgs.study.active_tables import write_report
 
@@ -106,6 +159,7 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict) -> dict:
         for png in (out / "plots").glob("*.png"):
             shutil.copy2(png, dst / png.name)
         per_scene[scene] = s
+    support = add_support(per_scene)
     policies = []
     for s in per_scene.values():
         for p in s["table"]:
@@ -119,6 +173,9 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict) -> dict:
         for k in ("psnr", "ssim", "lpips", "train_time_s", "scoring_time_s", "spearman_vs_oracle"):
             vals = [x[k] for x in ents if x.get(k) is not None]
             e[k] = float(np.mean(vals)) if vals else None
+        sup = [float(np.mean([r["support_distance"] for r in s["runs"] if r["policy"] == p]))
+               for s in per_scene.values() if any(r["policy"] == p for r in s["runs"])]
+        e["support_distance"] = float(np.mean(sup)) if sup else None
         # SEM over seeds of the per-seed macro mean (the paper's teaser error bars)
         seeds = sorted({int(r["seed"]) for s in per_scene.values() for r in s["runs"] if r["policy"] == p})
         per_seed = []
@@ -162,6 +219,7 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict) -> dict:
     for key, w in walls.items():
         compute.setdefault(key, {})["wall_s"] = w
     return {"machine": machine(), "scenes": list(per_scene), "table": table, "paired": paired, "jaccard": jac,
+            "support": support,
             "compute": compute, "per_scene": {sc: {k: v for k, v in s.items() if k != "runs"} for sc, s in per_scene.items()},
             "runs": {sc: s["runs"] for sc, s in per_scene.items()}}
 
@@ -175,14 +233,14 @@ def _f(v, nd=3, sign=False):
 def markdown(res: dict) -> str:
     t = res["table"]
     seeds = sorted({int(r["seed"]) for runs in res["runs"].values() for r in runs})
-    order = sorted(t, key=lambda p: (t[p]["oracle"], t[p]["family"] != "standard", p))
+    order = row_order(t)
     lines = ["# Active view selection, 16 → 32 views (quick protocol: 256 px, 1000 + 2000 steps, CPU)", "",
              f"Scenes {res['scenes']}, seeds {seeds}. Macro mean over scenes of per-scene seed means; ± is the SEM over "
              "seeds of the per-seed macro mean (the paper's teaser bars). Paper: Table 2 (13 scenes × 3 seeds, 10k + 20k "
              "iterations, GPU). Time: our phase 1 + second round of the row's model (s, 1 thread); scoring apart.", "",
-             "| family | policy | PSNR ↑ | SSIM ↑ | LPIPS ↓ | ρ score vs oracle error | train s | scoring s | "
-             "paper PSNR | paper SSIM | paper LPIPS | paper time s |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| family | policy | PSNR ↑ | SSIM ↑ | LPIPS ↓ | ρ score vs oracle error | test support dist. ↓ | train s | "
+             "scoring s | paper PSNR | paper SSIM | paper LPIPS | paper time s |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for p in order:
         e = t[p]
         pp = PAPER.get(p)
@@ -192,12 +250,19 @@ def markdown(res: dict) -> str:
         sem = e.get("psnr_sem_seeds")
         lines.append(f"| {e['family']} | {name} | {_f(e['psnr'])}{'' if sem is None else f' ± {sem:.3f}'} | "
                      f"{_f(e['ssim'], 4)} | {_f(e['lpips'], 4)} | {_f(e['spearman_vs_oracle'], 2)} | "
+                     f"{_f(e.get('support_distance'), 3)} | "
                      f"{_f(e['train_time_s'], 0)} | {_f(e['scoring_time_s'], 1)} | "
                      + (" | ".join([f"{pp[0]:.3f}", f"{pp[1]:.4f}", f"{pp[2]:.4f}", f"{pp[3]:.1f}"]) if pp else "— | — | — | —")
                      + " |")
     lines += ["", "ρ: Spearman correlation, over the candidates, of the policy's score with the phase-1 model's current "
               "render error on each candidate (the oracle's score): how informative the score is. "
-              "'Same run as X': identical acquired views and a bit-identical training run (NIW only observes training).",
+              "'Same run as X': identical acquired views and a bit-identical training run (NIW only observes training). "
+              "Test support distance: mean over test views of the distance to the nearest final training camera "
+              "centre / scene extent (the coverage the picks give).", "",
+              "| scene | support dist. of the 16 initial views | Spearman(PSNR, support dist.) over the rows of a seed |",
+              "| --- | --- | --- |",
+              *[f"| {sc} | {v['initial']:.3f} | {_f(v['psnr_vs_support_spearman'], 2)} (per seed "
+                f"{', '.join(f'{x:+.2f}' for x in v['per_seed'])}) |" for sc, v in res.get("support", {}).items()],
               "", "## Paired differences (scene-seed pairs)", "",
               "| pair | ΔPSNR dB (± SEM) | scene-seed wins | scene-mean wins | ΔLPIPS | per scene ΔPSNR | paper ΔPSNR |",
               "| --- | --- | --- | --- | --- | --- | --- |"]
@@ -231,7 +296,7 @@ def plots(res: dict) -> None:
     import matplotlib.pyplot as plt
 
     t = res["table"]
-    names = [p for p in sorted(t, key=lambda p: (t[p]["oracle"], t[p]["family"] != "standard", p)) if t[p]["psnr"] is not None]
+    names = [p for p in row_order(t) if t[p]["psnr"] is not None]
     d = RESULTS / NAME
     d.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(1.2 + 0.85 * len(names), 3.4))
