@@ -1,6 +1,7 @@
 """The paper's bounded studies at the quick protocol, resumably, then ``b3dgs-report`` over all runs.
 
     python bench/studies.py                          # the grid of conf/report.yaml `studies` (hours on 2 cores)
+    python bench/studies.py --jobs 2 --threads 1                # two runs at once, one thread each (2 cores)
     python bench/studies.py --studies sparse --scenes fox --seeds 0
     python bench/studies.py --scenes synthetic --seeds 0 --budgets 8 all --max-steps 100 --out /tmp/b --report /tmp/b/report
 
@@ -24,7 +25,9 @@ A run dir with metrics.json is finished and reused, so an interrupted grid resum
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from omegaconf import OmegaConf
@@ -101,7 +104,6 @@ def _compose_train(overrides: list[str]):
 def training_signature(overrides: list[str]) -> str:
     """The run's training config without its model name and without the posterior blocks that promise
     not to change training (``changes_training = False``, tested bit for bit in tests/test_rounds.py)."""
-    import json
 
     from hydra.utils import get_class
 
@@ -131,7 +133,6 @@ def twins(jobs, studies=("sparse", "initcap")) -> dict[Path, Path]:
 def write_shared(run_dir: Path, overrides: list[str], twin: Path) -> dict:
     """A run dir for a run that is the same training run as ``twin``: its own composed config.yaml and
     twin's metrics (and curve) with ``training_shared_with`` naming the twin. No checkpoint is written."""
-    import json
     import shutil
 
     from b3dgs.io import write_json
@@ -180,6 +181,8 @@ def main() -> None:
     ap.add_argument("--report", default=str(RESULTS / "report"))
     ap.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every run")
     ap.add_argument("--dry-run", action="store_true", help="list the runs (and whether they are finished) only")
+    ap.add_argument("--jobs", type=int, default=1, help="runs trained at once (each a subprocess)")
+    ap.add_argument("--threads", type=int, default=None, help="torch threads per run (e.g. --jobs 2 --threads 1)")
     ap.add_argument("--no-share", dest="share", action="store_false",
                     help="train sparse/initcap runs that are the same training run as another (NIW = standard) anyway")
     args = ap.parse_args()
@@ -188,21 +191,31 @@ def main() -> None:
     todo = [j for j in jobs if not (j[0] / "metrics.json").exists()]
     print(f"{len(jobs)} runs, {len(jobs) - len(todo)} finished, {len(todo)} to do "
           f"({len([j for j in todo if j[0] in shared])} of them the same training run as another: shared)", flush=True)
-    for run_dir, overrides, study in jobs:
-        if args.dry_run:
+    if args.dry_run:
+        for run_dir, _, _ in jobs:
             print(("done " if (run_dir / "metrics.json").exists() else "todo ") + str(run_dir)
                   + (f" (shares {shared[run_dir]})" if run_dir in shared else ""))
-            continue
-        if run_dir in shared and not (run_dir / "metrics.json").exists():
-            m = write_shared(run_dir, overrides, shared[run_dir])
-            print(f"{study:9s} {run_dir}: same training run as {shared[run_dir]} (shared)", flush=True)
-            continue
-        m = train_run(run_dir, overrides)
-        print(f"{study:9s} {run_dir}: PSNR {m['psnr']:.3f}, {m['train_time_s']:.1f} s", flush=True)
-        if args.uq and study == "canonical":
-            ensure_uq(run_dir, m["method"], args.uq_samples, int(m["seed"]))
-    if args.dry_run:
         return
+    threads = [f"threads={args.threads}"] if args.threads else []
+
+    def one(job):
+        run_dir, overrides, study = job
+        m = train_run(run_dir, overrides + threads)
+        print(f"{study:9s} {run_dir}: PSNR {m['psnr']:.3f}, {m['train_time_s']:.1f} s", flush=True)
+        return m
+
+    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:  # each run is its own subprocess
+        done = list(ex.map(one, [j for j in jobs if j[0] not in shared]))
+    del done
+    for run_dir, overrides, study in jobs:  # after every twin has finished
+        if run_dir in shared and not (run_dir / "metrics.json").exists():
+            write_shared(run_dir, overrides, shared[run_dir])
+            print(f"{study:9s} {run_dir}: same training run as {shared[run_dir]} (shared)", flush=True)
+    if args.uq:
+        for run_dir, _, study in jobs:
+            if study == "canonical":
+                m = json.loads((run_dir / "metrics.json").read_text())
+                ensure_uq(run_dir, m["method"], args.uq_samples, int(m["seed"]))
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 

@@ -289,6 +289,7 @@ def test_study_grid_shares_runs_that_are_the_same_training_run(tmp_path):
     out, rep = tmp_path / "b", tmp_path / "rep"
     res = subprocess.run([sys.executable, "bench/studies.py", "--studies", "initcap", "--scenes", "synthetic",
                           "--seeds", "0", "--max-steps", "40", "--cap", "200", "--out", str(out), "--report", str(rep),
+                          "--jobs", "2", "--threads", "1",
                           "--extra", "data.max_side=32", "renderer=cpu"],
                          capture_output=True, text=True, cwd=ROOT, timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
