@@ -121,6 +121,17 @@ def support_distance(train: list[str], test: list[str], centres: dict, extent: f
     return float(np.mean(d) / extent)
 
 
+def pick_spacing(initial: list[str], picks: list[str], centres: dict, extent: float) -> float:
+    """Mean over the picked views of the distance to the nearest other view of the final training set
+    / extent: small when a policy acquires near-duplicates of each other or of the initial views."""
+    from scipy.spatial import cKDTree
+
+    allv = initial + picks
+    pts = np.stack([centres[n] for n in allv])
+    d, _ = cKDTree(pts).query(pts[len(initial):], k=2)  # k=2: the nearest one other than itself
+    return float(np.mean(d[:, 1]) / extent)
+
+
 def add_support(per_scene: dict) -> dict:
     """Each row's test support distance after acquisition, and per scene the Spearman correlation over the
     rows of one seed between PSNR and that distance (mean over seeds): does coverage explain the ranking?"""
@@ -133,6 +144,7 @@ def add_support(per_scene: dict) -> dict:
         init = list(meta["initial_views"])
         for r in s["runs"]:
             r["support_distance"] = support_distance(init + list(r["selected"]), meta["test_views"], centres, extent)
+            r["pick_spacing"] = pick_spacing(init, list(r["selected"]), centres, extent)
         rhos = []
         for sd in s["seeds"]:
             rows = [r for r in s["runs"] if int(r["seed"]) == sd and r.get("psnr") is not None]
@@ -183,6 +195,9 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict) -> dict:
         sup = [float(np.mean([r["support_distance"] for r in s["runs"] if r["policy"] == p]))
                for s in per_scene.values() if any(r["policy"] == p for r in s["runs"])]
         e["support_distance"] = float(np.mean(sup)) if sup else None
+        spc = [float(np.mean([r["pick_spacing"] for r in s["runs"] if r["policy"] == p]))
+               for s in per_scene.values() if any(r["policy"] == p for r in s["runs"])]
+        e["pick_spacing"] = float(np.mean(spc)) if spc else None
         cost = [float(np.mean([r["cost_s"] for r in s["runs"] if r["policy"] == p]))
                 for s in per_scene.values() if any(r["policy"] == p for r in s["runs"])]
         e["cost_s"] = float(np.mean(cost)) if cost else None
@@ -248,9 +263,9 @@ def markdown(res: dict) -> str:
              f"Scenes {res['scenes']}, seeds {seeds}. Macro mean over scenes of per-scene seed means; ± is the SEM over "
              "seeds of the per-seed macro mean (the paper's teaser bars). Paper: Table 2 (13 scenes × 3 seeds, 10k + 20k "
              "iterations, GPU). Time: our phase 1 + second round of the row's model (s, 1 thread); scoring apart.", "",
-             "| family | policy | PSNR ↑ | SSIM ↑ | LPIPS ↓ | ρ score vs oracle error | test support dist. ↓ | train s | "
-             "scoring s | cost s | paper PSNR | paper SSIM | paper LPIPS | paper time s |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| family | policy | PSNR ↑ | SSIM ↑ | LPIPS ↓ | ρ score vs oracle error | test support dist. ↓ | pick spacing | "
+             "train s | scoring s | cost s | paper PSNR | paper SSIM | paper LPIPS | paper time s |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for p in order:
         e = t[p]
         pp = PAPER.get(p)
@@ -260,7 +275,7 @@ def markdown(res: dict) -> str:
         sem = e.get("psnr_sem_seeds")
         lines.append(f"| {e['family']} | {name} | {_f(e['psnr'])}{'' if sem is None else f' ± {sem:.3f}'} | "
                      f"{_f(e['ssim'], 4)} | {_f(e['lpips'], 4)} | {_f(e['spearman_vs_oracle'], 2)} | "
-                     f"{_f(e.get('support_distance'), 3)} | "
+                     f"{_f(e.get('support_distance'), 3)} | {_f(e.get('pick_spacing'), 3)} | "
                      f"{_f(e['train_time_s'], 0)} | {_f(e['scoring_time_s'], 1)} | {_f(e.get('cost_s'), 0)} | "
                      + (" | ".join([f"{pp[0]:.3f}", f"{pp[1]:.4f}", f"{pp[2]:.4f}", f"{pp[3]:.1f}"]) if pp else "— | — | — | —")
                      + " |")
@@ -269,7 +284,8 @@ def markdown(res: dict) -> str:
               "'Same run as X': identical acquired views and a bit-identical training run (NIW only observes training). "
               "Cost: every phase-1 model the row scored with (the ensemble's 3), its second round and scoring "
               "(the paper's time column counts the ensemble's members too). Test support distance: mean over test views of the distance to the nearest final training camera "
-              "centre / scene extent (the coverage the picks give).", "",
+              "centre / scene extent (the coverage the picks give). Pick spacing: mean over the 16 picks of the distance "
+              "to the nearest other camera of the final training set / extent (small: near-duplicate picks).", "",
               "| scene | support dist. of the 16 initial views | Spearman(PSNR, support dist.) over the rows of a seed |",
               "| --- | --- | --- |",
               *[f"| {sc} | {v['initial']:.3f} | {_f(v['psnr_vs_support_spearman'], 2)} (per seed "

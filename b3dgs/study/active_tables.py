@@ -173,8 +173,11 @@ def make_plots(out: Path, summary: dict, store=None) -> None:
         k = len(runs)
         cols = min(4, max(k, 1))
         rows_n = int(math.ceil(k / cols)) or 1
-        fig, axes = plt.subplots(rows_n, cols, figsize=(3 * cols, 3 * rows_n), squeeze=False)
         xy = {n: v for n, v in lay["xy"].items()}
+        pts = np.asarray(list(xy.values()), dtype=float).reshape(-1, 2)
+        span = np.ptp(pts, axis=0) if len(pts) else np.ones(2)
+        aspect = float(np.clip(span[1] / max(span[0], 1e-9), 0.2, 1.5))  # panel height follows the layout's shape
+        fig, axes = plt.subplots(rows_n, cols, figsize=(3 * cols, (3 * aspect + 0.45) * rows_n + 0.5), squeeze=False)
         for ax, (pol, r) in zip(axes.flat, sorted(runs.items())):
             for n, (x, y) in xy.items():
                 kind = "init" if n in lay["initial"] else "cand"
