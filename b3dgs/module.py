@@ -255,9 +255,12 @@ class SplatModule(L.LightningModule):
             **self._static_info(), "ops": ops, "camera": cam, "render": out, "per_gaussian": ops.per_gaussian,
             "width": cam.width, "height": cam.height, "gt": gt, "loss": loss.detach(),
             "l1": l1.detach(), "sq_err_sum": ((out.rgb.detach() - gt) ** 2).sum(), "num_values": gt.numel(),
+            "loss_terms": [],
         }
         optimizers = self._torch_optimizers()
         self._call_hooks("step_pre_backward", optimizers, step, info)
+        if info["loss_terms"]:  # differentiable scalars plugins add (e.g. the MCMC opacity / scale regularisers)
+            loss = loss + torch.stack([t.reshape(()) for t in info["loss_terms"]]).sum()
         self.manual_backward(loss)
         # per-Gaussian data of this step (S, N, ...), kept aligned by the topology ops
         pg = ops.per_gaussian

@@ -163,6 +163,16 @@ class TopologyOps:
         self.removed[reason] += k
         return k
 
+    def reset_moments(self, index: Tensor) -> None:
+        """Zero the optimizer moments of the Gaussians ``index`` for every parameter (e.g. MCMC relocation sources)."""
+        for p in self.splats.values():
+            for opt in self.optimizers.values():
+                st = opt.state.get(p)
+                if st:
+                    for v in st.values():
+                        if isinstance(v, Tensor) and v.dim() >= 1 and v.shape[0] == p.shape[0]:
+                            v[index] = 0
+
     def reset_opacity(self, value: float) -> None:
         """Clamp opacities to at most ``value`` and zero their optimizer moments (3DGS opacity reset)."""
         p = self.splats["opacities"]

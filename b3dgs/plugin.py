@@ -9,7 +9,8 @@ Every hook is called as ``hook(splats=, optimizers=, state=, step=, info=)``:
 - ``info``: everything else (render outputs, image size, scene extent, ``ops`` for topology changes, ...);
   ``info["per_gaussian"]`` holds this step's per-Gaussian render data as (S, N, ...) tensors (``radii``,
   ``means2d_grad``, ``weight_sum``, ``weight_sq_sum``), re-indexed by every topology change, so a plugin
-  running after another one's prune still sees aligned values.
+  running after another one's prune still sees aligned values; ``info["loss_terms"]``: a list a plugin may
+  append differentiable scalars to in ``step_pre_backward`` (added to the photometric loss before backward).
 New needs go into ``info``, never into new arguments, so the core never branches on a plugin's type.
 """
 from __future__ import annotations

@@ -171,7 +171,7 @@ def main() -> None:
                     choices=["canonical", "sparse", "initcap"])
     ap.add_argument("--scenes", nargs="+", default=list(STUDIES.scenes))
     ap.add_argument("--seeds", type=int, nargs="+", default=list(STUDIES.seeds))
-    ap.add_argument("--methods", nargs="+", default=list(STUDIES.sparse.methods), help="canonical methods")
+    ap.add_argument("--methods", nargs="+", default=list(STUDIES.canonical_methods), help="canonical methods")
     ap.add_argument("--budgets", nargs="+", default=[str(b) for b in STUDIES.sparse.budgets])
     ap.add_argument("--cap", type=int, default=int(STUDIES.initcap.cap))
     ap.add_argument("--max-steps", type=int, default=None, help="override the quick protocol's 3000 steps (smoke tests)")
