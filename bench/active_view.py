@@ -48,7 +48,7 @@ def row_order(table: dict) -> list[str]:
                                         ORDER.index(p) if p in ORDER else len(ORDER), p))
 
 
-def run_scene(scene: str, seeds: list[int], study_out: Path, extra: list[str]) -> dict:
+def run_scene(scene: str, seeds: list[int], study_out: Path, extra: list[str], score_side: str = "64") -> dict:
     """Run the study for ``scene``, one seed after another; returns {seed: wall seconds} of the seeds run."""
     logs = study_out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
@@ -56,7 +56,7 @@ def run_scene(scene: str, seeds: list[int], study_out: Path, extra: list[str]) -
     for seed in seeds:
         cmd = [sys.executable, "-m", "b3dgs.study.active", "active",
                *[o.format(shared=shared_dir()) for o in SCENES[scene]], "renderer=cpu", f"seeds=[{seed}]",
-               f"out_dir={study_out}", "threads=1", *extra]
+               f"out_dir={study_out}", "threads=1", f"acquisition.score_max_side={score_side}", *extra]
         t0 = time.perf_counter()
         with open(logs / f"{scene}_s{seed}.log", "a") as log:
             r = subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
@@ -359,6 +359,8 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2, help="scenes run at once (one thread each)")
     ap.add_argument("--study-out", default=str(ROOT / "outputs" / "study"))
     ap.add_argument("--aggregate-only", action="store_true")
+    ap.add_argument("--score-max-side", default="64",
+                    help="acquisition.score_max_side of the committed study (64; 'null' = full size, use a new --study-out)")
     ap.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every study")
     args = ap.parse_args()
     out = Path(args.study_out)
@@ -366,7 +368,7 @@ def main() -> None:
     walls = json.loads(walls_path.read_text()) if walls_path.exists() else {}
     if not args.aggregate_only:
         with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-            futs = {sc: ex.submit(run_scene, sc, args.seeds, out, args.extra) for sc in args.scenes}
+            futs = {sc: ex.submit(run_scene, sc, args.seeds, out, args.extra, args.score_max_side) for sc in args.scenes}
             for sc, f in futs.items():
                 for sd, w in f.result().items():
                     walls[f"{sc}/s{sd}"] = w
