@@ -56,6 +56,7 @@ class SplatModule(L.LightningModule):
         init_max_points: Optional[int] = None,
         init_num_random: int = 20000,
         init_opacity: float = 0.1,
+        init_scale: float = 1.0,
         max_steps: int = 30000,
         seed: int = 0,
         name: str = "standard",
@@ -111,7 +112,7 @@ class SplatModule(L.LightningModule):
         g = torch.Generator().manual_seed(int(self.hparams.seed))
         params = init_gaussians(
             scene, self.hparams.sh_degree, self.hparams.init_max_points, self.hparams.init_num_random,
-            self.hparams.init_opacity, generator=g,
+            self.hparams.init_opacity, self.hparams.init_scale, generator=g,
         )
         self._set_params(params)
         self._init_states()
