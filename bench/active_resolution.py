@@ -62,12 +62,19 @@ def main() -> None:
     ap.add_argument("--policies", nargs="+", default=["ensemble", "ppu", "fisher", "proxy", "native", "oracle"])
     ap.add_argument("--study-out", default=str(ROOT / "outputs" / "study"))
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--outcome", nargs=2, metavar=("STUDY_SIDE", "STUDY_FULL"), default=None,
+                    help="only compare the final PSNR of rows trained after scoring at the reduced side and at full "
+                         "size (two b3dgs-study out_dirs, same seeds; e.g. outputs/study outputs/study_full)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
 
     path = RESULTS / f"{NAME}.json"
     payload = json.loads(path.read_text()) if path.exists() else {"entries": {}}
     payload["machine"] = machine()
+    if args.outcome:
+        payload["outcome"] = outcome(Path(args.outcome[0]), Path(args.outcome[1]))
+        write_results(NAME, payload, render(payload))
+        return
     entries = payload["entries"]
     study = study_for(args.scene, args.study_out, args.threads)
     for label in args.policies:
@@ -79,6 +86,25 @@ def main() -> None:
             entries[key] = score(study, label, args.seed, side)
             write_results(NAME, payload, render(payload))  # after every entry: an interruption loses one
     write_results(NAME, payload, render(payload))
+
+
+def outcome(side_dir: Path, full_dir: Path) -> list[dict]:
+    """Rows present in both study dirs: picks that differ and final PSNR / LPIPS after the second round."""
+    import json
+
+    rows = []
+    for res_full in sorted(full_dir.glob("*/*_s*/result.json")):
+        rel = res_full.relative_to(full_dir)
+        res_side = side_dir / rel
+        if not res_side.exists():
+            continue
+        a, b = json.loads(res_side.read_text()), json.loads(res_full.read_text())
+        rows.append({"scene": rel.parts[0], "policy": a["policy"], "seed": int(a["seed"]),
+                     "picks_differ": len(set(a["selected"]) - set(b["selected"])), "psnr_side": a["psnr"],
+                     "psnr_full": b["psnr"], "delta_psnr": b["psnr"] - a["psnr"],
+                     "delta_lpips": (b["lpips"] - a["lpips"]) if a.get("lpips") is not None and b.get("lpips") is not None
+                     else None})
+    return rows
 
 
 def render(payload: dict) -> str:
@@ -112,7 +138,14 @@ def render(payload: dict) -> str:
     head = ("# Acquisition scores at reduced resolution against the reference resolution\n\n"
             "Same phase-1 models, same candidates; Spearman ρ of the candidate scores, Jaccard overlap of the "
             "selected views and picks that differ (of `acquire`), scoring time (one run each, side by side).\n\n")
-    return head + table(rows, cols) if rows else head + "(no pairs yet)"
+    text = head + (table(rows, cols) if rows else "(no pairs yet)")
+    if payload.get("outcome"):
+        oc = payload["outcome"]
+        text += ("\n\n## Effect on the study's outcome\n\nThe same rows trained after scoring at the reduced side "
+                 "(the committed study) and at full size (same phase-1 models): picks that differ and the final test "
+                 "PSNR (full − reduced).\n\n" + table(oc, ["scene", "policy", "seed", "picks_differ", "psnr_side",
+                                                          "psnr_full", "delta_psnr", "delta_lpips"]))
+    return text
 
 
 if __name__ == "__main__":
