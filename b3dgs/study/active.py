@@ -178,8 +178,20 @@ class ActiveStudy:
         self.store = take_candidate_store(self.scene)
         self.out = Path(str(cfg.out_dir)) / self.scene.name
         self.out.mkdir(parents=True, exist_ok=True)
+        self._family_cfgs: dict[str, DictConfig] = {}
         self.labels_policies = self._policies()
+        for fam in sorted({p.family for _, p in self.labels_policies}):
+            self.family_cfg(fam, 0)  # composed now, at start
         self._phase1_meta: dict[str, dict] = {}
+
+    def family_cfg(self, family: str, seed: int) -> DictConfig:
+        """:func:`family_config`, composed once per family when first needed: a study never re-reads conf/
+        mid-run, so editing a config file while it runs cannot hand its rows a config the loaded code lacks."""
+        if family not in self._family_cfgs:
+            self._family_cfgs[family] = family_config(self.cfg, family, 0)
+        out = self._family_cfgs[family].copy()
+        out.seed = int(seed)
+        return out
 
     def _policies(self) -> list[tuple[str, Any]]:
         rows = [load_policy(n, self.cfg.get("policy_settings")) for n in self.cfg.policies]
@@ -223,7 +235,7 @@ class ActiveStudy:
 
         t0 = time.perf_counter()
         log.info("phase 1: %s seed %d, %d steps on %d views", family, seed, self.phase1, len(self.scene.train))
-        fit_round(family_config(self.cfg, family, seed), self.scene, d, self.phase1,
+        fit_round(self.family_cfg(family, seed), self.scene, d, self.phase1,
                   ckpt_path=str(ckpt) if ckpt.exists() else None)
         write_json(done, {"family": family, "seed": seed, "steps": self.phase1, "train_time_s": time.perf_counter() - t0,
                           "train_views": [c.name for c in self.scene.train]})
@@ -235,7 +247,7 @@ class ActiveStudy:
     def scoring_models(self, family: str, seed: int, members: int):
         from b3dgs.study.rounds import load_round
 
-        return [load_round(family_config(self.cfg, family, seed + i), self.scene, self.phase1_model(family, seed + i))
+        return [load_round(self.family_cfg(family, seed + i), self.scene, self.phase1_model(family, seed + i))
                 for i in range(members)]
 
     def oracle_errors(self, family: str, seed: int) -> dict[str, float]:
@@ -295,7 +307,7 @@ class ActiveStudy:
         scene2 = dataclasses.replace(self.scene, train=list(self.scene.train) + acquired,
                                      candidates=[c for c in cands if c.name not in set(sel["selected"])])
         own = d / "checkpoints" / "last.ckpt"
-        cfg_f = family_config(self.cfg, policy.family, seed)
+        cfg_f = self.family_cfg(policy.family, seed)
         t0 = time.perf_counter()
         if own.exists():  # an interrupted second round
             module = fit_round(cfg_f, scene2, d, self.total, ckpt_path=str(own))
@@ -315,7 +327,7 @@ class ActiveStudy:
         (``changes_training = False``, tested in ``tests/test_rounds.py``) left out, and without its name."""
         from hydra.utils import get_class
 
-        d = OmegaConf.to_container(family_config(self.cfg, family, seed), resolve=True)
+        d = OmegaConf.to_container(self.family_cfg(family, seed), resolve=True)
         d["model"].pop("name", None)
         d["posterior"] = {k: v for k, v in (d.get("posterior") or {}).items()
                           if get_class(v["_target_"]).changes_training}
