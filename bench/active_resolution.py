@@ -37,13 +37,11 @@ def study_for(scene: str, study_out: str, threads: int):
 
 
 def score(study, label: str, seed: int, side):
-    from b3dgs.acquisition import ScoringContext
     from b3dgs.study.active import load_policy
 
     _, policy = load_policy(label, study.cfg.get("policy_settings"))
     models = study.scoring_models(policy.family, seed, int(policy.members))
-    ctx = ScoringContext(models, study.scene.train, None if side == "full" else int(side), study.scene.extent, seed,
-                         ground_truth=study.store.image if policy.uses_ground_truth else None)
+    ctx = study.context(models, policy, seed, score_max_side=None if side == "full" else int(side))
     t0 = time.perf_counter()
     sel = policy.select(ctx, study.scene.candidates, int(study.cfg.acquire))
     dt = time.perf_counter() - t0

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import shutil
 import subprocess
 import sys
@@ -26,6 +25,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, SCENES, machine, shared_dir, write_results  # noqa: E402
+
+from b3dgs.report.stats import mean_sem  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 NAME = "active_view"
@@ -66,13 +67,6 @@ def run_scene(scene: str, seeds: list[int], study_out: Path, extra: list[str], s
         if r.returncode != 0:
             raise SystemExit(f"the study failed on {scene} seed {seed}: see {logs / f'{scene}_s{seed}.log'}")
     return walls
-
-
-def _ms(xs):
-    xs = [float(x) for x in xs if x is not None]
-    if not xs:
-        return None, None
-    return float(np.mean(xs)), (float(np.std(xs, ddof=1) / math.sqrt(len(xs))) if len(xs) > 1 else 0.0)
 
 
 def compute_per_seed(out: Path, scene_summary: dict) -> dict:
@@ -208,7 +202,7 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict) -> dict:
             v = [r["psnr"] for s in per_scene.values() for r in s["runs"] if r["policy"] == p and int(r["seed"]) == sd]
             if len(v) == len(ents):
                 per_seed.append(float(np.mean(v)))
-        e["psnr_sem_seeds"] = _ms(per_seed)[1]
+        e["psnr_sem_seeds"] = mean_sem(per_seed)[1]
         e["n_seeds"] = len(seeds)
         table[p] = e
     paired = {}
@@ -224,7 +218,7 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict) -> dict:
                 scene_means.append((scene, float(np.mean(ds)), float(np.mean(dl)) if dl else None))
         if d:
             vals = [x for _, x in d]
-            m, sem = _ms(vals)
+            m, sem = mean_sem(vals)
             lp = [x for _, _, x in scene_means if x is not None]
             paired[f"{a}-{b}"] = {"delta_psnr": m, "sem": sem, "wins": int(sum(x > 0 for x in vals)), "n": len(vals),
                                   "scene_wins": int(sum(x > 0 for _, x, _ in scene_means)), "n_scenes": len(scene_means),
@@ -295,7 +289,7 @@ def markdown(res: dict) -> str:
               "| --- | --- | --- | --- | --- | --- | --- |"]
     for k, v in res["paired"].items():
         per = ", ".join(f"{sc} {x:+.3f}" for sc, x in v["per_scene"].items())
-        lines.append(f"| {k.replace('-', ' − ')} | {_f(v['delta_psnr'], sign=True)} ± {v['sem']:.3f} | {v['wins']}/{v['n']} | "
+        lines.append(f"| {k.replace('-', ' − ')} | {_f(v['delta_psnr'], sign=True)} ± {_f(v['sem'])} | {v['wins']}/{v['n']} | "
                      f"{v['scene_wins']}/{v['n_scenes']} | {_f(v['delta_lpips'], 4, sign=True)} | {per} | "
                      f"{v['paper'] or '—'} |")
     if res["jaccard"]:

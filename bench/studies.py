@@ -102,15 +102,10 @@ def _compose_train(overrides: list[str]):
 
 
 def training_signature(overrides: list[str]) -> str:
-    """The run's training config without its model name and without the posterior blocks that promise
-    not to change training (``changes_training = False``, tested bit for bit in tests/test_rounds.py)."""
+    """:func:`b3dgs.study.rounds.training_signature` of the run these overrides compose."""
+    from b3dgs.study.rounds import training_signature as signature
 
-    from hydra.utils import get_class
-
-    d = OmegaConf.to_container(_compose_train([*overrides, "trainer.default_root_dir=."]), resolve=True)
-    d["model"].pop("name", None)
-    d["posterior"] = {k: v for k, v in (d.get("posterior") or {}).items() if get_class(v["_target_"]).changes_training}
-    return json.dumps(d, sort_keys=True, default=str)
+    return signature(_compose_train([*overrides, "trainer.default_root_dir=."]))
 
 
 def twins(jobs, studies=("sparse", "initcap")) -> dict[Path, Path]:
@@ -205,8 +200,7 @@ def main() -> None:
         return m
 
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:  # each run is its own subprocess
-        done = list(ex.map(one, [j for j in jobs if j[0] not in shared]))
-    del done
+        list(ex.map(one, [j for j in jobs if j[0] not in shared]))  # list(): a failed run raises here
     for run_dir, overrides, study in jobs:  # after every twin has finished
         if run_dir in shared and not (run_dir / "metrics.json").exists():
             write_shared(run_dir, overrides, shared[run_dir])

@@ -262,11 +262,14 @@ class ActiveStudy:
         write_json(path, out)
         return out
 
-    def context(self, models, policy, seed: int):
+    def context(self, models, policy, seed: int, score_max_side: Any = "config"):
+        """The policy's :class:`ScoringContext` (``score_max_side``: the study's ``acquisition.score_max_side``
+        unless given; None scores at full size)."""
         from b3dgs.acquisition import ScoringContext
 
-        return ScoringContext(models, self.scene.train, self.cfg.acquisition.get("score_max_side"), self.scene.extent,
-                              seed, ground_truth=self.store.image if policy.uses_ground_truth else None)
+        side = self.cfg.acquisition.get("score_max_side") if score_max_side == "config" else score_max_side
+        return ScoringContext(models, self.scene.train, side, self.scene.extent, seed,
+                              ground_truth=self.store.image if policy.uses_ground_truth else None)
 
     # ------------------------------------------------------------------ rows
     def run_row(self, label: str, policy, seed: int) -> dict:
@@ -323,15 +326,9 @@ class ActiveStudy:
         return res
 
     def training_signature(self, family: str, seed: int) -> str:
-        """The family's training config with the posterior blocks that promise not to change training
-        (``changes_training = False``, tested in ``tests/test_rounds.py``) left out, and without its name."""
-        from hydra.utils import get_class
+        from b3dgs.study.rounds import training_signature
 
-        d = OmegaConf.to_container(self.family_cfg(family, seed), resolve=True)
-        d["model"].pop("name", None)
-        d["posterior"] = {k: v for k, v in (d.get("posterior") or {}).items()
-                          if get_class(v["_target_"]).changes_training}
-        return json.dumps(d, sort_keys=True, default=str)
+        return training_signature(self.family_cfg(family, seed))
 
     def training_twin(self, label: str, family: str, seed: int, selected: list[str]) -> Optional[dict]:
         """A finished, separately trained row of this seed whose second round is the same run: the same

@@ -12,16 +12,9 @@ from typing import Any, Optional
 import numpy as np
 
 from b3dgs.io import atomic_path, write_json
+from b3dgs.report.stats import mean_sem
 
 PAIRS = (("native", "ensemble"), ("native", "proxy"))
-
-
-def _mean_sem(xs) -> tuple[Optional[float], Optional[float]]:
-    xs = [float(x) for x in xs if x is not None and not (isinstance(x, float) and math.isnan(x))]
-    if not xs:
-        return None, None
-    m = float(np.mean(xs))
-    return m, (float(np.std(xs, ddof=1) / math.sqrt(len(xs))) if len(xs) > 1 else 0.0)
 
 
 def jaccard(a, b) -> float:
@@ -56,7 +49,7 @@ def summarize(out: Path) -> dict:
             continue
         ent: dict[str, Any] = {"family": rs[0]["family"], "n_seeds": len(rs), "oracle": bool(rs[0].get("uses_ground_truth"))}
         for k in ("psnr", "ssim", "lpips", "train_time_s", "scoring_time_s"):
-            ent[k], ent[k + "_sem"] = _mean_sem([r.get(k) for r in rs])
+            ent[k], ent[k + "_sem"] = mean_sem([r.get(k) for r in rs])
         twins = sorted({r["training_shared_with"] for r in rs if r.get("training_shared_with")})
         ent["training_shared_with"] = twins or None
         hh = [r.get("hole_hits") for r in rs if r.get("hole_hits") is not None]
@@ -69,7 +62,7 @@ def summarize(out: Path) -> dict:
                 if len(names) >= 3:
                     rho, _ = spearman_rho([r["scores"][n] for n in names], [orc[n] for n in names], max_pixels=None)
                     rhos.append(rho)
-        ent["spearman_vs_oracle"], ent["spearman_vs_oracle_sem"] = _mean_sem(rhos)
+        ent["spearman_vs_oracle"], ent["spearman_vs_oracle_sem"] = mean_sem(rhos)
         table[pol] = ent
     jac = {}
     for a, b in combinations([p for p in policies if p in table], 2):
@@ -81,7 +74,7 @@ def summarize(out: Path) -> dict:
         d = [by[(a, s)]["psnr"] - by[(b, s)]["psnr"] for s in seeds if (a, s) in by and (b, s) in by
              and by[(a, s)]["psnr"] is not None and by[(b, s)]["psnr"] is not None]
         if d:
-            m, sem = _mean_sem(d)
+            m, sem = mean_sem(d)
             paired[f"{a}-{b}"] = {"delta_psnr": m, "sem": sem, "wins": int(sum(x > 0 for x in d)), "n": len(d),
                                   "per_seed": d}
     return {"scene": meta.get("scene", out.name), "meta": meta, "seeds": seeds, "table": table, "jaccard": jac,

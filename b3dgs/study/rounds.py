@@ -92,3 +92,19 @@ def load_round(cfg: DictConfig, scene: Scene, ckpt_path: str):
     module.to(renderer.device)
     module.eval()
     return module
+
+
+def training_signature(cfg: DictConfig) -> str:
+    """A run's training config as a string, without the model's name and without the posterior blocks that
+    promise not to change training (``changes_training = False``, checked bit for bit in
+    ``tests/test_rounds.py``): two configs with equal signatures train the same run."""
+    import json
+
+    from hydra.utils import get_class
+    from omegaconf import OmegaConf
+
+    d = OmegaConf.to_container(cfg, resolve=True)
+    d.pop("hydra", None)
+    d["model"].pop("name", None)
+    d["posterior"] = {k: v for k, v in (d.get("posterior") or {}).items() if get_class(v["_target_"]).changes_training}
+    return json.dumps(d, sort_keys=True, default=str)
