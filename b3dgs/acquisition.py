@@ -138,12 +138,14 @@ class ScoringContext:
         """Copies of the point-estimate parameters (leaf tensors, own dtype and device)."""
         return {k: v.detach().clone().requires_grad_(requires_grad) for k, v in self._models[member].params().items()}
 
-    def render(self, camera: Camera, member: int = 0, params: Optional[dict] = None, grad: bool = False):
+    def render(self, camera: Camera, member: int = 0, params: Optional[dict] = None, grad: bool = False,
+               return_weights: bool = False):
         """Render ``camera`` at the scoring resolution (``params``: another parameter set, e.g. from
-        :meth:`params` with gradients; ``grad``: keep the autograd graph)."""
+        :meth:`params` with gradients; ``grad``: keep the autograd graph; ``return_weights``: also the
+        per-Gaussian compositing sums Σ_p w_kp and Σ_p w_kp²)."""
         m = self._models[member]
         with torch.set_grad_enabled(grad):
-            return m.render_camera(self.camera(camera), params=params)
+            return m.render_camera(self.camera(camera), params=params, return_weights=return_weights)
 
     # ---------------------------------------------------------------- uncertainty regimes
     def fit_regime(self, regime, member: int = 0):

@@ -11,8 +11,9 @@ from b3dgs.train import CONF_DIR, build_plugins
 
 EVAL_GROUPS = {"uq"}  # groups of the b3dgs-eval app (conf/eval.yaml)
 STUDY_GROUPS = {"acquisition"}  # groups of the b3dgs-study app (conf/study.yaml; tests/test_acquisition.py builds each)
+COMPRESS_GROUPS = {"pruning"}  # groups of b3dgs-study compress (conf/compress.yaml; built below)
 GROUPS = sorted(p.name for p in Path(CONF_DIR).iterdir()
-                if p.is_dir() and p.name not in {"hydra"} | EVAL_GROUPS | STUDY_GROUPS)
+                if p.is_dir() and p.name not in {"hydra"} | EVAL_GROUPS | STUDY_GROUPS | COMPRESS_GROUPS)
 
 
 def options(group):
@@ -91,3 +92,14 @@ def test_eval_needs_a_regime():
 
     with pytest.raises(ValueError, match="uq="):
         regimes_from_cfg(compose_cfg(["run=/x", "uq=[]"], config_name="eval"))
+
+
+@pytest.mark.parametrize("option", options("pruning"))
+def test_every_pruning_option_builds(option):
+    from b3dgs.compression import PruningScore
+    from b3dgs.study.compression import load_pruning
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        score = load_pruning(option)
+    assert isinstance(score, PruningScore) and score.rounds >= 1

@@ -25,9 +25,7 @@ import time
 from pathlib import Path
 from typing import Any, Optional
 
-import hydra
 import numpy as np
-import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from b3dgs.io import write_json
@@ -57,23 +55,31 @@ def family_config(cfg: DictConfig, family: str, seed: int) -> DictConfig:
     return out
 
 
+def option_node(config_name: str, group: str, name: str, settings: Optional[DictConfig], fix: str) -> DictConfig:
+    """``conf/<group>/<name>.yaml`` (or a package's) composed under ``config_name``'s app, with
+    ``settings[name]`` merged in; an unknown option is a one-line error with ``fix``."""
+    from b3dgs.errors import B3dgsError
+
+    try:
+        node = _compose(config_name, [f"+{group}@option={name}"]).option
+    except Exception as e:  # noqa: BLE001 - unknown option: one line with the fix
+        raise B3dgsError(f"unknown {group} option {name!r} ({type(e).__name__})", fix) from None
+    with open_dict(node):
+        if settings is not None and settings.get(name) is not None:
+            node.merge_with(settings.get(name))
+    return node
+
+
 def load_policy(name: str, settings: Optional[DictConfig] = None):
     """(label, policy) for ``name`` or ``name@family`` from ``conf/acquisition/<name>.yaml`` (or a package's)."""
     from hydra.utils import instantiate
 
-    from b3dgs.errors import B3dgsError
-
     base, _, family = str(name).partition("@")
-    try:
-        node = _compose("study", [f"+acquisition@policy={base}"]).policy
-    except Exception as e:  # noqa: BLE001 - unknown option: one line with the fix
-        raise B3dgsError(f"unknown acquisition policy {base!r} ({type(e).__name__})",
-                         "pass policies=[...] of conf/acquisition/<name>.yaml (uniform, farthest, ensemble, ppu, "
-                         "fisher, proxy, native, oracle) or a package's") from None
-    with open_dict(node):
-        if settings is not None and settings.get(base) is not None:
-            node.merge_with(settings.get(base))
-        if family:
+    node = option_node("study", "acquisition", base, settings,
+                       "pass policies=[...] of conf/acquisition/<name>.yaml (uniform, farthest, ensemble, ppu, "
+                       "fisher, proxy, native, oracle) or a package's")
+    if family:
+        with open_dict(node):
             node.family = family
     policy = instantiate(node, _convert_="all")
     policy.check()
@@ -379,34 +385,20 @@ class ActiveStudy:
         return write_report(self.out, plots=bool(self.cfg.get("plots", True)), store=self.store)
 
 
-def run_study(cfg: DictConfig) -> dict:
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
-    return ActiveStudy(cfg).run()
+def hydra_main() -> None:
+    """Run the study from the command line (``b3dgs-study active ...``)."""
+    from b3dgs.study.cli import study_app
 
-
-CONF_DIR = str(Path(__file__).resolve().parents[2] / "conf")
-
-
-@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="study")
-def hydra_main(cfg: DictConfig) -> Optional[float]:
-    from b3dgs.errors import known_errors, quiet_known_noise
-
-    with known_errors("b3dgs-study", cfg):
-        quiet_known_noise()
-        run_study(cfg)
-    return None
+    study_app("study", ActiveStudy)()
 
 
 def main() -> None:
-    """``b3dgs-study active ...`` (the first argument names the study; ``active`` is the only one)."""
-    from b3dgs.errors import run_cli
+    """``b3dgs-study active ...`` (see :mod:`b3dgs.study.cli`)."""
+    from b3dgs.study.cli import main as cli_main
 
-    if len(sys.argv) < 2 or sys.argv[1] != "active":
-        print("usage: b3dgs-study active data=... [policies=[...]] [seeds=[0,1,2]] [hydra overrides]", file=sys.stderr)
-        raise SystemExit(2)
-    del sys.argv[1]
-    run_cli("b3dgs-study", hydra_main)
+    if sys.argv[1:2] != ["active"]:
+        sys.argv.insert(1, "active")
+    cli_main()
 
 
 if __name__ == "__main__":

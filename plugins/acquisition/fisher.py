@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import torch
 
 from b3dgs.acquisition import AcquisitionPolicy, Selection
+from b3dgs.fisher import pixel_set_grads
 
 PARAMS = ("means", "sh0", "shN", "scales", "opacities")  # scales are log-scales, opacities logits
 
@@ -17,11 +18,8 @@ class FisherPolicy(AcquisitionPolicy):
     squared gradients, not the square of the gradient of the image sum). Score of a candidate c:
     Σ_θ H_c[θ] / (H_train[θ] + λ); greedy batch: after each pick H_train += H_c.
 
-    Per-pixel gradients come from backward passes over pixel sets: the pixels (y, x) with the same
-    (y mod s, x mod s), s = ``pixel_stride``, share one pass (s² passes per view, one forward). It is exact
-    when s >= the longest side at the scoring resolution (one pixel per pass); with a smaller s the cross
-    terms of two pixels s apart that see the same Gaussian are included (a Gaussian narrower than s px
-    adds none).
+    Per-pixel gradients come from :func:`b3dgs.fisher.pixel_set_grads` with s = ``pixel_stride`` (s² backward
+    passes per view; exact when s >= the longest side at the scoring resolution).
     """
 
     pixel_stride: int = 8
@@ -41,17 +39,9 @@ class FisherPolicy(AcquisitionPolicy):
         p = ctx.params(requires_grad=False)
         leaves = [p[k].requires_grad_(True) for k in self.params]
         rgb = ctx.render(camera, params=p, grad=True).rgb
-        H, W = rgb.shape[:2]
-        s = int(self.pixel_stride)
         acc = torch.zeros(sum(x.numel() for x in leaves), dtype=torch.float64, device=rgb.device)
-        mask = torch.zeros_like(rgb)
-        for a in range(min(s, H)):
-            for b in range(min(s, W)):
-                mask.zero_()
-                mask[a::s, b::s] = 1.0
-                grads = torch.autograd.grad(rgb, leaves, grad_outputs=mask, retain_graph=True, allow_unused=True)
-                flat = torch.cat([(torch.zeros_like(x) if g is None else g).reshape(-1) for g, x in zip(grads, leaves)])
-                acc += flat.double().square()
+        for grads in pixel_set_grads(rgb, leaves, int(self.pixel_stride)):
+            acc += torch.cat([g.reshape(-1) for g in grads]).double().square()
         return acc.cpu()
 
     def select(self, ctx, candidates, budget):

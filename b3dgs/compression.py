@@ -1,0 +1,121 @@
+"""Pruning scores for the compression ladder: the base class and the per-Gaussian measurements they share.
+
+A pruning score is a plugin like any other: ``plugins/pruning/<name>.py`` (one dataclass deriving from
+:class:`PruningScore`) and ``conf/pruning/<name>.yaml``. It is called with the one hook signature
+``score(splats=, optimizers=, state=, step=, info=)`` and returns an (N,) tensor where higher means keep:
+
+- ``splats``: the model's parameters (read only); ``optimizers``: None (scores never step);
+- ``state``: the score's own dict, kept for the rounds of one ladder rung (e.g. a fitted posterior);
+- ``step``: the prune round (0-based);
+- ``info``: ``ctx`` (a :class:`b3dgs.acquisition.ScoringContext` over the training views at the scoring
+  resolution), ``generator`` (seeded per scene, seed and round), ``cache`` (a dict shared by every score of
+  the same model state, so two scores that need the same measurement, e.g. the DP usage counts, pay once).
+
+The core keeps the top-K of the score (ties by index) and never branches on a score's type or name.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from b3dgs.fisher import pixel_set_grads
+from b3dgs.plugin import Plugin
+
+
+@dataclass
+class PruningScore(Plugin):
+    """Ranks Gaussians for retention (higher = keep).
+
+    ``rounds``: prune-refine rounds for one keep ratio (the per-round keep factor is keep^(1/rounds); the
+    score is recomputed on the fine-tuned model before every round). Scores see training views only
+    (``ctx.train``), never test views.
+    """
+
+    rounds: int = 1
+
+    def check_sanity(self, **kwargs: Any) -> None:
+        if int(self.rounds) < 1:
+            raise ValueError(f"pruning {type(self).__name__}.rounds must be >= 1, got {self.rounds}")
+
+    def score(self, *, splats, optimizers, state, step, info) -> Tensor:
+        raise NotImplementedError
+
+
+def keep_top(score: Tensor, keep: int) -> Tensor:
+    """(N,) bool mask of the ``keep`` highest scores; ties go to the lower index (stable sort), NaN ranks last."""
+    if score.dim() != 1:
+        raise ValueError(f"a pruning score must be (N,), got {tuple(score.shape)}")
+    n = score.numel()
+    keep = max(0, min(int(keep), n))
+    s = torch.nan_to_num(score.detach().double(), nan=-float("inf"))
+    order = torch.sort(-s, stable=True).indices
+    mask = torch.zeros(n, dtype=torch.bool, device=score.device)
+    mask[order[:keep]] = True
+    return mask
+
+
+def _cached(info: dict, key: str, fn):
+    cache = info.setdefault("cache", {})
+    if key not in cache:
+        cache[key] = fn()
+    return cache[key]
+
+
+@torch.no_grad()
+def usage_counts(info: dict) -> Tensor:
+    """(N,) float64 expected pixel responsibilities Σ_v Σ_p w_kp over the training views (the DP block's usage
+    counts at a fixed model state: the limit of its per-step EMA × number of views)."""
+    ctx = info["ctx"]
+
+    def run():
+        total = None
+        for cam in ctx.train:
+            ws = ctx.render(cam, return_weights=True).weight_sum
+            w = ws.reshape(-1).double()
+            total = w if total is None else total + w
+        return total
+
+    return _cached(info, "usage_counts", run)
+
+
+def position_grad_norm(info: dict) -> Tensor:
+    """(N,) Σ_v ‖∂ MSE_v / ∂μ_k‖ over the training views (the paper's 'gradient' compression baseline)."""
+    ctx = info["ctx"]
+
+    def run():
+        total = None
+        for cam in ctx.train:
+            p = ctx.params(requires_grad=False)
+            p["means"].requires_grad_(True)
+            rgb = ctx.render(cam, params=p, grad=True).rgb
+            loss = (rgb - cam.image.to(rgb.device)).square().mean()
+            (g,) = torch.autograd.grad(loss, [p["means"]])
+            n = g.double().norm(dim=-1)
+            total = n if total is None else total + n
+        return total
+
+    return _cached(info, "position_grad_norm", run)
+
+
+def spatial_fisher(info: dict, stride: int, per_channel: bool = True) -> Tensor:
+    """(N, 6, 6) float64 Fisher blocks Σ_v Σ_p (Σ_c) ∇I ∇Iᵀ over each Gaussian's mean and log-scale (the PUP
+    sensitivity, Hanson et al. 2025), from :func:`b3dgs.fisher.pixel_set_grads` per view."""
+    ctx = info["ctx"]
+
+    def run():
+        total = None
+        for cam in ctx.train:
+            p = ctx.params(requires_grad=False)
+            leaves = [p["means"].requires_grad_(True), p["scales"].requires_grad_(True)]
+            rgb = ctx.render(cam, params=p, grad=True).rgb
+            acc = torch.zeros(leaves[0].shape[0], 6, 6, dtype=torch.float64, device=rgb.device)
+            for gm, gs in pixel_set_grads(rgb, leaves, stride, per_channel=per_channel):
+                g = torch.cat([gm, gs], dim=-1).double()
+                acc += g.unsqueeze(-1) * g.unsqueeze(-2)
+            total = acc if total is None else total + acc
+        return total
+
+    return _cached(info, f"spatial_fisher_s{int(stride)}_c{int(per_channel)}", run)

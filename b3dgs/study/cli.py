@@ -1,0 +1,48 @@
+"""``b3dgs-study <study> [hydra overrides]``: the first argument names the study."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+CONF_DIR = str(Path(__file__).resolve().parents[2] / "conf")
+
+STUDIES = {
+    "active": ("b3dgs.study.active", "fixed-budget active view selection 16 -> 32 (conf/study.yaml)"),
+    "compress": ("b3dgs.study.compression", "compression ladder on matched checkpoints, with PUP (conf/compress.yaml)"),
+}
+
+
+def study_app(config_name: str, study_cls):
+    """The Hydra app of a study: ``study_cls(cfg).run()`` with ``threads`` applied and one-line errors."""
+    import hydra
+    import torch
+
+    @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name=config_name)
+    def app(cfg) -> None:
+        from b3dgs.errors import known_errors, quiet_known_noise
+
+        with known_errors("b3dgs-study", cfg):
+            quiet_known_noise()
+            if cfg.get("threads"):
+                torch.set_num_threads(int(cfg.threads))
+            study_cls(cfg).run()
+
+    return app
+
+
+def main() -> None:
+    import importlib
+
+    from b3dgs.errors import run_cli
+
+    if len(sys.argv) < 2 or sys.argv[1] not in STUDIES:
+        lines = "\n".join(f"  b3dgs-study {k} ...   {doc}" for k, (_, doc) in STUDIES.items())
+        got = f" (got {sys.argv[1]!r})" if len(sys.argv) >= 2 else ""
+        print(f"usage: b3dgs-study <study> [hydra overrides]{got}\n{lines}", file=sys.stderr)
+        raise SystemExit(2)
+    mod = importlib.import_module(STUDIES[sys.argv.pop(1)][0])
+    run_cli("b3dgs-study", mod.hydra_main)
+
+
+if __name__ == "__main__":
+    main()

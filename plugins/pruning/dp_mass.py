@@ -1,0 +1,41 @@
+"""DP-mass pruning: keep Gaussians with large expected stick-breaking weight E[π_k]."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from b3dgs.compression import PruningScore, usage_counts
+
+
+@dataclass
+class DPMassPruning(PruningScore):
+    """Score E[π_k] of the DP posterior (paper Eq. 5) fitted by CAVI to the model's usage counts on the fixed
+    structure (:func:`b3dgs.compression.usage_counts`). The DP settings mirror ``conf/posterior/dp.yaml``."""
+
+    rounds: int = 2
+    alpha: float = 5.0
+    prior_active: float = 0.5
+    prune_pi: float = 0.05
+    gate_temperature: float = 1.0
+
+    def check_sanity(self, **kwargs) -> None:
+        super().check_sanity(**kwargs)
+        self.dp_block().check_sanity()
+
+    def dp_block(self):
+        from plugins.posterior.dp import DPBlock
+
+        return DPBlock(alpha=self.alpha, prior_active=self.prior_active, prune_pi=self.prune_pi,
+                       gate_temperature=self.gate_temperature, prune=False)
+
+    def fit(self, info) -> dict:
+        """{usage, g1, g2, e_pi, e_a} of the DP posterior at the current model state (cached per state)."""
+        key = f"dp_fit_{self.alpha}_{self.prior_active}_{self.prune_pi}_{self.gate_temperature}"
+        cache = info.setdefault("cache", {})
+        if key not in cache:
+            state = {"usage": usage_counts(info).clone()}
+            self.dp_block().cavi(state)
+            cache[key] = state
+        return cache[key]
+
+    def score(self, *, splats, optimizers, state, step, info):
+        return self.fit(info)["e_pi"]
