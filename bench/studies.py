@@ -218,7 +218,10 @@ def main() -> None:
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="report", overrides=[f"runs=[{args.out}/**]", f"out={args.report}"])
+        # exactly the grid's runs: outputs/bench also holds other benchmarks' runs of the same scene, method and
+        # seed (e.g. niw_calib), which the report would rightly refuse as duplicates
+        cfg = compose(config_name="report", overrides=[f"runs=[{','.join(str(j[0]) for j in jobs)}]",
+                                                       f"out={args.report}"])
     paths = build_report(cfg)
     print(f"report: {paths['md']}")
 
