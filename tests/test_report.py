@@ -122,6 +122,16 @@ def test_grouping_reads_the_config_not_folder_names(tmp_path):
     assert len(load_runs(str(tmp_path))[0]) == 4
 
 
+def test_block_time_share_is_derived_from_the_run_itself():
+    from b3dgs.report.collect import Run
+
+    r = Run(Path("x"), {}, {"train_time_s": 200.0, "block_time_s": {"niw": 2.0, "dp": 1.0}})
+    assert r.value("block_time_pct") == pytest.approx(1.5)
+    assert Run(Path("x"), {}, {"train_time_s": 100.0, "block_time_s": {}}).value("block_time_pct") == 0.0
+    assert Run(Path("x"), {}, {"train_time_s": 0.0, "block_time_s": {}}).value("block_time_pct") is None
+    assert Run(Path("x"), {}, {"train_time_s": 5.0}).value("block_time_pct") is None
+
+
 def test_duplicate_keys_error_or_newest(tmp_path):
     write_run(tmp_path / "a", "sceneA", "standard", 0, 20.0)
     time.sleep(0.05)

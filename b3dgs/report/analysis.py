@@ -19,9 +19,11 @@ COLUMNS = [
     ("psnr", "PSNR ↑", None), ("ssim", "SSIM ↑", None), ("lpips", "LPIPS ↓", None),
     ("ause_rmse", "AUSE ↓", UQ), ("ece", "ECE ↓", UQ), ("cov95", "Cov@95", UQ),
     ("num_gaussians", "Gauss.", None), ("render_fps", "FPS ↑", None), ("train_time_s", "Time (s) ↓", None),
+    ("block_time_pct", "Blocks % of time", None),
 ]
 HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False, "ause_rmse": False, "ece": False,
-                    "cov95_err": False, "num_gaussians": False, "render_fps": True, "train_time_s": False}
+                    "cov95_err": False, "num_gaussians": False, "render_fps": True, "train_time_s": False,
+                    "block_time_pct": False}
 
 
 def scene_means(runs: Sequence[Run], name: str, regime: Optional[str] = None) -> dict[str, float]:

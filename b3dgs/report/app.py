@@ -24,7 +24,7 @@ log = logging.getLogger(__name__)
 __all__ = ["build_report", "main"]
 
 SPECS = {"psnr": ".3f", "ssim": ".4f", "lpips": ".4f", "ause_rmse": ".4f", "ece": ".4f", "cov95": ".3f",
-         "num_gaussians": ",.0f", "render_fps": ".1f", "train_time_s": ".1f"}
+         "num_gaussians": ",.0f", "render_fps": ".1f", "train_time_s": ".1f", "block_time_pct": ".2f"}
 
 
 def _clean(x: Any) -> Any:
@@ -61,6 +61,9 @@ def macro_table(rows: dict[str, dict], caption: str, cols=None) -> Table:
         body.append([m] + [fmt(r.get(k), SPECS.get(k, ".4g")) + ("*" if k in r.get("partial", {}) else "")
                            for k, _, _ in cols] + [str(r["n_scenes"]), str(r["n_runs"])])
     note = "Macro means over scenes of per-scene seed means (the paper's Table 1 aggregation)."
+    if any(k == "block_time_pct" for k, _, _ in cols):
+        note += (" Blocks % of time: the posterior blocks' share of each run's training time, timed inside the run "
+                 "(wall times across runs trained at different machine loads are not comparable; this share is).")
     if any(r.get("partial") for r in rows.values()):
         note += " * = logged on fewer scenes than the method ran (mean over those scenes only)."
     return Table(header, body, caption, note)

@@ -49,7 +49,14 @@ class Run:
         return (self.study, self.level, self.scene, self.method, self.seed)
 
     def value(self, name: str, regime: Optional[str] = None) -> Optional[float]:
-        """A scalar of metrics.json, or of uq.json's ``regime`` when given (None if absent)."""
+        """A scalar of metrics.json, or of uq.json's ``regime`` when given (None if absent).
+        ``block_time_pct``: the posterior blocks' share of the training time in %, Σ ``block_time_s`` /
+        ``train_time_s`` (measured inside the run, so it holds under any machine load; 0 without blocks)."""
+        if name == "block_time_pct" and regime is None:
+            t, bt = self.metrics.get("train_time_s"), self.metrics.get("block_time_s")
+            if not isinstance(t, (int, float)) or t <= 0 or not isinstance(bt, dict):
+                return None
+            return 100.0 * float(sum(float(v) for v in bt.values())) / float(t)
         src = self.metrics if regime is None else self.uq.get(regime, {})
         v = src.get(name)
         return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
