@@ -256,7 +256,8 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
     protocols = sorted({f"{r.study}: {r.config.get('trainer', {}).get('max_steps')} steps, "
                         f"max_side {r.config.get('data', {}).get('max_side')}" for r in runs})
     bld.blocks.append(Para(
-        f"{len(runs)} finished runs from runs={patterns}"
+        f"{len(runs)} finished runs from "
+        + (f"runs={patterns}" if len(patterns) <= 6 else f"{len(patterns)} run-dir patterns (each run's path is in report.json)")
         + (f" ({len(unfinished)} unfinished run dirs without metrics.json skipped)" if unfinished else "")
         + f"; scenes {sorted({r.scene for r in runs})}, methods {method_order(r.method for r in runs)}, seeds "
         f"{sorted({r.seed for r in runs})}; protocols: {'; '.join(protocols)}. Grouped by each run's own config "
