@@ -191,7 +191,7 @@ def train(cfg: DictConfig) -> dict:
 
     from b3dgs.callbacks import AtomicCheckpointIO, CurveCallback, ResumeState, RunCheckpoint
     from b3dgs.checkpoint import checkpoint_record
-    from b3dgs.evaluate import evaluate_views
+    from b3dgs.metrics.views import evaluate_views
     from b3dgs.metrics.lpips import get_lpips
     from b3dgs.posterior.guards import guard_counts, reset_guards
     from b3dgs.validation import validate_config

@@ -102,7 +102,7 @@ def ensure_lpips(run_dir: Path, metrics: dict) -> dict:
     by re-rendering its test views from the checkpoint (the metrics.json is updated atomically)."""
     if metrics.get("lpips") is not None:
         return metrics
-    from b3dgs.evaluate import evaluate_views
+    from b3dgs.metrics.views import evaluate_views
     from b3dgs.metrics.lpips import get_lpips
     from b3dgs.runs import load_run
 

@@ -354,7 +354,7 @@ class ActiveStudy:
         return None
 
     def evaluate(self, module) -> dict:
-        from b3dgs.evaluate import evaluate_views
+        from b3dgs.metrics.views import evaluate_views
         from b3dgs.metrics.lpips import get_lpips
 
         lp, _ = get_lpips()

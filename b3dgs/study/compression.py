@@ -150,7 +150,7 @@ class CompressionStudy:
         return s, dt, _plain(state)
 
     def run_row(self, name: str, score_fn, keep: float, loaded, base_eval: dict, lp) -> dict:
-        from b3dgs.evaluate import evaluate_views
+        from b3dgs.metrics.views import evaluate_views
 
         d = self.base_dir(loaded) / f"{name}_k{int(round(keep * 100)):02d}"
         if (d / "result.json").exists():
@@ -195,7 +195,7 @@ class CompressionStudy:
         return res
 
     def base_row(self, loaded, lp) -> dict:
-        from b3dgs.evaluate import evaluate_views
+        from b3dgs.metrics.views import evaluate_views
 
         from b3dgs.errors import B3dgsError
 
