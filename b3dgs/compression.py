@@ -57,7 +57,8 @@ def keep_top(score: Tensor, keep: int) -> Tensor:
     return mask
 
 
-def _cached(info: dict, key: str, fn):
+def cached(info: dict, key: str, fn):
+    """``fn()`` computed once per model state: kept in ``info["cache"]`` under ``key``."""
     cache = info.setdefault("cache", {})
     if key not in cache:
         cache[key] = fn()
@@ -78,7 +79,7 @@ def usage_counts(info: dict) -> Tensor:
             total = w if total is None else total + w
         return total
 
-    return _cached(info, "usage_counts", run)
+    return cached(info, "usage_counts", run)
 
 
 def position_grad_norm(info: dict) -> Tensor:
@@ -97,7 +98,7 @@ def position_grad_norm(info: dict) -> Tensor:
             total = n if total is None else total + n
         return total
 
-    return _cached(info, "position_grad_norm", run)
+    return cached(info, "position_grad_norm", run)
 
 
 def spatial_fisher(info: dict, stride: int, per_channel: bool = True) -> Tensor:
@@ -118,4 +119,4 @@ def spatial_fisher(info: dict, stride: int, per_channel: bool = True) -> Tensor:
             total = acc if total is None else total + acc
         return total
 
-    return _cached(info, f"spatial_fisher_s{int(stride)}_c{int(per_channel)}", run)
+    return cached(info, f"spatial_fisher_s{int(stride)}_c{int(per_channel)}", run)

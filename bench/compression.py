@@ -7,7 +7,7 @@
 Base runs are ``outputs/bench/<scene>/standard/s<seed>`` (``bench/studies.py`` trains them). One subprocess per
 base run (``--jobs`` at a time, ``threads=1`` each); every row is resumable, so an interrupted run of this script
 picks up where it stopped. Writes ``bench/results/compression.{json,md}`` and ``bench/results/compression/``
-(the study's ``compression.md`` and plots).
+(the study's plots).
 """
 from __future__ import annotations
 
@@ -57,7 +57,6 @@ def aggregate(out: Path) -> dict:
     s = write_report(out, plots=True)
     dst = RESULTS / NAME
     dst.mkdir(parents=True, exist_ok=True)
-    shutil.copy2(out / "compression.md", dst / "compression.md")
     for png in (out / "plots").glob("*.png"):
         shutil.copy2(png, dst / png.name)
     lines = [(out / "compression.md").read_text().replace("](plots/", "](compression/"), "",

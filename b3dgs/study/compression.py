@@ -31,9 +31,6 @@ from b3dgs.io import atomic_path, write_json
 
 log = logging.getLogger(__name__)
 
-PARAMS = ("means", "quats", "scales", "opacities", "sh0", "shN")
-
-
 def load_pruning(name: str, settings: Optional[DictConfig] = None):
     """The pruning score ``name`` from ``conf/pruning/<name>.yaml`` (or a package's), with ``settings[name]``."""
     from hydra.utils import instantiate
@@ -166,7 +163,6 @@ class CompressionStudy:
                     "generator": torch.Generator().manual_seed(seed * 1000003 + 7919 * r + 1)}
             if r == 0:
                 s, dt, state = self.first_scores(name, score_fn, loaded, info)
-                state = dict(state)
             else:
                 t0 = time.perf_counter()
                 s = score_fn.score(splats=module.params(), optimizers=None, state=state, step=r, info=info).detach().cpu()
@@ -225,8 +221,7 @@ class CompressionStudy:
 
         lp, _ = get_lpips()
         scenes: dict[str, Any] = {}
-        todo = [(run, name, fn, k) for run in self.base_runs for name, fn in self.strategies for k in self.keeps]
-        bar = tqdm(total=len(todo), desc="compression rows", disable=not self.cfg.get("progress_bar", True))
+        bar = tqdm(total=len(self.base_runs) * len(self.strategies) * len(self.keeps), desc="compression rows", disable=not self.cfg.get("progress_bar", True))
         seen: dict[tuple, Path] = {}
         for run in self.base_runs:
             cfg = OmegaConf.load(run / "config.yaml")

@@ -157,7 +157,6 @@ def plot(s: dict, out: Path) -> list[str]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows, _, _ = load(out)
     d = out / "plots"
     d.mkdir(parents=True, exist_ok=True)
     written = []

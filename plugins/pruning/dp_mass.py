@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from b3dgs.compression import PruningScore, usage_counts
+from b3dgs.compression import PruningScore, cached, usage_counts
 
 
 @dataclass
@@ -29,13 +29,12 @@ class DPMassPruning(PruningScore):
 
     def fit(self, info) -> dict:
         """{usage, g1, g2, e_pi, e_a} of the DP posterior at the current model state (cached per state)."""
-        key = f"dp_fit_{self.alpha}_{self.prior_active}_{self.prune_pi}_{self.gate_temperature}"
-        cache = info.setdefault("cache", {})
-        if key not in cache:
+        def fit():
             state = {"usage": usage_counts(info).clone()}
             self.dp_block().cavi(state)
-            cache[key] = state
-        return cache[key]
+            return state
+
+        return cached(info, f"dp_fit_{self.alpha}_{self.prior_active}_{self.prune_pi}_{self.gate_temperature}", fit)
 
     def score(self, *, splats, optimizers, state, step, info):
         return self.fit(info)["e_pi"]

@@ -30,8 +30,7 @@ class PUPPruning(PruningScore):
 
     def score(self, *, splats, optimizers, state, step, info):
         F = spatial_fisher(info, int(self.pixel_stride), bool(self.per_channel))
-        F = 0.5 * (F + F.transpose(-1, -2))
-        ev = torch.linalg.eigvalsh(F)
+        ev = torch.linalg.eigvalsh(F)  # F is a sum of outer products: symmetric PSD
         low = ev < self.eig_floor
         state["clamped"] = int(state.get("clamped", 0)) + int(low.any(dim=-1).sum())
         return ev.clamp_min(self.eig_floor).log().sum(dim=-1)
