@@ -331,3 +331,30 @@ def test_bad_inputs(backend):
         rasterize(means, conics, colors, opac, depths, bins, W, H, bg, backend="cuda")
     with pytest.raises(ValueError, match="means2d"):
         bin_gaussians(means[0], radii, depths, W, H)
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+@pytest.mark.parametrize("name", ["means2d", "conics", "colors", "opacities", "depths"])
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_non_finite_input_is_named(backend, name, value):
+    """Every input's NaN / Inf is caught and named; the C++ backend detects it inside its own pass."""
+    W, H = 20, 20
+    *inputs, radii = random_gaussians(1, 5, W, H, dtype=torch.float32)
+    bins = bin_gaussians(inputs[0], radii, inputs[4], W, H)
+    args = dict(zip(["means2d", "conics", "colors", "opacities", "depths"], inputs))
+    bad = args[name].clone()
+    bad.view(-1)[-1] = value  # the last entry: not one the binning may have culled away
+    args[name] = bad
+    with pytest.raises(ValueError, match=f"{name} contains NaN or Inf"):
+        rasterize(*args.values(), bins, W, H, torch.zeros(3), backend=backend)
+
+
+@pytest.mark.parametrize("backend", ["torch", "cpu"])
+def test_stale_bins_are_refused(backend):
+    W, H = 20, 20
+    *inputs, radii = random_gaussians(1, 5, W, H, dtype=torch.float32)
+    bins = bin_gaussians(inputs[0], radii, inputs[4], W, H)
+    bins.flat_ids = bins.flat_ids.clone()
+    bins.flat_ids[-1] = 5  # an id of a Gaussian that no longer exists
+    with pytest.raises(ValueError, match="out of range"):
+        rasterize(*inputs, bins, W, H, torch.zeros(3), backend=backend)

@@ -202,8 +202,10 @@ def _check_inputs(means2d, conics, colors, opacities, depths, bins, width, heigh
         if t.device != means2d.device or t.device.type != need:
             raise ValueError(f"rasterize: {name} is on {t.device}; the {backend} backend needs every input on "
                              f"one {need} device")
-        if not bool(torch.isfinite(t.detach()).all()):
-            raise ValueError(f"rasterize: {name} contains NaN or Inf")
+    # the C++ backend checks finiteness and Gaussian ids inside its own passes (_raise_bad_inputs)
+    if backend != "cpu":
+        _check_finite(means2d=means2d, conics=conics, colors=colors, opacities=opacities, depths=depths)
+    _check_finite(background=background)
     if width <= 0 or height <= 0:
         raise ValueError(f"rasterize: width/height must be positive, got {width}x{height}")
     ts = bins.tile_size
@@ -219,8 +221,28 @@ def _check_inputs(means2d, conics, colors, opacities, depths, bins, width, heigh
     P = bins.num_pairs
     if int(bins.tile_offsets[0]) != 0 or int(bins.tile_offsets[-1]) != P:
         raise ValueError("rasterize: bins.tile_offsets must start at 0 and end at len(flat_ids)")
-    if P > 0 and (int(bins.flat_ids.min()) < 0 or int(bins.flat_ids.max()) >= N):
-        raise ValueError(f"rasterize: bins.flat_ids out of range for N={N} Gaussians (stale bins?)")
+    if backend != "cpu" and P > 0 and (int(bins.flat_ids.min()) < 0 or int(bins.flat_ids.max()) >= N):
+        _raise_stale_bins(N)
+
+
+def _check_finite(**tensors: Tensor) -> None:
+    for name, t in tensors.items():
+        if not bool(torch.isfinite(t.detach()).all()):
+            raise ValueError(f"rasterize: {name} contains NaN or Inf")
+
+
+def _raise_stale_bins(n: int) -> None:
+    raise ValueError(f"rasterize: bins.flat_ids out of range for N={n} Gaussians (stale bins?)")
+
+
+def _raise_bad_inputs(flags: Tensor, n: int, **tensors: Tensor) -> None:
+    """The error for the C++ forward's in-kernel checks: ``flags`` = (non-finite entries, ids out of range)."""
+    nonfinite, bad_ids = (int(v) for v in flags.tolist())
+    if bad_ids:
+        _raise_stale_bins(n)
+    if nonfinite:
+        _check_finite(**tensors)  # names the first tensor holding a NaN / Inf
+        raise ValueError("rasterize: an input contains NaN or Inf")
 
 
 # --------------------------------------------------------------------------------------------
@@ -377,9 +399,12 @@ class _RasterizeCPU(torch.autograd.Function):
         ext = load_extension()
         width, height, ts, tiles_x, tiles_y = geom
         nthreads = torch.get_num_threads()
-        rgb, depth, T, last, nc, wsum, wsq = ext.forward(
+        rgb, depth, T, last, nc, wsum, wsq, flags = ext.forward(
             means2d, conics, colors, opacities, depths, tile_offsets, flat_ids, background,
             width, height, ts, tiles_x, tiles_y, bool(return_weights), nthreads)
+        if bool(flags.any()):
+            _raise_bad_inputs(flags, means2d.shape[1], means2d=means2d, conics=conics, colors=colors,
+                              opacities=opacities, depths=depths)
         ctx.geom = geom
         ctx.save_for_backward(means2d, conics, colors, opacities, depths, background, tile_offsets,
                               flat_ids, T, last)

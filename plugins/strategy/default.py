@@ -63,14 +63,15 @@ class AdaptiveDensityControl(Plugin):
         if "means2d_grad" not in pg:
             return
         width, height = info["width"], info["height"]
-        g = pg["means2d_grad"][0].detach().clone()
-        g[:, 0] *= 0.5 * width
-        g[:, 1] *= 0.5 * height
+        g = pg["means2d_grad"][0].detach()
+        # NDC-unit gradient norm of the visible Gaussians, accumulated with masks (no host sync)
+        ndc = g.new_tensor([0.5 * width, 0.5 * height])
         radii = pg["radii"][0]
         vis = radii > 0
-        state["grad2d"][vis] += g[vis].norm(dim=-1)
-        state["count"][vis] += 1
-        state["max_radii"][vis] = torch.maximum(state["max_radii"][vis], radii[vis] / float(max(width, height)))
+        state["grad2d"].add_(torch.where(vis, (g * ndc).norm(dim=-1), 0.0))
+        state["count"].add_(vis)
+        state["max_radii"].copy_(torch.where(vis, torch.maximum(state["max_radii"], radii / float(max(width, height))),
+                                             state["max_radii"]))
 
         if step > self.refine_start and step % self.refine_every == 0:
             self._refine(splats, state, step, info)

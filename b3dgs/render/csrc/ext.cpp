@@ -56,17 +56,18 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
   auto last = torch::empty({G.S, G.H, G.W}, opts.dtype(torch::kInt32));
   auto nc = torch::empty({G.S, G.H, G.W}, opts.dtype(torch::kInt32));
   torch::Tensor wsum = torch::empty({0}, opts), wsq = torch::empty({0}, opts);
+  // (non-finite input entries, out-of-range Gaussian ids): checked inside the kernel's own passes
+  auto flags = torch::zeros({2}, opts.dtype(torch::kInt64));
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "b3dgs_rasterize_forward", [&] {
     torch::Tensor pair_w;
     if (want_weights) pair_w = torch::zeros({G.S, G.P, 2}, opts);
-    forward_impl<scalar_t>(G, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
-                           colors.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
-                           depths.data_ptr<scalar_t>(), offsets.data_ptr<int64_t>(),
-                           ids.data_ptr<int64_t>(), bg.data_ptr<scalar_t>(),
-                           rgb.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
-                           T.data_ptr<scalar_t>(), last.data_ptr<int32_t>(), nc.data_ptr<int32_t>(),
-                           want_weights ? pair_w.data_ptr<scalar_t>() : nullptr, (int)nthreads);
-    if (want_weights) {
+    const bool ok = forward_impl<scalar_t>(
+        G, means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), colors.data_ptr<scalar_t>(),
+        opac.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), offsets.data_ptr<int64_t>(),
+        ids.data_ptr<int64_t>(), bg.data_ptr<scalar_t>(), rgb.data_ptr<scalar_t>(), depth.data_ptr<scalar_t>(),
+        T.data_ptr<scalar_t>(), last.data_ptr<int32_t>(), nc.data_ptr<int32_t>(),
+        want_weights ? pair_w.data_ptr<scalar_t>() : nullptr, (int)nthreads, flags.data_ptr<int64_t>());
+    if (ok && want_weights) {
       auto red = torch::empty({G.S, G.N, 2}, opts);
       reduce_pairs<scalar_t>(pair_w.data_ptr<scalar_t>(), 2, ids.data_ptr<int64_t>(), G.P, G.S,
                              G.N, red.data_ptr<scalar_t>(), (int)nthreads);
@@ -74,7 +75,7 @@ std::vector<torch::Tensor> rasterize_forward(torch::Tensor means2d, torch::Tenso
       wsq = red.select(2, 1).contiguous();
     }
   });
-  return {rgb, depth, T, last, nc, wsum, wsq};
+  return {rgb, depth, T, last, nc, wsum, wsq, flags};
 }
 
 std::vector<torch::Tensor> rasterize_backward(

@@ -31,6 +31,9 @@
 #include <cstring>
 #include <type_traits>
 #include <vector>
+#if defined(__x86_64__)
+#include <immintrin.h>
+#endif
 
 namespace b3dgs {
 
@@ -115,45 +118,178 @@ struct Geometry {
   int64_t P;
 };
 
-// Per-tile, per-sample gathered Gaussian data (structure of arrays, in list order).
+// Per-(sample, Gaussian) culling data, computed once per pass (cull_gaussians) instead of once per
+// tile pair: the pixel bounding box where alpha can reach 1/255 (clamped to the image; empty when
+// o < 1/255; the whole image when the conic is not SPD), and the coefficients of the per-row
+// intervals (a = 0: no row interval, use the box).
+struct GaussCull {
+  int32_t x0, x1, y0, y1;       // [x0, x1) x [y0, y1), absolute pixel coordinates
+  double k2a, det, a, inv_a;    // row interval coefficients (see row_ranges)
+};
+
+// alpha >= 1/255 needs power >= L = log(1 / (255 o)) (<= 0): ellipse d^T Q d <= -2L, half extents
+// sqrt(-2L * Sigma_ii), Sigma = Q^-1. Slightly enlarged (conservative): culling never changes a pixel.
+// Returns the number of (sample, Gaussian) entries with a non-finite input (the caller raises: checked
+// here, where the data is read anyway, instead of in separate passes over every input tensor).
+template <typename scalar_t>
+int64_t cull_gaussians(const scalar_t* means, const scalar_t* conics, const scalar_t* colors, const scalar_t* opac,
+                       const scalar_t* depths, int64_t SN, int W, int H, GaussCull* out, int nthreads) {
+  int64_t nonfinite = 0;
+#pragma omp parallel for schedule(static) num_threads(nthreads) reduction(+ : nonfinite)
+  for (int64_t g = 0; g < SN; ++g) {
+    // x - x is 0 for finite x and NaN for NaN / Inf: one test for all ten inputs
+    const scalar_t probe = (means[2 * g] - means[2 * g]) + (means[2 * g + 1] - means[2 * g + 1]) +
+                           (conics[3 * g] - conics[3 * g]) + (conics[3 * g + 1] - conics[3 * g + 1]) +
+                           (conics[3 * g + 2] - conics[3 * g + 2]) + (colors[3 * g] - colors[3 * g]) +
+                           (colors[3 * g + 1] - colors[3 * g + 1]) + (colors[3 * g + 2] - colors[3 * g + 2]) +
+                           (opac[g] - opac[g]) + (depths[g] - depths[g]);
+    nonfinite += probe == probe ? 0 : 1;
+    GaussCull& q = out[g];
+    q.k2a = q.det = q.a = q.inv_a = 0;
+    const scalar_t go = opac[g];
+    if (!(go >= (scalar_t)kMinAlpha)) {  // alpha <= o, so o < 1/255 never contributes
+      q.x0 = q.x1 = q.y0 = q.y1 = 0;
+      continue;
+    }
+    q.x0 = 0;
+    q.x1 = W;
+    q.y0 = 0;
+    q.y1 = H;
+    const double gx = means[2 * g], gy = means[2 * g + 1];
+    const double da = conics[3 * g], db = conics[3 * g + 1], dc = conics[3 * g + 2];
+    const double L = std::log(kMinAlpha / (double)go) - 1e-3;
+    const double det = da * dc - db * db;
+    if (da > 0 && dc > 0 && det > 0 && std::isfinite(det)) {
+      const double k2 = std::max(-2.0 * L, 0.0);
+      const double hx = std::sqrt(k2 * dc / det) * (1.0 + 1e-6) + kPixMargin;
+      const double hy = std::sqrt(k2 * da / det) * (1.0 + 1e-6) + kPixMargin;
+      const double lx = std::ceil(gx - hx - 0.5), ux = std::floor(gx + hx - 0.5) + 1.0;
+      const double ly = std::ceil(gy - hy - 0.5), uy = std::floor(gy + hy - 0.5) + 1.0;
+      // clamped to the image here, to each tile in gather: the same box as clamping to the tile alone
+      q.x0 = (int32_t)std::max(0.0, std::min((double)W, lx));
+      q.x1 = (int32_t)std::max(0.0, std::min((double)W, ux));
+      q.y0 = (int32_t)std::max(0.0, std::min((double)H, ly));
+      q.y1 = (int32_t)std::max(0.0, std::min((double)H, uy));
+      q.k2a = k2 * da;
+      q.det = det;
+      q.a = da;
+      q.inv_a = 1.0 / da;
+    }
+  }
+  return nonfinite;
+}
+
+// Pixel columns [px0 + xa[r], px0 + xb[r]) of the rows y0 + r, r < y1 - y0, that may reach alpha >= 1/255:
+// for row centre offset dy the pixel centre must lie in [x + (b dy - s) / a, x + (b dy + s) / a],
+// s = sqrt(max(0, k2 a - det dy^2)); intersected with [x0, x1). Branch-free over the rows (vectorised).
+template <typename scalar_t>
+B3_INLINE void row_ranges_body(const GaussCull& q, scalar_t gx, scalar_t gy, scalar_t cb, int px0, int x0, int x1,
+                               int y0, int y1, int16_t* xa, int16_t* xb) {
+  const int n = y1 - y0;
+  if (!(q.a > 0)) {
+    for (int r = 0; r < n; ++r) {
+      xa[r] = (int16_t)(x0 - px0);
+      xb[r] = (int16_t)(x1 - px0);
+    }
+    return;
+  }
+  const double dgx = gx, dgy = gy, db = cb, ia = q.inv_a, k2a = q.k2a, det = q.det;
+  const double fx0 = x0, fx1 = x1;
+  for (int r = 0; r < n; ++r) {
+    const double dy = dgy - ((double)(y0 + r) + 0.5);
+    const double sq = std::sqrt(std::max(0.0, k2a - det * dy * dy));
+    const double cx = dgx + db * dy * ia - 0.5;
+    const double hw = sq * ia * (1.0 + 1e-6) + kPixMargin;
+    const double lo = std::ceil(cx - hw), hi = std::floor(cx + hw) + 1.0;
+    // lo > x0 ? min(lo, x1) : x0, and hi < x1 ? max(hi, xa) : x1 (NaN-free: all inputs finite)
+    const double a = lo > fx0 ? std::min(lo, fx1) : fx0;
+    const double b = hi < fx1 ? std::max(hi, a) : fx1;
+    xa[r] = (int16_t)((int32_t)a - px0);
+    xb[r] = (int16_t)((int32_t)b - px0);
+  }
+}
+#if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
+// The same arithmetic as row_ranges_body, four rows per AVX instruction (bitwise identical results:
+// every operation is correctly rounded in both, and min / max / select follow the scalar NaN rules).
+// Writes up to 3 entries past n (the buffers have the slack).
+__attribute__((target("avx"))) inline void row_ranges_avx(const GaussCull& q, double gx, double gy, double cb,
+                                                          int px0, int x0, int x1, int y0, int n, int16_t* xa,
+                                                          int16_t* xb) {
+  const __m256d vgy = _mm256_set1_pd(gy), vgx = _mm256_set1_pd(gx), vdb = _mm256_set1_pd(cb);
+  const __m256d via = _mm256_set1_pd(q.inv_a), vk2a = _mm256_set1_pd(q.k2a), vdet = _mm256_set1_pd(q.det);
+  const __m256d half = _mm256_set1_pd(0.5), one = _mm256_set1_pd(1.0), zero = _mm256_setzero_pd();
+  const __m256d rel = _mm256_set1_pd(1.0 + 1e-6), margin = _mm256_set1_pd(kPixMargin);
+  const __m256d fx0 = _mm256_set1_pd((double)x0), fx1 = _mm256_set1_pd((double)x1);
+  const __m128i off = _mm_set1_epi32(px0);
+  for (int r = 0; r < n; r += 4) {
+    const double yr = (double)(y0 + r);
+    const __m256d yc = _mm256_add_pd(_mm256_set_pd(yr + 3.0, yr + 2.0, yr + 1.0, yr), half);
+    const __m256d dy = _mm256_sub_pd(vgy, yc);
+    const __m256d t = _mm256_sub_pd(vk2a, _mm256_mul_pd(_mm256_mul_pd(vdet, dy), dy));
+    const __m256d sq = _mm256_sqrt_pd(_mm256_max_pd(t, zero));  // NaN -> 0, as std::max(0.0, t)
+    const __m256d cx = _mm256_sub_pd(_mm256_add_pd(vgx, _mm256_mul_pd(_mm256_mul_pd(vdb, dy), via)), half);
+    const __m256d hw = _mm256_add_pd(_mm256_mul_pd(_mm256_mul_pd(sq, via), rel), margin);
+    const __m256d lo = _mm256_round_pd(_mm256_sub_pd(cx, hw), _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC);
+    const __m256d hi =
+        _mm256_add_pd(_mm256_round_pd(_mm256_add_pd(cx, hw), _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC), one);
+    const __m256d a = _mm256_blendv_pd(fx0, _mm256_min_pd(lo, fx1), _mm256_cmp_pd(lo, fx0, _CMP_GT_OQ));
+    const __m256d b = _mm256_blendv_pd(fx1, _mm256_max_pd(hi, a), _mm256_cmp_pd(hi, fx1, _CMP_LT_OQ));
+    alignas(16) int32_t ia[4], ib[4];
+    _mm_store_si128((__m128i*)ia, _mm_sub_epi32(_mm256_cvttpd_epi32(a), off));
+    _mm_store_si128((__m128i*)ib, _mm_sub_epi32(_mm256_cvttpd_epi32(b), off));
+    for (int l = 0; l < 4; ++l) {
+      xa[r + l] = (int16_t)ia[l];
+      xb[r + l] = (int16_t)ib[l];
+    }
+  }
+}
+#define B3_ROWS_AVX 1
+#endif
+
+template <typename scalar_t>
+inline void row_ranges(const GaussCull& q, scalar_t gx, scalar_t gy, scalar_t cb, int px0, int x0, int x1, int y0,
+                       int y1, int16_t* xa, int16_t* xb) {
+#ifdef B3_ROWS_AVX
+  static const bool avx = __builtin_cpu_supports("avx");
+  if (avx && q.a > 0) {
+    row_ranges_avx(q, gx, gy, cb, px0, x0, x1, y0, y1 - y0, xa, xb);
+    return;
+  }
+#endif
+  row_ranges_body<scalar_t>(q, gx, gy, cb, px0, x0, x1, y0, y1, xa, xb);
+}
+
+// Per-tile, per-sample gathered Gaussian data (structure of arrays, in list order) with each pair's
+// pixel box clipped to the tile and its per-row column intervals.
 template <typename scalar_t>
 struct TileCache {
   std::vector<scalar_t> x, y, a, b, c, o, cr, cg, cb, z;
   std::vector<int> x0, x1, y0, y1;  // pixel bbox, absolute coords, [x0, x1) x [y0, y1)
-  // Row intervals: for row centre offset dy, alpha >= 1/255 needs the pixel centre in
-  // [x + (b dy - s) / a, x + (b dy + s) / a], s = sqrt(max(0, k2 a - det dy^2)). ra = 0 means
-  // "no row interval" (non-SPD conic): use the bbox.
-  std::vector<double> rk2a, rdet, ra, rinv_a;
+  std::vector<const GaussCull*> q;  // each pair's culling data (row interval coefficients)
+  int64_t cap = 0;
+  int px0 = 0;                      // left pixel column of the gathered tile
 
   void resize(int64_t K) {
-    for (auto* v : {&x, &y, &a, &b, &c, &o, &cr, &cg, &cb, &z}) v->resize(K);
-    for (auto* v : {&x0, &x1, &y0, &y1}) v->resize(K);
-    for (auto* v : {&rk2a, &rdet, &ra, &rinv_a}) v->resize(K);
+    if (K <= cap) return;
+    cap = std::max<int64_t>(K, 2 * cap);
+    for (auto* v : {&x, &y, &a, &b, &c, &o, &cr, &cg, &cb, &z}) v->resize(cap);
+    for (auto* v : {&x0, &x1, &y0, &y1}) v->resize(cap);
+    q.resize(cap);
   }
 
-  // Pixel columns [xa, xb) of row yy (absolute) that may reach alpha >= 1/255.
-  B3_INLINE void row_range(int64_t k, int yy, int& xa, int& xb) const {
-    xa = x0[k];
-    xb = x1[k];
-    const double aa = ra[k];
-    if (aa > 0) {
-      const double dy = (double)y[k] - ((double)yy + 0.5);
-      const double sq = std::sqrt(std::max(0.0, rk2a[k] - rdet[k] * dy * dy));
-      const double ia = rinv_a[k];
-      const double cx = (double)x[k] + (double)b[k] * dy * ia - 0.5;
-      const double hw = sq * ia * (1.0 + 1e-6) + kPixMargin;
-      const double lo = std::ceil(cx - hw), hi = std::floor(cx + hw) + 1.0;
-      if (lo > xa) xa = (int)std::min(lo, (double)xb);
-      if (hi < xb) xb = (int)std::max(hi, (double)xa);
-    }
+  // Column intervals of pair k's rows y0[k] .. y1[k] - 1 into xa, xb (kMaxTile + 4 entries each), relative
+  // to the tile's left column px0.
+  B3_INLINE void rows(int64_t k, int16_t* xa, int16_t* xb) const {
+    row_ranges(*q[k], x[k], y[k], b[k], px0, x0[k], x1[k], y0[k], y1[k], xa, xb);
   }
 
-  // Gathers the K Gaussians of one tile for sample s and computes their pixel bounding boxes,
-  // clipped to the tile rectangle [px0, px1) x [py0, py1).
+  // Gathers the K Gaussians of one tile for sample s, their boxes clipped to the tile rectangle
+  // [px0, px1) x [py0, py1), and their row intervals.
   void gather(const scalar_t* means, const scalar_t* conics, const scalar_t* colors,
-              const scalar_t* opac, const scalar_t* depths, const int64_t* ids, int64_t K,
-              int64_t N, int s, int px0, int px1, int py0, int py1) {
+              const scalar_t* opac, const scalar_t* depths, const GaussCull* cull, const int64_t* ids,
+              int64_t K, int64_t N, int s, int tx0, int px1, int py0, int py1) {
     resize(K);
+    px0 = tx0;
     const int64_t base = (int64_t)s * N;
     constexpr int64_t kAhead = 16;  // prefetch distance (Gaussians are accessed in random order)
     for (int64_t k = 0; k < K; ++k) {
@@ -164,52 +300,25 @@ struct TileCache {
         __builtin_prefetch(colors + 3 * gp);
         __builtin_prefetch(opac + gp);
         __builtin_prefetch(depths + gp);
+        __builtin_prefetch(cull + gp);
       }
       const int64_t g = base + ids[k];
-      const scalar_t gx = means[2 * g], gy = means[2 * g + 1];
-      const scalar_t ca = conics[3 * g], cbv = conics[3 * g + 1], cc = conics[3 * g + 2];
-      const scalar_t go = opac[g];
-      x[k] = gx;
-      y[k] = gy;
-      a[k] = ca;
-      b[k] = cbv;
-      c[k] = cc;
-      o[k] = go;
+      const GaussCull& cq = cull[g];
+      q[k] = &cq;
+      x[k] = means[2 * g];
+      y[k] = means[2 * g + 1];
+      a[k] = conics[3 * g];
+      b[k] = conics[3 * g + 1];
+      c[k] = conics[3 * g + 2];
+      o[k] = opac[g];
       cr[k] = colors[3 * g];
       cg[k] = colors[3 * g + 1];
       cb[k] = colors[3 * g + 2];
       z[k] = depths[g];
-      ra[k] = 0;
-      // alpha <= o, so o < 1/255 never contributes.
-      if (!(go >= (scalar_t)kMinAlpha)) {
-        x0[k] = x1[k] = px0;
-        y0[k] = y1[k] = py0;
-        continue;
-      }
-      x0[k] = px0;
-      x1[k] = px1;
-      y0[k] = py0;
-      y1[k] = py1;
-      // alpha >= 1/255 needs power >= L = log(1 / (255 o)) (<= 0): ellipse d^T Q d <= -2L,
-      // half extents sqrt(-2L * Sigma_ii), Sigma = Q^-1. Slightly enlarged (conservative).
-      const double L = std::log(kMinAlpha / (double)go) - 1e-3;
-      const double da = ca, db = cbv, dc = cc;
-      const double det = da * dc - db * db;
-      if (da > 0 && dc > 0 && det > 0 && std::isfinite(det)) {
-        const double k2 = std::max(-2.0 * L, 0.0);
-        const double hx = std::sqrt(k2 * dc / det) * (1.0 + 1e-6) + kPixMargin;
-        const double hy = std::sqrt(k2 * da / det) * (1.0 + 1e-6) + kPixMargin;
-        const double lx = std::ceil((double)gx - hx - 0.5), ux = std::floor((double)gx + hx - 0.5) + 1.0;
-        const double ly = std::ceil((double)gy - hy - 0.5), uy = std::floor((double)gy + hy - 0.5) + 1.0;
-        x0[k] = (int)std::max((double)px0, std::min((double)px1, lx));
-        x1[k] = (int)std::max((double)px0, std::min((double)px1, ux));
-        y0[k] = (int)std::max((double)py0, std::min((double)py1, ly));
-        y1[k] = (int)std::max((double)py0, std::min((double)py1, uy));
-        rk2a[k] = k2 * da;
-        rdet[k] = det;
-        ra[k] = da;
-        rinv_a[k] = 1.0 / da;
-      }
+      x0[k] = std::max(px0, std::min(px1, cq.x0));
+      x1[k] = std::max(px0, std::min(px1, cq.x1));
+      y0[k] = std::max(py0, std::min(py1, cq.y0));
+      y1[k] = std::max(py0, std::min(py1, cq.y1));
     }
   }
 };
@@ -251,7 +360,7 @@ B3_INLINE scalar_t lane_sum(const typename Vec<scalar_t>::V& v) {
 // ps: row stride of st (multiple of kLanes). pair_w: (K, 2) per-pair (sum w, sum w^2) or nullptr.
 // Each row [xa, xb) is processed in kLanes-aligned chunks, lanes outside it masked out; within a
 // chunk every lane follows the per-pixel rules with masks / selects instead of branches.
-template <typename scalar_t>
+template <typename scalar_t, bool kWeights>
 B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int px0, int py0, int ps,
                                  int npix, FwdState<scalar_t>& st, scalar_t* pair_w) {
   typedef typename Vec<scalar_t>::V V;
@@ -267,7 +376,7 @@ B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int p
   for (int64_t k = 0; k < K && ndone < npix; ++k) {
     const int by0 = tc.y0[k], by1 = tc.y1[k];
     if (tc.x0[k] >= tc.x1[k] || by0 >= by1) {
-      if (pair_w) pair_w[2 * k] = pair_w[2 * k + 1] = 0;
+      if (kWeights) pair_w[2 * k] = pair_w[2 * k + 1] = 0;
       continue;
     }
     const scalar_t gx = tc.x[k], gy = tc.y[k], ca = tc.a[k], cbv = tc.b[k], cc = tc.c[k];
@@ -275,9 +384,10 @@ B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int p
     const scalar_t r = tc.cr[k], g = tc.cg[k], bl = tc.cb[k], zz = tc.z[k];
     const int32_t kk = (int32_t)k;
     V wl = {}, ql = {};
+    int16_t rxa[kMaxTile + 4], rxb[kMaxTile + 4];
+    tc.rows(k, rxa, rxb);
     for (int yy = by0; yy < by1; ++yy) {
-      int xa, xb;
-      tc.row_range(k, yy, xa, xb);
+      const int xa = px0 + rxa[yy - by0], xb = px0 + rxb[yy - by0];
       if (xb <= xa) continue;
       const scalar_t dy = gy - ((scalar_t)yy + half);
       const scalar_t cdy2 = cc * dy * dy;
@@ -314,13 +424,15 @@ B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int p
         vec(st.nc + off) = vec(st.nc + off) - __builtin_convertvector(use, VI);
         vec(st.last + off) = stop_i ? kk : lv;
         ndv -= stop_i;
-        wl += w;
-        ql += w * w;
+        if (kWeights) {  // per-pair weight sums only when a block asks for them
+          wl += w;
+          ql += w * w;
+        }
       }
     }
     ndone = 0;
     for (int l = 0; l < kLanes; ++l) ndone += ndv[l];
-    if (pair_w) {
+    if (kWeights) {
       pair_w[2 * k] = lane_sum<scalar_t>(wl);
       pair_w[2 * k + 1] = lane_sum<scalar_t>(ql);
     }
@@ -347,9 +459,10 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
       const scalar_t go = tc.o[k];
       const scalar_t r = tc.cr[k], g = tc.cg[k], bl = tc.cb[k], zz = tc.z[k];
       const int32_t kk = (int32_t)k;
+      int16_t rxa[kMaxTile + 4], rxb[kMaxTile + 4];
+      tc.rows(k, rxa, rxb);
       for (int yy = by0; yy < by1; ++yy) {
-        int xa, xb;
-        tc.row_range(k, yy, xa, xb);
+        const int xa = px0 + rxa[yy - by0], xb = px0 + rxb[yy - by0];
         if (xb <= xa) continue;
         const scalar_t dy = gy - ((scalar_t)yy + half);
         const scalar_t cdy2 = cc * dy * dy, hdy2 = mhalf * dy * dy;
@@ -421,11 +534,17 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
 // Instruction-set clones (identical arithmetic: no FMA contraction, -ffp-contract=off).
 B3_CLONES void forward_tile(const TileCache<float>& tc, int64_t K, int px0, int py0, int ps, int npix,
                             FwdState<float>& st, float* pair_w) {
-  forward_tile_body<float>(tc, K, px0, py0, ps, npix, st, pair_w);
+  if (pair_w)
+    forward_tile_body<float, true>(tc, K, px0, py0, ps, npix, st, pair_w);
+  else
+    forward_tile_body<float, false>(tc, K, px0, py0, ps, npix, st, pair_w);
 }
 B3_CLONES void forward_tile(const TileCache<double>& tc, int64_t K, int px0, int py0, int ps, int npix,
                             FwdState<double>& st, double* pair_w) {
-  forward_tile_body<double>(tc, K, px0, py0, ps, npix, st, pair_w);
+  if (pair_w)
+    forward_tile_body<double, true>(tc, K, px0, py0, ps, npix, st, pair_w);
+  else
+    forward_tile_body<double, false>(tc, K, px0, py0, ps, npix, st, pair_w);
 }
 B3_CLONES void backward_tile(const TileCache<float>& tc, int64_t kmax, int px0, int py0, int ps,
                              BwdState<float>& st, float* pair_g) {
@@ -445,14 +564,23 @@ inline void tile_rect(const Geometry& G, int t, int& px0, int& px1, int& py0, in
 }
 
 template <typename scalar_t>
-void forward_impl(const Geometry& G, const scalar_t* means, const scalar_t* conics,
+bool forward_impl(const Geometry& G, const scalar_t* means, const scalar_t* conics,
                   const scalar_t* colors, const scalar_t* opac, const scalar_t* depths,
                   const int64_t* offsets, const int64_t* ids, const scalar_t* bg, scalar_t* out_rgb,
                   scalar_t* out_depth, scalar_t* out_T, int32_t* out_last, int32_t* out_nc,
                   scalar_t* pair_w,  // (S, P, 2), zero-initialised, or nullptr
-                  int nthreads) {
+                  int nthreads, int64_t* flags) {
   const int num_tiles = G.tiles_x * G.tiles_y;
   const int64_t items = (int64_t)G.S * num_tiles;
+  // input checks inside the passes (flags[0]: non-finite entries, flags[1]: Gaussian ids out of range);
+  // nothing is composited when either is non-zero (the caller raises)
+  int64_t bad_ids = 0;
+#pragma omp parallel for schedule(static) num_threads(nthreads) reduction(+ : bad_ids)
+  for (int64_t i = 0; i < G.P; ++i) bad_ids += (ids[i] < 0 || ids[i] >= G.N) ? 1 : 0;
+  std::vector<GaussCull> cull((size_t)G.S * G.N);
+  flags[0] = cull_gaussians(means, conics, colors, opac, depths, (int64_t)G.S * G.N, G.W, G.H, cull.data(), nthreads);
+  flags[1] = bad_ids;
+  if (flags[0] != 0 || flags[1] != 0) return false;
 #pragma omp parallel num_threads(nthreads)
   {
     TileCache<scalar_t> tc;
@@ -466,7 +594,7 @@ void forward_impl(const Geometry& G, const scalar_t* means, const scalar_t* coni
       tile_rect(G, t, px0, px1, py0, py1);
       const int tw = px1 - px0, th = py1 - py0, npix = tw * th, ps = padded_stride(tw);
       const int64_t start = offsets[t], K = offsets[t + 1] - offsets[t];
-      tc.gather(means, conics, colors, opac, depths, ids + start, K, G.N, s, px0, px1, py0, py1);
+      tc.gather(means, conics, colors, opac, depths, cull.data(), ids + start, K, G.N, s, px0, px1, py0, py1);
       for (int p = 0; p < th * ps; ++p) {
         st.T[p] = 1;
         st.Cr[p] = st.Cg[p] = st.Cb[p] = st.D[p] = 0;
@@ -490,6 +618,7 @@ void forward_impl(const Geometry& G, const scalar_t* means, const scalar_t* coni
       }
     }
   }
+  return true;
 }
 
 template <typename scalar_t>
@@ -502,6 +631,8 @@ void backward_impl(const Geometry& G, const scalar_t* means, const scalar_t* con
                    int nthreads) {
   const int num_tiles = G.tiles_x * G.tiles_y;
   const int64_t items = (int64_t)G.S * num_tiles;
+  std::vector<GaussCull> cull((size_t)G.S * G.N);
+  cull_gaussians(means, conics, colors, opac, depths, (int64_t)G.S * G.N, G.W, G.H, cull.data(), nthreads);
 #pragma omp parallel num_threads(nthreads)
   {
     TileCache<scalar_t> tc;
@@ -540,7 +671,7 @@ void backward_impl(const Geometry& G, const scalar_t* means, const scalar_t* con
       for (int64_t k = kmax; k < K; ++k)
         for (int j = 0; j < 10; ++j) pg_tile[10 * k + j] = 0;
       if (kmax == 0) continue;
-      tc.gather(means, conics, colors, opac, depths, ids + start, kmax, G.N, s, px0, px1, py0, py1);
+      tc.gather(means, conics, colors, opac, depths, cull.data(), ids + start, kmax, G.N, s, px0, px1, py0, py1);
       backward_tile(tc, kmax, px0, py0, ps, st, pg_tile);
     }
   }

@@ -24,6 +24,7 @@
 #include <cmath>
 #include <cstdint>
 #include <numeric>
+#include <utility>
 #include <vector>
 
 namespace b3dgs {
@@ -509,13 +510,18 @@ int64_t bin_tiles(const T* means2d, const T* radii, const T* extent, const T* de
   for (int64_t t = 0; t <= num_tiles; ++t) tile_offsets[t] = cnt[t];
   const int64_t P = cnt[num_tiles];
   ids.resize(P);
-  // depth order (stable: ties keep the index order), then a stable counting sort by tile
-  std::vector<int64_t> order(N);
-  std::iota(order.begin(), order.end(), 0);
-  std::stable_sort(order.begin(), order.end(), [&](int64_t i, int64_t j) { return key[i] < key[j]; });
+  // depth order (ties keep the index order), then a stable counting sort by tile. Only Gaussians that
+  // touch a tile are ordered: (key, index) pairs sorted lexicographically, the order of a stable sort by key.
+  std::vector<std::pair<double, int64_t>> order;
+  order.reserve(N);
+  for (int64_t n = 0; n < N; ++n) {
+    const int32_t* rc = rect.data() + 4 * n;
+    if (rc[0] < rc[1] && rc[2] < rc[3]) order.emplace_back(key[n], n);
+  }
+  std::sort(order.begin(), order.end());
   std::vector<int64_t> pos(cnt.begin(), cnt.end() - 1);
-  for (int64_t r = 0; r < N; ++r) {
-    const int64_t n = order[r];
+  for (size_t r = 0; r < order.size(); ++r) {
+    const int64_t n = order[r].second;
     const int32_t* rc = rect.data() + 4 * n;
     for (int ty = rc[2]; ty < rc[3]; ++ty)
       for (int tx = rc[0]; tx < rc[1]; ++tx) ids[pos[(int64_t)ty * tiles_x + tx]++] = n;
