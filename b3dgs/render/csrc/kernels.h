@@ -328,21 +328,35 @@ struct TileCache {
 static_assert(kMaxTile % kLanes == 0, "kMaxTile must be a multiple of kLanes");
 inline int padded_stride(int tw) { return (tw + kLanes - 1) / kLanes * kLanes; }
 
+// kStateLen: a chunk may start at any column of the last row (kLanes slack).
+constexpr int kStateLen = kMaxTile * kMaxTile + kLanes;
 template <typename scalar_t>
 struct FwdState {
-  scalar_t T[kMaxTile * kMaxTile], Cr[kMaxTile * kMaxTile], Cg[kMaxTile * kMaxTile],
-      Cb[kMaxTile * kMaxTile], D[kMaxTile * kMaxTile];
-  int32_t last[kMaxTile * kMaxTile], nc[kMaxTile * kMaxTile];
+  scalar_t T[kStateLen], Cr[kStateLen], Cg[kStateLen], Cb[kStateLen], D[kStateLen];
+  int32_t last[kStateLen], nc[kStateLen];
 };
 
 template <typename scalar_t>
 struct BwdState {
-  scalar_t T[kMaxTile * kMaxTile], Rr[kMaxTile * kMaxTile], Rg[kMaxTile * kMaxTile],
-      Rb[kMaxTile * kMaxTile], Rd[kMaxTile * kMaxTile], gr[kMaxTile * kMaxTile],
-      gg[kMaxTile * kMaxTile], gb[kMaxTile * kMaxTile], gd[kMaxTile * kMaxTile],
-      gaT[kMaxTile * kMaxTile];
-  int32_t last[kMaxTile * kMaxTile];
+  scalar_t T[kStateLen], Rr[kStateLen], Rg[kStateLen], Rb[kStateLen], Rd[kStateLen], gr[kStateLen],
+      gg[kStateLen], gb[kStateLen], gd[kStateLen], gaT[kStateLen];
+  int32_t last[kStateLen];
 };
+
+// Lane l of the result is lane (l - c) mod kLanes of v: the values of a chunk starting at column c moved
+// to the lanes of their columns mod kLanes, so that per-lane sums add each pixel in the same lane and
+// order wherever its chunk starts (results independent of the chunking).
+template <typename scalar_t>
+B3_INLINE typename Vec<scalar_t>::V to_column_lanes(const typename Vec<scalar_t>::V& v,
+                                                    const typename Vec<scalar_t>::M& idx) {
+#if defined(__GNUC__) && !defined(__clang__)
+  return __builtin_shuffle(v, idx);
+#else
+  typename Vec<scalar_t>::V r;
+  for (int l = 0; l < kLanes; ++l) r[l] = v[idx[l]];
+  return r;
+#endif
+}
 
 // Fixed-order (pairwise tree) sum of the kLanes lanes.
 // The element type comes from Vec<scalar_t>, never from decltype(v[0]): GCC 13 and clang type a
@@ -358,8 +372,9 @@ B3_INLINE scalar_t lane_sum(const typename Vec<scalar_t>::V& v) {
 
 // Composites the K Gaussians of a tile; st is initialised by the caller (T = 1, last = K, ...).
 // ps: row stride of st (multiple of kLanes). pair_w: (K, 2) per-pair (sum w, sum w^2) or nullptr.
-// Each row [xa, xb) is processed in kLanes-aligned chunks, lanes outside it masked out; within a
-// chunk every lane follows the per-pixel rules with masks / selects instead of branches.
+// Each row [xa, xb) is processed in chunks of kLanes pixels starting at xa (the state arrays have the
+// slack), lanes outside it masked out; within a chunk every lane follows the per-pixel rules with masks /
+// selects instead of branches. Per-pair sums take each pixel's value in lane (column mod kLanes).
 template <typename scalar_t, bool kWeights>
 B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int px0, int py0, int ps,
                                  int npix, FwdState<scalar_t>& st, scalar_t* pair_w) {
@@ -392,13 +407,12 @@ B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int p
       const scalar_t dy = gy - ((scalar_t)yy + half);
       const scalar_t cdy2 = cc * dy * dy;
       const int lo = xa - px0, hi = xb - px0;
-      const int c0 = lo / kLanes * kLanes, c1 = (hi + kLanes - 1) / kLanes * kLanes;
       const int row = (yy - py0) * ps;
-      for (int c = c0; c < c1; c += kLanes) {
+      for (int c = lo; c < hi; c += kLanes) {
         const int off = row + c;
         const VI col = iota + c;
         const VI lv = vec(st.last + off);
-        const VI live_i = (lv == KK) & (col >= lo) & (col < hi);
+        const VI live_i = (lv == KK) & (col < hi);
         if (!any_lane(live_i)) continue;  // all lanes terminated or outside the row range
         const M live = __builtin_convertvector(live_i, M);
         const V dx = gx - (__builtin_convertvector(col + px0, V) + half);
@@ -413,20 +427,20 @@ B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int p
         const M stop = contrib & (test_T < min_T);
         const M use = contrib & ~stop;
         const V w = use ? alpha * t0 : zero;
-        const V cr = vec(st.Cr + off), cg = vec(st.Cg + off);
-        const V cb = vec(st.Cb + off), dd = vec(st.D + off);
-        vec(st.Cr + off) = use ? cr + w * r : cr;
-        vec(st.Cg + off) = use ? cg + w * g : cg;
-        vec(st.Cb + off) = use ? cb + w * bl : cb;
-        vec(st.D + off) = use ? dd + w * zz : dd;
+        // w = +0 on unused lanes, and x + (+-0) = x for the accumulators (never -0): no selects
+        vec(st.Cr + off) += w * r;
+        vec(st.Cg + off) += w * g;
+        vec(st.Cb + off) += w * bl;
+        vec(st.D + off) += w * zz;
         vec(st.T + off) = use ? test_T : t0;
         const VI stop_i = __builtin_convertvector(stop, VI);
         vec(st.nc + off) = vec(st.nc + off) - __builtin_convertvector(use, VI);
         vec(st.last + off) = stop_i ? kk : lv;
         ndv -= stop_i;
         if (kWeights) {  // per-pair weight sums only when a block asks for them
-          wl += w;
-          ql += w * w;
+          const M lanes = __builtin_convertvector((iota - c) & (kLanes - 1), M);
+          wl += to_column_lanes<scalar_t>(w, lanes);
+          ql += to_column_lanes<scalar_t>(w * w, lanes);
         }
       }
     }
@@ -467,13 +481,12 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
         const scalar_t dy = gy - ((scalar_t)yy + half);
         const scalar_t cdy2 = cc * dy * dy, hdy2 = mhalf * dy * dy;
         const int lo = xa - px0, hi = xb - px0;
-        const int c0 = lo / kLanes * kLanes, c1 = (hi + kLanes - 1) / kLanes * kLanes;
         const int row = (yy - py0) * ps;
-        for (int c = c0; c < c1; c += kLanes) {
+        for (int c = lo; c < hi; c += kLanes) {
           const int off = row + c;
           const VI col = iota + c;
           // composited: in front of the termination point, power <= 0, alpha >= 1/255
-          const VI live_i = (kk < vec(st.last + off)) & (col >= lo) & (col < hi);
+          const VI live_i = (kk < vec(st.last + off)) & (col < hi);
           if (!any_lane(live_i)) continue;  // all lanes terminated earlier or outside the row
           const M live = __builtin_convertvector(live_i, M);
           const V dx = gx - (__builtin_convertvector(col + px0, V) + half);
@@ -501,19 +514,27 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
           vec(st.Rb + off) = use ? alpha * bl + one_m * rb : rb;
           vec(st.Rd + off) = use ? alpha * zz + one_m * rd : rd;
           vec(st.T + off) = use ? Ti : t0;
-          a6 += use ? w * gR : zero;
-          a7 += use ? w * gG : zero;
-          a8 += use ? w * gB : zero;
-          a9 += use ? w * gD : zero;
+          // Per-pair sums. Masked lanes contribute +-0 (finite factors times a zeroed weight), and adding
+          // +-0 leaves an accumulator unchanged (it starts at +0 and never becomes -0): one select per
+          // weight instead of one per sum. Values move to their column lanes before they are summed
+          // (lane-wise products commute with the move).
+          const M lanes = __builtin_convertvector((iota - c) & (kLanes - 1), M);
+          const V wu = use ? w : zero;
+          a6 += to_column_lanes<scalar_t>(wu * gR, lanes);
+          a7 += to_column_lanes<scalar_t>(wu * gG, lanes);
+          a8 += to_column_lanes<scalar_t>(wu * gB, lanes);
+          a9 += to_column_lanes<scalar_t>(wu * gD, lanes);
           // True derivative of the 0.99 clamp: zero when clamped.
           const M unc = use & (raw <= max_alpha);
-          const V dpow = alpha * dal;
-          a0 -= unc ? dpow * (ca * dx + cbv * dy) : zero;
-          a1 -= unc ? dpow * (cbv * dx + cc * dy) : zero;
-          a2 += unc ? dpow * (mhalf * dx * dx) : zero;
-          a3 -= unc ? dpow * (dx * dy) : zero;
-          a4 += unc ? dpow * hdy2 : zero;
-          a5 += unc ? G * dal : zero;
+          const V dpow = to_column_lanes<scalar_t>(unc ? alpha * dal : zero, lanes);
+          const V gdal = to_column_lanes<scalar_t>(unc ? G * dal : zero, lanes);
+          const V dxc = to_column_lanes<scalar_t>(dx, lanes);
+          a0 -= dpow * (ca * dxc + cbv * dy);
+          a1 -= dpow * (cbv * dxc + cc * dy);
+          a2 += dpow * (mhalf * dxc * dxc);
+          a3 -= dpow * (dxc * dy);
+          a4 += dpow * hdy2;
+          a5 += gdal;
         }
       }
     }
