@@ -15,6 +15,7 @@
 
 #include <omp.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <vector>
@@ -35,53 +36,68 @@ inline void ssim_window(T* w) {
   for (int k = 0; k < kSsimWin; ++k) w[k] = (T)(v[k] / s);
 }
 
-// Valid separable blur of an (H, W) plane into (H - 10, W - 10); tmp: (H, W - 10).
-template <typename T>
-inline void blur_valid(const T* __restrict__ in, int H, int W, const T* __restrict__ w, T* __restrict__ tmp,
-                       T* __restrict__ out) {
+// Valid separable blur of an (H, W) plane into (H - 10, W - 10); tmp: (H, W - 10). The plane's row y is
+// produced by row(y, buffer) (so that it can be formed on the fly from interleaved images).
+template <typename T, typename RowFn>
+inline void blur_valid(RowFn row, int H, int W, const T* __restrict__ w, T* __restrict__ rowbuf,
+                       T* __restrict__ tmp, T* __restrict__ out) {
   const int Wv = W - kSsimWin + 1, Hv = H - kSsimWin + 1;
   for (int y = 0; y < H; ++y) {
-    const T* __restrict__ r = in + (int64_t)y * W;
+    row(y, rowbuf);
+    const T* __restrict__ r = rowbuf;
     T* __restrict__ o = tmp + (int64_t)y * Wv;
-    for (int x = 0; x < Wv; ++x) o[x] = 0;
-    for (int k = 0; k < kSsimWin; ++k) {
-      const T wk = w[k];
-      for (int x = 0; x < Wv; ++x) o[x] += wk * r[x + k];
+    // each output accumulated in a register, taps in ascending order from 0 (the sum order is fixed)
+    for (int x = 0; x < Wv; ++x) {
+      T acc = 0;
+      for (int k = 0; k < kSsimWin; ++k) acc += w[k] * r[x + k];
+      o[x] = acc;
     }
   }
   for (int y = 0; y < Hv; ++y) {
     T* __restrict__ o = out + (int64_t)y * Wv;
-    for (int x = 0; x < Wv; ++x) o[x] = 0;
-    for (int k = 0; k < kSsimWin; ++k) {
-      const T wk = w[k];
-      const T* __restrict__ r = tmp + (int64_t)(y + k) * Wv;
-      for (int x = 0; x < Wv; ++x) o[x] += wk * r[x];
+    const T* __restrict__ r = tmp + (int64_t)y * Wv;
+    for (int x = 0; x < Wv; ++x) {
+      T acc = 0;
+      for (int k = 0; k < kSsimWin; ++k) acc += w[k] * r[(int64_t)k * Wv + x];
+      o[x] = acc;
     }
   }
 }
 
-// Adjoint of blur_valid: scatters an (H - 10, W - 10) plane back to (H, W); tmp: (H, W - 10).
+// Adjoint of blur_valid: scatters an (H - 10, W - 10) plane back to (H, W); tmp: (H, W - 10). Written as
+// a gather (each output accumulated in a register) that adds the terms in the order of the scatter
+// (input rows ascending, then taps ascending), so the sums are those of the plain scatter loops.
 template <typename T>
 inline void blur_valid_adjoint(const T* __restrict__ in, int H, int W, const T* __restrict__ w,
                                T* __restrict__ tmp, T* __restrict__ out) {
   const int Wv = W - kSsimWin + 1, Hv = H - kSsimWin + 1;
-  for (int64_t i = 0; i < (int64_t)H * Wv; ++i) tmp[i] = 0;
-  for (int y = 0; y < Hv; ++y) {
-    const T* __restrict__ r = in + (int64_t)y * Wv;
-    for (int k = 0; k < kSsimWin; ++k) {
-      const T wk = w[k];
-      T* __restrict__ o = tmp + (int64_t)(y + k) * Wv;
+  for (int j = 0; j < H; ++j) {  // tmp row j gets input rows y = j - k, ascending (k descending)
+    const int y0 = std::max(0, j - (kSsimWin - 1)), y1 = std::min(Hv - 1, j);
+    T* __restrict__ o = tmp + (int64_t)j * Wv;
+    for (int x = 0; x < Wv; ++x) o[x] = 0;
+    for (int y = y0; y <= y1; ++y) {
+      const T wk = w[j - y];
+      const T* __restrict__ r = in + (int64_t)y * Wv;
       for (int x = 0; x < Wv; ++x) o[x] += wk * r[x];
     }
   }
-  for (int y = 0; y < H; ++y) {
+  for (int y = 0; y < H; ++y) {  // out column X gets tmp columns X - k, k ascending
     const T* __restrict__ r = tmp + (int64_t)y * Wv;
     T* __restrict__ o = out + (int64_t)y * W;
-    for (int x = 0; x < W; ++x) o[x] = 0;
-    for (int k = 0; k < kSsimWin; ++k) {
-      const T wk = w[k];
-      for (int x = 0; x < Wv; ++x) o[x + k] += wk * r[x];
+    auto edge = [&](int X) {
+      T acc = 0;
+      for (int k = 0; k < kSsimWin; ++k)
+        if (X - k >= 0 && X - k < Wv) acc += w[k] * r[X - k];
+      o[X] = acc;
+    };
+    const int lo = std::min(kSsimWin - 1, W), hi = std::max(lo, Wv);  // interior: every tap in range
+    for (int X = 0; X < lo; ++X) edge(X);
+    for (int X = lo; X < hi; ++X) {
+      T acc = 0;
+      for (int k = 0; k < kSsimWin; ++k) acc += w[k] * r[X - k];
+      o[X] = acc;
     }
+    for (int X = hi; X < W; ++X) edge(X);
   }
 }
 
@@ -95,29 +111,31 @@ T ssim_value_grad(const T* pred, const T* gt, int H, int W, T* grad, int nthread
   // planes: for channel c, maps x, y, xx, yy, xy -> blurred m1, m2, s11, s22, s12
   // reused between calls (one image size per training run): no page faults on fresh buffers. The
   // buffers belong to the calling thread; OpenMP workers reach them through these pointers only.
-  static thread_local std::vector<T> src_buf, blur_buf, dmap_buf, back_buf;
-  src_buf.resize(15 * np);
+  static thread_local std::vector<T> blur_buf, dmap_buf, back_buf;
   blur_buf.resize(15 * nv);
   dmap_buf.resize(grad ? 9 * nv : 0);
   back_buf.resize(grad ? 9 * np : 0);
-  T *const src = src_buf.data(), *const blur = blur_buf.data();
+  T *const blur = blur_buf.data();
   T *const dmap = dmap_buf.data(), *const back = back_buf.data();
-  for (int c = 0; c < 3; ++c) {
-    T* px = src + (5 * c) * np;
-    for (int64_t i = 0; i < np; ++i) {
-      const T a = pred[3 * i + c], b = gt[3 * i + c];
-      px[i] = a;
-      px[np + i] = b;
-      px[2 * np + i] = a * a;
-      px[3 * np + i] = b * b;
-      px[4 * np + i] = a * b;
-    }
-  }
 #pragma omp parallel num_threads(nthreads)
   {
-    std::vector<T> tmp((int64_t)H * Wv);
-#pragma omp for schedule(static)
-    for (int p = 0; p < 15; ++p) blur_valid(src + p * np, H, W, w, tmp.data(), blur + p * nv);
+    std::vector<T> tmp((int64_t)H * Wv), rowbuf(W);
+    // plane p = 5 c + m: map m of channel c (x, y, x x, y y, x y), formed row by row from the images
+#pragma omp for schedule(dynamic, 1)
+    for (int p = 0; p < 15; ++p) {
+      const int c = p / 5, m = p % 5;
+      auto row = [&](int y, T* r) {
+        const T *a = pred + 3 * (int64_t)y * W + c, *b = gt + 3 * (int64_t)y * W + c;
+        switch (m) {
+          case 0: for (int x = 0; x < W; ++x) r[x] = a[3 * x]; break;
+          case 1: for (int x = 0; x < W; ++x) r[x] = b[3 * x]; break;
+          case 2: for (int x = 0; x < W; ++x) r[x] = a[3 * x] * a[3 * x]; break;
+          case 3: for (int x = 0; x < W; ++x) r[x] = b[3 * x] * b[3 * x]; break;
+          default: for (int x = 0; x < W; ++x) r[x] = a[3 * x] * b[3 * x]; break;
+        }
+      };
+      blur_valid(row, H, W, w, rowbuf.data(), tmp.data(), blur + p * nv);
+    }
   }
   const T C1 = (T)1e-4, C2 = (T)9e-4;
   // the gradient maps d m1, d s11, d s12 (scaled by 1 / count)
@@ -151,15 +169,16 @@ T ssim_value_grad(const T* pred, const T* gt, int H, int W, T* grad, int nthread
 #pragma omp parallel num_threads(nthreads)
     {
       std::vector<T> tmp((int64_t)H * Wv);
-#pragma omp for schedule(static)
+#pragma omp for schedule(dynamic, 1)
       for (int p = 0; p < 9; ++p)
         blur_valid_adjoint(dmap + p * nv, H, W, w, tmp.data(), back + p * np);
     }
-    for (int c = 0; c < 3; ++c) {
-      const T *bm = back + (3 * c) * np, *b11 = bm + np, *b12 = bm + 2 * np;
-      for (int64_t i = 0; i < np; ++i)
+#pragma omp parallel for schedule(static) num_threads(nthreads)
+    for (int64_t i = 0; i < np; ++i)
+      for (int c = 0; c < 3; ++c) {
+        const T *bm = back + (3 * c) * np, *b11 = bm + np, *b12 = bm + 2 * np;
         grad[3 * i + c] = bm[i] + 2 * pred[3 * i + c] * b11[i] + gt[3 * i + c] * b12[i];
-    }
+      }
   }
   return (T)(total / (double)(3 * nv));
 }
