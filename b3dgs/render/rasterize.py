@@ -111,7 +111,7 @@ def _bin_cpu(means2d, radii, depths, extent, width, height, tile_size, tiles_x, 
     offsets, flat_ids = load_extension().bin_tiles(
         means2d.detach().contiguous(), radii.detach().to(dtype).contiguous(),
         extent.detach().to(dtype).contiguous(), depths.detach().to(dtype).contiguous(),
-        width, height, tile_size)
+        width, height, tile_size, torch.get_num_threads())
     return TileBins(offsets, flat_ids, tiles_x, tiles_y, tile_size)
 
 

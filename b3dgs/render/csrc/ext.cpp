@@ -243,7 +243,7 @@ std::vector<torch::Tensor> preprocess_backward(
 }
 
 std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor radii, torch::Tensor extent,
-                                     torch::Tensor depths, int64_t W, int64_t H, int64_t ts) {
+                                     torch::Tensor depths, int64_t W, int64_t H, int64_t ts, int64_t nthreads) {
   for (auto& pr : {std::make_pair(&means2d, "means2d"), std::make_pair(&radii, "radii"),
                    std::make_pair(&extent, "extent"), std::make_pair(&depths, "depths")})
     check_cpu_contig(*pr.first, pr.second);
@@ -254,7 +254,7 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor radii,
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "b3dgs_bin_tiles", [&] {
     b3dgs::bin_tiles<scalar_t>(means2d.data_ptr<scalar_t>(), radii.data_ptr<scalar_t>(),
                                extent.data_ptr<scalar_t>(), depths.data_ptr<scalar_t>(), S, N,
-                               (int)W, (int)H, (int)ts, offsets.data_ptr<int64_t>(), ids);
+                               (int)W, (int)H, (int)ts, offsets.data_ptr<int64_t>(), ids, (int)nthreads);
   });
   auto flat = torch::empty({(int64_t)ids.size()}, torch::dtype(torch::kInt64));
   if (!ids.empty()) std::memcpy(flat.data_ptr<int64_t>(), ids.data(), ids.size() * sizeof(int64_t));

@@ -23,6 +23,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <numeric>
 #include <utility>
 #include <vector>
@@ -470,14 +471,47 @@ void preprocess_backward(const PreInputs<T>& in, const CameraParams<T>& cam, boo
 // overlaps the union over samples with radius > 0 of [x - ex, x + ex] x [y - ey, y + ey], sorted
 // by tile, then by mean depth over those samples, then by index. Returns P.
 // Outputs: tile_offsets (num_tiles + 1); ids is (re)sized to P.
+// Sort positions 0..M-1 by key ascending, ties in position order (a stable LSD radix sort on the keys'
+// order-preserving 64-bit images, 8 bits a pass, passes where every key has the same byte skipped):
+// the order of std::stable_sort with operator<, in O(M). Keys must not be NaN.
+inline void stable_order_by_key(const std::vector<double>& key, std::vector<int64_t>& order) {
+  const int64_t M = (int64_t)key.size();
+  std::vector<uint64_t> bits(M), bits2(M);
+  std::vector<int64_t> order2(M);
+  for (int64_t i = 0; i < M; ++i) {
+    const double k = key[i] + 0.0;  // -0 -> +0 (they compare equal)
+    uint64_t u;
+    std::memcpy(&u, &k, sizeof(u));
+    bits[i] = (u >> 63) ? ~u : (u | (1ull << 63));  // monotone map of doubles to unsigned integers
+  }
+  order.resize(M);
+  std::iota(order.begin(), order.end(), 0);
+  for (int shift = 0; shift < 64; shift += 8) {
+    int64_t cnt[257] = {0};
+    for (int64_t i = 0; i < M; ++i) cnt[((bits[i] >> shift) & 0xff) + 1]++;
+    bool trivial = false;
+    for (int b = 1; b <= 256; ++b) trivial |= cnt[b] == M;
+    if (trivial) continue;
+    for (int b = 0; b < 256; ++b) cnt[b + 1] += cnt[b];
+    for (int64_t i = 0; i < M; ++i) {
+      const int64_t dst = cnt[(bits[i] >> shift) & 0xff]++;
+      bits2[dst] = bits[i];
+      order2[dst] = order[i];
+    }
+    bits.swap(bits2);
+    order.swap(order2);
+  }
+}
+
 template <typename T>
 int64_t bin_tiles(const T* means2d, const T* radii, const T* extent, const T* depths, int64_t S,
-                  int64_t N, int W, int H, int ts, int64_t* tile_offsets, std::vector<int64_t>& ids) {
+                  int64_t N, int W, int H, int ts, int64_t* tile_offsets, std::vector<int64_t>& ids,
+                  int nthreads) {
   const int tiles_x = (W + ts - 1) / ts, tiles_y = (H + ts - 1) / ts;
   const int64_t num_tiles = (int64_t)tiles_x * tiles_y;
   std::vector<int32_t> rect(4 * N);  // tx0, tx1, ty0, ty1
   std::vector<double> key(N);
-  std::vector<int64_t> cnt(num_tiles + 1, 0);
+#pragma omp parallel for schedule(static) num_threads(nthreads)
   for (int64_t n = 0; n < N; ++n) {
     double xmin = INFINITY, xmax = -INFINITY, ymin = INFINITY, ymax = -INFINITY, dsum = 0;
     int64_t nv = 0;
@@ -503,6 +537,19 @@ int64_t bin_tiles(const T* means2d, const T* radii, const T* extent, const T* de
     rc[1] = (int32_t)std::min(std::max(std::ceil(xmax / ts), 0.0), (double)tiles_x);
     rc[2] = (int32_t)std::min(std::max(std::floor(ymin / ts), 0.0), (double)tiles_y);
     rc[3] = (int32_t)std::min(std::max(std::ceil(ymax / ts), 0.0), (double)tiles_y);
+  }
+  // depth order of the Gaussians that touch a tile (ties keep the index order), then a stable counting
+  // sort by tile
+  std::vector<int64_t> touch;
+  std::vector<double> tkey;
+  touch.reserve(N);
+  tkey.reserve(N);
+  std::vector<int64_t> cnt(num_tiles + 1, 0);
+  for (int64_t n = 0; n < N; ++n) {
+    const int32_t* rc = rect.data() + 4 * n;
+    if (!(rc[0] < rc[1] && rc[2] < rc[3])) continue;
+    touch.push_back(n);
+    tkey.push_back(key[n]);
     for (int ty = rc[2]; ty < rc[3]; ++ty)
       for (int tx = rc[0]; tx < rc[1]; ++tx) cnt[(int64_t)ty * tiles_x + tx + 1]++;
   }
@@ -510,18 +557,11 @@ int64_t bin_tiles(const T* means2d, const T* radii, const T* extent, const T* de
   for (int64_t t = 0; t <= num_tiles; ++t) tile_offsets[t] = cnt[t];
   const int64_t P = cnt[num_tiles];
   ids.resize(P);
-  // depth order (ties keep the index order), then a stable counting sort by tile. Only Gaussians that
-  // touch a tile are ordered: (key, index) pairs sorted lexicographically, the order of a stable sort by key.
-  std::vector<std::pair<double, int64_t>> order;
-  order.reserve(N);
-  for (int64_t n = 0; n < N; ++n) {
-    const int32_t* rc = rect.data() + 4 * n;
-    if (rc[0] < rc[1] && rc[2] < rc[3]) order.emplace_back(key[n], n);
-  }
-  std::sort(order.begin(), order.end());
+  std::vector<int64_t> order;
+  stable_order_by_key(tkey, order);
   std::vector<int64_t> pos(cnt.begin(), cnt.end() - 1);
   for (size_t r = 0; r < order.size(); ++r) {
-    const int64_t n = order[r].second;
+    const int64_t n = touch[order[r]];
     const int32_t* rc = rect.data() + 4 * n;
     for (int ty = rc[2]; ty < rc[3]; ++ty)
       for (int tx = rc[0]; tx < rc[1]; ++tx) ids[pos[(int64_t)ty * tiles_x + tx]++] = n;
