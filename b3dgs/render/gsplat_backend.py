@@ -16,7 +16,7 @@ from typing import Mapping, Optional
 import torch
 from torch import Tensor
 
-from b3dgs.render.preprocess import effective_sh_degree, expand_samples, guarded_params
+from b3dgs.render.preprocess import _COV6_COLS, _COV6_ROWS, effective_sh_degree, expand_samples, guarded_params
 from b3dgs.render.render import RenderOutput, check_render_params
 from b3dgs.types import Camera
 
@@ -68,11 +68,34 @@ def weight_sums(gauss_ids: Tensor, pixel_ids: Tensor, image_ids: Tensor, means2d
     return wsum.view(I, N), wsq.view(I, N)
 
 
+def _near_plane(near: float) -> float:
+    """gsplat culls ``z < near_plane``, our backends ``z <= near`` (in float32): the next float32 above ``near``
+    makes gsplat cull exactly what ours cull."""
+    n32 = torch.tensor(near, dtype=torch.float32)
+    return float(torch.nextafter(n32, torch.tensor(float("inf"))))
+
+
+def _identity_for_zero(quats: Tensor) -> Tensor:
+    """Zero quaternions -> (1, 0, 0, 0): our contract renders them with the identity rotation (gsplat's
+    unfloored rsqrt would make them NaN and cull them). Their quaternion gradient is zero here."""
+    zero = (quats == 0).all(-1, keepdim=True)
+    ident = torch.zeros_like(quats)
+    ident[..., 0] = 1
+    return torch.where(zero, ident, quats)
+
+
+def _emulated(dev: torch.device) -> bool:
+    from b3dgs.render.renderers import gsplat_emulated
+
+    return dev.type == "cpu" and gsplat_emulated()
+
+
 def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: int = 3,
                   background: Optional[Tensor] = None, return_weights: bool = False,
                   retain_means2d_grad: bool = False, near: float = 0.01, tile_size: int = 16,
                   eps2d: float = 0.3) -> RenderOutput:
-    """Render with ``gsplat.rasterization`` (CUDA, float32); see the module docstring."""
+    """Render with ``gsplat.rasterization`` (CUDA, float32; or the test suite's CPU emulation); see the module
+    docstring."""
     from gsplat import rasterization
     from gsplat.cuda._wrapper import rasterize_to_indices_in_range
 
@@ -80,7 +103,7 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
     params = guarded_params(params, camera, near)  # the same counted quaternion / scale guards as our backends
     means = expand_samples(params["means"], S, 1)
     dev, dtype = means.device, means.dtype
-    if dev.type != "cuda" or dtype != torch.float32:
+    if (dev.type != "cuda" and not _emulated(dev)) or dtype != torch.float32:
         raise ValueError(f"renderer=gsplat needs float32 CUDA tensors, got {dtype} on {dev} "
                          "(fix: let the trainer move the model, or use renderer=torch on this device)")
     deg = effective_sh_degree(sh_degree, params.get("shN"))
@@ -89,9 +112,10 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
         sh = torch.cat([sh, expand_samples(params["shN"], S, 2)[..., : (deg + 1) ** 2 - 1, :]], dim=-2)
     if "covars" in params:
         quats = scales = None
-        covars = expand_samples(params["covars"], S, 2)
+        # gsplat reads the upper triangle (xx, xy, xz, yy, yz, zz), like our C++ backend
+        covars = expand_samples(params["covars"], S, 2)[..., list(_COV6_ROWS), list(_COV6_COLS)]
     else:
-        quats, covars = expand_samples(params["quats"], S, 1), None
+        quats, covars = _identity_for_zero(expand_samples(params["quats"], S, 1)), None
         scales = torch.exp(expand_samples(params["scales"], S, 1))
     opac = torch.sigmoid(expand_samples(params["opacities"], S, 0))
     viewmats = camera.viewmat.to(dev, dtype).expand(S, 1, 4, 4)
@@ -99,7 +123,7 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
     bg = torch.zeros(3, device=dev, dtype=dtype) if background is None else background.to(dev, dtype)
     W, H = int(camera.width), int(camera.height)
     img, alphas, meta = rasterization(
-        means, quats, scales, opac, sh, viewmats, Ks, W, H, near_plane=near, eps2d=eps2d, sh_degree=deg,
+        means, quats, scales, opac, sh, viewmats, Ks, W, H, near_plane=_near_plane(near), eps2d=eps2d, sh_degree=deg,
         packed=False, tile_size=tile_size, backgrounds=bg.expand(S, 1, 3), render_mode="RGB+ED",
         covars=covars, rasterize_mode="classic")
     m2d = meta["means2d"]  # (S, 1, N, 2); its .grad is the densification statistic
@@ -107,6 +131,11 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
         m2d.retain_grad()
     radii = meta["radii"]
     radii = (radii.amax(-1) if radii.dim() == 4 else radii)[:, 0].to(dtype)  # (S, N) larger screen radius
+    # gsplat leaves means2d / depths of culled Gaussians unwritten (at::empty): never return them
+    vis = (meta["radii"] > 0).all(-1)[:, 0] if meta["radii"].dim() == 4 else (meta["radii"] > 0)[:, 0]
+    radii = torch.where(vis, radii, torch.zeros_like(radii))
+    means2d = torch.where(vis[..., None], m2d[:, 0], torch.zeros((), device=dev, dtype=dtype))
+    depths = torch.where(vis, meta["depths"][:, 0], torch.zeros((), device=dev, dtype=dtype))
     wsum = wsq = None
     if return_weights:
         with torch.no_grad():
@@ -119,5 +148,5 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
     rgb, depth, alpha = img[:, 0, ..., :3], img[:, 0, ..., 3], alphas[:, 0, ..., 0]
     if not batched:
         rgb, alpha, depth = rgb[0], alpha[0], depth[0]
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, means2d=m2d[:, 0], radii=radii, depths=meta["depths"][:, 0],
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=radii, depths=depths,
                         bins=None, weight_sum=wsum, weight_sq_sum=wsq, means2d_source=m2d)
