@@ -16,7 +16,7 @@ from typing import Mapping, Optional
 import torch
 from torch import Tensor
 
-from b3dgs.render.preprocess import _COV6_COLS, _COV6_ROWS, effective_sh_degree, expand_samples, guarded_params
+from b3dgs.render.preprocess import effective_sh_degree, expand_samples, guarded_params
 from b3dgs.render.render import RenderOutput, check_render_params
 from b3dgs.types import Camera
 
@@ -112,8 +112,7 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
         sh = torch.cat([sh, expand_samples(params["shN"], S, 2)[..., : (deg + 1) ** 2 - 1, :]], dim=-2)
     if "covars" in params:
         quats = scales = None
-        # gsplat reads the upper triangle (xx, xy, xz, yy, yz, zz), like our C++ backend
-        covars = expand_samples(params["covars"], S, 2)[..., list(_COV6_ROWS), list(_COV6_COLS)]
+        covars = expand_samples(params["covars"], S, 2)  # gsplat reads its upper triangle, like our C++ backend
     else:
         quats, covars = _identity_for_zero(expand_samples(params["quats"], S, 1)), None
         scales = torch.exp(expand_samples(params["scales"], S, 1))
