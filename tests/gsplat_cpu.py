@@ -252,18 +252,22 @@ class _Tiles:
                    + torch.div(j, tile_size, rounding_mode="floor")).double() + 0.5
 
     def chunks(self, first: int = 0, last: Optional[int] = None):
-        """(tile index range, (tiles, L) intersection positions, (tiles, L) validity) per chunk."""
-        n = self.start.numel()
+        """(tile indices, (tiles, L) intersection positions, (tiles, L) validity) per chunk; tiles go in
+        order of their list length, so a chunk pads only to its own longest list."""
         lo = self.start + first
         cnt = (self.count - first).clamp_min(0)
         if last is not None:
             cnt = torch.minimum(cnt, torch.full_like(cnt, last - first))
-        L = max(int(cnt.max()) if n else 0, 1)
-        step = max(1, _PAIRS_PER_CHUNK // (L * self.ts * self.ts))
-        for a in range(0, n, step):
-            b = min(n, a + step)
+        order = torch.argsort(cnt, descending=True, stable=True)
+        counts = cnt[order].tolist()
+        P, a, n = self.ts * self.ts, 0, len(counts)
+        while a < n:
+            L = max(counts[a], 1)
+            b = min(n, a + max(1, _PAIRS_PER_CHUNK // (L * P)))
+            idx = order[a:b]
             ar = torch.arange(L, device=lo.device)
-            yield slice(a, b), lo[a:b, None] + ar, ar < cnt[a:b, None]
+            yield idx, lo[idx, None] + ar, ar < cnt[idx, None]
+            a = b
 
     def to_image(self, per_pixel: Tensor, H: int, W: int) -> Tensor:
         """(I·tiles, P, ...) -> (I, H, W, ...)."""
@@ -346,8 +350,7 @@ def _raster(means2d, conics, colors, opacities, backgrounds, masks, W, H, tile_s
                torch.zeros_like(means2d).reshape(-1, 2)]
     for sl, pos, valid in tiles.chunks():
         g, xy, con, op, col = _gather(flatten_ids, pos, valid, means2d, conics, colors, opacities)
-        tb = None if bg is None else bg[torch.div(torch.arange(sl.start, sl.stop, device=pos.device), T_per_img,
-                                                  rounding_mode="floor")]
+        tb = None if bg is None else bg[torch.div(sl, T_per_img, rounding_mode="floor")]
         if grads is None:
             rgb, alpha, keep, _ = _composite(xy, con, op, col, tb, tiles.px[sl], tiles.py[sl], valid)
             out_c[sl], out_a[sl] = rgb, alpha
@@ -428,7 +431,7 @@ def rasterize_to_indices_3dgs(range_start, range_end, transmittances, means2d, c
         _, _, sigma, alpha = _alphas(xy, con, op, tiles.px[sl], tiles.py[sl])
         keep = _kept(sigma, alpha, valid, T0[sl])
         t_i, p_i, l_i = torch.nonzero(keep, as_tuple=True)
-        tile = t_i + sl.start
+        tile = sl[t_i]
         img = torch.div(tile, tiles.th * tiles.tw, rounding_mode="floor")
         x = (tiles.px[sl][t_i, p_i] - 0.5).long()
         y = (tiles.py[sl][t_i, p_i] - 0.5).long()

@@ -136,3 +136,16 @@ def test_gsplat_covariance_samples_match_torch():
     triu = torch.triu(torch.ones(3, 3, dtype=torch.bool))
     assert bool((grads[0][..., ~triu] == 0).all())
     torch.testing.assert_close(grads[0][..., triu], folded[..., triu], rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("model", ["niw", "dpmm", "mcmc"])
+def test_short_training_with_gsplat_on_the_cpu(tmp_path, model):
+    """``renderer=gsplat renderer.device_name=cpu`` trains every model kind end to end (densification reads
+    gsplat's radii and 2-D mean gradients; NIW and DPMM its weight sums; MCMC its relocation inputs)."""
+    from tests.test_stiff import TINY, _check_run
+    from tests.test_train import run_train
+
+    m = run_train(tmp_path, TINY + [f"model={model}", "renderer=gsplat", "renderer.device_name=cpu"])
+    _check_run(tmp_path)
+    assert m["renderer"]["name"] == "gsplat" and m["renderer"]["device"] == "cpu"
+    assert m["steps"] == 30 and m["psnr"] > 10.0, m["psnr"]

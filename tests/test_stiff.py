@@ -310,11 +310,14 @@ def run_train():
     return run_train
 
 
-@pytest.mark.parametrize("renderer", ["cpu", "torch"])
+@pytest.mark.parametrize("renderer", ["cpu", "torch", "gsplat-cpu"])
 @pytest.mark.parametrize("value", [0.0, 1.0], ids=["all_black_view", "all_white_view"])
-def test_trainer_constant_training_view(tmp_path, monkeypatch, run_train, value, renderer):
+def test_trainer_constant_training_view(tmp_path, monkeypatch, request, run_train, value, renderer):
     _patch_synthetic(monkeypatch, view_image=value)
-    run_train(tmp_path, TINY + [f"renderer={renderer}"])
+    if renderer == "gsplat-cpu":
+        request.getfixturevalue("gsplat_cpu")
+    run_train(tmp_path, TINY + (["renderer=gsplat", "renderer.device_name=cpu"] if renderer == "gsplat-cpu"
+                                else [f"renderer={renderer}"]))
     _check_run(tmp_path)
 
 

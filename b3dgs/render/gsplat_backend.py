@@ -6,8 +6,31 @@ render (posterior draws, jitter) are one call with batch shape (S,) and one came
 
 gsplat does not return Σ_p w_kp and Σ_p w_kp²; :func:`weight_sums` computes them from the
 (Gaussian, pixel) pairs that ``rasterize_to_indices_in_range`` lists front to back, with the same
-α rule as gsplat's compositing. It is plain PyTorch (so it is tested on the CPU against our own
-rasterizer) and runs only when a block asks for weights.
+α rule as gsplat's compositing. It is plain PyTorch and runs only when a block asks for weights.
+
+Adapted here to our contract (each fix is tested on the CPU emulation of gsplat's kernels,
+``tests/gsplat_cpu.py``, used with ``renderer=gsplat renderer.device_name=cpu``):
+
+- near plane: gsplat culls z < near, ours z <= near; we pass the next float32 above ``near``;
+- zero quaternions: gsplat's unfloored rsqrt makes them NaN (culled); ours render the identity
+  rotation, so they are replaced by (1, 0, 0, 0) here (their quaternion gradient is then 0);
+- culled Gaussians: gsplat leaves their ``means2d``/``depths`` unwritten (``at::empty``); they are
+  returned as 0, and their radius as 0.
+
+Left as gsplat has them (documented in README, "Renderers"; sizes measured on the CPU emulation):
+
+- Jacobian clamp margin: gsplat 0.3·tan(fov/2) = 0.15·W/fx beyond the image edge (as 3DGS), ours
+  0.3·W/fx; only Gaussians whose centre lies beyond 1.15 half-widths of the view change: up to
+  0.02 per pixel in a sweep of large near off-screen Gaussians (0.036 reported in issue 18);
+- radii: gsplat ceil(min(3.33, √(2 ln(255 o)))·σ) per axis (culling o < 1/255), ours ceil(3·√λmax);
+  on the 60-Gaussian contract scene 41 of 60 radii are equal, the others within ×0.75–×1.25, and
+  the same Gaussians are visible. Densification reads radii, so Gaussian counts can drift;
+- α cap: gsplat 0.999 (not exposed by its API), ours 0.99 like 3DGS; only pixels where o·G > 0.99
+  differ (0 below opacity 0.99; max 0.0031 per pixel at o = 0.9997);
+- termination: gsplat stops at T <= 1e-4, ours T < 1e-4 (never observed to differ); gsplat also culls
+  z > 1e10 (far plane);
+- ``covars=``: gsplat reads the upper triangle of Σ, so its gradient is the symmetric gradient folded
+  onto that triangle (as our C++ backend; ``renderer=torch`` returns the full symmetric gradient).
 """
 from __future__ import annotations
 
