@@ -310,7 +310,7 @@ def run_train():
     return run_train
 
 
-@pytest.mark.parametrize("renderer", ["cpu", "torch", "gsplat-cpu"])
+@pytest.mark.parametrize("renderer", ["cpu", "torch", pytest.param("gsplat-cpu", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("value", [0.0, 1.0], ids=["all_black_view", "all_white_view"])
 def test_trainer_constant_training_view(tmp_path, monkeypatch, request, run_train, value, renderer):
     _patch_synthetic(monkeypatch, view_image=value)
