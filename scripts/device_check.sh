@@ -12,6 +12,9 @@ pip install -q --no-deps -e . >/dev/null 2>&1
 what=${1:-all}
 if [[ $what == tests || $what == all ]]; then
   python -m pytest -q -rs -m cuda 2>&1 | tee "$OUT/pytest_cuda.txt"
+  # gsplat on the GPU against the same tests on its CPU emulation (tests/gsplat_cpu.py); the real kernels
+  # use fast math, so test_gsplat_matches_torch[cuda] allows 1e-4 where the emulation holds 1e-5
+  python -m pytest -q -rs -k gsplat 2>&1 | tee "$OUT/pytest_gsplat.txt"
 fi
 if [[ $what == render || $what == all ]]; then
   python bench/render.py --renderers cpu gsplat torch --sizes 10000 100000 2>&1 | tee "$OUT/render.txt"

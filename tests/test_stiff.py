@@ -5,7 +5,8 @@ gradient; for trainer cases also the final parameters and metrics.json), and tha
 must fire are counted: ``b3dgs.posterior.guards.guard_counts()`` for renderer cases (exactly the
 expected ``render.*`` guards, so a new silent clamp or a spurious one both fail), and metrics.json's
 ``numerical_guards`` for trainer cases. Renderer cases run on both CPU backends (C++ and pure torch)
-and, where CUDA and gsplat exist, on gsplat (finiteness only: gsplat applies its own guards).
+and on gsplat: on the CPU through the emulation of its kernels (``tests/gsplat_cpu.py``), and on a GPU
+where CUDA and gsplat exist. gsplat runs behind the same counted guards, so the same guards must fire.
 """
 from __future__ import annotations
 
@@ -167,13 +168,23 @@ RENDER_CASES = [
 BACKENDS = [
     pytest.param("cpu", id="cpu"),
     pytest.param("torch", id="torch"),
+    pytest.param("gsplat-cpu", id="gsplat-cpu"),
     pytest.param("gsplat", id="gsplat", marks=[pytest.mark.cuda, pytest.mark.skipif(
         not gsplat_available(), reason="gsplat needs CUDA and pip install -e '.[cuda]'")]),
 ]
 
 
+@pytest.fixture
+def backend(request):
+    """The parametrized backend name; ``gsplat-cpu`` runs under the emulation of gsplat's kernels."""
+    if request.param == "gsplat-cpu":
+        request.getfixturevalue("gsplat_cpu")
+    return request.param
+
+
 def _renderer(backend: str) -> Renderer:
     return {"cpu": lambda: CPURenderer(near=NEAR), "torch": lambda: TorchRenderer(near=NEAR, device_name="cpu"),
+            "gsplat-cpu": lambda: GsplatRenderer(near=NEAR, device_name="cpu"),
             "gsplat": lambda: GsplatRenderer(near=NEAR)}[backend]()
 
 
@@ -207,13 +218,13 @@ def _render_case(backend: str, case: Case, sh_degree: int = 3):
     return r, out, p, fired
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", BACKENDS, indirect=True)
 @pytest.mark.parametrize("name", RENDER_CASES)
 def test_renderer_extreme_input(name, backend):
     case = _case(name)
     r, out, p, fired = _render_case(backend, case)
-    if backend != "gsplat":  # our guards: exactly the expected ones fire, each counted
-        assert {k: v for k, v in fired.items() if k.startswith("render.")} == case.guards
+    # our guards (gsplat renders behind the same ones): exactly the expected ones fire, each counted
+    assert {k: v for k, v in fired.items() if k.startswith("render.")} == case.guards
     if case.check is not None:
         case.check(out, p, r)
     if case.reference is not None:
@@ -221,12 +232,12 @@ def test_renderer_extreme_input(name, backend):
         torch.testing.assert_close(out.rgb.detach(), ref.rgb, rtol=1e-4, atol=1e-5)
 
 
-@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("backend", BACKENDS, indirect=True)
 def test_renderer_very_many_gaussians_on_one_tile(backend):
     """1e6 Gaussians on one 16x16 tile: about 3 s forward + backward on the C++ backend (2 shared cores).
-    The pure-torch rasterizer materialises (Gaussians x 256 pixels) tensors per tile, so 1e6 would need
-    about 20 GB there; it runs 1e4 (about 3 s), the largest that stays within a few seconds."""
-    n = 10_000 if backend == "torch" else 1_000_000
+    The pure-torch rasterizer (and the CPU emulation of gsplat's) materialises (Gaussians x 256 pixels)
+    tensors per tile, so 1e6 would need about 20 GB there; they run 1e4, within a few seconds."""
+    n = 10_000 if backend in ("torch", "gsplat-cpu") else 1_000_000
     _render_case(backend, _many_on_one_tile(n), sh_degree=0)
 
 
@@ -299,11 +310,14 @@ def run_train():
     return run_train
 
 
-@pytest.mark.parametrize("renderer", ["cpu", "torch"])
+@pytest.mark.parametrize("renderer", ["cpu", "torch", pytest.param("gsplat-cpu", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("value", [0.0, 1.0], ids=["all_black_view", "all_white_view"])
-def test_trainer_constant_training_view(tmp_path, monkeypatch, run_train, value, renderer):
+def test_trainer_constant_training_view(tmp_path, monkeypatch, request, run_train, value, renderer):
     _patch_synthetic(monkeypatch, view_image=value)
-    run_train(tmp_path, TINY + [f"renderer={renderer}"])
+    if renderer == "gsplat-cpu":
+        request.getfixturevalue("gsplat_cpu")
+    run_train(tmp_path, TINY + (["renderer=gsplat", "renderer.device_name=cpu"] if renderer == "gsplat-cpu"
+                                else [f"renderer={renderer}"]))
     _check_run(tmp_path)
 
 

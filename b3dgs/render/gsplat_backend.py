@@ -6,8 +6,31 @@ render (posterior draws, jitter) are one call with batch shape (S,) and one came
 
 gsplat does not return Σ_p w_kp and Σ_p w_kp²; :func:`weight_sums` computes them from the
 (Gaussian, pixel) pairs that ``rasterize_to_indices_in_range`` lists front to back, with the same
-α rule as gsplat's compositing. It is plain PyTorch (so it is tested on the CPU against our own
-rasterizer) and runs only when a block asks for weights.
+α rule as gsplat's compositing. It is plain PyTorch and runs only when a block asks for weights.
+
+Adapted here to our contract (each fix is tested on the CPU emulation of gsplat's kernels,
+``tests/gsplat_cpu.py``, used with ``renderer=gsplat renderer.device_name=cpu``):
+
+- near plane: gsplat culls z < near, ours z <= near; we pass the next float32 above ``near``;
+- zero quaternions: gsplat's unfloored rsqrt makes them NaN (culled); ours render the identity
+  rotation, so they are replaced by (1, 0, 0, 0) here (their quaternion gradient is then 0);
+- culled Gaussians: gsplat leaves their ``means2d``/``depths`` unwritten (``at::empty``); they are
+  returned as 0, and their radius as 0.
+
+Left as gsplat has them (documented in README, "Renderers"; sizes measured on the CPU emulation):
+
+- Jacobian clamp margin: gsplat 0.3·tan(fov/2) = 0.15·W/fx beyond the image edge (as 3DGS), ours
+  0.3·W/fx; only Gaussians whose centre lies beyond 1.15 half-widths of the view change: up to
+  0.02 per pixel in a sweep of large near off-screen Gaussians (0.036 reported in issue 18);
+- radii: gsplat ceil(min(3.33, √(2 ln(255 o)))·σ) per axis (culling o < 1/255), ours ceil(3·√λmax);
+  on the 60-Gaussian contract scene 41 of 60 radii are equal, the others within ×0.75–×1.25, and
+  the same Gaussians are visible. Densification reads radii, so Gaussian counts can drift;
+- α cap: gsplat 0.999 (not exposed by its API), ours 0.99 like 3DGS; only pixels where o·G > 0.99
+  differ (0 below opacity 0.99; max 0.0031 per pixel at o = 0.9997);
+- termination: gsplat stops at T <= 1e-4, ours T < 1e-4 (never observed to differ); gsplat also culls
+  z > 1e10 (far plane);
+- ``covars=``: gsplat reads the upper triangle of Σ, so its gradient is the symmetric gradient folded
+  onto that triangle (as our C++ backend; ``renderer=torch`` returns the full symmetric gradient).
 """
 from __future__ import annotations
 
@@ -68,11 +91,34 @@ def weight_sums(gauss_ids: Tensor, pixel_ids: Tensor, image_ids: Tensor, means2d
     return wsum.view(I, N), wsq.view(I, N)
 
 
+def _near_plane(near: float) -> float:
+    """gsplat culls ``z < near_plane``, our backends ``z <= near`` (in float32): the next float32 above ``near``
+    makes gsplat cull exactly what ours cull."""
+    n32 = torch.tensor(near, dtype=torch.float32)
+    return float(torch.nextafter(n32, torch.tensor(float("inf"))))
+
+
+def _identity_for_zero(quats: Tensor) -> Tensor:
+    """Zero quaternions -> (1, 0, 0, 0): our contract renders them with the identity rotation (gsplat's
+    unfloored rsqrt would make them NaN and cull them). Their quaternion gradient is zero here."""
+    zero = (quats == 0).all(-1, keepdim=True)
+    ident = torch.zeros_like(quats)
+    ident[..., 0] = 1
+    return torch.where(zero, ident, quats)
+
+
+def _emulated(dev: torch.device) -> bool:
+    from b3dgs.render.renderers import gsplat_emulated
+
+    return dev.type == "cpu" and gsplat_emulated()
+
+
 def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: int = 3,
                   background: Optional[Tensor] = None, return_weights: bool = False,
                   retain_means2d_grad: bool = False, near: float = 0.01, tile_size: int = 16,
                   eps2d: float = 0.3) -> RenderOutput:
-    """Render with ``gsplat.rasterization`` (CUDA, float32); see the module docstring."""
+    """Render with ``gsplat.rasterization`` (CUDA, float32; or the test suite's CPU emulation); see the module
+    docstring."""
     from gsplat import rasterization
     from gsplat.cuda._wrapper import rasterize_to_indices_in_range
 
@@ -80,7 +126,7 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
     params = guarded_params(params, camera, near)  # the same counted quaternion / scale guards as our backends
     means = expand_samples(params["means"], S, 1)
     dev, dtype = means.device, means.dtype
-    if dev.type != "cuda" or dtype != torch.float32:
+    if (dev.type != "cuda" and not _emulated(dev)) or dtype != torch.float32:
         raise ValueError(f"renderer=gsplat needs float32 CUDA tensors, got {dtype} on {dev} "
                          "(fix: let the trainer move the model, or use renderer=torch on this device)")
     deg = effective_sh_degree(sh_degree, params.get("shN"))
@@ -89,9 +135,9 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
         sh = torch.cat([sh, expand_samples(params["shN"], S, 2)[..., : (deg + 1) ** 2 - 1, :]], dim=-2)
     if "covars" in params:
         quats = scales = None
-        covars = expand_samples(params["covars"], S, 2)
+        covars = expand_samples(params["covars"], S, 2)  # gsplat reads its upper triangle, like our C++ backend
     else:
-        quats, covars = expand_samples(params["quats"], S, 1), None
+        quats, covars = _identity_for_zero(expand_samples(params["quats"], S, 1)), None
         scales = torch.exp(expand_samples(params["scales"], S, 1))
     opac = torch.sigmoid(expand_samples(params["opacities"], S, 0))
     viewmats = camera.viewmat.to(dev, dtype).expand(S, 1, 4, 4)
@@ -99,7 +145,7 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
     bg = torch.zeros(3, device=dev, dtype=dtype) if background is None else background.to(dev, dtype)
     W, H = int(camera.width), int(camera.height)
     img, alphas, meta = rasterization(
-        means, quats, scales, opac, sh, viewmats, Ks, W, H, near_plane=near, eps2d=eps2d, sh_degree=deg,
+        means, quats, scales, opac, sh, viewmats, Ks, W, H, near_plane=_near_plane(near), eps2d=eps2d, sh_degree=deg,
         packed=False, tile_size=tile_size, backgrounds=bg.expand(S, 1, 3), render_mode="RGB+ED",
         covars=covars, rasterize_mode="classic")
     m2d = meta["means2d"]  # (S, 1, N, 2); its .grad is the densification statistic
@@ -107,6 +153,11 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
         m2d.retain_grad()
     radii = meta["radii"]
     radii = (radii.amax(-1) if radii.dim() == 4 else radii)[:, 0].to(dtype)  # (S, N) larger screen radius
+    # gsplat leaves means2d / depths of culled Gaussians unwritten (at::empty): never return them
+    vis = (meta["radii"] > 0).all(-1)[:, 0] if meta["radii"].dim() == 4 else (meta["radii"] > 0)[:, 0]
+    radii = torch.where(vis, radii, torch.zeros_like(radii))
+    means2d = torch.where(vis[..., None], m2d[:, 0], torch.zeros((), device=dev, dtype=dtype))
+    depths = torch.where(vis, meta["depths"][:, 0], torch.zeros((), device=dev, dtype=dtype))
     wsum = wsq = None
     if return_weights:
         with torch.no_grad():
@@ -119,5 +170,5 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
     rgb, depth, alpha = img[:, 0, ..., :3], img[:, 0, ..., 3], alphas[:, 0, ..., 0]
     if not batched:
         rgb, alpha, depth = rgb[0], alpha[0], depth[0]
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, means2d=m2d[:, 0], radii=radii, depths=meta["depths"][:, 0],
+    return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, means2d=means2d, radii=radii, depths=depths,
                         bins=None, weight_sum=wsum, weight_sq_sum=wsq, means2d_source=m2d)
