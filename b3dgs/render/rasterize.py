@@ -408,6 +408,7 @@ class _RasterizeCPU(torch.autograd.Function):
         ctx.geom = geom
         ctx.save_for_backward(means2d, conics, colors, opacities, depths, background, tile_offsets,
                               flat_ids, T, last)
+        ctx.set_materialize_grads(False)  # unused outputs (depth, alpha in the training loss) come as None
         alpha = 1.0 - T
         ctx.mark_non_differentiable(nc, wsum, wsq)
         return rgb, alpha, depth, nc, wsum, wsq
@@ -419,11 +420,12 @@ class _RasterizeCPU(torch.autograd.Function):
         ext = load_extension()
         means2d, conics, colors, opacities, depths, background, tile_offsets, flat_ids, T, last = ctx.saved_tensors
         width, height, ts, tiles_x, tiles_y = ctx.geom
-        g_rgb = g_rgb.contiguous()
+        g_rgb = torch.zeros(T.shape + (3,), dtype=T.dtype) if g_rgb is None else g_rgb.contiguous()
+        none = torch.zeros(0, dtype=T.dtype)  # no gradient: the kernel skips that output's terms
         gm, gc, gcol, go, gz = ext.backward(
             means2d, conics, colors, opacities, depths, tile_offsets, flat_ids, background, T, last,
-            g_rgb, g_depth.contiguous(), g_alpha.contiguous(), width, height, ts, tiles_x, tiles_y,
-            torch.get_num_threads())
+            g_rgb, none if g_depth is None else g_depth.contiguous(), none if g_alpha is None else g_alpha.contiguous(),
+            width, height, ts, tiles_x, tiles_y, torch.get_num_threads())
         g_bg = None
         if ctx.needs_input_grad[5]:
             g_bg = (g_rgb * T[..., None]).sum(dim=(0, 1, 2))

@@ -92,6 +92,7 @@ std::vector<torch::Tensor> rasterize_backward(
                    std::make_pair(&g_rgb, "grad_rgb"), std::make_pair(&g_depth, "grad_depth"),
                    std::make_pair(&g_alpha, "grad_alpha")})
     check_cpu_contig(*pr.first, pr.second);
+  // an empty grad_depth / grad_alpha: that output has no gradient
   TORCH_CHECK(ts >= 1 && ts <= b3dgs::kMaxTile, "tile_size must be in [1, ", b3dgs::kMaxTile, "]");
   const Geometry G = make_geometry(means2d, ids, W, H, ts, tiles_x, tiles_y);
   auto opts = means2d.options();
@@ -103,8 +104,9 @@ std::vector<torch::Tensor> rasterize_backward(
                             depths.data_ptr<scalar_t>(), offsets.data_ptr<int64_t>(),
                             ids.data_ptr<int64_t>(), bg.data_ptr<scalar_t>(),
                             Tfin.data_ptr<scalar_t>(), last.data_ptr<int32_t>(),
-                            g_rgb.data_ptr<scalar_t>(), g_depth.data_ptr<scalar_t>(),
-                            g_alpha.data_ptr<scalar_t>(), pair_g.data_ptr<scalar_t>(),
+                            g_rgb.data_ptr<scalar_t>(),
+                            g_depth.numel() ? g_depth.data_ptr<scalar_t>() : nullptr,
+                            g_alpha.numel() ? g_alpha.data_ptr<scalar_t>() : nullptr, pair_g.data_ptr<scalar_t>(),
                             (int)nthreads);
     reduce_pairs<scalar_t>(pair_g.data_ptr<scalar_t>(), 10, ids.data_ptr<int64_t>(), G.P, G.S, G.N,
                            red.data_ptr<scalar_t>(), (int)nthreads);

@@ -456,7 +456,9 @@ B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int p
 // Reverse walk of a tile from list position kmax - 1 down to 0. pair_g: (kmax, 10) slots
 // (mean x, mean y, conic a, b, c, opacity, colour r, g, b, depth). Chunks as in the forward; the
 // per-pair sums are accumulated per lane and the lanes summed in a fixed order at the end.
-template <typename scalar_t>
+// kRGBOnly: the depth and alpha outputs have no gradient (the training loss): their terms, which would
+// only add zeros, and the depth-behind state are skipped (the same sums: see the note on +-0 below).
+template <typename scalar_t, bool kRGBOnly>
 B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, int px0, int py0,
                                   int ps, BwdState<scalar_t>& st, scalar_t* pair_g) {
   typedef typename Vec<scalar_t>::V V;
@@ -501,18 +503,23 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
           const V t0 = vec(st.T + off);
           const V Ti = t0 * inv_om;  // transmittance in front of this Gaussian
           const V w = alpha * Ti;
-          const V gR = vec(st.gr + off), gG = vec(st.gg + off);
-          const V gB = vec(st.gb + off), gD = vec(st.gd + off);
-          const V rr = vec(st.Rr + off), rg = vec(st.Rg + off);
-          const V rb = vec(st.Rb + off), rd = vec(st.Rd + off);
+          const V gR = vec(st.gr + off), gG = vec(st.gg + off), gB = vec(st.gb + off);
+          const V rr = vec(st.Rr + off), rg = vec(st.Rg + off), rb = vec(st.Rb + off);
           // d out / d alpha_i = T_i (c_i - R_i) for colour/depth (R: what lies behind, incl.
           // background), T_final / (1 - alpha_i) for alpha_out.
-          const V dal = Ti * ((r - rr) * gR + (g - rg) * gG + (bl - rb) * gB + (zz - rd) * gD) +
-                        vec(st.gaT + off) * inv_om;
+          V dal, gD = {};
+          if (kRGBOnly) {
+            dal = Ti * ((r - rr) * gR + (g - rg) * gG + (bl - rb) * gB);
+          } else {
+            gD = vec(st.gd + off);
+            const V rd = vec(st.Rd + off);
+            dal = Ti * ((r - rr) * gR + (g - rg) * gG + (bl - rb) * gB + (zz - rd) * gD) +
+                  vec(st.gaT + off) * inv_om;
+            vec(st.Rd + off) = use ? alpha * zz + one_m * rd : rd;
+          }
           vec(st.Rr + off) = use ? alpha * r + one_m * rr : rr;
           vec(st.Rg + off) = use ? alpha * g + one_m * rg : rg;
           vec(st.Rb + off) = use ? alpha * bl + one_m * rb : rb;
-          vec(st.Rd + off) = use ? alpha * zz + one_m * rd : rd;
           vec(st.T + off) = use ? Ti : t0;
           // Per-pair sums. Masked lanes contribute +-0 (finite factors times a zeroed weight), and adding
           // +-0 leaves an accumulator unchanged (it starts at +0 and never becomes -0): one select per
@@ -523,7 +530,7 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
           a6 += to_column_lanes<scalar_t>(wu * gR, lanes);
           a7 += to_column_lanes<scalar_t>(wu * gG, lanes);
           a8 += to_column_lanes<scalar_t>(wu * gB, lanes);
-          a9 += to_column_lanes<scalar_t>(wu * gD, lanes);
+          if (!kRGBOnly) a9 += to_column_lanes<scalar_t>(wu * gD, lanes);
           // True derivative of the 0.99 clamp: zero when clamped.
           const M unc = use & (raw <= max_alpha);
           const V dpow = to_column_lanes<scalar_t>(unc ? alpha * dal : zero, lanes);
@@ -568,12 +575,18 @@ B3_CLONES void forward_tile(const TileCache<double>& tc, int64_t K, int px0, int
     forward_tile_body<double, false>(tc, K, px0, py0, ps, npix, st, pair_w);
 }
 B3_CLONES void backward_tile(const TileCache<float>& tc, int64_t kmax, int px0, int py0, int ps,
-                             BwdState<float>& st, float* pair_g) {
-  backward_tile_body<float>(tc, kmax, px0, py0, ps, st, pair_g);
+                             BwdState<float>& st, float* pair_g, bool rgb_only) {
+  if (rgb_only)
+    backward_tile_body<float, true>(tc, kmax, px0, py0, ps, st, pair_g);
+  else
+    backward_tile_body<float, false>(tc, kmax, px0, py0, ps, st, pair_g);
 }
 B3_CLONES void backward_tile(const TileCache<double>& tc, int64_t kmax, int px0, int py0, int ps,
-                             BwdState<double>& st, double* pair_g) {
-  backward_tile_body<double>(tc, kmax, px0, py0, ps, st, pair_g);
+                             BwdState<double>& st, double* pair_g, bool rgb_only) {
+  if (rgb_only)
+    backward_tile_body<double, true>(tc, kmax, px0, py0, ps, st, pair_g);
+  else
+    backward_tile_body<double, false>(tc, kmax, px0, py0, ps, st, pair_g);
 }
 
 inline void tile_rect(const Geometry& G, int t, int& px0, int& px1, int& py0, int& py1) {
@@ -647,9 +660,10 @@ void backward_impl(const Geometry& G, const scalar_t* means, const scalar_t* con
                    const scalar_t* colors, const scalar_t* opac, const scalar_t* depths,
                    const int64_t* offsets, const int64_t* ids, const scalar_t* bg,
                    const scalar_t* Tfin, const int32_t* lastbuf, const scalar_t* g_rgb,
-                   const scalar_t* g_depth, const scalar_t* g_alpha,
+                   const scalar_t* g_depth, const scalar_t* g_alpha,  // both nullptr: no such gradient
                    scalar_t* pair_g,  // (S, P, 10)
                    int nthreads) {
+  const bool rgb_only = g_depth == nullptr && g_alpha == nullptr;
   const int num_tiles = G.tiles_x * G.tiles_y;
   const int64_t items = (int64_t)G.S * num_tiles;
   std::vector<GaussCull> cull((size_t)G.S * G.N);
@@ -679,13 +693,15 @@ void backward_impl(const Geometry& G, const scalar_t* means, const scalar_t* con
           st.Rr[p] = bg[0];
           st.Rg[p] = bg[1];
           st.Rb[p] = bg[2];
-          st.Rd[p] = 0;
           st.gr[p] = g_rgb[3 * pix];
           st.gg[p] = g_rgb[3 * pix + 1];
           st.gb[p] = g_rgb[3 * pix + 2];
-          st.gd[p] = g_depth[pix];
-          // d alpha_out / d alpha_i = T_final / (1 - alpha_i); store g_alpha * T_final.
-          st.gaT[p] = g_alpha[pix] * Tfin[pix];
+          if (!rgb_only) {
+            st.Rd[p] = 0;
+            st.gd[p] = g_depth ? g_depth[pix] : (scalar_t)0;
+            // d alpha_out / d alpha_i = T_final / (1 - alpha_i); store g_alpha * T_final.
+            st.gaT[p] = g_alpha ? g_alpha[pix] * Tfin[pix] : (scalar_t)0;
+          }
         }
       }
       scalar_t* pg_tile = pair_g + 10 * ((int64_t)s * G.P + start);
@@ -693,7 +709,7 @@ void backward_impl(const Geometry& G, const scalar_t* means, const scalar_t* con
         for (int j = 0; j < 10; ++j) pg_tile[10 * k + j] = 0;
       if (kmax == 0) continue;
       tc.gather(means, conics, colors, opac, depths, cull.data(), ids + start, kmax, G.N, s, px0, px1, py0, py1);
-      backward_tile(tc, kmax, px0, py0, ps, st, pg_tile);
+      backward_tile(tc, kmax, px0, py0, ps, st, pg_tile, rgb_only);
     }
   }
 }
