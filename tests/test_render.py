@@ -213,3 +213,37 @@ def test_extent_binning_changes_no_pixel():
     assert torch.equal(a.n_contrib, b.n_contrib)
     torch.testing.assert_close(a.rgb, b.rgb, rtol=0, atol=1e-12)
     torch.testing.assert_close(a.alpha, b.alpha, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("case", ["ordinary", "quat_zero", "quat_extreme", "scale_huge", "shared_scales_S3"])
+def test_cpu_guard_detection_matches_the_guards(dtype, case):
+    """The C++ pass detects the guards itself; its result and counts equal those of rendering the
+    Python-guarded parameters (the path it falls back to when a guard fires)."""
+    from b3dgs.posterior.guards import guard_counts, reset_guards
+    from b3dgs.render.preprocess import _preprocess_cpu, guarded_params
+
+    p = gaussians(40, dtype=dtype)
+    S = 1
+    if case == "quat_zero":
+        p["quats"][3] = 0.0
+    elif case == "quat_extreme":
+        p["quats"][5] *= 1e20
+        p["quats"][6] *= 1e-20
+    elif case == "scale_huge":
+        p["scales"][7, 1] = 200.0 if dtype == torch.float64 else 60.0
+    elif case == "shared_scales_S3":
+        S = 3
+        p["means"] = p["means"] + 0.01 * torch.randn(3, 40, 3, dtype=dtype)
+        p["scales"][9, 0] = 200.0 if dtype == torch.float64 else 60.0
+    c = cam()
+    reset_guards()
+    fast = preprocess(p, c, S, 1, "cpu")
+    fast_counts = guard_counts()
+    reset_guards()
+    ref, _ = _preprocess_cpu(guarded_params(p, c, 0.01), c, S, 1, 0.01)
+    assert guard_counts() == fast_counts
+    if case != "ordinary":
+        assert fast_counts, "the case must fire a guard"
+    for name in ("means2d", "conics", "colors", "opacities", "depths", "radii", "extent"):
+        assert torch.equal(getattr(fast, name), getattr(ref, name)), name

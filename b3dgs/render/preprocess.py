@@ -79,6 +79,14 @@ def _guarded_quats(quats: Tensor) -> Tensor:
     return quats
 
 
+def scale_log_cap(camera: Camera, dtype: torch.dtype) -> float:
+    """log_cap of :func:`_guarded_log_scales`: a log-scale above log(z) + log_cap is clamped there."""
+    K = camera.K
+    f = float(max(K[0, 0], K[1, 1]))
+    big = math.sqrt(torch.finfo(dtype).max) / 4.0
+    return math.log(math.sqrt(big / 3.0) / (f + 1.3 * max(camera.width, camera.height)))
+
+
 def _guarded_log_scales(params: Mapping[str, Tensor], camera: Camera, near: float) -> Tensor:
     """Log-scales capped where the 2-D covariance would overflow the dtype (counted as ``render.scale_clamp``).
 
@@ -95,11 +103,7 @@ def _guarded_log_scales(params: Mapping[str, Tensor], camera: Camera, near: floa
         z = (means.detach() @ vm[2, :3] + vm[2, 3]).clamp_min(near)  # ([S,] N)
         if z.dim() > log_scales.dim() - 1:
             z = z.amin(0)  # per-sample means, shared scales: the nearest sample bounds
-        K = camera.K
-        f = float(max(K[0, 0], K[1, 1]))
-        big = math.sqrt(torch.finfo(log_scales.dtype).max) / 4.0
-        log_cap = math.log(math.sqrt(big / 3.0) / (f + 1.3 * max(camera.width, camera.height)))
-        cap = (torch.log(z) + log_cap).unsqueeze(-1).to(log_scales.dtype)
+        cap = (torch.log(z) + scale_log_cap(camera, log_scales.dtype)).unsqueeze(-1).to(log_scales.dtype)
         over = log_scales.detach() > cap
     if guard("render.scale_clamp", over):
         log_scales = torch.where(over, cap, log_scales)
@@ -156,20 +160,20 @@ def _camera_args(camera: Camera, near: float) -> tuple:
 
 class _PreprocessCPU(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means, quats, scales, cov6, logits, sh0, shN, cam, degree, S, rot_mode):
+    def forward(ctx, means, quats, scales, cov6, logits, sh0, shN, cam, degree, S, rot_mode, log_cap):
         from b3dgs.render._ext import load_extension
 
         ext = load_extension()
         outs = ext.preprocess_forward(means, quats, scales, cov6, logits, sh0, shN, *cam, degree, S, rot_mode,
-                                      torch.get_num_threads())
-        means2d, conics, colors, opac, depths, radii, extent = outs
+                                      torch.get_num_threads(), log_cap)
+        means2d, conics, colors, opac, depths, radii, extent, flags = outs
         ctx.cam, ctx.degree, ctx.S, ctx.rot_mode = cam, degree, S, rot_mode
         ctx.save_for_backward(means, quats, scales, cov6, logits, sh0, shN, radii)
-        ctx.mark_non_differentiable(radii, extent)
-        return means2d, conics, colors, opac, depths, radii, extent
+        ctx.mark_non_differentiable(radii, extent, flags)
+        return means2d, conics, colors, opac, depths, radii, extent, flags
 
     @staticmethod
-    def backward(ctx, g_m2, g_con, g_col, g_op, g_z, _g_r, _g_e):
+    def backward(ctx, g_m2, g_con, g_col, g_op, g_z, _g_r, _g_e, _g_f):
         from b3dgs.render._ext import load_extension
 
         means, quats, scales, cov6, logits, sh0, shN, radii = ctx.saved_tensors
@@ -183,7 +187,7 @@ class _PreprocessCPU(torch.autograd.Function):
             grad(g_m2, 2), grad(g_con, 3), grad(g_col, 3), grad(g_op), grad(g_z), torch.get_num_threads())
         n = ctx.needs_input_grad
         return (gm if n[0] else None, gq if n[1] else None, gs if n[2] else None, gc if n[3] else None,
-                gl if n[4] else None, g0 if n[5] else None, gN if n[6] else None, None, None, None, None)
+                gl if n[4] else None, g0 if n[5] else None, gN if n[6] else None, None, None, None, None, None)
 
 
 def _lead(t: Tensor, tail: int) -> Tensor:
@@ -192,7 +196,10 @@ def _lead(t: Tensor, tail: int) -> Tensor:
     return t.contiguous()
 
 
-def _preprocess_cpu(params: Mapping[str, Tensor], camera: Camera, S: int, deg: int, near: float) -> Preprocessed:
+def _preprocess_cpu(params: Mapping[str, Tensor], camera: Camera, S: int, deg: int, near: float
+                    ) -> tuple[Preprocessed, list[int]]:
+    """The C++ pass and its guard flags (quaternion rows all zero, quaternion rows of extreme norm, log-scales
+    that may need the overflow cap), detected inside the pass (``csrc/preprocess.h``)."""
     means = _lead(params["means"], 1)
     dtype = means.dtype
     empty = torch.zeros(0, dtype=dtype)
@@ -206,9 +213,9 @@ def _preprocess_cpu(params: Mapping[str, Tensor], camera: Camera, S: int, deg: i
     logits = _lead(params["opacities"], 0)
     sh0 = _lead(params["sh0"], 2).reshape(-1, means.shape[1], 3)
     shN = _lead(params["shN"], 2)[..., : (deg + 1) ** 2 - 1, :].contiguous() if deg > 0 else empty
-    outs = _PreprocessCPU.apply(means, quats, scales, cov6, logits, sh0, shN, _camera_args(camera, near), deg, S,
-                                rot_mode)
-    return Preprocessed(*outs)
+    *outs, flags = _PreprocessCPU.apply(means, quats, scales, cov6, logits, sh0, shN, _camera_args(camera, near),
+                                        deg, S, rot_mode, scale_log_cap(camera, dtype))
+    return Preprocessed(*outs), flags.tolist()
 
 
 _BACKENDS = {"cpu": _preprocess_cpu, "torch": _preprocess_torch}
@@ -216,9 +223,22 @@ _BACKENDS = {"cpu": _preprocess_cpu, "torch": _preprocess_torch}
 
 def preprocess(params: Mapping[str, Tensor], camera: Camera, S: int, sh_degree: int = 3, backend: str = "cpu",
                near: float = 0.01) -> Preprocessed:
-    """Project, colour and bound every Gaussian for ``camera`` (validated ``params``; S samples)."""
+    """Project, colour and bound every Gaussian for ``camera`` (validated ``params``; S samples).
+
+    Both backends render :func:`guarded_params`. The C++ backend first renders ``params`` as they are and
+    detects inside its pass whether a guard would fire; only then (rare: degenerate inputs) it applies the
+    guards and renders again, so ordinary steps make no separate passes over the parameters.
+    """
     fn = _BACKENDS.get(backend)
     if fn is None:
         raise ValueError(f"preprocess: backend must be one of {sorted(_BACKENDS)}, got {backend!r}")
-    params = guarded_params(params, camera, near)
-    return fn(params, camera, S, effective_sh_degree(sh_degree, params.get("shN")), near)
+    deg = effective_sh_degree(sh_degree, params.get("shN"))
+    if backend == "cpu":
+        pre, (quat_zero, quat_extreme, scale_over) = _preprocess_cpu(params, camera, S, deg, near)
+        if not (quat_extreme or scale_over):
+            from b3dgs.posterior.guards import guard
+
+            guard("render.quat_zero", quat_zero)
+            return pre
+        return _preprocess_cpu(guarded_params(params, camera, near), camera, S, deg, near)[0]
+    return fn(guarded_params(params, camera, near), camera, S, deg, near)

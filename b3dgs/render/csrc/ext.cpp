@@ -185,7 +185,8 @@ std::vector<torch::Tensor> preprocess_forward(torch::Tensor means, torch::Tensor
                                               torch::Tensor shN, std::vector<double> viewmat,
                                               std::vector<double> intr, std::vector<double> campos,
                                               int64_t W, int64_t H, double near, int64_t degree,
-                                              int64_t S, bool rot_mode, int64_t nthreads) {
+                                              int64_t S, bool rot_mode, int64_t nthreads,
+                                              double log_cap) {
   for (auto& pr : {std::make_pair(&means, "means"), std::make_pair(&quats, "quats"),
                    std::make_pair(&scales, "scales"), std::make_pair(&cov6, "cov6"),
                    std::make_pair(&logits, "opacities"), std::make_pair(&sh0, "sh0"),
@@ -197,6 +198,7 @@ std::vector<torch::Tensor> preprocess_forward(torch::Tensor means, torch::Tensor
   auto colors = torch::empty({S, N, 3}, opts), opac = torch::empty({S, N}, opts);
   auto depths = torch::empty({S, N}, opts), radii = torch::empty({S, N}, opts);
   auto extent = torch::empty({S, N, 2}, opts);
+  auto flags = torch::zeros({3}, opts.dtype(torch::kInt64));  // guard detection (preprocess.h)
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "b3dgs_preprocess_forward", [&] {
     auto cam = make_camera<scalar_t>(viewmat, intr, campos, W, H, near);
     auto in = make_inputs<scalar_t>(means, quats, scales, cov6, logits, sh0, shN, S, degree);
@@ -204,9 +206,10 @@ std::vector<torch::Tensor> preprocess_forward(torch::Tensor means, torch::Tensor
                                     colors.data_ptr<scalar_t>(),  opac.data_ptr<scalar_t>(),
                                     depths.data_ptr<scalar_t>(),  radii.data_ptr<scalar_t>(),
                                     extent.data_ptr<scalar_t>()};
-    b3dgs::preprocess_forward<scalar_t>(in, cam, rot_mode, out, (int)nthreads);
+    b3dgs::preprocess_forward<scalar_t>(in, cam, rot_mode, out, (int)nthreads, log_cap,
+                                        flags.data_ptr<int64_t>());
   });
-  return {means2d, conics, colors, opac, depths, radii, extent};
+  return {means2d, conics, colors, opac, depths, radii, extent, flags};
 }
 
 std::vector<torch::Tensor> preprocess_backward(

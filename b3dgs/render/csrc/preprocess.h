@@ -249,16 +249,36 @@ inline void sh_color_raw(const PreInputs<T>& in, int64_t s, int64_t n, const T* 
   }
 }
 
+// Guard detection inside the forward pass (b3dgs.render.preprocess.guarded_params applies the guards):
+// flags[0]: quaternion rows that are all zero (rendered with the identity rotation by the 1e-12 floor);
+// flags[1]: quaternion rows whose largest |component| is outside [1e-15, 1e15] (need rescaling first);
+// flags[2]: log-scales that may exceed the overflow cap log(max(z, near)) + log_cap (checked with a
+// margin, so that every entry the exact test would clamp is flagged). Rows of an input shared by
+// the samples are counted once.
+constexpr double kQuatLo = 1e-15, kQuatHi = 1e15, kScaleCapMargin = 1e-3;
+
 template <typename T>
 void preprocess_forward(const PreInputs<T>& in, const CameraParams<T>& cam, bool rot_mode,
-                        PreOutputs<T>& out, int nthreads) {
+                        PreOutputs<T>& out, int nthreads, double log_cap, int64_t* flags) {
   const int64_t S = in.S, N = in.N;
-#pragma omp parallel for schedule(static) num_threads(nthreads)
+  int64_t qzero = 0, qextreme = 0, sover = 0;
+  const double cap_factor = std::exp(log_cap - kScaleCapMargin);
+#pragma omp parallel for schedule(static) num_threads(nthreads) reduction(+ : qzero, qextreme, sover)
   for (int64_t n = 0; n < N; ++n) {
     PreLocal<T> L;
     T basis[16];
     for (int64_t s = 0; s < S; ++s) {
+      if (rot_mode && (s == 0 || in.ss.quats != 0)) {
+        const T* q = in.quats + s * in.ss.quats + 4 * n;
+        const T amax = std::max(std::max(std::abs(q[0]), std::abs(q[1])), std::max(std::abs(q[2]), std::abs(q[3])));
+        qzero += amax == 0 ? 1 : 0;
+        qextreme += (amax != 0 && (amax < (T)kQuatLo || amax > (T)kQuatHi)) ? 1 : 0;
+      }
       pre_local(in, cam, s, n, rot_mode, L);
+      if (rot_mode) {  // exp(log_scale) > max(z, near) exp(log_cap - margin), with the scales pre_local took
+        const double cap = std::max((double)L.p[2], (double)cam.near) * cap_factor;
+        sover += ((double)L.sc[0] > cap || (double)L.sc[1] > cap || (double)L.sc[2] > cap) ? 1 : 0;
+      }
       const int64_t o = s * N + n;
       const T W = (T)cam.W, H = (T)cam.H;
       const T m2x = cam.fx * L.p[0] / L.zs + cam.cx, m2y = cam.fy * L.p[1] / L.zs + cam.cy;
@@ -295,6 +315,9 @@ void preprocess_forward(const PreInputs<T>& in, const CameraParams<T>& cam, bool
       out.extent[2 * o + 1] = ey;
     }
   }
+  flags[0] = qzero;
+  flags[1] = qextreme;
+  flags[2] = sover;
 }
 
 // Output gradients (S, N, ...) and input gradients (shaped like the inputs: 1 or S samples).
