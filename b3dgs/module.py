@@ -255,9 +255,10 @@ class SplatModule(L.LightningModule):
         info = {
             **self._static_info(), "ops": ops, "camera": cam, "render": out, "per_gaussian": ops.per_gaussian,
             "width": cam.width, "height": cam.height, "gt": gt, "loss": loss.detach(),
-            "l1": l1.detach(), "sq_err_sum": ((out.rgb.detach() - gt) ** 2).sum(), "num_values": gt.numel(),
-            "loss_terms": [],
+            "l1": l1.detach(), "num_values": gt.numel(), "loss_terms": [],
         }
+        if any(p.needs_residuals for p in self.plugins.values()):
+            info["sq_err_sum"] = ((out.rgb.detach() - gt) ** 2).sum()
         optimizers = self._torch_optimizers()
         self._call_hooks("step_pre_backward", optimizers, step, info)
         if info["loss_terms"]:  # differentiable scalars plugins add (e.g. the MCMC opacity / scale regularisers)
@@ -283,8 +284,9 @@ class SplatModule(L.LightningModule):
                  "train/lr_means": self.means_lr(step)},
                 on_step=True, prog_bar=False, logger=True, batch_size=1,
             )
-        self.log("n", float(self.num_gaussians), prog_bar=True, logger=False, batch_size=1)
-        self.log("loss", loss.detach(), prog_bar=True, logger=False, batch_size=1)
+        if self.trainer.progress_bar_callback is not None:  # values shown only in the progress bar
+            self.log("n", float(self.num_gaussians), prog_bar=True, logger=False, batch_size=1)
+            self.log("loss", loss.detach(), prog_bar=True, logger=False, batch_size=1)
         return loss.detach()
 
     def _call_hooks(self, hook: str, optimizers, step: int, info: dict) -> None:

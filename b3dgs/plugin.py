@@ -28,6 +28,7 @@ class Plugin:
 
     What the core reads from a plugin is declared here: ``needs_weights`` asks the renderer for the
     per-Gaussian compositing sums Σ_p w_kp and Σ_p w_kp² (``info["per_gaussian"]``) every step;
+    ``needs_residuals`` asks for ``info["sq_err_sum"]``, the step's summed squared residual (not computed otherwise);
     ``changes_training`` = False promises that the plugin only observes training (it never edits splats,
     optimizers, gradients or the topology), so a model with it trains bit for bit like one without it
     (``tests/test_rounds.py`` checks every plugin that promises it; the active-view study then shares
@@ -35,6 +36,7 @@ class Plugin:
     """
 
     needs_weights: ClassVar[bool] = False
+    needs_residuals: ClassVar[bool] = False
     changes_training: ClassVar[bool] = True
 
     def check_sanity(self, **kwargs: Any) -> None:

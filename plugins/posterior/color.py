@@ -26,6 +26,7 @@ class ColorBlock(PosteriorBlock):
     ema: float = 0.99
     t_post: Optional[int] = None
     needs_weights: ClassVar[bool] = True
+    needs_residuals: ClassVar[bool] = True  # reads info["sq_err_sum"]
 
     def check_sanity(self, max_steps: int = 0, **kw) -> None:
         if self.prior_precision <= 0:

@@ -55,6 +55,7 @@ class NIWBlock(PosteriorBlock):
     ``count_scale`` on the loaded block (every use of the posterior refreshes it from the summaries).
     """
 
+    needs_residuals: ClassVar[bool] = True  # reads info["sq_err_sum"]
     changes_training: ClassVar[bool] = False  # it reads summaries; splats, optimizers, gradients untouched
 
     kappa0: float = 0.01

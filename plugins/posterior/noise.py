@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import ClassVar, Optional
 
 import torch
 
@@ -20,6 +20,8 @@ class NoiseBlock(PosteriorBlock):
     bounded by ``n / (1 - decay)``). E[σ²] is the aleatoric term of native uncertainty.
     Updates start at ``t_dp`` (default: max_steps / 6, with the DP block).
     """
+
+    needs_residuals: ClassVar[bool] = True  # reads info["sq_err_sum"]
 
     a0: float = 2.0
     b0: float = 1e-3

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import ClassVar, Optional
 
 import torch
 
@@ -21,6 +21,8 @@ class OpacityBlock(PosteriorBlock):
     match. The block does not move the point estimate; it supplies the variance that the DPMM
     predictive path samples. Active after ``t_post`` (default max_steps / 2).
     """
+
+    needs_residuals: ClassVar[bool] = True  # reads info["sq_err_sum"]
 
     prior_precision: float = 1.0
     ema: float = 0.99
