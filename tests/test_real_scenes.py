@@ -18,7 +18,7 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 from conftest import SHARED
-from test_data import inside, project
+from test_data import _llff_scene, inside, project
 
 from b3dgs.data import load_scene
 from b3dgs.data.colmap import read_colmap
@@ -151,6 +151,15 @@ def test_wrong_format_names_the_right_one(tmp_path):
         load_scene("colmap", str(tmp_path))
     with pytest.raises(FileNotFoundError):  # a folder of no known format: the loader names the missing file
         load_scene("llff", str(tmp_path / "empty"))
+
+
+def test_llff_bounds_must_be_ordered(tmp_path):
+    _llff_scene(tmp_path, n=3, res=8)
+    pb = np.load(tmp_path / "poses_bounds.npy")
+    pb[1, 15:] = (5.0, 2.0)  # far < near
+    np.save(tmp_path / "poses_bounds.npy", pb)
+    with pytest.raises(B3dgsError, match=r"rows \[1\] have near/far bounds .* \(fix: regenerate"):
+        load_scene("llff", str(tmp_path))
 
 
 @needs(*SEVEN)
