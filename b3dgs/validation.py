@@ -289,6 +289,11 @@ def _check_model(cfg: DictConfig) -> None:
             _need(_is_num(val) and val >= 0, f"model.{key}", val, "a finite number >= 0", fix)
     if "background" in v:
         _rgb("model.background", v["background"])
+        data_bg = cfg.data.get("background") if isinstance(cfg.get("data"), DictConfig) else None
+        if data_bg is not None and [float(x) for x in data_bg] != [float(x) for x in v["background"]]:
+            raise B3dgsError(f"model.background={_show(v['background'])} differs from data.background="
+                             f"{_show(list(data_bg))}: the model renders over the first, the images are composited on "
+                             "the second", "drop the model.background override (it follows data.background)")
     if "init_opacity" in v:
         _need(_is_num(v["init_opacity"]) and 0 < v["init_opacity"] < 1, "model.init_opacity", v["init_opacity"],
               "strictly between 0 and 1 (its logit must be finite)", "pass model.init_opacity=0.1")

@@ -57,9 +57,18 @@ def write_results(name: str, payload: dict, text: str) -> Path:
     return RESULTS / f"{name}.json"
 
 
+# The benchmark scenes (../shared/data, see its README) and the loader each uses. lego: NeRF-synthetic, alpha on
+# white (data=blender). fern, flower: the COLMAP model with its triangulated points (as 3DGS does for LLFF), not
+# data=llff (same poses, but no points: random initialisation). DTU: COLMAP, full images (no masks in the data).
+# Every scene holds out every 8th view in sorted name order (data.test_every=8).
 SCENES = {
     "ethiopian_head": ["data=colmap", "data.path={shared}/data/ethiopian_head"],
     "fox": ["data=transforms", "data.path={shared}/data/fox"],
+    "lego": ["data=blender", "data.path={shared}/data/lego"],
+    "fern": ["data=colmap", "data.path={shared}/data/fern"],
+    "flower": ["data=colmap", "data.path={shared}/data/flower"],
+    "dtu_scan24": ["data=colmap", "data.path={shared}/data/dtu_scan24"],
+    "dtu_scan65": ["data=colmap", "data.path={shared}/data/dtu_scan65"],
     "synthetic": ["data=synthetic"],
 }
 QUICK = ["data.max_side=256", "trainer.max_steps=3000", "trainer.progress_bar=false", "logger=none",
@@ -94,6 +103,11 @@ def train_run(run_dir: Path, overrides: list[str], timeout_s: int = 3600, force:
 
 
 def scene_overrides(scene: str) -> list[str]:
+    """The Hydra data overrides of benchmark scene ``scene`` (a key of :data:`SCENES`)."""
+    if scene not in SCENES:
+        from b3dgs.errors import B3dgsError
+
+        raise B3dgsError(f"unknown benchmark scene {scene!r}", f"pass one of {', '.join(SCENES)}")
     return [o.format(shared=shared_dir()) for o in SCENES[scene]]
 
 

@@ -10,6 +10,11 @@ OpenCV camera-to-world is ``[right, down, forward] = [col1, col0, -col2]``.
 The images may be a uniformly downscaled copy of the resolution in ``hwf`` (e.g. ``images_4``):
 the focal length is then scaled by the actual per-axis ratio; any other size mismatch raises.
 The principal point is the image centre.
+
+No NDC: the cameras are used as they are (perspective rasterisation in the normalised frame of
+:func:`b3dgs.data.scene.preprocess`, as 3DGS does); ``near, far`` (which must satisfy 0 < near < far) only
+set LLFF's focus depth, the centre of the random-initialisation box when the optical axes do not meet.
+There are no points: for 3DGS's initialisation load the scene's COLMAP model (``data=colmap``).
 """
 from __future__ import annotations
 
@@ -21,6 +26,7 @@ import numpy as np
 
 from b3dgs.data.images import image_size, list_images
 from b3dgs.data.scene import FrameSpec, RawScene, materialize, select_evenly
+from b3dgs.errors import B3dgsError
 from b3dgs.io import atomic_path
 from b3dgs.types import Camera
 
@@ -47,6 +53,10 @@ def read_llff(
     if not np.isfinite(pb).all():
         bad = np.where(~np.isfinite(pb).all(axis=1))[0].tolist()
         raise ValueError(f"{pb_path}: non-finite values in rows {bad}")
+    bad = np.where(~((pb[:, 15] > 0) & (pb[:, 16] > pb[:, 15])))[0].tolist()
+    if bad:
+        raise B3dgsError(f"{pb_path}: rows {bad[:5]} have near/far bounds that are not 0 < near < far",
+                         "regenerate poses_bounds.npy (LLFF's imgs2poses) or load the scene's COLMAP model (data=colmap)")
     files = list_images(root / images_dir)
     if len(files) != len(pb):
         raise ValueError(f"{pb_path} has {len(pb)} poses but {root / images_dir} has {len(files)} images")
@@ -93,7 +103,7 @@ def load_llff(
     cams = materialize([frames[i] for i in keep], max_side=max_side, background=background)
     near, far = np.median(bounds[keep], axis=0)
     # LLFF's own focus depth (as in its spiral-path code), used when the optical axes do not meet
-    focus = 1.0 / (0.25 / near + 0.75 / far) if near > 0 and far > 0 else None
+    focus = 1.0 / (0.25 / near + 0.75 / far)
     return RawScene(
         name=Path(path).resolve().name, cameras=cams, extras={"bounds": bounds[keep], "focus_depth": focus}
     )

@@ -61,9 +61,11 @@ __all__ = [
     "FrameSpec",
     "RawScene",
     "check_intrinsics",
+    "check_layout",
     "check_near_plane",
     "compute_bounds",
     "get_loader",
+    "guess_kinds",
     "load_scene",
     "look_at_point",
     "materialize",
@@ -490,6 +492,37 @@ def filter_points_to_train(raw: RawScene, points: np.ndarray, colors: Optional[n
     return points[keep], None if colors is None else colors[keep], report
 
 
+# kind -> (what its folder must hold, test on the folder); "transforms" also accepts a .json file as the path
+_MARKERS = {
+    "colmap": ("COLMAP model (cameras, images, points3D .bin/.txt in sparse/0/, sparse/ or the folder)",
+               lambda d: any(all((m / f"{n}.{e}").is_file() for n in ("cameras", "images", "points3D"))
+                             for m in (d / "sparse" / "0", d / "sparse", d) for e in ("bin", "txt"))),
+    "transforms": ("transforms.json or Blender's transforms_{train,val,test}.json",
+                   lambda d: (d / "transforms.json").is_file() or any(d.glob("transforms_*.json"))),
+    "llff": ("poses_bounds.npy", lambda d: (d / "poses_bounds.npy").is_file()),
+}
+
+
+def guess_kinds(path: str | os.PathLike) -> list[str]:
+    """The scene formats whose files a folder holds (a ``.json`` file: ``transforms``)."""
+    p = Path(path)
+    if p.is_file():
+        return ["transforms"] if p.suffix.lower() == ".json" else []
+    return [k for k, (_, test) in _MARKERS.items() if p.is_dir() and test(p)]
+
+
+def check_layout(kind: str, path: str | os.PathLike) -> None:
+    """Refuse a scene folder without the files of ``kind`` that holds another format's, naming that format
+    (a folder holding no known format is left to the loader, whose ``FileNotFoundError`` names the missing file)."""
+    if kind not in _MARKERS or not Path(path).is_dir() or _MARKERS[kind][1](Path(path)):
+        return
+    others = [k for k in guess_kinds(path) if k != kind]
+    if others:
+        blender = " (data=blender for a NeRF-synthetic one: alpha on white)" if others[0] == "transforms" else ""
+        raise B3dgsError(f"data={kind}: {path} has no {_MARKERS[kind][0]} but holds a {others[0]} scene",
+                         f"pass data={others[0]}{blender}")
+
+
 def get_loader(kind: str):
     """The format loader function of scene ``kind`` (one of :data:`SCENE_KINDS`)."""
     import importlib
@@ -546,6 +579,8 @@ def load_scene(
             raise ValueError(f"load_scene(kind={kind!r}) needs a path")
         if not Path(path).exists():
             raise FileNotFoundError(f"Scene path not found: {path}")
+        if kind_kwargs.get("sparse_dir") is None:  # a custom model folder is the loader's to find
+            check_layout(kind, path)
     common = dict(max_side=max_side, background=background, max_images=max_images)
     loader = get_loader(kind)
     if init_points_from_train_only and kind == "colmap":
