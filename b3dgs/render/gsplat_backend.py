@@ -15,13 +15,12 @@ Adapted here to our contract (each fix is tested on the CPU emulation of gsplat'
 - zero quaternions: gsplat's unfloored rsqrt makes them NaN (culled); ours render the identity
   rotation, so they are replaced by (1, 0, 0, 0) here (their quaternion gradient is then 0);
 - culled Gaussians: gsplat leaves their ``means2d``/``depths`` unwritten (``at::empty``); they are
-  returned as 0, and their radius as 0.
+  returned as 0, and their radius as 0;
+- Jacobian clamp: our backends use gsplat's (and 3DGS's) margin, 0.3·tan(fov/2) = 0.15·W/fx beyond
+  the image edge.
 
 Left as gsplat has them (documented in README, "Renderers"; sizes measured on the CPU emulation):
 
-- Jacobian clamp margin: gsplat 0.3·tan(fov/2) = 0.15·W/fx beyond the image edge (as 3DGS), ours
-  0.3·W/fx; only Gaussians whose centre lies beyond 1.15 half-widths of the view change: up to
-  0.02 per pixel in a sweep of large near off-screen Gaussians (0.036 reported in issue 18);
 - radii: gsplat ceil(min(3.33, √(2 ln(255 o)))·σ) per axis (culling o < 1/255), ours ceil(3·√λmax);
   on the 60-Gaussian contract scene 41 of 60 radii are equal, the others within ×0.75–×1.25, and
   the same Gaussians are visible. Densification reads radii, so Gaussian counts can drift;

@@ -121,8 +121,9 @@ def project(
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     valid = z > near
     zs = torch.where(valid, z, torch.ones_like(z))
-    # Clamp the Jacobian's linearisation point to the field of view plus a 30% margin, as in 3DGS.
-    margin_x, margin_y = 0.3 * width / fx, 0.3 * height / fy
+    # Clamp the Jacobian's linearisation point to the field of view widened by 0.3 tan(fov/2) = 0.15 W/fx on each
+    # side (3DGS: |x/z| <= 1.3 tan(fov/2); gsplat: the same around the principal point).
+    margin_x, margin_y = 0.15 * width / fx, 0.15 * height / fy
     tx = zs * torch.clamp(x / zs, -(cx / fx + margin_x), (width - cx) / fx + margin_x)
     ty = zs * torch.clamp(y / zs, -(cy / fy + margin_y), (height - cy) / fy + margin_y)
     # J = [[fx/z, 0, -fx tx/z²], [0, fy/z, -fy ty/z²]]; cov2d = J (R Σ Rᵀ) Jᵀ written out elementwise

@@ -148,9 +148,9 @@ class GsplatRenderer(Renderer):
     S posterior samples are one call with a leading batch dimension (``covars=`` for covariance
     draws). Per-Gaussian weight sums, which gsplat does not return, come from its per-pixel
     intersection list (:func:`b3dgs.render.gsplat_backend.weight_sums`) and are computed only when
-    asked for. Near plane, zero quaternions and culled outputs follow our contract; gsplat's own
-    Jacobian clamp (0.15·W/fx beyond the edge, ours 0.3·W/fx), opacity-aware radii and α cap 0.999
-    (ours 0.99) remain, with their measured sizes in :mod:`b3dgs.render.gsplat_backend`. On an
+    asked for. Near plane, zero quaternions and culled outputs follow our contract, and the Jacobian clamp
+    is the same in every backend; gsplat's opacity-aware radii and α cap 0.999 (ours 0.99) remain, with
+    their measured sizes in :mod:`b3dgs.render.gsplat_backend`. On an
     unsaturated scene it agrees with ``renderer=torch`` to 1e-5 (images, weight sums, gradients).
     ``device_name=cpu`` is accepted only under the test suite's CPU emulation of gsplat's kernels.
     """

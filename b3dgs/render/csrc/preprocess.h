@@ -6,7 +6,7 @@
 //   q = quat / max(|quat|, 1e-12); R = R(q); M = R diag(exp(log_scale)); Sigma = M M^T
 //     (or Sigma given directly as 6 upper-triangular entries xx, xy, xz, yy, yz, zz)
 //   p = Rv mean + t; valid = z > near; zs = valid ? z : 1
-//   tx = zs clamp(x / zs, -(cx/fx + 0.3 W/fx), (W - cx)/fx + 0.3 W/fx), ty likewise
+//   tx = zs clamp(x / zs, -(cx/fx + 0.15 W/fx), (W - cx)/fx + 0.15 W/fx), ty likewise (3DGS / gsplat)
 //   J = [[fx/zs, 0, -fx tx/zs^2], [0, fy/zs, -fy ty/zs^2]]; cov2d = J Rv Sigma Rv^T J^T + 0.3 I
 //   valid &= det > 0; conic = (c, -b, a) / det; means2d = (fx x/zs + cx, fy y/zs + cy); depth = z
 //   radius = ceil(3 sqrt(lambda_max)) (lambda_max with the 3DGS floor 0.1), 0 if invalid/offscreen
@@ -195,7 +195,7 @@ inline void pre_local(const PreInputs<T>& in, const CameraParams<T>& cam, int64_
   L.valid = z > cam.near;
   L.zs = L.valid ? z : (T)1;
   const T W = (T)cam.W, H = (T)cam.H;
-  const T mx = (T)0.3 * W / cam.fx, my = (T)0.3 * H / cam.fy;
+  const T mx = (T)0.15 * W / cam.fx, my = (T)0.15 * H / cam.fy;  // 0.3 tan(fov/2), as 3DGS and gsplat
   const T lox = -(cam.cx / cam.fx + mx), hix = (W - cam.cx) / cam.fx + mx;
   const T loy = -(cam.cy / cam.fy + my), hiy = (H - cam.cy) / cam.fy + my;
   L.u = x / L.zs;
