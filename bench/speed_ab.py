@@ -6,7 +6,7 @@
 Round r trains seed r of every scene with both checkouts at the same time, one process each with
 ``threads=1`` (one core each: the machine's conditions hit both alike, and the campaigns run this way,
 ``--jobs 2 --threads 1``). The render benchmark then times 100k random Gaussians at 256x256 (fwd and fwd+bwd,
-``renderer=cpu``, both threads) alternating the checkouts for ``--rounds`` rounds. Medians and new/old ratios;
+``renderer=cpu``, both threads) alternating the checkouts for ``--render-rounds`` rounds. Medians and new/old ratios;
 the PSNR of every run pair shows whether the change kept results bit for bit. Writes
 bench/results/speed_ab.json and .md; finished training runs are reused (resumable), ``--force`` redoes them.
 """
@@ -97,7 +97,8 @@ def main() -> None:
     ap.add_argument("--base", type=Path, required=True, help="checkout of the old code (a git worktree)")
     ap.add_argument("--new", type=Path, default=ROOT, help="checkout of the new code (default: this one)")
     ap.add_argument("--scenes", nargs="+", default=["ethiopian_head", "fox"])
-    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--rounds", type=int, default=3, help="training rounds (seeds 0 .. rounds - 1)")
+    ap.add_argument("--render-rounds", type=int, default=3)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", type=Path, default=Path("outputs/speed_ab"))
     ap.add_argument("--render-n", type=int, default=100_000)
@@ -118,7 +119,7 @@ def main() -> None:
                                  "psnr": m["psnr"], "num_gaussians": m["num_gaussians"]})
                 print(json.dumps(runs[-2:]), flush=True)
     renders = []
-    for rnd in range(args.rounds):
+    for rnd in range(args.render_rounds):
         for label, code in (("old", base), ("new", new)):
             r = render_once(code, args.render_n, reps=5)
             r.update(code=label, round=rnd)
@@ -140,7 +141,7 @@ def main() -> None:
                         "psnr_old": round(p["old"], 3), "psnr_new": round(p["new"], 3), "identical_runs": same})
     for key in ("fwd_ms", "fwdbwd_ms", "ns_per_pair"):
         m = {c: statistics.median(r[key] for r in renders if r["code"] == c) for c in ("old", "new")}
-        summary.append({"what": f"render {args.render_n // 1000}k 256px {key} (median of {args.rounds})",
+        summary.append({"what": f"render {args.render_n // 1000}k 256px {key} (median of {args.render_rounds})",
                         "old": round(m["old"], 3), "new": round(m["new"], 3), "new/old": ratio(m["new"], m["old"])})
     text = ("Old and new code side by side (bench/speed_ab.py); trainings of a seed ran at the same time, one core "
             "each.\n\n" + table(summary, ["what", "old", "new", "new/old", "psnr_old", "psnr_new", "identical_runs"])
