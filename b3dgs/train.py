@@ -88,13 +88,17 @@ def resolve_accelerator(requested: Optional[str], renderer) -> str:
 
 
 def save_config(cfg: DictConfig, path: Path) -> None:
-    """The composed config (without Hydra's own node), resolved, written atomically."""
+    """The composed config (without Hydra's own node), resolved, ``data.path`` made absolute (``b3dgs-eval``
+    works from any folder), written atomically."""
     from b3dgs.io import atomic_path
 
     c = cfg.copy()
     with open_dict(c):
         c.pop("hydra", None)
     plain = OmegaConf.to_container(c, resolve=True)
+    data = plain.get("data")
+    if isinstance(data, dict) and data.get("path"):
+        data["path"] = str(Path(str(data["path"])).expanduser().resolve())
     with atomic_path(path) as tmp:
         tmp.write_text(OmegaConf.to_yaml(OmegaConf.create(plain)))
 

@@ -112,3 +112,13 @@ def test_joblib_multirun_over_a_non_seed_setting_loses_no_run(tmp_path):
     runs = sorted(tmp_path.glob("*/metrics.json"))
     assert len(runs) == 2, [str(x) for x in tmp_path.rglob("*")]
     assert sorted(OmegaConf.load(r.parent / "config.yaml").model.sh_degree for r in runs) == [0, 1]
+
+
+def test_multirun_with_one_bad_value_runs_the_others(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "b3dgs.train", "-m", "seed=-1,1", *TINY, f"hydra.sweep.dir={tmp_path}"],
+                       capture_output=True, text=True, timeout=600)
+    assert p.returncode == 2, p.stderr[-3000:]
+    assert "b3dgs-train: error: job 0: seed=-1 is invalid: it must be an integer in [0, 2^32) (fix: pass seed=0)" \
+        in p.stderr.splitlines(), p.stderr[-3000:]
+    assert [d.name for d in tmp_path.iterdir() if d.is_dir()] == ["1_synthetic_standard_s1"]  # job 0 left nothing
+    assert (tmp_path / "1_synthetic_standard_s1" / "metrics.json").exists()
