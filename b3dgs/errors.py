@@ -99,6 +99,8 @@ def _hydra_error(exc: BaseException) -> Optional[B3dgsError]:
 _IO_FIX = {
     errno.ENOSPC: ("no space left on the device", "free disk space, or pass hydra.run.dir / out= on another disk"),
     errno.EDQUOT: ("disk quota exceeded", "free disk space, or pass hydra.run.dir / out= on another disk"),
+    errno.EFBIG: ("the file exceeds the file-size limit (ulimit -f) or the file system's",
+                  "raise the limit, or pass hydra.run.dir / out= on another disk"),
     errno.EROFS: ("the file system is read-only", "pass hydra.run.dir / out= to a writable folder"),
     errno.EACCES: ("permission denied", "pass hydra.run.dir / out= to a folder you can write"),
     errno.EPERM: ("operation not permitted", "pass hydra.run.dir / out= to a folder you can write"),
@@ -106,17 +108,18 @@ _IO_FIX = {
     errno.EISDIR: ("it is a folder, not a file", "pass the path of a file"),
     errno.EEXIST: ("a file is in the way of a folder", "pass hydra.run.dir / out= to a folder"),
 }
+_TORCH_WRITE = ("file write failed", "iostream error", "unexpected pos")  # torch.save's C++ writer
 _OOM = ("can't allocate memory", "out of memory", "cannot allocate memory")
 
 
 def _io_error(exc: BaseException) -> Optional[str]:
     """One line for disk full, read-only or unwritable outputs, and running out of memory."""
     if isinstance(exc, MemoryError) or (isinstance(exc, RuntimeError) and any(k in str(exc).lower() for k in _OOM)):
-        return ("ran out of memory (fix: lower data.max_side (image size) or data.max_images, or use a machine with "
-                "more memory)")
-    if isinstance(exc, RuntimeError) and "file write failed" in str(exc):  # torch.save on a full disk
-        return ("cannot write a checkpoint: the disk is full or not writable (fix: free disk space, or pass "
-                "hydra.run.dir on another disk)")
+        return ("ran out of memory (fix: lower data.max_side or data.resolution (image size) or data.max_images, "
+                "or use a machine with more memory)")
+    if isinstance(exc, RuntimeError) and any(k in str(exc) for k in _TORCH_WRITE):  # torch.save on a full disk
+        return ("cannot write a checkpoint: the disk is full, not writable or over a file-size limit (fix: free disk "
+                "space, or pass hydra.run.dir on another disk)")
     if isinstance(exc, OSError) and exc.errno in _IO_FIX:
         what, fix = _IO_FIX[exc.errno]
         name = exc.filename if exc.filename is not None else ""

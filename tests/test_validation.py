@@ -148,7 +148,7 @@ def test_io_and_memory_errors_are_one_line():
     assert format_error(full) == ("cannot write /runs/a/point_cloud.ply: no space left on the device (fix: free disk "
                                   "space, or pass hydra.run.dir / out= on another disk)")
     assert "read-only" in format_error(OSError(errno.EROFS, "Read-only file system", "/x"))
-    assert format_error(MemoryError()).startswith("ran out of memory (fix: lower data.max_side")
+    assert format_error(MemoryError()).startswith("ran out of memory (fix: lower data.max_side or data.resolution")
     assert "disk is full" in format_error(RuntimeError("PytorchStreamWriter failed writing file data/0: file write failed"))
     assert format_error(OSError(errno.ECONNRESET, "reset")) is None  # not a known problem: a traceback
 
