@@ -19,6 +19,7 @@ import fcntl
 import logging
 import os
 import signal
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator, Optional
@@ -191,6 +192,9 @@ def interrupt_handlers() -> Iterator[_Pending]:
     """SIGINT and SIGTERM raise :class:`Interrupted` here, or (while ``PENDING.deferred``) are recorded for
     :class:`b3dgs.callbacks.RunCheckpoint` to act on after the current step."""
     PENDING.signum, PENDING.deferred = None, False
+    if threading.current_thread() is not threading.main_thread():  # signal handlers live in the main thread only
+        yield PENDING
+        return
     old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
     for s in old:
         signal.signal(s, _on_signal)

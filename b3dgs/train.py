@@ -26,15 +26,6 @@ log = logging.getLogger(__name__)
 CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
 
 
-def _process_uid() -> str:
-    """``<pid>-<4 random hex digits>``: with ``use_cache`` resolved once per config, in the launching process."""
-    return f"{os.getpid()}-{os.urandom(2).hex()}"
-
-
-# default run dirs are unique per process (conf/hydra/default.yaml)
-OmegaConf.register_new_resolver("b3dgs.uid", _process_uid, replace=True, use_cache=True)
-
-
 def build_plugins(cfg: DictConfig):
     """Instantiate the strategy and the configured posterior blocks (in their listed order)."""
     from hydra.utils import instantiate
