@@ -178,11 +178,13 @@ class RunCheckpoint(Checkpoint):
             raise Interrupted(PENDING.signum, step)
 
     def on_train_end(self, trainer, pl_module) -> None:
-        from b3dgs.rundir import PENDING
+        from b3dgs.rundir import PENDING, Interrupted
 
         PENDING.deferred = False
         if int(trainer.global_step) != self._saved_step:
             self.save(trainer)
+        if PENDING.signum is not None:  # came after the last step's check
+            raise Interrupted(PENDING.signum, int(trainer.global_step))
 
     def on_exception(self, trainer, pl_module, exception) -> None:
         from b3dgs.rundir import PENDING

@@ -109,17 +109,19 @@ class DeferredFileHandler(logging.FileHandler):
             return
         super().emit(record)
 
-    def arm(self) -> None:
+    def arm(self, fresh: bool = False) -> None:
         held, self._held = self._held or [], None
+        if fresh:
+            self.mode = "w"  # overwrite=true: the replaced run's log goes too
         for r in held:
             super().emit(r)
 
 
-def arm_run_log() -> None:
-    """Start writing the job log (with what was logged so far)."""
+def arm_run_log(fresh: bool = False) -> None:
+    """Start writing the job log (with what was logged so far); ``fresh``: replace an old log, not append."""
     for h in logging.getLogger().handlers:
         if isinstance(h, DeferredFileHandler):
-            h.arm()
+            h.arm(fresh)
 
 
 def write_hydra_files(run_dir: Path, cfg) -> None:

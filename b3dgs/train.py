@@ -266,7 +266,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
                  "trains it again)", run_dir, done.get("steps"), "n/a" if psnr is None else f"{psnr:.3f}")
         return done
     # every check has passed: only now is the run dir changed
-    arm_run_log()
+    arm_run_log(fresh=clear)
     if clear:
         log.warning("overwrite=true: removing the previous run's outputs from %s", run_dir)
         _remove_outputs(run_dir)

@@ -241,6 +241,7 @@ class CompressionStudy:
             scenes[key] = loaded.scene
             # rows and cached scores in the base's folder are of these settings only
             settings = {k: OmegaConf.to_container(self.cfg, resolve=True).get(k) for k in PROTOCOL_KEYS}
+            settings["base_checkpoint"] = (loaded.metrics or {}).get("checkpoint")  # a retrained base: other rows
             check_stored_protocol(self.base_dir(loaded), flatten(settings),
                                   fix="pass another out_dir, or the settings of the rows there (their protocol.json)")
             base = self.base_row(loaded, lp)
