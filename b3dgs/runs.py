@@ -63,6 +63,12 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
     except Exception as e:  # noqa: BLE001 - damaged or foreign file: say which and how to go on
         raise ValueError(f"{cfg_path} is damaged or not a b3dgs run config ({' '.join(str(e).split())[:120]}) (fix: "
                          f"train the run again with `b3dgs-train ... hydra.run.dir={run_dir} overwrite=true`)") from None
+    data_path = cfg.data.get("path")
+    if data_path and not Path(str(data_path)).is_absolute() and not Path(str(data_path)).exists():
+        # runs trained before data.path was stored absolute: relative to the folder training ran in
+        raise ValueError(f"{cfg_path} has data.path={data_path}, relative to the folder the run was trained in, and "
+                         f"it is not below {Path.cwd()} (fix: run from that folder, or write the absolute scene path "
+                         f"as data.path in {cfg_path})")
     if scene is None:
         dm = instantiate(cfg.data)
         dm.setup("fit")

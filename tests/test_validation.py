@@ -184,6 +184,10 @@ def test_damaged_run_files_are_one_line(tmp_path):
     (tmp_path / "config.yaml").write_text("data: [unclosed\n")
     with pytest.raises(ValueError, match=r"config.yaml is damaged or not a b3dgs run config .*fix: train the run again"):
         load_run(tmp_path)
+    # a run of an older version: data.path relative to where it was trained
+    (tmp_path / "config.yaml").write_text("data: {path: scenes/fox}\nmodel: {name: standard}\n")
+    with pytest.raises(ValueError, match=r"data.path=scenes/fox, relative to the folder the run was trained in"):
+        load_run(tmp_path)
 
 
 def test_config_stores_data_path_absolute(tmp_path, monkeypatch):
