@@ -165,10 +165,10 @@ class RunCheckpoint(Checkpoint):
         if due and step != self._saved_step:
             self.save(trainer)
         if self._kill_at is not None and step >= self._kill_at:
-            from b3dgs.rundir import test_signal
+            from b3dgs.rundir import hook_signal
 
             self._kill_at = None
-            os.kill(os.getpid(), test_signal())
+            os.kill(os.getpid(), hook_signal())
         from b3dgs.rundir import PENDING, Interrupted
 
         if PENDING.signum is not None:

@@ -23,9 +23,9 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     try:
         yield tmp_path
         if "B3DGS_TEST_KILL_AT" in os.environ:  # test hook: kill between the write and the rename
-            from b3dgs.rundir import test_kill
+            from b3dgs.rundir import kill_hook
 
-            test_kill(f"write:{path.name}")
+            kill_hook(f"write:{path.name}")
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():

@@ -165,14 +165,15 @@ class Interrupted(Exception):
 KILL_POINT_ENV, KILL_SIGNAL_ENV = "B3DGS_TEST_KILL_AT", "B3DGS_TEST_SIGNAL"
 
 
-def test_signal() -> int:
+def hook_signal() -> int:
+    """The signal of the test hooks (``B3DGS_TEST_SIGNAL``, default KILL)."""
     return int(getattr(signal, "SIG" + os.environ.get(KILL_SIGNAL_ENV, "KILL").upper()))
 
 
-def test_kill(point: str) -> None:
+def kill_hook(point: str) -> None:
     """The test hook above (no effect unless ``B3DGS_TEST_KILL_AT`` names ``point``)."""
     if os.environ.get(KILL_POINT_ENV) == point:
-        os.kill(os.getpid(), test_signal())
+        os.kill(os.getpid(), hook_signal())
 
 
 class _Pending:

@@ -309,9 +309,9 @@ def _finish(cfg: DictConfig, run_dir: Path, module, scene, renderer, trainer, cu
     from b3dgs.metrics.lpips import get_lpips
     from b3dgs.metrics.views import evaluate_views
     from b3dgs.posterior.guards import guard_counts
-    from b3dgs.rundir import test_kill
+    from b3dgs.rundir import kill_hook
 
-    test_kill("final")
+    kill_hook("final")
     tcfg, seed = cfg.trainer, int(cfg.seed)
     # ------------------------------------------------------------ final evaluation and outputs
     # written in this order, each atomically: renders, PLY, curve, then metrics.json (the done marker)

@@ -37,7 +37,7 @@ TIMING = {"train_time_s", "render_fps", "block_time_s"}
 
 def _train(run_dir: Path, extra: list[str], kill_at: int | str | None = None, sig: str = "KILL"
            ) -> subprocess.CompletedProcess:
-    """``kill_at``: a step, or a point of :func:`b3dgs.rundir.test_kill` (``final``, ``write:<file>``)."""
+    """``kill_at``: a step, or a point of :func:`b3dgs.rundir.kill_hook` (``final``, ``write:<file>``)."""
     env = {k: v for k, v in os.environ.items() if k not in (KILL_ENV, KILL_POINT_ENV, KILL_SIGNAL_ENV)}
     if kill_at is not None:
         env[KILL_ENV if isinstance(kill_at, int) else KILL_POINT_ENV] = str(kill_at)
