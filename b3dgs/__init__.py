@@ -16,6 +16,12 @@ def _register_resolvers() -> None:
     if not OmegaConf.has_resolver("b3dgs.div"):
         # integer division, for schedules that scale with trainer.max_steps (t_dp = max_steps / 6)
         OmegaConf.register_new_resolver("b3dgs.div", lambda a, b: int(a) // int(b))
+    if not OmegaConf.has_resolver("b3dgs.uid"):
+        # default run dirs unique per process (conf/hydra/default.yaml): "<pid>-<4 random hex digits>", cached, so
+        # resolved once per config in the launching process (joblib workers get the parent's value)
+        import os
+
+        OmegaConf.register_new_resolver("b3dgs.uid", lambda: f"{os.getpid()}-{os.urandom(2).hex()}", use_cache=True)
 
 
 _register_resolvers()

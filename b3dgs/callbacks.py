@@ -7,9 +7,12 @@
 * :class:`RunCheckpoint`: ``checkpoints/last.ckpt`` (always that name, overwritten atomically) every
   ``every_n_steps`` steps, every ``every_s`` seconds of training wall-clock, and at the end.
 
-Test hook: with the environment variable ``B3DGS_TEST_KILL_AT_STEP=K``, :class:`RunCheckpoint` kills its
-own process with SIGKILL right after step ``K`` (after that step's checkpoint, if one is due), like a
-``kill -9``; ``tests/test_resume.py`` uses it. It has no other use.
+Signals: while training, SIGINT / SIGTERM (recorded by :func:`b3dgs.rundir.interrupt_handlers`) make
+:class:`RunCheckpoint` save ``last.ckpt`` after the current step and raise :class:`b3dgs.rundir.Interrupted`.
+
+Test hook: with the environment variable ``B3DGS_TEST_KILL_AT_STEP=K``, :class:`RunCheckpoint` sends its
+own process SIGKILL (or ``B3DGS_TEST_SIGNAL``: TERM, INT) right after step ``K`` (after that step's
+checkpoint, if one is due), like a ``kill -9``; ``tests/test_resume.py`` uses it. It has no other use.
 """
 from __future__ import annotations
 
@@ -17,7 +20,6 @@ import logging
 import os
 import random
 import shutil
-import signal
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -115,8 +117,8 @@ class ResumeState(L.Callback):
         if sampler is not None:
             sampler.mark_consumed(batch_idx + 1)
 
-    def on_train_end(self, trainer, pl_module) -> None:
-        self._restore()  # a resumed run that had nothing left to train
+    def on_fit_end(self, trainer, pl_module) -> None:
+        self._restore()  # a resumed run that had nothing left to train (Lightning then skips on_train_end)
 
 
 class RunCheckpoint(Checkpoint):
@@ -150,7 +152,10 @@ class RunCheckpoint(Checkpoint):
         self._t_last = time.monotonic()
 
     def on_train_start(self, trainer, pl_module) -> None:
+        from b3dgs.rundir import PENDING
+
         self._t_last = time.monotonic()
+        PENDING.deferred = True  # a signal now stops training at the next step boundary
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         step = int(trainer.global_step)
@@ -160,11 +165,31 @@ class RunCheckpoint(Checkpoint):
         if due and step != self._saved_step:
             self.save(trainer)
         if self._kill_at is not None and step >= self._kill_at:
-            os.kill(os.getpid(), signal.SIGKILL)
+            from b3dgs.rundir import hook_signal
+
+            self._kill_at = None
+            os.kill(os.getpid(), hook_signal())
+        from b3dgs.rundir import PENDING, Interrupted
+
+        if PENDING.signum is not None:
+            if step != self._saved_step:
+                self.save(trainer)
+            PENDING.deferred = False
+            raise Interrupted(PENDING.signum, step)
 
     def on_train_end(self, trainer, pl_module) -> None:
+        from b3dgs.rundir import PENDING, Interrupted
+
+        PENDING.deferred = False
         if int(trainer.global_step) != self._saved_step:
             self.save(trainer)
+        if PENDING.signum is not None:  # came after the last step's check
+            raise Interrupted(PENDING.signum, int(trainer.global_step))
+
+    def on_exception(self, trainer, pl_module, exception) -> None:
+        from b3dgs.rundir import PENDING
+
+        PENDING.deferred = False
 
 
 class CurveCallback(L.Callback):

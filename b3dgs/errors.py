@@ -14,6 +14,7 @@ raised deliberately by b3dgs's own code (the raising frame is in ``b3dgs`` or
 from __future__ import annotations
 
 import difflib
+import errno
 import os
 import sys
 import traceback
@@ -78,6 +79,12 @@ def _hydra_error(exc: BaseException) -> Optional[B3dgsError]:
         lines += [ln.strip() for ln in str(cause).splitlines() if ln.strip()]
     head = lines[0] if lines else type(exc).__name__
     text = " ".join(lines)
+    if "Could not append" in head and "already" in text:
+        key = head.split("'")[1] if "'" in head else head
+        given = [a for a in sys.argv[1:] if a.lstrip("+~").partition("=")[0] == key]
+        if len(given) > 1:
+            return B3dgsError(f"{key} is given {len(given)} times ({' '.join(given)})", "pass it once")
+        return B3dgsError(f"+{key} adds a key the config already has", f"pass {key}=VALUE without the +")
     if "Could not override" in head or "Could not append" in head or "not in struct" in text:
         key = head.split("'")[1] if "'" in head else head
         return B3dgsError(f"unknown config key {key}",
@@ -87,6 +94,37 @@ def _hydra_error(exc: BaseException) -> Optional[B3dgsError]:
         opts = " ".join(avail)[:200]
         return B3dgsError(_one_line(head), f"pick an existing option{': ' + opts if opts else ''}")
     return B3dgsError(_one_line(head), "correct the config override named above")
+
+
+_IO_FIX = {
+    errno.ENOSPC: ("no space left on the device", "free disk space, or pass hydra.run.dir / out= on another disk"),
+    errno.EDQUOT: ("disk quota exceeded", "free disk space, or pass hydra.run.dir / out= on another disk"),
+    errno.EFBIG: ("the file exceeds the file-size limit (ulimit -f) or the file system's",
+                  "raise the limit, or pass hydra.run.dir / out= on another disk"),
+    errno.EROFS: ("the file system is read-only", "pass hydra.run.dir / out= to a writable folder"),
+    errno.EACCES: ("permission denied", "pass hydra.run.dir / out= to a folder you can write"),
+    errno.EPERM: ("operation not permitted", "pass hydra.run.dir / out= to a folder you can write"),
+    errno.ENOTDIR: ("a path component is a file, not a folder", "pass hydra.run.dir / out= to a folder"),
+    errno.EISDIR: ("it is a folder, not a file", "pass the path of a file"),
+    errno.EEXIST: ("a file is in the way of a folder", "pass hydra.run.dir / out= to a folder"),
+}
+_TORCH_WRITE = ("file write failed", "iostream error", "unexpected pos")  # torch.save's C++ writer
+_OOM = ("can't allocate memory", "out of memory", "cannot allocate memory")
+
+
+def _io_error(exc: BaseException) -> Optional[str]:
+    """One line for disk full, read-only or unwritable outputs, and running out of memory."""
+    if isinstance(exc, MemoryError) or (isinstance(exc, RuntimeError) and any(k in str(exc).lower() for k in _OOM)):
+        return ("ran out of memory (fix: lower data.max_side or data.resolution (image size) or data.max_images, "
+                "or use a machine with more memory)")
+    if isinstance(exc, RuntimeError) and any(k in str(exc) for k in _TORCH_WRITE):  # torch.save on a full disk
+        return ("cannot write a checkpoint: the disk is full, not writable or over a file-size limit (fix: free disk "
+                "space, or pass hydra.run.dir on another disk)")
+    if isinstance(exc, OSError) and exc.errno in _IO_FIX:
+        what, fix = _IO_FIX[exc.errno]
+        name = exc.filename if exc.filename is not None else ""
+        return f"cannot write {name}: {what} (fix: {fix})" if name else f"{what} (fix: {fix})"
+    return None
 
 
 def format_error(exc: BaseException) -> Optional[str]:
@@ -110,6 +148,9 @@ def format_error(exc: BaseException) -> Optional[str]:
             return inner
     if isinstance(exc, FileNotFoundError):
         return f"{_one_line(exc)} (fix: check the path)"
+    io = _io_error(exc)
+    if io is not None:
+        return io
     if isinstance(exc, (ValueError, IndexError)) and _raised_by_us(exc):
         msg = _one_line(exc)
         return msg if "(fix:" in msg else f"{msg} (fix: correct the input named above)"
@@ -129,7 +170,24 @@ def _debug_requested(argv: list[str]) -> bool:
     return False
 
 
+class ReportedError(Exception):
+    """A multirun job's known error, already printed as its one line: the sweep runs the other jobs on,
+    then exits with code 2."""
+
+
+def _in_multirun() -> bool:
+    try:
+        from hydra.core.hydra_config import HydraConfig
+        from hydra.types import RunMode
+
+        return HydraConfig.initialized() and HydraConfig.get().mode == RunMode.MULTIRUN
+    except Exception:  # noqa: BLE001
+        return False
+
+
 def _report(prog: str, e: BaseException) -> None:
+    if isinstance(e, ReportedError):
+        sys.exit(EXIT_CODE)
     msg = format_error(e)
     if msg is None:
         traceback.print_exception(e)
@@ -155,6 +213,12 @@ def known_errors(prog: str, cfg=None):
     except Exception as e:  # noqa: BLE001
         if debug or format_error(e) is None:
             raise
+        if _in_multirun():  # one job's bad value must not stop the jobs after it
+            from hydra.core.hydra_config import HydraConfig
+
+            sys.stderr.write(f"{prog}: error: job {HydraConfig.get().job.num}: {format_error(e)}\n")
+            sys.stderr.flush()
+            raise ReportedError(format_error(e)) from None
         _report(prog, e)
 
 

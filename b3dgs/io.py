@@ -22,6 +22,10 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     os.chmod(tmp_path, 0o666 & ~umask)  # mkstemp creates 0600; give the usual file mode
     try:
         yield tmp_path
+        if "B3DGS_TEST_KILL_AT" in os.environ:  # test hook: kill between the write and the rename
+            from b3dgs.rundir import kill_hook
+
+            kill_hook(f"write:{path.name}")
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():

@@ -365,11 +365,19 @@ class SplatModule(L.LightningModule):
         self._restored_counts = (extra.get("removed", {}), extra.get("added", {}))
 
     def on_train_start(self) -> None:
-        ops = self._get_ops()
+        self._apply_restored_counts()
+
+    def on_fit_end(self) -> None:
+        # a resume from the final checkpoint trains nothing: Lightning skips on_train_start
+        self._apply_restored_counts()
+
+    def _apply_restored_counts(self) -> None:
         removed, added = getattr(self, "_restored_counts", ({}, {}))
         self._restored_counts = ({}, {})  # applied once (a later fit of this module carries the live counters)
-        ops.removed.update(removed)
-        ops.added.update(added)
+        if removed or added or self.ops is None:
+            ops = self._get_ops()
+            ops.removed.update(removed)
+            ops.added.update(added)
 
     # ------------------------------------------------------------------ evaluation
     @torch.no_grad()

@@ -56,7 +56,19 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
     ckpt_path = Path(checkpoint) if checkpoint else run_dir / "checkpoints" / "last.ckpt"
     if not ckpt_path.exists():
         raise FileNotFoundError(f"No checkpoint at {ckpt_path}; the run may not have finished (resume with resume=auto)")
-    cfg = OmegaConf.load(cfg_path)
+    try:
+        cfg = OmegaConf.load(cfg_path)
+        if not isinstance(cfg, DictConfig) or "data" not in cfg or "model" not in cfg:
+            raise ValueError("no data / model node")
+    except Exception as e:  # noqa: BLE001 - damaged or foreign file: say which and how to go on
+        raise ValueError(f"{cfg_path} is damaged or not a b3dgs run config ({' '.join(str(e).split())[:120]}) (fix: "
+                         f"train the run again with `b3dgs-train ... hydra.run.dir={run_dir} overwrite=true`)") from None
+    data_path = cfg.data.get("path")
+    if data_path and not Path(str(data_path)).is_absolute() and not Path(str(data_path)).exists():
+        # runs trained before data.path was stored absolute: relative to the folder training ran in
+        raise ValueError(f"{cfg_path} has data.path={data_path}, relative to the folder the run was trained in, and "
+                         f"it is not below {Path.cwd()} (fix: run from that folder, or write the absolute scene path "
+                         f"as data.path in {cfg_path})")
     if scene is None:
         dm = instantiate(cfg.data)
         dm.setup("fit")
@@ -72,7 +84,11 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
         raise ValueError(f"Cannot read checkpoint {ckpt_path}: {e}") from e
     metrics = None
     if (run_dir / "metrics.json").exists():
-        metrics = json.loads((run_dir / "metrics.json").read_text())
+        try:
+            metrics = json.loads((run_dir / "metrics.json").read_text())
+        except ValueError as e:
+            raise ValueError(f"{run_dir / 'metrics.json'} is damaged ({e}) (fix: finish the run again with "
+                             f"`b3dgs-train ... hydra.run.dir={run_dir} resume=auto`)") from None
     if checkpoint is None:  # the run's own last.ckpt must be the model its metrics.json describes
         check_run_checkpoint(run_dir, ck, metrics)
     module.check_checkpoint_identity(

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import logging
 import os
+import sys
 import time
 import warnings
 from collections import OrderedDict
@@ -78,13 +79,17 @@ def resolve_accelerator(requested: Optional[str], renderer) -> str:
 
 
 def save_config(cfg: DictConfig, path: Path) -> None:
-    """The composed config (without Hydra's own node), resolved, written atomically."""
+    """The composed config (without Hydra's own node), resolved, ``data.path`` made absolute (``b3dgs-eval``
+    works from any folder), written atomically."""
     from b3dgs.io import atomic_path
 
     c = cfg.copy()
     with open_dict(c):
         c.pop("hydra", None)
     plain = OmegaConf.to_container(c, resolve=True)
+    data = plain.get("data")
+    if isinstance(data, dict) and data.get("path"):
+        data["path"] = str(Path(str(data["path"])).expanduser().resolve())
     with atomic_path(path) as tmp:
         tmp.write_text(OmegaConf.to_yaml(OmegaConf.create(plain)))
 
@@ -142,6 +147,8 @@ def prepare_run_dir(cfg: DictConfig, run_dir: Path) -> tuple[Optional[str], bool
     if not held:
         return ckpt, False
     if resume in ("auto", True):
+        if finished_metrics(run_dir) is not None:
+            return ckpt, False  # finished: the caller checks its identity, says so and rewrites nothing
         if ckpt is None and (run_dir / "metrics.json").exists():
             raise ValueError(f"{run_dir} holds a finished run but no checkpoints/last.ckpt to resume from "
                              "(fix: pass overwrite=true to train it again, or another hydra.run.dir)")
@@ -175,29 +182,60 @@ def _checkpoint_every_s(tcfg) -> Optional[float]:
     return float(v)
 
 
+def _rmdir_if_empty(path: Path) -> None:
+    try:
+        path.rmdir()
+    except OSError:
+        pass
+
+
+def finished_metrics(run_dir: Path) -> Optional[dict]:
+    """The complete ``metrics.json`` of a finished run in ``run_dir``, else ``None``."""
+    import json
+
+    try:
+        m = json.loads((run_dir / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return m if isinstance(m, dict) and "checkpoint" in m else None
+
+
 def train(cfg: DictConfig) -> dict:
     """Train one model into its run dir; returns the metrics dict.
 
-    Run dir contract: ``config.yaml`` first, ``checkpoints/last.ckpt`` (never ``last-v1.ckpt``) every
-    ``trainer.checkpoint_every`` steps and ``trainer.checkpoint_every_s`` seconds and at the end, then the
-    renders, ``point_cloud.ply`` and the curve files, and ``metrics.json`` last, as the "done" marker (it
-    records the final checkpoint's step, Gaussian count and parameter digest). A resume (``resume=auto``)
-    is exact: it continues bit for bit as the uninterrupted run would (RNGs, view sampler, guard
-    counters and plugin states are in the checkpoint), and is refused for another model, posterior,
-    strategy, scene, ``trainer.max_steps`` or seed.
+    Run dir contract: the run dir's lock (:func:`b3dgs.rundir.run_dir_lock`) first; once every check has
+    passed ``config.yaml``, ``.hydra/`` and the job log, ``checkpoints/last.ckpt`` (never ``last-v1.ckpt``)
+    every ``trainer.checkpoint_every`` steps and ``trainer.checkpoint_every_s`` seconds and at the end,
+    then the renders, ``point_cloud.ply`` and the curve files, and ``metrics.json`` last, as the "done"
+    marker (it records the final checkpoint's step, Gaussian count and parameter digest). A finished run
+    is never rewritten: ``resume=auto`` on it says so and returns its metrics (``overwrite=true`` trains it
+    again). A resume (``resume=auto``) is exact: it continues bit for bit as the uninterrupted run would
+    (RNGs, view sampler, guard counters and plugin states are in the checkpoint), also when the kill came
+    after the last checkpoint (then only the final evaluation runs), and is refused for another model,
+    posterior, strategy, scene, ``trainer.max_steps`` or seed. SIGINT / SIGTERM save a checkpoint and raise
+    :class:`b3dgs.rundir.Interrupted`.
     """
+    from b3dgs.rundir import interrupt_handlers, run_dir_lock
+    from b3dgs.validation import validate_config
+
+    run_dir = Path(cfg.trainer.default_root_dir)
+    try:
+        validate_config(cfg, app="train")
+    except Exception:
+        _rmdir_if_empty(run_dir)  # Hydra made it; a refused run leaves nothing
+        raise
+    with interrupt_handlers(), run_dir_lock(run_dir):
+        return _train_locked(cfg, run_dir)
+
+
+def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
     import lightning as L
     from lightning.pytorch.loggers import TensorBoardLogger  # noqa: F401 - logger=tensorboard targets it
 
     from b3dgs.callbacks import AtomicCheckpointIO, CurveCallback, ResumeState, RunCheckpoint
-    from b3dgs.checkpoint import checkpoint_record
-    from b3dgs.metrics.views import evaluate_views
-    from b3dgs.metrics.lpips import get_lpips
-    from b3dgs.posterior.guards import guard_counts, reset_guards
-    from b3dgs.validation import validate_config
+    from b3dgs.posterior.guards import reset_guards
+    from b3dgs.rundir import Interrupted, arm_run_log, remove_stale_tmp, write_hydra_files
 
-    validate_config(cfg, app="train")
-    run_dir = Path(cfg.trainer.default_root_dir)
     tcfg = cfg.trainer
     every_s = _checkpoint_every_s(tcfg)
     ckpt_path, clear = prepare_run_dir(cfg, run_dir)
@@ -221,13 +259,22 @@ def train(cfg: DictConfig) -> dict:
     accelerator = resolve_accelerator(cfg.trainer.get("accelerator"), renderer)
     if ckpt_path is not None:
         check_resume(module, ckpt_path)
+    done = None if clear else finished_metrics(run_dir)
+    if done is not None:  # resume=auto on a finished run of these settings: nothing to do, nothing rewritten
+        psnr = done.get("psnr")
+        log.info("%s holds a finished run (step %s, PSNR %s dB): nothing to do, nothing rewritten (overwrite=true "
+                 "trains it again)", run_dir, done.get("steps"), "n/a" if psnr is None else f"{psnr:.3f}")
+        return done
     # every check has passed: only now is the run dir changed
-    run_dir.mkdir(parents=True, exist_ok=True)
+    arm_run_log(fresh=clear)
     if clear:
         log.warning("overwrite=true: removing the previous run's outputs from %s", run_dir)
         _remove_outputs(run_dir)
     else:
-        _remove_outputs(run_dir, ("metrics.json",))  # the done marker comes back when this run finishes
+        _remove_outputs(run_dir, ("metrics.json",))  # a damaged done marker comes back when this run finishes
+    for p in remove_stale_tmp(run_dir):
+        log.info("removed %s, a temp file left by an interrupted run", p.relative_to(run_dir))
+    write_hydra_files(run_dir, cfg)
     save_config(cfg, run_dir / "config.yaml")
     log.info("Scene %s: %d train / %d test views, %d initial Gaussians, extent %.3f; renderer %s on %s",
              scene.name, len(scene.train), len(scene.test), module.num_gaussians, scene.extent, renderer.name,
@@ -249,7 +296,23 @@ def train(cfg: DictConfig) -> dict:
         warnings.filterwarnings("ignore", message=".*`training_step` returns.*")
         # our own checkpoints hold plugin states and config values, not only tensors
         trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
+    try:
+        return _finish(cfg, run_dir, module, scene, renderer, trainer, curve, ckpt)
+    except Interrupted as e:
+        e.step = int(trainer.global_step)
+        raise
 
+
+def _finish(cfg: DictConfig, run_dir: Path, module, scene, renderer, trainer, curve, ckpt) -> dict:
+    """The final evaluation and outputs of a trained model (also all a resume from the final checkpoint does)."""
+    from b3dgs.checkpoint import checkpoint_record
+    from b3dgs.metrics.lpips import get_lpips
+    from b3dgs.metrics.views import evaluate_views
+    from b3dgs.posterior.guards import guard_counts
+    from b3dgs.rundir import kill_hook
+
+    kill_hook("final")
+    tcfg, seed = cfg.trainer, int(cfg.seed)
     # ------------------------------------------------------------ final evaluation and outputs
     # written in this order, each atomically: renders, PLY, curve, then metrics.json (the done marker)
     final = checkpoint_record(torch.load(ckpt.last_path, map_location="cpu", weights_only=False, mmap=True))
@@ -291,9 +354,17 @@ def train(cfg: DictConfig) -> dict:
 def hydra_main(cfg: DictConfig) -> Optional[float]:
     from b3dgs.errors import known_errors, quiet_known_noise
 
+    from b3dgs.rundir import Interrupted
+
     with known_errors("b3dgs-train", cfg):
         quiet_known_noise()
-        metrics = train(cfg)
+        try:
+            metrics = train(cfg)
+        except Interrupted as e:
+            at = "before training started" if e.step is None else f"at step {e.step}"
+            sys.stderr.write(f"b3dgs-train: {e} {at}; resume with resume=auto\n")
+            sys.stderr.flush()
+            sys.exit(e.exit_code)
     return metrics.get("psnr")
 
 
@@ -305,4 +376,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    # through the importable module, so that the joblib launcher can pickle the task (not __main__'s copy)
+    from b3dgs.train import main as _main
+
+    _main()

@@ -232,7 +232,8 @@ def _check_top(cfg: DictConfig, app: str) -> None:
                 raise B3dgsError(f"unknown config key b3dgs.{key}", "the b3dgs node holds only b3dgs.debug")
         _need(isinstance(_get(b, "debug", "b3dgs.debug"), bool), "b3dgs.debug", b.debug, "true or false",
               "pass b3dgs.debug=true for full tracebacks")
-    _need(_is_int(_get(cfg, "seed", "seed")), "seed", cfg.get("seed"), "an integer", "pass seed=0")
+    seed = _get(cfg, "seed", "seed")
+    _need(_is_int(seed) and 0 <= seed < 2**32, "seed", seed, "an integer in [0, 2^32)", "pass seed=0")
     _int_at_least("threads", _get(cfg, "threads", "threads") if "threads" in cfg else None, 1,
                   "pass threads=2 or threads=null (torch's default)", allow_none=True)
 
@@ -297,6 +298,10 @@ def _check_model(cfg: DictConfig) -> None:
     if "init_opacity" in v:
         _need(_is_num(v["init_opacity"]) and 0 < v["init_opacity"] < 1, "model.init_opacity", v["init_opacity"],
               "strictly between 0 and 1 (its logit must be finite)", "pass model.init_opacity=0.1")
+    if "init_scale" in v:
+        _need(_is_num(v["init_scale"]) and 0 < v["init_scale"] < float("inf"), "model.init_scale", v["init_scale"],
+              "a positive number (it multiplies the initial Gaussian sizes; their log must be finite)",
+              "pass model.init_scale=1.0")
     _int_at_least("model.init_max_points", v.get("init_max_points"), 1, fix, allow_none=True)
     if "init_num_random" in v:
         _int_at_least("model.init_num_random", v["init_num_random"], 0, fix)
@@ -326,7 +331,10 @@ def _check_plugins(cfg: DictConfig) -> None:
                              f"pick blocks with posterior=[{','.join(blocks)}]")
         nodes.append((f"posterior.{name}", node))
     for path, node in nodes:
-        _check_target_node(node, path)
+        v = _check_target_node(node, path)
+        if path == "strategy" and "percent_dense" in v:
+            _need(_is_num(v["percent_dense"]) and 0 < v["percent_dense"] <= 1, "strategy.percent_dense",
+                  v["percent_dense"], "a fraction of the scene extent in (0, 1]", "pass strategy.percent_dense=0.01")
         try:
             obj = instantiate(node)
             obj.check_sanity(max_steps=max_steps)
@@ -404,6 +412,9 @@ def _check_eval(cfg: DictConfig) -> None:
     _int_at_least("max_views", _get(cfg, "max_views", "max_views") if "max_views" in cfg else None, 1,
                   "pass max_views=N or null for all test views", allow_none=True)
     _int_at_least("panels", _get(cfg, "panels", "panels") if "panels" in cfg else 0, 0, "pass panels=3")
+    out = cfg.get("out")
+    if out is not None and Path(str(out)).exists() and not Path(str(out)).is_dir():
+        raise B3dgsError(f"out={out} is a file", "pass out=PATH to a folder (uq.json and the plots go there)")
     uq = cfg.get("uq")
     regimes = [name for name, _ in _group_options("uq")]
     if not isinstance(uq, DictConfig) or not any(isinstance(uq[k], DictConfig) for k in uq.keys()):
@@ -431,6 +442,13 @@ def _check_eval(cfg: DictConfig) -> None:
                 obj.check()
         except (ValueError, TypeError) as e:
             raise B3dgsError(f"uq.{name}: {' '.join(str(e).split())}", "correct that value (the defaults are in conf/uq/)") from None
+    seen: dict[Path, str] = {}
+    for r in runs:
+        key = Path(str(r)).resolve()
+        if key in seen:  # one model twice is no ensemble: zero spread between "members"
+            raise B3dgsError(f"run= names the run {r} twice ({seen[key]} and {r})",
+                             "pass each run dir once (an ensemble needs distinct runs, e.g. seeds)")
+        seen[key] = str(r)
     for r in runs:
         d = Path(str(r))
         if not (d / "config.yaml").is_file():

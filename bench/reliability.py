@@ -5,6 +5,11 @@ Every row runs the real command in a subprocess (its own process group, a wall-c
 down) and keeps its exit code and the one line it prints: the ``<prog>: error: ...`` line for a
 refused input, the warning or the final ``Done:`` line for an accepted one.
 
+Scenario rows (issue 20: concurrent trainings, signals, kills inside the final writes, finished runs,
+stored results reused or pooled, multiruns) run several commands; their row keeps the decisive command's
+exit code and line and says what was checked besides (``expect`` names the outcome: ``refused``,
+``accepted`` or ``interrupted`` with exit 130 / 143).
+
 Damaged scenes are built under ``outputs/bench/reliability/fixtures`` from copies of the shared
 scenes (never written to). Results go to ``bench/results/reliability.{json,md}``, rewritten
 atomically after every row; rows already measured are skipped unless ``--force``.
@@ -23,6 +28,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
@@ -129,6 +135,246 @@ def _bad_ckpt() -> Path:
     return p
 
 
+# ------------------------------------------------------------------------------------ issue 20 scenarios
+TINY = ["+data.n_views=8", "data.max_side=16", "trainer.max_steps=4", "trainer.eval_every=100", "trainer.checkpoint_every=2",
+        "trainer.checkpoint_every_s=0", "trainer.progress_bar=false", "logger=none", "threads=1"]
+
+
+def _env(**kw) -> dict:
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR" and not k.startswith("B3DGS_TEST")}
+    env.update({k: str(v) for k, v in kw.items()})
+    return env
+
+
+def _popen(module: str, args: list[str], env: Optional[dict] = None, cwd: Path = ROOT, limit=True) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", module, *args], cwd=cwd, env=env or _env(), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, preexec_fn=_limit if limit else None)
+
+
+def _run(module: str, args: list[str], timeout: int = 300, **kw) -> tuple[int, str, str]:
+    proc = _popen(module, args, **kw)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        return -1, out, err + f"\nTIMEOUT after {timeout} s"
+    return proc.returncode, out, err
+
+
+def _line(prog: str, rc: int, out: str, err: str) -> str:
+    return _message(prog.removeprefix("b3dgs-"), rc, out, err)
+
+
+def _fresh(name: str) -> Path:
+    d = WORK / "scenarios" / name
+    if d.exists():
+        shutil.rmtree(d)
+    d.mkdir(parents=True)
+    return d
+
+
+def _files(d: Path) -> dict:
+    return {str(p.relative_to(d)): (p.stat().st_mtime_ns, p.stat().st_size) for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+def _finished_run(d: Path, *extra: str) -> Path:
+    rc, out, err = _run("b3dgs.train", [*TINY, *extra, f"hydra.run.dir={d}"])
+    if rc != 0:
+        raise RuntimeError(f"fixture run failed: {err[-500:]}")
+    return d
+
+
+def sc_concurrent() -> dict:
+    """Two trainings on one run dir: the first is stopped (SIGSTOP by its own test hook) at step 1, holding it."""
+    d = _fresh("concurrent") / "run"
+    first = _popen("b3dgs.train", [*TINY, f"hydra.run.dir={d}"], env=_env(B3DGS_TEST_KILL_AT_STEP=1, B3DGS_TEST_SIGNAL="STOP"),
+                   limit=False)
+    os.waitpid(first.pid, os.WUNTRACED)
+    try:
+        before = _files(d)
+        rc, out, err = _run("b3dgs.train", [*TINY, "seed=1", f"hydra.run.dir={d}"])
+        untouched = _files(d) == before
+    finally:
+        os.kill(first.pid, signal.SIGCONT)
+    first.communicate(timeout=300)
+    ok = rc == 2 and untouched and first.returncode == 0 and (d / "metrics.json").exists()
+    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err), "ok": ok,
+            "checked": f"the first run finished (exit {first.returncode}), the refused one changed nothing"}
+
+
+def sc_default_dirs() -> dict:
+    """Two trainings with the default run dir, started together in one folder: two run dirs."""
+    d = _fresh("default_dirs")
+    procs = [_popen("b3dgs.train", [*TINY, "model.sh_degree=1"], cwd=d) for _ in range(2)]
+    res = [(p.wait(timeout=300), *p.communicate()) for p in procs]
+    runs = sorted(d.glob("outputs/train/*/metrics.json"))
+    rc = max(r[0] for r in res)
+    return {"exit_code": rc, "message": _line("b3dgs-train", res[-1][0], res[-1][1], res[-1][2]),
+            "ok": rc == 0 and len(runs) == 2, "checked": f"{len(runs)} run dirs with metrics.json"}
+
+
+def sc_signal(sig: str, code: int) -> dict:
+    d = _fresh(f"sig{sig}") / "run"
+    rc, out, err = _run("b3dgs.train", [*TINY, f"hydra.run.dir={d}"], env=_env(B3DGS_TEST_KILL_AT_STEP=3, B3DGS_TEST_SIGNAL=sig))
+    import torch
+
+    step = torch.load(d / "checkpoints" / "last.ckpt", weights_only=False)["global_step"] if (d / "checkpoints" / "last.ckpt").exists() else None
+    rc2, out2, err2 = _run("b3dgs.train", [*TINY, "resume=auto", f"hydra.run.dir={d}"])
+    line = [ln for ln in err.splitlines() if ln.strip()][-1:] or [""]
+    return {"exit_code": rc, "message": line[0], "ok": rc == code and step == 3 and rc2 == 0 and line[0].endswith(
+        "resume with resume=auto"), "checked": f"last.ckpt at step {step}; resume=auto then finished (exit {rc2})"}
+
+
+def sc_final_ctrl_c() -> dict:
+    d = _fresh("final_ctrl_c") / "run"
+    rc, out, err = _run("b3dgs.train", [*TINY, f"hydra.run.dir={d}"], env=_env(B3DGS_TEST_KILL_AT="final", B3DGS_TEST_SIGNAL="INT"))
+    rc2, _, _ = _run("b3dgs.train", [*TINY, "resume=auto", f"hydra.run.dir={d}"])
+    line = [ln for ln in err.splitlines() if ln.strip()][-1:] or [""]
+    return {"exit_code": rc, "message": line[0], "ok": rc == 130 and rc2 == 0 and (d / "metrics.json").exists(),
+            "checked": f"resume=auto then finished the evaluation (exit {rc2})"}
+
+
+def sc_kill_final_write(point: str) -> dict:
+    """kill -9 inside a final write (temp file written, not renamed), then resume=auto: the same metrics.json."""
+    base = _fresh(f"kill_{point}")
+    dens = ["trainer.max_steps=8", "strategy.refine_start=2", "strategy.refine_every=2", "strategy.refine_stop=7",
+            "strategy.grad_threshold=1e-9"]  # densify, so that the restored counters are not empty
+    ref = _finished_run(base / "ref", *dens)
+    d = base / "cut"
+    rc0, _, _ = _run("b3dgs.train", [*TINY, *dens, f"hydra.run.dir={d}"], env=_env(B3DGS_TEST_KILL_AT=f"write:{point}"))
+    stale = [p.name for p in d.rglob("*.tmp")]
+    rc, out, err = _run("b3dgs.train", [*TINY, *dens, "resume=auto", f"hydra.run.dir={d}"])
+    a, b = (json.loads((x / "metrics.json").read_text()) for x in (ref, d))
+    timing = ("train_time_s", "render_fps", "block_time_s")
+    same = {k: v for k, v in a.items() if k not in timing} == {k: v for k, v in b.items() if k not in timing}
+    ok = rc0 == -9 and bool(stale) and rc == 0 and same and not list(d.rglob("*.tmp")) and bool(b.get("added"))
+    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err), "ok": ok,
+            "checked": f"killed (exit {rc0}) leaving {stale}; after resume metrics.json equal to an uninterrupted "
+                       f"run's (timings aside): {same}; temp files removed; added={b.get('added')}"}
+
+
+def sc_finished_resume() -> dict:
+    d = _finished_run(_fresh("finished") / "run")
+    before = _files(d)
+    rc, out, err = _run("b3dgs.train", [*TINY, "resume=auto", f"hydra.run.dir={d}"])
+    lines = [ln.split("] - ", 1)[-1] for ln in (out + err).splitlines() if "finished run" in ln]
+    return {"exit_code": rc, "message": lines[0] if lines else _line("b3dgs-train", rc, out, err),
+            "ok": rc == 0 and _files(d) == before, "checked": "no file of the run dir rewritten"}
+
+
+def sc_refused_leaves_nothing() -> dict:
+    d = _fresh("refused") / "run"
+    d.mkdir()
+    (d / "config.yaml").write_text("seed: 0\n")
+    rc, out, err = _run("b3dgs.train", [*TINY, f"hydra.run.dir={d}"])
+    left = sorted(p.name for p in d.iterdir())
+    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err), "ok": rc == 2 and left == ["config.yaml"],
+            "checked": f"run dir holds {left} (no .hydra/, no train.log)"}
+
+
+def sc_joblib() -> dict:
+    d = _fresh("joblib")
+    rc, out, err = _run("b3dgs.train", ["-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2", "model.sh_degree=0,1", *TINY,
+                                        f"hydra.sweep.dir={d}"], limit=False)
+    runs = sorted(d.glob("*/metrics.json"))
+    return {"exit_code": rc, "message": f"{len(runs)} of 2 jobs finished: " + ", ".join(r.parent.name for r in runs),
+            "ok": rc == 0 and len(runs) == 2, "checked": "both run dirs hold metrics.json"}
+
+
+def sc_multirun_bad_seed() -> dict:
+    d = _fresh("multirun_bad_seed")
+    rc, out, err = _run("b3dgs.train", ["-m", "seed=-1,1", *TINY, f"hydra.sweep.dir={d}"])
+    runs = sorted(d.glob("*/metrics.json"))
+    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err), "ok": rc == 2 and len(runs) == 1,
+            "checked": f"the job after it ran: {[r.parent.name for r in runs]}"}
+
+
+def sc_study_reuse() -> dict:
+    d = _fresh("study_reuse")
+    study = ["data=synthetic", "data.max_side=16", "+data.n_views=24", "renderer=cpu", "trainer.max_steps=6",
+             "trainer.checkpoint_every_s=0", "initial_views=4", "acquire=2", "seeds=[0]", "policies=[uniform]",
+             "family_baselines=[]", "threads=1", "plots=false", "oracle=false", f"out_dir={d}"]
+    rc0, _, err0 = _run("b3dgs.study.active", study)
+    rc, out, err = _run("b3dgs.study.active", study + ["initial_views=3", "trainer.max_steps=9"])
+    return {"exit_code": rc, "message": _line("b3dgs-study", rc, out, err), "ok": rc0 == 0 and rc == 2,
+            "checked": f"first study exit {rc0}"}
+
+
+def sc_report_pool() -> dict:
+    d = _fresh("report_pool")
+    _finished_run(d / "a")
+    _finished_run(d / "b", "seed=1", "trainer.max_steps=6")
+    rc, out, err = _run("b3dgs.report.app", [f"runs={d}/*", f"out={d / 'report'}"])
+    rc2, _, err2 = _run("b3dgs.report.app", [f"runs={d}/*", f"out={d / 'report'}", "group_by=[trainer.max_steps]"])
+    return {"exit_code": rc, "message": _line("b3dgs-report", rc, out, err), "ok": rc == 2 and rc2 == 0,
+            "checked": f"with group_by=[trainer.max_steps]: exit {rc2}"}
+
+
+def sc_eval_twice() -> dict:
+    d = _finished_run(_fresh("eval_twice") / "run")
+    rc, out, err = _run("b3dgs.eval", [f"run=[{d},{d}/.]", "uq=[ensemble]", f"hydra.run.dir={d.parent / 'eval'}"])
+    return {"exit_code": rc, "message": _line("b3dgs-eval", rc, out, err), "ok": rc == 2, "checked": ""}
+
+
+def sc_eval_elsewhere() -> dict:
+    """b3dgs-eval from another folder on a run trained with a relative data.path."""
+    base = _fresh("eval_elsewhere")
+    scene = base / "scene"
+    shutil.copytree(_fox_variant("eval_elsewhere_fox", _set()), scene, symlinks=True)
+    work = base / "work"
+    work.mkdir()
+    (work / "scene").symlink_to(scene)
+    rc0, _, err0 = _run("b3dgs.train", ["data=transforms", "data.path=scene", "data.max_images=8", *SHORT,
+                                        f"hydra.run.dir={base / 'run'}"], cwd=work)
+    rc, out, err = _run("b3dgs.eval", [f"run={base / 'run'}", "uq=[proxy]", "max_views=1", "panels=0",
+                                       f"hydra.run.dir={base / 'eval'}"], cwd=base)
+    wrote = (base / "run" / "uq.json").exists()
+    msg = f"uq.json written: {wrote}" if rc == 0 else _line("b3dgs-eval", rc, out, err)
+    return {"exit_code": rc, "message": msg, "ok": rc0 == 0 and rc == 0 and wrote,
+            "checked": f"config.yaml data.path = {json.dumps(str(_cfg_path(base / 'run')))}"}
+
+
+def _cfg_path(run: Path) -> str:
+    from omegaconf import OmegaConf
+
+    return str(OmegaConf.load(run / "config.yaml").data.path).replace(str(ROOT) + "/", "")
+
+
+def sc_png16() -> dict:
+    """Two 16-bit frames holding the same raw value 200, one with a bright pixel: loaded as the same intensity."""
+    from PIL import Image
+
+    from b3dgs.data.images import load_image
+
+    d = _fresh("png16")
+    vals = []
+    for name, peak in (("dark", 200), ("bright", 60000)):
+        a = np.full((4, 4), 200, dtype=np.uint16)
+        a[0, 0] = peak
+        Image.fromarray(a).save(d / f"{name}.png")
+        vals.append(float(load_image(d / f"{name}.png")[1, 1, 0]))
+    return {"exit_code": 0, "message": f"raw 200 loads as {vals[0]:.6f} and {vals[1]:.6f} (200/65535 = {200 / 65535:.6f})",
+            "ok": all(abs(v - 200 / 65535) < 1e-7 for v in vals), "checked": "b3dgs.data.images.load_image"}
+
+
+TRUNCATED_METRICS = '{"psnr": 2'
+
+
+def _eval_run_with(name: str, file: str, text: str) -> Path:
+    """A finished tiny run with ``file`` overwritten by ``text``."""
+    d = FIX / name
+    if d.exists():
+        shutil.rmtree(d)
+    _finished_run(d)
+    (d / file).write_text(text)
+    return d
+
+
+def _non_numeric(meta, d):
+    meta["frames"][3]["fl_x"] = "abc"
+
+
 def rows() -> list[dict]:
     """(id, what, app, overrides or a fixture builder returning them, expected outcome)."""
     S = shared_dir() / "data"
@@ -198,7 +444,66 @@ def rows() -> list[dict]:
         lambda: [f"run={_run_dir('run_bad_ckpt', b'PK garbage')}"], app="eval")
     add("eval_ensemble_one", "`b3dgs-eval uq=[ensemble]` with one run",
         lambda: [f"run=[{_run_dir('run_one', None)}]", "uq=[ensemble]"], app="eval")
+
+    # --- issue 20: inputs
+    for rid, args, note in [("seed_neg", ["seed=-1"], ""), ("seed_2_32", [f"seed={2**32}"], " (2^32)"),
+                            ("init_scale_0", ["model.init_scale=0"], " (trained, then failed at the PLY write)"),
+                            ("init_scale_neg", ["model.init_scale=-1"], " (blamed on learning rates)"),
+                            ("percent_dense_neg", ["strategy.percent_dense=-1"], " (accepted)"),
+                            ("plus_twice", ["+data.n_views=8", "+data.n_views=9"], " (reported as unknown)"),
+                            ("plus_existing", ["+seed=3"], " (key already there; reported as unknown)")]:
+        add(rid, f"`{' '.join(args)}`{note}", args)
+    add("run_dir_file", "`hydra.run.dir=` a file", lambda: [f"hydra.run.dir={_a_file()}"])
+    add("run_dir_below_file", "`hydra.run.dir=` below a file", lambda: [f"hydra.run.dir={_a_file()}/run"])
+    add("disk_full", "disk full while writing the checkpoint (simulated: `ulimit -f 64`)", TINY + ["fsize"])
+    add("huge_resolution", "`+data.resolution=30000` synthetic (MemoryError)", ["+data.n_views=8", "+data.resolution=30000",
+                                                                                 "data.max_side=null"])
+    add("transforms_non_numeric", "`fl_x: \"abc\"` in one frame of transforms.json",
+        lambda: fox + [f"data.path={_fox_variant('non_numeric', _non_numeric)}"])
+    add("eval_metrics_truncated", "`b3dgs-eval` on a run whose metrics.json is truncated",
+        lambda: [f"run={_eval_run_with('run_trunc_metrics', 'metrics.json', TRUNCATED_METRICS)}", "uq=[proxy]"], app="eval")
+    add("eval_config_corrupt", "`b3dgs-eval` on a run whose config.yaml is corrupt",
+        lambda: [f"run={_eval_run_with('run_bad_cfg', 'config.yaml', 'data: [unclosed')}", "uq=[proxy]"], app="eval")
+    add("eval_out_file", "`b3dgs-eval out=` a file", lambda: [f"run={_run_dir('run_out', None)}", f"out={_a_file()}"], app="eval")
+    add("study_acquire_0", "`b3dgs-study active acquire=0` (\"max_images must be positive\" after phase 1)",
+        ["data=synthetic", "+data.n_views=24", "acquire=0"], app="study.active")
+    add("study_initial_0", "`b3dgs-study active initial_views=0`", ["data=synthetic", "+data.n_views=24", "initial_views=0"],
+        app="study.active")
+
+    # --- issue 20: scenarios
+    def scen(rid, what, fn, expect="refused"):
+        R.append({"id": rid, "what": what, "app": "train", "args": [], "expect": expect, "scenario": fn})
+
+    scen("concurrent_one_dir", "two `b3dgs-train` on one run dir at once (both ran, one result lost)", sc_concurrent)
+    scen("default_dirs_same_second", "two `b3dgs-train` with the default run dir started together", sc_default_dirs,
+         "accepted")
+    scen("sigterm", "SIGTERM during training (exit 0, no message)", lambda: sc_signal("TERM", 143), "interrupted")
+    scen("sigint", "SIGINT (Ctrl-C) during training", lambda: sc_signal("INT", 130), "interrupted")
+    scen("ctrl_c_final_eval", "Ctrl-C during the final evaluation (traceback)", sc_final_ctrl_c, "interrupted")
+    scen("kill9_ply_write", "kill -9 inside the PLY write, then `resume=auto` (counters emptied, .tmp left)",
+         lambda: sc_kill_final_write("point_cloud.ply"), "accepted")
+    scen("kill9_metrics_write", "kill -9 inside the metrics.json write, then `resume=auto`",
+         lambda: sc_kill_final_write("metrics.json"), "accepted")
+    scen("resume_finished", "`resume=auto` on a finished run (rewrote metrics.json)", sc_finished_resume, "accepted")
+    scen("refused_leaves_nothing", "a refused run (dir holds a run) left .hydra/ and train.log", sc_refused_leaves_nothing)
+    scen("joblib_n_jobs_2", "joblib multirun `n_jobs=2` over `model.sh_degree=0,1`", sc_joblib, "accepted")
+    scen("multirun_bad_seed", "multirun `seed=-1,1` (the job after the bad one never ran)", sc_multirun_bad_seed)
+    scen("study_other_settings", "`b3dgs-study active` again into one out_dir with other initial_views / max_steps "
+         "(old rows reused)", sc_study_reuse)
+    scen("report_mixed_protocols", "`b3dgs-report` over runs of 4 and 6 steps (pooled as seeds)", sc_report_pool)
+    scen("eval_ensemble_twice", "`b3dgs-eval uq=[ensemble]` with one run twice (zero spread)", sc_eval_twice)
+    scen("eval_other_cwd", "`b3dgs-eval` from another folder, run trained with a relative data.path", sc_eval_elsewhere,
+         "accepted")
+    scen("png16_scaling", "16-bit PNGs: one raw value in a dark and in a bright frame (0.784 vs 0.003)", sc_png16,
+         "accepted")
     return R
+
+
+def _a_file() -> Path:
+    p = FIX / "a_file"
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text("not a folder\n")
+    return p
 
 
 def _limit() -> None:
@@ -220,16 +525,40 @@ def _message(app: str, rc: int, out: str, err: str) -> str:
     return (lines[-1] if lines else "")[:400]
 
 
+def run_scenario(row: dict) -> dict:
+    t0 = time.perf_counter()
+    res = row["scenario"]()
+    msg = str(res["message"]).replace(str(ROOT) + "/", "")
+    if res.get("checked"):
+        msg += f" [checked: {str(res['checked']).replace(str(ROOT) + '/', '')}]"
+    return {"id": row["id"], "input": row["what"], "command": "scenario " + row["id"], "expect": row["expect"],
+            "exit_code": res["exit_code"], "message": msg, "lines_on_stderr": None,
+            "seconds": round(time.perf_counter() - t0, 1), "ok": bool(res["ok"])}
+
+
+def _limit_fsize() -> None:
+    _limit()
+    resource.setrlimit(resource.RLIMIT_FSIZE, (64 * 1024, 64 * 1024))
+
+
 def run_row(row: dict, timeout: int) -> dict:
+    if "scenario" in row:
+        return run_scenario(row)
     args = row["args"]() if callable(row["args"]) else list(row["args"])
+    preexec = _limit
+    if "fsize" in args:
+        args, preexec = [a for a in args if a != "fsize"], _limit_fsize
     run_dir = WORK / "runs" / row["id"]
     if run_dir.exists():
         shutil.rmtree(run_dir)
-    cmd = [sys.executable, "-m", f"b3dgs.{row['app']}", *args, f"hydra.run.dir={run_dir}"]
+    given = any(a.startswith("hydra.run.dir=") for a in args)
+    cmd = [sys.executable, "-m", f"b3dgs.{row['app']}", *args, *([] if given else [f"hydra.run.dir={run_dir}"])]
+    if row["app"].startswith("study"):
+        cmd = [sys.executable, "-m", f"b3dgs.{row['app']}", *args, f"out_dir={run_dir}"]
     env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=_limit)
+                            preexec_fn=preexec)
     try:
         out, err = proc.communicate(timeout=timeout)
         rc = proc.returncode
@@ -238,10 +567,11 @@ def run_row(row: dict, timeout: int) -> dict:
         out, err = proc.communicate()
         rc = None
     secs = time.perf_counter() - t0
-    msg = f"TIMEOUT after {timeout} s" if rc is None else _message(row["app"], rc, out, err)
-    ok = (rc == 2 and msg.startswith(f"b3dgs-{row['app']}: error:")) if row["expect"] == "refused" else rc == 0
+    app = "study" if row["app"].startswith("study") else row["app"]
+    msg = f"TIMEOUT after {timeout} s" if rc is None else _message(app, rc, out, err)
+    ok = (rc == 2 and msg.startswith(f"b3dgs-{app}: error:")) if row["expect"] == "refused" else rc == 0
     shown = [a.replace(str(ROOT) + "/", "").replace(str(shared_dir()), "shared") for a in args]
-    return {"id": row["id"], "input": row["what"], "command": f"b3dgs-{row['app']} " + " ".join(shown),
+    return {"id": row["id"], "input": row["what"], "command": f"b3dgs-{app} " + " ".join(shown),
             "expect": row["expect"], "exit_code": rc, "message": msg.replace(str(ROOT) + "/", ""),
             "lines_on_stderr": len([ln for ln in err.splitlines() if ln.strip()]), "seconds": round(secs, 1), "ok": ok}
 
@@ -253,7 +583,9 @@ def write(results: dict) -> None:
     esc = lambda s: str(s).replace("|", "\\|")  # noqa: E731
     lines = ["# Reliability: bad inputs and what b3dgs now says", "",
              f"Generated by `python bench/reliability.py` ({len(done)} rows, {sum(r['ok'] for r in done)} as expected: "
-             "refused with one line and exit code 2, or accepted with exit code 0).", "",
+             "refused with one line and exit code 2, accepted with exit code 0, or interrupted with exit code 130 / "
+             "143 and one line). Scenario rows (several commands) say in [checked: ...] what was verified besides "
+             "the exit code and line shown.", "",
              "| # | input | exit | one-line message | s |", "|---|---|---|---|---|"]
     for k, r in enumerate(done, 1):
         flag = "" if r["ok"] else " **(unexpected)**"

@@ -204,13 +204,13 @@ STUDY = ["active", "data=synthetic", "data.max_side=32", "+data.n_views=40", "re
          "acquisition.score_max_side=16", "threads=1", "plots=false", "variant=support_hole"]
 
 
-def _study(out, kill_at=None):
+def _study(out, kill_at=None, extra=()):
     env = dict(os.environ)
     env.pop(KILL_ENV, None)
     if kill_at is not None:
         env[KILL_ENV] = str(kill_at)
-    return subprocess.run([sys.executable, "-m", "b3dgs.study.active", *STUDY, f"out_dir={out}"], capture_output=True,
-                          text=True, timeout=600, env=env)
+    return subprocess.run([sys.executable, "-m", "b3dgs.study.active", *STUDY, *extra, f"out_dir={out}"],
+                          capture_output=True, text=True, timeout=600, env=env)
 
 
 def test_study_resumes_after_interruption_between_and_within_rounds(tmp_path):
@@ -235,6 +235,16 @@ def test_study_resumes_after_interruption_between_and_within_rounds(tmp_path):
     meta = json.loads((sc / "meta.json").read_text())
     assert meta["hole"] and not set(meta["hole"]) & set(meta["initial_views"])
     assert (sc / "study.md").read_text().count("|") > 10
+    # the same out_dir with other settings: refused in one line naming the keys, no row reused or touched
+    r = _study(cut, extra=["acquire=3", "trainer.max_steps=80"])
+    err = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 2 and len(err) == 1 and "holds results of other settings (acquire: 4 there, 3 here; " \
+        "trainer.max_steps: 60 there, 80 here)" in err[0], r.stderr[-2000:]
+    assert (sc / "native_s0" / "result.json").stat().st_mtime_ns == done
+    for bad in ("acquire=0", "initial_views=0"):  # refused before anything trains, naming the key the user set
+        r = _study(tmp_path / "bad", extra=[bad])
+        assert r.returncode == 2 and f"error: {bad} is invalid" in r.stderr, r.stderr[-2000:]
+        assert not (tmp_path / "bad" / "synthetic").exists()
 
 
 def test_study_shares_a_second_round_only_when_it_is_the_same_run(tmp_path):

@@ -160,6 +160,11 @@ def test_study_end_to_end_resumes_and_writes_tables(tmp_path):
     res = subprocess.run(args, capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     assert {p: p.stat().st_mtime_ns for p in rows} == stamps
+    # other fine-tune settings into the same out_dir: refused in one line, the rows are not reused
+    res = subprocess.run([a for a in args if not a.startswith("finetune_steps=")] + ["finetune_steps=7"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=600)
+    assert res.returncode == 2 and "holds results of other settings (finetune_steps: 5 there, 7 here)" in res.stderr, \
+        res.stderr[-2000:]
 
 
 def test_bad_input_is_one_line(tmp_path):

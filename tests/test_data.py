@@ -198,6 +198,30 @@ def test_transforms_blender_rgba(tmp_path):
     assert s.background == (0.0, 0.0, 1.0)
 
 
+def test_transforms_non_numeric_value_names_file_frame_and_key(tmp_path):
+    import json
+
+    root = _blender_scene(tmp_path)
+    meta = json.loads((root / "transforms.json").read_text())
+    meta["frames"][1]["fl_x"] = "abc"
+    (root / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(ValueError, match=r"transforms.json: frame 1 fl_x='abc' is not a number \(fix: write a number"):
+        load_scene("transforms", str(root), test_every=0)
+
+
+def test_16bit_png_scaled_by_bit_depth(tmp_path):
+    """The same raw value loads as the same intensity whatever the image's own maximum."""
+    from PIL import Image
+
+    for name, peak in (("dark", 200), ("bright", 60000)):
+        a = np.full((4, 4), 200, dtype=np.uint16)
+        a[0, 0] = peak
+        Image.fromarray(a).save(tmp_path / f"{name}.png")
+    dark, bright = (load_image(tmp_path / f"{n}.png") for n in ("dark", "bright"))
+    want = 200 / 65535
+    assert float(dark[1, 1, 0]) == pytest.approx(want) and float(bright[1, 1, 0]) == pytest.approx(want)
+
+
 # ------------------------------------------------------------------------------------------------
 # LLFF
 # ------------------------------------------------------------------------------------------------

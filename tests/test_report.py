@@ -310,3 +310,27 @@ def test_study_grid_shares_runs_that_are_the_same_training_run(tmp_path):
     assert not (niw / "checkpoints").exists() and (std / "checkpoints").exists()
     assert "model:\n" in (niw / "config.yaml").read_text() and "name: niw" in (niw / "config.yaml").read_text()
     assert "same training run as another" in (rep / "report.md").read_text()
+
+
+# ------------------------------------------------------------------------------------------ pooling
+def test_runs_of_different_protocols_are_refused_not_pooled(tmp_path):
+    write_run(tmp_path / "a", "sceneA", "standard", 0, 20.0, max_steps=300)
+    write_run(tmp_path / "b", "sceneA", "standard", 1, 21.0, max_steps=600)
+    with pytest.raises(ReportError, match=r"seeds of sceneA/standard \(canonical\) differ in trainer.max_steps: "
+                                          r"300 in .*a, 600 in .*b .*fix: pass group_by=\[trainer.max_steps\]"):
+        load_runs(str(tmp_path / "*"))
+    runs, _ = load_runs(str(tmp_path / "*"), group_by=["trainer.max_steps"])
+    assert sorted(r.study for r in runs) == ["canonical [trainer.max_steps=300]", "canonical [trainer.max_steps=600]"]
+    # another method at another resolution: not one table either
+    write_run(tmp_path / "b", "sceneA", "niw", 0, 21.0, data={"max_side": 64})
+    with pytest.raises(ReportError, match=r"runs of study canonical differ in data.max_side: (32|64) in .*, (64|32) in"):
+        load_runs(str(tmp_path / "*"))
+
+
+def test_a_run_without_a_value_is_not_counted():
+    from b3dgs.report.analysis import macro_row, per_scene
+    from b3dgs.report.collect import Run
+
+    runs = [Run(Path(f"r{s}"), {}, {"psnr": p}, scene="s", method="m", seed=s) for s, p in ((0, 20.0), (1, None))]
+    assert per_scene(runs)["s"]["m"] == {"mean": 20.0, "sem": None, "n": 1}
+    assert macro_row(runs, "proxy")["n_runs"] == 1

@@ -1,11 +1,15 @@
-"""Exact resume: a run killed by SIGKILL at a random step and resumed with ``resume=auto`` ends bit for bit
-like the uninterrupted run (metrics.json apart from its wall-clock fields, curve.json, point_cloud.ply).
+"""Exact resume: a run interrupted at a random step, then killed inside its final evaluation and final writes,
+and resumed with ``resume=auto`` each time, ends bit for bit like the uninterrupted run (metrics.json apart
+from its wall-clock fields, curve.json, point_cloud.ply), with no temp file left.
 
-The kill is the test hook of :class:`b3dgs.callbacks.RunCheckpoint`: ``B3DGS_TEST_KILL_AT_STEP=K`` makes the
-training process ``os.kill`` itself with SIGKILL right after step K (a real ``kill -9``: no handler, no
-cleanup). Each run is killed twice: first right after one of steps 14..20, so that it resumes from the
-checkpoint at step 14, an epoch boundary (14 train views); then at a random later step. The steps are
-printed on failure.
+The kills are test hooks: ``B3DGS_TEST_KILL_AT_STEP=K`` (:class:`b3dgs.callbacks.RunCheckpoint`) makes the
+training process send itself a signal right after step K, ``B3DGS_TEST_KILL_AT=final`` after training and
+``B3DGS_TEST_KILL_AT=write:<file>`` once the temp file of ``<file>`` is written but before its rename
+(:mod:`b3dgs.rundir`); the signal is SIGKILL (a real ``kill -9``: no handler, no cleanup) unless
+``B3DGS_TEST_SIGNAL`` names TERM or INT. Each run is first interrupted (SIGTERM / SIGINT: a checkpoint at
+that step, exit 143 / 130, one line) right after one of steps 14..20, then killed at a random later step,
+then twice after the last checkpoint. The steps are printed on failure. A finished run is left untouched
+by ``resume=auto``.
 """
 import json
 import os
@@ -17,7 +21,10 @@ from pathlib import Path
 
 import pytest
 
+import torch
+
 from b3dgs.callbacks import KILL_ENV
+from b3dgs.rundir import KILL_POINT_ENV, KILL_SIGNAL_ENV
 
 STEPS, CKPT_EVERY, N_TRAIN = 60, 7, 14
 BASE = ["data.max_side=32", "+data.n_views=16", f"trainer.max_steps={STEPS}", "trainer.eval_every=20",
@@ -28,11 +35,13 @@ BASE = ["data.max_side=32", "+data.n_views=16", f"trainer.max_steps={STEPS}", "t
 TIMING = {"train_time_s", "render_fps", "block_time_s"}
 
 
-def _train(run_dir: Path, extra: list[str], kill_at: int | None = None) -> subprocess.CompletedProcess:
-    env = dict(os.environ)
-    env.pop(KILL_ENV, None)
+def _train(run_dir: Path, extra: list[str], kill_at: int | str | None = None, sig: str = "KILL"
+           ) -> subprocess.CompletedProcess:
+    """``kill_at``: a step, or a point of :func:`b3dgs.rundir.kill_hook` (``final``, ``write:<file>``)."""
+    env = {k: v for k, v in os.environ.items() if k not in (KILL_ENV, KILL_POINT_ENV, KILL_SIGNAL_ENV)}
     if kill_at is not None:
-        env[KILL_ENV] = str(kill_at)
+        env[KILL_ENV if isinstance(kill_at, int) else KILL_POINT_ENV] = str(kill_at)
+        env[KILL_SIGNAL_ENV] = sig
     cmd = [sys.executable, "-m", "b3dgs.train", *BASE, *extra, f"hydra.run.dir={run_dir}"]
     return subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
 
@@ -45,31 +54,64 @@ def _strip(obj):
     return obj
 
 
+def _files(d: Path) -> dict:
+    return {str(p.relative_to(d)): (p.stat().st_mtime_ns, p.read_bytes()) for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+#: per model: the interrupting signal (and its exit code), then two kill points after the last checkpoint
+PLANS = {"standard": ("TERM", 143, ["write:point_cloud.ply", "write:metrics.json"]),
+         "dpmm": ("INT", 130, ["final", "write:{render}"])}
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("model", ["standard", "dpmm"])
 def test_kill9_then_resume_is_bit_identical(tmp_path, model):
     extra = [f"model={model}"]
     ref, cut = tmp_path / "ref", tmp_path / "cut"
     res = _train(ref, extra)
     assert res.returncode == 0, res.stderr[-3000:]
+    sig, code, finals = PLANS[model]
+    render = sorted(p.name for p in (ref / "renders").iterdir())[0]
+    finals = [f.format(render=render) for f in finals]
 
     rng = random.Random()
-    k1 = rng.randint(2 * CKPT_EVERY, 3 * CKPT_EVERY - 1)  # resumes from step 14 = N_TRAIN: an epoch boundary
+    k1 = rng.randint(2 * CKPT_EVERY, 3 * CKPT_EVERY - 1)
     k2 = rng.randint(k1 + 1, STEPS - 1)
     k = (k1, k2)
-    res = _train(cut, extra, kill_at=k1)
-    assert res.returncode == -signal.SIGKILL, (k, res.returncode, res.stderr[-3000:])
-    assert (cut / "checkpoints" / "last.ckpt").exists(), k
+    # SIGTERM / SIGINT: a checkpoint at that very step, one line, exit 143 / 130
+    res = _train(cut, extra, kill_at=k1, sig=sig)
+    assert res.returncode == code, (k, res.returncode, res.stderr[-3000:])
+    assert res.stderr.strip().splitlines()[-1] == (f"b3dgs-train: interrupted by SIG{sig} at step {k1}; "
+                                                   "resume with resume=auto"), res.stderr[-3000:]
+    assert torch.load(cut / "checkpoints" / "last.ckpt", weights_only=False)["global_step"] == k1
     assert not (cut / "metrics.json").exists(), k  # not done
     res = _train(cut, extra + ["resume=auto"], kill_at=k2)
     assert res.returncode == -signal.SIGKILL, (k, res.returncode, res.stderr[-3000:])
+    for point in finals:  # after the last checkpoint: inside the final evaluation and the final writes
+        res = _train(cut, extra + ["resume=auto"], kill_at=point, sig="INT" if point == "final" else "KILL")
+        if point == "final":  # Ctrl-C during the final evaluation: one line, exit 130
+            assert res.returncode == 130 and res.stderr.strip().splitlines()[-1] == (
+                f"b3dgs-train: interrupted by SIGINT at step {STEPS}; resume with resume=auto"), res.stderr[-3000:]
+        else:
+            assert res.returncode == -signal.SIGKILL, (k, point, res.returncode, res.stderr[-3000:])
+            assert list(cut.rglob(f".{point[6:]}.*.tmp")), point  # the kill left the temp file
+        assert not (cut / "metrics.json").exists(), (k, point)
     res = _train(cut, extra + ["resume=auto"])
     assert res.returncode == 0, (k, res.stderr[-3000:])
+    assert not list(cut.rglob("*.tmp")), "stale temp files were not removed"
 
     a, b = (json.loads((d / "metrics.json").read_text()) for d in (ref, cut))
     assert a["steps"] == b["steps"] == STEPS and a["num_train_views"] == N_TRAIN
-    assert _strip(a) == _strip(b), f"killed after steps {k}"
+    assert a["added"] and a["removed"]  # densification counters survive every re-entry
+    assert _strip(a) == _strip(b), f"killed after steps {k}, then at {finals}"
     assert set(a["block_time_s"]) == set(b["block_time_s"])
     ca, cb = (json.loads((d / "curve.json").read_text())["points"] for d in (ref, cut))
     assert _strip(ca) == _strip(cb), f"killed after steps {k}"
     assert (ref / "point_cloud.ply").read_bytes() == (cut / "point_cloud.ply").read_bytes(), f"killed after steps {k}"
     assert sorted(p.name for p in (cut / "checkpoints").iterdir()) == ["last.ckpt"]
+
+    # a finished run is immutable: resume=auto says so, exits 0 and rewrites nothing
+    before = _files(cut)
+    res = _train(cut, extra + ["resume=auto"])
+    assert res.returncode == 0 and "holds a finished run" in res.stdout + res.stderr, res.stderr[-3000:]
+    assert _files(cut) == before

@@ -60,6 +60,11 @@ BAD = [  # (overrides, text the one-line message must contain)
     (["+posterior.bogus.x=1"], "posterior.bogus"),
     (["renderer.near=0"], "renderer.near"),
     (["seed=abc"], "seed"),
+    (["seed=-1"], "seed=-1 is invalid: it must be an integer in [0, 2^32)"),
+    ([f"seed={2**32}"], "seed=4294967296 is invalid"),
+    (["model.init_scale=0"], "model.init_scale=0 is invalid: it must be a positive number"),
+    (["model.init_scale=-1"], "model.init_scale=-1 is invalid"),
+    (["strategy.percent_dense=-1"], "strategy.percent_dense=-1 is invalid"),
     (["threads=0"], "threads"),
     (["resume=/nonexistent/last.ckpt"], "no such checkpoint"),
 ]
@@ -134,3 +139,63 @@ def test_cli_one_line_error_and_debug(tmp_path):
     assert "trainer/nope" in res.stderr
     res = _cli("data.max_side=0", "b3dgs.debug=true", f"hydra.run.dir={tmp_path}/c")
     assert res.returncode != 0 and "Traceback" in res.stderr and "data.max_side=0" in res.stderr
+
+
+def test_io_and_memory_errors_are_one_line():
+    import errno
+
+    full = OSError(errno.ENOSPC, "No space left on device", "/runs/a/point_cloud.ply")
+    assert format_error(full) == ("cannot write /runs/a/point_cloud.ply: no space left on the device (fix: free disk "
+                                  "space, or pass hydra.run.dir / out= on another disk)")
+    assert "read-only" in format_error(OSError(errno.EROFS, "Read-only file system", "/x"))
+    assert format_error(MemoryError()).startswith("ran out of memory (fix: lower data.max_side or data.resolution")
+    assert "disk is full" in format_error(RuntimeError("PytorchStreamWriter failed writing file data/0: file write failed"))
+    assert format_error(OSError(errno.ECONNRESET, "reset")) is None  # not a known problem: a traceback
+
+
+def test_plus_key_given_twice_or_existing(monkeypatch):
+    from hydra.errors import ConfigCompositionException
+
+    for argv, want in ((["+data.n_views=8", "+data.n_views=9"], "data.n_views is given 2 times (+data.n_views=8 "
+                        "+data.n_views=9) (fix: pass it once)"),
+                       (["+seed=3"], "+seed adds a key the config already has (fix: pass seed=VALUE without the +)")):
+        monkeypatch.setattr(sys, "argv", ["b3dgs-train", *argv])
+        with pytest.raises(ConfigCompositionException) as ei:
+            cfg_of(argv)
+        assert format_error(ei.value) == want
+
+
+def test_eval_refuses_one_run_twice_and_an_out_file(tmp_path):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text("seed: 0\n")
+    with pytest.raises(B3dgsError, match=r"names the run .*run twice .*fix: pass each run dir once"):
+        validate_config(cfg_of([f"run=[{run},{tmp_path}/./run]", "uq=[ensemble]"], "eval"), app="eval")
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(B3dgsError, match=r"out=.*f is a file"):
+        validate_config(cfg_of([f"run={run}", f"out={tmp_path / 'f'}"], "eval"), app="eval")
+
+
+def test_damaged_run_files_are_one_line(tmp_path):
+    from b3dgs.runs import load_run
+
+    (tmp_path / "checkpoints").mkdir()
+    (tmp_path / "checkpoints" / "last.ckpt").write_bytes(b"x")
+    (tmp_path / "config.yaml").write_text("data: [unclosed\n")
+    with pytest.raises(ValueError, match=r"config.yaml is damaged or not a b3dgs run config .*fix: train the run again"):
+        load_run(tmp_path)
+    # a run of an older version: data.path relative to where it was trained
+    (tmp_path / "config.yaml").write_text("data: {path: scenes/fox}\nmodel: {name: standard}\n")
+    with pytest.raises(ValueError, match=r"data.path=scenes/fox, relative to the folder the run was trained in"):
+        load_run(tmp_path)
+
+
+def test_config_stores_data_path_absolute(tmp_path, monkeypatch):
+    from omegaconf import OmegaConf
+
+    from b3dgs.train import save_config
+
+    monkeypatch.chdir(tmp_path)
+    cfg = cfg_of(["data=transforms", "data.path=scenes/fox", f"trainer.default_root_dir={tmp_path}"])
+    save_config(cfg, tmp_path / "config.yaml")
+    assert OmegaConf.load(tmp_path / "config.yaml").data.path == str(tmp_path / "scenes" / "fox")

@@ -96,7 +96,7 @@ def _to_float_rgb(im: Image.Image, background: Sequence[float]) -> np.ndarray:
     mode = im.mode
     if mode in ("I;16", "I;16B", "I;16L", "I"):
         a = np.asarray(im, dtype=np.float32)
-        a = a / (65535.0 if a.max() > 255 else 255.0)
+        a = a / 65535.0  # 16-bit: by the bit depth, never by the image's own maximum
         return np.repeat(np.clip(a, 0, 1)[..., None], 3, axis=2)
     if mode == "F":
         a = np.clip(np.asarray(im, dtype=np.float32), 0, 1)

@@ -37,6 +37,33 @@ from b3dgs.errors import B3dgsError
 log = logging.getLogger(__name__)
 
 DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+NUMBER_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy", "camera_angle_x", "camera_angle_y") + DISTORTION_KEYS
+
+
+def _is_number(v) -> bool:
+    try:
+        float(v)
+    except (TypeError, ValueError):
+        return False
+    return not isinstance(v, (bool, list, dict))
+
+
+def _check_numbers(jf: Path, meta: dict) -> None:
+    """Refuse a non-numeric camera value of ``transforms.json``, naming the file, frame and key."""
+    for where, d in [("", meta)] + [(f"frame {i} ", fr) for i, fr in enumerate(meta["frames"])]:
+        if not isinstance(d, dict):
+            raise ValueError(f"{jf}: {where or 'the top level '}is not a JSON object (fix: correct that file)")
+        for k in NUMBER_KEYS:
+            if d.get(k) is not None and not _is_number(d[k]):
+                raise ValueError(f"{jf}: {where}{k}={d[k]!r} is not a number (fix: write a number for {k} "
+                                 "in that file)")
+        m = d.get("transform_matrix")
+        if m is not None and not (isinstance(m, list) and all(isinstance(r, list) and all(_is_number(x) for x in r)
+                                                             for r in m)):
+            raise ValueError(f"{jf}: {where}transform_matrix holds a value that is not a number (fix: write "
+                             "a 4x4 (or 3x4) list of numbers in that file)")
+
+
 _UNSUPPORTED_MODELS = ("OPENCV_FISHEYE", "FISHEYE", "EQUIRECTANGULAR", "FISHEYE624")
 _EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".exr", ".webp")
 
@@ -135,6 +162,7 @@ def read_transforms(
             raise ValueError(f"{jf} has no frames")
         first = len(frames)
         unsized: list[int] = []  # frames with top-level pixel intrinsics but no w/h
+        _check_numbers(jf, meta)
         for i, fr in enumerate(meta["frames"]):
             g = {**meta, **fr}  # per-frame keys override global ones
             if "file_path" not in fr or "transform_matrix" not in fr:

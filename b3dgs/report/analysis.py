@@ -38,7 +38,7 @@ def scene_means(runs: Sequence[Run], name: str, regime: Optional[str] = None) ->
 
 def macro_row(runs: Sequence[Run], uq_regime: str) -> dict:
     """Macro means over scenes of per-scene seed means, every column; ``n_scenes``/``n_runs`` beside."""
-    row = {"n_scenes": len({r.scene for r in runs}), "n_runs": len(runs),
+    row = {"n_scenes": len({r.scene for r in runs}), "n_runs": sum(1 for r in runs if r.value("psnr") is not None),
            "seeds": sorted({r.seed for r in runs})}
     for name, _, src in COLUMNS:
         sm = scene_means(runs, name, uq_regime if src == UQ else None)
@@ -59,7 +59,8 @@ def per_scene(runs: Sequence[Run], name: str = "psnr") -> dict[str, dict[str, di
     out: dict[str, dict[str, dict]] = {}
     for (scene, method), rs in group(runs, "scene", "method").items():
         m, s = mean_sem([r.value(name) for r in rs])
-        out.setdefault(scene, {})[method] = {"mean": m, "sem": s, "n": len(rs)}
+        n = sum(1 for r in rs if r.value(name) is not None)  # a run that did not log it is not counted
+        out.setdefault(scene, {})[method] = {"mean": m, "sem": s, "n": n}
     return {s: out[s] for s in sorted(out)}
 
 

@@ -249,7 +249,7 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
         raise ReportError("runs= is empty: pass a glob of run dirs, e.g. b3dgs-report runs='outputs/bench/**'")
     out = Path(str(cfg.out))
     out.mkdir(parents=True, exist_ok=True)
-    runs, unfinished = load_runs(patterns, str(cfg.get("on_duplicate", "error")))
+    runs, unfinished = load_runs(patterns, str(cfg.get("on_duplicate", "error")), _as_list(cfg.get("group_by")))
     bld = Builder(cfg, out)
     studies = group(runs, "study")
     canonical = studies.pop(("canonical",), [])

@@ -22,6 +22,8 @@ from typing import Any, Optional, Sequence
 
 from omegaconf import OmegaConf
 
+from b3dgs.protocol import describe_diff, differing_keys, flatten, run_protocol
+
 __all__ = ["ReportError", "Run", "find_runs", "load_runs", "group", "METHOD_ORDER", "method_order"]
 
 METHOD_ORDER = ["standard", "niw", "dpmm", "mcmc"]
@@ -162,9 +164,43 @@ def _attach_uq(runs: list[Run], uq_files: Sequence[Path]) -> None:
                     owner.uq[regime] = summ
 
 
-def load_runs(patterns: Sequence[str] | str, on_duplicate: str = "error") -> tuple[list[Run], list[Path]]:
-    """Finished runs matched by the glob(s), one per key, and the unfinished run dirs skipped."""
+#: settings every pooled run must share, across methods and scenes too (the protocol of a table)
+SHARED_KEYS = ("trainer.", "data.max_side", "data.test_every", "data.max_images", "data.normalize")
+
+
+def _apply_group_by(run: Run, group_by: Sequence[str]) -> None:
+    """Runs that differ in a ``group_by`` key are reported as separate studies (``study [key=value]``)."""
+    if group_by:
+        flat = flatten(run.config)
+        run.study = f"{run.study} [" + ", ".join(f"{k}={flat.get(k)}" for k in group_by) + "]"
+
+
+def check_pooling(runs: Sequence[Run], group_by: Sequence[str] = ()) -> None:
+    """Refuse to pool runs of different protocols: the seeds of one (study, level, scene, method) must agree on
+    every setting that changes results (:func:`b3dgs.protocol.run_protocol`), and all runs of a study on the
+    trainer and resolution settings; ``group_by`` keys split them instead."""
+    hint = "pass group_by=[{keys}] to report each value separately, or narrow runs= to one protocol"
+    for name, rs, pick in [("seeds of " + "/".join(map(str, k[2:4])) + f" ({k[0]})", v, None)
+                           for k, v in group(runs, "study", "level", "scene", "method").items()] + \
+                          [(f"runs of study {k[0]}", v, SHARED_KEYS) for k, v in group(runs, "study").items()]:
+        ref = rs[0]
+        for r in rs[1:]:
+            a, b = run_protocol(ref.config), run_protocol(r.config)
+            if pick is not None:
+                a = {k: v for k, v in a.items() if k.startswith(pick)}
+                b = {k: v for k, v in b.items() if k.startswith(pick)}
+            keys = differing_keys(a, b)
+            if keys:
+                raise ReportError(f"the {name} differ in {describe_diff(a, b, keys, names=(f'in {ref.path}', f'in {r.path}'), limit=2)} "
+                                  f"(fix: {hint.format(keys=','.join(keys[:3]))})")
+
+
+def load_runs(patterns: Sequence[str] | str, on_duplicate: str = "error", group_by: Sequence[str] = ()
+              ) -> tuple[list[Run], list[Path]]:
+    """Finished runs matched by the glob(s), one per key, and the unfinished run dirs skipped; runs of
+    different protocols are refused (:func:`check_pooling`) unless ``group_by`` separates them."""
     patterns = [patterns] if isinstance(patterns, (str, os.PathLike)) else list(patterns)
+    group_by = [str(k) for k in group_by]
     finished, unfinished, uq_files = find_runs(patterns)
     if not finished:
         extra = f" ({len(unfinished)} unfinished: no metrics.json)" if unfinished else ""
@@ -173,6 +209,7 @@ def load_runs(patterns: Sequence[str] | str, on_duplicate: str = "error") -> tup
     keyed: dict[tuple, Run] = {}
     for path in finished:
         run = read_run(path)
+        _apply_group_by(run, group_by)
         old = keyed.get(run.key)
         if old is not None:
             if on_duplicate != "newest":
@@ -182,6 +219,7 @@ def load_runs(patterns: Sequence[str] | str, on_duplicate: str = "error") -> tup
             run = run if newer else old
         keyed[run.key] = run
     runs = sorted(keyed.values(), key=lambda r: (r.study, str(r.level), r.scene, r.method, r.seed))
+    check_pooling(runs, group_by)
     _attach_uq(runs, uq_files)
     return runs, unfinished
 

@@ -29,6 +29,7 @@ import numpy as np
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from b3dgs.io import write_json
+from b3dgs.protocol import check_stored_protocol
 
 log = logging.getLogger(__name__)
 
@@ -112,6 +113,13 @@ def initial_views(cfg: DictConfig, train) -> tuple[list[int], list[str]]:
     """(indices into the sorted train list of the initial views, names of the views in the hole)."""
     from b3dgs.data.scene import select_evenly
 
+    from b3dgs.errors import B3dgsError
+
+    for key in ("initial_views", "acquire"):
+        v = cfg.get(key)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise B3dgsError(f"{key}={v} is invalid: it must be an integer >= 1",
+                             f"pass {key}=16 (views {'to start from' if key == 'initial_views' else 'added after phase 1'})")
     n = len(train)
     k = int(cfg.initial_views)
     if k + int(cfg.acquire) > n:
@@ -135,6 +143,30 @@ def initial_views(cfg: DictConfig, train) -> tuple[list[int], list[str]]:
 
 
 # ---------------------------------------------------------------------------------------------- study
+#: study keys that decide which rows exist or where they go, not what a row holds
+STUDY_IGNORED = ("policies", "family_baselines", "share_training", "oracle", "seeds", "seed", "out_dir", "plots")
+
+
+def study_protocol(cfg: DictConfig) -> dict:
+    """The flattened study settings that change its rows and caches (``out_dir/<scene>/protocol.json``)."""
+    from b3dgs.protocol import RUN_IGNORED, run_protocol
+
+    return run_protocol(OmegaConf.to_container(cfg, resolve=True), ignore=RUN_IGNORED + STUDY_IGNORED)
+
+
+def legacy_protocol(out: Path) -> Optional[dict]:
+    """What a scene folder written before ``protocol.json`` says of its settings (``meta.json``), else None."""
+    try:
+        meta = json.loads((out / "meta.json").read_text())
+    except (OSError, ValueError):
+        return None
+    legacy = {"acquire": meta.get("acquire"), "trainer.max_steps": meta.get("total_steps"), "variant": meta.get("variant"),
+              "acquisition.score_max_side": meta.get("score_max_side")}
+    if meta.get("variant") == "standard" and isinstance(meta.get("initial_views"), list):
+        legacy["initial_views"] = len(meta["initial_views"])
+    return legacy
+
+
 @contextlib.contextmanager
 def phase1_lock(run_dir: Path):
     """An exclusive lock on ``run_dir`` across processes (``fcntl.flock``: released when the holder exits,
@@ -183,7 +215,9 @@ class ActiveStudy:
         # the candidates' images: read by this driver only (acquisition, oracle, contact sheet)
         self.store = take_candidate_store(self.scene)
         self.out = Path(str(cfg.out_dir)) / self.scene.name
-        self.out.mkdir(parents=True, exist_ok=True)
+        self.protocol = check_stored_protocol(
+            self.out, study_protocol(cfg), legacy=legacy_protocol(self.out),
+            fix="pass another out_dir, or the settings of the rows there (their protocol.json) to continue them")
         self._family_cfgs: dict[str, DictConfig] = {}
         self.labels_policies = self._policies()
         for fam in sorted({p.family for _, p in self.labels_policies}):

@@ -28,8 +28,12 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from b3dgs.compression import keep_top
 from b3dgs.io import atomic_path, write_json
+from b3dgs.protocol import check_stored_protocol, flatten
 
 log = logging.getLogger(__name__)
+
+#: settings that change a row or a cached score (conf/compress.yaml)
+PROTOCOL_KEYS = ("finetune_steps", "finetune_overrides", "strategy_settings", "score_max_side")
 
 def load_pruning(name: str, settings: Optional[DictConfig] = None):
     """The pruning score ``name`` from ``conf/pruning/<name>.yaml`` (or a package's), with ``settings[name]``."""
@@ -235,6 +239,11 @@ class CompressionStudy:
             key = json.dumps(OmegaConf.to_container(cfg.data, resolve=True), sort_keys=True)
             loaded = load_run(run, scene=scenes.get(key))
             scenes[key] = loaded.scene
+            # rows and cached scores in the base's folder are of these settings only
+            settings = {k: OmegaConf.to_container(self.cfg, resolve=True).get(k) for k in PROTOCOL_KEYS}
+            settings["base_checkpoint"] = (loaded.metrics or {}).get("checkpoint")  # a retrained base: other rows
+            check_stored_protocol(self.base_dir(loaded), flatten(settings),
+                                  fix="pass another out_dir, or the settings of the rows there (their protocol.json)")
             base = self.base_row(loaded, lp)
             for name, fn in self.strategies:
                 for keep in self.keeps:

@@ -1,0 +1,124 @@
+"""One process per run dir: the lock, unique default run dirs, refused runs that leave nothing behind,
+concurrent trainings and a joblib multirun (tests/test_resume.py covers kills, signals and finished runs)."""
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from hydra import compose, initialize_config_dir
+from omegaconf import OmegaConf
+
+from b3dgs.errors import B3dgsError
+from b3dgs.rundir import LOCK_NAME, remove_stale_tmp, run_dir_lock
+from b3dgs.train import CONF_DIR
+
+TINY = ["+data.n_views=8", "data.max_side=16", "trainer.max_steps=4", "trainer.eval_every=100",
+        "trainer.checkpoint_every=2", "trainer.progress_bar=false", "logger=none", "threads=1"]
+
+
+def _train(args: list[str], env: dict | None = None, **kw):
+    e = {k: v for k, v in os.environ.items() if not k.startswith("B3DGS_TEST")}
+    e.update(env or {})
+    return subprocess.Popen([sys.executable, "-m", "b3dgs.train", *TINY, *args], env=e, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, **kw)
+
+
+def test_lock_refuses_a_second_holder_and_cleans_up(tmp_path):
+    d = tmp_path / "run"
+    with run_dir_lock(d):
+        assert (d / LOCK_NAME).read_text().strip() == str(os.getpid())
+        with pytest.raises(B3dgsError, match=rf"in use by another b3dgs-train \(pid {os.getpid()}\)"):
+            with run_dir_lock(d):
+                pass
+    assert not d.exists()  # nothing was written: the dir goes too
+    # a lock file left by a dead process (kill -9) holds no lock: it is taken over
+    d.mkdir()
+    (d / LOCK_NAME).write_text("999999999\n")
+    (d / "keep").write_text("x")
+    with run_dir_lock(d):
+        assert (d / LOCK_NAME).read_text().strip() == str(os.getpid())
+    assert sorted(p.name for p in d.iterdir()) == ["keep"]
+    # a run dir that is a file
+    with pytest.raises(B3dgsError, match="is a file"):
+        with run_dir_lock(d / "keep" / "sub"):
+            pass
+
+
+def test_remove_stale_tmp(tmp_path):
+    for name in (".point_cloud.ply.ab12.tmp", "checkpoints/.last.ckpt.x.tmp", "renders/.v0.png.q.tmp", "keep.tmp"):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text("x")
+    assert len(remove_stale_tmp(tmp_path)) == 3
+    assert [p.name for p in tmp_path.rglob("*") if p.is_file()] == ["keep.tmp"]
+
+
+def test_default_run_dirs_are_unique_per_process():
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name="train", return_hydra_config=True)
+    run_dir = OmegaConf.to_container(cfg.hydra.run, resolve=True)["dir"]
+    assert f"_s0_{os.getpid()}-" in run_dir, run_dir
+    assert cfg.hydra.output_subdir is None  # .hydra/ is written by b3dgs-train once the run is accepted
+
+
+def test_concurrent_trainings_on_one_dir_exactly_one_runs(tmp_path):
+    """The first training is stopped (SIGSTOP, by its own test hook) at step 1, holding the run dir; the
+    second is refused in one line, and leaves nothing; the first then finishes."""
+    d = tmp_path / "run"
+    first = _train([f"hydra.run.dir={d}"], env={"B3DGS_TEST_KILL_AT_STEP": "1", "B3DGS_TEST_SIGNAL": "STOP"})
+    _, status = os.waitpid(first.pid, os.WUNTRACED)
+    assert os.WIFSTOPPED(status), status
+    try:
+        before = sorted(str(p.relative_to(d)) for p in d.rglob("*"))
+        second = _train([f"hydra.run.dir={d}", "seed=1"])
+        out, err = second.communicate(timeout=300)
+        assert second.returncode == 2, err[-2000:]
+        lines = [ln for ln in err.splitlines() if ln.strip()]
+        assert lines == [f"b3dgs-train: error: the run dir {d} is in use by another b3dgs-train (pid {first.pid}) "
+                         "(fix: wait for it to finish, or pass another hydra.run.dir)"], err[-2000:]
+        assert sorted(str(p.relative_to(d)) for p in d.rglob("*")) == before
+    finally:
+        os.kill(first.pid, signal.SIGCONT)
+    out, err = first.communicate(timeout=300)
+    assert first.returncode == 0, err[-2000:]
+    assert OmegaConf.load(d / "config.yaml").seed == 0 and (d / "metrics.json").exists()
+    assert (d / ".hydra" / "overrides.yaml").exists() and (d / "train.log").exists() and not (d / LOCK_NAME).exists()
+
+
+def test_refused_run_leaves_no_hydra_files_or_log(tmp_path):
+    # an invalid value into a new dir: no dir at all
+    d = tmp_path / "new"
+    p = _train([f"hydra.run.dir={d}", "data.max_side=0"])
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 2 and "data.max_side=0" in err, err[-2000:]
+    assert not d.exists()
+    # a dir that holds a run of someone else's: untouched
+    d = tmp_path / "held"
+    d.mkdir()
+    (d / "config.yaml").write_text("seed: 0\n")
+    p = _train([f"hydra.run.dir={d}"])
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 2 and "already holds a run" in err, err[-2000:]
+    assert sorted(x.name for x in d.iterdir()) == ["config.yaml"]
+
+
+@pytest.mark.slow
+def test_joblib_multirun_over_a_non_seed_setting_loses_no_run(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "b3dgs.train", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",
+                        "model.sh_degree=0,1", *TINY, f"hydra.sweep.dir={tmp_path}"], capture_output=True, text=True,
+                       timeout=600)
+    assert p.returncode == 0, p.stderr[-3000:]
+    runs = sorted(tmp_path.glob("*/metrics.json"))
+    assert len(runs) == 2, [str(x) for x in tmp_path.rglob("*")]
+    assert sorted(OmegaConf.load(r.parent / "config.yaml").model.sh_degree for r in runs) == [0, 1]
+
+
+def test_multirun_with_one_bad_value_runs_the_others(tmp_path):
+    p = subprocess.run([sys.executable, "-m", "b3dgs.train", "-m", "seed=-1,1", *TINY, f"hydra.sweep.dir={tmp_path}"],
+                       capture_output=True, text=True, timeout=600)
+    assert p.returncode == 2, p.stderr[-3000:]
+    assert "b3dgs-train: error: job 0: seed=-1 is invalid: it must be an integer in [0, 2^32) (fix: pass seed=0)" \
+        in p.stderr.splitlines(), p.stderr[-3000:]
+    assert [d.name for d in tmp_path.iterdir() if d.is_dir()] == ["1_synthetic_standard_s1"]  # job 0 left nothing
+    assert (tmp_path / "1_synthetic_standard_s1" / "metrics.json").exists()
