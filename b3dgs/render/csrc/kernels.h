@@ -56,20 +56,16 @@ constexpr double kPixMargin = 1e-3;
 // target clones (the default clone splits the vectors into SSE halves; same arithmetic per lane).
 constexpr int kLanes = 8;  // pixels per chunk (fixed: also defines the gradient summation order)
 typedef int32_t VI __attribute__((vector_size(4 * kLanes)));  // int32 lanes (last, nc, columns)
-// Unaligned, aliasing views of kLanes consecutive array elements (loads / stores).
-typedef int32_t VIu __attribute__((vector_size(4 * kLanes), aligned(4), may_alias));
 template <typename scalar_t>
 struct Vec;
 template <>
 struct Vec<float> {
   typedef float V __attribute__((vector_size(4 * kLanes)));
-  typedef float U __attribute__((vector_size(4 * kLanes), aligned(4), may_alias));
   typedef int32_t M __attribute__((vector_size(4 * kLanes)));  // lane masks (0 / -1)
 };
 template <>
 struct Vec<double> {
   typedef double V __attribute__((vector_size(8 * kLanes)));
-  typedef double U __attribute__((vector_size(8 * kLanes), aligned(8), may_alias));
   typedef int64_t M __attribute__((vector_size(8 * kLanes)));
 };
 
@@ -82,10 +78,18 @@ B3_INLINE bool any_lane(const VI& m) {
   return a != 0;
 }
 
-// vec(p): the kLanes elements at p as one vector lvalue.
-B3_INLINE Vec<float>::U& vec(float* p) { return *reinterpret_cast<Vec<float>::U*>(p); }
-B3_INLINE Vec<double>::U& vec(double* p) { return *reinterpret_cast<Vec<double>::U*>(p); }
-B3_INLINE VIu& vec(int32_t* p) { return *reinterpret_cast<VIu*>(p); }
+// load<V>(p) / store(p, v): the kLanes elements at p as one vector, at any alignment (chunks start at any
+// column). memcpy, not a dereference of a reduced-alignment vector type, which clang compiles to aligned moves.
+template <typename V, typename T>
+B3_INLINE V load(const T* p) {
+  V v;
+  __builtin_memcpy(&v, p, sizeof(V));
+  return v;
+}
+template <typename T, typename V>
+B3_INLINE void store(T* p, const V& v) {
+  __builtin_memcpy(p, &v, sizeof(V));
+}
 
 // exp for x <= 0 (lanes with x > 0 give garbage, callers mask them out). float: inline
 // Cody-Waite + degree-6 polynomial (~1-2 ulp, result 0 for x <= -87 and for NaN); double: libm
@@ -411,7 +415,7 @@ B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int p
       for (int c = lo; c < hi; c += kLanes) {
         const int off = row + c;
         const VI col = iota + c;
-        const VI lv = vec(st.last + off);
+        const VI lv = load<VI>(st.last + off);
         const VI live_i = (lv == KK) & (col < hi);
         if (!any_lane(live_i)) continue;  // all lanes terminated or outside the row range
         const M live = __builtin_convertvector(live_i, M);
@@ -422,20 +426,20 @@ B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int p
         const V ra = go * G;
         const V alpha = ra < max_alpha ? ra : max_alpha;  // std::min(max_alpha, raw)
         const M contrib = live & ~(power > zero) & ~(alpha < min_alpha);
-        const V t0 = vec(st.T + off);
+        const V t0 = load<V>(st.T + off);
         const V test_T = t0 * (one - alpha);
         const M stop = contrib & (test_T < min_T);
         const M use = contrib & ~stop;
         const V w = use ? alpha * t0 : zero;
         // w = +0 on unused lanes, and x + (+-0) = x for the accumulators (never -0): no selects
-        vec(st.Cr + off) += w * r;
-        vec(st.Cg + off) += w * g;
-        vec(st.Cb + off) += w * bl;
-        vec(st.D + off) += w * zz;
-        vec(st.T + off) = use ? test_T : t0;
+        store(st.Cr + off, load<V>(st.Cr + off) + w * r);
+        store(st.Cg + off, load<V>(st.Cg + off) + w * g);
+        store(st.Cb + off, load<V>(st.Cb + off) + w * bl);
+        store(st.D + off, load<V>(st.D + off) + w * zz);
+        store(st.T + off, V(use ? test_T : t0));
         const VI stop_i = __builtin_convertvector(stop, VI);
-        vec(st.nc + off) = vec(st.nc + off) - __builtin_convertvector(use, VI);
-        vec(st.last + off) = stop_i ? kk : lv;
+        store(st.nc + off, VI(load<VI>(st.nc + off) - __builtin_convertvector(use, VI)));
+        store(st.last + off, VI(stop_i ? kk : lv));
         ndv -= stop_i;
         if (kWeights) {  // per-pair weight sums only when a block asks for them
           const M lanes = __builtin_convertvector((iota - c) & (kLanes - 1), M);
@@ -488,7 +492,7 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
           const int off = row + c;
           const VI col = iota + c;
           // composited: in front of the termination point, power <= 0, alpha >= 1/255
-          const VI live_i = (kk < vec(st.last + off)) & (col < hi);
+          const VI live_i = (kk < load<VI>(st.last + off)) & (col < hi);
           if (!any_lane(live_i)) continue;  // all lanes terminated earlier or outside the row
           const M live = __builtin_convertvector(live_i, M);
           const V dx = gx - (__builtin_convertvector(col + px0, V) + half);
@@ -500,27 +504,27 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
           const M use = live & ~(power > zero) & ~(alpha < min_alpha);
           const V one_m = one - alpha;
           const V inv_om = one / one_m;
-          const V t0 = vec(st.T + off);
+          const V t0 = load<V>(st.T + off);
           const V Ti = t0 * inv_om;  // transmittance in front of this Gaussian
           const V w = alpha * Ti;
-          const V gR = vec(st.gr + off), gG = vec(st.gg + off), gB = vec(st.gb + off);
-          const V rr = vec(st.Rr + off), rg = vec(st.Rg + off), rb = vec(st.Rb + off);
+          const V gR = load<V>(st.gr + off), gG = load<V>(st.gg + off), gB = load<V>(st.gb + off);
+          const V rr = load<V>(st.Rr + off), rg = load<V>(st.Rg + off), rb = load<V>(st.Rb + off);
           // d out / d alpha_i = T_i (c_i - R_i) for colour/depth (R: what lies behind, incl.
           // background), T_final / (1 - alpha_i) for alpha_out.
           V dal, gD = {};
           if (kRGBOnly) {
             dal = Ti * ((r - rr) * gR + (g - rg) * gG + (bl - rb) * gB);
           } else {
-            gD = vec(st.gd + off);
-            const V rd = vec(st.Rd + off);
+            gD = load<V>(st.gd + off);
+            const V rd = load<V>(st.Rd + off);
             dal = Ti * ((r - rr) * gR + (g - rg) * gG + (bl - rb) * gB + (zz - rd) * gD) +
-                  vec(st.gaT + off) * inv_om;
-            vec(st.Rd + off) = use ? alpha * zz + one_m * rd : rd;
+                  load<V>(st.gaT + off) * inv_om;
+            store(st.Rd + off, V(use ? alpha * zz + one_m * rd : rd));
           }
-          vec(st.Rr + off) = use ? alpha * r + one_m * rr : rr;
-          vec(st.Rg + off) = use ? alpha * g + one_m * rg : rg;
-          vec(st.Rb + off) = use ? alpha * bl + one_m * rb : rb;
-          vec(st.T + off) = use ? Ti : t0;
+          store(st.Rr + off, V(use ? alpha * r + one_m * rr : rr));
+          store(st.Rg + off, V(use ? alpha * g + one_m * rg : rg));
+          store(st.Rb + off, V(use ? alpha * bl + one_m * rb : rb));
+          store(st.T + off, V(use ? Ti : t0));
           // Per-pair sums. Masked lanes contribute +-0 (finite factors times a zeroed weight), and adding
           // +-0 leaves an accumulator unchanged (it starts at +0 and never becomes -0): one select per
           // weight instead of one per sum. Values move to their column lanes before they are summed
