@@ -13,13 +13,16 @@
 // Work is parallel over (sample, tile) items. Inside a tile the loop runs Gaussian-outer,
 // pixel-inner over the rows / columns where alpha can reach 1/255 (a conservative ellipse test);
 // every pixel still sees its Gaussians in list order, so the result equals the per-pixel walk.
-// The pixels of a row are processed as SIMD chunks of kLanes columns (branch-free: masks and
-// selects apply the skip / stop rules per lane). The per-tile functions are compiled for AVX2
-// and baseline x86-64 (target_clones; no FMA, so the results are bitwise identical on both paths).
+// The pixels of a row are processed as SIMD chunks of kLanes columns starting at the row's first
+// column (branch-free: masks and selects apply the skip / stop rules per lane). Each Gaussian's
+// culling box and row-interval coefficients are computed once per pass (cull_gaussians), which also
+// detects non-finite inputs. The per-tile functions are compiled for AVX2 and baseline x86-64
+// (target_clones; no FMA, so the results are bitwise identical on both paths).
 //
 // Determinism: each (tile, Gaussian) pair owns a gradient / weight slot written by exactly one
-// thread (per-lane partial sums over the pixels in a fixed order, then a fixed tree over the
-// lanes); a final pass sums the slots of every Gaussian in pair order. Results are bitwise
+// thread (per-lane partial sums over the pixels in a fixed order, each pixel in lane column mod
+// kLanes wherever its chunk starts, then a fixed tree over the lanes); a final pass sums the slots
+// of every Gaussian in pair order. Results are bitwise
 // independent of the thread count.
 #pragma once
 
