@@ -25,23 +25,16 @@ from common import QUICK, machine, scene_overrides, table, write_results  # noqa
 
 ROOT = Path(__file__).resolve().parents[1]
 
-# Child for the render timing: b3dgs API calls that exist in both checkouts; prints one JSON line.
+# Child for the render timing: bench/render.py's random scene and camera (they use only b3dgs.types.Camera, which
+# both checkouts have) rendered with the checkout on PYTHONPATH; prints one JSON line.
 RENDER_CHILD = r'''
-import json, math, statistics, sys, time, torch
+import json, statistics, sys, time, torch
+sys.path.insert(0, sys.argv[3])
+from render import camera, random_gaussians
 from b3dgs.render.renderers import make_renderer
-from b3dgs.types import Camera
 n, reps = int(sys.argv[1]), int(sys.argv[2])
-g = torch.Generator().manual_seed(0)
-means = torch.empty(n, 3); means[:, :2] = (torch.rand(n, 2, generator=g) - 0.5) * 2.0
-means[:, 2] = 3.0 + torch.rand(n, generator=g)
-params = {"means": means, "quats": torch.randn(n, 4, generator=g),
-          "scales": torch.log(0.004 + 0.012 * torch.rand(n, 3, generator=g)),
-          "opacities": torch.logit(0.05 + 0.9 * torch.rand(n, generator=g)),
-          "sh0": torch.randn(n, 1, 3, generator=g) * 0.5, "shN": torch.zeros(n, 15, 3)}
-p = {k: v.clone().requires_grad_(True) for k, v in params.items()}
-f = 0.5 * 256 / math.tan(math.radians(25))
-cam = Camera("bench", torch.tensor([[f, 0, 128.0], [0, f, 128.0], [0, 0, 1.0]]), torch.eye(4), 256, 256)
-r = make_renderer("cpu")
+p = {k: v.clone().requires_grad_(True) for k, v in random_gaussians(n).items()}
+cam, r = camera(), make_renderer("cpu")
 def fwd():
     with torch.no_grad():
         return r.render(p, cam, sh_degree=3)
@@ -80,7 +73,8 @@ def train_pair(base: Path, new: Path, out: Path, scene: str, seed: int, threads:
 
 
 def render_once(code: Path, n: int, reps: int) -> dict:
-    res = subprocess.run([sys.executable, "-c", RENDER_CHILD, str(n), str(reps)], capture_output=True, text=True,
+    res = subprocess.run([sys.executable, "-c", RENDER_CHILD, str(n), str(reps), str(Path(__file__).resolve().parent)],
+                         capture_output=True, text=True,
                          env=dict(os.environ, PYTHONPATH=str(code)), cwd=str(code))
     line = [ln for ln in res.stdout.splitlines() if ln.startswith("RENDER ")]
     if res.returncode != 0 or not line:
@@ -145,7 +139,8 @@ def main() -> None:
                         "old": round(m["old"], 3), "new": round(m["new"], 3), "new/old": ratio(m["new"], m["old"])})
     text = ("Old and new code side by side (bench/speed_ab.py); trainings of a seed ran at the same time, one core "
             "each.\n\n" + table(summary, ["what", "old", "new", "new/old", "psnr_old", "psnr_new", "identical_runs"])
-            + "\n\nRuns:\n\n" + table(runs, ["scene", "seed", "code", "train_time_s", "psnr", "num_gaussians"]))
+            + ("\n\nRuns:\n\n" + table(runs, ["scene", "seed", "code", "train_time_s", "psnr", "num_gaussians"])
+               if runs else ""))
     write_results("speed_ab", {"machine": machine(), "base": str(base), "new": str(new), "runs": runs,
                                "renders": renders, "summary": summary}, text)
 

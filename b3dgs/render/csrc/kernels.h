@@ -267,7 +267,7 @@ inline void row_ranges(const GaussCull& q, scalar_t gx, scalar_t gy, scalar_t cb
 }
 
 // Per-tile, per-sample gathered Gaussian data (structure of arrays, in list order) with each pair's
-// pixel box clipped to the tile and its per-row column intervals.
+// pixel box clipped to the tile; rows() gives a pair's per-row column intervals on demand.
 template <typename scalar_t>
 struct TileCache {
   std::vector<scalar_t> x, y, a, b, c, o, cr, cg, cb, z;
