@@ -127,11 +127,15 @@ struct Geometry {
 
 // Per-(sample, Gaussian) culling data, computed once per pass (cull_gaussians) instead of once per
 // tile pair: the pixel bounding box where alpha can reach 1/255 (clamped to the image; empty when
-// o < 1/255; the whole image when the conic is not SPD), and the coefficients of the per-row
-// intervals (a = 0: no row interval, use the box).
+// o < 1/255; the whole image when the conic is not SPD), and float coefficients of the per-row column
+// intervals (see row_ranges). Culling only decides which pixels are evaluated: a pixel outside every
+// interval would get alpha < 1/255 and add nothing, so any conservative interval gives bitwise the same
+// render and gradients. The intervals are therefore computed in float with a margin that covers float
+// rounding, eight rows per AVX instruction.
 struct GaussCull {
-  int32_t x0, x1, y0, y1;       // [x0, x1) x [y0, y1), absolute pixel coordinates
-  double k2a, det, a, inv_a;    // row interval coefficients (see row_ranges)
+  int32_t x0, x1, y0, y1;  // [x0, x1) x [y0, y1), absolute pixel coordinates
+  float gx, gy;            // pixel-centre frame: row centre y + 0.5 has offset dy = gy - y, column cx - x
+  float k2a, det, bia, ia, margin;  // interval of row dy: centre gx + bia dy, half width sqrt(k2a - det dy^2) ia
 };
 
 // alpha >= 1/255 needs power >= L = log(1 / (255 o)) (<= 0): ellipse d^T Q d <= -2L, half extents
@@ -152,7 +156,9 @@ int64_t cull_gaussians(const scalar_t* means, const scalar_t* conics, const scal
                            (opac[g] - opac[g]) + (depths[g] - depths[g]);
     nonfinite += probe == probe ? 0 : 1;
     GaussCull& q = out[g];
-    q.k2a = q.det = q.a = q.inv_a = 0;
+    // default: every row spans the whole box (finite centre, zero width, margin far beyond the image)
+    q.gx = q.gy = q.k2a = q.det = q.bia = q.ia = 0;
+    q.margin = 1e9f;
     const scalar_t go = opac[g];
     if (!(go >= (scalar_t)kMinAlpha)) {  // alpha <= o, so o < 1/255 never contributes
       q.x0 = q.x1 = q.y0 = q.y1 = 0;
@@ -177,93 +183,90 @@ int64_t cull_gaussians(const scalar_t* means, const scalar_t* conics, const scal
       q.x1 = (int32_t)std::max(0.0, std::min((double)W, ux));
       q.y0 = (int32_t)std::max(0.0, std::min((double)H, ly));
       q.y1 = (int32_t)std::max(0.0, std::min((double)H, uy));
-      q.k2a = k2 * da;
-      q.det = det;
-      q.a = da;
-      q.inv_a = 1.0 / da;
+      const double ia = 1.0 / da, hw_max = std::sqrt(k2 * da) * ia;
+      if (std::isfinite(ia) && std::isfinite(hw_max) && std::fabs(gx) < 1e6 && std::fabs(gy) < 1e6) {
+        q.gx = (float)(gx - 0.5);
+        q.gy = (float)(gy - 0.5);
+        q.k2a = (float)(k2 * da);
+        q.det = (float)det;
+        q.bia = (float)(db * ia);
+        q.ia = (float)ia;
+        // float rounding: of k2a - det dy^2 (a few ulp of k2a) and of dy moves the half width by at most
+        // ~sqrt(4 eps) hw_max = 7e-4 hw_max; of the centre gx + bia dy by a few ulp of its magnitude.
+        // Margin: 4e-3 hw_max + 1e-5 (|gx| + |bia| (|gy| + H)) + 0.05 px, several times both.
+        const double cmax = std::fabs(gx) + std::fabs(db * ia) * (std::fabs(gy) + H);
+        q.margin = (float)(4e-3 * hw_max + 1e-5 * cmax + 0.05);
+      }
     }
   }
   return nonfinite;
 }
 
-// Pixel columns [px0 + xa[r], px0 + xb[r]) of the rows y0 + r, r < y1 - y0, that may reach alpha >= 1/255:
-// for row centre offset dy the pixel centre must lie in [x + (b dy - s) / a, x + (b dy + s) / a],
-// s = sqrt(max(0, k2 a - det dy^2)); intersected with [x0, x1). Branch-free over the rows (vectorised).
-template <typename scalar_t>
-B3_INLINE void row_ranges_body(const GaussCull& q, scalar_t gx, scalar_t gy, scalar_t cb, int px0, int x0, int x1,
-                               int y0, int y1, int16_t* xa, int16_t* xb) {
-  const int n = y1 - y0;
-  if (!(q.a > 0)) {
-    for (int r = 0; r < n; ++r) {
-      xa[r] = (int16_t)(x0 - px0);
-      xb[r] = (int16_t)(x1 - px0);
-    }
-    return;
-  }
-  const double dgx = gx, dgy = gy, db = cb, ia = q.inv_a, k2a = q.k2a, det = q.det;
-  const double fx0 = x0, fx1 = x1;
-  for (int r = 0; r < n; ++r) {
-    const double dy = dgy - ((double)(y0 + r) + 0.5);
-    const double sq = std::sqrt(std::max(0.0, k2a - det * dy * dy));
-    const double cx = dgx + db * dy * ia - 0.5;
-    const double hw = sq * ia * (1.0 + 1e-6) + kPixMargin;
-    const double lo = std::ceil(cx - hw), hi = std::floor(cx + hw) + 1.0;
-    // lo > x0 ? min(lo, x1) : x0, and hi < x1 ? max(hi, xa) : x1 (NaN-free: all inputs finite)
-    const double a = lo > fx0 ? std::min(lo, fx1) : fx0;
-    const double b = hi < fx1 ? std::max(hi, a) : fx1;
+// Pixel columns [px0 + xa[r], px0 + xb[r]) of the rows y0 + r, r < y1 - y0, where alpha may reach 1/255:
+// the pixel centre must lie within sqrt(max(0, k2a - det dy^2)) ia + margin of gx + bia dy (dy the row
+// centre's offset); intersected with [x0, x1). Conservative; every step monotone in its inputs.
+B3_INLINE void row_ranges_body(const GaussCull& q, int px0, int x0, int x1, int y0, int y1, int16_t* xa,
+                               int16_t* xb) {
+  const float fx0 = (float)x0, fx1 = (float)x1;
+  for (int r = 0; r < y1 - y0; ++r) {
+    const float dy = q.gy - (float)(y0 + r);
+    const float sq = std::sqrt(std::max(0.0f, q.k2a - q.det * dy * dy));
+    const float cx = q.gx + q.bia * dy;
+    const float hw = sq * q.ia + q.margin;
+    const float lo = std::ceil(cx - hw), hi = std::floor(cx + hw) + 1.0f;
+    const float a = std::max(fx0, std::min(lo, fx1));  // clamp to [x0, x1] (all values finite), then b >= a
+    const float b = std::max(std::min(hi, fx1), a);
     xa[r] = (int16_t)((int32_t)a - px0);
     xb[r] = (int16_t)((int32_t)b - px0);
   }
 }
 #if defined(__x86_64__) && (defined(__GNUC__) || defined(__clang__))
-// The same arithmetic as row_ranges_body, four rows per AVX instruction (bitwise identical results:
-// every operation is correctly rounded in both, and min / max / select follow the scalar NaN rules).
-// Writes up to 3 entries past n (the buffers have the slack).
-__attribute__((target("avx"))) inline void row_ranges_avx(const GaussCull& q, double gx, double gy, double cb,
-                                                          int px0, int x0, int x1, int y0, int n, int16_t* xa,
-                                                          int16_t* xb) {
-  const __m256d vgy = _mm256_set1_pd(gy), vgx = _mm256_set1_pd(gx), vdb = _mm256_set1_pd(cb);
-  const __m256d via = _mm256_set1_pd(q.inv_a), vk2a = _mm256_set1_pd(q.k2a), vdet = _mm256_set1_pd(q.det);
-  const __m256d half = _mm256_set1_pd(0.5), one = _mm256_set1_pd(1.0), zero = _mm256_setzero_pd();
-  const __m256d rel = _mm256_set1_pd(1.0 + 1e-6), margin = _mm256_set1_pd(kPixMargin);
-  const __m256d fx0 = _mm256_set1_pd((double)x0), fx1 = _mm256_set1_pd((double)x1);
+// row_ranges_body, eight rows per AVX instruction. Writes up to 7 entries past n (the buffers have the slack).
+__attribute__((target("avx"))) inline void row_ranges_avx(const GaussCull& q, int px0, int x0, int x1, int y0,
+                                                          int n, int16_t* xa, int16_t* xb) {
+  const __m256 vgy = _mm256_set1_ps(q.gy), vgx = _mm256_set1_ps(q.gx), vbia = _mm256_set1_ps(q.bia);
+  const __m256 via = _mm256_set1_ps(q.ia), vk2a = _mm256_set1_ps(q.k2a), vdet = _mm256_set1_ps(q.det);
+  const __m256 vm = _mm256_set1_ps(q.margin), one = _mm256_set1_ps(1.0f), zero = _mm256_setzero_ps();
+  const __m256 fx0 = _mm256_set1_ps((float)x0), fx1 = _mm256_set1_ps((float)x1);
+  const __m256 steps = _mm256_set_ps(7, 6, 5, 4, 3, 2, 1, 0);
   const __m128i off = _mm_set1_epi32(px0);
-  for (int r = 0; r < n; r += 4) {
-    const double yr = (double)(y0 + r);
-    const __m256d yc = _mm256_add_pd(_mm256_set_pd(yr + 3.0, yr + 2.0, yr + 1.0, yr), half);
-    const __m256d dy = _mm256_sub_pd(vgy, yc);
-    const __m256d t = _mm256_sub_pd(vk2a, _mm256_mul_pd(_mm256_mul_pd(vdet, dy), dy));
-    const __m256d sq = _mm256_sqrt_pd(_mm256_max_pd(t, zero));  // NaN -> 0, as std::max(0.0, t)
-    const __m256d cx = _mm256_sub_pd(_mm256_add_pd(vgx, _mm256_mul_pd(_mm256_mul_pd(vdb, dy), via)), half);
-    const __m256d hw = _mm256_add_pd(_mm256_mul_pd(_mm256_mul_pd(sq, via), rel), margin);
-    const __m256d lo = _mm256_round_pd(_mm256_sub_pd(cx, hw), _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC);
-    const __m256d hi =
-        _mm256_add_pd(_mm256_round_pd(_mm256_add_pd(cx, hw), _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC), one);
-    const __m256d a = _mm256_blendv_pd(fx0, _mm256_min_pd(lo, fx1), _mm256_cmp_pd(lo, fx0, _CMP_GT_OQ));
-    const __m256d b = _mm256_blendv_pd(fx1, _mm256_max_pd(hi, a), _mm256_cmp_pd(hi, fx1, _CMP_LT_OQ));
-    alignas(16) int32_t ia[4], ib[4];
-    _mm_store_si128((__m128i*)ia, _mm_sub_epi32(_mm256_cvttpd_epi32(a), off));
-    _mm_store_si128((__m128i*)ib, _mm_sub_epi32(_mm256_cvttpd_epi32(b), off));
-    for (int l = 0; l < 4; ++l) {
-      xa[r + l] = (int16_t)ia[l];
-      xb[r + l] = (int16_t)ib[l];
-    }
+  for (int r = 0; r < n; r += 8) {
+    const __m256 dy = _mm256_sub_ps(vgy, _mm256_add_ps(_mm256_set1_ps((float)(y0 + r)), steps));
+    const __m256 t = _mm256_sub_ps(vk2a, _mm256_mul_ps(_mm256_mul_ps(vdet, dy), dy));
+    const __m256 sq = _mm256_sqrt_ps(_mm256_max_ps(t, zero));
+    const __m256 cx = _mm256_add_ps(vgx, _mm256_mul_ps(vbia, dy));
+    const __m256 hw = _mm256_add_ps(_mm256_mul_ps(sq, via), vm);
+    const __m256 lo = _mm256_round_ps(_mm256_sub_ps(cx, hw), _MM_FROUND_TO_POS_INF | _MM_FROUND_NO_EXC);
+    const __m256 hi =
+        _mm256_add_ps(_mm256_round_ps(_mm256_add_ps(cx, hw), _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC), one);
+    // clamp to [x0, x1] (all values finite), then b >= a
+    const __m256 a = _mm256_max_ps(fx0, _mm256_min_ps(lo, fx1));
+    const __m256 b = _mm256_max_ps(_mm256_min_ps(hi, fx1), a);
+    const __m256i ia = _mm256_cvttps_epi32(a), ib = _mm256_cvttps_epi32(b);
+    // int32 -> int16 (values fit): pack the two 128-bit halves
+    const __m128i pa = _mm_packs_epi32(_mm_sub_epi32(_mm256_castsi256_si128(ia), off),
+                                       _mm_sub_epi32(_mm256_extractf128_si256(ia, 1), off));
+    const __m128i pb = _mm_packs_epi32(_mm_sub_epi32(_mm256_castsi256_si128(ib), off),
+                                       _mm_sub_epi32(_mm256_extractf128_si256(ib, 1), off));
+    _mm_storeu_si128((__m128i*)(xa + r), pa);
+    _mm_storeu_si128((__m128i*)(xb + r), pb);
   }
 }
 #define B3_ROWS_AVX 1
 #endif
 
-template <typename scalar_t>
-inline void row_ranges(const GaussCull& q, scalar_t gx, scalar_t gy, scalar_t cb, int px0, int x0, int x1, int y0,
-                       int y1, int16_t* xa, int16_t* xb) {
+// Row-interval buffers: kMaxTile rows plus the slack of the eight-row AVX stores.
+constexpr int kRowBuf = kMaxTile + 8;
+
+B3_INLINE void row_ranges(const GaussCull& q, int px0, int x0, int x1, int y0, int y1, int16_t* xa, int16_t* xb) {
 #ifdef B3_ROWS_AVX
   static const bool avx = __builtin_cpu_supports("avx");
-  if (avx && q.a > 0) {
-    row_ranges_avx(q, gx, gy, cb, px0, x0, x1, y0, y1 - y0, xa, xb);
+  if (avx) {
+    row_ranges_avx(q, px0, x0, x1, y0, y1 - y0, xa, xb);
     return;
   }
 #endif
-  row_ranges_body<scalar_t>(q, gx, gy, cb, px0, x0, x1, y0, y1, xa, xb);
+  row_ranges_body(q, px0, x0, x1, y0, y1, xa, xb);
 }
 
 // Per-tile, per-sample gathered Gaussian data (structure of arrays, in list order) with each pair's
@@ -272,7 +275,7 @@ template <typename scalar_t>
 struct TileCache {
   std::vector<scalar_t> x, y, a, b, c, o, cr, cg, cb, z;
   std::vector<int> x0, x1, y0, y1;  // pixel bbox, absolute coords, [x0, x1) x [y0, y1)
-  std::vector<const GaussCull*> q;  // each pair's culling data (row interval coefficients)
+  std::vector<GaussCull> q;  // each pair's culling data (row interval coefficients), copied in list order
   int64_t cap = 0;
   int px0 = 0;                      // left pixel column of the gathered tile
 
@@ -284,10 +287,10 @@ struct TileCache {
     q.resize(cap);
   }
 
-  // Column intervals of pair k's rows y0[k] .. y1[k] - 1 into xa, xb (kMaxTile + 4 entries each), relative
+  // Column intervals of pair k's rows y0[k] .. y1[k] - 1 into xa, xb (kRowBuf entries each), relative
   // to the tile's left column px0.
   B3_INLINE void rows(int64_t k, int16_t* xa, int16_t* xb) const {
-    row_ranges(*q[k], x[k], y[k], b[k], px0, x0[k], x1[k], y0[k], y1[k], xa, xb);
+    row_ranges(q[k], px0, x0[k], x1[k], y0[k], y1[k], xa, xb);
   }
 
   // Gathers the K Gaussians of one tile for sample s, their boxes clipped to the tile rectangle
@@ -308,10 +311,11 @@ struct TileCache {
         __builtin_prefetch(opac + gp);
         __builtin_prefetch(depths + gp);
         __builtin_prefetch(cull + gp);
+        __builtin_prefetch(reinterpret_cast<const char*>(cull + gp + 1) - 1);  // a struct may span two lines
       }
       const int64_t g = base + ids[k];
       const GaussCull& cq = cull[g];
-      q[k] = &cq;
+      q[k] = cq;
       x[k] = means[2 * g];
       y[k] = means[2 * g + 1];
       a[k] = conics[3 * g];
@@ -406,7 +410,7 @@ B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int p
     const scalar_t r = tc.cr[k], g = tc.cg[k], bl = tc.cb[k], zz = tc.z[k];
     const int32_t kk = (int32_t)k;
     V wl = {}, ql = {};
-    int16_t rxa[kMaxTile + 4], rxb[kMaxTile + 4];
+    int16_t rxa[kRowBuf], rxb[kRowBuf];
     tc.rows(k, rxa, rxb);
     for (int yy = by0; yy < by1; ++yy) {
       const int xa = px0 + rxa[yy - by0], xb = px0 + rxb[yy - by0];
@@ -482,7 +486,7 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
       const scalar_t go = tc.o[k];
       const scalar_t r = tc.cr[k], g = tc.cg[k], bl = tc.cb[k], zz = tc.z[k];
       const int32_t kk = (int32_t)k;
-      int16_t rxa[kMaxTile + 4], rxb[kMaxTile + 4];
+      int16_t rxa[kRowBuf], rxb[kRowBuf];
       tc.rows(k, rxa, rxb);
       for (int yy = by0; yy < by1; ++yy) {
         const int xa = px0 + rxa[yy - by0], xb = px0 + rxb[yy - by0];
