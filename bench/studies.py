@@ -21,8 +21,12 @@ only observes training, ``changes_training = False``) is not retrained: its dir 
 the twin's metrics with ``training_shared_with`` (``--no-share`` trains it anyway). Canonical runs are always
 trained (their NIW posterior feeds uq.json).
 
-A run dir with metrics.json is finished and reused, so an interrupted grid resumes. The report is written to
-``--report`` (default bench/results/report/).
+A run dir with metrics.json is finished and reused, so an interrupted grid resumes. Each finished run's small files
+(config.yaml, metrics.json, curve.json, uq.json) are copied to ``--archive`` (default bench/results/runs/, committed):
+a run found there is finished on any machine, so a campaign spread over sessions resumes from the repository, and the
+report is built from the archive. With ``--uq`` a canonical run's uq.json is computed right after its training (in a
+subprocess), so an interrupted campaign loses at most the runs in flight. The report is written to ``--report``
+(default bench/results/report/).
 """
 from __future__ import annotations
 
@@ -166,7 +170,58 @@ def ensure_uq(run_dir: Path, method: str, samples: int, seed: int) -> None:
     evaluate_uq([str(run_dir)], {n: instantiate(cfg[n]) for n in names}, seed=seed, panels=0)
 
 
+ARCHIVED = ("config.yaml", "metrics.json", "curve.json", "uq.json")
+
+
+def archive_dir(args, run_dir: Path) -> Path:
+    """Where run_dir's small files are archived: the same path relative to --out, under --archive."""
+    return Path(args.archive) / run_dir.relative_to(Path(args.out))
+
+
+def archived(args, run_dir: Path, study: str) -> bool:
+    """The run is finished in the archive (with its uq.json when --uq asks for one)."""
+    a = archive_dir(args, run_dir)
+    return (a / "metrics.json").is_file() and not (args.uq and study == "canonical" and not (a / "uq.json").is_file())
+
+
+def archive(args, run_dir: Path) -> None:
+    """Copies run_dir's small files into the archive atomically (a temporary dir renamed into place)."""
+    import shutil
+    import tempfile
+
+    dest = archive_dir(args, run_dir)
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+    for name in ARCHIVED:
+        if (run_dir / name).is_file():
+            shutil.copy2(run_dir / name, tmp / name)
+    if dest.exists():
+        shutil.rmtree(dest)
+    tmp.rename(dest)
+
+
+def uq_subprocess(run_dir: Path, method: str, samples: int, seed: int, threads: int | None) -> None:
+    """ensure_uq in its own process (runs of a --jobs pool stay isolated, and killable)."""
+    import subprocess
+
+    if (run_dir / "uq.json").exists():
+        return
+    cmd = [sys.executable, __file__, "--uq-one", str(run_dir), method, str(samples), str(seed)]
+    if threads:
+        cmd += ["--threads", str(threads)]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    if res.returncode != 0:
+        raise RuntimeError(f"uq.json of {run_dir} failed:\n{res.stderr[-4000:]}")
+
+
 def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--uq-one":  # internal: one run's uq.json (see uq_subprocess)
+        import torch
+
+        if "--threads" in sys.argv:
+            torch.set_num_threads(int(sys.argv[sys.argv.index("--threads") + 1]))
+        ensure_uq(Path(sys.argv[2]), sys.argv[3], int(sys.argv[4]), int(sys.argv[5]))
+        return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--studies", nargs="+", default=["canonical", "sparse", "initcap"],
                     choices=["canonical", "sparse", "initcap"])
@@ -180,6 +235,8 @@ def main() -> None:
     ap.add_argument("--uq-samples", type=int, default=50)
     ap.add_argument("--out", default="outputs/bench")
     ap.add_argument("--report", default=str(RESULTS / "report"))
+    ap.add_argument("--archive", default=str(RESULTS / "runs"),
+                    help="committed copy of each finished run's small files (resume across machines; report input)")
     ap.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every run")
     ap.add_argument("--dry-run", action="store_true", help="list the runs (and whether they are finished) only")
     ap.add_argument("--jobs", type=int, default=1, help="runs trained at once (each a subprocess)")
@@ -189,33 +246,35 @@ def main() -> None:
     args = ap.parse_args()
     jobs = plan(args)
     shared = twins(jobs) if args.share else {}
-    todo = [j for j in jobs if not (j[0] / "metrics.json").exists()]
+    todo = [j for j in jobs if not archived(args, j[0], j[2])]
     print(f"{len(jobs)} runs, {len(jobs) - len(todo)} finished, {len(todo)} to do "
           f"({len([j for j in todo if j[0] in shared])} of them the same training run as another: shared)", flush=True)
     if args.dry_run:
-        for run_dir, _, _ in jobs:
-            print(("done " if (run_dir / "metrics.json").exists() else "todo ") + str(run_dir)
+        for run_dir, _, study in jobs:
+            print(("done " if archived(args, run_dir, study) else "todo ") + str(run_dir)
                   + (f" (shares {shared[run_dir]})" if run_dir in shared else ""))
         return
     threads = [f"threads={args.threads}"] if args.threads else []
 
     def one(job):
         run_dir, overrides, study = job
+        if archived(args, run_dir, study):
+            return None
         m = train_run(run_dir, overrides + threads)
         print(f"{study:9s} {run_dir}: PSNR {m['psnr']:.3f}, {m['train_time_s']:.1f} s", flush=True)
+        if args.uq and study == "canonical":
+            uq_subprocess(run_dir, m["method"], args.uq_samples, int(m["seed"]), args.threads)
+            print(f"{study:9s} {run_dir}: uq.json", flush=True)
+        archive(args, run_dir)
         return m
 
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:  # each run is its own subprocess
         list(ex.map(one, [j for j in jobs if j[0] not in shared]))  # list(): a failed run raises here
     for run_dir, overrides, study in jobs:  # after every twin has finished
-        if run_dir in shared and not (run_dir / "metrics.json").exists():
-            write_shared(run_dir, overrides, shared[run_dir])
+        if run_dir in shared and not archived(args, run_dir, study):
+            write_shared(run_dir, overrides, archive_dir(args, shared[run_dir]))  # the twin may be from a past session
+            archive(args, run_dir)
             print(f"{study:9s} {run_dir}: same training run as {shared[run_dir]} (shared)", flush=True)
-    if args.uq:
-        for run_dir, _, study in jobs:
-            if study == "canonical":
-                m = json.loads((run_dir / "metrics.json").read_text())
-                ensure_uq(run_dir, m["method"], args.uq_samples, int(m["seed"]))
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
@@ -226,7 +285,7 @@ def main() -> None:
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         # exactly the grid's runs: outputs/bench also holds other benchmarks' runs of the same scene, method and
         # seed (e.g. niw_calib), which the report would rightly refuse as duplicates
-        cfg = compose(config_name="report", overrides=[f"runs=[{','.join(str(j[0]) for j in jobs)}]",
+        cfg = compose(config_name="report", overrides=[f"runs=[{','.join(str(archive_dir(args, j[0])) for j in jobs if archive_dir(args, j[0]).is_dir())}]",
                                                        f"out={args.report}"])
     paths = build_report(cfg)
     print(f"report: {paths['md']}")
