@@ -239,6 +239,7 @@ def main() -> None:
                     help="committed copy of each finished run's small files (resume across machines; report input)")
     ap.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every run")
     ap.add_argument("--dry-run", action="store_true", help="list the runs (and whether they are finished) only")
+    ap.add_argument("--report-only", action="store_true", help="train nothing: the report of the archived runs")
     ap.add_argument("--jobs", type=int, default=1, help="runs trained at once (each a subprocess)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads per run (e.g. --jobs 2 --threads 1)")
     ap.add_argument("--no-share", dest="share", action="store_false",
@@ -255,6 +256,9 @@ def main() -> None:
                   + (f" (shares {shared[run_dir]})" if run_dir in shared else ""))
         return
     threads = [f"threads={args.threads}"] if args.threads else []
+    if args.report_only:
+        jobs = [j for j in jobs if archived(args, j[0], j[2])]
+        print(f"report of the {len(jobs)} archived runs", flush=True)
 
     def one(job):
         run_dir, overrides, study = job
@@ -269,7 +273,7 @@ def main() -> None:
         return m
 
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:  # each run is its own subprocess
-        list(ex.map(one, [j for j in jobs if j[0] not in shared]))  # list(): a failed run raises here
+        list(ex.map(one, [j for j in jobs if j[0] not in shared and not args.report_only]))  # list(): a failed run raises here
     for run_dir, overrides, study in jobs:  # after every twin has finished
         if run_dir in shared and not archived(args, run_dir, study):
             write_shared(run_dir, overrides, archive_dir(args, shared[run_dir]))  # the twin may be from a past session

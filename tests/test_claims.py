@@ -1,0 +1,57 @@
+"""bench/claims.py: verdicts computed from per-scene results (holds, sign only, fails, parity, pending)."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+claims = pytest.importorskip("claims")
+
+
+def _archive(root: Path, n_scenes: int) -> None:
+    """Archived canonical runs: DPMM below standard everywhere, MCMC above, NIW equal; native variance
+    rising with -PSNR."""
+    for i in range(n_scenes):
+        scene = f"scene{i}"
+        base = 20.0 + i
+        for method, psnr in (("standard", base), ("niw", base), ("dpmm", base - 0.5 - 0.1 * i), ("mcmc", base + 0.2)):
+            for seed in (0, 1):
+                d = root / "runs" / scene / method / f"s{seed}"
+                d.mkdir(parents=True)
+                (d / "metrics.json").write_text(json.dumps({"psnr": psnr, "num_gaussians": 1000.0,
+                                                            "render_fps": 10.0, "train_time_s": 100.0}))
+                (d / "uq.json").write_text(json.dumps({
+                    "proxy": {"cov95_err": 0.8, "ause_rmse": 0.02, "nll": 5.0},
+                    "native": {"cov95_err": 0.05, "ause_rmse": 0.03, "nll": -1.0, "mean_var": 1.0 / psnr}}))
+
+
+def _row(rows, cid):
+    return next(r for r in rows if r["id"] == cid)
+
+
+def test_verdicts_from_six_scenes(tmp_path):
+    _archive(tmp_path, 6)
+    rows, text = claims.build(tmp_path)
+    assert _row(rows, "dpmm_psnr_cost")["verdict"] == "holds"  # 6/6 scenes, p = 2/64 < 0.05
+    assert _row(rows, "dpmm_psnr_cost")["ours"] == pytest.approx(-0.75)
+    assert _row(rows, "mcmc_psnr")["verdict"] == "fails"
+    assert _row(rows, "parity_niw_vs_standard")["verdict"] == "parity by construction"
+    assert _row(rows, "calibration_native_vs_proxy")["verdict"] == "holds"
+    assert _row(rows, "native_ause_worse")["verdict"] == "holds"
+    assert _row(rows, "dpmm_fewer_gaussians")["verdict"] == "parity by construction"
+    sp = _row(rows, "spearman_niw")
+    assert sp["ours"] == pytest.approx(1.0) and sp["verdict"] == "holds"
+    # no active-view, uq.json or compression results here
+    assert _row(rows, "active_native_vs_ensemble")["verdict"] == "pending"
+    assert "**fails**" in text and "scene0" in text
+
+
+def test_three_scenes_reach_sign_only(tmp_path):
+    _archive(tmp_path, 3)
+    rows, _ = claims.build(tmp_path)
+    r = _row(rows, "dpmm_psnr_cost")
+    assert r["verdict"] == "holds in sign only" and r["n_scenes"] == 3  # p floor 2/8 = 0.25
+    assert "floor" in r["why"]
