@@ -23,7 +23,9 @@ from b3dgs.io import write_json
 
 log = logging.getLogger(__name__)
 
-CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+from b3dgs import conf_dir
+
+CONF_DIR = conf_dir()
 
 
 def build_plugins(cfg: DictConfig):
@@ -316,7 +318,7 @@ def _finish(cfg: DictConfig, run_dir: Path, module, scene, renderer, trainer, cu
     # ------------------------------------------------------------ final evaluation and outputs
     # written in this order, each atomically: renders, PLY, curve, then metrics.json (the done marker)
     final = checkpoint_record(torch.load(ckpt.last_path, map_location="cpu", weights_only=False, mmap=True))
-    lpips_model, lpips_reason = get_lpips()
+    lpips_model, lpips_reason = get_lpips(cfg.get("lpips_weights"))
     ev = evaluate_views(module, scene.test, lpips_model=lpips_model,
                         render_dir=run_dir / "renders" if tcfg.get("save_renders", True) else None)
     from b3dgs.ply import write_ply

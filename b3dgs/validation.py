@@ -26,9 +26,10 @@ from typing import Any, Callable, Iterable, Optional
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from b3dgs import conf_dir
 from b3dgs.errors import B3dgsError, did_you_mean
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+CONF_DIR = Path(conf_dir())
 TRAIN_GROUPS = ("data", "model", "renderer", "strategy", "posterior", "trainer", "logger")
 EVAL_GROUPS = ("uq",)
 _MISSING = object()
@@ -232,6 +233,11 @@ def _check_top(cfg: DictConfig, app: str) -> None:
                 raise B3dgsError(f"unknown config key b3dgs.{key}", "the b3dgs node holds only b3dgs.debug")
         _need(isinstance(_get(b, "debug", "b3dgs.debug"), bool), "b3dgs.debug", b.debug, "true or false",
               "pass b3dgs.debug=true for full tracebacks")
+    lw = _get(cfg, "lpips_weights", "lpips_weights") if "lpips_weights" in cfg else None
+    if lw not in (None, "") and not Path(str(lw)).expanduser().is_file():
+        raise B3dgsError(f"lpips_weights={lw}: no such file",
+                         f"run `b3dgs-lpips --out {lw}` to build it, or pass lpips_weights=null (then "
+                         "$B3DGS_LPIPS_WEIGHTS or the cache ~/.cache/b3dgs/lpips_alex.pth is used)")
     seed = _get(cfg, "seed", "seed")
     _need(_is_int(seed) and 0 <= seed < 2**32, "seed", seed, "an integer in [0, 2^32)", "pass seed=0")
     _int_at_least("threads", _get(cfg, "threads", "threads") if "threads" in cfg else None, 1,

@@ -8,7 +8,7 @@ from torch import nn
 
 from b3dgs.ops import TopologyOps
 from b3dgs.train import CONF_DIR
-from plugins.strategy.mcmc import MCMCStrategy, relocation
+from b3dgs_plugins.strategy.mcmc import MCMCStrategy, relocation
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 8])

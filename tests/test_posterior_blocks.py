@@ -6,12 +6,12 @@ import torch
 
 from b3dgs.data import load_scene
 from b3dgs.metrics.image import psnr
-from plugins.posterior.color import ColorBlock
-from plugins.posterior.dp import DPBlock
-from plugins.posterior.niw import NIWBlock
-from plugins.posterior.noise import NoiseBlock
-from plugins.posterior.opacity import OpacityBlock
-from plugins.strategy.default import AdaptiveDensityControl
+from b3dgs_plugins.posterior.color import ColorBlock
+from b3dgs_plugins.posterior.dp import DPBlock
+from b3dgs_plugins.posterior.niw import NIWBlock
+from b3dgs_plugins.posterior.noise import NoiseBlock
+from b3dgs_plugins.posterior.opacity import OpacityBlock
+from b3dgs_plugins.strategy.default import AdaptiveDensityControl
 from test_train import QUICK, run_train
 
 
