@@ -94,11 +94,11 @@ def compute_per_seed(out: Path, scene_summary: dict) -> dict:
 def camera_geometry(scene: str) -> tuple[dict, float]:
     """{view name: camera centre} for the scene's train and test views, and the scene extent."""
     from b3dgs.acquisition import camera_centres
-    from b3dgs.study.active import _compose
+    from b3dgs.study.active import compose_config
 
     from hydra.utils import instantiate
 
-    cfg = _compose("study", [o.format(shared=shared_dir()) for o in SCENES[scene]])
+    cfg = compose_config("study", [o.format(shared=shared_dir()) for o in SCENES[scene]])
     dm = instantiate(cfg.data)
     dm.setup("fit")
     cams = list(dm.scene.train) + list(dm.scene.test)
@@ -107,12 +107,11 @@ def camera_geometry(scene: str) -> tuple[dict, float]:
 
 def support_distance(train: list[str], test: list[str], centres: dict, extent: float) -> float:
     """Mean over test views of the distance from its camera centre to the nearest training camera centre,
-    / extent (the report's OOD support score, averaged): how well the final training set covers the test
-    views. scipy's cKDTree for the neighbours."""
-    from scipy.spatial import cKDTree
+    / extent (the report's OOD support score, :func:`b3dgs.report.ood.support_distances`, averaged): how well
+    the final training set covers the test views."""
+    from b3dgs.report.ood import support_distances
 
-    d, _ = cKDTree(np.stack([centres[n] for n in train])).query(np.stack([centres[n] for n in test]))
-    return float(np.mean(d) / extent)
+    return float(np.mean(support_distances([centres[n] for n in train], [centres[n] for n in test], extent)))
 
 
 def pick_spacing(initial: list[str], picks: list[str], centres: dict, extent: float) -> float:

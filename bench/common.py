@@ -71,7 +71,7 @@ SCENES = {
     "dtu_scan65": ["data=colmap", "data.path={shared}/data/dtu_scan65"],
     "synthetic": ["data=synthetic"],
 }
-QUICK = ["data.max_side=256", "trainer.max_steps=3000", "trainer.progress_bar=false", "logger=none",
+QUICK = ["data.max_side=256", "trainer.max_steps=3000", "trainer.enable_progress_bar=false", "logger=none",
          "trainer.save_renders=false"]
 
 

@@ -36,12 +36,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from bench.common import RESULTS, shared_dir  # noqa: E402
 from b3dgs.io import atomic_path, write_json  # noqa: E402
+from tests.kill_hooks import kill_args  # noqa: E402 - the test callback that kills a run at a chosen point
 
 WORK = ROOT / "outputs" / "bench" / "reliability"
 FIX = WORK / "fixtures"
 MEM_LIMIT = 6 * 2**30
 # short, small runs for the rows that are expected to train
-SHORT = ["trainer.max_steps=2", "trainer.eval_every=1", "trainer.checkpoint_every=1", "trainer.progress_bar=false",
+SHORT = ["trainer.max_steps=2", "trainer.eval_every=1", "trainer.checkpoint_every=1", "trainer.enable_progress_bar=false",
          "logger=none", "trainer.save_renders=false", "data.max_side=64"]
 
 
@@ -137,11 +138,11 @@ def _bad_ckpt() -> Path:
 
 # ------------------------------------------------------------------------------------ issue 20 scenarios
 TINY = ["+data.n_views=8", "data.max_side=16", "trainer.max_steps=4", "trainer.eval_every=100", "trainer.checkpoint_every=2",
-        "trainer.checkpoint_every_s=0", "trainer.progress_bar=false", "logger=none", "threads=1"]
+        "trainer.checkpoint_every_s=0", "trainer.enable_progress_bar=false", "logger=none", "threads=1"]
 
 
 def _env(**kw) -> dict:
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR" and not k.startswith("B3DGS_TEST")}
+    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
     env.update({k: str(v) for k, v in kw.items()})
     return env
 
@@ -188,7 +189,7 @@ def _finished_run(d: Path, *extra: str) -> Path:
 def sc_concurrent() -> dict:
     """Two trainings on one run dir: the first is stopped (SIGSTOP by its own test hook) at step 1, holding it."""
     d = _fresh("concurrent") / "run"
-    first = _popen("b3dgs.train", [*TINY, f"hydra.run.dir={d}"], env=_env(B3DGS_TEST_KILL_AT_STEP=1, B3DGS_TEST_SIGNAL="STOP"),
+    first = _popen("b3dgs.train", [*TINY, f"hydra.run.dir={d}", *kill_args(step=1, sig="STOP")],
                    limit=False)
     os.waitpid(first.pid, os.WUNTRACED)
     try:
@@ -216,7 +217,7 @@ def sc_default_dirs() -> dict:
 
 def sc_signal(sig: str, code: int) -> dict:
     d = _fresh(f"sig{sig}") / "run"
-    rc, out, err = _run("b3dgs.train", [*TINY, f"hydra.run.dir={d}"], env=_env(B3DGS_TEST_KILL_AT_STEP=3, B3DGS_TEST_SIGNAL=sig))
+    rc, out, err = _run("b3dgs.train", [*TINY, f"hydra.run.dir={d}", *kill_args(step=3, sig=sig)])
     import torch
 
     step = torch.load(d / "checkpoints" / "last.ckpt", weights_only=False)["global_step"] if (d / "checkpoints" / "last.ckpt").exists() else None
@@ -228,7 +229,7 @@ def sc_signal(sig: str, code: int) -> dict:
 
 def sc_final_ctrl_c() -> dict:
     d = _fresh("final_ctrl_c") / "run"
-    rc, out, err = _run("b3dgs.train", [*TINY, f"hydra.run.dir={d}"], env=_env(B3DGS_TEST_KILL_AT="final", B3DGS_TEST_SIGNAL="INT"))
+    rc, out, err = _run("b3dgs.train", [*TINY, f"hydra.run.dir={d}", *kill_args(point="final", sig="INT")])
     rc2, _, _ = _run("b3dgs.train", [*TINY, "resume=auto", f"hydra.run.dir={d}"])
     line = [ln for ln in err.splitlines() if ln.strip()][-1:] or [""]
     return {"exit_code": rc, "message": line[0], "ok": rc == 130 and rc2 == 0 and (d / "metrics.json").exists(),
@@ -242,7 +243,7 @@ def sc_kill_final_write(point: str) -> dict:
             "strategy.grad_threshold=1e-9"]  # densify, so that the restored counters are not empty
     ref = _finished_run(base / "ref", *dens)
     d = base / "cut"
-    rc0, _, _ = _run("b3dgs.train", [*TINY, *dens, f"hydra.run.dir={d}"], env=_env(B3DGS_TEST_KILL_AT=f"write:{point}"))
+    rc0, _, _ = _run("b3dgs.train", [*TINY, *dens, f"hydra.run.dir={d}", *kill_args(point=f"write:{point}")])
     stale = [p.name for p in d.rglob("*.tmp")]
     rc, out, err = _run("b3dgs.train", [*TINY, *dens, "resume=auto", f"hydra.run.dir={d}"])
     a, b = (json.loads((x / "metrics.json").read_text()) for x in (ref, d))

@@ -46,7 +46,7 @@ def scatter_block(blk):
     """A copy of NIW block ``blk`` whose refresh uses the scatter C_k = c N̂_k Σ_k (see the module docstring)."""
     import torch
 
-    from b3dgs.posterior import niw as niwm
+    from b3dgs_plugins.posterior import niw as niwm
     from b3dgs.render.projection import covariance_3d
     from b3dgs_plugins.posterior.niw import NIWBlock
 

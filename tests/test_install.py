@@ -86,7 +86,7 @@ def test_installed_train_composes_and_trains_outside_the_checkout(venv, tmp_path
     assert "_target_: b3dgs_plugins.posterior.niw.NIWBlock" in job.stdout
     run = tmp_path / "run"
     res = _outside(venv, [str(venv / "bin" / "b3dgs-train"), "trainer=quick", "trainer.max_steps=50",
-                          "trainer.eval_every=25", "trainer.progress_bar=false", "logger=none", "model=niw",
+                          "trainer.eval_every=25", "trainer.enable_progress_bar=false", "logger=none", "model=niw",
                           f"hydra.run.dir={run}"], tmp_path, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     assert (run / "metrics.json").is_file() and (run / "point_cloud.ply").is_file()

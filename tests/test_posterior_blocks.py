@@ -132,7 +132,7 @@ def test_short_training_on_real_scene(tmp_path, model):
     path = SHARED / "data" / "ethiopian_head"
     if not path.exists():
         pytest.skip(f"shared scene not found at {path}")
-    m = run_train(tmp_path, ["data=colmap", f"data.path={path}", "data.max_side=96", "trainer.progress_bar=false",
+    m = run_train(tmp_path, ["data=colmap", f"data.path={path}", "data.max_side=96", "trainer.enable_progress_bar=false",
                              "logger=none", f"model={model}", "trainer.max_steps=200", "trainer.eval_every=100",
                              "strategy.refine_start=50", "strategy.refine_stop=150", "strategy.refine_every=50"]
                   + (["posterior.dp.t_dp=100", "posterior.dp.cavi_every=25"] if model == "dpmm" else []))

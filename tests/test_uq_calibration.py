@@ -10,7 +10,7 @@ import torch
 
 from b3dgs.data import load_scene
 from b3dgs.errors import B3dgsError
-from b3dgs.posterior import niw as niwm
+from b3dgs_plugins.posterior import niw as niwm
 from b3dgs.uq.calibration import conformal_scale, fit_scale_and_level
 from b3dgs.uq.metrics import coverage, epistemic_summary, epistemic_view
 from b3dgs_plugins.posterior.niw import NIWBlock
@@ -256,7 +256,7 @@ def test_calib_run_trains_without_its_calibration_views_and_uq_json_reports_them
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose(config_name="train", return_hydra_config=True, overrides=[
             f"hydra.run.dir={tmp_path}", "model=niw", "data.max_side=32", "+data.n_views=24", "data.calib_every=4",
-            "trainer.max_steps=30", "trainer.progress_bar=false", "logger=none", "trainer.save_renders=false"])
+            "trainer.max_steps=30", "trainer.enable_progress_bar=false", "logger=none", "trainer.save_renders=false"])
         HydraConfig.instance().set_config(cfg)
         with open_dict(cfg):
             cfg.trainer.default_root_dir = str(tmp_path)

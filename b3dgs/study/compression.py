@@ -108,7 +108,7 @@ class CompressionStudy:
         import lightning as L
 
         from b3dgs.data.datamodule import SceneDataModule
-        from b3dgs.train import build_module, build_plugins, build_renderer, resolve_accelerator
+        from b3dgs.train import build_module, build_plugins, build_renderer, build_trainer
 
         os.environ.pop("PL_GLOBAL_SEED", None)
         L.seed_everything(int(seed), workers=True, verbose=False)
@@ -118,10 +118,8 @@ class CompressionStudy:
         module.scene = scene
         module._set_params({k: v.detach().cpu().clone() for k, v in params.items()})
         module._init_states()
-        trainer = L.Trainer(max_steps=int(cfg.trainer.max_steps), accelerator=resolve_accelerator(
-            cfg.trainer.get("accelerator"), renderer), devices=1, logger=False, callbacks=[], limit_val_batches=0,
-            num_sanity_val_steps=0, enable_progress_bar=False, enable_model_summary=False, enable_checkpointing=False,
-            default_root_dir=str(self.out / ".lightning"))
+        trainer = build_trainer(cfg.trainer, renderer, [], enable_progress_bar=False, enable_checkpointing=False,
+                                default_root_dir=str(self.out / ".lightning"))
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*does not have many workers.*")
             warnings.filterwarnings("ignore", message=".*`training_step` returns.*")
