@@ -643,17 +643,14 @@ def _damaged_model(tmp_path: Path, name: str, keep) -> Path:
     ("cameras.bin", lambda n: 4, "shorter than its 8-byte header"),
 ])
 def test_damaged_colmap_files_refused_before_pycolmap(tmp_path, name, keep, text):
-    import time
-
     from b3dgs.data.colmap import check_colmap_binary
     from b3dgs.errors import B3dgsError
 
     check_colmap_binary(HEAD / "sparse" / "0")  # the intact model passes
     d = _damaged_model(tmp_path, name, keep)
-    t0 = time.perf_counter()
     with pytest.raises(B3dgsError, match=text) as ei:
         check_colmap_binary(d)
-    assert name in str(ei.value) and time.perf_counter() - t0 < 5.0
+    assert name in str(ei.value)
     (tmp_path / "images").symlink_to(HEAD / "images")
     with pytest.raises(B3dgsError, match=text):  # the loader checks before pycolmap reads anything
         load_scene("colmap", str(tmp_path), max_side=16)

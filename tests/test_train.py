@@ -92,11 +92,15 @@ def test_run_dir_guard_resume_identity_and_eval_check(tmp_path):
     assert load_run(tmp_path).module.num_gaussians == m3["num_gaussians"]
 
 
-def test_checkpoints_bounded_by_time():
-    """trainer.checkpoint_every_s saves last.ckpt between the step multiples, once the time has passed."""
+def test_checkpoints_bounded_by_time(monkeypatch):
+    """trainer.checkpoint_every_s saves last.ckpt between the step multiples, once the time has passed (a fake
+    clock: the test does not depend on how fast the machine is)."""
     import time
 
     from b3dgs.callbacks import RunCheckpoint
+
+    clock = [100.0]
+    monkeypatch.setattr(time, "monotonic", lambda: clock[0])
 
     class FakeTrainer:
         global_step = 0
@@ -111,7 +115,7 @@ def test_checkpoints_bounded_by_time():
         t.global_step = step
         cb.on_train_batch_end(t, None, None, None, step - 1)
     assert t.saved == []
-    time.sleep(0.06)
+    clock[0] += 0.06
     t.global_step = 4
     cb.on_train_batch_end(t, None, None, None, 3)
     assert t.saved == [4]

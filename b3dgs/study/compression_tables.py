@@ -10,6 +10,7 @@ from typing import Any, Optional
 import numpy as np
 
 from b3dgs.io import atomic_path, write_json
+from b3dgs.report.document import markdown_table
 from b3dgs.report.stats import mean_sem, paired_stats
 
 # (a, b): report a − b where both are present. The paper's primary contrast, then the dedicated comparator
@@ -94,34 +95,29 @@ def markdown(s: dict) -> str:
     L += ["", "## PSNR by keep ratio (the paper's layout)", ""]
     cols = [x for x in st if any(f"{x}@{k}" in cells for k in keeps)]
     extra = [(a, b) for a, b in PAIRS if a in cols and b in cols]
-    L.append("| Keep % | " + " | ".join(cols) + " | " + " | ".join(f"{a} − {b}" for a, b in extra) + " |")
-    L.append("|---" * (1 + len(cols) + len(extra)) + "|")
+    rows = []
     for k in keeps:
         vals = {c: cells.get(f"{c}@{k}", {}).get("psnr") for c in cols}
         best = max((v for v in vals.values() if v is not None), default=None)
         cell = [("**" + _f(vals[c]) + "**") if vals[c] is not None and vals[c] == best else _f(vals[c]) for c in cols]
         diffs = [_f(None if vals[a] is None or vals[b] is None else vals[a] - vals[b], signed=True) for a, b in extra]
-        L.append(f"| {int(round(k * 100))} | " + " | ".join(cell) + " | " + " | ".join(diffs) + " |")
+        rows.append([str(int(round(k * 100))), *cell, *diffs])
+    L += markdown_table(["Keep %", *cols, *(f"{a} − {b}" for a, b in extra)], rows)
     bm = s["base_macro"]
     L += ["", f"Base (no pruning): PSNR {_f(bm.get('psnr'))}, LPIPS {_f(bm.get('lpips'), 4)}, "
           f"{_f(bm.get('num_gaussians'), 0)} Gaussians, {_f(bm.get('render_fps'), 1)} FPS, trained in "
           f"{_f(bm.get('train_time_s'), 0)} s.", ""]
-    L += ["## Quality, size, speed and time per row", "",
-          "| Score | Keep % | PSNR ↑ | SSIM ↑ | LPIPS ↓ | kept % of base | #Gaussians | FPS ↑ | score s | fine-tune s | "
-          "compression s | runs |", "|---" * 12 + "|"]
-    for c in cols:
-        for k in keeps:
-            e = cells.get(f"{c}@{k}")
-            if not e:
-                continue
-            L.append(f"| {c} | {int(round(k * 100))} | {_f(e['psnr'])} | {_f(e['ssim'], 4)} | {_f(e['lpips'], 4)} | "
-                     f"{_f(100 * e['kept_fraction'] if e['kept_fraction'] is not None else None, 1)} | "
-                     f"{_f(e['num_gaussians'], 0)} | {_f(e['render_fps'], 1)} | {_f(e['score_s'], 1)} | "
-                     f"{_f(e['finetune_s'], 1)} | {_f(e['time_s'], 1)} | {e['n_runs']} |")
+    L += ["## Quality, size, speed and time per row", ""]
+    rows = [[c, str(int(round(k * 100))), _f(e["psnr"]), _f(e["ssim"], 4), _f(e["lpips"], 4),
+             _f(100 * e["kept_fraction"] if e["kept_fraction"] is not None else None, 1), _f(e["num_gaussians"], 0),
+             _f(e["render_fps"], 1), _f(e["score_s"], 1), _f(e["finetune_s"], 1), _f(e["time_s"], 1), str(e["n_runs"])]
+            for c in cols for k in keeps for e in [cells.get(f"{c}@{k}")] if e]
+    L += markdown_table(["Score", "Keep %", "PSNR ↑", "SSIM ↑", "LPIPS ↓", "kept % of base", "#Gaussians", "FPS ↑",
+                         "score s", "fine-tune s", "compression s", "runs"], rows)
     L += ["", "compression s = scoring (every round; the first round's scores are computed once per base and shared "
           "by the keep ratios, each row still counts them) + fine-tuning; the base's own training time is above.", ""]
-    L += ["## Per-scene PSNR (seed mean ± SEM)", "", "| Score | Keep % | " + " | ".join(s["scenes"]) + " |",
-          "|---" * (2 + len(s["scenes"])) + "|"]
+    L += ["## Per-scene PSNR (seed mean ± SEM)", ""]
+    rows = []
     for c in cols:
         for k in keeps:
             e = cells.get(f"{c}@{k}")
@@ -131,18 +127,17 @@ def markdown(s: dict) -> str:
             for sc in s["scenes"]:
                 v = e["scenes"].get(sc)
                 parts.append("—" if not v else f"{_f(v['psnr'][0])} ± {_f(v['psnr'][1])} (n={v['n_seeds']})")
-            L.append(f"| {c} | {int(round(k * 100))} | " + " | ".join(parts) + " |")
-    L.append("| base | 100 | " + " | ".join(_f(s["base"][sc].get("psnr")) for sc in s["scenes"]) + " |")
+            rows.append([c, str(int(round(k * 100))), *parts])
+    rows.append(["base", "100", *(_f(s["base"][sc].get("psnr")) for sc in s["scenes"])])
+    L += markdown_table(["Score", "Keep %", *s["scenes"]], rows)
     if s["pairs"]:
-        L += ["", "## Paired PSNR differences", "",
-              "| a − b | Keep % | mean Δ (scenes) | CI | CI method | scene wins / losses | p (2-sided) | p floor | "
-              "scene-seed wins |", "|---" * 9 + "|"]
-        for p in s["pairs"]:
-            ci = p["ci"]
-            L.append(f"| {p['a']} − {p['b']} | {int(round(p['keep'] * 100))} | {_f(p['mean'], 3, True)} | "
-                     f"[{_f(ci.get('low'), 3, True)}, {_f(ci.get('high'), 3, True)}] | {ci.get('method', '—')} | "
-                     f"{p['wins']} / {p['losses']} | {_f(p['p_two_sided'], 3)} | {_f(p['p_floor'], 3)} | "
-                     f"{p['scene_seed_wins']}/{p['scene_seed_n']} |")
+        L += ["", "## Paired PSNR differences", ""]
+        L += markdown_table(["a − b", "Keep %", "mean Δ (scenes)", "CI", "CI method", "scene wins / losses", "p (2-sided)",
+                             "p floor", "scene-seed wins"],
+                            [[f"{p['a']} − {p['b']}", str(int(round(p["keep"] * 100))), _f(p["mean"], 3, True),
+                              f"[{_f(p['ci'].get('low'), 3, True)}, {_f(p['ci'].get('high'), 3, True)}]",
+                              p["ci"].get("method", "—"), f"{p['wins']} / {p['losses']}", _f(p["p_two_sided"], 3),
+                              _f(p["p_floor"], 3), f"{p['scene_seed_wins']}/{p['scene_seed_n']}"] for p in s["pairs"]])
         L += ["", "Units are scenes (per-scene means over seeds): cluster bootstrap CI and exact sign-flip p "
               "(b3dgs.report.stats); with n scenes no two-sided p can fall below 2/2ⁿ."]
     if s.get("plots"):  # relative to the markdown file
