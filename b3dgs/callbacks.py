@@ -121,7 +121,14 @@ class RunCheckpoint(Checkpoint):
     (``None`` / 0: off) and at the end of training; with ``keep``, also ``step<N>.ckpt`` at each multiple of
     ``every_n_steps``. Files are overwritten in place (written atomically by :class:`AtomicCheckpointIO`):
     there is never a ``last-v1.ckpt``. Runs after the other callbacks (Lightning orders checkpoint
-    callbacks last), so a checkpoint holds the curve point and guard counts of its own step."""
+    callbacks last), so a checkpoint holds the curve point and guard counts of its own step.
+
+    Why not ``ModelCheckpoint``: it accepts only one of ``every_n_train_steps`` / ``train_time_interval``
+    (they are mutually exclusive there; a run here needs both, so a kill loses at most N steps or S
+    seconds), it versions a clashing name (``last-v1.ckpt``) where a resume needs one fixed file, and it
+    cannot save at the step boundary where a SIGTERM / SIGINT recorded by :mod:`b3dgs.rundir` is acted on.
+    Everything else (atomic writes, the checkpoint's contents) goes through Lightning's own
+    ``trainer.save_checkpoint`` and checkpoint IO."""
 
     def __init__(self, dirpath: Path, every_n_steps: Optional[int] = None, every_s: Optional[float] = None,
                  keep: bool = False):

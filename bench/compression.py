@@ -53,7 +53,7 @@ def run_base(base: Path, out: Path, extra: list[str]) -> float:
 
 def aggregate(out: Path) -> dict:
     from b3dgs.report.document import markdown_table
-    from b3dgs.study.compression_tables import write_report
+    from b3dgs.study.compression import write_report
 
     s = write_report(out, plots=True)
     dst = RESULTS / NAME
