@@ -6,6 +6,16 @@ import PIL.PngImagePlugin  # noqa: F401
 __version__ = "0.1.0"
 
 
+def conf_dir() -> str:
+    """b3dgs's config directory: ``b3dgs/conf`` inside an installed wheel (``pyproject.toml`` maps the
+    repository's ``conf/`` there), else ``conf/`` beside the package in a source checkout or an editable
+    install."""
+    from pathlib import Path
+
+    here = Path(__file__).resolve().parent
+    return str(here / "conf" if (here / "conf" / "train.yaml").is_file() else here.parent / "conf")
+
+
 def _register_resolvers() -> None:
     from pathlib import Path
 

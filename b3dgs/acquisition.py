@@ -5,7 +5,7 @@ A policy is a plugin like any other: ``plugins/acquisition/<name>.py`` (one data
 installed package adds one through the ``b3dgs.conf`` entry point. The study driver reads only what
 the class declares:
 
-- ``family``: the phase-1 model family it starts from (``standard`` or ``niw``; configurable per row);
+- ``family``: the phase-1 model family it starts from (any ``model=`` option; configurable per row);
 - ``members``: how many phase-1 models of that family (seeds s, s+1, ...) it scores with (the first one
   continues training);
 - ``uses_ground_truth``: True only for the analysis-only ``oracle``; every other policy is refused the
@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.types import Camera
 
 __all__ = ["AcquisitionPolicy", "ScoringContext", "Selection", "downscale_camera", "downscale_image", "top_k"]
@@ -57,9 +57,13 @@ class AcquisitionPolicy:
     uses_ground_truth: ClassVar[bool] = False
 
     def check(self) -> None:
-        if self.family not in ("standard", "niw"):
-            raise B3dgsError(f"acquisition family={self.family!r} is not a phase-1 model family",
-                             "pass family=standard or family=niw")
+        from b3dgs.validation import group_option_names
+
+        families = group_option_names("model")  # any model= option, b3dgs's or a package's
+        if self.family not in families:
+            raise B3dgsError(f"acquisition family={self.family!r} is not a model option"
+                             f"{did_you_mean(self.family, families)}",
+                             f"pass family=<a model= option: {'|'.join(families)}>")
         if int(self.members) < 1:
             raise B3dgsError(f"{type(self).__name__}.members={self.members} must be >= 1", "pass members=1 (or 3 for ensemble)")
 

@@ -10,14 +10,12 @@
 Signals: while training, SIGINT / SIGTERM (recorded by :func:`b3dgs.rundir.interrupt_handlers`) make
 :class:`RunCheckpoint` save ``last.ckpt`` after the current step and raise :class:`b3dgs.rundir.Interrupted`.
 
-Test hook: with the environment variable ``B3DGS_TEST_KILL_AT_STEP=K``, :class:`RunCheckpoint` sends its
-own process SIGKILL (or ``B3DGS_TEST_SIGNAL``: TERM, INT) right after step ``K`` (after that step's
-checkpoint, if one is due), like a ``kill -9``; ``tests/test_resume.py`` uses it. It has no other use.
+The trainer runs these with the configured extra callbacks (``callbacks:`` in the config; the tests' kill
+points are one, ``tests/kill_hooks.py``).
 """
 from __future__ import annotations
 
 import logging
-import os
 import random
 import shutil
 import time
@@ -42,9 +40,6 @@ class AtomicCheckpointIO(TorchCheckpointIO):
     def save_checkpoint(self, checkpoint: dict[str, Any], path, storage_options: Optional[Any] = None) -> None:
         with atomic_path(path) as tmp:
             torch.save(checkpoint, tmp)
-
-
-KILL_ENV = "B3DGS_TEST_KILL_AT_STEP"
 
 
 def _train_sampler(trainer) -> Any:
@@ -76,7 +71,7 @@ def set_rng_state(state: dict[str, Any]) -> None:
 
 
 def _set_guard_counts(counts: dict[str, int], calls: dict[str, int]) -> None:
-    from b3dgs.posterior import guards
+    from b3dgs import numerics as guards
 
     with guards._lock:  # noqa: SLF001 - the counters are module state; restore them as saved
         guards._counts.clear()
@@ -94,7 +89,7 @@ class ResumeState(L.Callback):
         self._pending: Optional[dict] = None
 
     def state_dict(self) -> dict:
-        from b3dgs.posterior.guards import guard_calls, guard_counts
+        from b3dgs.numerics import guard_calls, guard_counts
 
         return {"rng": rng_state(), "guards": guard_counts(), "guard_calls": guard_calls()}
 
@@ -126,7 +121,14 @@ class RunCheckpoint(Checkpoint):
     (``None`` / 0: off) and at the end of training; with ``keep``, also ``step<N>.ckpt`` at each multiple of
     ``every_n_steps``. Files are overwritten in place (written atomically by :class:`AtomicCheckpointIO`):
     there is never a ``last-v1.ckpt``. Runs after the other callbacks (Lightning orders checkpoint
-    callbacks last), so a checkpoint holds the curve point and guard counts of its own step."""
+    callbacks last), so a checkpoint holds the curve point and guard counts of its own step.
+
+    Why not ``ModelCheckpoint``: it accepts only one of ``every_n_train_steps`` / ``train_time_interval``
+    (they are mutually exclusive there; a run here needs both, so a kill loses at most N steps or S
+    seconds), it versions a clashing name (``last-v1.ckpt``) where a resume needs one fixed file, and it
+    cannot save at the step boundary where a SIGTERM / SIGINT recorded by :mod:`b3dgs.rundir` is acted on.
+    Everything else (atomic writes, the checkpoint's contents) goes through Lightning's own
+    ``trainer.save_checkpoint`` and checkpoint IO."""
 
     def __init__(self, dirpath: Path, every_n_steps: Optional[int] = None, every_s: Optional[float] = None,
                  keep: bool = False):
@@ -137,8 +139,6 @@ class RunCheckpoint(Checkpoint):
         self.last_path = self.dirpath / "last.ckpt"
         self._saved_step = -1
         self._t_last: Optional[float] = None
-        kill = os.environ.get(KILL_ENV)
-        self._kill_at = int(kill) if kill else None
 
     def save(self, trainer) -> None:
         step = int(trainer.global_step)
@@ -164,11 +164,6 @@ class RunCheckpoint(Checkpoint):
             due = time.monotonic() - self._t_last >= self.every_s
         if due and step != self._saved_step:
             self.save(trainer)
-        if self._kill_at is not None and step >= self._kill_at:
-            from b3dgs.rundir import hook_signal
-
-            self._kill_at = None
-            os.kill(os.getpid(), hook_signal())
         from b3dgs.rundir import PENDING, Interrupted
 
         if PENDING.signum is not None:

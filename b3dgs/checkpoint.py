@@ -21,7 +21,26 @@ from typing import Any, Mapping, Optional
 import torch
 
 __all__ = ["checkpoint_record", "identity_mismatch", "params_digest", "plugin_config", "run_identity",
-           "scene_fingerprint"]
+           "scene_fingerprint", "upgrade_targets"]
+
+#: Class-path prefixes renamed since a run was written: (old, new). Plugins were the top-level package
+#: ``plugins`` until they were installed as ``b3dgs_plugins`` (a name that cannot clash with another project's).
+RENAMED_TARGETS = (("plugins.", "b3dgs_plugins."),)
+
+
+def upgrade_targets(node: Any) -> Any:
+    """A plain config or identity (dicts, lists) with old ``_target_`` class paths renamed
+    (:data:`RENAMED_TARGETS`), so that run dirs and checkpoints written before a rename still load."""
+    if isinstance(node, list):
+        return [upgrade_targets(v) for v in node]
+    if not isinstance(node, Mapping):
+        return node
+    out = {k: upgrade_targets(v) for k, v in node.items()}
+    target = out.get("_target_")
+    for old, new in RENAMED_TARGETS:
+        if isinstance(target, str) and target.startswith(old):
+            out["_target_"] = new + target[len(old):]
+    return out
 
 PARAM_ORDER = ("means", "scales", "quats", "opacities", "sh0", "shN")
 
@@ -105,6 +124,7 @@ def identity_mismatch(saved: Optional[Mapping], current: Mapping) -> Optional[tu
     ``saved`` identity, or ``None`` when they agree (or the checkpoint predates identities)."""
     if not saved:
         return None
+    saved = upgrade_targets(saved)
     if saved.get("model") != current.get("model"):
         return (f"it holds a model={saved.get('model')} run, this run is model={current.get('model')}",
                 f"model={saved.get('model')}")

@@ -24,7 +24,7 @@ from typing import Callable, Iterable, Optional
 
 EXIT_CODE = 2
 DEBUG_KEY = "b3dgs.debug"
-_OWN_ROOTS = tuple(str(Path(__file__).resolve().parents[1] / d) for d in ("b3dgs", "plugins"))
+_OWN_ROOTS = tuple(str(Path(__file__).resolve().parents[1] / d) for d in ("b3dgs", "plugins", "b3dgs_plugins"))
 
 __all__ = ["B3dgsError", "EXIT_CODE", "did_you_mean", "format_error", "known_errors", "quiet_known_noise", "run_cli"]
 

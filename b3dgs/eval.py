@@ -38,7 +38,7 @@ def regimes_from_cfg(cfg: DictConfig) -> dict:
 
 def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Optional[int] = None,
                 panels: int = 3, out_dir: Optional[Path] = None, loaded: Optional[list] = None,
-                meta: Optional[dict] = None) -> dict:
+                meta: Optional[dict] = None, lpips_weights: Optional[str] = None) -> dict:
     """Fit every regime on the loaded run(s) and score it on the test views.
 
     Regimes with an epistemic part (``has_epistemic``) are also scored on that part alone
@@ -66,7 +66,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     if not cams:
         raise ValueError("The scene has no test views (data.test_every=0?); nothing to evaluate")
     out_dir = Path(out_dir or first.path)
-    lpips_model, lpips_reason = get_lpips()
+    lpips_model, lpips_reason = get_lpips(lpips_weights)
     train_times = [float((r.metrics or {}).get("train_time_s") or 0.0) for r in runs]
     writer = None
     try:
@@ -147,7 +147,8 @@ def hydra_main(cfg: DictConfig) -> None:
         runs = cfg.run
         run_dirs = [str(r) for r in runs] if isinstance(runs, (ListConfig, list, tuple)) else [str(runs)]
         evaluate_uq(run_dirs, regimes_from_cfg(cfg), seed=int(cfg.seed), max_views=cfg.get("max_views"),
-                    panels=int(cfg.panels), out_dir=Path(cfg.out) if cfg.get("out") else None)
+                    panels=int(cfg.panels), out_dir=Path(cfg.out) if cfg.get("out") else None,
+                    lpips_weights=cfg.get("lpips_weights"))
 
 
 def main() -> None:

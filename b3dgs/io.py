@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
 from contextlib import contextmanager
@@ -22,10 +23,6 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     os.chmod(tmp_path, 0o666 & ~umask)  # mkstemp creates 0600; give the usual file mode
     try:
         yield tmp_path
-        if "B3DGS_TEST_KILL_AT" in os.environ:  # test hook: kill between the write and the rename
-            from b3dgs.rundir import kill_hook
-
-            kill_hook(f"write:{path.name}")
         os.replace(tmp_path, path)
     finally:
         if tmp_path.exists():
@@ -39,7 +36,9 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int = 2) -> None:
         tmp.write_text(text + "\n")
 
 
-def _json_default(o: Any) -> Any:
+def _plain_leaf(o: Any) -> Any:
+    """A tensor / array as a (nested) list, a numpy scalar as a Python number, a path as a string; anything
+    else is returned as it is."""
     try:
         import numpy as np
         import torch
@@ -54,4 +53,26 @@ def _json_default(o: Any) -> Any:
         pass
     if isinstance(o, Path):
         return str(o)
-    raise TypeError(f"Object of type {type(o).__name__} is not JSON serialisable")
+    return o
+
+
+def _json_default(o: Any) -> Any:
+    plain = _plain_leaf(o)
+    if plain is o:
+        raise TypeError(f"Object of type {type(o).__name__} is not JSON serialisable")
+    return plain
+
+
+def to_jsonable(obj: Any) -> Any:
+    """``obj`` as plain JSON values, recursively: containers, tensors and arrays as lists, numpy scalars as
+    numbers, and non-finite floats as None (JSON has no NaN; :func:`write_json` refuses them)."""
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    plain = _plain_leaf(obj)
+    if plain is not obj:
+        return to_jsonable(plain)
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj

@@ -1,7 +1,8 @@
 """Topology ops: clone, split, prune and opacity reset.
 
-They re-index every Gaussian parameter, the optimizer's moments and every plugin's per-Gaussian state
-(tensors whose first dimension is N), and keep a stable id and the parent's id for every Gaussian.
+They re-index every Gaussian parameter, the optimizer's moments and every plugin's per-Gaussian state (the
+state keys it declares in ``per_gaussian_state``; every tensor whose first dimension is N for a plugin that
+declares none), and keep a stable id and the parent's id for every Gaussian.
 """
 from __future__ import annotations
 
@@ -11,8 +12,28 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor, nn
 
-from b3dgs.posterior.guards import guard
+from b3dgs.numerics import guard
 from b3dgs.render.projection import quat_to_rotmat
+
+
+#: the per-Gaussian keys of the core's own state (``states["core"]``)
+CORE_PER_GAUSSIAN = ("ids", "parent_ids")
+
+
+def _reindex_keys(state: dict, keys, index: Tensor, n_old: int, owner: str) -> dict:
+    """``state`` with the declared per-Gaussian ``keys`` re-indexed along their first dimension."""
+    out = dict(state)
+    for k in keys:
+        v = state.get(k)
+        if v is None:
+            continue  # not created yet
+        if not isinstance(v, Tensor) or v.dim() < 1 or v.shape[0] != n_old:
+            shape = tuple(v.shape) if isinstance(v, Tensor) else type(v).__name__
+            raise ValueError(f"{owner}: state[{k!r}] is declared per-Gaussian (per_gaussian_state) but is {shape}, "
+                             f"not ({n_old}, ...) (fix: make it one row per Gaussian, or drop {k!r} from "
+                             "per_gaussian_state)")
+        out[k] = v[index]
+    return out
 
 
 def _reindex_tree(obj, index: Tensor, n_old: int):
@@ -88,8 +109,9 @@ class TopologyOps:
             self.splats[name] = new
         core = self.states["core"]
         parent_src = core["ids"][index]
-        for st in self.states.values():
-            new_st = _reindex_tree(st, index, n_old)
+        for name, st in self.states.items():
+            keys = CORE_PER_GAUSSIAN if name == "core" else getattr(self.plugins.get(name), "per_gaussian_state", None)
+            new_st = _reindex_tree(st, index, n_old) if keys is None else _reindex_keys(st, keys, index, n_old, name)
             st.clear()
             st.update(new_st)  # keep dict identity so plugins holding a reference stay valid
         for key, v in list(self.per_gaussian.items()):

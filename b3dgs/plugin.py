@@ -3,8 +3,9 @@
 Every hook is called as ``hook(splats=, optimizers=, state=, step=, info=)``:
 - ``splats``: the ``nn.ParameterDict`` of Gaussian parameters (means, quats, scales, opacities, sh0, shN);
 - ``optimizers``: dict name -> torch optimizer;
-- ``state``: the plugin's own dict from ``initialize_state``; every tensor whose first dimension is N is
-  re-indexed by the core's topology ops (clone, split, prune), so per-Gaussian state follows the Gaussians;
+- ``state``: the plugin's own dict from ``initialize_state``; the keys a plugin declares in
+  ``per_gaussian_state`` hold (N, ...) tensors that the core's topology ops (clone, split, prune) re-index,
+  so per-Gaussian state follows the Gaussians;
 - ``step``: the training iteration (0-based);
 - ``info``: everything else (render outputs, image size, scene extent, ``ops`` for topology changes, ...);
   ``info["per_gaussian"]`` holds this step's per-Gaussian render data as (S, N, ...) tensors (``radii``,
@@ -38,6 +39,10 @@ class Plugin:
     needs_weights: ClassVar[bool] = False
     needs_residuals: ClassVar[bool] = False
     changes_training: ClassVar[bool] = True
+    #: the keys of ``state`` that hold per-Gaussian tensors (first dimension N): the topology ops re-index exactly
+    #: these (a declared key whose first dimension is not N is an error; a key not created yet is skipped).
+    #: ``None`` (plugins written before the declaration): every tensor of the state whose first dimension is N.
+    per_gaussian_state: ClassVar[Optional[tuple[str, ...]]] = None
 
     def check_sanity(self, **kwargs: Any) -> None:
         """Validate configuration values; raise ValueError naming the bad field and the fix."""

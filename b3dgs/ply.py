@@ -117,17 +117,15 @@ def write_ply(
             raise ValueError(f"write_ply: property name {nm!r} would appear twice (extra names clash)")
         seen.add(nm)
 
+    from plyfile import PlyData, PlyElement
+
     data = np.concatenate(columns, axis=1) if n else np.zeros((0, len(names)), np.float32)
     data = np.ascontiguousarray(data, dtype="<f4")
     assert data.shape[1] == len(names)
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {n}"]
-    header += [f"property float {nm}" for nm in names]
-    header.append("end_header")
+    vertex = data.view(np.dtype([(nm, "<f4") for nm in names])).reshape(n)
     path = Path(path)
     with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            f.write(("\n".join(header) + "\n").encode("ascii"))
-            f.write(data.tobytes())
+        PlyData([PlyElement.describe(vertex, "vertex")], text=False, byte_order="<").write(str(tmp))
         os.chmod(tmp, 0o644)  # mkstemp creates 0600; an export is meant to be shared
     return path
 

@@ -17,7 +17,12 @@ from b3dgs.errors import B3dgsError
 RUN_IGNORED = ("seed", "hydra", "resume", "overwrite", "threads", "b3dgs", "logger", "renderer", "data.path",
                "trainer.progress_bar", "trainer.log_every", "trainer.eval_every", "trainer.checkpoint_every",
                "trainer.checkpoint_every_s", "trainer.keep_checkpoints", "trainer.save_renders",
-               "trainer.default_root_dir", "trainer.curve_max_views", "trainer.accelerator", "study")
+               "trainer.default_root_dir", "trainer.curve_max_views", "trainer.accelerator", "study",
+               "trainer._target_", "trainer.enable_progress_bar", "trainer.log_every_n_steps", "trainer.devices",
+               "trainer.enable_model_summary", "trainer.limit_val_batches", "trainer.num_sanity_val_steps",
+               "callbacks", "lpips_weights")
+#: settings runs written before they were configurable did not record: left out of a protocol at these values
+RUN_DEFAULTS = {"trainer.precision": "32-true", "trainer.deterministic": False}
 
 
 def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -40,7 +45,8 @@ def _ignored(key: str, ignore) -> bool:
 
 def run_protocol(cfg: Mapping, ignore=RUN_IGNORED) -> dict[str, Any]:
     """The flattened settings of a run config that change its results (everything but ``ignore``)."""
-    return {k: v for k, v in flatten(cfg).items() if not _ignored(k, ignore)}
+    return {k: v for k, v in flatten(cfg).items()
+            if not _ignored(k, ignore) and not (k in RUN_DEFAULTS and v == RUN_DEFAULTS[k])}
 
 
 def digest(settings: Mapping) -> str:

@@ -158,24 +158,6 @@ class Interrupted(Exception):
         return 128 + self.signum
 
 
-#: test hook: ``B3DGS_TEST_KILL_AT=<point>`` sends this process ``B3DGS_TEST_SIGNAL`` (KILL, TERM or INT;
-#: default KILL) when it reaches ``<point>``: ``write:<file name>`` (the temp file is written, not yet
-#: renamed; :func:`b3dgs.io.atomic_path`) or ``final`` (training done, before the final evaluation).
-#: ``B3DGS_TEST_KILL_AT_STEP=K`` does the same right after step K (:class:`b3dgs.callbacks.RunCheckpoint`).
-KILL_POINT_ENV, KILL_SIGNAL_ENV = "B3DGS_TEST_KILL_AT", "B3DGS_TEST_SIGNAL"
-
-
-def hook_signal() -> int:
-    """The signal of the test hooks (``B3DGS_TEST_SIGNAL``, default KILL)."""
-    return int(getattr(signal, "SIG" + os.environ.get(KILL_SIGNAL_ENV, "KILL").upper()))
-
-
-def kill_hook(point: str) -> None:
-    """The test hook above (no effect unless ``B3DGS_TEST_KILL_AT`` names ``point``)."""
-    if os.environ.get(KILL_POINT_ENV) == point:
-        os.kill(os.getpid(), hook_signal())
-
-
 class _Pending:
     signum: Optional[int] = None
     deferred = False  # True while training: the signal is acted on at the next step boundary

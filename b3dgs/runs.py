@@ -57,7 +57,9 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
     if not ckpt_path.exists():
         raise FileNotFoundError(f"No checkpoint at {ckpt_path}; the run may not have finished (resume with resume=auto)")
     try:
-        cfg = OmegaConf.load(cfg_path)
+        from b3dgs.checkpoint import upgrade_targets
+
+        cfg = OmegaConf.create(upgrade_targets(OmegaConf.to_container(OmegaConf.load(cfg_path), resolve=False)))
         if not isinstance(cfg, DictConfig) or "data" not in cfg or "model" not in cfg:
             raise ValueError("no data / model node")
     except Exception as e:  # noqa: BLE001 - damaged or foreign file: say which and how to go on

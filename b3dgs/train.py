@@ -23,7 +23,9 @@ from b3dgs.io import write_json
 
 log = logging.getLogger(__name__)
 
-CONF_DIR = str(Path(__file__).resolve().parent.parent / "conf")
+from b3dgs import conf_dir
+
+CONF_DIR = conf_dir()
 
 
 def build_plugins(cfg: DictConfig):
@@ -76,6 +78,41 @@ def resolve_accelerator(requested: Optional[str], renderer) -> str:
         raise ValueError(f"trainer.accelerator={req} does not match renderer={renderer.name}, which runs on {want} "
                          f"(fix: trainer.accelerator=auto, or pick a renderer for {req})")
     return req
+
+
+#: keys of the ``trainer`` node that b3dgs reads itself (its callbacks and final outputs); every other key is an
+#: argument of the node's ``_target_`` (``lightning.Trainer``)
+RUN_KEYS = ("eval_every", "curve_max_views", "checkpoint_every", "checkpoint_every_s", "keep_checkpoints",
+            "save_renders")
+#: trainer keys of run dirs written before the trainer node was a ``lightning.Trainer`` target
+_OLD_TRAINER_KEYS = {"progress_bar": "enable_progress_bar", "log_every": "log_every_n_steps"}
+
+
+def build_callbacks(node) -> list:
+    """The configured extra callbacks (``callbacks: {name: {_target_: ...}}``), in their listed order; they run
+    after b3dgs's own callbacks (Lightning runs checkpoint callbacks, such as ``last.ckpt``'s, last of all)."""
+    from hydra.utils import instantiate
+
+    return [instantiate(n) for n in (node or {}).values() if n is not None]
+
+
+def build_trainer(tcfg, renderer, callbacks: list, logger=False, **fixed):
+    """The ``trainer`` node's ``_target_`` (``lightning.Trainer``) built with its own arguments, the accelerator
+    resolved from the renderer (:func:`resolve_accelerator`), ``callbacks``, ``logger``, b3dgs's atomic checkpoint
+    IO, and ``fixed`` (what a caller sets whatever the config says, e.g. a round's ``max_steps``)."""
+    from hydra.utils import instantiate
+
+    from b3dgs.callbacks import AtomicCheckpointIO
+
+    keys = [str(k) for k in tcfg.keys() if k not in RUN_KEYS and _OLD_TRAINER_KEYS.get(k, k) not in fixed]
+    # resolved one by one in place (interpolations may point anywhere in the config; fixed ones are never read)
+    args = {_OLD_TRAINER_KEYS.get(k, k): tcfg[k] for k in keys}
+    args = {k: OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v for k, v in args.items()}
+    args.setdefault("_target_", "lightning.Trainer")
+    args["accelerator"] = resolve_accelerator(args.get("accelerator"), renderer)
+    args.update(fixed)
+    # objects go in through a partial (instantiate would turn them into configs: hydra#2591)
+    return instantiate(args, _partial_=True)(callbacks=callbacks, logger=logger, plugins=[AtomicCheckpointIO()])
 
 
 def save_config(cfg: DictConfig, path: Path) -> None:
@@ -232,8 +269,8 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
     import lightning as L
     from lightning.pytorch.loggers import TensorBoardLogger  # noqa: F401 - logger=tensorboard targets it
 
-    from b3dgs.callbacks import AtomicCheckpointIO, CurveCallback, ResumeState, RunCheckpoint
-    from b3dgs.posterior.guards import reset_guards
+    from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint
+    from b3dgs.numerics import reset_guards
     from b3dgs.rundir import Interrupted, arm_run_log, remove_stale_tmp, write_hydra_files
 
     tcfg = cfg.trainer
@@ -256,7 +293,6 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
     renderer = build_renderer(cfg.get("renderer"))
     module = build_module(cfg, strategy, blocks, renderer)
     module.init_from_scene(scene)
-    accelerator = resolve_accelerator(cfg.trainer.get("accelerator"), renderer)
     if ckpt_path is not None:
         check_resume(module, ckpt_path)
     done = None if clear else finished_metrics(run_dir)
@@ -265,6 +301,13 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
         log.info("%s holds a finished run (step %s, PSNR %s dB): nothing to do, nothing rewritten (overwrite=true "
                  "trains it again)", run_dir, done.get("steps"), "n/a" if psnr is None else f"{psnr:.3f}")
         return done
+    curve = CurveCallback(scene.test, eval_every=int(tcfg.eval_every), out_dir=run_dir,
+                          max_eval_views=tcfg.get("curve_max_views"))
+    ckpt = RunCheckpoint(run_dir / "checkpoints", every_n_steps=int(tcfg.checkpoint_every), every_s=every_s,
+                         keep=bool(tcfg.get("keep_checkpoints")))
+    logger = instantiate(cfg.logger, save_dir=str(run_dir)) if cfg.get("logger") else False
+    trainer = build_trainer(tcfg, renderer, [curve, ResumeState(), ckpt, *build_callbacks(cfg.get("callbacks"))],
+                            logger=logger, default_root_dir=str(run_dir))
     # every check has passed: only now is the run dir changed
     arm_run_log(fresh=clear)
     if clear:
@@ -280,22 +323,16 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
              scene.name, len(scene.train), len(scene.test), module.num_gaussians, scene.extent, renderer.name,
              renderer.device)
 
-    curve = CurveCallback(scene.test, eval_every=int(tcfg.eval_every), out_dir=run_dir,
-                          max_eval_views=tcfg.get("curve_max_views"))
-    ckpt = RunCheckpoint(run_dir / "checkpoints", every_n_steps=int(tcfg.checkpoint_every), every_s=every_s,
-                         keep=bool(tcfg.get("keep_checkpoints")))
-    logger = instantiate(cfg.logger, save_dir=str(run_dir)) if cfg.get("logger") else False
-    trainer = L.Trainer(
-        max_steps=int(tcfg.max_steps), accelerator=accelerator, devices=1, logger=logger,
-        callbacks=[curve, ResumeState(), ckpt], default_root_dir=str(run_dir), limit_val_batches=0,
-        num_sanity_val_steps=0, enable_progress_bar=bool(tcfg.progress_bar), log_every_n_steps=int(tcfg.log_every),
-        plugins=[AtomicCheckpointIO()], enable_model_summary=False, deterministic=False,
-    )
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*does not have many workers.*")
         warnings.filterwarnings("ignore", message=".*`training_step` returns.*")
-        # our own checkpoints hold plugin states and config values, not only tensors
-        trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
+        try:
+            # our own checkpoints hold plugin states and config values, not only tensors
+            trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
+        except Interrupted as e:  # a signal outside the steps (e.g. once training is done): the step it is at
+            if e.step is None and trainer.global_step:
+                e.step = int(trainer.global_step)
+            raise
     try:
         return _finish(cfg, run_dir, module, scene, renderer, trainer, curve, ckpt)
     except Interrupted as e:
@@ -308,15 +345,12 @@ def _finish(cfg: DictConfig, run_dir: Path, module, scene, renderer, trainer, cu
     from b3dgs.checkpoint import checkpoint_record
     from b3dgs.metrics.lpips import get_lpips
     from b3dgs.metrics.views import evaluate_views
-    from b3dgs.posterior.guards import guard_counts
-    from b3dgs.rundir import kill_hook
-
-    kill_hook("final")
+    from b3dgs.numerics import guard_counts
     tcfg, seed = cfg.trainer, int(cfg.seed)
     # ------------------------------------------------------------ final evaluation and outputs
     # written in this order, each atomically: renders, PLY, curve, then metrics.json (the done marker)
     final = checkpoint_record(torch.load(ckpt.last_path, map_location="cpu", weights_only=False, mmap=True))
-    lpips_model, lpips_reason = get_lpips()
+    lpips_model, lpips_reason = get_lpips(cfg.get("lpips_weights"))
     ev = evaluate_views(module, scene.test, lpips_model=lpips_model,
                         render_dir=run_dir / "renders" if tcfg.get("save_renders", True) else None)
     from b3dgs.ply import write_ply

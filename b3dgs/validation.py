@@ -26,14 +26,15 @@ from typing import Any, Callable, Iterable, Optional
 
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from b3dgs import conf_dir
 from b3dgs.errors import B3dgsError, did_you_mean
 
-CONF_DIR = Path(__file__).resolve().parent.parent / "conf"
+CONF_DIR = Path(conf_dir())
 TRAIN_GROUPS = ("data", "model", "renderer", "strategy", "posterior", "trainer", "logger")
 EVAL_GROUPS = ("uq",)
 _MISSING = object()
 
-__all__ = ["check_checkpoint", "validate_config"]
+__all__ = ["check_checkpoint", "group_option_names", "validate_config"]
 
 
 # ---------------------------------------------------------------------------------------------- helpers
@@ -108,6 +109,20 @@ def _signature(fn: Callable) -> tuple[dict[str, Any], bool]:
     return names, any(p.kind == p.VAR_KEYWORD for p in params.values())
 
 
+def _typed_by_annotation(fn: Callable) -> dict[str, Any]:
+    """Parameter -> a value of its type for parameters annotated ``bool`` or ``int`` (optionally ``None``),
+    ``inspect.Parameter.empty`` (no type check) for the others: types for :func:`_check_type` where the
+    default (``None``) says nothing, as in ``lightning.Trainer``'s signature."""
+    import typing
+
+    out: dict[str, Any] = {}
+    for name, p in inspect.signature(fn).parameters.items():
+        a = p.annotation
+        kinds = set(typing.get_args(a)) - {type(None)} if typing.get_origin(a) is typing.Union else {a}
+        out[name] = {frozenset({bool}): False, frozenset({int}): 0}.get(frozenset(kinds), inspect.Parameter.empty)
+    return out
+
+
 def _check_type(path: str, v: Any, default: Any) -> None:
     """``v`` must have the type of ``default`` (bool, int, float, str, list); None is always allowed
     where the default is None, and ints where floats are expected."""
@@ -174,6 +189,11 @@ def _group_options(group: str) -> tuple[tuple[str, dict], ...]:
     return tuple(out)
 
 
+def group_option_names(group: str) -> list[str]:
+    """The option names of config ``group`` (b3dgs's and installed packages'), e.g. the ``model=`` options."""
+    return sorted({name for name, _ in _group_options(group)})
+
+
 def _check_plain_group(node: DictConfig, group: str) -> dict[str, Any]:
     """Keys and types of a group without ``_target_`` against the keys its option files define."""
     known: dict[str, Any] = {}
@@ -232,6 +252,11 @@ def _check_top(cfg: DictConfig, app: str) -> None:
                 raise B3dgsError(f"unknown config key b3dgs.{key}", "the b3dgs node holds only b3dgs.debug")
         _need(isinstance(_get(b, "debug", "b3dgs.debug"), bool), "b3dgs.debug", b.debug, "true or false",
               "pass b3dgs.debug=true for full tracebacks")
+    lw = _get(cfg, "lpips_weights", "lpips_weights") if "lpips_weights" in cfg else None
+    if lw not in (None, "") and not Path(str(lw)).expanduser().is_file():
+        raise B3dgsError(f"lpips_weights={lw}: no such file",
+                         f"run `b3dgs-lpips --out {lw}` to build it, or pass lpips_weights=null (then "
+                         "$B3DGS_LPIPS_WEIGHTS or the cache ~/.cache/b3dgs/lpips_alex.pth is used)")
     seed = _get(cfg, "seed", "seed")
     _need(_is_int(seed) and 0 <= seed < 2**32, "seed", seed, "an integer in [0, 2^32)", "pass seed=0")
     _int_at_least("threads", _get(cfg, "threads", "threads") if "threads" in cfg else None, 1,
@@ -239,20 +264,19 @@ def _check_top(cfg: DictConfig, app: str) -> None:
 
 
 def _check_data(cfg: DictConfig) -> None:
-    from b3dgs.data.scene import LOADERS, get_loader
+    from b3dgs.data.scene import get_loader, loader_reads_files
 
     node = cfg.data
     kind = _get(node, "kind", "data.kind")
-    if kind != "synthetic" and OmegaConf.is_missing(node, "path"):
+    loader = get_loader(str(kind))  # b3dgs's formats or package.module:function; one line if neither
+    reads_files = loader_reads_files(loader)
+    if reads_files and OmegaConf.is_missing(node, "path"):
         raise B3dgsError(f"data={kind} needs a scene folder: data.path is not set", "pass data.path=PATH")
-    if kind not in LOADERS:
-        raise B3dgsError(f"data.kind={kind} is not a scene format{did_you_mean(str(kind), LOADERS)}",
-                         f"pick data={'|'.join(LOADERS)}")
-    lparams, _ = _signature(get_loader(kind))
+    lparams, _ = _signature(loader)
     lparams = {k: d for k, d in lparams.items() if k != "path"}
     v = _check_target_node(node, "data", extra=lparams)
     path = v.get("path")
-    if kind != "synthetic":
+    if reads_files:
         if path in (None, ""):
             raise B3dgsError(f"data={kind} needs a scene folder", "pass data.path=PATH")
         if not Path(str(path)).exists():
@@ -308,9 +332,19 @@ def _check_model(cfg: DictConfig) -> None:
 
 
 def _check_trainer(cfg: DictConfig) -> None:
-    v = _check_group(cfg, "trainer")
+    """Keys of the trainer's ``_target_`` (lightning.Trainer, which checks its own values when built) and
+    b3dgs's own run settings (the keys of the trainer option files that are no Trainer argument:
+    :data:`b3dgs.train.RUN_KEYS`, typed by their values there)."""
+    node = cfg.trainer
+    if "_target_" in node:
+        lightning_args = _typed_by_annotation(_locate(str(node["_target_"])))
+        own = {k: d for _, data in _group_options("trainer") for k, d in data.items()
+               if k not in lightning_args and not k.startswith("_")}
+        v = _check_target_node(node, "trainer", extra={**lightning_args, **own})
+    else:
+        v = _check_plain_group(node, "trainer")
     fix = "see conf/trainer/default.yaml for the defaults"
-    for key in ("max_steps", "eval_every", "checkpoint_every", "log_every"):
+    for key in ("max_steps", "eval_every", "checkpoint_every", "log_every_n_steps"):
         if key in v:
             _int_at_least(f"trainer.{key}", v[key], 1, fix)
     _int_at_least("trainer.curve_max_views", v.get("curve_max_views"), 1, fix, allow_none=True)
@@ -330,6 +364,12 @@ def _check_plugins(cfg: DictConfig) -> None:
             raise B3dgsError(f"posterior.{name} is not a posterior block{did_you_mean(str(name), blocks)}",
                              f"pick blocks with posterior=[{','.join(blocks)}]")
         nodes.append((f"posterior.{name}", node))
+    for name in (cfg.get("callbacks") or {}).keys():
+        node = cfg.callbacks[name]
+        if not isinstance(node, DictConfig) or "_target_" not in node:
+            raise B3dgsError(f"callbacks.{name} has no _target_", f"pass +callbacks.{name}._target_=CLASS_PATH "
+                             "(a lightning Callback), or drop it")
+        _check_target_node(node, f"callbacks.{name}")
     for path, node in nodes:
         v = _check_target_node(node, path)
         if path == "strategy" and "percent_dense" in v:
@@ -375,13 +415,19 @@ def _check_posterior_list(cfg: DictConfig) -> None:
                 overrides = list(HydraConfig.get().overrides.task)
         except Exception:  # noqa: BLE001
             overrides = []
-    for o in overrides:
-        key, _, val = str(o).lstrip("+~").partition("=")
-        if key.strip() == "posterior" and val.strip().startswith("["):
-            items = [x.strip() for x in val.strip()[1:-1].split(",") if x.strip()]
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    try:
+        parsed = OverridesParser.create().parse_overrides([str(o) for o in overrides])
+    except Exception:  # noqa: BLE001 - Hydra parsed them already to compose this config
+        return
+    for o in parsed:
+        items = o.value() if o.key_or_group == "posterior" and o.value_type is not None else None
+        if isinstance(items, list):
+            items = [str(x) for x in items]
             dup = sorted({x for x in items if items.count(x) > 1})
             if dup:
-                raise B3dgsError(f"posterior={val.strip()} lists {', '.join(dup)} more than once",
+                raise B3dgsError(f"posterior=[{','.join(items)}] lists {', '.join(dup)} more than once",
                                  f"list each block once, e.g. posterior=[{','.join(dict.fromkeys(items))}]")
 
 

@@ -29,11 +29,11 @@ NAME = "active_resolution"
 
 
 def study_for(scene: str, study_out: str, threads: int):
-    from b3dgs.study.active import ActiveStudy, _compose
+    from b3dgs.study.active import ActiveStudy, compose_config
 
     overrides = [o.format(shared=shared_dir()) for o in SCENES[scene]] + [
-        "renderer=cpu", f"out_dir={study_out}", f"threads={threads}", "trainer.progress_bar=false"]
-    return ActiveStudy(_compose("study", overrides))
+        "renderer=cpu", f"out_dir={study_out}", f"threads={threads}", "trainer.enable_progress_bar=false"]
+    return ActiveStudy(compose_config("study", overrides))
 
 
 def score(study, label: str, seed: int, side):

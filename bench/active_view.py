@@ -26,6 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, SCENES, machine, shared_dir, write_results  # noqa: E402
 
+from b3dgs.report.document import markdown_table  # noqa: E402
 from b3dgs.report.stats import mean_sem  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -94,11 +95,11 @@ def compute_per_seed(out: Path, scene_summary: dict) -> dict:
 def camera_geometry(scene: str) -> tuple[dict, float]:
     """{view name: camera centre} for the scene's train and test views, and the scene extent."""
     from b3dgs.acquisition import camera_centres
-    from b3dgs.study.active import _compose
+    from b3dgs.study.active import compose_config
 
     from hydra.utils import instantiate
 
-    cfg = _compose("study", [o.format(shared=shared_dir()) for o in SCENES[scene]])
+    cfg = compose_config("study", [o.format(shared=shared_dir()) for o in SCENES[scene]])
     dm = instantiate(cfg.data)
     dm.setup("fit")
     cams = list(dm.scene.train) + list(dm.scene.test)
@@ -107,12 +108,11 @@ def camera_geometry(scene: str) -> tuple[dict, float]:
 
 def support_distance(train: list[str], test: list[str], centres: dict, extent: float) -> float:
     """Mean over test views of the distance from its camera centre to the nearest training camera centre,
-    / extent (the report's OOD support score, averaged): how well the final training set covers the test
-    views. scipy's cKDTree for the neighbours."""
-    from scipy.spatial import cKDTree
+    / extent (the report's OOD support score, :func:`b3dgs.report.ood.support_distances`, averaged): how well
+    the final training set covers the test views."""
+    from b3dgs.report.ood import support_distances
 
-    d, _ = cKDTree(np.stack([centres[n] for n in train])).query(np.stack([centres[n] for n in test]))
-    return float(np.mean(d) / extent)
+    return float(np.mean(support_distances([centres[n] for n in train], [centres[n] for n in test], extent)))
 
 
 def pick_spacing(initial: list[str], picks: list[str], centres: dict, extent: float) -> float:
@@ -256,10 +256,8 @@ def markdown(res: dict) -> str:
     lines = ["# Active view selection, 16 → 32 views (quick protocol: 256 px, 1000 + 2000 steps, CPU)", "",
              f"Scenes {res['scenes']}, seeds {seeds}. Macro mean over scenes of per-scene seed means; ± is the SEM over "
              "seeds of the per-seed macro mean (the paper's teaser bars). Paper: Table 2 (13 scenes × 3 seeds, 10k + 20k "
-             "iterations, GPU). Time: our phase 1 + second round of the row's model (s, 1 thread); scoring apart.", "",
-             "| family | policy | PSNR ↑ | SSIM ↑ | LPIPS ↓ | ρ score vs oracle error | test support dist. ↓ | pick spacing | "
-             "train s | scoring s | cost s | paper PSNR | paper SSIM | paper LPIPS | paper time s |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "iterations, GPU). Time: our phase 1 + second round of the row's model (s, 1 thread); scoring apart.", ""]
+    rows = []
     for p in order:
         e = t[p]
         pp = PAPER.get(p)
@@ -267,44 +265,44 @@ def markdown(res: dict) -> str:
         if e.get("training_shared_with"):
             name += f" (same run as {', '.join(e['training_shared_with'])})"
         sem = e.get("psnr_sem_seeds")
-        lines.append(f"| {e['family']} | {name} | {_f(e['psnr'])}{'' if sem is None else f' ± {sem:.3f}'} | "
-                     f"{_f(e['ssim'], 4)} | {_f(e['lpips'], 4)} | {_f(e['spearman_vs_oracle'], 2)} | "
-                     f"{_f(e.get('support_distance'), 3)} | {_f(e.get('pick_spacing'), 3)} | "
-                     f"{_f(e['train_time_s'], 0)} | {_f(e['scoring_time_s'], 1)} | {_f(e.get('cost_s'), 0)} | "
-                     + (" | ".join([f"{pp[0]:.3f}", f"{pp[1]:.4f}", f"{pp[2]:.4f}", f"{pp[3]:.1f}"]) if pp else "— | — | — | —")
-                     + " |")
+        rows.append([e["family"], name, _f(e["psnr"]) + ("" if sem is None else f" ± {sem:.3f}"), _f(e["ssim"], 4),
+                     _f(e["lpips"], 4), _f(e["spearman_vs_oracle"], 2), _f(e.get("support_distance"), 3),
+                     _f(e.get("pick_spacing"), 3), _f(e["train_time_s"], 0), _f(e["scoring_time_s"], 1),
+                     _f(e.get("cost_s"), 0),
+                     *([f"{pp[0]:.3f}", f"{pp[1]:.4f}", f"{pp[2]:.4f}", f"{pp[3]:.1f}"] if pp else ["—"] * 4)])
+    lines += markdown_table(["family", "policy", "PSNR ↑", "SSIM ↑", "LPIPS ↓", "ρ score vs oracle error",
+                             "test support dist. ↓", "pick spacing", "train s", "scoring s", "cost s", "paper PSNR",
+                             "paper SSIM", "paper LPIPS", "paper time s"], rows)
     lines += ["", "ρ: Spearman correlation, over the candidates, of the policy's score with the phase-1 model's current "
               "render error on each candidate (the oracle's score): how informative the score is. "
               "'Same run as X': identical acquired views and a bit-identical training run (NIW only observes training). "
               "Cost: every phase-1 model the row scored with (the ensemble's 3), its second round and scoring "
               "(the paper's time column counts the ensemble's members too). Test support distance: mean over test views of the distance to the nearest final training camera "
               "centre / scene extent (the coverage the picks give). Pick spacing: mean over the 16 picks of the distance "
-              "to the nearest other camera of the final training set / extent (small: near-duplicate picks).", "",
-              "| scene | support dist. of the 16 initial views | Spearman(PSNR, support dist.) over the rows of a seed |",
-              "| --- | --- | --- |",
-              *[f"| {sc} | {v['initial']:.3f} | {_f(v['psnr_vs_support_spearman'], 2)} (per seed "
-                f"{', '.join(f'{x:+.2f}' for x in v['per_seed'])}) |" for sc, v in res.get("support", {}).items()],
-              "", "## Paired differences (scene-seed pairs)", "",
-              "| pair | ΔPSNR dB (± SEM) | scene-seed wins | scene-mean wins | ΔLPIPS | per scene ΔPSNR | paper ΔPSNR |",
-              "| --- | --- | --- | --- | --- | --- | --- |"]
-    for k, v in res["paired"].items():
-        per = ", ".join(f"{sc} {x:+.3f}" for sc, x in v["per_scene"].items())
-        lines.append(f"| {k.replace('-', ' − ')} | {_f(v['delta_psnr'], sign=True)} ± {_f(v['sem'])} | {v['wins']}/{v['n']} | "
-                     f"{v['scene_wins']}/{v['n_scenes']} | {_f(v['delta_lpips'], 4, sign=True)} | {per} | "
-                     f"{v['paper'] or '—'} |")
+              "to the nearest other camera of the final training set / extent (small: near-duplicate picks).", ""]
+    lines += markdown_table(
+        ["scene", "support dist. of the 16 initial views", "Spearman(PSNR, support dist.) over the rows of a seed"],
+        [[sc, f"{v['initial']:.3f}", f"{_f(v['psnr_vs_support_spearman'], 2)} (per seed "
+          f"{', '.join(f'{x:+.2f}' for x in v['per_seed'])})"] for sc, v in res.get("support", {}).items()])
+    lines += ["", "## Paired differences (scene-seed pairs)", ""]
+    lines += markdown_table(
+        ["pair", "ΔPSNR dB (± SEM)", "scene-seed wins", "scene-mean wins", "ΔLPIPS", "per scene ΔPSNR", "paper ΔPSNR"],
+        [[k.replace("-", " − "), f"{_f(v['delta_psnr'], sign=True)} ± {_f(v['sem'])}", f"{v['wins']}/{v['n']}",
+          f"{v['scene_wins']}/{v['n_scenes']}", _f(v["delta_lpips"], 4, sign=True),
+          ", ".join(f"{sc} {x:+.3f}" for sc, x in v["per_scene"].items()), v["paper"] or "—"]
+         for k, v in res["paired"].items()])
     if res["jaccard"]:
-        lines += ["", "## Overlap of the selected views (Jaccard, mean over scene-seeds)", "", "| pair | ours | paper |",
-                  "| --- | --- | --- |"]
-        lines += [f"| {k.replace('|', ' / ')} | {v['mean']:.3f} | {_f(v['paper'])} |" for k, v in res["jaccard"].items()]
+        lines += ["", "## Overlap of the selected views (Jaccard, mean over scene-seeds)", ""]
+        lines += markdown_table(["pair", "ours", "paper"], [[k.replace("|", " / "), f"{v['mean']:.3f}", _f(v["paper"])]
+                                                           for k, v in res["jaccard"].items()])
     lines += ["", "## Compute per scene-seed", "",
               "Phase-1 models first trained for that seed, every row's second round (shared rows cost nothing) and "
-              "scoring; evaluation excluded. 1 thread per study, two scenes at once on the 2 cores.", "",
-              "| scene/seed | rows | phase 1 s | round 2 s | scoring s | total min | job wall min |", "| --- | --- | --- | --- | --- | --- | --- |"]
-    for k, c in sorted(res["compute"].items()):
-        if "total_s" not in c:
-            continue
-        lines.append(f"| {k} | {c['rows']} | {c['phase1_s']:.0f} | {c['round2_s']:.0f} | {c['scoring_s']:.0f} | "
-                     f"{c['total_s'] / 60:.1f} | {_f(c.get('wall_s') and c['wall_s'] / 60, 1)} |")
+              "scoring; evaluation excluded. 1 thread per study, two scenes at once on the 2 cores.", ""]
+    lines += markdown_table(
+        ["scene/seed", "rows", "phase 1 s", "round 2 s", "scoring s", "total min", "job wall min"],
+        [[k, str(c["rows"]), f"{c['phase1_s']:.0f}", f"{c['round2_s']:.0f}", f"{c['scoring_s']:.0f}",
+          f"{c['total_s'] / 60:.1f}", _f(c.get("wall_s") and c["wall_s"] / 60, 1)]
+         for k, c in sorted(res["compute"].items()) if "total_s" in c])
     lines += ["", "Plots: `active_view/psnr.png` (final PSNR per policy ± SEM over seeds), `active_view/psnr_time.png` "
               "(final PSNR against compute), per scene `active_view/<scene>/{psnr,layout}.png`."]
     return "\n".join(lines) + "\n"

@@ -37,15 +37,15 @@ def machine() -> dict:
 
 
 def table(rows: Sequence[dict], cols: Sequence[str]) -> str:
+    """A Markdown table of ``rows`` (dicts) over ``cols`` (b3dgs.report.document.markdown_table)."""
+    from b3dgs.report.document import markdown_table
+
     def fmt(v):
         if isinstance(v, float):
             return f"{v:.4g}" if abs(v) < 1e4 else f"{v:.0f}"
         return str(v)
 
-    widths = [max(len(c), *(len(fmt(r.get(c, ""))) for r in rows)) for c in cols]
-    lines = [" | ".join(c.ljust(w) for c, w in zip(cols, widths)), "-|-".join("-" * w for w in widths)]
-    lines += [" | ".join(fmt(r.get(c, "")).ljust(w) for c, w in zip(cols, widths)) for r in rows]
-    return "\n".join(lines)
+    return "\n".join(markdown_table(cols, [[fmt(r.get(c, "")) for c in cols] for r in rows]))
 
 
 def write_results(name: str, payload: dict, text: str) -> Path:
@@ -71,7 +71,7 @@ SCENES = {
     "dtu_scan65": ["data=colmap", "data.path={shared}/data/dtu_scan65"],
     "synthetic": ["data=synthetic"],
 }
-QUICK = ["data.max_side=256", "trainer.max_steps=3000", "trainer.progress_bar=false", "logger=none",
+QUICK = ["data.max_side=256", "trainer.max_steps=3000", "trainer.enable_progress_bar=false", "logger=none",
          "trainer.save_renders=false"]
 
 

@@ -52,7 +52,8 @@ def run_base(base: Path, out: Path, extra: list[str]) -> float:
 
 
 def aggregate(out: Path) -> dict:
-    from b3dgs.study.compression_tables import write_report
+    from b3dgs.report.document import markdown_table
+    from b3dgs.study.compression import write_report
 
     s = write_report(out, plots=True)
     dst = RESULTS / NAME
@@ -61,11 +62,10 @@ def aggregate(out: Path) -> dict:
         shutil.copy2(png, dst / png.name)
     lines = [(out / "compression.md").read_text().replace("](plots/", "](compression/"), "",
              "## Next to the paper (13 scenes, 30k base; ours: 2 scenes, 3k base, 300 fine-tune steps per round)", "",
-             "| Keep % | score | ours PSNR | paper PSNR |", "|---|---|---|---|"]
-    for k, ref in PAPER.items():
-        for name, v in ref.items():
-            mine = s["cells"].get(f"{name}@{k}", {}).get("psnr")
-            lines.append(f"| {int(round(k * 100))} | {name} | {'—' if mine is None else f'{mine:.3f}'} | {v:.3f} |")
+             *markdown_table(["Keep %", "score", "ours PSNR", "paper PSNR"],
+                             [[str(int(round(k * 100))), name, "—" if mine is None else f"{mine:.3f}", f"{v:.3f}"]
+                              for k, ref in PAPER.items() for name, v in ref.items()
+                              for mine in [s["cells"].get(f"{name}@{k}", {}).get("psnr")]])]
     lines += ["", PAPER_NOTE, "",
               "Absolute PSNR is not comparable (other scenes, resolution and budgets); the comparison is the ordering "
               "of scores and the sign of the differences."]

@@ -164,8 +164,8 @@ def ensure_uq(run_dir: Path, method: str, samples: int, seed: int) -> None:
         return
     names = list(STUDIES.uq_regimes.get(method, ["proxy"]))
     cfg = OmegaConf.create({
-        "proxy": {"_target_": "plugins.uq.proxy.ProxyUQ", "samples": samples, "jitter": 0.002},
-        "native": {"_target_": "plugins.uq.native.NativeUQ", "samples": samples},
+        "proxy": {"_target_": "b3dgs_plugins.uq.proxy.ProxyUQ", "samples": samples, "jitter": 0.002},
+        "native": {"_target_": "b3dgs_plugins.uq.native.NativeUQ", "samples": samples},
     })
     evaluate_uq([str(run_dir)], {n: instantiate(cfg[n]) for n in names}, seed=seed, panels=0)
 

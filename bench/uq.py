@@ -132,15 +132,15 @@ def main() -> None:
 
     def regimes(names, jitter=None):
         cfg = OmegaConf.create({
-            "proxy": {"_target_": "plugins.uq.proxy.ProxyUQ", "samples": args.samples, "jitter": jitter or args.jitter},
-            "native": {"_target_": "plugins.uq.native.NativeUQ", "samples": args.samples},
-            "native_calibrated": {"_target_": "plugins.uq.native_calibrated.NativeCalibratedUQ",
+            "proxy": {"_target_": "b3dgs_plugins.uq.proxy.ProxyUQ", "samples": args.samples, "jitter": jitter or args.jitter},
+            "native": {"_target_": "b3dgs_plugins.uq.native.NativeUQ", "samples": args.samples},
+            "native_calibrated": {"_target_": "b3dgs_plugins.uq.native_calibrated.NativeCalibratedUQ",
                                   "samples": args.samples, "seed": 0},
-            "native_conformal": {"_target_": "plugins.uq.native_calibrated.NativeConformalUQ",
+            "native_conformal": {"_target_": "b3dgs_plugins.uq.native_calibrated.NativeConformalUQ",
                                  "samples": args.samples, "level": 0.95, "seed": 0},
-            "constant": {"_target_": "plugins.uq.constant.ConstantUQ"},
-            "ensemble": {"_target_": "plugins.uq.ensemble.EnsembleUQ"},
-            "ppu": {"_target_": "plugins.uq.ppu.PPUHead", "steps": 300, "lr": 5e-3, "width": 16},
+            "constant": {"_target_": "b3dgs_plugins.uq.constant.ConstantUQ"},
+            "ensemble": {"_target_": "b3dgs_plugins.uq.ensemble.EnsembleUQ"},
+            "ppu": {"_target_": "b3dgs_plugins.uq.ppu.PPUHead", "steps": 300, "lr": 5e-3, "width": 16},
         })
         return {n: instantiate(cfg[n]) for n in names}
 

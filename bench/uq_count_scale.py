@@ -46,9 +46,9 @@ def scatter_block(blk):
     """A copy of NIW block ``blk`` whose refresh uses the scatter C_k = c N̂_k Σ_k (see the module docstring)."""
     import torch
 
-    from b3dgs.posterior import niw as niwm
+    from b3dgs_plugins.posterior import niw as niwm
     from b3dgs.render.projection import covariance_3d
-    from plugins.posterior.niw import NIWBlock
+    from b3dgs_plugins.posterior.niw import NIWBlock
 
     @dataclass
     class RenderedScatterNIW(NIWBlock):
@@ -68,7 +68,7 @@ def scatter_block(blk):
 
 
 def niw_name(module) -> str:
-    from plugins.posterior.niw import NIWBlock
+    from b3dgs_plugins.posterior.niw import NIWBlock
 
     names = [k for k, b in module.posterior.items() if isinstance(b, NIWBlock)]
     if not names:
@@ -95,8 +95,8 @@ def main() -> None:
     from b3dgs.eval import evaluate_uq
     from b3dgs.runs import load_run
     from b3dgs.uq.regime import render_params
-    from plugins.uq.native import NativeUQ
-    from plugins.uq.native_calibrated import NativeCalibratedUQ
+    from b3dgs_plugins.uq.native import NativeUQ
+    from b3dgs_plugins.uq.native_calibrated import NativeCalibratedUQ
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", nargs="+", required=True, help="trained NIW run dirs (e.g. outputs/bench/fox/niw/s0)")

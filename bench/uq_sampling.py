@@ -30,8 +30,8 @@ def build(run: str | None):
         return r.module, r.scene
     from b3dgs.data import load_scene
     from b3dgs.module import SplatModule
-    from plugins.posterior.niw import NIWBlock
-    from plugins.strategy.default import AdaptiveDensityControl
+    from b3dgs_plugins.posterior.niw import NIWBlock
+    from b3dgs_plugins.strategy.default import AdaptiveDensityControl
 
     scene = load_scene("synthetic", None, max_side=256, resolution=256)
     m = SplatModule(strategy=AdaptiveDensityControl(), posterior={"niw": NIWBlock()}, max_steps=3000)
@@ -42,7 +42,7 @@ def build(run: str | None):
 
 
 def main() -> None:
-    from plugins.uq.native import NativeUQ
+    from b3dgs_plugins.uq.native import NativeUQ
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--run", default=None)

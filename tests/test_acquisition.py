@@ -14,7 +14,7 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
 from b3dgs.acquisition import ScoringContext
-from b3dgs.callbacks import KILL_ENV
+from tests.kill_hooks import kill_args
 from b3dgs.train import CONF_DIR
 from b3dgs.types import Camera
 
@@ -205,12 +205,9 @@ STUDY = ["active", "data=synthetic", "data.max_side=32", "+data.n_views=40", "re
 
 
 def _study(out, kill_at=None, extra=()):
-    env = dict(os.environ)
-    env.pop(KILL_ENV, None)
-    if kill_at is not None:
-        env[KILL_ENV] = str(kill_at)
-    return subprocess.run([sys.executable, "-m", "b3dgs.study.active", *STUDY, *extra, f"out_dir={out}"],
-                          capture_output=True, text=True, timeout=600, env=env)
+    kill = kill_args(step=kill_at) if kill_at is not None else []
+    return subprocess.run([sys.executable, "-m", "b3dgs.study.active", *STUDY, *extra, *kill, f"out_dir={out}"],
+                          capture_output=True, text=True, timeout=600, cwd=Path(__file__).resolve().parents[1])
 
 
 def test_study_resumes_after_interruption_between_and_within_rounds(tmp_path):

@@ -127,7 +127,7 @@ def test_scores_rank_what_they_claim():
 def _train_base(tmp_path: Path) -> Path:
     run = tmp_path / "base"
     res = subprocess.run([sys.executable, "-m", "b3dgs.train", "trainer=quick", "trainer.max_steps=40",
-                          "trainer.eval_every=1000", "logger=none", "trainer.progress_bar=false",
+                          "trainer.eval_every=1000", "logger=none", "trainer.enable_progress_bar=false",
                           "trainer.save_renders=false", "data.max_side=32", "threads=1", f"hydra.run.dir={run}"],
                          capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert res.returncode == 0, res.stderr[-2000:]

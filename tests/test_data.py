@@ -393,7 +393,7 @@ def test_missing_path(tmp_path, kind):
 
 
 def test_unknown_kind():
-    with pytest.raises(ValueError, match="Unknown scene kind"):
+    with pytest.raises(ValueError, match="data.kind=nerf is not a scene format"):
         load_scene("nerf", "/tmp")
 
 
@@ -439,6 +439,20 @@ def test_png_roundtrip(tmp_path):
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no temp files left
     with pytest.raises(ValueError):
         encode_png(np.zeros((4, 4, 2)))
+
+
+def test_16bit_png_roundtrips(tmp_path):
+    """uint16 gray images are written as 16-bit PNGs (PIL) and read back exactly (value / 65535)."""
+    from PIL import Image
+
+    a = np.random.default_rng(1).integers(0, 65536, (5, 7), dtype=np.uint16)
+    p = save_png(tmp_path / "d.png", a)
+    with Image.open(p) as im:
+        assert im.mode.startswith("I") and np.array_equal(np.asarray(im).astype(np.uint16), a)
+    back = load_image(p)
+    assert back.shape == (5, 7, 3) and np.allclose(back[..., 0], a / 65535.0, atol=1e-7)
+    with pytest.raises(ValueError, match="uint8"):
+        encode_png(np.zeros((4, 4, 3), dtype=np.uint16))  # PIL writes no 16-bit RGB PNG
 
 
 def test_load_image_resize(tmp_path):
@@ -629,17 +643,30 @@ def _damaged_model(tmp_path: Path, name: str, keep) -> Path:
     ("cameras.bin", lambda n: 4, "shorter than its 8-byte header"),
 ])
 def test_damaged_colmap_files_refused_before_pycolmap(tmp_path, name, keep, text):
-    import time
-
     from b3dgs.data.colmap import check_colmap_binary
     from b3dgs.errors import B3dgsError
 
     check_colmap_binary(HEAD / "sparse" / "0")  # the intact model passes
     d = _damaged_model(tmp_path, name, keep)
-    t0 = time.perf_counter()
     with pytest.raises(B3dgsError, match=text) as ei:
         check_colmap_binary(d)
-    assert name in str(ei.value) and time.perf_counter() - t0 < 5.0
+    assert name in str(ei.value)
     (tmp_path / "images").symlink_to(HEAD / "images")
     with pytest.raises(B3dgsError, match=text):  # the loader checks before pycolmap reads anything
         load_scene("colmap", str(tmp_path), max_side=16)
+
+
+def test_initial_scale_knn_matches_brute_force():
+    """cKDTree's k-NN mean distances equal the brute-force ones bit for bit (duplicates and tiny sets too)."""
+    from b3dgs.init import knn_mean_dist
+
+    g = torch.Generator().manual_seed(0)
+    pts = torch.rand(3000, 3, generator=g)
+    pts[10] = pts[11]  # a duplicate point: distance 0 to its twin, not to itself
+    d = torch.cdist(pts.double(), pts.double())
+    d.fill_diagonal_(float("inf"))
+    want = d.topk(3, largest=False).values.mean(-1).float()
+    assert torch.equal(knn_mean_dist(pts), want)
+    assert float(knn_mean_dist(pts)[10]) > 0
+    assert torch.equal(knn_mean_dist(pts[:2]), torch.full((2,), float((pts[0] - pts[1]).double().norm())))
+    assert knn_mean_dist(pts[:1]).tolist() == [1.0]

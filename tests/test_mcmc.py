@@ -1,5 +1,7 @@
 """3DGS-MCMC strategy (plugins/strategy/mcmc.py): relocation formula, ops bookkeeping, noise gate, training."""
 import math
+from dataclasses import dataclass
+from typing import ClassVar
 
 import pytest
 import torch
@@ -7,8 +9,9 @@ from hydra import compose, initialize_config_dir
 from torch import nn
 
 from b3dgs.ops import TopologyOps
+from b3dgs.plugin import Plugin
 from b3dgs.train import CONF_DIR
-from plugins.strategy.mcmc import MCMCStrategy, relocation
+from b3dgs_plugins.strategy.mcmc import MCMCStrategy, relocation
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 5, 8])
@@ -43,10 +46,17 @@ def _toy(n=40, seed=0):
     loss.backward()
     opt.step()
     states = {"core": {"ids": torch.arange(n), "parent_ids": torch.full((n,), -1), "next_id": torch.tensor(n)},
-              "strategy": {"relocated": torch.zeros((), dtype=torch.long), "grown": torch.zeros((), dtype=torch.long),
-                           "per_gaussian": torch.arange(n).float()}}
+              "strategy": {"relocated": torch.zeros((), dtype=torch.long), "grown": torch.zeros((), dtype=torch.long)},
+              "probe": {"per_gaussian": torch.arange(n).float()}}
     strat = MCMCStrategy(cap_max=50, min_opacity=0.3)
-    return splats, opt, states, strat, TopologyOps(splats, {"gaussians": opt}, states, {"strategy": strat})
+    return splats, opt, states, strat, TopologyOps(splats, {"gaussians": opt}, states,
+                                                   {"strategy": strat, "probe": _Probe()})
+
+
+@dataclass
+class _Probe(Plugin):
+    """A plugin with one declared per-Gaussian state key."""
+    per_gaussian_state: ClassVar[tuple] = ("per_gaussian",)
 
 
 def test_relocate_and_grow_bookkeeping():
@@ -65,7 +75,7 @@ def test_relocate_and_grow_bookkeeping():
     assert (states["core"]["parent_ids"][relocated] >= 0).all()
     # the per-Gaussian plugin state followed the rows: a relocated row carries its source's value
     src_ids = states["core"]["parent_ids"][relocated]
-    assert torch.equal(states["strategy"]["per_gaussian"][relocated], src_ids.float())
+    assert torch.equal(states["probe"]["per_gaussian"][relocated], src_ids.float())
     # Adam moments: zero for every copy and every source, untouched elsewhere
     p = splats["means"]
     st = opt.state[p]
@@ -110,7 +120,7 @@ def _train(tmp_path, extra):
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose(config_name="train", overrides=[
             "model=mcmc", "data.max_side=32", "trainer.max_steps=80", "trainer.checkpoint_every=1000",
-            "trainer.checkpoint_every_s=0", "trainer.progress_bar=false", "logger=none", "strategy.refine_start=10",
+            "trainer.checkpoint_every_s=0", "trainer.enable_progress_bar=false", "logger=none", "strategy.refine_start=10",
             "strategy.refine_every=10", "strategy.refine_stop=70", "seed=0", "threads=1", "renderer=cpu", *extra])
     dm = instantiate(cfg.data)
     dm.setup("fit")

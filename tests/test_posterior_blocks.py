@@ -6,12 +6,12 @@ import torch
 
 from b3dgs.data import load_scene
 from b3dgs.metrics.image import psnr
-from plugins.posterior.color import ColorBlock
-from plugins.posterior.dp import DPBlock
-from plugins.posterior.niw import NIWBlock
-from plugins.posterior.noise import NoiseBlock
-from plugins.posterior.opacity import OpacityBlock
-from plugins.strategy.default import AdaptiveDensityControl
+from b3dgs_plugins.posterior.color import ColorBlock
+from b3dgs_plugins.posterior.dp import DPBlock
+from b3dgs_plugins.posterior.niw import NIWBlock
+from b3dgs_plugins.posterior.noise import NoiseBlock
+from b3dgs_plugins.posterior.opacity import OpacityBlock
+from b3dgs_plugins.strategy.default import AdaptiveDensityControl
 from test_train import QUICK, run_train
 
 
@@ -132,7 +132,7 @@ def test_short_training_on_real_scene(tmp_path, model):
     path = SHARED / "data" / "ethiopian_head"
     if not path.exists():
         pytest.skip(f"shared scene not found at {path}")
-    m = run_train(tmp_path, ["data=colmap", f"data.path={path}", "data.max_side=96", "trainer.progress_bar=false",
+    m = run_train(tmp_path, ["data=colmap", f"data.path={path}", "data.max_side=96", "trainer.enable_progress_bar=false",
                              "logger=none", f"model={model}", "trainer.max_steps=200", "trainer.eval_every=100",
                              "strategy.refine_start=50", "strategy.refine_stop=150", "strategy.refine_every=50"]
                   + (["posterior.dp.t_dp=100", "posterior.dp.cavi_every=25"] if model == "dpmm" else []))

@@ -1,4 +1,4 @@
-"""Correctness of the posterior math in b3dgs.posterior against independent textbook formulas."""
+"""Correctness of the posterior math in b3dgs_plugins.posterior against independent textbook formulas."""
 
 import math
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 from scipy.special import digamma
 
-from b3dgs.posterior import (
+from b3dgs_plugins.posterior import (
     activity_posterior,
     cavi_stick_update,
     color_posterior_mean,
@@ -192,7 +192,7 @@ def test_sample_niw_moments_and_spd():
 
 def test_whitened_draw_is_a_function_of_the_bartlett_factor():
     """E[Σ]^{-1/2} Σ E[Σ]^{-T/2} = (ν - D - 1)(A Aᵀ)^{-1}: what NIWBlock renders in relative mode."""
-    from b3dgs.posterior.niw import sample_niw_factors, tril_solve
+    from b3dgs_plugins.posterior.niw import sample_niw_factors, tril_solve
 
     rng = np.random.default_rng(7)
     K, S = 4, 6
@@ -364,7 +364,7 @@ def test_cpu_niw_draws_have_the_posterior_moments(mode):
     """The one-pass C++ sampler (uq=native's default) draws from the same NIW as the torch reference:
     E[mu] = m_n, Cov[mu] = E[Σ]/κ_n, E[Σ] = S_n/(ν-D-1) (absolute) and E[Σ_render] = the rendered
     covariance (relative: L c(AAᵀ)^{-1} Lᵀ with E[(AAᵀ)^{-1}] = I/(ν-D-1)); 5 Monte-Carlo standard errors."""
-    from b3dgs.posterior.niw import niw_sampler
+    from b3dgs_plugins.posterior.niw import niw_sampler
     from b3dgs.render._ext import load_extension
 
     rng = np.random.default_rng(9)

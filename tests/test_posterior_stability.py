@@ -1,11 +1,12 @@
-"""Numerical robustness of b3dgs.posterior at extreme counts, scales, opacities and alphas."""
+"""Numerical robustness of b3dgs_plugins.posterior at extreme counts, scales, opacities and alphas."""
 
 import logging
 
 import pytest
 import torch
 
-from b3dgs.posterior import (
+from b3dgs.numerics import guard, guard_counts, reset_guards
+from b3dgs_plugins.posterior import (
     activity_posterior,
     cavi_stick_update,
     color_posterior_var,
@@ -13,8 +14,6 @@ from b3dgs.posterior import (
     expected_cov,
     expected_log_pi,
     expected_pi,
-    guard,
-    guard_counts,
     ig_mean,
     ig_sample,
     ig_update,
@@ -26,7 +25,6 @@ from b3dgs.posterior import (
     opacity_to_logit,
     position_variance,
     prior_scale_for_expected_cov,
-    reset_guards,
     safe_cholesky,
     sample_niw,
 )
@@ -259,7 +257,7 @@ def test_color_extremes():
 
 
 def test_guard_counter_and_logging(caplog):
-    with caplog.at_level(logging.WARNING, logger="b3dgs.posterior.guards"):
+    with caplog.at_level(logging.WARNING, logger="b3dgs.numerics"):
         assert guard("test.g", torch.tensor([True, False, True])) == 2
         assert guard("test.g", 0) == 0
         guard("test.g", 3)

@@ -86,9 +86,9 @@ def test_lego_held_out_split_and_white_protocol():
     assert list(cfg.data.background) == list(cfg.model.background) == [1.0, 1.0, 1.0]  # images and renders alike
     with pytest.raises(B3dgsError, match=r"model.background.*differs from data.background"):
         validate_config(compose_train(["data=blender", f"data.path={DATA / 'lego'}", "model.background=[0,0,0]"]))
-    from b3dgs.study.active import _compose, family_config  # the active-view study's models follow its data too
+    from b3dgs.study.active import compose_config, family_config  # the active-view study's models follow its data too
 
-    study = family_config(_compose("study", ["data=blender", f"data.path={DATA / 'lego'}"]), "niw", 0)
+    study = family_config(compose_config("study", ["data=blender", f"data.path={DATA / 'lego'}"]), "niw", 0)
     assert OmegaConf.to_container(study.model, resolve=True)["background"] == [1.0, 1.0, 1.0]
 
 

@@ -220,7 +220,7 @@ def test_extent_binning_changes_no_pixel():
 def test_cpu_guard_detection_matches_the_guards(dtype, case):
     """The C++ pass detects the guards itself; its result and counts equal those of rendering the
     Python-guarded parameters (the path it falls back to when a guard fires)."""
-    from b3dgs.posterior.guards import guard_counts, reset_guards
+    from b3dgs.numerics import guard_counts, reset_guards
     from b3dgs.render.preprocess import _preprocess_cpu, guarded_params
 
     p = gaussians(40, dtype=dtype)

@@ -208,7 +208,7 @@ def test_failed_cpp_build_warns_once_and_falls_back(monkeypatch):
 
 
 def test_niw_sampler_fallback_is_loud(monkeypatch):
-    from plugins.posterior.niw import NIWBlock
+    from b3dgs_plugins.posterior.niw import NIWBlock
 
     monkeypatch.setattr(_ext, "load_extension", lambda verbose=False: (_ for _ in ()).throw(
         RuntimeError("x.cpp:1:1: error: no compiler")))
@@ -238,9 +238,9 @@ def test_plugin_states_and_cameras_follow_the_module():
     """States are plain dicts: they move with the module's device (here the meta device), never change dtype."""
     from b3dgs.data import load_scene
     from b3dgs.module import SplatModule
-    from plugins.posterior.dp import DPBlock
-    from plugins.posterior.niw import NIWBlock
-    from plugins.strategy.default import AdaptiveDensityControl
+    from b3dgs_plugins.posterior.dp import DPBlock
+    from b3dgs_plugins.posterior.niw import NIWBlock
+    from b3dgs_plugins.strategy.default import AdaptiveDensityControl
 
     scene = load_scene("synthetic", None, max_side=32, n_views=8)
     m = SplatModule(strategy=AdaptiveDensityControl(), posterior={"niw": NIWBlock(), "dp": DPBlock()},

@@ -244,7 +244,7 @@ def test_report_from_synthetic_runs(tmp_path):
 def test_report_on_real_short_training_runs(tmp_path):
     for m in ("standard", "niw"):
         res = subprocess.run([sys.executable, "-m", "b3dgs.train", "trainer=quick", "trainer.max_steps=60",
-                              "trainer.eval_every=20", "logger=none", "trainer.progress_bar=false",
+                              "trainer.eval_every=20", "logger=none", "trainer.enable_progress_bar=false",
                               "trainer.save_renders=false", "data.max_side=48", f"model={m}",
                               f"hydra.run.dir={tmp_path / 'runs' / m}"], capture_output=True, text=True, cwd=ROOT,
                              timeout=600)

@@ -2,11 +2,10 @@
 and resumed with ``resume=auto`` each time, ends bit for bit like the uninterrupted run (metrics.json apart
 from its wall-clock fields, curve.json, point_cloud.ply), with no temp file left.
 
-The kills are test hooks: ``B3DGS_TEST_KILL_AT_STEP=K`` (:class:`b3dgs.callbacks.RunCheckpoint`) makes the
-training process send itself a signal right after step K, ``B3DGS_TEST_KILL_AT=final`` after training and
-``B3DGS_TEST_KILL_AT=write:<file>`` once the temp file of ``<file>`` is written but before its rename
-(:mod:`b3dgs.rundir`); the signal is SIGKILL (a real ``kill -9``: no handler, no cleanup) unless
-``B3DGS_TEST_SIGNAL`` names TERM or INT. Each run is first interrupted (SIGTERM / SIGINT: a checkpoint at
+The kills come from a test callback added through the configurable callbacks (``tests/kill_hooks.py``): the
+training process sends itself a signal right after step K, after training (``final``) or once the temp file
+of ``<file>`` is written but before its rename (``write:<file>``); the signal is SIGKILL (a real ``kill -9``:
+no handler, no cleanup) unless TERM or INT is named. Each run is first interrupted (SIGTERM / SIGINT: a checkpoint at
 that step, exit 143 / 130, one line) right after one of steps 14..20, then killed at a random later step,
 then twice after the last checkpoint. The steps are printed on failure. A finished run is left untouched
 by ``resume=auto``.
@@ -23,12 +22,12 @@ import pytest
 
 import torch
 
-from b3dgs.callbacks import KILL_ENV
-from b3dgs.rundir import KILL_POINT_ENV, KILL_SIGNAL_ENV
+from tests.kill_hooks import kill_args
 
+ROOT = Path(__file__).resolve().parents[1]
 STEPS, CKPT_EVERY, N_TRAIN = 60, 7, 14
 BASE = ["data.max_side=32", "+data.n_views=16", f"trainer.max_steps={STEPS}", "trainer.eval_every=20",
-        f"trainer.checkpoint_every={CKPT_EVERY}", "trainer.checkpoint_every_s=0", "trainer.progress_bar=false",
+        f"trainer.checkpoint_every={CKPT_EVERY}", "trainer.checkpoint_every_s=0", "trainer.enable_progress_bar=false",
         "logger=none", "strategy.refine_start=10", "strategy.refine_every=10", "strategy.refine_stop=50",
         "model.sh_increase_every=20", "seed=3", "threads=1"]
 #: wall-clock fields, the only ones allowed to differ
@@ -37,13 +36,12 @@ TIMING = {"train_time_s", "render_fps", "block_time_s"}
 
 def _train(run_dir: Path, extra: list[str], kill_at: int | str | None = None, sig: str = "KILL"
            ) -> subprocess.CompletedProcess:
-    """``kill_at``: a step, or a point of :func:`b3dgs.rundir.kill_hook` (``final``, ``write:<file>``)."""
-    env = {k: v for k, v in os.environ.items() if k not in (KILL_ENV, KILL_POINT_ENV, KILL_SIGNAL_ENV)}
+    """``kill_at``: a step, or a point of :class:`tests.kill_hooks.KillAt` (``final``, ``write:<file>``)."""
     if kill_at is not None:
-        env[KILL_ENV if isinstance(kill_at, int) else KILL_POINT_ENV] = str(kill_at)
-        env[KILL_SIGNAL_ENV] = sig
+        extra = [*extra, *(kill_args(step=kill_at, sig=sig) if isinstance(kill_at, int)
+                           else kill_args(point=kill_at, sig=sig))]
     cmd = [sys.executable, "-m", "b3dgs.train", *BASE, *extra, f"hydra.run.dir={run_dir}"]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=300, cwd=ROOT)
 
 
 def _strip(obj):
@@ -74,7 +72,7 @@ def test_kill9_then_resume_is_bit_identical(tmp_path, model):
     render = sorted(p.name for p in (ref / "renders").iterdir())[0]
     finals = [f.format(render=render) for f in finals]
 
-    rng = random.Random()
+    rng = random.Random(f"resume-{model}")  # fixed kill steps per model: a failure reproduces
     k1 = rng.randint(2 * CKPT_EVERY, 3 * CKPT_EVERY - 1)
     k2 = rng.randint(k1 + 1, STEPS - 1)
     k = (k1, k2)

@@ -10,7 +10,7 @@ from b3dgs.train import CONF_DIR
 
 STEPS = 60
 BASE = ["data.max_side=32", "+data.n_views=24", f"trainer.max_steps={STEPS}", "trainer.checkpoint_every=1000",
-        "trainer.checkpoint_every_s=0", "trainer.progress_bar=false", "logger=none", "strategy.refine_start=10",
+        "trainer.checkpoint_every_s=0", "trainer.enable_progress_bar=false", "logger=none", "strategy.refine_start=10",
         "strategy.refine_every=10", "strategy.refine_stop=50", "model.sh_increase_every=20", "seed=3", "threads=1",
         "renderer=cpu"]
 

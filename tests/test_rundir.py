@@ -13,14 +13,17 @@ from omegaconf import OmegaConf
 from b3dgs.errors import B3dgsError
 from b3dgs.rundir import LOCK_NAME, remove_stale_tmp, run_dir_lock
 from b3dgs.train import CONF_DIR
+from tests.kill_hooks import kill_args
+
+ROOT = Path(__file__).resolve().parents[1]
 
 TINY = ["+data.n_views=8", "data.max_side=16", "trainer.max_steps=4", "trainer.eval_every=100",
-        "trainer.checkpoint_every=2", "trainer.progress_bar=false", "logger=none", "threads=1"]
+        "trainer.checkpoint_every=2", "trainer.enable_progress_bar=false", "logger=none", "threads=1"]
 
 
 def _train(args: list[str], env: dict | None = None, **kw):
-    e = {k: v for k, v in os.environ.items() if not k.startswith("B3DGS_TEST")}
-    e.update(env or {})
+    e = {**os.environ, **(env or {})}
+    e["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), e.get("PYTHONPATH")]))  # tests.kill_hooks
     return subprocess.Popen([sys.executable, "-m", "b3dgs.train", *TINY, *args], env=e, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, **kw)
 
@@ -66,7 +69,7 @@ def test_concurrent_trainings_on_one_dir_exactly_one_runs(tmp_path):
     """The first training is stopped (SIGSTOP, by its own test hook) at step 1, holding the run dir; the
     second is refused in one line, and leaves nothing; the first then finishes."""
     d = tmp_path / "run"
-    first = _train([f"hydra.run.dir={d}"], env={"B3DGS_TEST_KILL_AT_STEP": "1", "B3DGS_TEST_SIGNAL": "STOP"})
+    first = _train([f"hydra.run.dir={d}", *kill_args(step=1, sig="STOP")])
     _, status = os.waitpid(first.pid, os.WUNTRACED)
     assert os.WIFSTOPPED(status), status
     try:

@@ -2,7 +2,7 @@
 
 Every case asserts that no NaN or Inf reaches the outputs (images, per-Gaussian weights and every
 gradient; for trainer cases also the final parameters and metrics.json), and that the guards that
-must fire are counted: ``b3dgs.posterior.guards.guard_counts()`` for renderer cases (exactly the
+must fire are counted: ``b3dgs.numerics.guard_counts()`` for renderer cases (exactly the
 expected ``render.*`` guards, so a new silent clamp or a spurious one both fail), and metrics.json's
 ``numerical_guards`` for trainer cases. Renderer cases run on both CPU backends (C++ and pure torch)
 and on gsplat: on the CPU through the emulation of its kernels (``tests/gsplat_cpu.py``), and on a GPU
@@ -22,7 +22,7 @@ import pytest
 import torch
 
 from b3dgs.errors import B3dgsError
-from b3dgs.posterior.guards import guard_counts
+from b3dgs.numerics import guard_counts
 from b3dgs.render.renderers import CPURenderer, GsplatRenderer, Renderer, TorchRenderer, gsplat_available
 from b3dgs.types import Camera
 
@@ -246,7 +246,7 @@ def test_renderer_very_many_gaussians_on_one_tile(backend):
 # ------------------------------------------------------------------------------------------------
 TINY = ["data.max_side=32", "+data.n_views=8", "+data.n_points=300", "trainer.max_steps=30",
         "trainer.eval_every=30", "trainer.checkpoint_every=1000", "trainer.save_renders=false", "logger=none",
-        "trainer.progress_bar=false", "strategy.refine_start=10", "strategy.refine_every=10",
+        "trainer.enable_progress_bar=false", "strategy.refine_start=10", "strategy.refine_every=10",
         "strategy.refine_stop=25"]
 
 

@@ -14,7 +14,7 @@ from omegaconf import open_dict
 
 from b3dgs.train import CONF_DIR, train
 
-QUICK = ["data.max_side=64", "+data.n_views=24", "trainer.progress_bar=false", "logger=none"]
+QUICK = ["data.max_side=64", "+data.n_views=24", "trainer.enable_progress_bar=false", "logger=none"]
 
 
 def run_train(tmp_path: Path, overrides: list[str]) -> dict:
@@ -92,11 +92,15 @@ def test_run_dir_guard_resume_identity_and_eval_check(tmp_path):
     assert load_run(tmp_path).module.num_gaussians == m3["num_gaussians"]
 
 
-def test_checkpoints_bounded_by_time():
-    """trainer.checkpoint_every_s saves last.ckpt between the step multiples, once the time has passed."""
+def test_checkpoints_bounded_by_time(monkeypatch):
+    """trainer.checkpoint_every_s saves last.ckpt between the step multiples, once the time has passed (a fake
+    clock: the test does not depend on how fast the machine is)."""
     import time
 
     from b3dgs.callbacks import RunCheckpoint
+
+    clock = [100.0]
+    monkeypatch.setattr(time, "monotonic", lambda: clock[0])
 
     class FakeTrainer:
         global_step = 0
@@ -111,7 +115,7 @@ def test_checkpoints_bounded_by_time():
         t.global_step = step
         cb.on_train_batch_end(t, None, None, None, step - 1)
     assert t.saved == []
-    time.sleep(0.06)
+    clock[0] += 0.06
     t.global_step = 4
     cb.on_train_batch_end(t, None, None, None, 3)
     assert t.saved == [4]
@@ -124,7 +128,7 @@ def test_checkpoints_bounded_by_time():
 
 def test_multirun_two_seeds(tmp_path):
     cmd = [sys.executable, "-m", "b3dgs.train", "-m", "seed=0,1", "trainer.max_steps=20", "trainer.eval_every=10",
-           "data.max_side=32", "+data.n_views=16", "trainer.progress_bar=false", "logger=none",
+           "data.max_side=32", "+data.n_views=16", "trainer.enable_progress_bar=false", "logger=none",
            f"hydra.sweep.dir={tmp_path}", "hydra.sweep.subdir=${seed}"]
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
@@ -137,7 +141,7 @@ def test_multirun_two_seeds(tmp_path):
 def test_pure_torch_renderer_trains_like_the_cpu_backend(tmp_path):
     """renderer=torch (pure PyTorch projection, binning, rasterizer and SSIM) follows the same
     trajectory as the C++ path up to float32 rounding."""
-    over = ["data.max_side=32", "+data.n_views=16", "trainer.progress_bar=false", "logger=none", "trainer.max_steps=40",
+    over = ["data.max_side=32", "+data.n_views=16", "trainer.enable_progress_bar=false", "logger=none", "trainer.max_steps=40",
             "trainer.eval_every=20", "strategy.refine_start=10", "strategy.refine_every=10", "strategy.refine_stop=30",
             "trainer.save_renders=false"]
     a = run_train(tmp_path / "cpu", over + ["renderer=cpu"])

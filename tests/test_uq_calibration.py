@@ -10,13 +10,13 @@ import torch
 
 from b3dgs.data import load_scene
 from b3dgs.errors import B3dgsError
-from b3dgs.posterior import niw as niwm
+from b3dgs_plugins.posterior import niw as niwm
 from b3dgs.uq.calibration import conformal_scale, fit_scale_and_level
 from b3dgs.uq.metrics import coverage, epistemic_summary, epistemic_view
-from plugins.posterior.niw import NIWBlock
-from plugins.uq.constant import ConstantUQ
-from plugins.uq.native import NativeUQ
-from plugins.uq.native_calibrated import NativeCalibratedUQ, NativeConformalUQ
+from b3dgs_plugins.posterior.niw import NIWBlock
+from b3dgs_plugins.uq.constant import ConstantUQ
+from b3dgs_plugins.uq.native import NativeUQ
+from b3dgs_plugins.uq.native_calibrated import NativeCalibratedUQ, NativeConformalUQ
 from test_uq_regimes import make_module  # a fresh model on a scene, opacities raised so geometry shows
 
 
@@ -250,13 +250,13 @@ def test_calib_run_trains_without_its_calibration_views_and_uq_json_reports_them
 
     from b3dgs.eval import evaluate_uq
     from b3dgs.train import CONF_DIR, train
-    from plugins.uq.constant import ConstantUQ
+    from b3dgs_plugins.uq.constant import ConstantUQ
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose(config_name="train", return_hydra_config=True, overrides=[
             f"hydra.run.dir={tmp_path}", "model=niw", "data.max_side=32", "+data.n_views=24", "data.calib_every=4",
-            "trainer.max_steps=30", "trainer.progress_bar=false", "logger=none", "trainer.save_renders=false"])
+            "trainer.max_steps=30", "trainer.enable_progress_bar=false", "logger=none", "trainer.save_renders=false"])
         HydraConfig.instance().set_config(cfg)
         with open_dict(cfg):
             cfg.trainer.default_root_dir = str(tmp_path)
@@ -284,7 +284,7 @@ def test_calib_run_trains_without_its_calibration_views_and_uq_json_reports_them
 
 def test_native_count_scale_override_widens_draws_and_leaves_the_model_alone(scene):
     """uq=native with count_scale draws from a copy of the block and state: more spread, same trained model."""
-    from plugins.uq.native import NativeUQ
+    from b3dgs_plugins.uq.native import NativeUQ
 
     m = make_module(scene, {"niw": NIWBlock()})
     m.states["niw"]["N"].fill_(1e5)  # a trained model's counts (the prior alone does not depend on c)

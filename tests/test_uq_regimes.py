@@ -3,12 +3,12 @@ import pytest
 import torch
 
 from b3dgs.data import load_scene
-from plugins.posterior.niw import NIWBlock
-from plugins.strategy.default import AdaptiveDensityControl
-from plugins.uq.ensemble import EnsembleUQ
-from plugins.uq.native import NativeUQ
-from plugins.uq.ppu import PPUHead
-from plugins.uq.proxy import ProxyUQ
+from b3dgs_plugins.posterior.niw import NIWBlock
+from b3dgs_plugins.strategy.default import AdaptiveDensityControl
+from b3dgs_plugins.uq.ensemble import EnsembleUQ
+from b3dgs_plugins.uq.native import NativeUQ
+from b3dgs_plugins.uq.ppu import PPUHead
+from b3dgs_plugins.uq.proxy import ProxyUQ
 
 
 @pytest.fixture(scope="module")

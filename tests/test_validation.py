@@ -54,7 +54,7 @@ BAD = [  # (overrides, text the one-line message must contain)
     (["model.lr_means=-1"], "model.lr_means"),
     (["trainer.max_steps=0"], "trainer.max_steps"),
     (["trainer.max_steps=abc"], "an integer"),
-    (["trainer.progress_bar=maybe"], "true or false"),
+    (["trainer.enable_progress_bar=maybe"], "true or false"),
     (["strategy.refine_every=0"], "strategy.refine_every"),
     (["model=niw", "posterior.niw.kappa0=-1"], "posterior.niw.kappa0"),
     (["+posterior.bogus.x=1"], "posterior.bogus"),

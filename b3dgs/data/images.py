@@ -1,25 +1,18 @@
-"""Image reading (PIL) and PNG writing (self-contained, stdlib ``zlib`` + ``struct``).
+"""Image reading and PNG writing, both through PIL.
 
 Import-order hazard
 -------------------
 On this project's machines, importing ``pycolmap`` *before* PIL once made PIL's PNG encoder abort
 the whole process (``free(): invalid pointer`` inside zlib's ``deflateEnd``: two zlib builds
-clashing). To be immune whatever order a user imports in:
-
-* this module imports ``PIL.Image``, ``PIL.PngImagePlugin`` and PIL's C core ``PIL._imaging`` at
-  import time, and every b3dgs module that touches pycolmap imports this module first and only
-  imports ``pycolmap`` lazily, inside the function that needs it (see :func:`import_pycolmap`);
-* :func:`save_png` never uses PIL's encoder: PNG files are written by :func:`encode_png`, a small
-  encoder built on Python's own ``zlib`` and ``struct`` modules (8-bit gray / RGB / RGBA, filter
-  type 0), so writing images works even if pycolmap was imported before PIL.
-
-Reading uses PIL (decoding was never affected).
+clashing). This module imports ``PIL.Image``, ``PIL.PngImagePlugin`` and PIL's C core ``PIL._imaging``
+at import time, and every b3dgs module that touches pycolmap imports this module first and only
+imports ``pycolmap`` lazily, inside the function that needs it (see :func:`import_pycolmap`).
+``tests/test_data.py::test_import_order_save_png`` writes and reads a PNG through PIL after either
+import order (matplotlib, too, saves its PNGs through PIL in the same processes).
 """
 from __future__ import annotations
 
 import os
-import struct
-import zlib
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -176,15 +169,13 @@ class _SizeMismatch(Exception):
 
 
 # ----------------------------------------------------------------------------------------------
-# PNG writing (no PIL)
+# PNG writing (PIL)
 # ----------------------------------------------------------------------------------------------
 
 
-def _png_chunk(tag: bytes, data: bytes) -> bytes:
-    return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
-
-
-def _to_uint8(array: Any) -> np.ndarray:
+def _to_pil_array(array: Any) -> np.ndarray:
+    """``array`` as what PIL writes: uint8 (H, W[, 3|4]) from floats in [0, 1] (clipped, rounded), bools or
+    uint8, or uint16 (H, W) as a 16-bit gray image."""
     if hasattr(array, "detach"):  # torch.Tensor, without importing torch here
         array = array.detach().cpu().numpy()
     a = np.asarray(array)
@@ -194,12 +185,12 @@ def _to_uint8(array: Any) -> np.ndarray:
         raise ValueError(f"save_png expects (H, W), (H, W, 1), (H, W, 3) or (H, W, 4); got shape {a.shape}")
     if a.shape[0] == 0 or a.shape[1] == 0:
         raise ValueError(f"save_png: empty image of shape {a.shape}")
-    if a.dtype == np.uint8:
+    if a.dtype == np.uint8 or (a.dtype == np.uint16 and a.ndim == 2):
         return np.ascontiguousarray(a)
     if a.dtype == np.bool_:
         return a.astype(np.uint8) * 255
     if np.issubdtype(a.dtype, np.integer):
-        raise ValueError(f"save_png: integer images must be uint8, got {a.dtype}")
+        raise ValueError(f"save_png: integer images must be uint8 (or uint16 gray), got {a.dtype} of shape {a.shape}")
     a = a.astype(np.float64)
     if not np.isfinite(a).all():
         raise ValueError("save_png: image contains NaN/Inf")
@@ -207,35 +198,21 @@ def _to_uint8(array: Any) -> np.ndarray:
 
 
 def encode_png(array: Any, compress_level: int = 6) -> bytes:
-    """Encode an image to PNG bytes using only ``zlib`` and ``struct``.
+    """PNG bytes of an image (PIL's encoder): numpy array or torch tensor, (H, W) gray, (H, W, 3) RGB or
+    (H, W, 4) RGBA; floats are taken as [0, 1] (clipped, rounded to 8 bit), uint8 as is, uint16 (H, W) as
+    16-bit gray."""
+    import io
 
-    ``array``: numpy array or torch tensor, (H, W) gray, (H, W, 3) RGB or (H, W, 4) RGBA; floats are
-    taken as [0, 1] (clipped, rounded to 8 bit), uint8 as is. Every row uses filter type 0 (None).
-    """
-    a = _to_uint8(array)
-    h, w = a.shape[:2]
-    color_type = 0 if a.ndim == 2 else (2 if a.shape[2] == 3 else 6)  # gray / RGB / RGBA
-    rows = a.reshape(h, -1)
-    raw = np.empty((h, rows.shape[1] + 1), dtype=np.uint8)
-    raw[:, 0] = 0  # filter type 0 for every scanline
-    raw[:, 1:] = rows
-    ihdr = struct.pack(">IIBBBBB", w, h, 8, color_type, 0, 0, 0)
-    return b"".join(
-        [
-            b"\x89PNG\r\n\x1a\n",
-            _png_chunk(b"IHDR", ihdr),
-            _png_chunk(b"IDAT", zlib.compress(raw.tobytes(), compress_level)),
-            _png_chunk(b"IEND", b""),
-        ]
-    )
+    a = _to_pil_array(array)
+    buf = io.BytesIO()
+    Image.fromarray(a).save(buf, format="PNG", compress_level=int(compress_level))
+    return buf.getvalue()
 
 
 def save_png(path: str | os.PathLike, image: Any, compress_level: int = 6) -> Path:
-    """Write ``image`` (numpy/torch, (H, W[, 1|3|4]), float in [0, 1] or uint8) as an 8-bit PNG, atomically.
-
-    The file is written to a temporary name in the same folder and renamed into place
-    (:func:`b3dgs.io.atomic_path`), so a reader never sees a partial file. PIL is not used.
-    """
+    """Write ``image`` (numpy/torch, (H, W[, 1|3|4]), float in [0, 1] or uint8; uint16 (H, W) as 16-bit gray)
+    as a PNG (:func:`encode_png`), atomically: the file is written to a temporary name in the same folder and
+    renamed into place (:func:`b3dgs.io.atomic_path`), so a reader never sees a partial file."""
     data = encode_png(image, compress_level)
     path = Path(path)
     with atomic_path(path) as tmp:

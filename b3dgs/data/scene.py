@@ -37,7 +37,7 @@ import numpy as np
 import torch
 
 from b3dgs.data.images import load_image, target_size
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.types import Camera, Scene
 
 log = logging.getLogger(__name__)
@@ -524,13 +524,39 @@ def check_layout(kind: str, path: str | os.PathLike) -> None:
 
 
 def get_loader(kind: str):
-    """The format loader function of scene ``kind`` (one of :data:`SCENE_KINDS`)."""
+    """The format loader of scene ``kind``: one of :data:`SCENE_KINDS` (b3dgs's own formats), or any loader
+    function named ``"package.module:function"`` (or ``"package.module.function"``), e.g. an installed
+    package's. The contract (docs/extending.md): ``loader([path,] *, max_side, background, max_images,
+    **kind_kwargs) -> RawScene``; a loader that reads files takes ``path`` as its first parameter, and one that
+    can say which images observed each point accepts ``point_tracks`` (``init_points_from_train_only``)."""
     import importlib
 
-    if kind not in LOADERS:
-        raise ValueError(f"Unknown scene kind {kind!r}; expected one of {SCENE_KINDS}")
-    module, func = LOADERS[kind].split(":")
-    return getattr(importlib.import_module(module), func)
+    spec = LOADERS.get(kind, kind)
+    module, sep, func = spec.partition(":") if ":" in spec else spec.rpartition(".")
+    if not sep or not module or not func:
+        raise B3dgsError(f"data.kind={kind} is not a scene format{did_you_mean(kind, LOADERS)}",
+                         f"pick data={'|'.join(LOADERS)}, or name a loader function as data.kind=package.module:function")
+    try:
+        loader = getattr(importlib.import_module(module), func)
+    except (ImportError, AttributeError) as e:
+        raise B3dgsError(f"data.kind={kind}: the loader {spec} cannot be imported ({type(e).__name__}: {e})",
+                         "install the package that provides it, or correct data.kind") from None
+    if not callable(loader):
+        raise B3dgsError(f"data.kind={kind}: {spec} is not a function", "name a loader function")
+    return loader
+
+
+def loader_params(loader) -> dict[str, Any]:
+    """The keyword parameters of a format loader, name -> default (``inspect.Parameter.empty`` if none)."""
+    import inspect
+
+    return {n: p.default for n, p in inspect.signature(loader).parameters.items()
+            if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
+
+
+def loader_reads_files(loader) -> bool:
+    """Whether a format loader takes a scene ``path`` (its first parameter); the procedural scene does not."""
+    return next(iter(loader_params(loader)), None) == "path"
 
 
 def load_scene(
@@ -547,11 +573,13 @@ def load_scene(
     init_points_from_train_only: bool = False,
     **kind_kwargs: Any,
 ) -> Scene:
-    """Load a scene of ``kind`` in {"colmap", "transforms", "llff", "synthetic"} and preprocess it.
+    """Load a scene of ``kind`` (``colmap``, ``transforms``, ``llff``, ``synthetic`` or a loader function
+    ``package.module:function``, see :func:`get_loader`) and preprocess it.
 
     Args:
         kind: scene format.
-        path: scene folder (or ``transforms*.json`` file); ignored (may be None) for "synthetic".
+        path: scene folder (or ``transforms*.json`` file); ignored (may be None) for a loader that reads no
+            files ("synthetic").
         max_side: downscale images so the longest side is ``<= max_side`` (K scaled to match).
         test_every: every ``test_every``-th view in sorted name order is held out; 0 = none.
         train_indices: indices into the sorted train list to keep (sparse/active-view studies).
@@ -573,8 +601,10 @@ def load_scene(
     if max_side is not None and not int(max_side) > 0:
         raise B3dgsError(f"max_side must be a positive pixel count, got {max_side}",
                          "pass max_side=256 (longest image side) or null for the full resolution")
-    kind = str(kind).lower()
-    if kind != "synthetic":
+    kind = str(kind) if str(kind).lower() not in LOADERS else str(kind).lower()
+    loader = get_loader(kind)
+    reads_files = loader_reads_files(loader)
+    if reads_files:
         if path is None or str(path) == "":
             raise ValueError(f"load_scene(kind={kind!r}) needs a path")
         if not Path(path).exists():
@@ -582,10 +612,9 @@ def load_scene(
         if kind_kwargs.get("sparse_dir") is None:  # a custom model folder is the loader's to find
             check_layout(kind, path)
     common = dict(max_side=max_side, background=background, max_images=max_images)
-    loader = get_loader(kind)
-    if init_points_from_train_only and kind == "colmap":
+    if init_points_from_train_only and "point_tracks" in loader_params(loader):
         kind_kwargs = {**kind_kwargs, "point_tracks": True}  # which images observed each SfM point
-    raw = loader(**common, **kind_kwargs) if kind == "synthetic" else loader(path, **common, **kind_kwargs)
+    raw = loader(path, **common, **kind_kwargs) if reads_files else loader(**common, **kind_kwargs)
     scene = preprocess(raw, test_every=test_every, train_indices=train_indices, normalize=normalize,
                        background=background, near_plane=near_plane, calib_every=calib_every,
                        init_points_from_train_only=init_points_from_train_only)

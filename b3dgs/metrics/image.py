@@ -19,15 +19,14 @@ import kornia
 import torch
 from torch import Tensor
 
+# the renderers' SSIM losses live with the renderers (metrics import render, never the reverse)
+from b3dgs.render.ssim import SSIM_SIGMA, SSIM_WINDOW, ssim_fused, ssim_separable  # noqa: F401
+
 __all__ = ["PSNR_CAP_DB", "SSIM_WINDOW", "SSIM_SIGMA", "psnr", "ssim", "ssim_separable", "ssim_fused", "check_images"]
 
 #: Upper bound returned by :func:`psnr` (dB). Equivalent to clamping the MSE at 1e-10.
 PSNR_CAP_DB = 100.0
 _MSE_FLOOR = 10.0 ** (-PSNR_CAP_DB / 10.0)
-
-#: SSIM Gaussian window (Wang et al. 2004): 11x11 taps, sigma 1.5; constants K1=0.01, K2=0.03, L=1.
-SSIM_WINDOW = 11
-SSIM_SIGMA = 1.5  # fixed inside kornia.metrics.ssim
 
 
 def check_images(pred: Tensor, gt: Tensor, name: str = "metric") -> tuple[Tensor, Tensor, bool]:
@@ -92,47 +91,3 @@ def ssim(pred: Tensor, gt: Tensor) -> Tensor:
     smap = kornia.metrics.ssim(a, b, window_size=SSIM_WINDOW, max_val=1.0, eps=0.0, padding="valid")
     val = smap.mean(dim=(1, 2, 3))
     return val if batched else val[0]
-
-
-def ssim_separable(pred: Tensor, gt: Tensor) -> Tensor:
-    """The same SSIM as :func:`ssim` for one (H, W, 3) pair, with the 11x11 Gaussian window applied as
-    two 1-D passes (kornia's Gaussian kernel): about 5x cheaper, for the training loss. Differentiable."""
-    if pred.shape != gt.shape or pred.dim() != 3 or pred.shape[-1] != 3:
-        raise ValueError(f"ssim_separable: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
-    k = kornia.filters.get_gaussian_kernel1d(SSIM_WINDOW, SSIM_SIGMA, device=pred.device, dtype=pred.dtype).reshape(-1)
-    kx = k.view(1, 1, 1, -1).repeat(15, 1, 1, 1)
-    ky = k.view(1, 1, -1, 1).repeat(15, 1, 1, 1)
-    a = pred.permute(2, 0, 1).unsqueeze(0)
-    b = gt.to(pred.dtype).permute(2, 0, 1).unsqueeze(0)
-    x = torch.cat([a, b, a * a, b * b, a * b], dim=1)  # (1, 15, H, W)
-    x = torch.nn.functional.conv2d(torch.nn.functional.conv2d(x, kx, groups=15), ky, groups=15)
-    mu1, mu2, s11, s22, s12 = x.split(3, dim=1)
-    c1, c2 = 0.01**2, 0.03**2
-    mu1mu2, mu1s, mu2s = mu1 * mu2, mu1 * mu1, mu2 * mu2
-    num = (2 * mu1mu2 + c1) * (2 * (s12 - mu1mu2) + c2)
-    den = (mu1s + mu2s + c1) * ((s11 - mu1s) + (s22 - mu2s) + c2)
-    return (num / den).mean()
-
-
-class _SSIMFused(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, pred: Tensor, gt: Tensor) -> Tensor:
-        from b3dgs.render._ext import load_extension
-
-        value, grad = load_extension().ssim_value_grad(pred.contiguous(), gt.contiguous(), ctx.needs_input_grad[0],
-                                                       torch.get_num_threads())
-        ctx.save_for_backward(grad)
-        return value
-
-    @staticmethod
-    def backward(ctx, g: Tensor):
-        (grad,) = ctx.saved_tensors
-        return g * grad, None
-
-
-def ssim_fused(pred: Tensor, gt: Tensor) -> Tensor:
-    """:func:`ssim_separable` computed by the C++ extension together with its gradient (one pass over
-    the image instead of ~20 autograd ops; the training loss of ``renderer=cpu``). gt gets no gradient."""
-    if pred.shape != gt.shape or pred.dim() != 3 or pred.shape[-1] != 3:
-        raise ValueError(f"ssim_fused: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
-    return _SSIMFused.apply(pred, gt.to(pred.dtype).detach())

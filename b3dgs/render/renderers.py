@@ -65,7 +65,7 @@ class Renderer:
         raise NotImplementedError
 
     def ssim(self, pred: Tensor, gt: Tensor) -> Tensor:
-        from b3dgs.metrics.image import ssim_separable
+        from b3dgs.render.ssim import ssim_separable
 
         return ssim_separable(pred, gt)
 
@@ -101,7 +101,7 @@ class CPURenderer(Renderer):
                       return_weights=return_weights, retain_means2d_grad=retain_means2d_grad, near=self.near)
 
     def ssim(self, pred: Tensor, gt: Tensor) -> Tensor:
-        from b3dgs.metrics.image import ssim_fused
+        from b3dgs.render.ssim import ssim_fused
 
         return ssim_fused(pred, gt)
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Union
 
-__all__ = ["Heading", "Para", "Table", "Figure", "to_markdown", "to_html", "fmt"]
+__all__ = ["Heading", "Para", "Table", "Figure", "to_markdown", "to_html", "fmt", "markdown_table"]
 
 
 @dataclass
@@ -53,6 +53,12 @@ def _md_cell(s: str) -> str:
     return str(s).replace("|", "\\|").replace("\n", " ")
 
 
+def markdown_table(header, rows) -> list[str]:
+    """The lines of one Markdown table: b3dgs's one table writer (the report, the study tables, benchmarks)."""
+    return ["| " + " | ".join(map(_md_cell, header)) + " |", "|" + "|".join("---" for _ in header) + "|",
+            *["| " + " | ".join(map(_md_cell, r)) + " |" for r in rows]]
+
+
 def to_markdown(title: str, blocks: list[Block]) -> str:
     out = [f"# {title}", ""]
     for b in blocks:
@@ -63,9 +69,7 @@ def to_markdown(title: str, blocks: list[Block]) -> str:
         elif isinstance(b, Table):
             if b.caption:
                 out += [f"**{b.caption}**", ""]
-            out.append("| " + " | ".join(map(_md_cell, b.header)) + " |")
-            out.append("|" + "|".join("---" for _ in b.header) + "|")
-            out += ["| " + " | ".join(map(_md_cell, r)) + " |" for r in b.rows]
+            out += markdown_table(b.header, b.rows)
             out += [""] + ([b.note, ""] if b.note else [])
         elif isinstance(b, Figure):
             out += [f"![{b.alt or b.caption}]({b.path.name})", "", f"*{b.caption}*", ""]

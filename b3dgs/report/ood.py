@@ -20,9 +20,18 @@ import numpy as np
 
 from b3dgs.report.collect import ReportError, Run, method_order
 
-__all__ = ["support_scores", "label_views", "detect", "ood_study"]
+__all__ = ["support_distances", "support_scores", "label_views", "detect", "ood_study"]
 
 _SCENES: dict[str, dict[str, float]] = {}
+
+
+def support_distances(train_centres, test_centres, extent: float) -> np.ndarray:
+    """The OOD support score of each test camera: the distance from its centre to the nearest training camera
+    centre, / the scene extent (1 where the extent is not positive). Float64, brute force (a few hundred views)."""
+    train = np.asarray(train_centres, dtype=np.float64).reshape(-1, 3)
+    ext = extent if extent > 0 else 1.0
+    return np.array([np.linalg.norm(train - t, axis=1).min() / ext
+                     for t in np.asarray(test_centres, dtype=np.float64).reshape(-1, 3)])
 
 
 def support_scores(data_cfg: dict) -> dict[str, float]:
@@ -39,10 +48,9 @@ def support_scores(data_cfg: dict) -> dict[str, float]:
             raise ReportError(f"OOD study: cannot reload the scene of data={data_cfg.get('name')} "
                               f"(path={data_cfg.get('path')}): {e}; pass ood.enabled=false to skip it") from e
         scene = dm.scene
-        train = np.stack([c.center.double().numpy() for c in scene.train])
-        ext = scene.extent if scene.extent > 0 else 1.0
-        _SCENES[key] = {c.name: float(np.linalg.norm(train - c.center.double().numpy(), axis=1).min() / ext)
-                        for c in scene.test}
+        dist = support_distances([c.center.double().numpy() for c in scene.train],
+                                 [c.center.double().numpy() for c in scene.test], scene.extent)
+        _SCENES[key] = {c.name: float(d) for c, d in zip(scene.test, dist)}
     return _SCENES[key]
 
 

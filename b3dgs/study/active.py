@@ -35,7 +35,9 @@ log = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------------------------------------- config
-def _compose(config_name: str, overrides: list[str]) -> DictConfig:
+def compose_config(config_name: str, overrides: list[str]) -> DictConfig:
+    """b3dgs's config ``config_name`` (train, study, ...) composed with ``overrides``, inside a running Hydra app
+    or on its own."""
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
@@ -49,10 +51,11 @@ def _compose(config_name: str, overrides: list[str]) -> DictConfig:
 
 def family_config(cfg: DictConfig, family: str, seed: int) -> DictConfig:
     """A ``b3dgs-train``-shaped config: the study's data, renderer, strategy and trainer with ``model=family``."""
-    fam = _compose("train", [f"model={family}", *[str(o) for o in (cfg.get("model_overrides") or [])]])
+    fam = compose_config("train", [f"model={family}", *[str(o) for o in (cfg.get("model_overrides") or [])]])
     out = OmegaConf.create({"data": cfg.data, "renderer": cfg.renderer, "strategy": cfg.strategy,
                             "trainer": cfg.trainer, "model": fam.model, "posterior": fam.get("posterior") or {},
-                            "seed": int(seed), "threads": cfg.get("threads")})
+                            "seed": int(seed), "threads": cfg.get("threads"),
+                            "callbacks": cfg.get("callbacks") or {}})
     return out
 
 
@@ -62,7 +65,7 @@ def option_node(config_name: str, group: str, name: str, settings: Optional[Dict
     from b3dgs.errors import B3dgsError
 
     try:
-        node = _compose(config_name, [f"+{group}@option={name}"]).option
+        node = compose_config(config_name, [f"+{group}@option={name}"]).option
     except Exception as e:  # noqa: BLE001 - unknown option: one line with the fix
         raise B3dgsError(f"unknown {group} option {name!r} ({type(e).__name__})", fix) from None
     with open_dict(node):

@@ -12,6 +12,7 @@ from typing import Any, Optional
 import numpy as np
 
 from b3dgs.io import atomic_path, write_json
+from b3dgs.report.document import markdown_table
 from b3dgs.report.stats import mean_sem
 
 PAIRS = (("native", "ensemble"), ("native", "proxy"))
@@ -92,30 +93,29 @@ def markdown(summary: dict) -> str:
     lines = [f"# Active view selection: {summary['scene']}", "",
              f"{len(meta.get('initial_views', []))} initial views → +{meta.get('acquire')} views; phase 1 "
              f"{meta.get('phase1_steps')} of {meta.get('total_steps')} steps; variant {meta.get('variant')}; seeds "
-             f"{summary['seeds']}; scoring at {meta.get('score_max_side')} px; initial points: {meta.get('point_filter')}.", "",
-             "| family | policy | PSNR ↑ | SSIM ↑ | LPIPS ↓ | ρ vs oracle error | train s | scoring s | hole hits |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             f"{summary['seeds']}; scoring at {meta.get('score_max_side')} px; initial points: {meta.get('point_filter')}.", ""]
+    rows = []
     for pol, e in sorted(summary["table"].items(), key=lambda kv: (kv[1]["family"] != "standard", kv[1]["family"])):
         name = f"{pol} (ORACLE, analysis only)" if e["oracle"] else pol
         if e.get("training_shared_with"):
             name += f" (same run as {', '.join(e['training_shared_with'])})"
-        lines.append(f"| {e['family']} | {name} | {_fmt(e['psnr'], e['psnr_sem'])} | {_fmt(e['ssim'], e['ssim_sem'], 4)} | "
-                     f"{_fmt(e['lpips'], e['lpips_sem'], 4)} | {_fmt(e['spearman_vs_oracle'], e['spearman_vs_oracle_sem'], 2)} | "
-                     f"{_fmt(e['train_time_s'], nd=1)} | {_fmt(e['scoring_time_s'], nd=1)} | "
-                     f"{_fmt(e['hole_hits'], nd=1)} |")
+        rows.append([e["family"], name, _fmt(e["psnr"], e["psnr_sem"]), _fmt(e["ssim"], e["ssim_sem"], 4),
+                     _fmt(e["lpips"], e["lpips_sem"], 4), _fmt(e["spearman_vs_oracle"], e["spearman_vs_oracle_sem"], 2),
+                     _fmt(e["train_time_s"], nd=1), _fmt(e["scoring_time_s"], nd=1), _fmt(e["hole_hits"], nd=1)])
+    lines += markdown_table(["family", "policy", "PSNR ↑", "SSIM ↑", "LPIPS ↓", "ρ vs oracle error", "train s",
+                             "scoring s", "hole hits"], rows)
     lines += ["", "Mean ± SEM over seeds. ρ: Spearman correlation of the policy's candidate scores with the phase-1 "
               "model's current render error on each candidate (the oracle's score; how informative the score is). "
               "'Same run as X': the row acquired X's views in X's order and its model trains bit for bit like X's "
               "(its posterior blocks only observe training), so X's second round is its result.", ""]
     if summary["paired"]:
-        lines += ["| paired | ΔPSNR (dB) | scene-seed wins |", "| --- | --- | --- |"]
-        for k, v in summary["paired"].items():
-            lines.append(f"| {k.replace('-', ' − ')} | {_fmt(v['delta_psnr'], v['sem'])} | {v['wins']}/{v['n']} |")
+        lines += markdown_table(["paired", "ΔPSNR (dB)", "scene-seed wins"],
+                                [[k.replace("-", " − "), _fmt(v["delta_psnr"], v["sem"]), f"{v['wins']}/{v['n']}"]
+                                 for k, v in summary["paired"].items()])
         lines.append("")
     if summary["jaccard"]:
-        lines += ["Jaccard overlap of the selected sets (mean over seeds):", "",
-                  "| pair | Jaccard |", "| --- | --- |"]
-        lines += [f"| {k.replace('|', ' / ')} | {v:.2f} |" for k, v in summary["jaccard"].items()]
+        lines += ["Jaccard overlap of the selected sets (mean over seeds):", ""]
+        lines += markdown_table(["pair", "Jaccard"], [[k.replace("|", " / "), f"{v:.2f}"] for k, v in summary["jaccard"].items()])
     return "\n".join(lines) + "\n"
 
 

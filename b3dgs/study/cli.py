@@ -2,9 +2,10 @@
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
-CONF_DIR = str(Path(__file__).resolve().parents[2] / "conf")
+from b3dgs import conf_dir
+
+CONF_DIR = conf_dir()
 
 STUDIES = {
     "active": ("b3dgs.study.active", "fixed-budget active view selection 16 -> 32 (conf/study.yaml)"),

@@ -35,10 +35,11 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
     """
     import lightning as L
 
-    from b3dgs.callbacks import AtomicCheckpointIO, ResumeState, RunCheckpoint
+    from b3dgs.callbacks import ResumeState, RunCheckpoint
     from b3dgs.data.datamodule import SceneDataModule
-    from b3dgs.posterior.guards import reset_guards
-    from b3dgs.train import _checkpoint_every_s, build_module, build_plugins, build_renderer, resolve_accelerator
+    from b3dgs.numerics import reset_guards
+    from b3dgs.train import (_checkpoint_every_s, build_callbacks, build_module, build_plugins, build_renderer,
+                             build_trainer)
 
     total = int(cfg.trainer.max_steps)
     if not 0 < int(stop_step) <= total:
@@ -60,12 +61,8 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
     run_dir.mkdir(parents=True, exist_ok=True)
     every = int(checkpoint_every if checkpoint_every is not None else cfg.trainer.checkpoint_every)
     ckpt = RunCheckpoint(run_dir / "checkpoints", every_n_steps=every, every_s=_checkpoint_every_s(cfg.trainer))
-    trainer = L.Trainer(
-        max_steps=int(stop_step), accelerator=resolve_accelerator(cfg.trainer.get("accelerator"), renderer), devices=1,
-        logger=False, callbacks=[ResumeState(), ckpt], default_root_dir=str(run_dir), limit_val_batches=0,
-        num_sanity_val_steps=0, enable_progress_bar=bool(cfg.trainer.get("progress_bar", False)),
-        plugins=[AtomicCheckpointIO()], enable_model_summary=False, deterministic=False, enable_checkpointing=True,
-    )
+    trainer = build_trainer(cfg.trainer, renderer, [ResumeState(), ckpt, *build_callbacks(cfg.get("callbacks"))],
+                            max_steps=int(stop_step), default_root_dir=str(run_dir), enable_checkpointing=True)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*does not have many workers.*")
         warnings.filterwarnings("ignore", message=".*`training_step` returns.*")

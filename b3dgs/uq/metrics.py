@@ -77,6 +77,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from b3dgs.io import to_jsonable  # noqa: F401 - re-exported: the one JSON converter lives in b3dgs.io
+
 __all__ = [
     "DEFAULT_FRACTIONS",
     "DEFAULT_LEVELS",
@@ -333,22 +335,9 @@ def _nll(m: np.ndarray, v: np.ndarray, g: np.ndarray, var_floor: float) -> dict:
 
 
 # ------------------------------------------------------------------------------------ Spearman
-def _average_ranks(x: np.ndarray) -> np.ndarray:
-    """1-based ranks, tied values share the mean of their ranks."""
-    n = x.size
-    order = np.argsort(x, kind="stable")
-    xs = x[order]
-    starts = np.flatnonzero(np.concatenate([[True], xs[1:] != xs[:-1]]))
-    ends = np.concatenate([starts[1:], [n]])  # exclusive
-    avg = 0.5 * (starts + ends - 1) + 1.0  # mean of ranks start+1 .. end
-    ranks = np.empty(n, dtype=np.float64)
-    ranks[order] = np.repeat(avg, ends - starts)
-    return ranks
-
-
 def spearman_rho(x: Any, y: Any, max_pixels: int | None = DEFAULT_MAX_SPEARMAN_PIXELS,
                  seed: int = 0) -> tuple[float, int]:
-    """Spearman rank correlation of two 1-D samples; returns ``(rho, n_used)``.
+    """Spearman rank correlation of two 1-D samples (``scipy.stats.spearmanr``); returns ``(rho, n_used)``.
 
     Ties get average ranks. When ``max_pixels`` is set and the sample is larger, a subset of
     ``max_pixels`` indices is drawn without replacement with ``numpy.random.default_rng(seed)``
@@ -362,18 +351,9 @@ def spearman_rho(x: Any, y: Any, max_pixels: int | None = DEFAULT_MAX_SPEARMAN_P
         raise ValueError("need at least two samples")
     if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
         raise ValueError("x/y contain NaN or Inf")
-    if max_pixels is not None and a.size > max_pixels:
-        if max_pixels < 2:
-            raise ValueError("max_pixels must be >= 2")
-        idx = np.sort(np.random.default_rng(seed).choice(a.size, size=int(max_pixels), replace=False))
-        a, b = a[idx], b[idx]
-    ra, rb = _average_ranks(a), _average_ranks(b)
-    ra -= ra.mean()
-    rb -= rb.mean()
-    den = math.sqrt(float(ra @ ra) * float(rb @ rb))
-    if den == 0.0:
-        return float("nan"), int(a.size)
-    return float(np.clip(float(ra @ rb) / den, -1.0, 1.0)), int(a.size)
+    if max_pixels is not None and max_pixels < 2:
+        raise ValueError("max_pixels must be >= 2")
+    return _spearmanr(a, b, max_pixels, seed)
 
 
 # -------------------------------------------------------------------------------------- driver
@@ -445,7 +425,7 @@ def _spearmanr(x: np.ndarray, y: np.ndarray, max_pixels: int | None, seed: int) 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         rho = spearmanr(x, y).statistic
-    return float(rho), int(x.size)
+    return float(np.clip(rho, -1.0, 1.0)), int(x.size)
 
 
 def epistemic_view(epistemic: Any, mean: Any, gt: Any, var: Any = None, mask: Any = None, *,
@@ -555,25 +535,3 @@ def summarize(per_view: Sequence[dict], keep_curves: bool = False) -> dict:
         pv.append(row)
     out["per_view"] = pv
     return out
-
-
-def to_jsonable(obj: Any) -> Any:
-    """Recursively convert arrays to lists and non-finite floats to None (for :func:`b3dgs.io.write_json`)."""
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    try:
-        import torch
-
-        if isinstance(obj, torch.Tensor):
-            return to_jsonable(obj.detach().cpu().tolist())
-    except ImportError:  # pragma: no cover
-        pass
-    return obj

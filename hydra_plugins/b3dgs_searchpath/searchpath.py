@@ -12,19 +12,29 @@ when the primary config is b3dgs's own (Hydra runs every installed search-path p
 from __future__ import annotations
 
 from importlib.metadata import entry_points
+from importlib.util import find_spec
 from pathlib import Path
 
 from hydra.core.config_search_path import ConfigSearchPath
 from hydra.plugins.search_path_plugin import SearchPathPlugin
 
 ENTRY_POINT_GROUP = "b3dgs.conf"
-_B3DGS_CONF = (Path(__file__).resolve().parents[2] / "conf").as_posix()
+
+
+def _b3dgs_conf() -> str:
+    """b3dgs's conf dir as ``b3dgs.conf_dir()`` finds it, without importing b3dgs into every Hydra app."""
+    spec = find_spec("b3dgs")
+    if spec is None or not spec.origin:
+        return ""
+    here = Path(spec.origin).resolve().parent
+    return (here / "conf" if (here / "conf" / "train.yaml").is_file() else here.parent / "conf").as_posix()
 
 
 def _is_b3dgs_app(search_path: ConfigSearchPath) -> bool:
+    own = _b3dgs_conf()
     for element in search_path.get_path():
         path = str(element.path).replace("file://", "")
-        if element.provider == "main" and Path(path).resolve().as_posix() == _B3DGS_CONF:
+        if element.provider == "main" and Path(path).resolve().as_posix() == own:
             return True
     return False
 

@@ -7,7 +7,7 @@ from typing import Optional
 import torch
 
 from b3dgs.acquisition import AcquisitionPolicy
-from plugins.uq.native import NativeUQ
+from b3dgs_plugins.uq.native import NativeUQ
 
 
 @dataclass

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import torch
 
 from b3dgs.acquisition import AcquisitionPolicy
-from plugins.uq.ppu import PPUHead
+from b3dgs_plugins.uq.ppu import PPUHead
 
 
 @dataclass

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import torch
 
 from b3dgs.acquisition import AcquisitionPolicy
-from plugins.uq.proxy import ProxyUQ
+from b3dgs_plugins.uq.proxy import ProxyUQ
 
 
 @dataclass

@@ -8,7 +8,7 @@ import torch
 
 from b3dgs.device import randn
 from b3dgs.plugin import PosteriorBlock
-from b3dgs.posterior import appearance as app
+from b3dgs_plugins.posterior import appearance as app
 from b3dgs.render.projection import SH_C0
 
 
@@ -21,6 +21,8 @@ class ColorBlock(PosteriorBlock):
     block's own plug-in residual MSE. Approximations: linearisation around the optimizer's colour,
     view-independent (DC) colour only, diagonal precision. Active after ``t_post``.
     """
+
+    per_gaussian_state: ClassVar[tuple[str, ...]] = ("wsq",)
 
     prior_precision: float = 1.0
     ema: float = 0.99

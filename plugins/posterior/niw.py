@@ -1,16 +1,389 @@
-"""NIW geometry posterior over each Gaussian's mean and covariance (paper Eq. 1-3)."""
+"""NIW geometry posterior over each Gaussian's mean and covariance (paper Eq. 1-3).
+
+The block (:class:`NIWBlock`) follows its math, the pure batched functions below
+(tested against textbook formulas in tests/test_posterior_math.py):
+
+Batched Normal-Inverse-Wishart posterior math (paper Eq. 1-3; Murphy 2012, Sec. 4.6.3).
+
+All functions are batched over K Gaussians with dimension D (D=3 in 3DGS), compute
+in float64 internally and return the dtype of their main input. Numerical guards
+(floors, jitter) are counted in :mod:`b3dgs.numerics`.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar, Optional
+from typing import ClassVar, Optional, Sequence, Tuple, Union
 
 import torch
 from torch import Tensor
 
+from b3dgs.device import randn
+from b3dgs.numerics import guard
 from b3dgs.plugin import PosteriorBlock
-from b3dgs.posterior import niw as niwm
-from b3dgs.posterior.guards import guard
 from b3dgs.render.projection import covariance_3d
+
+
+Scalar = Union[float, int, torch.Tensor]
+
+#: Floor on nu_n - D - 1 in E[Sigma] = S_n / (nu_n - D - 1). With nu_n within 1e-3 of D+1 the
+#: posterior mean of Sigma is (nearly) infinite; the floor caps E[Sigma] at 1e3 * S_n.
+EXPECTED_COV_DENOM_EPS = 1e-3
+#: Floor on kappa_n when dividing by it (kappa_n = kappa0 + N > 0 for a valid prior).
+KAPPA_FLOOR = 1e-12
+#: Escalating diagonal jitter for safe_cholesky, relative to the mean |diagonal|.
+CHOLESKY_JITTERS = (1e-12, 1e-10, 1e-8, 1e-6, 1e-5, 1e-4, 1e-3)
+#: Floor on the Bartlett chi-square draws (only reachable for nu close to D-1).
+BARTLETT_CHI2_FLOOR = 1e-30
+
+_F64 = torch.float64
+
+
+# ----------------------------------------------------------------------------- shape helpers
+def _kd(name: str, x: torch.Tensor) -> Tuple[int, int]:
+    if not isinstance(x, torch.Tensor) or x.ndim != 2:
+        shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+        raise ValueError(f"{name}: expected a (K, D) tensor, got {shape}")
+    return int(x.shape[0]), int(x.shape[1])
+
+
+def _out_dtype(x: torch.Tensor) -> torch.dtype:
+    return x.dtype if x.is_floating_point() else torch.get_default_dtype()
+
+
+def _vec(name: str, x: Scalar, K: int, device: torch.device) -> torch.Tensor:
+    """(K,) float64 from a (K,) tensor or a scalar (broadcast)."""
+    t = torch.as_tensor(x, dtype=_F64, device=device)
+    if t.ndim == 0:
+        return t.expand(K)
+    if tuple(t.shape) != (K,):
+        raise ValueError(f"{name}: expected shape ({K},) or a scalar, got {tuple(t.shape)}")
+    return t
+
+
+def _vecD(name: str, x: torch.Tensor, K: int, D: int) -> torch.Tensor:
+    if not isinstance(x, torch.Tensor) or tuple(x.shape) != (K, D):
+        shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+        raise ValueError(f"{name}: expected shape ({K}, {D}), got {shape}")
+    return x.to(_F64)
+
+
+def _mat(name: str, x: torch.Tensor, K: int, D: int) -> torch.Tensor:
+    if not isinstance(x, torch.Tensor) or tuple(x.shape) != (K, D, D):
+        shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
+        raise ValueError(f"{name}: expected shape ({K}, {D}, {D}), got {shape}")
+    return x.to(_F64)
+
+
+def _sym(A: torch.Tensor) -> torch.Tensor:
+    return 0.5 * (A + A.transpose(-1, -2))
+
+
+def _require_finite(name: str, x: torch.Tensor) -> None:
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError(f"{name}: contains NaN/Inf")
+
+
+# ----------------------------------------------------------------------------- conjugate update
+def niw_update(
+    m0: torch.Tensor,
+    kappa0: Scalar,
+    nu0: Scalar,
+    S0: torch.Tensor,
+    N: Scalar,
+    xbar: torch.Tensor,
+    C: Optional[torch.Tensor] = None,
+) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Conjugate NIW update (Eq. 2-3) for effective count N >= 0, mean xbar and scatter C.
+
+    Shapes: m0, xbar (K,D); kappa0, nu0, N (K,) or scalar; S0, C (K,D,D). C=None means C=0
+    (the paper's online path). Computed as convex weights kappa0/kappa_n, N/kappa_n and
+    kappa0*N/kappa_n = kappa0*(N/kappa_n), so N in {0, 1e-30, 1e30} is exact/cancellation-free.
+    Entries with N == 0 ignore xbar and C. Negative/non-finite N are set to 0 (guard
+    ``niw_update.invalid_count``). Returns (m_n (K,D), kappa_n (K,), nu_n (K,), S_n (K,D,D)).
+    """
+    K, D = _kd("m0", m0)
+    dtype, dev = _out_dtype(m0), m0.device
+    m0_ = m0.to(_F64)
+    S0_ = _sym(_mat("S0", S0, K, D))
+    xb = _vecD("xbar", xbar, K, D)
+    C_ = torch.zeros_like(S0_) if C is None else _sym(_mat("C", C, K, D))
+    k0 = _vec("kappa0", kappa0, K, dev)
+    n0 = _vec("nu0", nu0, K, dev)
+    N_ = _vec("N", N, K, dev)
+    _require_finite("m0", m0_)
+    _require_finite("S0", S0_)
+    if not bool(((k0 > 0) & torch.isfinite(k0)).all()):
+        raise ValueError("kappa0 must be finite and > 0")
+    if not bool(((n0 > D - 1) & torch.isfinite(n0)).all()):
+        raise ValueError(f"nu0 must be finite and > D-1 = {D - 1} for a proper inverse-Wishart")
+    bad = ~torch.isfinite(N_) | (N_ < 0)
+    if guard("niw_update.invalid_count", bad):
+        N_ = torch.where(bad, torch.zeros_like(N_), N_)
+    has = N_ > 0
+    xb = torch.where(has[:, None], xb, m0_)
+    C_ = torch.where(has[:, None, None], C_, torch.zeros_like(C_))
+    _require_finite("xbar (entries with N > 0)", xb)
+    _require_finite("C (entries with N > 0)", C_)
+
+    kappa_n = k0 + N_
+    w0 = k0 / kappa_n
+    w1 = N_ / kappa_n
+    m_n = w0[:, None] * m0_ + w1[:, None] * xb
+    nu_n = n0 + N_
+    d = xb - m0_
+    coef = k0 * w1
+    S_n = S0_ + C_ + coef[:, None, None] * (d[:, :, None] * d[:, None, :])
+    S_n = _sym(S_n)
+    return m_n.to(dtype), kappa_n.to(dtype), nu_n.to(dtype), S_n.to(dtype)
+
+
+def niw_batch_stats(
+    x: torch.Tensor, w: Optional[torch.Tensor] = None
+) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Weighted sufficient statistics (N, xbar, C) of pseudo-observations for Eq. 2-3.
+
+    x: (K,n,D); w: (K,n) non-negative weights (default 1). N = sum w, xbar = weighted mean
+    (0 where N == 0), C = sum_i w_i (x_i - xbar)(x_i - xbar)^T (two-pass, centred).
+    """
+    if not isinstance(x, torch.Tensor) or x.ndim != 3:
+        raise ValueError(f"x: expected a (K, n, D) tensor, got {getattr(x, 'shape', type(x).__name__)}")
+    K, n, D = x.shape
+    dtype = _out_dtype(x)
+    x_ = x.to(_F64)
+    _require_finite("x", x_)
+    if w is None:
+        w_ = torch.ones(K, n, dtype=_F64, device=x.device)
+    else:
+        if not isinstance(w, torch.Tensor) or tuple(w.shape) != (K, n):
+            raise ValueError(f"w: expected shape ({K}, {n}), got {getattr(w, 'shape', type(w).__name__)}")
+        w_ = w.to(_F64)
+        if not bool((torch.isfinite(w_) & (w_ >= 0)).all()):
+            raise ValueError("w: weights must be finite and >= 0")
+    N = w_.sum(1)
+    has = N > 0
+    Nsafe = torch.where(has, N, torch.ones_like(N))
+    xbar = (w_[..., None] * x_).sum(1) / Nsafe[:, None]
+    # one correction pass against rounding in the first mean (coordinates ~1e4)
+    xbar = xbar + (w_[..., None] * (x_ - xbar[:, None, :])).sum(1) / Nsafe[:, None]
+    xbar = torch.where(has[:, None], xbar, torch.zeros_like(xbar))
+    dev = x_ - xbar[:, None, :]
+    C = torch.einsum("kn,kni,knj->kij", w_, dev, dev)
+    return N.to(dtype), xbar.to(dtype), _sym(C).to(dtype)
+
+
+# ----------------------------------------------------------------------------- summaries
+def prior_scale_for_expected_cov(Sigma: torch.Tensor, nu0: Scalar) -> torch.Tensor:
+    """S0 = Sigma * (nu0 - D - 1), so that E[Sigma] under the NIW prior (Eq. 1) equals Sigma."""
+    if not isinstance(Sigma, torch.Tensor) or Sigma.ndim != 3 or Sigma.shape[-1] != Sigma.shape[-2]:
+        raise ValueError(f"Sigma: expected (K, D, D), got {getattr(Sigma, 'shape', type(Sigma).__name__)}")
+    K, D = int(Sigma.shape[0]), int(Sigma.shape[-1])
+    nu = _vec("nu0", nu0, K, Sigma.device)
+    if not bool((nu > D + 1).all()):
+        raise ValueError(f"nu0 must be > D+1 = {D + 1} for E[Sigma] to exist")
+    S0 = _sym(Sigma.to(_F64)) * (nu - D - 1)[:, None, None]
+    return S0.to(_out_dtype(Sigma))
+
+
+def expected_cov(S_n: torch.Tensor, nu_n: Scalar, eps: float = EXPECTED_COV_DENOM_EPS) -> torch.Tensor:
+    """Posterior E[Sigma] = S_n / (nu_n - D - 1) (Sec. 2, after Eq. 3).
+
+    The denominator is floored at ``eps`` (guard ``niw.expected_cov_denom_floor``).
+    """
+    if not isinstance(S_n, torch.Tensor) or S_n.ndim != 3 or S_n.shape[-1] != S_n.shape[-2]:
+        raise ValueError(f"S_n: expected (K, D, D), got {getattr(S_n, 'shape', type(S_n).__name__)}")
+    K, D = int(S_n.shape[0]), int(S_n.shape[-1])
+    denom = _vec("nu_n", nu_n, K, S_n.device) - D - 1
+    small = ~(denom >= eps)
+    if guard("niw.expected_cov_denom_floor", small):
+        denom = torch.where(small, torch.full_like(denom, eps), denom)
+    return (_sym(S_n.to(_F64)) / denom[:, None, None]).to(_out_dtype(S_n))
+
+
+def mean_variance(
+    S_n: torch.Tensor, nu_n: Scalar, kappa_n: Scalar, eps: float = EXPECTED_COV_DENOM_EPS
+) -> torch.Tensor:
+    """Var[mu] = E[Sigma] / kappa_n as a (K,D,D) covariance (Sec. 2, after Eq. 3)."""
+    E = expected_cov(S_n, nu_n, eps).to(_F64)
+    k = _vec("kappa_n", kappa_n, E.shape[0], E.device)
+    small = ~(k >= KAPPA_FLOOR)
+    if guard("niw.kappa_floor", small):
+        k = torch.where(small, torch.full_like(k, KAPPA_FLOOR), k)
+    return (E / k[:, None, None]).to(_out_dtype(S_n))
+
+
+def position_variance(
+    S_n: torch.Tensor, nu_n: Scalar, kappa_n: Scalar, eps: float = EXPECTED_COV_DENOM_EPS
+) -> torch.Tensor:
+    """Scalar position variance trace(Var[mu]) / D, shape (K,)."""
+    V = mean_variance(S_n, nu_n, kappa_n, eps)
+    return V.diagonal(dim1=-2, dim2=-1).sum(-1) / V.shape[-1]
+
+
+def posterior_mean_params(
+    m_n: torch.Tensor, kappa_n: Scalar, nu_n: Scalar, S_n: torch.Tensor
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Posterior-mean geometry (E[mu] = m_n, E[Sigma]) of NIW(m_n, kappa_n, nu_n, S_n)."""
+    K, D = _kd("m_n", m_n)
+    _mat("S_n", S_n, K, D)
+    _vec("kappa_n", kappa_n, K, m_n.device)
+    return m_n, expected_cov(S_n, nu_n)
+
+
+# ----------------------------------------------------------------------------- cholesky / sampling
+def safe_cholesky(A: torch.Tensor, jitters: Sequence[float] = CHOLESKY_JITTERS) -> torch.Tensor:
+    """Lower Cholesky factor of symmetric A (..., D, D), computed in float64, never NaN.
+
+    Failing matrices get diagonal jitter ``j * mean|diag|`` for j in ``jitters`` (escalating;
+    guard ``cholesky.jitter``); if all fail, eigenvalues are clipped (``cholesky.eig_fallback``);
+    non-finite matrices are replaced by the identity (``cholesky.nonfinite``).
+    """
+    if not isinstance(A, torch.Tensor) or A.ndim < 2 or A.shape[-1] != A.shape[-2]:
+        raise ValueError(f"A: expected (..., D, D), got {getattr(A, 'shape', type(A).__name__)}")
+    dtype = _out_dtype(A)
+    shape = A.shape
+    D = int(shape[-1])
+    A64 = _sym(A.to(_F64).reshape(-1, D, D))
+    eye = torch.eye(D, dtype=_F64, device=A.device)
+    finite = torch.isfinite(A64).all(-1).all(-1)
+    if guard("cholesky.nonfinite", ~finite):
+        A64 = torch.where(finite[:, None, None], A64, eye.expand_as(A64))
+    scale = A64.diagonal(dim1=-2, dim2=-1).abs().mean(-1)
+    scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+    L, info = torch.linalg.cholesky_ex(A64)
+    failed = info != 0
+    n_failed = int(failed.sum())
+    if n_failed:
+        guard("cholesky.jitter", n_failed)
+        L = L.clone()
+        for j in jitters:
+            idx = failed.nonzero().squeeze(1)
+            Lj, infoj = torch.linalg.cholesky_ex(A64[idx] + (j * scale[idx])[:, None, None] * eye)
+            ok = infoj == 0
+            L[idx[ok]] = Lj[ok]
+            failed[idx[ok]] = False
+            if not bool(failed.any()):
+                break
+        if guard("cholesky.eig_fallback", failed):
+            idx = failed.nonzero().squeeze(1)
+            evals, evecs = torch.linalg.eigh(A64[idx])
+            floor = (jitters[-1] if len(jitters) else 1e-3) * scale[idx]
+            evals = torch.maximum(evals, floor[:, None])
+            Af = _sym(evecs @ torch.diag_embed(evals) @ evecs.transpose(-1, -2))
+            Lf, infof = torch.linalg.cholesky_ex(Af)
+            # last resort: diagonal factor (always valid)
+            diag_L = torch.diag_embed(torch.sqrt(torch.maximum(Af.diagonal(dim1=-2, dim2=-1), floor[:, None])))
+            Lf = torch.where((infof == 0)[:, None, None], Lf, diag_L)
+            L[idx] = Lf
+    return L.reshape(shape).to(dtype)
+
+
+def tril_solve(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
+    """A^{-1} B for lower-triangular A (..., D, D) and B (..., D, M), by forward substitution written
+    elementwise (vectorised over the batch; batched LAPACK calls on 3x3 blocks are far slower)."""
+    D = int(A.shape[-1])
+    rows = []
+    for i in range(D):
+        r = B[..., i, :]
+        for j in range(i):
+            r = r - A[..., i, j, None] * rows[j]
+        rows.append(r / A[..., i, i, None])
+    return torch.stack(rows, dim=-2)
+
+
+def bartlett_factor(nu: torch.Tensor, n_samples: int, D: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
+    """Lower-triangular Bartlett factors A (S, K, D, D) for degrees of freedom nu (K,):
+    A_ii = sqrt(chi2(nu - i + 1)), A_ij ~ N(0, 1) (i > j), so A A^T ~ Wishart(I, nu)."""
+    K = int(nu.shape[0])
+    df = nu[None, :, None] - torch.arange(D, dtype=_F64, device=nu.device)  # (1,K,D): nu - i + 1, i=1..D
+    shape_g = (0.5 * df).expand(n_samples, K, D).contiguous()
+    gdev = generator.device if generator is not None else nu.device  # draws on the generator's device
+    chi2 = 2.0 * torch._standard_gamma(shape_g.to(gdev), generator=generator).to(nu.device)
+    low = ~(chi2 >= BARTLETT_CHI2_FLOOR)
+    if guard("sample_niw.bartlett_chi2_floor", low):
+        chi2 = torch.where(low, torch.full_like(chi2, BARTLETT_CHI2_FLOOR), chi2)
+    rows, cols = torch.tril_indices(D, D, offset=-1, device=nu.device)
+    A = torch.diag_embed(torch.sqrt(chi2))
+    # only the D(D-1)/2 strictly-lower entries are drawn
+    A[..., rows, cols] = randn((n_samples, K, rows.numel()), generator=generator, dtype=_F64, device=nu.device)
+    return A
+
+
+@dataclass
+class NIWSampler:
+    """Validated, factorised NIW(m_n, kappa_n, nu_n, S_n) ready for repeated draws (:func:`draw_niw`):
+    the set-up (checks, Cholesky of S_n, kappa floor) is done once. All float64."""
+
+    m: torch.Tensor  # (K, D)
+    kappa: torch.Tensor  # (K,) floored at KAPPA_FLOOR
+    nu: torch.Tensor  # (K,)
+    L: torch.Tensor  # (K, D, D) lower Cholesky factor of S_n
+
+
+def niw_sampler(m_n: torch.Tensor, kappa_n: Scalar, nu_n: Scalar, S_n: torch.Tensor) -> NIWSampler:
+    K, D = _kd("m_n", m_n)
+    dev = m_n.device
+    m = m_n.to(_F64)
+    _require_finite("m_n", m)
+    S = _mat("S_n", S_n, K, D)
+    nu = _vec("nu_n", nu_n, K, dev)
+    kap = _vec("kappa_n", kappa_n, K, dev)
+    if not bool(((nu > D - 1) & torch.isfinite(nu)).all()):
+        raise ValueError(f"nu_n must be finite and > D-1 = {D - 1}")
+    small = ~(kap >= KAPPA_FLOOR)
+    if guard("niw.kappa_floor", small):
+        kap = torch.where(small, torch.full_like(kap, KAPPA_FLOOR), kap)
+    return NIWSampler(m, kap, nu, safe_cholesky(S))  # S is float64 here, so L is float64
+
+
+def draw_niw(sampler: NIWSampler, n_samples: int, generator: Optional[torch.Generator] = None
+             ) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """n draws as factors: mu (S,K,D), X (S,K,D,D) with Sigma = X^T X, and the Bartlett factor A.
+
+    With S_n = L L^T and A A^T ~ W(I, nu): W = L^{-T} A A^T L^{-1} ~ W(S_n^{-1}, nu), hence
+    Sigma = W^{-1} = X^T X with X = A^{-1} L^T (no inverses); mu = m_n + X^T z / sqrt(kappa_n), z ~ N(0, I),
+    so Cov[mu | Sigma] = Sigma / kappa_n. The draw whitened by E[Sigma] = S_n / (nu - D - 1) is
+    (nu - D - 1) (A A^T)^{-1}, a function of A alone.
+    """
+    if not isinstance(n_samples, int) or n_samples < 1:
+        raise ValueError(f"n_samples must be a positive int, got {n_samples!r}")
+    K, D = sampler.m.shape
+    A = bartlett_factor(sampler.nu, n_samples, D, generator)
+    X = tril_solve(A, sampler.L.transpose(-1, -2).unsqueeze(0))
+    z = randn((n_samples, K, D), generator=generator, dtype=_F64, device=sampler.m.device)
+    mu = sampler.m[None] + (X * z[..., :, None]).sum(-2) / torch.sqrt(sampler.kappa)[None, :, None]  # X^T z
+    return mu, X, A
+
+
+def sample_niw_factors(
+    m_n: torch.Tensor,
+    kappa_n: Scalar,
+    nu_n: Scalar,
+    S_n: torch.Tensor,
+    n_samples: int,
+    generator: Optional[torch.Generator] = None,
+) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`draw_niw` of :func:`niw_sampler` (one-off draws)."""
+    return draw_niw(niw_sampler(m_n, kappa_n, nu_n, S_n), n_samples, generator)
+
+
+def sample_niw(
+    m_n: torch.Tensor,
+    kappa_n: Scalar,
+    nu_n: Scalar,
+    S_n: torch.Tensor,
+    n_samples: int,
+    generator: Optional[torch.Generator] = None,
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Draw (mu, Sigma) ~ NIW(m_n, kappa_n, nu_n, S_n) for all K at once (samples for Eq. 4), by
+    Bartlett's decomposition (see :func:`sample_niw_factors`).
+    Returns mu (S,K,D), Sigma (S,K,D,D); deterministic given ``generator``.
+    Memory is O(S*K*D*D) float64: chunk over samples for very large K.
+    """
+    dtype = _out_dtype(m_n)
+    mu, X, _ = sample_niw_factors(m_n, kappa_n, nu_n, S_n, n_samples, generator)
+    Sigma = _sym((X.unsqueeze(-1) * X.unsqueeze(-2)).sum(-3))  # X^T X
+    return mu.to(dtype), Sigma.to(dtype)
+
 
 D = 3
 
@@ -55,6 +428,8 @@ class NIWBlock(PosteriorBlock):
     ``count_scale`` on the loaded block (every use of the posterior refreshes it from the summaries).
     """
 
+    per_gaussian_state: ClassVar[tuple[str, ...]] = ("m0", "S0", "N", "ediag", "m_n", "kappa_n", "nu_n", "S_n")
+
     needs_residuals: ClassVar[bool] = True  # reads info["sq_err_sum"]
     changes_training: ClassVar[bool] = False  # it reads summaries; splats, optimizers, gradients untouched
 
@@ -92,7 +467,7 @@ class NIWBlock(PosteriorBlock):
         if rows is not None:
             means, cov = means[rows], cov[rows]
         nu0 = torch.full((means.shape[0],), float(self.nu0), dtype=torch.float64, device=means.device)
-        return means.double(), niwm.prior_scale_for_expected_cov(cov.double(), nu0)
+        return means.double(), prior_scale_for_expected_cov(cov.double(), nu0)
 
     def initialize_state(self, *, splats, scene, info):
         m0, S0 = self._prior_for(splats)
@@ -141,10 +516,10 @@ class NIWBlock(PosteriorBlock):
         k0 = torch.full((n,), float(self.kappa0), dtype=torch.float64, device=dev)
         nu0 = torch.full((n,), float(self.nu0), dtype=torch.float64, device=dev)
         C = torch.zeros(n, D, D, dtype=torch.float64, device=dev)
-        m_n, k_n, nu_n, S_n = niwm.niw_update(state["m0"], k0, nu0, state["S0"],
+        m_n, k_n, nu_n, S_n = niw_update(state["m0"], k0, nu0, state["S0"],
                                                  state["N"] * float(self.count_scale), xbar, C)
         state["m_n"], state["kappa_n"], state["nu_n"], state["S_n"] = m_n, k_n, nu_n, S_n
-        state["ediag"] = torch.diagonal(niwm.expected_cov(S_n, nu_n), dim1=-2, dim2=-1).clone()
+        state["ediag"] = torch.diagonal(expected_cov(S_n, nu_n), dim1=-2, dim2=-1).clone()
 
     @torch.no_grad()
     def on_topology(self, *, splats, optimizers, state, step, info):
@@ -172,14 +547,14 @@ class NIWBlock(PosteriorBlock):
         """Posterior draws of the centre and (per ``cov_mode``) the rendered covariance; the posterior
         refresh and the Cholesky factors are computed once per sampler."""
         post = self.posterior(state, splats)
-        prep = niwm.niw_sampler(post["m_n"], post["kappa_n"], post["nu_n"], post["S_n"])
+        prep = niw_sampler(post["m_n"], post["kappa_n"], post["nu_n"], post["S_n"])
         dtype = splats["means"].dtype
         if self.cov_mode == "relative":
             # W = E[Σ]^{-1/2} Σ E[Σ]^{-T/2} = c (A Aᵀ)^{-1}, c = ν_n - D - 1 (see draw_niw); rendered as
             # L W Lᵀ = YᵀY with Y = √c A^{-1} Lᵀ and L the rendered covariance's Cholesky factor
-            sqrt_c = (post["nu_n"] - D - 1).clamp_min(niwm.EXPECTED_COV_DENOM_EPS).sqrt()[None, :, None, None]
+            sqrt_c = (post["nu_n"] - D - 1).clamp_min(EXPECTED_COV_DENOM_EPS).sqrt()[None, :, None, None]
             cov_r = covariance_3d(splats["quats"].detach(), splats["scales"].detach()).double()
-            LrT = niwm.safe_cholesky(cov_r).transpose(-1, -2).unsqueeze(0)
+            LrT = safe_cholesky(cov_r).transpose(-1, -2).unsqueeze(0)
 
         ext = self._sampling_extension(splats["means"].device)
         if ext is not None:
@@ -193,17 +568,17 @@ class NIWBlock(PosteriorBlock):
             out = dict(params)
             if ext is not None:
                 seed = int(torch.randint(0, 2**62, (1,), generator=generator))
-                means, covs, floored = ext.niw_draw(*args, n, mode, niwm.BARTLETT_CHI2_FLOOR, seed,
+                means, covs, floored = ext.niw_draw(*args, n, mode, BARTLETT_CHI2_FLOOR, seed,
                                                     dtype == torch.float64, torch.get_num_threads())
                 guard("sample_niw.bartlett_chi2_floor", int(floored))
                 out["means"] = means
                 if mode:
                     out["covars"] = covs
                 return out
-            mu, X, A = niwm.draw_niw(prep, n, generator)
+            mu, X, A = draw_niw(prep, n, generator)
             out["means"] = mu.to(dtype)
             if self.cov_mode != "none":
-                Y = X if self.cov_mode == "absolute" else niwm.tril_solve(A, LrT) * sqrt_c  # Σ = YᵀY
+                Y = X if self.cov_mode == "absolute" else tril_solve(A, LrT) * sqrt_c  # Σ = YᵀY
                 out["covars"] = (Y.unsqueeze(-1) * Y.unsqueeze(-2)).sum(-3).to(dtype)  # symmetric by construction
             return out
 
@@ -239,7 +614,7 @@ class NIWBlock(PosteriorBlock):
     def export(self, *, splats=None, state):
         if splats is not None:
             self._refresh(state, splats)
-        var_mu = niwm.mean_variance(state["S_n"], state["nu_n"], state["kappa_n"])
+        var_mu = mean_variance(state["S_n"], state["nu_n"], state["kappa_n"])
         return {
             "niw_pos_var": (torch.diagonal(var_mu, dim1=-2, dim2=-1).sum(-1) / D).float(),
             "niw_kappa": state["kappa_n"].float(),

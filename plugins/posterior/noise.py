@@ -1,13 +1,151 @@
-"""Inverse-gamma posterior on the pixel noise variance σ² (paper Table 1, "closed-form IG step")."""
+"""Inverse-gamma posterior on the pixel noise variance σ² (paper Table 1, "closed-form IG step").
+
+The block (:class:`NoiseBlock`) follows its math, the pure batched functions below
+(tested against textbook formulas in tests/test_posterior_math.py):
+
+Inverse-gamma posterior on the pixel noise variance sigma^2 (Algorithm 1 "noise update").
+
+Observation model I_p ~ N(C_p, sigma^2 I_3) with the render C_p treated as known: for n scalar
+residual entries with sum of squares SS the conjugate update of IG(a, b) is
+a_n = a + n/2, b_n = b + SS/2. Everything is float64; inputs may be floats or tensors of any
+(broadcastable) shape.
+"""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar, Optional
+from typing import ClassVar, Optional, Tuple, Union
 
 import torch
 
+from b3dgs.numerics import guard
 from b3dgs.plugin import PosteriorBlock
-from b3dgs.posterior import noise as ig
+
+
+Num = Union[float, int, torch.Tensor]
+_F64 = torch.float64
+
+#: Floor on a - 1 (resp. a - 2) in the IG mean (resp. variance); a <= 1 means an infinite mean.
+IG_MEAN_DENOM_EPS = 1e-6
+#: Floor on the Gamma(a, 1) draw used by ig_sample (sigma^2 = b / g).
+IG_GAMMA_FLOOR = 1e-300
+
+
+def _t(x: Num) -> torch.Tensor:
+    if isinstance(x, torch.Tensor):
+        return x.to(_F64)
+    return torch.as_tensor(x, dtype=_F64)  # python floats straight to float64 (1e300 stays finite)
+
+
+def _check_ab(a: torch.Tensor, b: torch.Tensor) -> None:
+    if not bool((torch.isfinite(a) & (a > 0)).all()) or not bool((torch.isfinite(b) & (b > 0)).all()):
+        raise ValueError("inverse-gamma parameters a, b must be finite and > 0")
+    try:
+        torch.broadcast_shapes(a.shape, b.shape)
+    except RuntimeError as e:
+        raise ValueError(f"a {tuple(a.shape)} and b {tuple(b.shape)} do not broadcast") from e
+
+
+def _check_evidence(ss: torch.Tensor, n: torch.Tensor, where: str) -> torch.Tensor:
+    if not bool((torch.isfinite(n) & (n >= 0)).all()):
+        raise ValueError(f"{where}: n_obs must be finite and >= 0")
+    if not bool(torch.isfinite(ss).all()):
+        raise ValueError(f"{where}: sum_sq_residual must be finite")
+    neg = ss < 0
+    if guard(f"{where}.negative_ss", neg):  # tiny negative values from cancellation upstream
+        ss = torch.where(neg, torch.zeros_like(ss), ss)
+    return ss
+
+
+def ig_update(a0: Num, b0: Num, sum_sq_residual: Num, n_obs: Num) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Conjugate IG update with known mean: a_n = a0 + n/2, b_n = b0 + SS/2 (closed-form, Table 1)."""
+    a, b = _t(a0), _t(b0)
+    _check_ab(a, b)
+    n = _t(n_obs)
+    ss = _check_evidence(_t(sum_sq_residual), n, "ig_update")
+    return a + 0.5 * n, b + 0.5 * ss
+
+
+def ig_update_ema(
+    a: Num,
+    b: Num,
+    sum_sq_residual: Num,
+    n_obs: Num,
+    decay: float,
+    a0: Optional[Num] = None,
+    b0: Optional[Num] = None,
+) -> Tuple[torch.Tensor, torch.Tensor]:
+    """Online IG update with exponential forgetting (power-prior discounting of old evidence).
+
+    With a prior (a0, b0): a' = a0 + decay*(a - a0) + n/2, b' = b0 + decay*(b - b0) + SS/2, i.e.
+    the accumulated evidence is discounted by ``decay`` each call while the prior is kept, so
+    the effective memory is ~1/(1-decay) calls and the posterior tracks the (shrinking) training
+    residual. At a stationary residual the fixed point is a0 + n/(2(1-decay)),
+    b0 + SS/(2(1-decay)), whose mean -> SS/n. Without a prior, the whole state is discounted
+    (a' = decay*a + n/2); then a can drift towards 0 if no evidence arrives.
+    decay=1 is the plain conjugate update.
+    """
+    if not (0.0 <= float(decay) <= 1.0):
+        raise ValueError(f"decay must be in [0, 1], got {decay}")
+    a_, b_ = _t(a), _t(b)
+    _check_ab(a_, b_)
+    n = _t(n_obs)
+    ss = _check_evidence(_t(sum_sq_residual), n, "ig_update_ema")
+    if (a0 is None) != (b0 is None):
+        raise ValueError("pass both a0 and b0 (or neither)")
+    if a0 is None:
+        return decay * a_ + 0.5 * n, decay * b_ + 0.5 * ss
+    pa, pb = _t(a0), _t(b0)
+    _check_ab(pa, pb)
+    return pa + decay * (a_ - pa) + 0.5 * n, pb + decay * (b_ - pb) + 0.5 * ss
+
+
+def ig_mean(a: Num, b: Num, eps: float = IG_MEAN_DENOM_EPS) -> torch.Tensor:
+    """E[sigma^2] = b / (a - 1); a - 1 floored at ``eps`` (guard ``ig_mean.a_le_1``)."""
+    a_, b_ = _t(a), _t(b)
+    _check_ab(a_, b_)
+    den = a_ - 1.0
+    small = den < eps
+    if guard("ig_mean.a_le_1", small):
+        den = torch.where(small, torch.full_like(den, eps), den)
+    return b_ / den
+
+
+def ig_mode(a: Num, b: Num) -> torch.Tensor:
+    """Mode of IG(a, b): b / (a + 1)."""
+    a_, b_ = _t(a), _t(b)
+    _check_ab(a_, b_)
+    return b_ / (a_ + 1.0)
+
+
+def ig_var(a: Num, b: Num, eps: float = IG_MEAN_DENOM_EPS) -> torch.Tensor:
+    """Var[sigma^2] = b^2 / ((a-1)^2 (a-2)); a - 2 floored at ``eps`` (guard ``ig_var.a_le_2``)."""
+    a_, b_ = _t(a), _t(b)
+    _check_ab(a_, b_)
+    d1 = (a_ - 1.0).clamp_min(eps)
+    d2 = a_ - 2.0
+    small = d2 < eps
+    if guard("ig_var.a_le_2", small):
+        d2 = torch.where(small, torch.full_like(d2, eps), d2)
+    return b_ * b_ / (d1 * d1 * d2)
+
+
+def ig_sample(a: Num, b: Num, n_samples: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
+    """Draw sigma^2 ~ IG(a, b) as b / Gamma(a, 1); returns (n_samples, *broadcast(a, b).shape)."""
+    if not isinstance(n_samples, int) or n_samples < 1:
+        raise ValueError(f"n_samples must be a positive int, got {n_samples!r}")
+    a_, b_ = _t(a), _t(b)
+    _check_ab(a_, b_)
+    shape = torch.broadcast_shapes(a_.shape, b_.shape)
+    conc = a_.expand(shape).unsqueeze(0).expand(n_samples, *shape).contiguous()
+    g = torch._standard_gamma(conc, generator=generator)
+    low = ~(g >= IG_GAMMA_FLOOR)
+    if guard("ig_sample.gamma_floor", low):
+        g = torch.where(low, torch.full_like(g, IG_GAMMA_FLOOR), g)
+    out = b_.expand(shape) / g
+    big = ~torch.isfinite(out)
+    if guard("ig_sample.overflow", big):
+        out = torch.where(big, torch.full_like(out, torch.finfo(_F64).max), out)
+    return out
 
 
 @dataclass
@@ -20,6 +158,8 @@ class NoiseBlock(PosteriorBlock):
     bounded by ``n / (1 - decay)``). E[σ²] is the aleatoric term of native uncertainty.
     Updates start at ``t_dp`` (default: max_steps / 6, with the DP block).
     """
+
+    per_gaussian_state: ClassVar[tuple[str, ...]] = ()
 
     needs_residuals: ClassVar[bool] = True  # reads info["sq_err_sum"]
 
@@ -43,13 +183,13 @@ class NoiseBlock(PosteriorBlock):
     def step_post_backward(self, *, splats, optimizers, state, step, info):
         if step < self.stage_start(self.t_noise, info, 6):
             return
-        a, b = ig.ig_update_ema(state["a"], state["b"], info["sq_err_sum"].double(), float(info["num_values"]),
+        a, b = ig_update_ema(state["a"], state["b"], info["sq_err_sum"].double(), float(info["num_values"]),
                                 self.decay, a0=self.a0, b0=self.b0)
         state["a"], state["b"] = a, b
-        info["sigma2"] = float(ig.ig_mean(a, b))
+        info["sigma2"] = float(ig_mean(a, b))
 
     def aleatoric_variance(self, *, state):
-        return float(ig.ig_mean(state["a"], state["b"]))
+        return float(ig_mean(state["a"], state["b"]))
 
     def summary(self, *, state):
         return {"sigma2_mean": self.aleatoric_variance(state=state), "a": float(state["a"]), "b": float(state["b"])}

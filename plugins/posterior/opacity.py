@@ -8,7 +8,7 @@ import torch
 
 from b3dgs.device import randn
 from b3dgs.plugin import PosteriorBlock
-from b3dgs.posterior import appearance as app
+from b3dgs_plugins.posterior import appearance as app
 
 
 @dataclass
@@ -21,6 +21,8 @@ class OpacityBlock(PosteriorBlock):
     match. The block does not move the point estimate; it supplies the variance that the DPMM
     predictive path samples. Active after ``t_post`` (default max_steps / 2).
     """
+
+    per_gaussian_state: ClassVar[tuple[str, ...]] = ("fisher",)
 
     needs_residuals: ClassVar[bool] = True  # reads info["sq_err_sum"]
 

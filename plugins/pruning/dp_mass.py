@@ -22,7 +22,7 @@ class DPMassPruning(PruningScore):
         self.dp_block().check_sanity()
 
     def dp_block(self):
-        from plugins.posterior.dp import DPBlock
+        from b3dgs_plugins.posterior.dp import DPBlock
 
         return DPBlock(alpha=self.alpha, prior_active=self.prior_active, prune_pi=self.prune_pi,
                        gate_temperature=self.gate_temperature, prune=False)

@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import torch
 
-from plugins.pruning.dp_mass import DPMassPruning
+from b3dgs_plugins.pruning.dp_mass import DPMassPruning
 
 
 @dataclass

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import ClassVar, Optional
 
 import torch
 
@@ -21,6 +21,8 @@ class AdaptiveDensityControl(Plugin):
     ``max_gaussians`` caps growth: when the candidates would exceed it, the highest-gradient
     ones are densified first.
     """
+
+    per_gaussian_state: ClassVar[tuple[str, ...]] = ("grad2d", "count", "max_radii")
 
     refine_start: int = 500
     refine_stop: int = 15000

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor
@@ -50,6 +51,8 @@ class MCMCStrategy(Plugin):
     - Regularisers ``opacity_reg`` · mean(o) + ``scale_reg`` · mean(s) in the loss (``info["loss_terms"]``).
     Draws use torch's global generator on the splats' device (seeded and checkpointed with the run).
     """
+
+    per_gaussian_state: ClassVar[tuple[str, ...]] = ()
 
     cap_max: int = 50000
     noise_lr: float = 5.0e5

@@ -14,7 +14,7 @@ import torch
 
 from b3dgs.uq.calibration import calibration_views, conformal_scale, fit_scale_and_level
 from b3dgs.uq.regime import Predictive
-from plugins.uq.native import NativeUQ
+from b3dgs_plugins.uq.native import NativeUQ
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """Named counters for numerical guards (clamps, jitters, floors).
 
-Every place in :mod:`b3dgs.posterior` that modifies a value for numerical
+Every place (posterior math, renderer, ops) that modifies a value for numerical
 safety calls :func:`guard` with the number of affected entries, so no guard is
 ever applied silently: counts are queryable via :func:`guard_counts` and each
 name is logged on its first firing and then at most once per ``LOG_EVERY``

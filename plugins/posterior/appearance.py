@@ -15,7 +15,7 @@ from typing import Tuple, Union
 import numpy as np
 import torch
 
-from .guards import guard
+from b3dgs.numerics import guard
 
 __all__ = [
     "SH_C0",

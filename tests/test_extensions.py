@@ -1,0 +1,186 @@
+"""One test per extension kind of docs/extending.md: an option added by a package outside b3dgs (a throw-away package
+with its own ``conf/`` declared through the ``b3dgs.conf`` entry point, ``tests/fake_package.py``), used through
+the same config path as b3dgs's own options, without touching the core. (Strategies:
+``tests/test_extension_entry_point.py``; acquisition policies: ``tests/test_acquisition.py``.)"""
+import sys
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import open_dict
+
+from b3dgs.train import CONF_DIR, build_plugins, build_renderer, train
+from b3dgs.validation import validate_config
+from tests.fake_package import install_conf_package
+
+TINY = ["data.max_side=16", "+data.n_views=6", "trainer.enable_progress_bar=false", "logger=none",
+        "trainer.eval_every=100", "trainer.save_renders=false", "threads=1"]
+
+
+@pytest.fixture
+def package(tmp_path, monkeypatch):
+    """``package(name, group, module, source, options)``: installs it; removed from sys.modules afterwards."""
+    names = []
+
+    def make(name, group, module, source, options):
+        names.append(name)
+        install_conf_package(tmp_path / "site", monkeypatch, name, group, module, source, options)
+
+    (tmp_path / "site").mkdir()
+    yield make
+    for n in names:
+        for m in [m for m in sys.modules if m == n or m.startswith(n + ".")]:
+            sys.modules.pop(m)
+    GlobalHydra.instance().clear()
+
+
+def _compose(config_name, overrides):
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name=config_name, overrides=overrides, return_hydra_config=config_name == "train")
+
+
+def _train(tmp_path, overrides):
+    cfg = _compose("train", [f"hydra.run.dir={tmp_path}", *TINY, *overrides])
+    HydraConfig.instance().set_config(cfg)
+    with open_dict(cfg):
+        cfg.trainer.default_root_dir = str(tmp_path)
+    return train(cfg)
+
+
+def test_outside_package_adds_a_posterior_block(package, tmp_path):
+    package("b3dgs_ext_block", "posterior", "blocks", '''
+        from dataclasses import dataclass
+        from typing import ClassVar
+        import torch
+        from b3dgs.plugin import PosteriorBlock
+
+        @dataclass
+        class VisitCount(PosteriorBlock):
+            needs_weights: ClassVar[bool] = True
+            changes_training: ClassVar[bool] = False
+            per_gaussian_state: ClassVar[tuple] = ("visits",)
+            label: str = "v"
+
+            def initialize_state(self, *, splats, scene, info):
+                return {"visits": torch.zeros(splats["means"].shape[0], device=splats["means"].device),
+                        "steps": torch.zeros((), device=splats["means"].device)}
+
+            def step_post_backward(self, *, splats, optimizers, state, step, info):
+                state["visits"] += (info["per_gaussian"]["weight_sum"].sum(0) > 0).float()
+                state["steps"] += 1
+
+            def summary(self, *, state):
+                return {"steps": int(state["steps"]), "rows": int(state["visits"].shape[0])}
+    ''', {"visits": "visits:\n  _target_: b3dgs_ext_block.blocks.VisitCount\n  label: outside\n"})
+    m = _train(tmp_path / "run", ["posterior=[visits]", "trainer.max_steps=12", "strategy.refine_start=2",
+                                  "strategy.refine_every=4", "strategy.refine_stop=11", "strategy.grad_threshold=1e-9"])
+    assert m["num_gaussians"] > 0
+    ck = torch.load(tmp_path / "run" / "checkpoints" / "last.ckpt", weights_only=False)
+    visits = ck["b3dgs"]["states"]["visits"]["visits"]
+    assert visits.shape[0] == ck["state_dict"]["splats.means"].shape[0] == m["num_gaussians"]  # followed densification
+    assert float(ck["b3dgs"]["states"]["visits"]["steps"]) == 12
+
+
+def test_outside_package_adds_a_pruning_score(package):
+    from b3dgs.compression import keep_top
+    from b3dgs.study.compression import load_pruning
+
+    package("b3dgs_ext_prune", "pruning", "scores", '''
+        from dataclasses import dataclass
+        from b3dgs.compression import PruningScore
+
+        @dataclass
+        class Volume(PruningScore):
+            def score(self, *, splats, optimizers, state, step, info):
+                return splats["scales"].detach().sum(-1)
+    ''', {"volume": "_target_: b3dgs_ext_prune.scores.Volume\nrounds: 2\n"})
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        score = load_pruning("volume")
+    assert type(score).__name__ == "Volume" and score.rounds == 2
+    scales = torch.tensor([[0.0, 0, 0], [1.0, 1, 1], [-1.0, -1, -1]])
+    s = score.score(splats={"scales": scales}, optimizers=None, state={}, step=0, info={})
+    assert keep_top(s, 1).tolist() == [False, True, False]
+
+
+def test_outside_package_adds_a_uq_regime(package):
+    from b3dgs.eval import regimes_from_cfg
+    from b3dgs.uq.regime import UQRegime
+
+    package("b3dgs_ext_uq", "uq", "regimes", '''
+        from dataclasses import dataclass
+        from typing import ClassVar
+        import torch
+        from b3dgs.uq.regime import Predictive, UQRegime
+
+        @dataclass
+        class Flat(UQRegime):
+            has_epistemic: ClassVar[bool] = False
+            level: float = 0.01
+
+            def predict(self, camera, generator=None):
+                mean = torch.zeros(camera.height, camera.width, 3)
+                flat = torch.full(mean.shape[:2], self.level)
+                return Predictive(mean, flat, torch.zeros_like(flat), self.level)
+    ''', {"flat": "flat:\n  _target_: b3dgs_ext_uq.regimes.Flat\n  level: 0.5\n"})
+    cfg = _compose("eval", ["run=/nonexistent", "uq=[flat,constant]"])
+    regimes = regimes_from_cfg(cfg)
+    assert list(regimes) == ["flat", "constant"] and isinstance(regimes["flat"], UQRegime)
+    assert regimes["flat"].level == 0.5
+
+
+def test_outside_package_adds_a_renderer(package, tmp_path):
+    package("b3dgs_ext_render", "renderer", "rend", '''
+        from dataclasses import dataclass
+        from typing import ClassVar
+        from b3dgs.render.renderers import TorchRenderer
+
+        @dataclass
+        class CountingTorch(TorchRenderer):
+            name: ClassVar[str] = "counting"
+            calls = 0
+
+            def render(self, params, camera, **kw):
+                type(self).calls += 1
+                return super().render(params, camera, **kw)
+    ''', {"counting": "_target_: b3dgs_ext_render.rend.CountingTorch\nnear: 0.01\n"})
+    cfg = _compose("train", [*TINY, "renderer=counting", "trainer.max_steps=3",
+                             f"trainer.default_root_dir={tmp_path}"])
+    validate_config(cfg)
+    renderer = build_renderer(cfg.renderer)
+    assert type(renderer).__name__ == "CountingTorch" and renderer.device.type == "cpu"
+    m = _train(tmp_path / "run", ["renderer=counting", "trainer.max_steps=3"])
+    assert m["renderer"]["name"] == "counting" and type(renderer).calls >= 3
+
+
+def test_outside_package_adds_a_data_loader(package, tmp_path):
+    package("b3dgs_ext_data", "data", "loaders", '''
+        from b3dgs.data.synthetic import load_synthetic
+
+        def load_small(*, n_views=8, max_side=None, background=(0.0, 0.0, 0.0), max_images=None):
+            return load_synthetic(n_views=n_views, resolution=16, max_side=max_side, background=background,
+                                  max_images=max_images)
+    ''', {"small": "defaults:\n  - synthetic\n  - _self_\nname: small\nkind: b3dgs_ext_data.loaders:load_small\n"})
+    cfg = _compose("train", ["data=small", "+data.n_views=5", "data.test_every=0", f"trainer.default_root_dir={tmp_path}"])
+    validate_config(cfg)
+    from hydra.utils import instantiate
+
+    dm = instantiate(cfg.data)
+    dm.setup("fit")
+    assert dm.scene.name == "small" and len(dm.scene.train) == 5 and dm.scene.train[0].width == 16
+    bad = _compose("train", ["data=small", "+data.n_view=5", f"trainer.default_root_dir={tmp_path}"])
+    with pytest.raises(ValueError, match="unknown config key data.n_view; did you mean n_views"):
+        validate_config(bad)
+
+
+def test_acquisition_family_is_any_model_option():
+    from b3dgs.errors import B3dgsError
+    from b3dgs_plugins.acquisition.uniform import UniformPolicy
+
+    for family in ("standard", "niw", "dpmm", "mcmc"):
+        UniformPolicy(family=family).check()
+    with pytest.raises(B3dgsError, match="family='nope' is not a model option"):
+        UniformPolicy(family="nope").check()
