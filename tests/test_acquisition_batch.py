@@ -5,6 +5,7 @@ import json
 import subprocess
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -223,9 +224,18 @@ def test_study_rows_are_policy_times_batch():
     assert type(batches["native+diverse"]).__name__ == "Diverse" and type(batches["farthest"]).__name__ == "TopK"
     labels, _ = _rows("policies=[native,native+diverse,proxy@standard+greedy_conditioned]", "family_baselines=[]")
     assert labels == ["native", "native+diverse", "proxy@standard+greedy_conditioned"]
-    labels, batches = _rows("policies=[native]", "family_baselines=[]", "acquisition.batch=diverse",
+    labels, batches = _rows("policies=[farthest,native]", "family_baselines=[]", "acquisition.batch=diverse",
                             "+acquisition.batch_settings.diverse.radius=2.5")
-    assert labels == ["native+diverse"] and batches["native+diverse"].radius == 2.5
+    assert labels == ["farthest", "native+diverse"] and batches["native+diverse"].radius == 2.5
+
+
+@pytest.mark.parametrize("name", sorted(p.stem for p in (Path(CONF_DIR) / "acquisition" / "batch").glob("*.yaml")))
+def test_every_batch_option_builds(name):
+    from b3dgs.acquisition import BatchSelector
+
+    b = _batch(name)
+    assert isinstance(b, BatchSelector) and b.applies_to(_policy("native")) and name in BATCHES
+    assert b.applies_to(_policy("farthest")) == (name == "topk")
 
 
 @pytest.mark.parametrize("overrides,message", [

@@ -291,8 +291,8 @@ class ActiveStudy:
 
     def _policies(self) -> list[tuple[str, Any]]:
         """(row label, policy) of every row; ``self.batches[label]`` is the row's batch selector. A policy in
-        ``policies`` without ``+batch`` gets a row per ``acquisition.batch`` option that applies to it (topk
-        only, for a policy that builds its batch itself); ``name+batch`` asks for that one row."""
+        ``policies`` without ``+batch`` gets a row per ``acquisition.batch`` option that applies to it (a policy
+        that builds its batch itself gets its own selection, the topk row); ``name+batch`` asks for that row."""
         from b3dgs.errors import B3dgsError
 
         bset = self.cfg.get("acquisition", {}).get("batch_settings")
@@ -302,8 +302,8 @@ class ActiveStudy:
             pname, batch = split_row(n)
             label, p = load_policy(pname, self.cfg.get("policy_settings"))
             if batch is None:  # one policy object per row: a policy caches its fitted regime
-                rows += [(label, load_policy(pname, self.cfg.get("policy_settings"))[1], b)
-                         for b, sel in selectors.items() if sel.applies_to(p)]
+                mine = [b for b, sel in selectors.items() if sel.applies_to(p)] or [DEFAULT_BATCH]
+                rows += [(label, load_policy(pname, self.cfg.get("policy_settings"))[1], b) for b in mine]
                 continue
             if batch not in selectors:
                 selectors[batch] = load_batch(batch, bset)
