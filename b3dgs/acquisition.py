@@ -9,7 +9,16 @@ the class declares:
 - ``members``: how many phase-1 models of that family (seeds s, s+1, ...) it scores with (the first one
   continues training);
 - ``uses_ground_truth``: True only for the analysis-only ``oracle``; every other policy is refused the
-  candidates' images.
+  candidates' images;
+- ``selects_batch``: True when ``select`` builds the batch itself (uniform, farthest, fisher); only the
+  ``topk`` batch option (the policy's own ``select``) applies to it.
+
+Batch selection (issue 22) is a component of its own, :class:`BatchSelector` (``conf/acquisition/batch/``:
+``topk``, ``diverse``, ``greedy_conditioned``), composable with every score-based policy. It reads what the
+policy declares here, never the policy's type: ``score`` / ``score_at`` (a subset, scored as the full call
+would score it), ``condition`` / ``reset_conditioning`` (score as if a picked camera had been acquired,
+without its image; the default cannot, and says why in ``no_conditioning``) and ``conditioned_ratio`` (a
+cheap estimate of what conditioning did to each score, to choose what to re-score exactly).
 
 A policy gets candidate cameras (pose and intrinsics, ``image=None``) and a :class:`ScoringContext`:
 render functions, detached parameters and fitted uncertainty regimes of the phase-1 model(s), the
@@ -29,7 +38,8 @@ from torch import Tensor
 from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.types import Camera
 
-__all__ = ["AcquisitionPolicy", "ScoringContext", "Selection", "downscale_camera", "downscale_image", "top_k"]
+__all__ = ["AcquisitionPolicy", "BatchSelector", "ScoringContext", "Selection", "diverse_picks", "downscale_camera",
+           "downscale_image", "epistemic_scores", "top_k"]
 
 
 @dataclass
@@ -39,6 +49,7 @@ class Selection:
 
     indices: list[int]
     scores: Optional[list[float]] = None
+    info: Optional[dict] = None  # what the batch selector did (mode, fallback, re-scores per pick, time)
 
 
 def top_k(scores: Tensor, budget: int) -> list[int]:
@@ -55,6 +66,9 @@ class AcquisitionPolicy:
     family: str = "standard"
     members: int = 1
     uses_ground_truth: ClassVar[bool] = False
+    selects_batch: ClassVar[bool] = False  # True: ``select`` builds the batch itself (only batch=topk applies)
+    #: why ``condition`` cannot update this policy's score (recorded when greedy_conditioned falls back to diverse)
+    no_conditioning: ClassVar[str] = "the policy declares no condition() (its score has no posterior to update)"
 
     def check(self) -> None:
         from b3dgs.validation import group_option_names
@@ -74,6 +88,84 @@ class AcquisitionPolicy:
     def select(self, ctx: "ScoringContext", candidates: Sequence[Camera], budget: int) -> Selection:
         scores = self.score(ctx, candidates)
         return Selection(top_k(scores, budget), [float(v) for v in scores.detach().double().cpu()])
+
+    # ---------------------------------------------------------------- what batch selectors use (issue 22)
+    def score_at(self, ctx: "ScoringContext", candidates: Sequence[Camera], positions: Sequence[int]) -> Tensor:
+        """Scores of ``candidates[i]`` for ``i`` in ``positions``, as ``score(ctx, candidates)`` gives them (a
+        policy whose score draws per-candidate random numbers keys them by position). Default: score the
+        subset, exact for scores that depend on the candidate alone."""
+        return self.score(ctx, [candidates[i] for i in positions])
+
+    def condition(self, ctx: "ScoringContext", camera: Camera) -> bool:
+        """Score from now on as if ``camera`` had been acquired, without its image (greedy_conditioned calls it
+        after each pick). Returns whether the score changed. Default: False, nothing changes, and
+        greedy_conditioned selects as ``diverse`` would, recording ``no_conditioning`` as the reason."""
+        return False
+
+    def conditioned_ratio(self, ctx: "ScoringContext", candidates: Sequence[Camera],
+                          positions: Sequence[int]) -> Optional[Tensor]:
+        """A cheap estimate (no sampling) of how much the conditioning so far has changed each candidate's
+        score: conditioned / unconditioned, per position. greedy_conditioned re-scores exactly the candidates
+        this ranks first. Default None: the last exact scores serve as upper bounds (lazy greedy)."""
+        return None
+
+    def reset_conditioning(self, ctx: "ScoringContext") -> None:
+        """Undo every :meth:`condition` (the selector calls it when its batch is done)."""
+
+
+@dataclass
+class BatchSelector:
+    """Base of the batch options (``conf/acquisition/batch/<name>.yaml``): turn a policy into ``budget``
+    picks through the policy's declared methods only. ``own_batch_ok``: whether it also applies to a policy
+    that builds its batch itself (``selects_batch``); only ``topk`` (the policy's own select) does."""
+
+    own_batch_ok: ClassVar[bool] = False
+
+    def check(self) -> None:
+        """Refuse bad settings (one line, :class:`B3dgsError`)."""
+
+    def applies_to(self, policy: AcquisitionPolicy) -> bool:
+        return self.own_batch_ok or not policy.selects_batch
+
+    def select(self, policy: AcquisitionPolicy, ctx: "ScoringContext", candidates: Sequence[Camera],
+               budget: int) -> Selection:
+        raise NotImplementedError
+
+
+def _pool_spacing(points: np.ndarray) -> float:
+    """Median distance from each point to its nearest other point (0 when fewer than two)."""
+    if len(points) < 2:
+        return 0.0
+    d = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    return float(np.median(d.min(axis=1)))
+
+
+def diverse_picks(scores: Sequence[float], cand: np.ndarray, train: np.ndarray, budget: int,
+                  radius: float) -> tuple[list[int], float]:
+    """Greedy with diminishing returns (``batch=diverse``): pick the candidate maximising
+    s_i · (1 − exp(−d_i² / (2 (radius·h)²))), where d_i is its centre's distance to the nearest training or
+    already picked camera centre and h the median nearest-neighbour spacing of the pool (training +
+    candidate centres); then update d and repeat. Scores are shifted to be >= 0 when some are negative; ties
+    go to the first candidate. radius → 0 gives top-k (but never an exact copy, d = 0, of a chosen camera);
+    a large radius weighs s·d². Returns (picks, h)."""
+    s = np.asarray(scores, dtype=np.float64)
+    if len(s) and s.min() < 0:
+        s = s - s.min()
+    pool = np.concatenate([train.reshape(-1, 3), cand.reshape(-1, 3)])
+    h = _pool_spacing(pool)
+    scale2 = 2.0 * (float(radius) * h) ** 2
+    d = np.linalg.norm(cand[:, None] - train[None], axis=-1).min(axis=1) if len(train) else np.full(len(cand), np.inf)
+    picks: list[int] = []
+    for _ in range(min(int(budget), len(cand))):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            gain = np.where(np.isinf(d), 1.0, -np.expm1(-np.square(d) / scale2) if scale2 > 0 else (d > 0) * 1.0)
+        value = s * gain
+        value[picks] = -np.inf
+        i = int(np.argmax(value))
+        picks.append(i)
+        d = np.minimum(d, np.linalg.norm(cand - cand[i], axis=-1))
+    return picks, h
 
 
 # ---------------------------------------------------------------------------------------------- context
@@ -175,6 +267,12 @@ class ScoringContext:
                              "only a policy that declares uses_ground_truth (the analysis-only oracle) gets it")
         small = self.camera(camera)
         return downscale_image(self._gt(camera.name).to(self.device), small.width, small.height)
+
+
+def epistemic_scores(ctx: ScoringContext, regime, candidates: Sequence[Camera], positions: Sequence[int]) -> Tensor:
+    """Mean epistemic u_p of ``regime`` for ``candidates[i]``, ``i`` in ``positions``; candidate i's draws use
+    the generator salted with i, so a subset scores exactly as the full list does (native, proxy)."""
+    return torch.stack([ctx.predict(regime, candidates[i], salt=i).epistemic.double().mean() for i in positions]).cpu()
 
 
 def camera_centres(cameras: Sequence[Camera]) -> np.ndarray:

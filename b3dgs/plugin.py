@@ -97,6 +97,13 @@ class PosteriorBlock(Plugin):
         """Return ``params`` with this block's attributes at their posterior mean."""
         return params
 
+    def condition_on_view(self, *, splats, state, weight_sums: Tensor) -> Optional[dict]:
+        """A new state: the posterior after the pseudo-observations of one more view, without its image
+        (acquisition's greedy_conditioned batch). ``weight_sums`` (N,) is Σ_p w_kp of the view's point-estimate
+        render, in training-resolution pixels (the unit of the renderer-derived counts). ``state`` must not be
+        modified. None (default): this block's posterior does not change with such pseudo-observations."""
+        return None
+
     def aleatoric_variance(self, *, state) -> Optional[float]:
         """Per-pixel aleatoric variance this block provides (noise posterior), or None."""
         return None

@@ -3,6 +3,12 @@
     python bench/active_view.py                              # ethiopian_head + fox, seeds 0 1 2, quick protocol
     python bench/active_view.py --aggregate-only             # only rebuild the tables and plots
     python bench/active_view.py --scenes fox --seeds 0 --jobs 1
+    python bench/active_view.py --scenes ethiopian_head fox lego fern flower dtu_scan24 dtu_scan65 --seeds 0
+    python bench/active_view.py --smoke                      # the embedded scene, tiny protocol (minutes)
+
+Batch options (issue 22): ``--batches topk greedy_conditioned diverse`` (the default) gives every score-based
+policy a row per option (``native+greedy_conditioned``, ``ensemble+diverse``, ...); the topk rows are the
+rows the study always had. ``--batches topk`` runs only those.
 
 One worker per scene (``--jobs`` scenes at a time, ``threads=1`` each, so two scenes use the two cores);
 its seeds run one after another (the seeds of one scene share phase-1 models, so they never run at once).
@@ -27,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, SCENES, machine, shared_dir, write_results  # noqa: E402
 
 from b3dgs.report.document import markdown_table  # noqa: E402
-from b3dgs.report.stats import mean_sem  # noqa: E402
+from b3dgs.report.stats import mean_sem, p_floor, sign_flip_p  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 NAME = "active_view"
@@ -39,25 +45,38 @@ PAPER = {"uniform": (19.940, 0.6307, 0.3485, 873.9), "ensemble": (20.389, 0.6367
 PAPER_PAIRED = {"native-ensemble": "+0.453 (29/39 scene-seeds, 10/13 scenes)", "native-proxy": "+0.401",
                 "native-ppu": "+0.355", "ensemble-uniform": "+0.449"}
 PAIRS = (("native", "ensemble"), ("native", "proxy"), ("native", "ppu"), ("native", "uniform@niw"),
-         ("ensemble", "uniform"), ("fisher", "ensemble"), ("farthest", "uniform"), ("oracle", "uniform"))
+         ("ensemble", "uniform"), ("fisher", "ensemble"), ("farthest", "uniform"), ("oracle", "uniform"),
+         # issue 22: does batch-aware native beat (a) top-k native, (b) the ensemble, (c) farthest?
+         ("native+greedy_conditioned", "native"), ("native+greedy_conditioned", "ensemble"),
+         ("native+greedy_conditioned", "farthest"), ("native+greedy_conditioned", "native+diverse"),
+         ("native+diverse", "native"), ("native+diverse", "farthest"), ("ensemble+diverse", "ensemble"),
+         ("proxy+diverse", "proxy"), ("ppu+diverse", "ppu"), ("oracle+diverse", "oracle"), ("oracle+diverse", "farthest"))
 PAPER_JACCARD = {"native|proxy": 0.056, "native|ensemble": 0.059}
 ORDER = ("uniform", "farthest", "ensemble", "ppu", "fisher", "uniform@niw", "proxy", "native", "oracle")
+BATCHES = ("topk", "greedy_conditioned", "diverse")  # a policy's batch rows follow its top-k row in this order
 
 
 def row_order(table: dict) -> list[str]:
-    """Table 2's order: standard rows, NIW rows, then the oracle; other policies after their family's."""
-    return sorted(table, key=lambda p: (table[p]["oracle"], table[p]["family"] != "standard",
-                                        ORDER.index(p) if p in ORDER else len(ORDER), p))
+    """Table 2's order: standard rows, NIW rows, then the oracle; other policies after their family's; a
+    policy's batch rows (``native+diverse``) right after its top-k row."""
+    def key(p):
+        base, _, batch = p.partition("+")
+        return (table[p]["oracle"], table[p]["family"] != "standard", ORDER.index(base) if base in ORDER else len(ORDER),
+                base, BATCHES.index(batch) if batch in BATCHES else (0 if not batch else len(BATCHES)), p)
+
+    return sorted(table, key=key)
 
 
-def run_scene(scene: str, seeds: list[int], study_out: Path, extra: list[str], score_side: str = "64") -> dict:
-    """Run the study for ``scene``, one seed after another; returns {seed: wall seconds} of the seeds run."""
+def run_scene(scene: str, seeds: list[int], study_out: Path, extra: list[str], score_side: str = "64",
+              scene_args: list[str] | None = None) -> dict:
+    """Run the study for ``scene``, one seed after another; returns {seed: wall seconds} of the seeds run.
+    ``scene_args``: the data overrides (default ``SCENES[scene]``)."""
     logs = study_out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     walls = {}
     for seed in seeds:
         cmd = [sys.executable, "-m", "b3dgs.study.active", "active",
-               *[o.format(shared=shared_dir()) for o in SCENES[scene]], "renderer=cpu", f"seeds=[{seed}]",
+               *[o.format(shared=shared_dir()) for o in (scene_args or SCENES[scene])], "renderer=cpu", f"seeds=[{seed}]",
                f"out_dir={study_out}", "threads=1", f"acquisition.score_max_side={score_side}", *extra]
         t0 = time.perf_counter()
         with open(logs / f"{scene}_s{seed}.log", "a") as log:
@@ -92,14 +111,14 @@ def compute_per_seed(out: Path, scene_summary: dict) -> dict:
     return res
 
 
-def camera_geometry(scene: str) -> tuple[dict, float]:
+def camera_geometry(scene: str, scene_args: list[str] | None = None) -> tuple[dict, float]:
     """{view name: camera centre} for the scene's train and test views, and the scene extent."""
     from b3dgs.acquisition import camera_centres
     from b3dgs.study.active import compose_config
 
     from hydra.utils import instantiate
 
-    cfg = compose_config("study", [o.format(shared=shared_dir()) for o in SCENES[scene]])
+    cfg = compose_config("study", [o.format(shared=shared_dir()) for o in (scene_args or SCENES[scene])])
     dm = instantiate(cfg.data)
     dm.setup("fit")
     cams = list(dm.scene.train) + list(dm.scene.test)
@@ -126,7 +145,7 @@ def pick_spacing(initial: list[str], picks: list[str], centres: dict, extent: fl
     return float(np.mean(d[:, 1]) / extent)
 
 
-def add_support(per_scene: dict) -> dict:
+def add_support(per_scene: dict, scene_args: dict | None = None) -> dict:
     """Each row's test support distance after acquisition, and per scene the Spearman correlation over the
     rows of one seed between PSNR and that distance (mean over seeds): does coverage explain the ranking?"""
     from scipy.stats import spearmanr
@@ -134,7 +153,7 @@ def add_support(per_scene: dict) -> dict:
     out = {}
     for scene, s in per_scene.items():
         meta = s["meta"]
-        centres, extent = camera_geometry(scene)
+        centres, extent = camera_geometry(scene, (scene_args or {}).get(scene))
         init = list(meta["initial_views"])
         for r in s["runs"]:
             r["support_distance"] = support_distance(init + list(r["selected"]), meta["test_views"], centres, extent)
@@ -149,7 +168,10 @@ def add_support(per_scene: dict) -> dict:
     return out
 
 
-def aggregate(scenes: list[str], study_out: Path, walls: dict) -> dict:
+def aggregate(scenes: list[str], study_out: Path, walls: dict, scene_args: dict | None = None,
+              results: Path | None = None) -> dict:
+    """The cross-scene table of the studies under ``study_out`` (per-scene copies under ``results``, default
+    ``bench/results/active_view/``; ``scene_args``: data overrides per scene where not ``SCENES``)."""
     from b3dgs.study.active_tables import write_report
 
     per_scene = {}
@@ -158,14 +180,14 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict) -> dict:
         if not (out / "meta.json").exists():
             continue
         s = write_report(out, plots=True, store=None)
-        dst = RESULTS / NAME / scene
+        dst = (results or RESULTS / NAME) / scene
         dst.mkdir(parents=True, exist_ok=True)
         shutil.copy2(out / "study.md", dst / "study.md")
         shutil.copy2(out / "study.json", dst / "study.json")
         for png in (out / "plots").glob("*.png"):
             shutil.copy2(png, dst / png.name)
         per_scene[scene] = s
-    support = add_support(per_scene)
+    support = add_support(per_scene, scene_args)
     for scene, s in per_scene.items():  # a row's full cost: every phase-1 model it scored with, round 2, scoring
         for r in s["runs"]:
             p1 = 0.0
@@ -195,6 +217,13 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict) -> dict:
         cost = [float(np.mean([r["cost_s"] for r in s["runs"] if r["policy"] == p]))
                 for s in per_scene.values() if any(r["policy"] == p for r in s["runs"])]
         e["cost_s"] = float(np.mean(cost)) if cost else None
+        # the batch selector's own time (beyond the policy's first scoring) and its exact re-scores per pick
+        infos = [r.get("batch_info") or {} for s in per_scene.values() for r in s["runs"] if r["policy"] == p]
+        bt = [i["batch_time_s"] for i in infos if i.get("batch_time_s") is not None]
+        e["batch_time_s"] = float(np.mean(bt)) if bt else None
+        rp = [x for i in infos for x in i.get("rescored_per_pick", [])]
+        e["rescored_per_pick"] = float(np.mean(rp)) if rp else None
+        e["batch_fallback"] = sorted({i["fallback"] for i in infos if i.get("fallback")}) or None
         # SEM over seeds of the per-seed macro mean (the paper's teaser error bars)
         seeds = sorted({int(r["seed"]) for s in per_scene.values() for r in s["runs"] if r["policy"] == p})
         per_seed = []
@@ -220,12 +249,16 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict) -> dict:
             vals = [x for _, x in d]
             m, sem = mean_sem(vals)
             lp = [x for _, _, x in scene_means if x is not None]
+            sm = [x for _, x, _ in scene_means]
             paired[f"{a}-{b}"] = {"delta_psnr": m, "sem": sem, "wins": int(sum(x > 0 for x in vals)), "n": len(vals),
+                                  "scene_sign_flip_p": sign_flip_p(sm), "p_floor": p_floor(len(sm)),
                                   "scene_wins": int(sum(x > 0 for _, x, _ in scene_means)), "n_scenes": len(scene_means),
                                   "delta_lpips": float(np.mean(lp)) if lp else None,
                                   "per_scene": {sc: x for sc, x, _ in scene_means}, "paper": PAPER_PAIRED.get(f"{a}-{b}")}
     jac = {}
-    for k in ("native|proxy", "native|ensemble", "proxy|ensemble", "native|fisher", "native|oracle", "ensemble|oracle"):
+    for k in ("native|proxy", "native|ensemble", "proxy|ensemble", "native|fisher", "native|oracle", "ensemble|oracle",
+              "native|native+greedy_conditioned", "native|native+diverse", "native+greedy_conditioned|farthest",
+              "native+diverse|farthest"):
         vals = []
         for s in per_scene.values():
             a, b = k.split("|")
@@ -253,7 +286,11 @@ def markdown(res: dict) -> str:
     t = res["table"]
     seeds = sorted({int(r["seed"]) for runs in res["runs"].values() for r in runs})
     order = row_order(t)
-    lines = ["# Active view selection, 16 → 32 views (quick protocol: 256 px, 1000 + 2000 steps, CPU)", "",
+    meta = next(iter(res.get("per_scene", {}).values()), {}).get("meta", {})
+    n0, acq = len(meta.get("initial_views") or []) or 16, meta.get("acquire") or 16
+    p1, tot = meta.get("phase1_steps") or 1000, meta.get("total_steps") or 3000
+    proto = "quick protocol: 256 px, " if (p1, tot) == (1000, 3000) else ""
+    lines = [f"# Active view selection, {n0} → {n0 + acq} views ({proto}{p1} + {tot - p1} steps, CPU)", "",
              f"Scenes {res['scenes']}, seeds {seeds}. Macro mean over scenes of per-scene seed means; ± is the SEM over "
              "seeds of the per-seed macro mean (the paper's teaser bars). Paper: Table 2 (13 scenes × 3 seeds, 10k + 20k "
              "iterations, GPU). Time: our phase 1 + second round of the row's model (s, 1 thread); scoring apart.", ""]
@@ -264,33 +301,42 @@ def markdown(res: dict) -> str:
         name = p + (" (ORACLE: uses ground truth, analysis only)" if e["oracle"] else "")
         if e.get("training_shared_with"):
             name += f" (same run as {', '.join(e['training_shared_with'])})"
+        if e.get("batch_fallback"):
+            name += f" (selected as {', '.join(e['batch_fallback'])}: cannot condition)"
         sem = e.get("psnr_sem_seeds")
         rows.append([e["family"], name, _f(e["psnr"]) + ("" if sem is None else f" ± {sem:.3f}"), _f(e["ssim"], 4),
                      _f(e["lpips"], 4), _f(e["spearman_vs_oracle"], 2), _f(e.get("support_distance"), 3),
                      _f(e.get("pick_spacing"), 3), _f(e["train_time_s"], 0), _f(e["scoring_time_s"], 1),
-                     _f(e.get("cost_s"), 0),
-                     *([f"{pp[0]:.3f}", f"{pp[1]:.4f}", f"{pp[2]:.4f}", f"{pp[3]:.1f}"] if pp else ["—"] * 4)])
+                     _f(e.get("batch_time_s"), 1), _f(e.get("rescored_per_pick"), 1), _f(e.get("cost_s"), 0),
+                     *([f"{pp[0]:.3f}", f"{pp[1]:.4f}", f"{pp[2]:.4f}", f"{pp[3]:.1f}"] if pp and "+" not in p
+                       else ["—"] * 4)])
     lines += markdown_table(["family", "policy", "PSNR ↑", "SSIM ↑", "LPIPS ↓", "ρ score vs oracle error",
-                             "test support dist. ↓", "pick spacing", "train s", "scoring s", "cost s", "paper PSNR",
-                             "paper SSIM", "paper LPIPS", "paper time s"], rows)
+                             "test support dist. ↓", "pick spacing", "train s", "scoring s", "batch s",
+                             "re-scores / pick", "cost s", "paper PSNR", "paper SSIM", "paper LPIPS", "paper time s"],
+                            rows)
     lines += ["", "ρ: Spearman correlation, over the candidates, of the policy's score with the phase-1 model's current "
               "render error on each candidate (the oracle's score): how informative the score is. "
               "'Same run as X': identical acquired views and a bit-identical training run (NIW only observes training). "
               "Cost: every phase-1 model the row scored with (the ensemble's 3), its second round and scoring "
               "(the paper's time column counts the ensemble's members too). Test support distance: mean over test views of the distance to the nearest final training camera "
               "centre / scene extent (the coverage the picks give). Pick spacing: mean over the 16 picks of the distance "
-              "to the nearest other camera of the final training set / extent (small: near-duplicate picks).", ""]
+              "to the nearest other camera of the final training set / extent (small: near-duplicate picks). "
+              "Rows `policy+batch` (issue 22) select with that batch option from the same scores (scoring s includes "
+              "the batch selection); batch s: the selector's time beyond the first scoring (greedy_conditioned: "
+              "conditioning renders, weight renders for the ratio, exact re-scores); re-scores / pick: exact candidate "
+              "scorings per pick after the first (at most max_rescore = 4).", ""]
     lines += markdown_table(
         ["scene", "support dist. of the 16 initial views", "Spearman(PSNR, support dist.) over the rows of a seed"],
         [[sc, f"{v['initial']:.3f}", f"{_f(v['psnr_vs_support_spearman'], 2)} (per seed "
           f"{', '.join(f'{x:+.2f}' for x in v['per_seed'])})"] for sc, v in res.get("support", {}).items()])
     lines += ["", "## Paired differences (scene-seed pairs)", ""]
     lines += markdown_table(
-        ["pair", "ΔPSNR dB (± SEM)", "scene-seed wins", "scene-mean wins", "ΔLPIPS", "per scene ΔPSNR", "paper ΔPSNR"],
+        ["pair", "ΔPSNR dB (± SEM)", "scene-seed wins", "scene-mean wins", "sign-flip p over scenes (floor)", "ΔLPIPS",
+         "per scene ΔPSNR", "paper ΔPSNR"],
         [[k.replace("-", " − "), f"{_f(v['delta_psnr'], sign=True)} ± {_f(v['sem'])}", f"{v['wins']}/{v['n']}",
-          f"{v['scene_wins']}/{v['n_scenes']}", _f(v["delta_lpips"], 4, sign=True),
-          ", ".join(f"{sc} {x:+.3f}" for sc, x in v["per_scene"].items()), v["paper"] or "—"]
-         for k, v in res["paired"].items()])
+          f"{v['scene_wins']}/{v['n_scenes']}", f"{_f(v.get('scene_sign_flip_p'), 3)} ({_f(v.get('p_floor'), 3)})",
+          _f(v["delta_lpips"], 4, sign=True), ", ".join(f"{sc} {x:+.3f}" for sc, x in v["per_scene"].items()),
+          v["paper"] or "—"] for k, v in res["paired"].items()])
     if res["jaccard"]:
         lines += ["", "## Overlap of the selected views (Jaccard, mean over scene-seeds)", ""]
         lines += markdown_table(["pair", "ours", "paper"], [[k.replace("|", " / "), f"{v['mean']:.3f}", _f(v["paper"])]
@@ -344,30 +390,58 @@ def plots(res: dict) -> None:
     plt.close(fig)
 
 
+#: ``--smoke``: the embedded procedural scene at a tiny protocol (minutes on 2 cores): checks that every row,
+#: batch row and diagnostic runs end to end; its numbers say nothing about the real scenes
+SMOKE_SCENE = ["data=synthetic", "data.max_side=48", "+data.n_views=40"]
+SMOKE = ["trainer.max_steps=300", "initial_views=8", "acquire=6", "strategy.refine_start=50", "strategy.refine_every=50",
+         "strategy.refine_stop=250", "trainer.checkpoint_every_s=0",
+         "+policy_settings.ppu.steps=50", "+policy_settings.fisher.pixel_stride=4"]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=["ethiopian_head", "fox"], choices=sorted(SCENES))
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--jobs", type=int, default=2, help="scenes run at once (one thread each)")
-    ap.add_argument("--study-out", default=str(ROOT / "outputs" / "study"))
+    ap.add_argument("--study-out", default=None, help="default outputs/study (--smoke: outputs/study_smoke)")
     ap.add_argument("--aggregate-only", action="store_true")
     ap.add_argument("--score-max-side", default="64",
                     help="acquisition.score_max_side of the committed study (64; 'null' = full size, use a new --study-out)")
+    ap.add_argument("--batches", nargs="+", default=list(BATCHES),
+                    help="acquisition.batch options: every score-based policy gets a row per option (topk: the rows "
+                         "the study always had)")
+    ap.add_argument("--smoke", action="store_true",
+                    help="the embedded scene, seed 0, a tiny protocol; writes only under --study-out (not bench/results)")
     ap.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every study")
     args = ap.parse_args()
-    out = Path(args.study_out)
+    out = Path(args.study_out or ROOT / "outputs" / ("study_smoke" if args.smoke else "study"))
+    scenes, scene_args, extra = args.scenes, None, list(args.extra)
+    extra.append(f"acquisition.batch=[{','.join(args.batches)}]")
+    if args.smoke:
+        scenes, scene_args, args.seeds = ["synthetic"], {"synthetic": SMOKE_SCENE}, [0]
+        extra = SMOKE + extra
     walls_path = out / "walls.json"
     walls = json.loads(walls_path.read_text()) if walls_path.exists() else {}
     if not args.aggregate_only:
         with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-            futs = {sc: ex.submit(run_scene, sc, args.seeds, out, args.extra, args.score_max_side) for sc in args.scenes}
+            futs = {sc: ex.submit(run_scene, sc, args.seeds, out, extra, args.score_max_side,
+                                  (scene_args or {}).get(sc)) for sc in scenes}
             for sc, f in futs.items():
                 for sd, w in f.result().items():
                     walls[f"{sc}/s{sd}"] = w
         from b3dgs.io import write_json
 
         write_json(walls_path, walls)
-    res = aggregate(args.scenes, out, walls)
+    if args.smoke:  # never over the committed results
+        res = aggregate(scenes, out, walls, scene_args, results=out / "tables")
+        from b3dgs.io import write_json
+
+        write_json(out / "active_view_smoke.json", res)
+        text = markdown(res)
+        (out / "active_view_smoke.md").write_text(text)
+        print(text)
+        return
+    res = aggregate(scenes, out, walls)
     plots(res)
     write_results(NAME, res, markdown(res))
 

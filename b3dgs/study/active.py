@@ -91,6 +91,58 @@ def load_policy(name: str, settings: Optional[DictConfig] = None):
     return label, policy
 
 
+#: the batch option a row label without ``+batch`` uses (its label stays the policy's: rows from before
+#: batch options existed keep their folders)
+DEFAULT_BATCH = "topk"
+
+
+def load_batch(name: str, settings: Optional[DictConfig] = None):
+    """The batch selector ``conf/acquisition/batch/<name>.yaml`` with ``settings[name]`` merged in (issue 22)."""
+    from hydra.utils import instantiate
+
+    from b3dgs.errors import B3dgsError
+
+    node = option_node("study", "acquisition/batch", str(name), settings,
+                       "pass acquisition.batch=topk, diverse or greedy_conditioned (conf/acquisition/batch/<name>.yaml)")
+    try:
+        batch = instantiate(node, _convert_="all")
+    except Exception as e:  # noqa: BLE001 - a misspelt setting: one line naming it
+        raise B3dgsError(f"acquisition batch {name}: bad settings ({' '.join(str(e.__cause__ or e).split())[:200]})",
+                         f"pass only the fields of conf/acquisition/batch/{name}.yaml") from None
+    batch.check()
+    return batch
+
+
+def split_row(name: str) -> tuple[str, Optional[str]]:
+    """``policy[@family][+batch]`` (either order of the two suffixes) -> (``policy[@family]``, batch or None)."""
+    base, fam = str(name), ""
+    if "@" in base:
+        base, _, fam = base.partition("@")
+    batch = None
+    if "+" in fam:
+        fam, _, batch = fam.partition("+")
+    if "+" in base:
+        base, _, batch = base.partition("+")
+    return (f"{base}@{fam}" if fam else base), batch
+
+
+def row_label(policy_label: str, batch: str) -> str:
+    """``native`` for top-k (the label rows always had), ``native+diverse`` / ``uniform@niw+diverse`` else."""
+    return policy_label if batch == DEFAULT_BATCH else f"{policy_label}+{batch}"
+
+
+def batch_names(cfg: DictConfig) -> list[str]:
+    """``acquisition.batch``: one name or a list (every score-based policy gets a row per name)."""
+    from b3dgs.errors import B3dgsError
+
+    v = cfg.get("acquisition", {}).get("batch", DEFAULT_BATCH)
+    names = [v] if isinstance(v, str) else list(v or [])
+    if not names or not all(isinstance(n, str) and n for n in names):
+        raise B3dgsError(f"acquisition.batch={v!r} is invalid", "pass acquisition.batch=topk or a list, e.g. "
+                         "acquisition.batch=[topk,greedy_conditioned,diverse]")
+    return list(dict.fromkeys(names))
+
+
 # ---------------------------------------------------------------------------------------------- views
 def pca_angles(cameras) -> np.ndarray:
     """Angle of every camera centre in the plane of the first two principal components (deterministic sign)."""
@@ -147,14 +199,18 @@ def initial_views(cfg: DictConfig, train) -> tuple[list[int], list[str]]:
 
 # ---------------------------------------------------------------------------------------------- study
 #: study keys that decide which rows exist or where they go, not what a row holds
-STUDY_IGNORED = ("policies", "family_baselines", "share_training", "oracle", "seeds", "seed", "out_dir", "plots")
+STUDY_IGNORED = ("policies", "family_baselines", "share_training", "oracle", "seeds", "seed", "out_dir", "plots",
+                 "acquisition.batch")  # batch settings (acquisition.batch_settings) do change rows
 
 
 def study_protocol(cfg: DictConfig) -> dict:
     """The flattened study settings that change its rows and caches (``out_dir/<scene>/protocol.json``)."""
     from b3dgs.protocol import RUN_IGNORED, run_protocol
 
-    return run_protocol(OmegaConf.to_container(cfg, resolve=True), ignore=RUN_IGNORED + STUDY_IGNORED)
+    out = run_protocol(OmegaConf.to_container(cfg, resolve=True), ignore=RUN_IGNORED + STUDY_IGNORED)
+    if out.get("acquisition.batch_settings") == {}:  # the default: folders from before batch options stay valid
+        del out["acquisition.batch_settings"]
+    return out
 
 
 def legacy_protocol(out: Path) -> Optional[dict]:
@@ -237,24 +293,48 @@ class ActiveStudy:
         return out
 
     def _policies(self) -> list[tuple[str, Any]]:
-        rows = [load_policy(n, self.cfg.get("policy_settings")) for n in self.cfg.policies]
+        """(row label, policy) of every row; ``self.batches[label]`` is the row's batch selector. A policy in
+        ``policies`` without ``+batch`` gets a row per ``acquisition.batch`` option that applies to it (a policy
+        that builds its batch itself gets its own selection, the topk row); ``name+batch`` asks for that row."""
+        from b3dgs.errors import B3dgsError
+
+        bset = self.cfg.get("acquisition", {}).get("batch_settings")
+        selectors = {b: load_batch(b, bset) for b in batch_names(self.cfg)}
+        rows = []  # (policy label, policy, batch name)
+        for n in self.cfg.policies:
+            pname, batch = split_row(n)
+            label, p = load_policy(pname, self.cfg.get("policy_settings"))
+            if batch is None:  # one policy object per row: a policy caches its fitted regime
+                mine = [b for b, sel in selectors.items() if sel.applies_to(p)] or [DEFAULT_BATCH]
+                rows += [(label, load_policy(pname, self.cfg.get("policy_settings"))[1], b) for b in mine]
+                continue
+            if batch not in selectors:
+                selectors[batch] = load_batch(batch, bset)
+            if not selectors[batch].applies_to(p):
+                raise B3dgsError(f"policy {pname} builds its batch itself, so batch {batch} does not apply to it",
+                                 f"pass {pname} (its own selection) or a score-based policy with +{batch}")
+            rows.append((label, p, batch))
         families = []
-        for _, p in rows:
+        for _, p, _ in rows:
             if p.family not in families:
                 families.append(p.family)
-        have = {(type(p), p.family) for _, p in rows}
+        have = {(type(p), p.family, b) for _, p, b in rows}
         for base in self.cfg.get("family_baselines") or []:
             for fam in families:
                 label, p = load_policy(f"{base}@{fam}", self.cfg.get("policy_settings"))
-                if (type(p), fam) not in have:
-                    rows.append((label, p))
-                    have.add((type(p), fam))
+                if (type(p), fam, DEFAULT_BATCH) not in have:
+                    rows.append((label, p, DEFAULT_BATCH))
+                    have.add((type(p), fam, DEFAULT_BATCH))
         # a label names the family when the policy's default family differs, e.g. uniform@niw
         out = []
-        for label, p in rows:
+        self.batches = {}
+        for label, p, b in rows:
             base = label.partition("@")[0]
             default = load_policy(base)[1].family
-            out.append((base if p.family == default else f"{base}@{p.family}", p))
+            lab = row_label(base if p.family == default else f"{base}@{p.family}", b)
+            if lab not in self.batches:
+                out.append((lab, p))
+                self.batches[lab] = selectors.get(b) or load_batch(b, bset)
         return out
 
     # ------------------------------------------------------------------ phase 1
@@ -331,13 +411,14 @@ class ActiveStudy:
             models = self.scoring_models(policy.family, seed, int(policy.members))
             ctx = self.context(models, policy, seed)
             t0 = time.perf_counter()
-            s = policy.select(ctx, cands, int(self.cfg.acquire))
+            s = self.batches[label].select(policy, ctx, cands, int(self.cfg.acquire))
             dt = time.perf_counter() - t0
             scores = None if s.scores is None else {c.name: float(v) for c, v in zip(cands, s.scores)}
             top = None if scores is None else sorted(scores.items(), key=lambda kv: (-kv[1], kv[0]))[:10]
             sel = {"policy": label, "seed": seed, "family": policy.family, "selected": [cands[i].name for i in s.indices],
                    "scores": scores, "top10": top, "scoring_time_s": dt, "members": int(policy.members),
-                   "uses_ground_truth": bool(policy.uses_ground_truth)}
+                   "uses_ground_truth": bool(policy.uses_ground_truth), "batch": split_row(label)[1] or DEFAULT_BATCH,
+                   "batch_info": s.info}
             write_json(sel_path, sel)
             del models, ctx
         twin = self.training_twin(label, policy.family, seed, sel["selected"])

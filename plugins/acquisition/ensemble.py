@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 
@@ -14,6 +15,8 @@ class EnsemblePolicy(AcquisitionPolicy):
     The members are the family's phase-1 models of seeds s, ..., s+M-1; the first one continues."""
 
     members: int = 3
+    no_conditioning: ClassVar[str] = ("the members disagree less where a view is acquired only once they are "
+                                      "retrained on its image; without the image nothing they render changes")
 
     def check(self):
         super().check()

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 
@@ -12,6 +13,8 @@ from b3dgs.acquisition import AcquisitionPolicy, Selection, camera_centres
 class FarthestPolicy(AcquisitionPolicy):
     """Pick the candidate whose centre is farthest from every training (and already picked) centre, then
     repeat. Scores: each candidate's distance to the nearest training centre before any pick."""
+
+    selects_batch: ClassVar[bool] = True  # its select builds the batch (only batch=topk applies)
 
     def select(self, ctx, candidates, budget):
         cand = camera_centres(candidates)

@@ -3,6 +3,7 @@ diagonal Fisher over the Gaussian parameters, with greedy batch selection."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import torch
 
@@ -21,6 +22,8 @@ class FisherPolicy(AcquisitionPolicy):
     Per-pixel gradients come from :func:`b3dgs.fisher.pixel_set_grads` with s = ``pixel_stride`` (s² backward
     passes per view; exact when s >= the longest side at the scoring resolution).
     """
+
+    selects_batch: ClassVar[bool] = True  # its select builds the batch (only batch=topk applies)
 
     pixel_stride: int = 8
     lam: float = 1.0e-6

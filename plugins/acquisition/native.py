@@ -6,7 +6,7 @@ from typing import Optional
 
 import torch
 
-from b3dgs.acquisition import AcquisitionPolicy
+from b3dgs.acquisition import AcquisitionPolicy, epistemic_scores
 from b3dgs_plugins.uq.native import NativeUQ
 
 
@@ -18,16 +18,64 @@ class NativePolicy(AcquisitionPolicy):
     ``count_scale`` = 0.1 by default: the posterior is drawn with N̂ ← 0.1·N̂. In ``bench/uq_count_scale.py``
     (seed 0, both shared scenes) that setting gave the epistemic part its best pixel-level ranking (Spearman ρ
     with the squared error 0.51 / 0.42 against 0.41 / 0.41 at the paper's c = 1) without moving the
-    posterior-mean render; ``null`` scores with the model's own setting (the paper's)."""
+    posterior-mean render; ``null`` scores with the model's own setting (the paper's).
+
+    ``condition(ctx, camera)`` (batch=greedy_conditioned): one point-estimate render of ``camera`` at the
+    scoring resolution gives each Gaussian's compositing weight sum w_k = Σ_p w_kp, scaled by the pixel-count
+    ratio to the training resolution (the unit of N̂); the posterior blocks then take those pseudo-observations
+    at the current centres (NIW: the closed-form update of its posterior with n_k = c·w_k, x̄_k = μ_k, C_k = 0,
+    i.e. N̂ ← N̂ + w), on copies: the model is untouched."""
 
     family: str = "niw"
     samples: int = 16
     chunk: int = 8
     count_scale: Optional[float] = 0.1
 
-    @torch.no_grad()
-    def score(self, ctx, candidates):
+    def _native(self) -> NativeUQ:
         regime = getattr(self, "_regime", None) or NativeUQ(samples=self.samples, chunk=self.chunk,
                                                              count_scale=self.count_scale)
         self._regime = regime
-        return torch.stack([ctx.predict(regime, c, salt=i).epistemic.double().mean() for i, c in enumerate(candidates)]).cpu()
+        return regime
+
+    @torch.no_grad()
+    def score(self, ctx, candidates):
+        return self.score_at(ctx, candidates, range(len(candidates)))
+
+    @torch.no_grad()
+    def score_at(self, ctx, candidates, positions):
+        return epistemic_scores(ctx, self._native(), candidates, positions)
+
+    @torch.no_grad()
+    def condition(self, ctx, camera):
+        regime = ctx.fit_regime(self._native())
+        if getattr(self, "_cond", None) is None:  # before the first conditioning: the reference spread
+            self._cond = {"g0": regime.gaussian_spread(seed=ctx.seed), "w": {}}
+        return regime.condition(self._weights(ctx, camera))
+
+    def _weights(self, ctx, camera):
+        """Σ_p w_kp of ``camera``'s point-estimate render, in training-resolution pixels (N̂'s unit)."""
+        small = ctx.camera(camera)
+        w = ctx.render(camera, return_weights=True).weight_sum.reshape(-1).double()
+        return w * (camera.width * camera.height) / (small.width * small.height)
+
+    @torch.no_grad()
+    def conditioned_ratio(self, ctx, candidates, positions):
+        """Σ_k w_ck g_k / Σ_k w_ck g⁰_k: candidate c's weight sums (one point render each, cached for the
+        batch) against the per-Gaussian spread g of :meth:`NativeUQ.gaussian_spread` now and before any
+        conditioning (4 draws, no render)."""
+        cond = getattr(self, "_cond", None)
+        if cond is None:
+            return None
+        g = ctx.fit_regime(self._native()).gaussian_spread(seed=ctx.seed)
+        out = []
+        for i in positions:
+            if i not in cond["w"]:
+                cond["w"][i] = self._weights(ctx, candidates[i])
+            w = cond["w"][i]
+            den = float(w @ cond["g0"])
+            out.append(float(w @ g) / den if den > 0 else 1.0)
+        return torch.tensor(out, dtype=torch.float64)
+
+    def reset_conditioning(self, ctx):
+        self._cond = None
+        ctx.fit_regime(self._native()).reset_conditioning()

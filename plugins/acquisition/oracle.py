@@ -16,6 +16,7 @@ class OraclePolicy(AcquisitionPolicy):
     could run, and the study labels it as such."""
 
     uses_ground_truth: ClassVar[bool] = True
+    no_conditioning: ClassVar[str] = "the current render error changes only when the model is retrained on the view"
 
     @torch.no_grad()
     def score(self, ctx, candidates):

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 
@@ -13,6 +14,8 @@ from b3dgs_plugins.uq.ppu import PPUHead
 class PPUPolicy(AcquisitionPolicy):
     """Score = mean predicted variance of the head (fit at the scoring resolution on the training views)."""
 
+    no_conditioning: ClassVar[str] = ("the head is fit to training residuals, which a view acquired without its "
+                                      "image does not provide")
     steps: int = 300
     lr: float = 5.0e-3
     width: int = 16

@@ -600,6 +600,18 @@ class NIWBlock(PosteriorBlock):
             return None
 
     @torch.no_grad()
+    def condition_on_view(self, *, splats, state, weight_sums):
+        """The posterior after one more view's pseudo-observations (acquisition, issue 22): n_k = c·w_k
+        observations at the current centre (x̄_k = μ_k, C_k = 0), the closed-form update of the paper's NIW
+        appendix applied to the current posterior. The summaries already sit at μ_k with C = 0, and two such
+        batches at one point combine into one of summed count (conjugacy), so this is N̂ ← N̂ + w on a copy of
+        the state, refreshed."""
+        st = dict(state)
+        st["N"] = state["N"] + weight_sums.to(state["N"].dtype).to(state["N"].device).clamp_min(0.0)
+        self._refresh(st, splats)
+        return st
+
+    @torch.no_grad()
     def posterior_mean(self, *, splats, state, params):
         out = dict(params)
         out["means"] = self.posterior(state, splats)["m_n"].to(splats["means"].dtype)

@@ -41,7 +41,8 @@ class NativeUQ(UQRegime):
                              "use uq=proxy for a standard model")
         self.sigma2 = 0.0
         # one prepared draw function per block: posterior set-up once, not per chunk or view
-        self.samplers = [blk.sampler(splats=m.splats, state=st) for blk, st in self._blocks(m)]
+        self._fitted = self._blocks(m)
+        self.reset_conditioning()
         self.base = render_params(m)
         for name, blk in m.posterior.items():
             v = blk.aleatoric_variance(state=m.states[name])
@@ -49,6 +50,39 @@ class NativeUQ(UQRegime):
                 self.sigma2 = float(v)
 
         self.fit_info["sigma2_plugin"] = self.sigma2
+
+    def condition(self, weight_sums) -> bool:
+        """Draw from now on from the posterior conditioned on the pseudo-observations of one more view without
+        its image: ``weight_sums`` (N,) = Σ_p w_kp of its point-estimate render in training-resolution pixels,
+        passed to every block's ``condition_on_view`` (on copies of the states). Returns whether any block
+        changed; :meth:`reset_conditioning` goes back to the fitted posterior."""
+        m = self.models[0]
+        new = [(blk, blk.condition_on_view(splats=m.splats, state=st, weight_sums=weight_sums)) for blk, st in self._current]
+        if all(st2 is None for _, st2 in new):
+            return False
+        self._current = [(blk, st if st2 is None else st2) for (blk, st), (_, st2) in zip(self._current, new)]
+        self.samplers = [blk.sampler(splats=m.splats, state=st) for blk, st in self._current]
+        return True
+
+    @torch.no_grad()
+    def gaussian_spread(self, samples: int = 4, seed: int = 0) -> torch.Tensor:
+        """(N,) how far the current posterior's draws move each Gaussian, in units of its size: mean over
+        ``samples`` draws of ‖μ⁽ˢ⁾ − μ‖ / √tr Σ, float64. The draws use a generator seeded with ``seed``, so two
+        calls (e.g. before and after :meth:`condition`) share their random numbers. (On the test scene, weight
+        sums · this spread predicted the conditioned / unconditioned native score within ~0.05, Spearman 0.68
+        over candidates; a saturating 1 − exp(−‖Δμ‖² / tr Σ) ranked as well but predicted ratios near 1.)"""
+        g = torch.Generator(device="cpu").manual_seed(int(seed))
+        p = dict(self.base)
+        for sampler in self.samplers:
+            p = sampler(int(samples), g, p)
+        d2 = (p["means"].double() - self.base["means"].double()).square().sum(-1)
+        size2 = torch.exp(2.0 * self.base["scales"].double()).sum(-1).clamp_min(1e-30)
+        return (d2 / size2).sqrt().mean(0)
+
+    def reset_conditioning(self) -> None:
+        m = self.models[0]
+        self._current = list(self._fitted)
+        self.samplers = [blk.sampler(splats=m.splats, state=st) for blk, st in self._current]
 
     @torch.no_grad()
     def spread(self, camera, generator=None):

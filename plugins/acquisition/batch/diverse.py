@@ -1,0 +1,36 @@
+"""diverse: policy-agnostic greedy with diminishing returns near the training and already picked cameras."""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+from b3dgs.acquisition import BatchSelector, Selection, camera_centres, diverse_picks
+from b3dgs.errors import B3dgsError
+
+
+def check_radius(radius, option: str) -> None:
+    if isinstance(radius, bool) or not isinstance(radius, (int, float)) or not (0 < float(radius) < math.inf):
+        raise B3dgsError(f"acquisition batch {option}: radius={radius!r} must be a finite number > 0",
+                         f"pass +acquisition.batch_settings.{option}.radius=1.0 (in units of the pool's median camera spacing)")
+
+
+@dataclass
+class Diverse(BatchSelector):
+    """Score every candidate once, then pick greedily by s_i · (1 − exp(−d_i² / (2 (radius·h)²))): d_i is the
+    distance of its centre to the nearest training or picked camera centre, h the median nearest-neighbour
+    spacing of the pool's centres (:func:`b3dgs.acquisition.diverse_picks`). One parameter, ``radius``
+    (default 1: a candidate one typical spacing from a chosen camera keeps 39 % of its score, two spacings
+    86 %). Cost: the policy's scoring plus an O(K²) distance table; no extra render."""
+
+    radius: float = 1.0
+
+    def check(self):
+        check_radius(self.radius, "diverse")
+
+    def select(self, policy, ctx, candidates, budget):
+        scores = [float(v) for v in policy.score(ctx, candidates).detach().double().cpu()]
+        t0 = time.perf_counter()
+        picks, h = diverse_picks(scores, camera_centres(candidates), camera_centres(ctx.train), budget, self.radius)
+        return Selection(picks, scores, {"batch": "diverse", "radius": float(self.radius), "spacing": h,
+                                         "batch_time_s": time.perf_counter() - t0})
