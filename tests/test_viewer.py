@@ -4,10 +4,11 @@ the viewer's GUI."""
 import json
 import math
 import os
+import re
 import shutil
-import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -239,16 +240,6 @@ def test_cli_refuses_in_one_line(tiny_runs, tmp_path):
 
 
 # ------------------------------------------------------------------------------------ a real browser
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-FRAME_JS = ("(() => { const p = [...document.querySelectorAll('p')].find(e => e.innerText.startsWith('Frame:'));"
-            " return p ? p.innerText : null; })()")
-
-
 def render_area(png: bytes) -> np.ndarray:
     """The screenshot's pixels left of the side panel (the rendered view), as float RGB."""
     import io
@@ -265,37 +256,30 @@ def render_area(png: bytes) -> np.ndarray:
 def test_viewer_in_headless_chromium(tiny_runs, tmp_path):
     """Start b3dgs-view on 127.0.0.1, open it in headless Chromium, wait for the canvas and a full frame,
     switch to native σ with real mouse clicks on the panel's mode menu, drag the view (a low-resolution
-    pass, then full again), and compare screenshots."""
+    pass, then full again), and compare screenshots. ``target_ms=1``: every moving frame takes the low pass."""
     pytest.importorskip("viser", reason='viser not installed (fix: pip install -e ".[viewer]")')
     from b3dgs.viewer.browser import Browser
 
-    port = free_port()
-    proc = subprocess.Popen([sys.executable, "-m", "b3dgs.viewer.app", f"run={tiny_runs['dpmm']}", f"port={port}",
-                             "max_side=96", "duration_s=600"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+    proc = subprocess.Popen([sys.executable, "-m", "b3dgs.viewer.app", f"run={tiny_runs['dpmm']}", "port=0",
+                             "max_side=96", "target_ms=1", "duration_s=600"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, cwd=tmp_path, env=ENV)
     browser = None
     try:
-        t0 = time.time()
+        url = None
         for line in proc.stdout:  # the viewer prints its URL once it serves
-            if f"at http://127.0.0.1:{port}" in line:
+            found = re.search(r" at (http://127\.0\.0\.1:\d+) ", line)
+            if found:
+                url = found.group(1)
                 break
-            assert time.time() - t0 < 300, "the viewer did not start"
-        assert proc.poll() is None
-        browser = Browser(f"http://127.0.0.1:{port}/")
+        assert url is not None and proc.poll() is None, "the viewer did not start"
+        threading.Thread(target=proc.stdout.read, daemon=True).start()  # keep the pipe drained
+        browser = Browser(url + "/")
         browser.wait_for("document.querySelector('canvas') !== null", 120)
-        browser.wait_for(FRAME_JS + "?.includes('(RGB') && " + FRAME_JS + ".includes('full resolution')", 120)
+        browser.wait_frame("(RGB", "full resolution")
         time.sleep(2.0)  # the page's fade-in
         rgb = browser.screenshot()
-        # open the mode menu and pick "Native σ", as a user would (real mouse events at the elements' positions)
-        select = browser.evaluate("(() => { const e = [...document.querySelectorAll('input[aria-haspopup=listbox]')]"
-                                  ".find(e => e.value === 'RGB'); const r = e.getBoundingClientRect();"
-                                  " return [r.x + r.width / 2, r.y + r.height / 2]; })()")
-        browser.click(*select)
-        option = browser.wait_for("(() => { const o = [...document.querySelectorAll('[role=option]')]"
-                                  ".find(e => e.innerText.trim() === 'Native σ'); if (!o) return null;"
-                                  " const r = o.getBoundingClientRect(); return [r.x + r.width / 2, r.y + r.height / 2]; })()", 30)
-        browser.click(*option)
-        browser.wait_for(FRAME_JS + "?.includes('Native σ') && " + FRAME_JS + ".includes('full resolution')", 120)
+        browser.choose("RGB", "Native σ")  # real mouse clicks on the panel's mode menu, then on the option
+        browser.wait_frame("Native σ", "full resolution")
         assert "0.05" in browser.evaluate("document.body.innerText")  # the legend states the fixed scale
         time.sleep(1.0)
         sigma = browser.screenshot()
@@ -310,11 +294,11 @@ def test_viewer_in_headless_chromium(tiny_runs, tmp_path):
         for i in range(12):
             browser.call("Input.dispatchMouseEvent", type="mouseMoved", x=400 + 15 * i, y=400, button="left")
             time.sleep(0.05)
-            seen.add(browser.evaluate(FRAME_JS))
+            seen.add(browser.frame_text())
         browser.call("Input.dispatchMouseEvent", type="mouseReleased", x=580, y=400, button="left", clickCount=1)
-        browser.wait_for(FRAME_JS + "?.includes('low resolution')", 60) if not any(
-            s and "low resolution" in s for s in seen) else None
-        browser.wait_for(FRAME_JS + "?.includes('full resolution')", 120)
+        if not any(s and "low resolution" in s for s in seen):
+            browser.wait_frame("low resolution", timeout=60)
+        browser.wait_frame("full resolution")
     finally:
         if browser is not None:
             browser.close()

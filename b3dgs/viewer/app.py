@@ -31,9 +31,9 @@ def settings_from_cfg(cfg: DictConfig):
     kw = {k: cfg.get(k) for k in SETTINGS if cfg.get(k) is not None}
     if str(kw.get("mode", "rgb")) not in MODES:
         raise B3dgsError(f"unknown viewer mode {kw['mode']!r}", f"pass mode= one of {', '.join(MODES)}")
-    for key in ("port", "min_side", "samples"):
-        if key in kw and (not isinstance(kw[key], int) or isinstance(kw[key], bool) or kw[key] < (2 if key == "samples" else 1)):
-            raise B3dgsError(f"{key}={kw[key]} is not a valid {key}", f"pass {key}= a positive integer")
+    for key, least in (("port", 0), ("min_side", 8), ("samples", 2)):
+        if key in kw and (not isinstance(kw[key], int) or isinstance(kw[key], bool) or kw[key] < least):
+            raise B3dgsError(f"{key}={kw[key]} is not a valid {key}", f"pass {key}= an integer >= {least}")
     if "max_side" in kw and (not isinstance(kw["max_side"], int) or kw["max_side"] < 8):
         raise B3dgsError(f"max_side={kw['max_side']} is too small", "pass max_side= an integer >= 8, or null")
     for key in ("target_ms", "still_ms", "jitter", "sigma_max"):

@@ -107,6 +107,34 @@ class Browser:
         for kind in ("mousePressed", "mouseReleased"):
             self.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left", clickCount=1)
 
+    def choose(self, current: str, option: str, timeout: float = 30.0) -> None:
+        """Pick ``option`` in the panel's drop-down menu that shows ``current`` now: a real click on the menu,
+        then on the option, where they are drawn (as a user does)."""
+        at = ("const r = e.getBoundingClientRect(); return [r.x + r.width / 2, r.y + r.height / 2];")
+        menu = self.evaluate("(() => { const e = [...document.querySelectorAll('input[aria-haspopup=listbox]')]"
+                             f".find(e => e.value === {json.dumps(current)}); if (!e) return null; {at} }})()")
+        if menu is None:
+            raise RuntimeError(f"no drop-down menu shows {current!r}")
+        self.click(*menu)
+        self.click(*self.wait_for("(() => { const e = [...document.querySelectorAll('[role=option]')]"
+                                  f".find(e => e.innerText.trim() === {json.dumps(option)}); if (!e) return null; {at} }})()",
+                                  timeout))
+
+    def frame_text(self) -> Optional[str]:
+        """The viewer panel's "Frame: ..." line (frame time, size, low or full pass), None before the first frame."""
+        return self.evaluate("(() => { const p = [...document.querySelectorAll('p')]"
+                             ".find(e => e.innerText.startsWith('Frame:')); return p ? p.innerText : null; })()")
+
+    def wait_frame(self, *parts: str, timeout: float = 120.0) -> str:
+        """Wait until the "Frame:" line holds every string of ``parts``; returns it."""
+        t0 = time.time()
+        while time.time() - t0 < timeout:
+            text = self.frame_text()
+            if text and all(p in text for p in parts):
+                return text
+            time.sleep(0.2)
+        raise TimeoutError(f"no frame with {parts} in {timeout} s (last: {self.frame_text()!r})")
+
     def screenshot(self) -> bytes:
         return base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
 

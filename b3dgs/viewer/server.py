@@ -361,15 +361,16 @@ class ViewerApp:
         st.client.scene.set_background_image(frame.image, format="jpeg", jpeg_quality=self.s.jpeg_quality)
         st.shown_version, st.shown_full = version, full
         self.frames += 1
-        self._report(frame, w, h, full)
+        self._report(frame, w, h, full, still)
         if not full:
             self.wake.set()
 
-    def _report(self, frame: Frame, w: int, h: int, full: bool) -> None:
+    def _report(self, frame: Frame, w: int, h: int, full: bool, still: bool) -> None:
         s = f", S = {frame.samples}" if frame.samples else ""
         self.last_frame = {"mode": frame.mode.key, "width": w, "height": h, "ms": frame.seconds * 1000.0, "full": full}
+        why = "camera still" if still else f"camera moving; within {self.s.target_ms:.0f} ms at full size"
         self.frame_md.content = (f"Frame: **{frame.seconds * 1000.0:.0f} ms** ({frame.mode.label}{s}) at {w}×{h} px, "
-                                 f"{'full resolution (camera still)' if full else 'low resolution (camera moving)'}; "
+                                 f"{f'full resolution ({why})' if full else 'low resolution (camera moving)'}; "
                                  f"full = {self.full_side} px long side")
 
 
