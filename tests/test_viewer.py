@@ -69,16 +69,16 @@ def test_render_modes_shapes_and_fixed_scales():
         mr.render("native_sigma", cam)
     # the scale is fixed, not per frame: a value maps to the same colour in every view, as the legend states
     spec = mr.specs["proxy_sigma"]
-    assert (spec.lo, spec.hi) == (0.0, 0.05) and "0.05" in spec.scale_text() and "fixed" in spec.scale_text()
+    assert (spec.lo, spec.hi) == (0.0, 0.03) and "0.03" in spec.scale_text() and "fixed" in spec.scale_text()
     frame = mr.render("proxy_sigma", cam)
     lut = colormap_lut(spec.cmap)
     v = frame.values[16, 18].item()
-    assert (frame.image[16, 18] == lut[int(round(min(v / 0.05, 1.0) * 255))]).all()
+    assert (frame.image[16, 18] == lut[int(round(min(v / 0.03, 1.0) * 255))]).all()
     mr.set_sigma_max(0.01)
     frame2 = mr.render("proxy_sigma", cam)
     assert torch.equal(frame.values, frame2.values)
     assert (frame2.image[16, 18] == lut[int(round(min(v / 0.01, 1.0) * 255))]).all()
-    assert MODES["proxy_sigma"].hi == 0.05  # the module's table is never changed
+    assert MODES["proxy_sigma"].hi == 0.03  # the module's table is never changed
 
 
 def test_depth_alpha_and_overlays_of_a_known_gaussian():
@@ -280,7 +280,7 @@ def test_viewer_in_headless_chromium(tiny_runs, tmp_path):
         rgb = browser.screenshot()
         browser.choose("RGB", "Native σ")  # real mouse clicks on the panel's mode menu, then on the option
         browser.wait_frame("Native σ", "full resolution")
-        assert "0.05" in browser.evaluate("document.body.innerText")  # the legend states the fixed scale
+        assert "right 0.03" in browser.evaluate("document.body.innerText")  # the legend states the fixed scale
         time.sleep(1.0)
         sigma = browser.screenshot()
         (tmp_path / "rgb.png").write_bytes(rgb)

@@ -50,7 +50,7 @@ class ModeSpec:
     what: str = ""
 
     def scale_text(self) -> str:
-        """The fixed scale in words, e.g. ``"0 (dark) to 0.05 (bright), linear, RGB units"``."""
+        """The fixed scale in words, e.g. ``"0 to 0.03 (RGB, per channel), linear, colour map inferno; fixed for the session"``."""
         if self.kind == "rgb":
             return "the rendered colour"
         scale = "log scale" if self.log else "linear"
@@ -63,13 +63,13 @@ MODES: dict[str, ModeSpec] = {m.key: m for m in (
     ModeSpec("depth", "Depth", "pixel", "turbo", 0.0, 1.0, unit="scene units",
              what="expected depth Σ w z / α (range: 0 to twice the farthest camera's distance from the scene centre)"),
     ModeSpec("alpha", "Alpha", "pixel", "gray", 0.0, 1.0, what="accumulated opacity α = Σ w"),
-    ModeSpec("native_sigma", "Native σ", "pixel", "inferno", 0.0, 0.05, unit="(RGB, per channel)",
+    ModeSpec("native_sigma", "Native σ", "pixel", "inferno", 0.0, 0.03, unit="(RGB, per channel)",
              what="σ = √u_p of S posterior re-renders (Eq. 4), epistemic part; needs posterior blocks (niw, dpmm)"),
-    ModeSpec("proxy_sigma", "Proxy σ", "pixel", "inferno", 0.0, 0.05, unit="(RGB, per channel)",
+    ModeSpec("proxy_sigma", "Proxy σ", "pixel", "inferno", 0.0, 0.03, unit="(RGB, per channel)",
              what="σ of S re-renders with every centre jittered by N(0, (jitter·extent)²)"),
     ModeSpec("dp_activity", "DP activity E[a_k]", "gaussian", "viridis", 0.0, 1.0,
              what="the DP block's expected activity per Gaussian; needs the dp block (dpmm)"),
-    ModeSpec("pos_std", "Posterior position std", "gaussian", "magma", 1e-4, 1e-1, log=True,
+    ModeSpec("pos_std", "Posterior position std", "gaussian", "magma", 1e-5, 1e-2, log=True,
              unit="× scene extent", what="√(tr Var[μ_k]/3) of the NIW posterior per Gaussian; needs the niw block"),
     ModeSpec("opacity", "Opacity", "gaussian", "viridis", 0.0, 1.0, what="σ(o_k) per Gaussian"),
 )}
@@ -125,7 +125,7 @@ class ModeRenderer:
     the module's own renderer. The σ modes reuse the UQ regimes of ``b3dgs-eval`` (fitted once, lazily);
     per-Gaussian values come from the posterior blocks' ``export`` (:meth:`SplatModule.export_extras`)."""
 
-    def __init__(self, module, scene: Scene, samples: int = 16, jitter: float = 0.002, sigma_max: float = 0.05,
+    def __init__(self, module, scene: Scene, samples: int = 16, jitter: float = 0.002, sigma_max: float = 0.03,
                  depth_max: Optional[float] = None, seed: int = 0) -> None:
         if samples < 2:
             raise ValueError(f"viewer samples must be >= 2 (a spread needs two draws), got {samples}")

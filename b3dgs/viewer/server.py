@@ -19,7 +19,7 @@ from typing import Optional
 import numpy as np
 
 from b3dgs.viewer.cameras import camera_pose, fov_y, render_size, view_camera
-from b3dgs.viewer.modes import MODES, Frame, ModeRenderer, ModeSpec, colormap_lut
+from b3dgs.viewer.modes import MIN_ALPHA, MODES, Frame, ModeRenderer, ModeSpec, colormap_lut
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +39,7 @@ class ViewerSettings:
     still_ms: float = 250.0  # camera still this long -> full resolution
     samples: int = 16  # S draws per σ frame
     jitter: float = 0.002  # proxy σ: centre jitter × scene extent
-    sigma_max: float = 0.05  # σ modes' fixed colour scale (RGB units)
+    sigma_max: float = 0.03  # σ modes' fixed colour scale (RGB units)
     mode: str = "rgb"  # the mode shown first
     frusta: bool = True
     thumbnails: int = 200  # draw the training images on the frusta when there are at most this many cameras
@@ -223,9 +223,9 @@ class ViewerApp:
         if spec.log:
             mid = f" · middle {10 ** ((math.log10(spec.lo) + math.log10(spec.hi)) / 2):.3g}"
         extra = (" Pixel: compositing-weighted mean of the Gaussians' values (of log10 on a log scale); "
-                 "dark grey where α < 0.05." if spec.kind == "gaussian" else "")
+                 f"dark grey where α < {MIN_ALPHA}." if spec.kind == "gaussian" else "")
         if spec.key == "depth":
-            extra = " Dark grey where α < 0.05."
+            extra = f" Dark grey where α < {MIN_ALPHA}."
         return (f"**{spec.label}**: left {lo} → right {hi}{mid} {spec.unit}; {'log' if spec.log else 'linear'} scale, "
                 f"fixed for the session ({spec.cmap}).  \n{spec.what}.{extra}")
 
