@@ -7,7 +7,7 @@ the viewer's full resolution (the training image's long side) and at the moving-
 default 100 ms target, measured in this process (what the viewer's render thread does per frame; the JPEG
 encoding and the websocket add a few ms). With --screenshot, the first run is served on 127.0.0.1, opened in
 headless Chromium (software WebGL), switched from RGB to native σ through the panel's menu with mouse
-clicks, and the two screenshots are written side by side. Writes bench/results/viewer.{json,md}.
+clicks, and the two screenshots are written side by side (cameras hidden; the RGB one without the panel). Writes bench/results/viewer.{json,md}.
 """
 from __future__ import annotations
 
@@ -26,6 +26,8 @@ from common import machine, median_ms, table, write_results  # noqa: E402
 from b3dgs.viewer.cameras import camera_pose, fov_y, render_size, view_camera  # noqa: E402
 from b3dgs.viewer.modes import ModeRenderer  # noqa: E402
 from b3dgs.viewer.run import open_run  # noqa: E402
+
+PANEL_PX = 345  # viser's side panel (320 px) and its margin, at the right of the window
 
 
 def frame_times(run_dir: str, samples: int, target_ms: float, repeats: int) -> list[dict]:
@@ -57,7 +59,7 @@ def screenshot_pair(run_dir: str, out: Path, width: int, height: int) -> dict:
     from b3dgs.viewer.browser import Browser
     from b3dgs.viewer.server import ViewerApp, ViewerSettings
 
-    app = ViewerApp(open_run(run_dir), ViewerSettings(port=0)).start()
+    app = ViewerApp(open_run(run_dir), ViewerSettings(port=0, frusta=False)).start()
     shots, texts = [], []
     try:
         with Browser(app.url() + "/", width=width, height=height) as b:
@@ -74,9 +76,10 @@ def screenshot_pair(run_dir: str, out: Path, width: int, height: int) -> dict:
     finally:
         app.stop()
     w, h = shots[0].size
-    pair = Image.new("RGB", (2 * w + 8, h), (255, 255, 255))
-    pair.paste(shots[0], (0, 0))
-    pair.paste(shots[1], (w + 8, 0))
+    left = shots[0].crop((0, 0, w - PANEL_PX, h))  # the RGB view without the panel; the σ one with its legend
+    pair = Image.new("RGB", (left.width + 8 + w, h), (255, 255, 255))
+    pair.paste(left, (0, 0))
+    pair.paste(shots[1], (left.width + 8, 0))
     pair = pair.resize((pair.width * 3 // 4, pair.height * 3 // 4), Image.LANCZOS).quantize(colors=192)
     out.parent.mkdir(parents=True, exist_ok=True)
     pair.save(out, optimize=True)
@@ -91,7 +94,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--screenshot", type=Path, default=None)
-    ap.add_argument("--window", type=int, nargs=2, default=(1100, 640))
+    ap.add_argument("--window", type=int, nargs=2, default=(1000, 760))
     args = ap.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)

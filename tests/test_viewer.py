@@ -307,3 +307,29 @@ def test_viewer_in_headless_chromium(tiny_runs, tmp_path):
             proc.wait(timeout=30)
         except subprocess.TimeoutExpired:
             proc.kill()
+
+
+def test_acquired_views_are_listed_first_in_pick_order(tiny_runs, tmp_path):
+    """An active-view row's selection.json (in the run dir, or acquired=ROW) puts its picks first, in order."""
+    pytest.importorskip("viser", reason='viser not installed (fix: pip install -e ".[viewer]")')
+    from b3dgs.errors import B3dgsError
+    from b3dgs.viewer.run import open_run
+    from b3dgs.viewer.server import ViewerApp, ViewerSettings
+
+    run_dir = copy_run(tiny_runs["niw"], tmp_path / "row")
+    names = [c.name for c in open_run(run_dir).scene.train]
+    picks = [names[5], names[2]]
+    (run_dir / "selection.json").write_text(json.dumps({"policy": "native", "selected": picks}))
+    run = open_run(run_dir)
+    assert run.acquired == picks
+    app = ViewerApp(run, ViewerSettings(port=0))
+    try:
+        labels = [(lbl, kind) for lbl, _, kind in app._cameras]
+        assert labels[:2] == [(f"acquired #1: {picks[0]}", "acquired"), (f"acquired #2: {picks[1]}", "acquired")]
+        assert [k for _, k in labels].count("test") == len(run.scene.test)
+        assert len(labels) == len(run.scene.train) + len(run.scene.test)  # an acquired view is listed once
+    finally:
+        app.stop()
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(B3dgsError, match="not an active-view selection"):
+        open_run(tiny_runs["niw"], acquired=str(tmp_path / "bad.json"))

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 import numpy as np
+import torch
 
 from b3dgs.viewer.cameras import camera_pose, fov_y, render_size, view_camera
 from b3dgs.viewer.modes import MIN_ALPHA, MODES, Frame, ModeRenderer, ModeSpec, colormap_lut
@@ -41,7 +42,7 @@ class ViewerSettings:
     jitter: float = 0.002  # proxy σ: centre jitter × scene extent
     sigma_max: float = 0.03  # σ modes' fixed colour scale (RGB units)
     mode: str = "rgb"  # the mode shown first
-    frusta: bool = True
+    frusta: bool = True  # the cameras shown first (a checkbox in the panel)
     thumbnails: int = 200  # draw the training images on the frusta when there are at most this many cameras
     jpeg_quality: int = 90
 
@@ -134,6 +135,7 @@ class ViewerApp:
         with gui.add_folder("Cameras"):
             self.cam_dd = gui.add_dropdown("Jump to", tuple(lbl for lbl, _, _ in self._cameras))
             go = gui.add_button("Go")
+            self.show_cameras = gui.add_checkbox("Show cameras", initial_value=bool(self.s.frusta))
             n_acq = len(self.run.acquired)
             gui.add_markdown(f"Frusta: grey = train ({len(self.scene.train)}), **red = test** ({len(self.scene.test)})"
                              + (f", **blue = acquired** ({n_acq}, labelled in pick order)" if n_acq else "")
@@ -159,6 +161,10 @@ class ViewerApp:
             self.modes.samples = int(self.samples_in.value)
             if self.mode_key.endswith("sigma"):
                 self._touch_all()
+
+        @self.show_cameras.on_update
+        def _(event) -> None:
+            self._show_frusta(bool(self.show_cameras.value))
 
         @go.on_click
         def _(event) -> None:
@@ -229,12 +235,21 @@ class ViewerApp:
         return (f"**{spec.label}**: left {lo} → right {hi}{mid} {spec.unit}; {'log' if spec.log else 'linear'} scale, "
                 f"fixed for the session ({spec.cmap}).  \n{spec.what}.{extra}")
 
+    def _frustum_scale(self) -> float:
+        """Frustum depth: a third of the median distance between neighbouring cameras (so that neighbours do
+        not overlap), at most 0.08 × the scene extent."""
+        centres = torch.stack([c.center.double().cpu() for _, c, _ in self._cameras])
+        if len(centres) < 2:
+            return 0.08 * float(self.scene.extent)
+        d = torch.cdist(centres, centres)
+        d.fill_diagonal_(float("inf"))
+        return float(min(0.08 * float(self.scene.extent), d.min(1).values.median() / 3.0))
+
     def _add_frusta(self, st: "_ClientState") -> None:
         """The cameras' frusta in this browser's scene (per browser, so that the one it looks through is hidden)."""
         scene_api = st.client.scene
-        ext = float(self.scene.extent)
-        n = len(self._cameras)
-        thumbs = n <= self.s.thumbnails
+        scale = self._frustum_scale()
+        thumbs = len(self._cameras) <= self.s.thumbnails
         for i, (label, cam, kind) in enumerate(self._cameras):
             wxyz, pos = camera_pose(cam)
             colour = {"train": TRAIN_COLOUR, "test": TEST_COLOUR, "acquired": ACQUIRED_COLOUR}.get(kind, CANDIDATE_COLOUR)
@@ -243,20 +258,24 @@ class ViewerApp:
                 step = max(1, max(cam.width, cam.height) // 48)
                 img = (cam.image[::step, ::step].clamp(0, 1).cpu().numpy() * 255).astype(np.uint8)
             h = scene_api.add_camera_frustum(
-                f"/cameras/{kind}_{i:04d}", fov=fov_y(cam), aspect=cam.width / cam.height, scale=0.08 * ext,
-                thickness=0.004 * ext * (2.0 if kind in ("test", "acquired") else 1.0), color=colour, image=img,
-                wxyz=wxyz, position=pos)
+                f"/cameras/{kind}_{i:04d}", fov=fov_y(cam), aspect=cam.width / cam.height, scale=scale,
+                thickness=3.0 if kind in ("test", "acquired") else 1.5, thickness_units="screen", color=colour,
+                image=img, wxyz=wxyz, position=pos, visible=bool(self.show_cameras.value))
             if kind == "acquired":
                 scene_api.add_label(f"/cameras/{kind}_{i:04d}/pick", label.split(":")[0].replace("acquired ", ""),
                                     position=(0.0, 0.0, 0.0))
             h.on_click(lambda event, cam=cam: self.jump(event.client, cam))
             st.frusta[cam.name] = h
 
+    def _show_frusta(self, visible: bool) -> None:
+        for st in list(self.clients.values()):
+            for name, h in st.frusta.items():
+                h.visible = visible and name != st.hidden
+
     # ------------------------------------------------------------------ clients
     def _on_connect(self, client) -> None:
         st = _ClientState(client)
-        if self.s.frusta:
-            self._add_frusta(st)
+        self._add_frusta(st)
         with self.lock:
             self.clients[client.client_id] = st
 
@@ -278,7 +297,7 @@ class ViewerApp:
         st = self.clients.get(client.client_id)
         if st is not None:
             if st.hidden in st.frusta:
-                st.frusta[st.hidden].visible = True
+                st.frusta[st.hidden].visible = bool(self.show_cameras.value)
             if cam.name in st.frusta:
                 st.frusta[cam.name].visible = False
             st.hidden = cam.name
