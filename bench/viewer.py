@@ -4,7 +4,7 @@
 
 For every run and every mode it offers: the median render + colour-map time of the first test view's pose at
 the viewer's full resolution (the training image's long side) and at the moving-camera pass's size for the
-default 100 ms target, measured in this process (what the viewer's render thread does per frame; the JPEG
+default 100 ms target (σ modes with S/4 draws there, as the viewer does), measured in this process (what the viewer's render thread does per frame; the JPEG
 encoding and the websocket add a few ms). With --screenshot, the first run is served on 127.0.0.1, opened in
 headless Chromium (software WebGL), switched from RGB to native σ through the panel's menu with mouse
 clicks, and the two screenshots are written side by side (cameras hidden; the RGB one without the panel). Writes bench/results/viewer.{json,md}.
@@ -45,7 +45,8 @@ def frame_times(run_dir: str, samples: int, target_ms: float, repeats: int) -> l
         low = max(32, min(full, int(full * math.sqrt(min(1.0, target_ms / ms)))))
         lw, lh = render_size(aspect, low)
         low_view = view_camera(wxyz, pos, fov_y(cam), lw, lh)
-        low_ms = median_ms(lambda: mr.render(mode, low_view), repeats=repeats, warmup=1)
+        low_s = max(2, samples // 4) if mode.endswith("sigma") else None  # the viewer's moving pass draws S/4
+        low_ms = median_ms(lambda: mr.render(mode, low_view, samples=low_s), repeats=repeats, warmup=1)
         rows.append({"run": Path(run_dir).name, "model": run.metrics.get("method"), "gaussians": run.module.num_gaussians,
                      "mode": mode, "full": f"{w}x{h}", "full_ms": ms, "low": f"{lw}x{lh}", "low_ms": low_ms,
                      "samples": samples if mode.endswith("sigma") else None})

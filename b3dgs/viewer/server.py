@@ -2,7 +2,7 @@
 
 One render thread serves every connected browser (a 2-core machine renders one frame at a time). A browser
 that moves its camera gets frames at a reduced resolution, chosen from the measured cost of the current mode
-so that a frame takes about ``target_ms``; once the camera has been still for ``still_ms`` the view is
+so that a frame takes about ``target_ms`` (the σ modes draw S/4 samples then); once the camera has been still for ``still_ms`` the view is
 rendered again at full resolution (``max_side``). The panel states the last frame's time, size and
 whether it was the low or full pass.
 """
@@ -374,9 +374,12 @@ class ViewerApp:
         side = self.full_side if full else self.low_side(mode, aspect)
         full = full or side >= self.full_side
         w, h = render_size(aspect, side)
-        frame = self.modes.render(mode, view_camera(wxyz, pos, fov, w, h))
-        per_px = frame.seconds / (w * h)
-        self.cost[mode] = per_px if mode not in self.cost else 0.5 * (self.cost[mode] + per_px)
+        # σ modes also draw a quarter of the samples while moving: their cost is mostly per Gaussian, not per pixel
+        samples = None if full else max(2, self.modes.samples // 4)
+        frame = self.modes.render(mode, view_camera(wxyz, pos, fov, w, h), samples=samples)
+        if full:  # the low pass is sized from the full pass's cost per pixel
+            per_px = frame.seconds / (w * h)
+            self.cost[mode] = per_px if mode not in self.cost else 0.5 * (self.cost[mode] + per_px)
         st.client.scene.set_background_image(frame.image, format="jpeg", jpeg_quality=self.s.jpeg_quality)
         st.shown_version, st.shown_full = version, full
         self.frames += 1
