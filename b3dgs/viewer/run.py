@@ -1,0 +1,130 @@
+"""Open a finished run dir for the viewer, or refuse it in one line (:class:`~b3dgs.errors.B3dgsError`).
+
+Refused: a path that does not exist or is no run dir, a run still training (its lock is held) or
+unfinished (no ``metrics.json``, the done marker, or no ``checkpoints/last.ckpt``), and a run written by
+another b3dgs version (``metrics.json`` without the checkpoint record this version writes, or a config /
+checkpoint this code cannot rebuild: unknown settings, plugins or parameters).
+"""
+from __future__ import annotations
+
+import errno
+import fcntl
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+from b3dgs.errors import B3dgsError
+
+__all__ = ["ViewedRun", "acquired_views", "open_run"]
+
+
+@dataclass
+class ViewedRun:
+    """A loaded run plus what the side panel shows: ``metrics.json``, ``curve.json`` points, acquired views."""
+
+    path: Path
+    loaded: object  # b3dgs.runs.LoadedRun
+    metrics: dict
+    curve: list[dict] = field(default_factory=list)
+    acquired: list[str] = field(default_factory=list)
+
+    @property
+    def module(self):
+        return self.loaded.module
+
+    @property
+    def scene(self):
+        return self.loaded.scene
+
+
+def _training_pid(run_dir: Path) -> Optional[str]:
+    """The pid of a live process holding the run dir's lock (``b3dgs.rundir.run_dir_lock``), else None."""
+    from b3dgs.rundir import LOCK_NAME
+
+    path = run_dir / LOCK_NAME
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError as e:
+        if e.errno in (errno.EAGAIN, errno.EACCES):
+            return os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+        return None
+    finally:
+        os.close(fd)
+    return None
+
+
+def acquired_views(path: Optional[Path]) -> list[str]:
+    """The acquired views in pick order from an active-view study row's ``selection.json`` (``path``: the
+    file or its row dir); [] when there is none."""
+    if path is None:
+        return []
+    path = Path(path)
+    f = path / "selection.json" if path.is_dir() else path
+    if not f.is_file():
+        return []
+    try:
+        sel = json.loads(f.read_text())
+        return [str(n) for n in sel["selected"]]
+    except (ValueError, KeyError, TypeError) as e:
+        raise B3dgsError(f"{f} is not an active-view selection ({type(e).__name__}: {e})",
+                         "pass acquired=ROW_DIR of b3dgs-study active, or leave acquired out") from None
+
+
+def open_run(run_dir, acquired: Optional[str] = None, renderer=None) -> ViewedRun:
+    """Check and load ``run_dir`` (see the module doc for what is refused)."""
+    from hydra.errors import InstantiationException
+
+    from b3dgs.runs import load_run
+
+    run_dir = Path(str(run_dir)).expanduser()
+    again = f"b3dgs-train ... hydra.run.dir={run_dir} overwrite=true"
+    if not run_dir.exists():
+        raise B3dgsError(f"no run dir at {run_dir}", "pass run=DIR of a finished b3dgs-train run (outputs/train/...)")
+    if not run_dir.is_dir():
+        raise B3dgsError(f"{run_dir} is a file, not a run dir", "pass run=DIR of a finished b3dgs-train run")
+    if not (run_dir / "config.yaml").is_file():
+        raise B3dgsError(f"{run_dir} is not a b3dgs run dir: no config.yaml",
+                         "pass run=DIR of a finished b3dgs-train run (outputs/train/...)")
+    pid = _training_pid(run_dir)
+    if pid is not None:
+        raise B3dgsError(f"{run_dir} is still training (b3dgs-train pid {pid}); it has no final model yet",
+                         "wait for it to finish, or watch it live with b3dgs-train ... viewer=true")
+    if not (run_dir / "metrics.json").is_file() or not (run_dir / "checkpoints" / "last.ckpt").is_file():
+        missing = "metrics.json" if not (run_dir / "metrics.json").is_file() else "checkpoints/last.ckpt"
+        raise B3dgsError(f"{run_dir} holds an unfinished run: no {missing}",
+                         f"finish it with `b3dgs-train ... hydra.run.dir={run_dir} resume=auto`")
+    try:
+        metrics = json.loads((run_dir / "metrics.json").read_text())
+    except ValueError as e:
+        raise B3dgsError(f"{run_dir / 'metrics.json'} is damaged ({e})",
+                         f"finish the run again with `b3dgs-train ... hydra.run.dir={run_dir} resume=auto`") from None
+    if not isinstance(metrics, dict) or "checkpoint" not in metrics:
+        raise B3dgsError(f"{run_dir} was written by another b3dgs version: its metrics.json has no checkpoint record",
+                         f"train it again with this version (`{again}`)")
+    try:
+        loaded = load_run(run_dir, renderer=renderer)
+    except B3dgsError:
+        raise
+    except (FileNotFoundError, ValueError) as e:  # load_run's own one-line reasons (identity, digest, config)
+        msg = " ".join(str(e).split())
+        raise B3dgsError(f"cannot open {run_dir}: {msg.split(' (fix:')[0]}",
+                         msg.split("(fix: ", 1)[1].rstrip(")") if "(fix: " in msg else f"train it again (`{again}`)") from None
+    except (InstantiationException, ImportError, AttributeError, KeyError, TypeError, RuntimeError) as e:
+        # a config naming settings or plugins this code lacks, or a state dict of other parameters
+        raise B3dgsError(f"{run_dir} was written by another b3dgs version: this code cannot rebuild it "
+                         f"({type(e).__name__}: {' '.join(str(e).split())[:160]})",
+                         f"view it with the b3dgs version that trained it, or train it again (`{again}`)") from None
+    curve = []
+    if (run_dir / "curve.json").is_file():
+        try:
+            curve = list(json.loads((run_dir / "curve.json").read_text()).get("points") or [])
+        except (ValueError, AttributeError):
+            curve = []
+    sel = Path(acquired) if acquired else (run_dir if (run_dir / "selection.json").is_file() else None)
+    return ViewedRun(run_dir, loaded, metrics, curve, acquired_views(sel))

@@ -1,0 +1,335 @@
+"""b3dgs-view: the render modes (shapes, fixed scales, a known Gaussian's σ, depth and overlays), the
+camera conversions, the run-dir checks (one-line errors) and a real browser (headless Chromium) driving
+the viewer's GUI."""
+import json
+import math
+import os
+import re
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from b3dgs.types import Camera, Scene
+from b3dgs.viewer.cameras import camera_pose, mat_to_wxyz, render_size, view_camera, wxyz_to_mat
+from b3dgs.viewer.modes import MIN_ALPHA, MODES, ModeRenderer, colormap_lut
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+MODELS = ("standard", "niw", "dpmm", "mcmc")
+
+
+# ------------------------------------------------------------------------------------ a known Gaussian
+F, Z, SIZE, S_WORLD, OPACITY = 32.0, 2.0, 33, 0.1, 0.8
+
+
+def one_gaussian_scene():
+    """A 33 × 33 camera at the origin looking down +z with the principal point on pixel (16, 16)'s centre."""
+    K = torch.tensor([[F, 0, SIZE / 2], [0, F, SIZE / 2], [0, 0, 1]], dtype=torch.float32)
+    cam = Camera("c0", K, torch.eye(4), SIZE, SIZE, image=torch.zeros(SIZE, SIZE, 3))
+    return Scene("one", [cam], [cam], points=torch.zeros(1, 3), point_colors=torch.ones(1, 3)), cam
+
+
+def one_gaussian_module(blocks=None):
+    """A module holding one isotropic Gaussian (std S_WORLD) at depth Z, opacity OPACITY, white."""
+    from b3dgs.module import SplatModule
+    from b3dgs.render.projection import rgb_to_sh0
+    from b3dgs_plugins.strategy.default import AdaptiveDensityControl
+
+    scene, cam = one_gaussian_scene()
+    m = SplatModule(strategy=AdaptiveDensityControl(), posterior=blocks or {}, renderer="cpu", max_steps=100, sh_degree=0)
+    m.scene = scene
+    m._set_params({"means": torch.tensor([[0.0, 0.0, Z]]), "scales": torch.full((1, 3), math.log(S_WORLD)),
+                   "quats": torch.tensor([[1.0, 0, 0, 0]]), "opacities": torch.logit(torch.tensor([OPACITY])),
+                   "sh0": rgb_to_sh0(torch.ones(1, 1, 3)), "shN": torch.zeros(1, 0, 3)})
+    m._init_states()
+    m._loaded_step = 100
+    m.eval()
+    return m, scene, cam
+
+
+def test_render_modes_shapes_and_fixed_scales():
+    m, scene, cam = one_gaussian_module()
+    mr = ModeRenderer(m, scene, samples=4)
+    assert set(mr.available()) == {"rgb", "depth", "alpha", "proxy_sigma", "opacity"}
+    assert set(mr.unavailable()) == {"native_sigma", "dp_activity", "pos_std"}
+    small = view_camera(*camera_pose(cam), fov=2 * math.atan(0.5 * SIZE / F), width=20, height=12)
+    for mode in mr.available():
+        frame = mr.render(mode, small)
+        assert frame.image.shape == (12, 20, 3) and frame.image.dtype == np.uint8
+        if mode != "rgb":
+            assert frame.values.shape == (12, 20)
+    with pytest.raises(ValueError, match="not available for this run: model=standard has no posterior"):
+        mr.render("native_sigma", cam)
+    # the scale is fixed, not per frame: a value maps to the same colour in every view, as the legend states
+    spec = mr.specs["proxy_sigma"]
+    assert (spec.lo, spec.hi) == (0.0, 0.03) and "0.03" in spec.scale_text() and "fixed" in spec.scale_text()
+    frame = mr.render("proxy_sigma", cam)
+    lut = colormap_lut(spec.cmap)
+    v = frame.values[16, 18].item()
+    assert (frame.image[16, 18] == lut[int(round(min(v / 0.03, 1.0) * 255))]).all()
+    mr.set_sigma_max(0.01)
+    frame2 = mr.render("proxy_sigma", cam)
+    assert torch.equal(frame.values, frame2.values)
+    assert (frame2.image[16, 18] == lut[int(round(min(v / 0.01, 1.0) * 255))]).all()
+    assert MODES["proxy_sigma"].hi == 0.03  # the module's table is never changed
+
+
+def test_depth_alpha_and_overlays_of_a_known_gaussian():
+    m, scene, cam = one_gaussian_module()
+    mr = ModeRenderer(m, scene)
+    alpha = mr.render("alpha", cam).values
+    assert alpha[16, 16].item() == pytest.approx(OPACITY, rel=1e-4)  # the centre pixel: G = 1
+    depth = mr.render("depth", cam)
+    covered = alpha >= MIN_ALPHA
+    assert covered.sum() > 4 and torch.allclose(depth.values[covered], torch.tensor(Z), rtol=1e-4)
+    assert depth.mask is not None and torch.equal(depth.mask, covered)
+    assert mr.specs["depth"].hi == pytest.approx(2.0 * max(float(c.center.norm()) for c in scene.train), abs=0.1)
+    # one Gaussian: the weighted mean of its value along every covered ray is its value
+    op = mr.render("opacity", cam)
+    assert torch.allclose(op.values[covered], torch.tensor(OPACITY), atol=1e-3)
+    mr.extras["niw_pos_var"] = torch.tensor([3e-3 ** 2])  # tr Var[μ] / 3: std 3e-3 × extent (extent 1)
+    pos = mr.render("pos_std", cam)
+    assert torch.allclose(pos.values[covered], torch.tensor(3e-3), rtol=2e-2)
+    assert mr.specs["pos_std"].log and "log scale" in mr.specs["pos_std"].scale_text()
+
+
+def test_proxy_sigma_of_a_known_gaussian_matches_first_order_propagation():
+    """Every centre jittered by N(0, τ² I): on the image row through the centre, the pixel's σ is, to first
+    order, |∂I/∂u| · f τ / z with I = o · exp(−r² / (2 s²)) and s² = (f s_w / z)² + 0.3 (EWA's blur)."""
+    m, scene, cam = one_gaussian_module()
+    jitter = 0.002
+    mr = ModeRenderer(m, scene, samples=600, jitter=jitter)
+    sigma = mr.render("proxy_sigma", cam).values
+    s2 = (F * S_WORLD / Z) ** 2 + 0.3
+    for r in (1, 2):
+        intensity = OPACITY * math.exp(-r * r / (2 * s2))
+        expected = intensity * r / s2 * F * jitter * scene.extent / Z
+        assert sigma[16, 16 + r].item() == pytest.approx(expected, rel=0.1)
+        assert sigma[16, 16 - r].item() == pytest.approx(expected, rel=0.1)
+    assert sigma[16, 16].item() < 0.1 * sigma[16, 17].item()  # the profile is flat at its peak
+    assert sigma[0, 0].item() == 0.0  # nothing there
+
+
+def test_native_sigma_is_the_posterior_spread_of_eq4():
+    from b3dgs_plugins.posterior.niw import NIWBlock
+    from b3dgs_plugins.uq.native import NativeUQ
+
+    m, scene, cam = one_gaussian_module({"niw": NIWBlock()})
+    mr = ModeRenderer(m, scene, samples=8)
+    assert "native_sigma" in mr.available() and "pos_std" in mr.available()
+    for count, positive in ((1e12, False), (5.0, True)):
+        m.states["niw"]["N"].fill_(count)
+        mr._regimes.clear()
+        sigma = mr.render("native_sigma", cam).values
+        ref = NativeUQ(samples=8, chunk=8)
+        ref.fit([m], scene)
+        _, u = ref.spread(cam, torch.Generator().manual_seed(0))
+        assert torch.allclose(sigma, u.clamp_min(0).sqrt(), atol=1e-6)  # the b3dgs-eval regime, not a copy
+        assert (sigma.max().item() > 1e-3) == positive
+
+
+def test_camera_conversions_round_trip():
+    g = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        q = torch.randn(4, generator=g).double().numpy()
+        q /= np.linalg.norm(q)
+        R = wxyz_to_mat(q)
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.linalg.det(R) == pytest.approx(1.0)
+        assert np.allclose(wxyz_to_mat(mat_to_wxyz(R)), R, atol=1e-10)
+    _, cam = one_gaussian_scene()
+    cam = Camera("c", cam.K, torch.tensor([[0.0, 0, 1, 0.3], [1, 0, 0, -0.2], [0, 1, 0, 2.0], [0, 0, 0, 1]]), SIZE, SIZE)
+    wxyz, pos = camera_pose(cam)
+    back = view_camera(wxyz, pos, 2 * math.atan(0.5 * SIZE / F), SIZE, SIZE)
+    assert torch.allclose(back.viewmat, cam.viewmat, atol=1e-6)
+    assert torch.allclose(back.K, cam.K, atol=1e-5)
+    assert render_size(2.0, 128) == (128, 64) and render_size(0.5, 128) == (64, 128)
+
+
+# ------------------------------------------------------------------------------------ trained runs
+@pytest.fixture(scope="session")
+def tiny_runs(tmp_path_factory):
+    """One 40-step run of each model on the embedded scene at 32 px (one multirun process)."""
+    root = tmp_path_factory.mktemp("viewer_runs")
+    cmd = [sys.executable, "-m", "b3dgs.train", "-m", f"model={','.join(MODELS)}", "trainer.max_steps=40",
+           "trainer.eval_every=20", "data.max_side=32", "+data.n_views=16", "trainer.enable_progress_bar=false", "logger=none",
+           "renderer=cpu", f"hydra.sweep.dir={root}", "hydra.sweep.subdir=${model.name}"]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return {m: root / m for m in MODELS}
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_viewer_opens_each_model_and_renders_every_mode(tiny_runs, model):
+    from b3dgs.viewer.run import open_run
+
+    run = open_run(tiny_runs[model])
+    mr = ModeRenderer(run.module, run.scene, samples=4)
+    expect = {"rgb", "depth", "alpha", "proxy_sigma", "opacity"}
+    expect |= {"niw": {"native_sigma", "pos_std"}, "dpmm": {"native_sigma", "pos_std", "dp_activity"}}.get(model, set())
+    assert set(mr.available()) == expect
+    cam = view_camera(*camera_pose(run.scene.test[0]), fov=0.8, width=24, height=16)
+    for mode in mr.available():
+        frame = mr.render(mode, cam)
+        assert frame.image.shape == (16, 24, 3)
+        assert frame.image.std() > 0, f"{model} {mode}: a blank frame"
+    assert run.metrics["method"] == model and len(run.curve) >= 2
+
+
+def copy_run(src: Path, dst: Path) -> Path:
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_run_dir_errors_are_one_line(tiny_runs, tmp_path):
+    from b3dgs.errors import B3dgsError
+    from b3dgs.viewer.run import open_run
+
+    def refused(path, match):
+        with pytest.raises(B3dgsError, match=match) as e:
+            open_run(path)
+        assert "\n" not in str(e.value) and "(fix: " in str(e.value)
+
+    refused(tmp_path / "nope", "no run dir at")
+    (tmp_path / "file").write_text("x")
+    refused(tmp_path / "file", "is a file")
+    (tmp_path / "empty").mkdir()
+    refused(tmp_path / "empty", "not a b3dgs run dir: no config.yaml")
+    unfinished = copy_run(tiny_runs["niw"], tmp_path / "unfinished")
+    (unfinished / "metrics.json").unlink()
+    refused(unfinished, "unfinished run: no metrics.json.*resume=auto")
+    old = copy_run(tiny_runs["niw"], tmp_path / "old")
+    m = json.loads((old / "metrics.json").read_text())
+    del m["checkpoint"]
+    (old / "metrics.json").write_text(json.dumps(m))
+    refused(old, "another b3dgs version: its metrics.json has no checkpoint record")
+    foreign = copy_run(tiny_runs["niw"], tmp_path / "foreign")
+    cfg = (foreign / "config.yaml").read_text()
+    (foreign / "config.yaml").write_text(cfg.replace("plugins.posterior.niw.NIWBlock", "plugins.posterior.niw.NIWBlockV9"))
+    refused(foreign, "another b3dgs version: this code cannot rebuild it")
+    stray = copy_run(tiny_runs["niw"], tmp_path / "stray")
+    shutil.copy(tiny_runs["dpmm"] / "checkpoints" / "last.ckpt", stray / "checkpoints" / "last.ckpt")
+    refused(stray, "cannot open")
+    # a run that is still training: its lock is held by a live process
+    from b3dgs.rundir import run_dir_lock
+
+    busy = copy_run(tiny_runs["niw"], tmp_path / "busy")
+    with run_dir_lock(busy):
+        refused(busy, "still training")
+    assert open_run(busy).metrics["method"] == "niw"
+
+
+def test_cli_refuses_in_one_line(tiny_runs, tmp_path):
+    pytest.importorskip("viser", reason='viser not installed (fix: pip install -e ".[viewer]")')
+    for args, match in ((["run=" + str(tmp_path / "missing")], "no run dir at"),
+                        ([f"run={tiny_runs['standard']}", "mode=native_sigma"], "not available for this run"),
+                        ([f"run={tiny_runs['standard']}", "mode=sigma"], "unknown viewer mode"),
+                        ([f"run={tiny_runs['standard']}", "prot=9000"], "prot")):
+        res = subprocess.run([sys.executable, "-m", "b3dgs.viewer.app", *args], capture_output=True, text=True,
+                             timeout=300, cwd=tmp_path, env=ENV)
+        assert res.returncode == 2, res.stderr[-2000:]
+        lines = [ln for ln in res.stderr.splitlines() if ln.startswith("b3dgs-view: error:")]
+        assert len(lines) == 1 and match in lines[0], res.stderr[-2000:]
+    assert not any(tmp_path.iterdir())  # the viewer writes no files
+
+
+# ------------------------------------------------------------------------------------ a real browser
+def render_area(png: bytes) -> np.ndarray:
+    """The screenshot's pixels left of the side panel (the rendered view), as float RGB."""
+    import io
+
+    from PIL import Image
+
+    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.float64)
+    return img[120:-60, 20:900]  # below the notifications, left of the panel, above the axes gizmo
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(shutil.which("chromium") is None and shutil.which("chromium-browser") is None,
+                    reason="chromium not installed (apt-get install -y chromium)")
+def test_viewer_in_headless_chromium(tiny_runs, tmp_path):
+    """Start b3dgs-view on 127.0.0.1, open it in headless Chromium, wait for the canvas and a full frame,
+    switch to native σ with real mouse clicks on the panel's mode menu, drag the view (a low-resolution
+    pass, then full again), and compare screenshots. ``target_ms=1``: every moving frame takes the low pass."""
+    pytest.importorskip("viser", reason='viser not installed (fix: pip install -e ".[viewer]")')
+    from b3dgs.viewer.browser import Browser
+
+    proc = subprocess.Popen([sys.executable, "-m", "b3dgs.viewer.app", f"run={tiny_runs['dpmm']}", "port=0",
+                             "max_side=96", "target_ms=1", "duration_s=600"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True, cwd=tmp_path, env=ENV)
+    browser = None
+    try:
+        url = None
+        for line in proc.stdout:  # the viewer prints its URL once it serves
+            found = re.search(r" at (http://127\.0\.0\.1:\d+) ", line)
+            if found:
+                url = found.group(1)
+                break
+        assert url is not None and proc.poll() is None, "the viewer did not start"
+        threading.Thread(target=proc.stdout.read, daemon=True).start()  # keep the pipe drained
+        browser = Browser(url + "/")
+        browser.wait_for("document.querySelector('canvas') !== null", 120)
+        browser.wait_frame("(RGB", "full resolution")
+        time.sleep(2.0)  # the page's fade-in
+        rgb = browser.screenshot()
+        browser.choose("RGB", "Native σ")  # real mouse clicks on the panel's mode menu, then on the option
+        browser.wait_frame("Native σ", "full resolution")
+        assert "right 0.03" in browser.evaluate("document.body.innerText")  # the legend states the fixed scale
+        time.sleep(1.0)
+        sigma = browser.screenshot()
+        (tmp_path / "rgb.png").write_bytes(rgb)
+        (tmp_path / "sigma.png").write_bytes(sigma)
+        a, b = render_area(rgb), render_area(sigma)
+        assert a.std() > 5 and b.std() > 5, "a blank screenshot"
+        assert np.abs(a - b).mean() > 5, "RGB and σ screenshots do not differ"
+        # drag the view: frames at low resolution while moving, then full resolution once still
+        seen = set()
+        browser.call("Input.dispatchMouseEvent", type="mousePressed", x=400, y=400, button="left", clickCount=1)
+        for i in range(12):
+            browser.call("Input.dispatchMouseEvent", type="mouseMoved", x=400 + 15 * i, y=400, button="left")
+            time.sleep(0.05)
+            seen.add(browser.frame_text())
+        browser.call("Input.dispatchMouseEvent", type="mouseReleased", x=580, y=400, button="left", clickCount=1)
+        if not any(s and "low resolution" in s for s in seen):
+            browser.wait_frame("low resolution", timeout=60)
+        browser.wait_frame("full resolution")
+    finally:
+        if browser is not None:
+            browser.close()
+        proc.terminate()
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
+def test_acquired_views_are_listed_first_in_pick_order(tiny_runs, tmp_path):
+    """An active-view row's selection.json (in the run dir, or acquired=ROW) puts its picks first, in order."""
+    pytest.importorskip("viser", reason='viser not installed (fix: pip install -e ".[viewer]")')
+    from b3dgs.errors import B3dgsError
+    from b3dgs.viewer.run import open_run
+    from b3dgs.viewer.server import ViewerApp, ViewerSettings
+
+    run_dir = copy_run(tiny_runs["niw"], tmp_path / "row")
+    names = [c.name for c in open_run(run_dir).scene.train]
+    picks = [names[5], names[2]]
+    (run_dir / "selection.json").write_text(json.dumps({"policy": "native", "selected": picks}))
+    run = open_run(run_dir)
+    assert run.acquired == picks
+    app = ViewerApp(run, ViewerSettings(port=0))
+    try:
+        labels = [(lbl, kind) for lbl, _, kind in app._cameras]
+        assert labels[:2] == [(f"acquired #1: {picks[0]}", "acquired"), (f"acquired #2: {picks[1]}", "acquired")]
+        assert [k for _, k in labels].count("test") == len(run.scene.test)
+        assert len(labels) == len(run.scene.train) + len(run.scene.test)  # an acquired view is listed once
+    finally:
+        app.stop()
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(B3dgsError, match="not an active-view selection"):
+        open_run(tiny_runs["niw"], acquired=str(tmp_path / "bad.json"))
