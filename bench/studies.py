@@ -155,19 +155,27 @@ def write_shared(run_dir: Path, overrides: list[str], twin: Path) -> dict:
 
 
 def ensure_uq(run_dir: Path, method: str, samples: int, seed: int) -> None:
-    """uq.json for a canonical run (regimes per method from conf/report.yaml), unless it exists."""
+    """uq.json for a canonical run (regimes per method from conf/report.yaml), unless it exists with every one of
+    them (a regime added to conf/report.yaml later recomputes the file with all regimes)."""
     from hydra.utils import instantiate
 
     from b3dgs.eval import evaluate_uq
 
-    if (run_dir / "uq.json").exists():
-        return
     names = list(STUDIES.uq_regimes.get(method, ["proxy"]))
+    if not missing_regimes(run_dir, method):
+        return
     cfg = OmegaConf.create({
         "proxy": {"_target_": "b3dgs_plugins.uq.proxy.ProxyUQ", "samples": samples, "jitter": 0.002},
         "native": {"_target_": "b3dgs_plugins.uq.native.NativeUQ", "samples": samples},
     })
     evaluate_uq([str(run_dir)], {n: instantiate(cfg[n]) for n in names}, seed=seed, panels=0)
+
+
+def missing_regimes(run_dir: Path, method: str) -> list[str]:
+    """The regimes conf/report.yaml asks of method that run_dir's uq.json lacks (all of them without one)."""
+    names = list(STUDIES.uq_regimes.get(method, ["proxy"]))
+    have = json.loads((run_dir / "uq.json").read_text()) if (run_dir / "uq.json").is_file() else {}
+    return [n for n in names if n not in have]
 
 
 ARCHIVED = ("config.yaml", "metrics.json", "curve.json", "uq.json")
@@ -204,7 +212,7 @@ def uq_subprocess(run_dir: Path, method: str, samples: int, seed: int, threads: 
     """ensure_uq in its own process (runs of a --jobs pool stay isolated, and killable)."""
     import subprocess
 
-    if (run_dir / "uq.json").exists():
+    if not missing_regimes(run_dir, method):
         return
     cmd = [sys.executable, __file__, "--uq-one", str(run_dir), method, str(samples), str(seed)]
     if threads:
@@ -235,8 +243,9 @@ def main() -> None:
     ap.add_argument("--uq-samples", type=int, default=50)
     ap.add_argument("--out", default="outputs/bench")
     ap.add_argument("--report", default=str(RESULTS / "report"))
-    ap.add_argument("--archive", default=str(RESULTS / "runs"),
-                    help="committed copy of each finished run's small files (resume across machines; report input)")
+    ap.add_argument("--archive", default=None,
+                    help="copy of each finished run's small files (resume across machines; report input); default "
+                         "bench/results/runs (committed) with the default --out, else <out>/archive")
     ap.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every run")
     ap.add_argument("--dry-run", action="store_true", help="list the runs (and whether they are finished) only")
     ap.add_argument("--report-only", action="store_true", help="train nothing: the report of the archived runs")
@@ -245,6 +254,8 @@ def main() -> None:
     ap.add_argument("--no-share", dest="share", action="store_false",
                     help="train sparse/initcap runs that are the same training run as another (NIW = standard) anyway")
     args = ap.parse_args()
+    if args.archive is None:  # smoke runs elsewhere never write into the committed archive
+        args.archive = str(RESULTS / "runs") if args.out == ap.get_default("out") else str(Path(args.out) / "archive")
     jobs = plan(args)
     shared = twins(jobs) if args.share else {}
     todo = [j for j in jobs if not archived(args, j[0], j[2])]
@@ -272,11 +283,22 @@ def main() -> None:
         archive(args, run_dir)
         return m
 
+    if args.uq and not args.report_only:  # archived runs whose uq.json lacks a regime added since: recompute it
+        for run_dir, _, study in jobs:
+            a = archive_dir(args, run_dir)
+            if study == "canonical" and (a / "metrics.json").is_file() and (run_dir / "metrics.json").is_file():
+                m = json.loads((a / "metrics.json").read_text())
+                if missing_regimes(a, m["method"]):
+                    uq_subprocess(run_dir, m["method"], args.uq_samples, int(m["seed"]), args.threads)
+                    archive(args, run_dir)
+                    print(f"{study:9s} {run_dir}: uq.json with {', '.join(missing_regimes(a, m['method'])) or 'every regime'}",
+                          flush=True)
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:  # each run is its own subprocess
         list(ex.map(one, [j for j in jobs if j[0] not in shared and not args.report_only]))  # list(): a failed run raises here
     for run_dir, overrides, study in jobs:  # after every twin has finished
         if run_dir in shared and not archived(args, run_dir, study):
-            write_shared(run_dir, overrides, archive_dir(args, shared[run_dir]))  # the twin may be from a past session
+            twin = shared[run_dir]
+            write_shared(run_dir, overrides, twin if (twin / "metrics.json").is_file() else archive_dir(args, twin))
             archive(args, run_dir)
             print(f"{study:9s} {run_dir}: same training run as {shared[run_dir]} (shared)", flush=True)
     from hydra import compose, initialize_config_dir

@@ -310,6 +310,8 @@ def test_study_grid_shares_runs_that_are_the_same_training_run(tmp_path):
     assert not (niw / "checkpoints").exists() and (std / "checkpoints").exists()
     assert "model:\n" in (niw / "config.yaml").read_text() and "name: niw" in (niw / "config.yaml").read_text()
     assert "same training run as another" in (rep / "report.md").read_text()
+    # a run outside the default --out is archived beside it, never into the committed bench/results/runs
+    assert (out / "archive" / "initcap" / "c200" / "synthetic" / "niw" / "s0" / "metrics.json").is_file()
 
 
 # ------------------------------------------------------------------------------------------ pooling
