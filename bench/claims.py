@@ -57,15 +57,16 @@ class Results:
     def scenes(self) -> list[str]:
         return sorted({s for s, _ in self.runs})
 
-    def per_scene(self, method: str, value: Callable[[dict], Optional[float]]) -> dict[str, float]:
-        """scene -> mean over seeds of value(run) for the archived runs of method (None values skipped)."""
-        out = {}
+    def per_scene(self, method: str, value: Callable[[dict], Optional[float]]) -> dict[str, dict[int, float]]:
+        """scene -> {seed: value(run)} for the archived runs of method (None and non-finite values skipped)."""
+        out: dict[str, dict[int, float]] = {}
         for (scene, m), runs in self.runs.items():
             if m != method:
                 continue
-            v = [x for x in (value(r) for r in runs) if x is not None and math.isfinite(x)]
-            if v:
-                out[scene] = statistics.fmean(v)
+            for r in runs:
+                x = value(r)
+                if x is not None and math.isfinite(x):
+                    out.setdefault(scene, {})[int(r["metrics"].get("seed", 0))] = float(x)
         return out
 
     def uq_scene(self, row: str, metric: str) -> dict[str, float]:
@@ -82,9 +83,23 @@ def uq_metric(regime: str, name: str) -> Callable[[dict], Optional[float]]:
     return lambda r: r["uq"].get(regime, {}).get(name)
 
 
-def diff(a: dict[str, float], b: dict[str, float], rel: bool = False) -> dict[str, float]:
-    """Per-scene a - b (or a / b - 1) over the scenes both have."""
-    return {s: (a[s] / b[s] - 1.0 if rel else a[s] - b[s]) for s in sorted(set(a) & set(b))}
+def seed_mean(v: dict[str, dict[int, float]]) -> dict[str, float]:
+    return {s: statistics.fmean(d.values()) for s, d in v.items() if d}
+
+
+def diff(a: dict, b: dict, rel: bool = False) -> dict[str, float]:
+    """Per-scene a - b (or a / b - 1) over the scenes both have. Values per seed ({scene: {seed: x}}) are paired by
+    seed first (a seed finished for one method only is left out), then averaged over the seeds of the scene."""
+    out = {}
+    for s in sorted(set(a) & set(b)):
+        if isinstance(a[s], dict):
+            seeds = sorted(set(a[s]) & set(b[s]))
+            if not seeds:
+                continue
+            out[s] = statistics.fmean((a[s][k] / b[s][k] - 1.0) if rel else (a[s][k] - b[s][k]) for k in seeds)
+        else:
+            out[s] = a[s] / b[s] - 1.0 if rel else a[s] - b[s]
+    return out
 
 
 # Each claim: (id, group, statement, paper figure, expected sign of ours, unit, per-scene differences).
@@ -223,8 +238,8 @@ def build(root: Path) -> tuple[list[dict], str]:
                      "ours": st.get("mean"), "ci": st.get("ci"), "p_two_sided": st.get("p_two_sided"),
                      "n_scenes": st.get("n", 0), "per_scene": per_scene, "why": why(v, st, unit)})
     for cid, method, paper in SPEARMAN:
-        u = R.per_scene(method, uq_metric("native", "mean_var"))
-        q = R.per_scene(method, metric("psnr"))
+        u = seed_mean(R.per_scene(method, uq_metric("native", "mean_var")))
+        q = seed_mean(R.per_scene(method, metric("psnr")))
         scenes = sorted(set(u) & set(q))
         row = {"id": cid, "group": "Sec. 4.3", "claim": f"Spearman rho of per-scene mean native variance with "
                f"-PSNR ({method})", "paper": paper, "unit": "", "n_scenes": len(scenes),

@@ -21,7 +21,7 @@ def _archive(root: Path, n_scenes: int) -> None:
             for seed in (0, 1):
                 d = root / "runs" / scene / method / f"s{seed}"
                 d.mkdir(parents=True)
-                (d / "metrics.json").write_text(json.dumps({"psnr": psnr, "num_gaussians": 1000.0,
+                (d / "metrics.json").write_text(json.dumps({"psnr": psnr, "seed": seed, "num_gaussians": 1000.0,
                                                             "render_fps": 10.0, "train_time_s": 100.0}))
                 (d / "uq.json").write_text(json.dumps({
                     "proxy": {"cov95_err": 0.8, "ause_rmse": 0.02, "nll": 5.0},
@@ -55,3 +55,12 @@ def test_three_scenes_reach_sign_only(tmp_path):
     r = _row(rows, "dpmm_psnr_cost")
     assert r["verdict"] == "holds in sign only" and r["n_scenes"] == 3  # p floor 2/8 = 0.25
     assert "floor" in r["why"]
+
+
+def test_unpaired_seeds_are_left_out(tmp_path):
+    _archive(tmp_path, 6)
+    d = tmp_path / "runs" / "scene0" / "standard" / "s2"  # a seed only standard has finished
+    d.mkdir(parents=True)
+    (d / "metrics.json").write_text(json.dumps({"psnr": 99.0, "seed": 2}))
+    rows, _ = claims.build(tmp_path)
+    assert _row(rows, "dpmm_psnr_cost")["per_scene"]["scene0"] == pytest.approx(-0.5)
