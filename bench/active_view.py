@@ -1,10 +1,14 @@
 """The active-view study (``b3dgs-study active``) on the shared scenes, and its cross-scene table.
 
-    python bench/active_view.py                              # ethiopian_head + fox, seeds 0 1 2, quick protocol
+    python bench/active_view.py                              # the seven scenes, seeds 0 1 2, quick protocol
     python bench/active_view.py --aggregate-only             # only rebuild the tables and plots
     python bench/active_view.py --scenes fox --seeds 0 --jobs 1
     python bench/active_view.py --scenes ethiopian_head fox lego fern flower dtu_scan24 dtu_scan65 --seeds 0
     python bench/active_view.py --smoke                      # the embedded scene, tiny protocol (minutes)
+
+Budget ladders (issue 21): scenes with at least 40 train views run 16 -> 32 (``bench/results/active_view.md``);
+smaller ones (fern, flower) run 8 -> 16 (``initial_views=8 acquire=8``) and get their own table
+(``bench/results/active_view_8to16.md``): the two ladders are never pooled.
 
 Batch options (issue 22): ``--batches topk greedy_conditioned diverse`` (the default) gives every score-based
 policy a row per option (``native+greedy_conditioned``, ``ensemble+diverse``, ...); the topk rows are the
@@ -31,11 +35,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, SCENES, machine, shared_dir, write_results  # noqa: E402
+from omegaconf import OmegaConf  # noqa: E402
 
 from b3dgs.report.document import markdown_table  # noqa: E402
 from b3dgs.report.stats import mean_sem, p_floor, sign_flip_p  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
+STUDY_SCENES = list(OmegaConf.load(ROOT / "conf" / "report.yaml").studies.scenes)
 NAME = "active_view"
 
 # The paper's Table 2 (13 scenes x 3 seeds, 16 -> 32 views, 10k + 20k iterations on a GPU): PSNR, SSIM, LPIPS, time.
@@ -65,6 +71,25 @@ def row_order(table: dict) -> list[str]:
                 base, BATCHES.index(batch) if batch in BATCHES else (0 if not batch else len(BATCHES)), p)
 
     return sorted(table, key=key)
+
+
+# Budget ladders (issue 21): a scene needs more train views than initial + acquired for the candidates to leave a
+# choice; scenes with fewer than MIN_VIEWS_16_32 train views (fern 17, flower 21 of the seven) run 8 -> 16 and are
+# reported in their own table (bench/results/active_view_8to16.md), never pooled with the 16 -> 32 scenes.
+LADDERS = {"16to32": (16, 16), "8to16": (8, 8)}
+MIN_VIEWS_16_32 = 40
+
+
+def ladder_of(n_train: int) -> str:
+    """The budget ladder of a scene with n_train training views."""
+    return "16to32" if n_train >= MIN_VIEWS_16_32 else "8to16"
+
+
+def scene_ladders(scenes: list[str]) -> dict[str, str]:
+    """scene -> its ladder, from the scene's training-view count (loads each scene's cameras once)."""
+    from studies import n_train_views
+
+    return {sc: ladder_of(n_train_views([o.format(shared=shared_dir()) for o in SCENES[sc]])) for sc in scenes}
 
 
 def run_scene(scene: str, seeds: list[int], study_out: Path, extra: list[str], score_side: str = "64",
@@ -400,7 +425,8 @@ SMOKE = ["trainer.max_steps=300", "initial_views=8", "acquire=6", "strategy.refi
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenes", nargs="+", default=["ethiopian_head", "fox"], choices=sorted(SCENES))
+    ap.add_argument("--scenes", nargs="+", default=list(STUDY_SCENES), choices=sorted(SCENES),
+                    help="default: the seven scenes of conf/report.yaml; scenes with < 40 train views run 8 -> 16")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--jobs", type=int, default=2, help="scenes run at once (one thread each)")
     ap.add_argument("--study-out", default=None, help="default outputs/study (--smoke: outputs/study_smoke)")
@@ -417,15 +443,22 @@ def main() -> None:
     out = Path(args.study_out or ROOT / "outputs" / ("study_smoke" if args.smoke else "study"))
     scenes, scene_args, extra = args.scenes, None, list(args.extra)
     extra.append(f"acquisition.batch=[{','.join(args.batches)}]")
+    ladders: dict[str, str] = {}
     if args.smoke:
         scenes, scene_args, args.seeds = ["synthetic"], {"synthetic": SMOKE_SCENE}, [0]
         extra = SMOKE + extra
+    else:
+        ladders = scene_ladders(scenes)
+        for sc, lad in ladders.items():
+            print(f"{sc}: ladder {LADDERS[lad][0]} -> {sum(LADDERS[lad])}", flush=True)
     walls_path = out / "walls.json"
     walls = json.loads(walls_path.read_text()) if walls_path.exists() else {}
     if not args.aggregate_only:
         with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-            futs = {sc: ex.submit(run_scene, sc, args.seeds, out, extra, args.score_max_side,
-                                  (scene_args or {}).get(sc)) for sc in scenes}
+            futs = {sc: ex.submit(run_scene, sc, args.seeds, out,
+                                  extra + ([f"initial_views={LADDERS[ladders[sc]][0]}",
+                                            f"acquire={LADDERS[ladders[sc]][1]}"] if sc in ladders else []),
+                                  args.score_max_side, (scene_args or {}).get(sc)) for sc in scenes}
             for sc, f in futs.items():
                 for sd, w in f.result().items():
                     walls[f"{sc}/s{sd}"] = w
@@ -441,9 +474,15 @@ def main() -> None:
         (out / "active_view_smoke.md").write_text(text)
         print(text)
         return
-    res = aggregate(scenes, out, walls)
-    plots(res)
-    write_results(NAME, res, markdown(res))
+    for lad in LADDERS:  # one table per ladder: 16 -> 32 scenes are never pooled with 8 -> 16 ones
+        group = [sc for sc in scenes if ladders.get(sc) == lad]
+        if not group:
+            continue
+        res = aggregate(group, out, walls)
+        res["ladder"] = lad
+        if lad == "16to32":
+            plots(res)
+        write_results(NAME if lad == "16to32" else f"{NAME}_{lad}", res, markdown(res))
 
 
 if __name__ == "__main__":
