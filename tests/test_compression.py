@@ -143,8 +143,12 @@ def test_study_end_to_end_resumes_and_writes_tables(tmp_path):
     res = subprocess.run(args, capture_output=True, text=True, cwd=ROOT, timeout=600)
     assert res.returncode == 0, res.stderr[-3000:]
     n_base = json.loads((run / "metrics.json").read_text())["num_gaussians"]
-    rows = sorted((out / "synthetic" / "s0").glob("*_k*/result.json"))
+    rows = sorted(p for p in (out / "synthetic" / "s0").glob("*_k*/result.json") if "finetune_only" not in str(p))
     assert len(rows) == 6
+    # the fine-tune-only control: the rounds of fine-tuning the scores get (all 2 here), nothing pruned
+    ctl = json.loads((out / "synthetic" / "s0" / "finetune_only_r2_k100" / "result.json").read_text())
+    assert ctl["keep"] == 1.0 and ctl["num_gaussians"] == n_base and len(ctl["per_round"]) == 2 and ctl["control"]
+    assert "Fine-tune-only controls" in (out / "compression.md").read_text()
     for p in rows:
         r = json.loads(p.read_text())
         assert r["num_gaussians"] == round(n_base * r["keep"])  # the ladder lands exactly

@@ -195,6 +195,43 @@ class CompressionStudy:
         write_json(d / "result.json", res)
         return res
 
+    def control_row(self, rounds: int, loaded, base_eval: dict, lp) -> dict:
+        """The fine-tune-only control at keep 100 %: ``rounds`` fine-tunes of ``finetune_steps`` (fresh Adam each, as a
+        pruning row with that many rounds) with nothing pruned, so a row's PSNR change splits into pruning and the
+        extra training steps (row − control, control − base)."""
+        from b3dgs.metrics.views import evaluate_views
+
+        name = f"finetune_only_r{rounds}"
+        d = self.base_dir(loaded) / f"{name}_k100"
+        if (d / "result.json").exists():
+            return json.loads((d / "result.json").read_text())
+        seed, module, per_round, finetune_s = int(loaded.cfg.seed), loaded.module, [], 0.0
+        ft_cfg = self.finetune_cfg(loaded.cfg)
+        for r in range(rounds):
+            params = {k: v.detach().cpu() for k, v in module.params().items()}
+            t0 = time.perf_counter()
+            module = self.finetune(ft_cfg, loaded.scene, params, seed)
+            ft = time.perf_counter() - t0
+            finetune_s += ft
+            per_round.append({"round": r, "kept": module.num_gaussians, "score_s": 0.0, "finetune_s": ft})
+        ev = evaluate_views(module, loaded.scene.test, lpips_model=lp)
+        n_base = loaded.module.num_gaussians
+        res = {"scene": str(loaded.cfg.data.name), "seed": seed, "base_run": str(loaded.path), "strategy": name,
+               "keep": 1.0, "rounds": rounds, "finetune_steps": int(self.cfg.finetune_steps), "num_base": n_base,
+               "num_gaussians": module.num_gaussians, "kept_fraction": module.num_gaussians / max(n_base, 1),
+               "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": ev.get("lpips"),
+               "render_fps": ev.get("render_fps"), "score_s": 0.0, "finetune_s": finetune_s, "time_s": finetune_s,
+               "per_round": per_round, "guards": {}, "base": base_eval, "control": True,
+               "score_max_side": self.cfg.get("score_max_side")}
+        write_json(d / "result.json", res)
+        return res
+
+    def control_rounds(self) -> list[int]:
+        """Round counts of the fine-tune-only controls: one per distinct ``rounds`` of the scores (none when off)."""
+        if not self.cfg.get("finetune_control", True):
+            return []
+        return sorted({int(fn.rounds) for _, fn in self.strategies})
+
     def base_row(self, loaded, lp) -> dict:
         from b3dgs.metrics.views import evaluate_views
 
@@ -245,13 +282,16 @@ class CompressionStudy:
             check_stored_protocol(self.base_dir(loaded), flatten(settings),
                                   fix="pass another out_dir, or the settings of the rows there (their protocol.json)")
             base = self.base_row(loaded, lp)
+            for rounds in self.control_rounds():
+                self.control_row(rounds, loaded, base, lp)
             for name, fn in self.strategies:
                 for keep in self.keeps:
                     self.run_row(name, fn, keep, loaded, base, lp)
                     bar.update(1)
         bar.close()
         write_json(self.out / "meta.json", {"base_runs": [str(r) for r in self.base_runs], "keep": self.keeps,
-                                           "strategies": [n for n, _ in self.strategies],
+                                           "strategies": [n for n, _ in self.strategies]
+                                           + [f"finetune_only_r{r}" for r in self.control_rounds()],
                                            "finetune_steps": int(self.cfg.finetune_steps),
                                            "finetune_overrides": list(self.cfg.finetune_overrides or []),
                                            "score_max_side": self.cfg.get("score_max_side")})
@@ -368,6 +408,12 @@ def markdown(s: dict) -> str:
     L += ["", f"Base (no pruning): PSNR {_f(bm.get('psnr'))}, LPIPS {_f(bm.get('lpips'), 4)}, "
           f"{_f(bm.get('num_gaussians'), 0)} Gaussians, {_f(bm.get('render_fps'), 1)} FPS, trained in "
           f"{_f(bm.get('train_time_s'), 0)} s.", ""]
+    controls = [(c, e) for c in st if c.startswith("finetune_only") for e in [cells.get(f"{c}@1.0")] if e]
+    if controls:
+        L += ["Fine-tune-only controls (keep 100 %, the rounds of fine-tuning a pruning row gets, nothing pruned): "
+              + "; ".join(f"{c}: PSNR {_f(e['psnr'])} ({_f(None if bm.get('psnr') is None or e['psnr'] is None else e['psnr'] - bm['psnr'], signed=True)} dB over the base)"
+                          for c, e in controls)
+              + ". A pruning row's PSNR minus its control's is the effect of pruning alone.", ""]
     L += ["## Quality, size, speed and time per row", ""]
     rows = [[c, str(int(round(k * 100))), _f(e["psnr"]), _f(e["ssim"], 4), _f(e["lpips"], 4),
              _f(100 * e["kept_fraction"] if e["kept_fraction"] is not None else None, 1), _f(e["num_gaussians"], 0),
