@@ -154,21 +154,47 @@ def write_shared(run_dir: Path, overrides: list[str], twin: Path) -> dict:
     return m
 
 
-def ensure_uq(run_dir: Path, method: str, samples: int, seed: int) -> None:
-    """uq.json for a canonical run (regimes per method from conf/report.yaml), unless it exists with every one of
-    them (a regime added to conf/report.yaml later recomputes the file with all regimes)."""
+def uq_regimes(names: list[str], samples: int, seed: int) -> dict:
+    """The regimes of ``conf/uq/<name>.yaml`` (their defaults; ``samples`` for the sampling ones)."""
     from hydra.utils import instantiate
+
+    from b3dgs.train import CONF_DIR
+
+    cfg = OmegaConf.create({"uq": {"samples": samples}, "seed": seed})
+    for n in names:
+        cfg = OmegaConf.merge(cfg, OmegaConf.load(Path(CONF_DIR) / "uq" / f"{n}.yaml"))
+    return {n: instantiate(cfg[n]) for n in names}
+
+
+def merge_uq(path: Path, new: dict) -> dict:
+    """uq.json at path with the regimes of ``new`` added (atomically); both must score the same views."""
+    from b3dgs.io import write_json
+
+    have = json.loads(path.read_text()) if path.is_file() else {}
+    old_meta, new_meta = have.get("_meta", {}), new.get("_meta", {})
+    for key in ("views", "seed"):
+        if key in old_meta and old_meta[key] != new_meta.get(key):
+            raise RuntimeError(f"{path}: the new regimes score other {key} ({new_meta.get(key)}) than the file's "
+                               f"({old_meta[key]}); delete the file to recompute every regime")
+    merged = {**{k: v for k, v in have.items() if k != "_meta"}, **{k: v for k, v in new.items() if k != "_meta"},
+              "_meta": {**old_meta, **new_meta}}
+    write_json(path, merged)
+    return merged
+
+
+def ensure_uq(run_dir: Path, method: str, samples: int, seed: int) -> None:
+    """uq.json for a canonical run with every regime conf/report.yaml asks of its method: only the missing ones are
+    computed (a regime added to conf/report.yaml later is merged into the file, the others are kept)."""
+    import tempfile
 
     from b3dgs.eval import evaluate_uq
 
-    names = list(STUDIES.uq_regimes.get(method, ["proxy"]))
-    if not missing_regimes(run_dir, method):
+    names = missing_regimes(run_dir, method)
+    if not names:
         return
-    cfg = OmegaConf.create({
-        "proxy": {"_target_": "b3dgs_plugins.uq.proxy.ProxyUQ", "samples": samples, "jitter": 0.002},
-        "native": {"_target_": "b3dgs_plugins.uq.native.NativeUQ", "samples": samples},
-    })
-    evaluate_uq([str(run_dir)], {n: instantiate(cfg[n]) for n in names}, seed=seed, panels=0)
+    with tempfile.TemporaryDirectory(dir=run_dir, prefix=".uq.") as tmp:  # its plots and TensorBoard files: dropped
+        res = evaluate_uq([str(run_dir)], uq_regimes(names, samples, seed), seed=seed, panels=0, out_dir=Path(tmp))
+    merge_uq(run_dir / "uq.json", res)
 
 
 def missing_regimes(run_dir: Path, method: str) -> list[str]:
@@ -176,6 +202,39 @@ def missing_regimes(run_dir: Path, method: str) -> list[str]:
     names = list(STUDIES.uq_regimes.get(method, ["proxy"]))
     have = json.loads((run_dir / "uq.json").read_text()) if (run_dir / "uq.json").is_file() else {}
     return [n for n in names if n not in have]
+
+
+def ensemble_members(args, scene: str) -> list[Path]:
+    """The standard canonical runs of scene forming its deep ensemble (conf/report.yaml ``ensemble_seeds``)."""
+    return [Path(args.out) / scene / "standard" / f"s{s}" for s in STUDIES.ensemble_seeds]
+
+
+def ensure_ensemble(members: list[Path], out_dir: Path) -> bool:
+    """``out_dir/uq.json`` of the deep ensemble of ``members`` (EnsembleUQ over their checkpoints), unless it exists
+    for exactly these members. False when a member is not finished here (no checkpoint to load)."""
+    from b3dgs.eval import evaluate_uq
+
+    f = out_dir / "uq.json"
+    if f.is_file() and json.loads(f.read_text()).get("ensemble", {}).get("runs") == [str(m) for m in members]:
+        return True
+    if not all((m / "metrics.json").is_file() and (m / "checkpoints").is_dir() for m in members):
+        return False
+    evaluate_uq([str(m) for m in members], uq_regimes(["ensemble"], 0, 0), seed=0, panels=3, out_dir=out_dir)
+    return True
+
+
+def archive_ensemble(args, scene: str) -> Path:
+    """The ensemble's uq.json into the archive, its members named by their archive dirs (so the report, built from
+    the archive, attaches it to the first member)."""
+    from b3dgs.io import write_json
+
+    members = ensemble_members(args, scene)
+    res = json.loads((Path(args.out) / scene / "ensemble" / "uq.json").read_text())
+    res["ensemble"]["runs"] = [str(archive_dir(args, m).resolve()) for m in members]
+    dest = Path(args.archive) / scene / "ensemble" / "uq.json"
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    write_json(dest, res)
+    return dest
 
 
 ARCHIVED = ("config.yaml", "metrics.json", "curve.json", "uq.json")
@@ -210,25 +269,31 @@ def archive(args, run_dir: Path) -> None:
 
 def uq_subprocess(run_dir: Path, method: str, samples: int, seed: int, threads: int | None) -> None:
     """ensure_uq in its own process (runs of a --jobs pool stay isolated, and killable)."""
+    if missing_regimes(run_dir, method):
+        _child(["--uq-one", str(run_dir), method, str(samples), str(seed)], threads, f"uq.json of {run_dir}")
+
+
+def _child(argv: list[str], threads: int | None, what: str) -> None:
     import subprocess
 
-    if not missing_regimes(run_dir, method):
-        return
-    cmd = [sys.executable, __file__, "--uq-one", str(run_dir), method, str(samples), str(seed)]
-    if threads:
-        cmd += ["--threads", str(threads)]
+    cmd = [sys.executable, __file__, *argv] + (["--threads", str(threads)] if threads else [])
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
-        raise RuntimeError(f"uq.json of {run_dir} failed:\n{res.stderr[-4000:]}")
+        raise RuntimeError(f"{what} failed:\n{res.stderr[-4000:]}")
 
 
 def main() -> None:
-    if len(sys.argv) > 1 and sys.argv[1] == "--uq-one":  # internal: one run's uq.json (see uq_subprocess)
+    if len(sys.argv) > 1 and sys.argv[1] in ("--uq-one", "--uq-ensemble"):  # internal: see uq_subprocess
         import torch
 
-        if "--threads" in sys.argv:
-            torch.set_num_threads(int(sys.argv[sys.argv.index("--threads") + 1]))
-        ensure_uq(Path(sys.argv[2]), sys.argv[3], int(sys.argv[4]), int(sys.argv[5]))
+        argv = sys.argv[2:]
+        if "--threads" in argv:
+            torch.set_num_threads(int(argv[argv.index("--threads") + 1]))
+            argv = argv[:argv.index("--threads")]
+        if sys.argv[1] == "--uq-one":
+            ensure_uq(Path(argv[0]), argv[1], int(argv[2]), int(argv[3]))
+        else:
+            ensure_ensemble([Path(a) for a in argv[1:]], Path(argv[0]))
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--studies", nargs="+", default=["canonical", "sparse", "initcap"],
@@ -301,6 +366,19 @@ def main() -> None:
             write_shared(run_dir, overrides, twin if (twin / "metrics.json").is_file() else archive_dir(args, twin))
             archive(args, run_dir)
             print(f"{study:9s} {run_dir}: same training run as {shared[run_dir]} (shared)", flush=True)
+    ensembles = []
+    if "canonical" in args.studies and "standard" in args.methods and len(STUDIES.ensemble_seeds) >= 2:
+        for scene in args.scenes:  # the per-scene deep ensemble, once all its members are finished here
+            dest = Path(args.archive) / scene / "ensemble" / "uq.json"
+            if args.uq and not args.report_only and not dest.is_file():
+                members = ensemble_members(args, scene)
+                if all(m in {j[0] for j in jobs} for m in members) and all((m / "checkpoints").is_dir() for m in members):
+                    _child(["--uq-ensemble", str(Path(args.out) / scene / "ensemble"), *map(str, members)],
+                           args.threads, f"the ensemble of {scene}")
+                    archive_ensemble(args, scene)
+                    print(f"ensemble  {scene}: uq.json of {len(members)} standard runs", flush=True)
+            if dest.is_file():
+                ensembles.append(dest)
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
 
@@ -311,7 +389,8 @@ def main() -> None:
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         # exactly the grid's runs: outputs/bench also holds other benchmarks' runs of the same scene, method and
         # seed (e.g. niw_calib), which the report would rightly refuse as duplicates
-        cfg = compose(config_name="report", overrides=[f"runs=[{','.join(str(archive_dir(args, j[0])) for j in jobs if archive_dir(args, j[0]).is_dir())}]",
+        runs = [str(archive_dir(args, j[0])) for j in jobs if archive_dir(args, j[0]).is_dir()] + [str(e) for e in ensembles]
+        cfg = compose(config_name="report", overrides=[f"runs=[{','.join(runs)}]",
                                                        f"out={args.report}"])
     paths = build_report(cfg)
     print(f"report: {paths['md']}")

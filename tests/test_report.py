@@ -314,6 +314,38 @@ def test_study_grid_shares_runs_that_are_the_same_training_run(tmp_path):
     assert (out / "archive" / "initcap" / "c200" / "synthetic" / "niw" / "s0" / "metrics.json").is_file()
 
 
+@pytest.mark.slow
+def test_canonical_grid_uq_regimes_ensemble_and_merge(tmp_path):
+    """bench/studies.py --uq: every canonical run gets conf/report.yaml's regimes (native only with a posterior), the
+    scene's deep ensemble of the standard seeds is evaluated and archived under its members' archive dirs, the report
+    has the uncertainty table; a regime missing from a uq.json is computed alone and merged (the others kept as they
+    were)."""
+    out, rep = tmp_path / "b", tmp_path / "rep"
+    cmd = [sys.executable, "bench/studies.py", "--studies", "canonical", "--uq", "--uq-samples", "4", "--scenes",
+           "synthetic", "--seeds", "0", "1", "2", "--methods", "standard", "niw", "--max-steps", "40", "--out", str(out),
+           "--report", str(rep), "--jobs", "2", "--threads", "1", "--extra", "data.max_side=32", "renderer=cpu"]
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    arch = out / "archive" / "synthetic"
+    std = json.loads((arch / "standard" / "s0" / "uq.json").read_text())
+    assert {"proxy", "constant", "ppu"} <= set(std) and "native" not in std
+    assert {"proxy", "constant", "ppu", "native"} <= set(json.loads((arch / "niw" / "s1" / "uq.json").read_text()))
+    ens = json.loads((arch / "ensemble" / "uq.json").read_text())["ensemble"]
+    assert ens["runs"] == [str((arch / "standard" / f"s{s}").resolve()) for s in (0, 1, 2)]
+    md = (rep / "report.md").read_text()
+    assert "Uncertainty regimes" in md and "| ensemble of 3 standard runs |" in md and "| niw (native) |" in md
+    # drop one regime from a run (here and in the archive): only it is recomputed, the rest is kept byte for byte
+    for d in (out / "synthetic" / "niw" / "s2", arch / "niw" / "s2"):
+        u = json.loads((d / "uq.json").read_text())
+        kept = {k: v for k, v in u.items() if k != "constant"}
+        (d / "uq.json").write_text(json.dumps(kept))
+    res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=900)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "uq.json with every regime" in res.stdout
+    now = json.loads((arch / "niw" / "s2" / "uq.json").read_text())
+    assert "constant" in now and all(now[k] == kept[k] for k in ("proxy", "ppu", "native"))
+
+
 # ------------------------------------------------------------------------------------------ pooling
 def test_runs_of_different_protocols_are_refused_not_pooled(tmp_path):
     write_run(tmp_path / "a", "sceneA", "standard", 0, 20.0, max_steps=300)

@@ -11,7 +11,7 @@ from b3dgs.report.collect import Run, group, method_order
 from b3dgs.report.stats import mean_sem, paired_stats, pareto_front, time_to_fraction
 
 __all__ = ["COLUMNS", "HIGHER_IS_BETTER", "scene_means", "macro_row", "canonical_table", "per_scene",
-           "paired", "curves", "time_to_target", "pareto"]
+           "paired", "curves", "time_to_target", "pareto", "UQ_COLUMNS", "uq_table"]
 
 UQ = "uq"  # placeholder for the configured uq.json regime (cfg.uq_regime)
 # (name, label, source: None = metrics.json / UQ = uq.json regime)
@@ -46,6 +46,28 @@ def macro_row(runs: Sequence[Run], uq_regime: str) -> dict:
         if sm and len(sm) < row["n_scenes"]:
             row.setdefault("partial", {})[name] = len(sm)
     return row
+
+
+#: uq.json keys of the uncertainty table (the paper's Table 3 columns plus NLL, rank correlation and cost)
+UQ_COLUMNS = ["psnr", "ause_rmse", "ece", "cov95", "cov95_err", "nll", "spearman", "time_s", "train_time_s"]
+
+
+def uq_table(runs: Sequence[Run]) -> dict[str, dict]:
+    """{'method (regime)': macro row over scenes of per-scene seed means} for every uq.json regime of the runs (the
+    paper's Table 3 shape). A regime over several runs (the deep ensemble) sits on its first member's run and counts
+    once per scene; its time_s/train_time_s are summed over its members by b3dgs-eval."""
+    keys = sorted({(r.method, g) for r in runs for g in r.uq})
+    order = {m: i for i, m in enumerate(method_order(r.method for r in runs))}
+    out = {}
+    for method, regime in sorted(keys, key=lambda k: (order.get(k[0], 99), k[1])):
+        rs = [r for r in runs if r.method == method and regime in r.uq]
+        row = {"n_scenes": len({r.scene for r in rs}), "n_runs": len(rs)}
+        for name in UQ_COLUMNS:
+            sm = scene_means(rs, name, regime)
+            row[name] = float(np.mean(list(sm.values()))) if sm else None
+        n_members = max(len(r.uq[regime].get("runs") or [1]) for r in rs)
+        out[f"{method} ({regime})" if n_members == 1 else f"{regime} of {n_members} {method} runs"] = row
+    return out
 
 
 def canonical_table(runs: Sequence[Run], uq_regime: str) -> dict[str, dict]:

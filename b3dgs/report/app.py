@@ -24,7 +24,8 @@ log = logging.getLogger(__name__)
 __all__ = ["build_report", "main"]
 
 SPECS = {"psnr": ".3f", "ssim": ".4f", "lpips": ".4f", "ause_rmse": ".4f", "ece": ".4f", "cov95": ".3f",
-         "num_gaussians": ",.0f", "render_fps": ".1f", "train_time_s": ".1f", "block_time_pct": ".2f"}
+         "num_gaussians": ",.0f", "render_fps": ".1f", "train_time_s": ".1f", "block_time_pct": ".2f",
+         "cov95_err": ".3f", "nll": ".3f", "spearman": ".3f", "time_s": ".1f"}
 
 
 def _clean(x: Any) -> Any:
@@ -122,6 +123,19 @@ class Builder:
         ps = A.per_scene(runs, "psnr")
         B.append(per_scene_table(ps, methods, "Per-scene PSNR (dB)"))
         out: dict = {"table": table, "per_scene_psnr": ps}
+        uq = A.uq_table(runs)
+        if uq:
+            labels = {"psnr": "PSNR ↑", "ause_rmse": "AUSE ↓", "ece": "ECE ↓", "cov95": "Cov@95",
+                      "cov95_err": "|Cov@95 − 0.95| ↓", "nll": "NLL", "spearman": "Spearman ρ ↑",
+                      "time_s": "UQ time (s)", "train_time_s": "train time (s)"}
+            B.append(Table(["Method (regime)"] + [labels[k] for k in A.UQ_COLUMNS] + ["scenes", "runs"],
+                           [[k] + [fmt(r[c], SPECS.get(c, ".4g")) for c in A.UQ_COLUMNS]
+                            + [str(r["n_scenes"]), str(r["n_runs"])] for k, r in uq.items()],
+                           "Uncertainty regimes (the paper's Table 3 shape)",
+                           "Every uq.json regime of the canonical runs, macro means over scenes of per-scene seed means. "
+                           "PSNR is the regime's predictive mean (the ensemble's is its members' average render). NLL is "
+                           "comparable only within one regime. The ensemble's train time is the sum over its members."))
+            out["uq_table"] = uq
         a, b = [str(x) for x in cfg.pair]
         if {a, b} <= set(methods):
             res = self.pairs(runs, [str(m) for m in cfg.paired_metrics])
