@@ -495,11 +495,14 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
         const scalar_t cdy2 = cc * dy * dy, hdy2 = mhalf * dy * dy;
         const int lo = xa - px0, hi = xb - px0;
         const int row = (yy - py0) * ps;
-        for (int c = lo; c < hi; c += kLanes) {
+        // chunks aligned to multiples of kLanes (lanes before lo masked): every pixel already sits in the lane
+        // of its column mod kLanes, so the per-pair sums need no lane moves, and each lane adds its pixels in
+        // the same order as the forward's chunks starting at lo would (increasing column): the same bits
+        for (int c = lo & ~(kLanes - 1); c < hi; c += kLanes) {
           const int off = row + c;
           const VI col = iota + c;
           // composited: in front of the termination point, power <= 0, alpha >= 1/255
-          const VI live_i = (kk < load<VI>(st.last + off)) & (col < hi);
+          const VI live_i = (kk < load<VI>(st.last + off)) & (col < hi) & (col >= lo);
           if (!any_lane(live_i)) continue;  // all lanes terminated earlier or outside the row
           const M live = __builtin_convertvector(live_i, M);
           const V dx = gx - (__builtin_convertvector(col + px0, V) + half);
@@ -534,19 +537,17 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
           store(st.T + off, V(use ? Ti : t0));
           // Per-pair sums. Masked lanes contribute +-0 (finite factors times a zeroed weight), and adding
           // +-0 leaves an accumulator unchanged (it starts at +0 and never becomes -0): one select per
-          // weight instead of one per sum. Values move to their column lanes before they are summed
-          // (lane-wise products commute with the move).
-          const M lanes = __builtin_convertvector((iota - c) & (kLanes - 1), M);
+          // weight instead of one per sum.
           const V wu = use ? w : zero;
-          a6 += to_column_lanes<scalar_t>(wu * gR, lanes);
-          a7 += to_column_lanes<scalar_t>(wu * gG, lanes);
-          a8 += to_column_lanes<scalar_t>(wu * gB, lanes);
-          if (!kRGBOnly) a9 += to_column_lanes<scalar_t>(wu * gD, lanes);
+          a6 += wu * gR;
+          a7 += wu * gG;
+          a8 += wu * gB;
+          if (!kRGBOnly) a9 += wu * gD;
           // True derivative of the 0.99 clamp: zero when clamped.
           const M unc = use & (raw <= max_alpha);
-          const V dpow = to_column_lanes<scalar_t>(unc ? alpha * dal : zero, lanes);
-          const V gdal = to_column_lanes<scalar_t>(unc ? G * dal : zero, lanes);
-          const V dxc = to_column_lanes<scalar_t>(dx, lanes);
+          const V dpow = unc ? alpha * dal : zero;
+          const V gdal = unc ? G * dal : zero;
+          const V& dxc = dx;
           a0 -= dpow * (ca * dxc + cbv * dy);
           a1 -= dpow * (cbv * dxc + cc * dy);
           a2 += dpow * (mhalf * dxc * dxc);
