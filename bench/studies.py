@@ -348,16 +348,23 @@ def main() -> None:
         archive(args, run_dir)
         return m
 
-    if args.uq and not args.report_only:  # archived runs whose uq.json lacks a regime added since: recompute it
-        for run_dir, _, study in jobs:
-            a = archive_dir(args, run_dir)
-            if study == "canonical" and (a / "metrics.json").is_file() and (run_dir / "metrics.json").is_file():
-                m = json.loads((a / "metrics.json").read_text())
-                if missing_regimes(a, m["method"]):
-                    uq_subprocess(run_dir, m["method"], args.uq_samples, int(m["seed"]), args.threads)
-                    archive(args, run_dir)
-                    print(f"{study:9s} {run_dir}: uq.json with {', '.join(missing_regimes(a, m['method'])) or 'every regime'}",
-                          flush=True)
+    def add_regimes(run_dir):
+        """An archived run whose uq.json lacks a regime added since: the missing ones, from its checkpoint here."""
+        a = archive_dir(args, run_dir)
+        m = json.loads((a / "metrics.json").read_text())
+        uq_subprocess(run_dir, m["method"], args.uq_samples, int(m["seed"]), args.threads)
+        archive(args, run_dir)
+        print(f"canonical {run_dir}: uq.json with {', '.join(missing_regimes(a, m['method'])) or 'every regime'}",
+              flush=True)
+
+    stale = [run_dir for run_dir, _, study in jobs if args.uq and not args.report_only and study == "canonical"
+             and (archive_dir(args, run_dir) / "metrics.json").is_file() and (run_dir / "metrics.json").is_file()
+             and missing_regimes(archive_dir(args, run_dir),
+                                 json.loads((archive_dir(args, run_dir) / "metrics.json").read_text())["method"])]
+    if stale:
+        print(f"{len(stale)} archived runs lack a regime of conf/report.yaml: adding it", flush=True)
+        with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
+            list(ex.map(add_regimes, stale))
     with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:  # each run is its own subprocess
         list(ex.map(one, [j for j in jobs if j[0] not in shared and not args.report_only]))  # list(): a failed run raises here
     for run_dir, overrides, study in jobs:  # after every twin has finished
