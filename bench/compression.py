@@ -6,16 +6,20 @@
 
 Base runs are ``outputs/bench/<scene>/standard/s<seed>`` (``bench/studies.py`` trains them). One subprocess per
 base run (``--jobs`` at a time, ``threads=1`` each); every row is resumable, so an interrupted run of this script
-picks up where it stopped. Writes ``bench/results/compression.{json,md}`` and ``bench/results/compression/``
+picks up where it stopped. Finished rows are copied to ``--archive`` (default bench/results/compression_runs/,
+committed) after each base and restored from it at the start, so a ladder spread over sessions resumes (with its base
+runs at the same paths: train them with ``bench/studies.py --studies canonical --methods standard``). Writes ``bench/results/compression.{json,md}`` and ``bench/results/compression/``
 (the study's plots).
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -35,7 +39,7 @@ PAPER_NOTE = ("paper: posterior − opacity +0.042 / −0.042 / +0.074 / +0.004 
               "PUP beats the best continuation score at every keep ratio (+1.297 dB at nominal 20 %, 26/26 wins)")
 
 
-def run_base(base: Path, out: Path, extra: list[str]) -> float:
+def run_base(base: Path, out: Path, extra: list[str], archive: Path | None = None, every_s: float = 60.0) -> float:
     logs = out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "b3dgs.study.cli", "compress", f"base_runs=[{base}]", f"out_dir={out}",
@@ -43,12 +47,45 @@ def run_base(base: Path, out: Path, extra: list[str]) -> float:
     t0 = time.time()
     name = f"{base.parent.parent.name}_{base.name}"
     with open(logs / f"{name}.log", "a") as log:
-        r = subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+        r = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)
+        while True:  # rows finished so far reach the archive every every_s seconds, not only at the end
+            try:
+                r.wait(timeout=every_s)
+                break
+            except subprocess.TimeoutExpired:
+                if archive is not None:
+                    sync(out, archive)
     if r.returncode != 0:
         print(f"{name}: failed (exit {r.returncode}); see {logs / (name + '.log')}", flush=True)
     else:
         print(f"{name}: done in {time.time() - t0:.0f} s", flush=True)
     return time.time() - t0
+
+
+def archived_files(root: Path) -> list[Path]:
+    """The ladder's small result files under root (relative): meta.json, each base's base.json, each row's result.json."""
+    pats = ["meta.json", "*/s*/base.json", "*/s*/*_k*/result.json"]
+    return sorted(p.relative_to(root) for pat in pats for p in root.glob(pat))
+
+
+def sync(src: Path, dst: Path, only_missing: bool = False) -> int:
+    """Copies the ladder's result files from src to dst atomically (temporary file renamed into place); returns how many.
+    The archive (committed) lets a ladder spread over sessions resume: restored rows are never recomputed, as long as
+    the base runs are at the same paths (base.json names its base run, and the study refuses another one)."""
+    n = 0
+    for rel in archived_files(src):
+        target = dst / rel
+        if only_missing and target.exists():
+            continue
+        if target.exists() and target.read_bytes() == (src / rel).read_bytes():
+            continue
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)  # unique: syncs may overlap
+        os.close(fd)
+        shutil.copy2(src / rel, tmp)
+        os.replace(tmp, target)
+        n += 1
+    return n
 
 
 def aggregate(out: Path) -> dict:
@@ -83,16 +120,30 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--aggregate-only", action="store_true")
     ap.add_argument("--extra", nargs="*", default=[], help="extra overrides for b3dgs-study compress")
+    ap.add_argument("--archive", default=None,
+                    help="copy of every finished row's result.json (and base.json) for resuming across machines; "
+                         "default bench/results/compression_runs (committed) with the default --out, else <out>/archive")
     args = ap.parse_args()
     out = Path(args.out)
+    if args.archive is None:  # smoke runs elsewhere never write into the committed archive
+        args.archive = str(RESULTS / "compression_runs") if args.out == ap.get_default("out") else str(out / "archive")
+    archive = Path(args.archive)
+    restored = sync(archive, out, only_missing=True) if archive.is_dir() else 0
+    if restored:
+        print(f"restored {restored} finished rows and bases from {archive}", flush=True)
     if not args.aggregate_only:
         bases = [Path(args.bench) / sc / "standard" / f"s{sd}" for sd in args.seeds for sc in args.scenes]
         missing = [str(b) for b in bases if not (b / "metrics.json").exists()]
         if missing:
             print(f"skipping {len(missing)} base runs that are not finished: {missing}", flush=True)
         bases = [b for b in bases if (b / "metrics.json").exists()]
+        def one(b):
+            run_base(b, out, list(args.extra), archive)
+            sync(out, archive)  # after each base: its finished rows are safe in the archive
+
         with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-            list(ex.map(lambda b: run_base(b, out, list(args.extra)), bases))
+            list(ex.map(one, bases))
+    sync(out, archive)
     s = aggregate(out)
     print(json.dumps({"rows": s["n_rows"], "scenes": s["scenes"]}), flush=True)
     print(f"wrote {RESULTS / (NAME + '.md')}", flush=True)
