@@ -17,7 +17,9 @@ rows the study always had. ``--batches topk`` runs only those.
 One worker per scene (``--jobs`` scenes at a time, ``threads=1`` each, so two scenes use the two cores);
 its seeds run one after another (the seeds of one scene share phase-1 models, so they never run at once).
 Every study is resumable (finished rows are never retrained), so an interrupted run of this script
-picks up where it stopped. Writes ``bench/results/active_view.{json,md}`` and
+picks up where it stopped; the rows' small files are copied to ``--archive`` (default
+bench/results/active_view_runs/, committed) every minute and restored at the start, so the study resumes on another
+machine too (phase-1 models of unfinished rows are retrained there). Writes ``bench/results/active_view.{json,md}`` and
 ``bench/results/active_view/`` (per-scene study.md, plots, and the cross-scene plots).
 """
 from __future__ import annotations
@@ -34,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, SCENES, machine, shared_dir, write_results  # noqa: E402
+from common import RESULTS, SCENES, PeriodicSync, machine, shared_dir, sync_results, write_results  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
 from b3dgs.report.document import markdown_table  # noqa: E402
@@ -423,6 +425,11 @@ SMOKE = ["trainer.max_steps=300", "initial_views=8", "acquire=6", "strategy.refi
          "+policy_settings.ppu.steps=50", "+policy_settings.fisher.pixel_stride=4"]
 
 
+#: what the archive keeps of a study dir: the per-scene protocol, meta and layout, each row's and each phase-1 model's
+#: small JSON files (result.json, the selection, oracle.json), and the wall times; never checkpoints
+ARCHIVED = ("walls.json", "*/protocol.json", "*/meta.json", "*/layout.json", "*/*_s*/*.json", "*/phase1/*/*.json")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=list(STUDY_SCENES), choices=sorted(SCENES),
@@ -439,8 +446,17 @@ def main() -> None:
     ap.add_argument("--smoke", action="store_true",
                     help="the embedded scene, seed 0, a tiny protocol; writes only under --study-out (not bench/results)")
     ap.add_argument("--extra", nargs="*", default=[], help="extra Hydra overrides for every study")
+    ap.add_argument("--archive", default=None,
+                    help="copy of the finished rows' small files for resuming across machines; default "
+                         "bench/results/active_view_runs (committed) with the default --study-out, else <study-out>/archive")
     args = ap.parse_args()
     out = Path(args.study_out or ROOT / "outputs" / ("study_smoke" if args.smoke else "study"))
+    if args.archive is None:  # smoke runs and other study dirs never write into the committed archive
+        args.archive = str(out / "archive") if (args.study_out or args.smoke) else str(RESULTS / "active_view_runs")
+    archive = Path(args.archive)
+    restored = sync_results(archive, out, ARCHIVED, only_missing=True) if archive.is_dir() else 0
+    if restored:
+        print(f"restored {restored} files of finished rows from {archive}", flush=True)
     scenes, scene_args, extra = args.scenes, None, list(args.extra)
     extra.append(f"acquisition.batch=[{','.join(args.batches)}]")
     ladders: dict[str, str] = {}
@@ -454,7 +470,7 @@ def main() -> None:
     walls_path = out / "walls.json"
     walls = json.loads(walls_path.read_text()) if walls_path.exists() else {}
     if not args.aggregate_only:
-        with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
+        with PeriodicSync(out, archive, ARCHIVED), ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
             futs = {sc: ex.submit(run_scene, sc, args.seeds, out,
                                   extra + ([f"initial_views={LADDERS[ladders[sc]][0]}",
                                             f"acquire={LADDERS[ladders[sc]][1]}"] if sc in ladders else []),
@@ -465,6 +481,7 @@ def main() -> None:
         from b3dgs.io import write_json
 
         write_json(walls_path, walls)
+        sync_results(out, archive, ARCHIVED)
     if args.smoke:  # never over the committed results
         res = aggregate(scenes, out, walls, scene_args, results=out / "tables")
         from b3dgs.io import write_json

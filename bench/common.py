@@ -75,6 +75,57 @@ QUICK = ["data.max_side=256", "trainer.max_steps=3000", "trainer.enable_progress
          "trainer.save_renders=false"]
 
 
+def archived_files(root: Path, patterns: Sequence[str]) -> list[Path]:
+    """The files under root matching the glob patterns, relative to root, sorted."""
+    return sorted({p.relative_to(root) for pat in patterns for p in root.glob(pat) if p.is_file()})
+
+
+def sync_results(src: Path, dst: Path, patterns: Sequence[str], only_missing: bool = False) -> int:
+    """Copies a study's small result files (``patterns`` under src) to dst atomically (a unique temporary file renamed
+    into place, so overlapping syncs are safe); returns how many changed. A committed archive of them lets a study
+    spread over sessions resume: restored rows count as finished."""
+    import os
+    import shutil
+    import tempfile
+
+    n = 0
+    for rel in archived_files(src, patterns):
+        target = dst / rel
+        if target.exists() and (only_missing or target.read_bytes() == (src / rel).read_bytes()):
+            continue
+        target.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
+        os.close(fd)
+        shutil.copy2(src / rel, tmp)
+        os.replace(tmp, target)
+        n += 1
+    return n
+
+
+class PeriodicSync:
+    """``with PeriodicSync(src, dst, patterns):`` runs :func:`sync_results` every ``every_s`` seconds in a background
+    thread while the block runs, and once more at its end: an interrupted session keeps every row finished so far."""
+
+    def __init__(self, src: Path, dst: Path, patterns: Sequence[str], every_s: float = 60.0):
+        import threading
+
+        self.args, self.every_s, self.stop = (src, dst, patterns), every_s, threading.Event()
+        self.thread = threading.Thread(target=self._loop, daemon=True)
+
+    def _loop(self) -> None:
+        while not self.stop.wait(self.every_s):
+            sync_results(*self.args)
+
+    def __enter__(self) -> "PeriodicSync":
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop.set()
+        self.thread.join()
+        sync_results(*self.args)
+
+
 def shared_dir() -> Path:
     import os
 

@@ -15,17 +15,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, machine, write_results  # noqa: E402
+from common import RESULTS, machine, sync_results, write_results  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 NAME = "compression"
@@ -54,7 +52,7 @@ def run_base(base: Path, out: Path, extra: list[str], archive: Path | None = Non
                 break
             except subprocess.TimeoutExpired:
                 if archive is not None:
-                    sync(out, archive)
+                    sync_results(out, archive, ARCHIVED)
     if r.returncode != 0:
         print(f"{name}: failed (exit {r.returncode}); see {logs / (name + '.log')}", flush=True)
     else:
@@ -62,30 +60,8 @@ def run_base(base: Path, out: Path, extra: list[str], archive: Path | None = Non
     return time.time() - t0
 
 
-def archived_files(root: Path) -> list[Path]:
-    """The ladder's small result files under root (relative): meta.json, each base's base.json, each row's result.json."""
-    pats = ["meta.json", "*/s*/base.json", "*/s*/*_k*/result.json"]
-    return sorted(p.relative_to(root) for pat in pats for p in root.glob(pat))
-
-
-def sync(src: Path, dst: Path, only_missing: bool = False) -> int:
-    """Copies the ladder's result files from src to dst atomically (temporary file renamed into place); returns how many.
-    The archive (committed) lets a ladder spread over sessions resume: restored rows are never recomputed, as long as
-    the base runs are at the same paths (base.json names its base run, and the study refuses another one)."""
-    n = 0
-    for rel in archived_files(src):
-        target = dst / rel
-        if only_missing and target.exists():
-            continue
-        if target.exists() and target.read_bytes() == (src / rel).read_bytes():
-            continue
-        target.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)  # unique: syncs may overlap
-        os.close(fd)
-        shutil.copy2(src / rel, tmp)
-        os.replace(tmp, target)
-        n += 1
-    return n
+#: the ladder's small result files (meta, each base's base.json, each row's result.json): what the archive keeps
+ARCHIVED = ("meta.json", "*/s*/base.json", "*/s*/*_k*/result.json")
 
 
 def aggregate(out: Path) -> dict:
@@ -98,7 +74,8 @@ def aggregate(out: Path) -> dict:
     for png in (out / "plots").glob("*.png"):
         shutil.copy2(png, dst / png.name)
     lines = [(out / "compression.md").read_text().replace("](plots/", "](compression/"), "",
-             "## Next to the paper (13 scenes, 30k base; ours: 2 scenes, 3k base, 300 fine-tune steps per round)", "",
+             f"## Next to the paper (13 scenes, 30k base; ours: {len(s['scenes'])} scenes, 3k base, 300 fine-tune steps per "
+             "round)", "",
              *markdown_table(["Keep %", "score", "ours PSNR", "paper PSNR"],
                              [[str(int(round(k * 100))), name, "—" if mine is None else f"{mine:.3f}", f"{v:.3f}"]
                               for k, ref in PAPER.items() for name, v in ref.items()
@@ -128,7 +105,7 @@ def main() -> None:
     if args.archive is None:  # smoke runs elsewhere never write into the committed archive
         args.archive = str(RESULTS / "compression_runs") if args.out == ap.get_default("out") else str(out / "archive")
     archive = Path(args.archive)
-    restored = sync(archive, out, only_missing=True) if archive.is_dir() else 0
+    restored = sync_results(archive, out, ARCHIVED, only_missing=True) if archive.is_dir() else 0
     if restored:
         print(f"restored {restored} finished rows and bases from {archive}", flush=True)
     if not args.aggregate_only:
@@ -139,11 +116,11 @@ def main() -> None:
         bases = [b for b in bases if (b / "metrics.json").exists()]
         def one(b):
             run_base(b, out, list(args.extra), archive)
-            sync(out, archive)  # after each base: its finished rows are safe in the archive
+            sync_results(out, archive, ARCHIVED)  # after each base: its finished rows are safe in the archive
 
         with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
             list(ex.map(one, bases))
-    sync(out, archive)
+    sync_results(out, archive, ARCHIVED)
     s = aggregate(out)
     print(json.dumps({"rows": s["n_rows"], "scenes": s["scenes"]}), flush=True)
     print(f"wrote {RESULTS / (NAME + '.md')}", flush=True)

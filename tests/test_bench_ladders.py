@@ -21,19 +21,43 @@ def test_compression_archive_round_trip(tmp_path):
     """bench/compression.py: finished rows, bases and meta reach the archive; a fresh out dir gets them back, and a
     restore never overwrites a file already there (only_missing)."""
     compression = pytest.importorskip("compression")
+    from common import archived_files, sync_results
+
+    def sync(a, b, only_missing=False):
+        return sync_results(a, b, compression.ARCHIVED, only_missing)
+
     out, arch, fresh = tmp_path / "out", tmp_path / "arch", tmp_path / "fresh"
     files = {"meta.json": "{}", "fox/s0/base.json": '{"b": 1}', "fox/s0/opacity_k55/result.json": '{"psnr": 1}',
              "fox/s0/scores/opacity.pt": "not archived", "fox/s0/opacity_k10/partial.tmp": "not archived"}
     for rel, text in files.items():
         (out / rel).parent.mkdir(parents=True, exist_ok=True)
         (out / rel).write_text(text)
-    assert compression.sync(out, arch) == 3
-    assert sorted(str(p) for p in compression.archived_files(arch)) == [
+    assert sync(out, arch) == 3
+    assert sorted(str(p) for p in archived_files(arch, compression.ARCHIVED)) == [
         "fox/s0/base.json", "fox/s0/opacity_k55/result.json", "meta.json"]
-    assert compression.sync(out, arch) == 0  # unchanged files are not copied again
+    assert sync(out, arch) == 0  # unchanged files are not copied again
     (fresh / "fox" / "s0").mkdir(parents=True)
     (fresh / "fox" / "s0" / "base.json").write_text('{"b": 2}')
-    assert compression.sync(arch, fresh, only_missing=True) == 2
+    assert sync(arch, fresh, only_missing=True) == 2
     assert (fresh / "fox" / "s0" / "base.json").read_text() == '{"b": 2}'
     assert (fresh / "fox" / "s0" / "opacity_k55" / "result.json").read_text() == '{"psnr": 1}'
     assert not list(arch.rglob(".*"))  # no temporary files left behind
+
+
+def test_periodic_sync_keeps_rows_finished_during_the_block(tmp_path):
+    """bench/common.PeriodicSync: a row finished while the block runs reaches the archive before the block ends."""
+    import time
+
+    from common import PeriodicSync
+
+    src, dst = tmp_path / "study", tmp_path / "arch"
+    with PeriodicSync(src, dst, ("*/*_s*/result.json",), every_s=0.05):
+        (src / "fox" / "native_s0").mkdir(parents=True)
+        (src / "fox" / "native_s0" / "result.json").write_text('{"psnr": 20}')
+        deadline = time.time() + 10
+        while not (dst / "fox" / "native_s0" / "result.json").exists() and time.time() < deadline:
+            time.sleep(0.05)
+        assert (dst / "fox" / "native_s0" / "result.json").read_text() == '{"psnr": 20}'
+        (src / "fox" / "uniform_s0").mkdir()
+        (src / "fox" / "uniform_s0" / "result.json").write_text("{}")
+    assert (dst / "fox" / "uniform_s0" / "result.json").exists()  # the final sync at the end of the block

@@ -342,14 +342,15 @@ class ActiveStudy:
         return self.out / "phase1" / f"{family}_s{seed}"
 
     def phase1_model(self, family: str, seed: int) -> str:
-        """The phase-1 checkpoint of ``family`` and ``seed`` (trained once; an interrupted one resumes)."""
+        """The phase-1 checkpoint of ``family`` and ``seed`` (trained once; an interrupted one resumes; one whose
+        record was restored from an archive without its checkpoint is trained again, bit for bit the same)."""
         d = self.phase1_dir(family, seed)
         done = d / "phase1.json"
         ckpt = d / "checkpoints" / "last.ckpt"
-        if done.exists():
+        if done.exists() and ckpt.exists():
             return str(ckpt)
         with phase1_lock(d):  # seeds run as parallel jobs share phase-1 models (the ensemble's members)
-            if done.exists():  # another job trained it while this one waited
+            if done.exists() and ckpt.exists():  # another job trained it while this one waited
                 return str(ckpt)
             return self._train_phase1(family, seed, d, done, ckpt)
 
