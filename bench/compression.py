@@ -61,7 +61,7 @@ def run_base(base: Path, out: Path, extra: list[str], archive: Path | None = Non
 
 
 #: the ladder's small result files (meta, each base's base.json, each row's result.json): what the archive keeps
-ARCHIVED = ("meta.json", "*/s*/base.json", "*/s*/*_k*/result.json")
+ARCHIVED = ("meta.json", "*/s*/base.json", "*/s*/protocol.json", "*/s*/*_k*/result.json")
 
 
 def aggregate(out: Path) -> dict:
