@@ -361,6 +361,22 @@ def test_runs_of_different_protocols_are_refused_not_pooled(tmp_path):
         load_runs(str(tmp_path / "*"))
 
 
+def test_runs_from_before_a_class_rename_pool_with_new_ones(tmp_path):
+    """A seed trained before plugins.* became b3dgs_plugins.* (checkpoint.RENAMED_TARGETS) is the same protocol."""
+    for seed, target in ((0, "plugins.posterior.niw.NIWBlock"), (1, "b3dgs_plugins.posterior.niw.NIWBlock")):
+        d = write_run(tmp_path / f"s{seed}", "sceneA", "niw", seed, 20.0 + seed)
+        cfg = yaml.safe_load((d / "config.yaml").read_text())
+        cfg["posterior"] = {"niw": {"_target_": target}}
+        (d / "config.yaml").write_text(yaml.safe_dump(cfg))
+    runs, _ = load_runs(str(tmp_path / "*"))
+    assert len(runs) == 2 and {r.config["posterior"]["niw"]["_target_"] for r in runs} == {
+        "b3dgs_plugins.posterior.niw.NIWBlock"}
+    cfg["posterior"]["niw"]["_target_"] = "b3dgs_plugins.posterior.niw.OtherBlock"  # a real difference still refused
+    (tmp_path / "s1" / "config.yaml").write_text(yaml.safe_dump(cfg))
+    with pytest.raises(ReportError, match="posterior.niw._target_"):
+        load_runs(str(tmp_path / "*"))
+
+
 def test_a_run_without_a_value_is_not_counted():
     from b3dgs.report.analysis import macro_row, per_scene
     from b3dgs.report.collect import Run

@@ -22,6 +22,7 @@ from typing import Any, Optional, Sequence
 
 from omegaconf import OmegaConf
 
+from b3dgs.checkpoint import upgrade_targets
 from b3dgs.protocol import describe_diff, differing_keys, flatten, run_protocol
 
 __all__ = ["ReportError", "Run", "find_runs", "load_runs", "group", "METHOD_ORDER", "method_order"]
@@ -135,7 +136,8 @@ def classify(cfg: dict) -> tuple[str, Any]:
 def read_run(path: Path) -> Run:
     """One finished run dir -> :class:`Run` (ReportError naming the file if it is malformed)."""
     try:
-        cfg = OmegaConf.to_container(OmegaConf.load(path / "config.yaml"), resolve=False)
+        # run dirs written before a class rename name the old _target_ paths: the same protocol
+        cfg = upgrade_targets(OmegaConf.to_container(OmegaConf.load(path / "config.yaml"), resolve=False))
     except Exception as e:  # yaml errors come in many types
         raise ReportError(f"cannot read {path / 'config.yaml'}: {e}") from e
     metrics = _read_json(path / "metrics.json")
