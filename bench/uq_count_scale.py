@@ -180,7 +180,48 @@ def main() -> None:
         text += "\n\nCalibrated native on the same settings (runs with calibration views):\n" + table(
             [r for r in rows if r["regime"] == "native_calibrated"],
             ["scene", "scatter", "cov_mode", "count_scale", "fit_s", "fit_a", "cov95", "cov95_err", "nll", "epi_ause_rmse"])
-    write_results(args.name, {"machine": machine(), "samples": args.samples, "runs": args.runs, "rows": rows}, text)
+    paired = paired_against_one(rows)
+    if paired:
+        text += ("\n\nEach count scale against c = 1 (the default), paired by scene: per-scene mean over its runs (seeds) "
+                 "of the difference c - 1, then the mean over scenes with the bootstrap CI and the exact sign-flip p "
+                 "(`b3dgs.report.stats.paired_stats`); 'better' counts scenes where the difference goes the "
+                 "metric's good way:\n" + table(paired, ["regime", "scatter", "cov_mode", "count_scale", "metric",
+                                                         "mean_diff", "ci_low", "ci_high", "p_two_sided", "better",
+                                                         "n_scenes"]))
+    write_results(args.name, {"machine": machine(), "samples": args.samples, "runs": args.runs, "rows": rows,
+                              "paired_vs_c1": paired}, text)
+
+
+#: metrics of the paired table and whether lower is better
+PAIRED = {"cov95_err": True, "ause_rmse": True, "nll": True, "epi_ause_rmse": True, "epi_spearman_sq": False}
+
+
+def paired_against_one(rows: list[dict]) -> list[dict]:
+    """Every count scale c != 1 against c = 1 on the same runs, per (regime, scatter, cov_mode) and metric."""
+    from b3dgs.report.stats import paired_stats
+
+    out = []
+    key = lambda r: (r["regime"], r["scatter"], r["cov_mode"])  # noqa: E731
+    ref = {(key(r), r["scene"], r["run"]): r for r in rows if r["count_scale"] == 1.0}
+    for (regime, sc, mode) in dict.fromkeys(key(r) for r in rows):
+        for c in sorted({r["count_scale"] for r in rows if key(r) == (regime, sc, mode) and r["count_scale"] != 1.0},
+                        reverse=True):
+            for metric, lower in PAIRED.items():
+                per_scene: dict[str, list[float]] = {}
+                for r in rows:
+                    b = ref.get(((regime, sc, mode), r["scene"], r["run"]))
+                    if key(r) == (regime, sc, mode) and r["count_scale"] == c and b is not None \
+                            and r.get(metric) is not None and b.get(metric) is not None:
+                        per_scene.setdefault(r["scene"], []).append(r[metric] - b[metric])
+                if len(per_scene) < 2:
+                    continue
+                d = [statistics.fmean(v) for v in per_scene.values()]
+                st = paired_stats(d, higher_is_better=not lower)
+                out.append({"regime": regime, "scatter": sc, "cov_mode": mode, "count_scale": c, "metric": metric,
+                            "mean_diff": st["mean"], "ci_low": st["ci"]["low"], "ci_high": st["ci"]["high"],
+                            "p_two_sided": st["p_two_sided"], "better": f"{sum((x < 0) if lower else (x > 0) for x in d)}"
+                            f"/{len(d)}", "n_scenes": len(d)})
+    return out
 
 
 if __name__ == "__main__":
