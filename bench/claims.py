@@ -253,14 +253,17 @@ def fmt(x: Optional[float], unit: str) -> str:
     return f"{100 * x:+.1f} %" if unit == "rel" else f"{x:+.4g}" + (f" {unit}" if unit else "")
 
 
-def build(root: Path) -> tuple[list[dict], str]:
+def build(root: Path, only: Optional[list[str]] = None) -> tuple[list[dict], str]:
+    """The claims rows and their markdown; ``only``: restrict every claim to these scenes (e.g. the two scenes of the
+    earlier conclusions, to see what seven scenes changed)."""
     from scipy.stats import spearmanr
 
     R = Results(root)
     report = _read(root / "report" / "report.json")
+    keep = (lambda d: {s: v for s, v in d.items() if s in only}) if only else (lambda d: d)  # noqa: E731
     rows = []
     for cid, group, statement, paper, expect, unit, fn in CLAIMS:
-        per_scene = ood_delta(report) if cid == "ood_native_below_proxy" else fn(R)
+        per_scene = keep(ood_delta(report) if cid == "ood_native_below_proxy" else fn(R))
         v, st = verdict(per_scene, expect)
         reason = why(v, st, unit)
         if v in ("fails", "holds in sign only") and cid in EXPLAIN and (extra := EXPLAIN[cid](R)):
@@ -269,8 +272,8 @@ def build(root: Path) -> tuple[list[dict], str]:
                      "ours": st.get("mean"), "ci": st.get("ci"), "p_two_sided": st.get("p_two_sided"),
                      "n_scenes": st.get("n", 0), "per_scene": per_scene, "why": reason})
     for cid, method, paper in SPEARMAN:
-        u = seed_mean(R.per_scene(method, uq_metric("native", "mean_var")))
-        q = seed_mean(R.per_scene(method, metric("psnr")))
+        u = keep(seed_mean(R.per_scene(method, uq_metric("native", "mean_var"))))
+        q = keep(seed_mean(R.per_scene(method, metric("psnr"))))
         scenes = sorted(set(u) & set(q))
         row = {"id": cid, "group": "Sec. 4.3", "claim": f"Spearman rho of per-scene mean native variance with "
                f"-PSNR ({method})", "paper": paper, "unit": "", "n_scenes": len(scenes),
@@ -284,7 +287,7 @@ def build(root: Path) -> tuple[list[dict], str]:
         else:
             row.update(ours=None, p_two_sided=None, verdict="pending", why=f"{len(scenes)} scenes (need 3)")
         rows.append(row)
-    return rows, table_md(rows, R.scenes())
+    return rows, table_md(rows, [s for s in R.scenes() if not only or s in only])
 
 
 def table_md(rows: list[dict], scenes: list[str]) -> str:
@@ -313,8 +316,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--results", default=str(RESULTS), help="the results folder (default bench/results)")
     ap.add_argument("--name", default="claims")
+    ap.add_argument("--scenes", nargs="+", default=None,
+                    help="restrict every claim to these scenes (write it under another --name)")
     args = ap.parse_args()
-    rows, text = build(Path(args.results))
+    if args.scenes and args.name == "claims":
+        ap.error("--scenes writes a restricted table: pass another --name (e.g. claims_two_scenes)")
+    rows, text = build(Path(args.results), args.scenes)
     write_results(args.name, {"rows": rows}, text)  # prints the table
 
 

@@ -64,3 +64,27 @@ def test_unpaired_seeds_are_left_out(tmp_path):
     (d / "metrics.json").write_text(json.dumps({"psnr": 99.0, "seed": 2}))
     rows, _ = claims.build(tmp_path)
     assert _row(rows, "dpmm_psnr_cost")["per_scene"]["scene0"] == pytest.approx(-0.5)
+
+
+def test_restricting_to_scenes_recomputes_the_verdicts(tmp_path):
+    """--scenes: the same archive, two of its scenes: the p floor rises and 'holds' becomes 'holds in sign only'."""
+    _archive(tmp_path, 6)
+    rows, text = claims.build(tmp_path, only=["scene0", "scene3"])
+    r = _row(rows, "dpmm_psnr_cost")
+    assert r["n_scenes"] == 2 and r["verdict"] == "holds in sign only" and set(r["per_scene"]) == {"scene0", "scene3"}
+    assert r["ours"] == pytest.approx(-0.65)
+    assert _row(rows, "spearman_niw")["verdict"] == "pending"  # Spearman needs 3 scenes
+    assert "scene1" not in text
+
+
+def test_ensemble_rows_read_the_archive(tmp_path):
+    """The per-scene deep ensemble comes from runs/<scene>/ensemble/uq.json when the archive has it."""
+    _archive(tmp_path, 6)
+    for i in range(6):
+        d = tmp_path / "runs" / f"scene{i}" / "ensemble"
+        d.mkdir()
+        (d / "uq.json").write_text(json.dumps({"ensemble": {"cov95_err": 0.45, "ause_rmse": 0.02, "psnr": 21.0 + i}}))
+    rows, _ = claims.build(tmp_path)
+    r = _row(rows, "calibration_native_vs_ensemble")
+    assert r["verdict"] == "holds" and r["ours"] == pytest.approx(0.40) and r["n_scenes"] == 6
+    assert _row(rows, "ensemble_psnr")["ours"] == pytest.approx(1.0)
