@@ -155,14 +155,16 @@ def write_shared(run_dir: Path, overrides: list[str], twin: Path) -> dict:
 
 
 def uq_regimes(names: list[str], samples: int, seed: int) -> dict:
-    """The regimes of ``conf/uq/<name>.yaml`` (their defaults; ``samples`` for the sampling ones)."""
+    """The regimes of ``conf/uq/<name>.yaml`` with conf/report.yaml's ``uq_settings`` on top (``samples`` for the
+    sampling ones)."""
     from hydra.utils import instantiate
 
     from b3dgs.train import CONF_DIR
 
     cfg = OmegaConf.create({"uq": {"samples": samples}, "seed": seed})
     for n in names:
-        cfg = OmegaConf.merge(cfg, OmegaConf.load(Path(CONF_DIR) / "uq" / f"{n}.yaml"))
+        cfg = OmegaConf.merge(cfg, OmegaConf.load(Path(CONF_DIR) / "uq" / f"{n}.yaml"),
+                              {n: STUDIES.get("uq_settings", {}).get(n, {})})
     return {n: instantiate(cfg[n]) for n in names}
 
 
