@@ -376,7 +376,7 @@ def summarize(out: Path) -> dict:
             pairs.append({"a": a, "b": b, "keep": k, "per_scene": per_scene, "scene_seed_wins": int(sum(d > 0 for d in d_unit)),
                           "scene_seed_n": len(d_unit), **st})
     return {"strategies": strategies, "keeps": keeps, "scenes": scenes, "cells": cells, "base": base,
-            "base_macro": base_macro, "pairs": pairs, "meta": meta, "n_rows": len(rows)}
+            "base_macro": base_macro, "pairs": pairs, "meta": meta, "n_rows": len(rows), "n_bases": len(bases)}
 
 
 def _f(v, nd=3, signed=False) -> str:
@@ -390,7 +390,7 @@ def markdown(s: dict) -> str:
     meta = s.get("meta", {})
     L = ["# Compression ladder on matched checkpoints", ""]
     L.append(f"{s['n_rows']} rows over scenes {s['scenes']}; every score and keep ratio starts from the same finished "
-             f"standard run per scene and seed (base runs: {len(meta.get('base_runs', []))}). Fine-tune "
+             f"standard run per scene and seed (base runs: {s.get('n_bases', len(meta.get('base_runs', [])))}). Fine-tune "
              f"{meta.get('finetune_steps')} steps per prune round, training views scored at "
              f"{meta.get('score_max_side') or 'full size'} px. Macro means over scenes of per-scene seed means.")
     L += ["", "## PSNR by keep ratio (the paper's layout)", ""]
