@@ -128,11 +128,16 @@ def test_native_sigma_is_the_posterior_spread_of_eq4():
         m.states["niw"]["N"].fill_(count)
         mr._regimes.clear()
         sigma = mr.render("native_sigma", cam).values
-        ref = NativeUQ(samples=8, chunk=8)
+        ref = NativeUQ(samples=8, chunk=8, count_scale=0.1)  # uq=native's default count scale
         ref.fit([m], scene)
         _, u = ref.spread(cam, torch.Generator().manual_seed(0))
         assert torch.allclose(sigma, u.clamp_min(0).sqrt(), atol=1e-6)  # the b3dgs-eval regime, not a copy
         assert (sigma.max().item() > 1e-3) == positive
+    # count_scale=None: the model's own posterior, narrower than N̂ <- 0.1·N̂ (fewer pseudo-counts)
+    own = ModeRenderer(m, scene, samples=8, count_scale=None).render("native_sigma", cam).values
+    assert 0 < own.max().item() < sigma.max().item()
+    with pytest.raises(ValueError, match="count_scale"):
+        ModeRenderer(m, scene, count_scale=0.0)
 
 
 def test_camera_conversions_round_trip():
@@ -237,6 +242,24 @@ def test_cli_refuses_in_one_line(tiny_runs, tmp_path):
         lines = [ln for ln in res.stderr.splitlines() if ln.startswith("b3dgs-view: error:")]
         assert len(lines) == 1 and match in lines[0], res.stderr[-2000:]
     assert not any(tmp_path.iterdir())  # the viewer writes no files
+
+
+def test_view_settings_count_scale():
+    """conf/view.yaml's count_scale reaches the viewer; null means the model's own posterior; bad values refused."""
+    from omegaconf import OmegaConf
+
+    from b3dgs.errors import B3dgsError
+    from b3dgs.train import CONF_DIR
+    from b3dgs.viewer.app import settings_from_cfg
+
+    cfg = OmegaConf.load(Path(CONF_DIR) / "view.yaml")
+    assert settings_from_cfg(cfg).count_scale == 0.1
+    cfg.count_scale = None
+    assert settings_from_cfg(cfg).count_scale is None
+    for bad in (0, -1.0, True):
+        cfg.count_scale = bad
+        with pytest.raises(B3dgsError, match="count_scale"):
+            settings_from_cfg(cfg)
 
 
 # ------------------------------------------------------------------------------------ a real browser

@@ -39,6 +39,11 @@ def settings_from_cfg(cfg: DictConfig):
     for key in ("target_ms", "still_ms", "jitter", "sigma_max"):
         if key in kw and not (isinstance(kw[key], (int, float)) and kw[key] > 0):
             raise B3dgsError(f"{key}={kw[key]} must be a positive number", f"pass {key}= a number > 0")
+    if "count_scale" in cfg:  # null is a value here (the model's own posterior), not "unset"
+        c = cfg.get("count_scale")
+        if c is not None and not (isinstance(c, (int, float)) and not isinstance(c, bool) and 0 < c < float("inf")):
+            raise B3dgsError(f"count_scale={c} is not a valid count scale", "pass count_scale= a number > 0, or null")
+        kw["count_scale"] = None if c is None else float(c)
     return ViewerSettings(**kw)
 
 

@@ -126,11 +126,16 @@ class ModeRenderer:
     per-Gaussian values come from the posterior blocks' ``export`` (:meth:`SplatModule.export_extras`)."""
 
     def __init__(self, module, scene: Scene, samples: int = 16, jitter: float = 0.002, sigma_max: float = 0.03,
-                 depth_max: Optional[float] = None, seed: int = 0) -> None:
+                 depth_max: Optional[float] = None, seed: int = 0, count_scale: Optional[float] = 0.1) -> None:
         if samples < 2:
             raise ValueError(f"viewer samples must be >= 2 (a spread needs two draws), got {samples}")
         if not sigma_max > 0:
             raise ValueError(f"viewer sigma_max must be > 0, got {sigma_max}")
+        if count_scale is not None and not (0 < float(count_scale) < float("inf")):
+            raise ValueError(f"viewer count_scale must be a finite number > 0 or None, got {count_scale}")
+        # native σ draws with N̂ <- count_scale·N̂, the default of uq=native (conf/uq/native.yaml), so the viewer shows
+        # what b3dgs-eval scores; None: the model's own posterior
+        self.count_scale = None if count_scale is None else float(count_scale)
         self.module, self.scene = module, scene
         self.samples, self.jitter, self.seed = int(samples), float(jitter), int(seed)
         self.extras = {k: v.detach().cpu() for k, v in module.export_extras().items()}
@@ -201,7 +206,7 @@ class ModeRenderer:
             if mode == "native_sigma":
                 from b3dgs_plugins.uq.native import NativeUQ
 
-                reg = NativeUQ(samples=self.samples, chunk=8)
+                reg = NativeUQ(samples=self.samples, chunk=8, count_scale=self.count_scale)
             else:
                 from b3dgs_plugins.uq.proxy import ProxyUQ
 

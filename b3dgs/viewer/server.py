@@ -41,6 +41,7 @@ class ViewerSettings:
     samples: int = 16  # S draws per σ frame
     jitter: float = 0.002  # proxy σ: centre jitter × scene extent
     sigma_max: float = 0.03  # σ modes' fixed colour scale (RGB units)
+    count_scale: Optional[float] = 0.1  # native σ: N̂ <- c·N̂ as uq=native draws it (None: the model's own)
     mode: str = "rgb"  # the mode shown first
     frusta: bool = True  # the cameras shown first (a checkbox in the panel)
     thumbnails: int = 200  # draw the training images on the frusta when there are at most this many cameras
@@ -67,7 +68,7 @@ class ViewerApp:
         self.run, self.s = run, settings
         self.scene = run.scene
         self.modes = ModeRenderer(run.module, run.scene, samples=settings.samples, jitter=settings.jitter,
-                                  sigma_max=settings.sigma_max, seed=0)
+                                  sigma_max=settings.sigma_max, seed=0, count_scale=settings.count_scale)
         if settings.mode not in self.modes.available():
             why = self.modes.unavailable().get(settings.mode, f"modes: {', '.join(self.modes.specs)}")
             raise ValueError(f"viewer mode {settings.mode} is not available for this run: {why}")
