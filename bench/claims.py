@@ -35,6 +35,7 @@ from common import RESULTS, write_results  # noqa: E402
 from b3dgs.report.stats import paired_stats  # noqa: E402
 
 ALPHA = 0.05
+EARLIER_SCENES = ("ethiopian_head", "fox")  # the two scenes of the conclusions before the seven-scene campaign
 
 
 def _read(path: Path) -> dict:
@@ -290,6 +291,11 @@ def build(root: Path, only: Optional[list[str]] = None) -> tuple[list[dict], str
     return rows, table_md(rows, [s for s in R.scenes() if not only or s in only])
 
 
+def md_cell(text: str) -> str:
+    """Text for a markdown table cell: a literal | (as in |Cov@95 - 0.95|) would end the cell."""
+    return str(text).replace("|", "\\|")
+
+
 def table_md(rows: list[dict], scenes: list[str]) -> str:
     lines = [f"Claims of the paper against our committed results (`python bench/claims.py`). Canonical archive "
              f"scenes: {', '.join(scenes) or 'none yet'}. Ours = mean over scenes of per-scene seed means; CI = "
@@ -303,8 +309,8 @@ def table_md(rows: list[dict], scenes: list[str]) -> str:
         p = r.get("p_two_sided")
         ours = fmt(r.get("ours"), r["unit"]) if not r["id"].startswith("spearman") else (
             f"{r['ours']:+.2f}" if r.get("ours") is not None else "-")
-        lines.append(f"| {r['claim']} | {r['group']} | {r['paper']} | {ours} | {ci_txt} | "
-                     f"{'-' if p is None else f'{p:.3g}'} | {r['n_scenes']} | **{r['verdict']}** | {r['why']} |")
+        lines.append(f"| {md_cell(r['claim'])} | {r['group']} | {md_cell(r['paper'])} | {ours} | {ci_txt} | "
+                     f"{'-' if p is None else f'{p:.3g}'} | {r['n_scenes']} | **{r['verdict']}** | {md_cell(r['why'])} |")
     counts = {}
     for r in rows:
         counts[r["verdict"]] = counts.get(r["verdict"], 0) + 1
@@ -322,7 +328,34 @@ def main() -> None:
     if args.scenes and args.name == "claims":
         ap.error("--scenes writes a restricted table: pass another --name (e.g. claims_two_scenes)")
     rows, text = build(Path(args.results), args.scenes)
+    if not args.scenes:  # the full table also says what the scenes added since the earlier two changed
+        early, early_text = build(Path(args.results), list(EARLIER_SCENES))
+        write_results(f"{args.name}_two_scenes", {"rows": early, "scenes": list(EARLIER_SCENES)}, early_text)
+        text += "\n\n" + change_md(early, rows)
     write_results(args.name, {"rows": rows}, text)  # prints the table
+
+
+def change_md(early: list[dict], rows: list[dict]) -> str:
+    """Each claim's verdict on the earlier two scenes (``claims_two_scenes``) next to all scenes', changes first."""
+    before = {r["id"]: r for r in early}
+
+    def cell(r: Optional[dict]) -> str:
+        if not r or r.get("ours") is None:
+            return "pending"
+        ours = f"{r['ours']:+.2f}" if r["id"].startswith("spearman") else fmt(r["ours"], r["unit"])
+        p = r.get("p_two_sided")
+        return f"{r['verdict']} ({ours}, p = {p:.3g}, {r['n_scenes']} scenes)" if p is not None else r["verdict"]
+
+    pairs = [(before.get(r["id"]), r) for r in rows]
+    changed = [(b, r) for b, r in pairs if (b or {}).get("verdict") != r["verdict"]]
+    same = [(b, r) for b, r in pairs if (b or {}).get("verdict") == r["verdict"]]
+    lines = [f"## What the scenes since the earlier two changed", "",
+             f"The same claims restricted to {' and '.join(EARLIER_SCENES)} (the earlier conclusions' scenes; "
+             f"`bench/results/claims_two_scenes.md`) against every scene above: {len(changed)} verdicts changed, "
+             f"{len(same)} stayed.", "", "| claim | two scenes | all scenes |", "|---|---|---|"]
+    lines += [f"| {md_cell(r['claim'])} | {cell(b)} | **{cell(r)}** |" for b, r in changed]
+    lines += [f"| {md_cell(r['claim'])} | {cell(b)} | {cell(r)} |" for b, r in same]
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

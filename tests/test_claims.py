@@ -88,3 +88,23 @@ def test_ensemble_rows_read_the_archive(tmp_path):
     r = _row(rows, "calibration_native_vs_ensemble")
     assert r["verdict"] == "holds" and r["ours"] == pytest.approx(0.40) and r["n_scenes"] == 6
     assert _row(rows, "ensemble_psnr")["ours"] == pytest.approx(1.0)
+
+
+def test_change_table_and_escaped_cells(tmp_path):
+    """What more scenes changed: a verdict that moves (sign only on 2 scenes -> holds on 6) is listed first, in bold;
+    every table line has exactly its columns (a claim's |Cov@95 - 0.95| is escaped, not a cell border)."""
+    import re
+
+    _archive(tmp_path, 6)
+    early, _ = claims.build(tmp_path, ["scene0", "scene1"])
+    rows, text = claims.build(tmp_path)
+    change = claims.change_md(early, rows)
+    lines = [ln for ln in change.splitlines() if ln.startswith("| ") and "---" not in ln][1:]
+    assert len(lines) == len(rows)
+    dpmm = next(ln for ln in lines if ln.startswith("| DPMM - standard PSNR"))
+    assert "holds in sign only" in dpmm and "**holds (-0.75 dB, p = 0.0312, 6 scenes)**" in dpmm
+    assert lines.index(dpmm) < next(i for i, ln in enumerate(lines) if "Near-parity" in ln)  # changed rows first
+    for table, columns in ((change, 3), (text, 9)):
+        for ln in table.splitlines():
+            if ln.startswith("|"):
+                assert len(re.findall(r"(?<!\\)\|", ln)) == columns + 1, ln
