@@ -13,6 +13,9 @@ verdict computed from those numbers:
 * ``parity by construction``: every per-scene difference is exactly 0 (NIW only observes training here);
 * ``pending``: the result file has no data for it yet; ``out of scope on CPU``: said why.
 
+The ``issue 22`` rows are our own hypothesis (batch-aware native acquisition beats top-k native, the ensemble and
+farthest), not the paper's: the same verdicts, read against that hypothesis.
+
 Sources: the canonical campaign's archive ``bench/results/runs/<scene>/<method>/s<seed>/`` (metrics.json, uq.json;
 written by ``bench/studies.py``), ``bench/results/active_view.json`` (``bench/active_view.py``),
 ``runs/<scene>/ensemble/uq.json`` (the per-scene deep ensemble of the standard runs; ``bench/results/uq.json`` of
@@ -172,6 +175,11 @@ CLAIMS: list[tuple[str, str, str, str, int, str, Callable[[Results], dict[str, f
      lambda R: R.active.get("paired", {}).get("native-proxy", {}).get("per_scene", {})),
     ("active_native_vs_ppu", "Table 2", "Active view: native - PPU final PSNR", "+0.355 dB", +1, "dB",
      lambda R: R.active.get("paired", {}).get("native-ppu", {}).get("per_scene", {})),
+] + [  # issue 22: our hypothesis, not the paper's: batch-aware native acquisition beats each of these
+    (f"batch_native_vs_{tag}", "issue 22", f"Active view: native + greedy_conditioned batch - {b} final PSNR",
+     "not in the paper (hypothesis: > 0)", +1, "dB",
+     lambda R, key=f"native+greedy_conditioned-{b}": R.active.get("paired", {}).get(key, {}).get("per_scene", {}))
+    for tag, b in (("topk", "native"), ("ensemble", "ensemble"), ("farthest", "farthest"))
 ]
 
 # Spearman diagnostics (Sec. 4.3): per-scene mean native pixel variance against -PSNR.

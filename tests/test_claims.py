@@ -108,3 +108,21 @@ def test_change_table_and_escaped_cells(tmp_path):
         for ln in table.splitlines():
             if ln.startswith("|"):
                 assert len(re.findall(r"(?<!\\)\|", ln)) == columns + 1, ln
+
+
+def test_batch_acquisition_rows_read_the_active_view_pairs(tmp_path):
+    """Issue 22's rows (batch-aware native against top-k native, the ensemble, farthest) come from active_view.json's
+    paired per-scene differences, and are pending without them."""
+    _archive(tmp_path, 3)
+    rows, _ = claims.build(tmp_path)
+    assert _row(rows, "batch_native_vs_farthest")["verdict"] == "pending"
+    per = {"scene0": -0.2, "scene1": -0.1, "scene2": -0.3}
+    (tmp_path / "active_view.json").write_text(json.dumps({"paired": {
+        "native+greedy_conditioned-farthest": {"per_scene": per},
+        "native+greedy_conditioned-native": {"per_scene": {k: -v for k, v in per.items()}}}}))
+    rows, text = claims.build(tmp_path)
+    far, topk = _row(rows, "batch_native_vs_farthest"), _row(rows, "batch_native_vs_topk")
+    assert far["verdict"] == "fails" and far["ours"] == pytest.approx(-0.2) and far["n_scenes"] == 3
+    assert topk["verdict"] == "holds in sign only" and topk["ours"] == pytest.approx(0.2)
+    assert _row(rows, "batch_native_vs_ensemble")["verdict"] == "pending"
+    assert "issue 22" in text
