@@ -277,6 +277,8 @@ def build(root: Path, only: Optional[list[str]] = None) -> tuple[list[dict], str
         reason = why(v, st, unit)
         if v in ("fails", "holds in sign only") and cid in EXPLAIN and (extra := EXPLAIN[cid](R)):
             reason += f"; {extra}"
+        if group == "issue 22":  # our hypothesis, not the paper's
+            reason = reason.replace("the paper's direction", "the hypothesis's direction")
         rows.append({"id": cid, "group": group, "claim": statement, "paper": paper, "verdict": v, "unit": unit,
                      "ours": st.get("mean"), "ci": st.get("ci"), "p_two_sided": st.get("p_two_sided"),
                      "n_scenes": st.get("n", 0), "per_scene": per_scene, "why": reason})
