@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import shutil
 import subprocess
 import sys
@@ -188,8 +189,10 @@ def add_support(per_scene: dict, scene_args: dict | None = None) -> dict:
         rhos = []
         for sd in s["seeds"]:
             rows = [r for r in s["runs"] if int(r["seed"]) == sd and r.get("psnr") is not None]
-            if len(rows) >= 4:
-                rhos.append(float(spearmanr([r["psnr"] for r in rows], [r["support_distance"] for r in rows]).statistic))
+            dist = [r["support_distance"] for r in rows]
+            if len(rows) >= 4 and len(set(dist)) > 1:  # constant distances (every row's picks as near): no rank
+                rhos.append(float(spearmanr([r["psnr"] for r in rows], dist).statistic))
+        rhos = [x for x in rhos if math.isfinite(x)]  # constant PSNRs: undefined too
         out[scene] = {"initial": support_distance(init, meta["test_views"], centres, extent),
                       "psnr_vs_support_spearman": float(np.mean(rhos)) if rhos else None, "per_seed": rhos}
     return out

@@ -61,3 +61,23 @@ def test_periodic_sync_keeps_rows_finished_during_the_block(tmp_path):
         (src / "fox" / "uniform_s0").mkdir()
         (src / "fox" / "uniform_s0" / "result.json").write_text("{}")
     assert (dst / "fox" / "uniform_s0" / "result.json").exists()  # the final sync at the end of the block
+
+
+def test_support_spearman_is_none_when_every_row_has_the_same_coverage(monkeypatch, tmp_path):
+    """fern 8 -> 16: the test views' nearest training camera is an initial view for every row, so the support
+    distance is constant, its rank correlation with PSNR undefined: None (never NaN, which the JSON writer refuses)."""
+    import numpy as np
+
+    from b3dgs.io import write_json
+
+    centres = {"i0": np.zeros(3), "t0": np.array([0.1, 0, 0])}
+    centres.update({f"c{k}": np.array([10.0 + k, 0, 0]) for k in range(8)})
+    monkeypatch.setattr(active_view, "camera_geometry", lambda scene, args=None: (centres, 1.0))
+    runs = [{"seed": 0, "psnr": 20.0 + 0.1 * k, "selected": [f"c{k}", f"c{(k + 1) % 8}"]} for k in range(6)]
+    per_scene = {"fern": {"meta": {"initial_views": ["i0"], "test_views": ["t0"]}, "runs": runs, "seeds": [0]}}
+    out = active_view.add_support(per_scene)
+    assert out["fern"]["psnr_vs_support_spearman"] is None and out["fern"]["per_seed"] == []
+    assert len({r["support_distance"] for r in runs}) == 1
+    write_json(tmp_path / "support.json", out)  # no NaN left to refuse
+    runs[0]["selected"] = ["t0", "c1"]  # one row now covers the test view: the correlation is defined again
+    assert active_view.add_support(per_scene)["fern"]["psnr_vs_support_spearman"] is not None
