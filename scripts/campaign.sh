@@ -8,7 +8,11 @@
 # archived units are skipped, so a new session on a new machine just runs this again.
 #   CAMPAIGN   work folder for checkpoints and logs (default /work/campaign; never committed)
 #   JOBS       parallel jobs, one thread each (default 2: the two cores)
-#   SEEDS      seeds of the canonical grid (default "0 1 2"); compression and active view use seed 0
+#   SEEDS      seeds of the canonical grid (default "0 1 2"); compression uses seed 0
+#   ACTIVE_SEEDS / ACTIVE_SCENES  seeds and scenes of the active-view study (default "0" and all seven)
+#   CAMPAIGN_COMMIT  the code commit to run; default: the one pinned in the step's archive (<archive>/CODE_COMMIT,
+#              written at the step's first run), else HEAD. A pinned step keeps its code when this checkout's code
+#              changes (e.g. kernels that change results bitwise), so every row of a study comes from the same code.
 #   B3DGS_SHARED  the shared data folder (default: ../shared beside this checkout)
 set -euo pipefail
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
@@ -22,19 +26,29 @@ case "$what" in canonical|compression|active|all) ;; *)
 esac
 mkdir -p "$CAMPAIGN"
 CODE="$CAMPAIGN/code"
-if [ -d "$CODE" ]; then
-  git -C "$CODE" checkout -q --detach "$(git -C "$ROOT" rev-parse HEAD)"
-else
-  git -C "$ROOT" worktree add -q --detach "$CODE" HEAD
-fi
+[ -d "$CODE" ] || git -C "$ROOT" worktree add -q --detach "$CODE" HEAD
+ACTIVE_SEEDS="${ACTIVE_SEEDS:-0}"
+ACTIVE_SCENES="${ACTIVE_SCENES:-$SCENES}"
+use_code() {  # check out the step's pinned commit in the frozen worktree (results copied out earlier: -f)
+  local pin="$1/CODE_COMMIT" commit
+  if [ -n "${CAMPAIGN_COMMIT:-}" ]; then commit="$CAMPAIGN_COMMIT"
+  elif [ -f "$pin" ]; then commit="$(cat "$pin")"
+  else commit="$(git -C "$ROOT" rev-parse HEAD)"; fi
+  git -C "$CODE" checkout -q -f --detach "$commit" || {
+    echo "scripts/campaign.sh: cannot check out $commit (pinned in $pin; fix: git fetch, or set CAMPAIGN_COMMIT)" >&2; exit 2; }
+  mkdir -p "$1"
+  [ -f "$pin" ] || echo "$commit" > "$pin"
+  echo "=== $(date -u +%FT%TZ) $(basename "$1") with code $(git -C "$CODE" rev-parse --short HEAD)" | tee -a "$log"
+}
 cd "$CODE"
 export PYTHONPATH="$CODE"
 export B3DGS_SHARED="${B3DGS_SHARED:-$(cd "$ROOT/.." && pwd)/shared}"  # the data beside this checkout, not the copy's
 log="$CAMPAIGN/log.txt"
-echo "=== $(date -u +%FT%TZ) campaign $what at $(git rev-parse --short HEAD)" | tee -a "$log"
+echo "=== $(date -u +%FT%TZ) campaign $what (checkout at $(git -C "$ROOT" rev-parse --short HEAD))" | tee -a "$log"
 R="$ROOT/bench/results"
 if [ "$what" = canonical ] || [ "$what" = all ]; then
   # seed by seed, so that each finished seed gives seven paired units; the UQ regimes, the ensembles and the report last
+  use_code "$R/runs"
   for seed in $SEEDS; do
     nice -n 19 python bench/studies.py --studies canonical --uq --seeds "$seed" --jobs "$JOBS" --threads 1 \
       --out "$CAMPAIGN/out" --archive "$R/runs" --report "$CAMPAIGN/report" 2>&1 | tee -a "$log"
@@ -45,19 +59,22 @@ if [ "$what" = canonical ] || [ "$what" = all ]; then
   (cd "$ROOT" && python bench/claims.py > /dev/null)
 fi
 if [ "$what" = compression ] || [ "$what" = all ]; then
+  use_code "$R/compression_runs"
   # shellcheck disable=SC2086
   nice -n 19 python bench/compression.py --scenes $SCENES --seeds 0 --jobs "$JOBS" --bench "$CAMPAIGN/out" \
     --out "$CAMPAIGN/compression" --archive "$R/compression_runs" 2>&1 | tee -a "$log"
   cp bench/results/compression.json bench/results/compression.md "$R/" && rm -rf "$R/compression" && cp -r bench/results/compression "$R/"
 fi
 if [ "$what" = active ] || [ "$what" = all ]; then
+  use_code "$R/active_view_runs"
   # shellcheck disable=SC2086
-  nice -n 19 python bench/active_view.py --scenes $SCENES --seeds 0 --jobs "$JOBS" --study-out "$CAMPAIGN/study" \
+  nice -n 19 python bench/active_view.py --scenes $ACTIVE_SCENES --seeds $ACTIVE_SEEDS --jobs "$JOBS" \
+    --study-out "$CAMPAIGN/study" \
     --archive "$R/active_view_runs" 2>&1 | tee -a "$log"
-  for f in active_view.json active_view.md active_view_8to16.json active_view_8to16.md; do
-    [ -f "bench/results/$f" ] && cp "bench/results/$f" "$R/"
-  done
-  rm -rf "$R/active_view" && cp -r bench/results/active_view "$R/"
+  # the tables of every scene and seed archived so far, by this checkout's code (not only the scenes just run)
+  # shellcheck disable=SC2086
+  (cd "$ROOT" && PYTHONPATH="$ROOT" python bench/active_view.py --aggregate-only --scenes $SCENES \
+    --study-out "$CAMPAIGN/study" --archive "$R/active_view_runs" 2>&1 | tee -a "$log")
 fi
 (cd "$ROOT" && python bench/claims.py > /dev/null)
 echo "=== $(date -u +%FT%TZ) campaign $what done; commit bench/results/ in $ROOT" | tee -a "$log"

@@ -1,0 +1,20 @@
+"""scripts/campaign.sh: valid shell, and a wrong step is a one-line error naming the fix (no work folder made)."""
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "campaign.sh"
+
+
+@pytest.mark.skipif(shutil.which("bash") is None, reason="needs bash")
+def test_campaign_script_parses_and_rejects_unknown_step(tmp_path):
+    assert subprocess.run(["bash", "-n", str(SCRIPT)]).returncode == 0
+    env = dict(os.environ, CAMPAIGN=str(tmp_path / "camp"))
+    r = subprocess.run(["bash", str(SCRIPT), "activ"], env=env, capture_output=True, text=True)
+    assert r.returncode == 2
+    assert "unknown step 'activ'" in r.stderr and "fix:" in r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "camp").exists()
