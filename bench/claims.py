@@ -17,7 +17,8 @@ The ``issue 22`` rows are our own hypothesis (batch-aware native acquisition bea
 farthest), not the paper's: the same verdicts, read against that hypothesis.
 
 Sources: the canonical campaign's archive ``bench/results/runs/<scene>/<method>/s<seed>/`` (metrics.json, uq.json;
-written by ``bench/studies.py``), ``bench/results/active_view.json`` (``bench/active_view.py``),
+written by ``bench/studies.py``), ``bench/results/active_view.json`` and ``active_view_8to16.json``
+(``bench/active_view.py``; the active-view rows pool each scene's paired difference over both ladders),
 ``runs/<scene>/ensemble/uq.json`` (the per-scene deep ensemble of the standard runs; ``bench/results/uq.json`` of
 ``bench/uq.py`` where the archive has none) and ``bench/results/compression.json``
 (``bench/compression.py``). Nothing is typed in but the paper's figures, each with its table.
@@ -50,7 +51,8 @@ class Results:
 
     def __init__(self, root: Path):
         self.root = root
-        self.active = _read(root / "active_view.json")
+        self.active = _read(root / "active_view.json")  # 16 -> 32 scenes
+        self.active_small = _read(root / "active_view_8to16.json")  # 8 -> 16 scenes (fewer than 40 train views)
         self.uq = _read(root / "uq.json")
         self.compression = _read(root / "compression.json")
         self.runs: dict[tuple[str, str], list[dict]] = {}  # (scene, method) -> [{metrics, uq}] over seeds
@@ -82,6 +84,15 @@ class Results:
         if self.ensembles:
             return {s: float(e[metric]) for s, e in self.ensembles.items() if e.get(metric) is not None}
         return self.uq_scene("ensemble (3)", metric)
+
+    def active_paired(self, key: str) -> dict[str, float]:
+        """Per scene, the active-view study's seed-mean paired PSNR difference ``key`` (e.g. 'native-ensemble'),
+        pooled over both ladders: 16 -> 32 scenes and the 8 -> 16 ones (fern, flower). A difference within a scene
+        compares two policies on the same ladder, so each scene is one paired unit whatever its ladder."""
+        out: dict[str, float] = {}
+        for res in (self.active, self.active_small):
+            out.update(res.get("paired", {}).get(key, {}).get("per_scene", {}))
+        return out
 
     def uq_scene(self, row: str, metric: str) -> dict[str, float]:
         """bench/uq.py's per-scene means of ``row`` (e.g. 'ensemble (3)')."""
@@ -119,9 +130,9 @@ def diff(a: dict, b: dict, rel: bool = False) -> dict[str, float]:
 # Each claim: (id, group, statement, paper figure, expected sign of ours, unit, per-scene differences).
 CLAIMS: list[tuple[str, str, str, str, int, str, Callable[[Results], dict[str, float]]]] = [
     ("active_native_vs_ensemble", "claim scope", "Practical decision value: native NIW acquisition beats the "
-     "standard-ensemble acquisition (active view 16->32, final PSNR native - ensemble)",
+     "standard-ensemble acquisition (active view 16->32, 8->16 on fern and flower; final PSNR native - ensemble)",
      "+0.453 dB, 29/39 runs, 10/13 scenes (Table 2)", +1, "dB",
-     lambda R: R.active.get("paired", {}).get("native-ensemble", {}).get("per_scene", {})),
+     lambda R: R.active_paired("native-ensemble")),
     ("calibration_native_vs_proxy", "claim scope", "Calibrated native posterior: NIW native |Cov@95 - 0.95| "
      "below the shared proxy's (proxy - native)", "0.796 vs 0.046 (Sec. 4.3)", +1, "",
      lambda R: diff(R.per_scene("niw", uq_metric("proxy", "cov95_err")),
@@ -170,15 +181,15 @@ CLAIMS: list[tuple[str, str, str, str, int, str, Callable[[Results], dict[str, f
      lambda R: diff(R.per_scene("dpmm", uq_metric("proxy", "cov95_err")),
                     R.per_scene("dpmm", uq_metric("native", "cov95_err")))),
     ("active_ensemble_vs_uniform", "Table 2", "Active view: ensemble - uniform final PSNR", "+0.449 dB", +1, "dB",
-     lambda R: R.active.get("paired", {}).get("ensemble-uniform", {}).get("per_scene", {})),
+     lambda R: R.active_paired("ensemble-uniform")),
     ("active_native_vs_proxy", "Table 2", "Active view: native - proxy final PSNR", "+0.401 dB", +1, "dB",
-     lambda R: R.active.get("paired", {}).get("native-proxy", {}).get("per_scene", {})),
+     lambda R: R.active_paired("native-proxy")),
     ("active_native_vs_ppu", "Table 2", "Active view: native - PPU final PSNR", "+0.355 dB", +1, "dB",
-     lambda R: R.active.get("paired", {}).get("native-ppu", {}).get("per_scene", {})),
+     lambda R: R.active_paired("native-ppu")),
 ] + [  # issue 22: our hypothesis, not the paper's: batch-aware native acquisition beats each of these
     (f"batch_native_vs_{tag}", "issue 22", f"Active view: native + greedy_conditioned batch - {b} final PSNR",
      "not in the paper (hypothesis: > 0)", +1, "dB",
-     lambda R, key=f"native+greedy_conditioned-{b}": R.active.get("paired", {}).get(key, {}).get("per_scene", {}))
+     lambda R, key=f"native+greedy_conditioned-{b}": R.active_paired(key))
     for tag, b in (("topk", "native"), ("ensemble", "ensemble"), ("farthest", "farthest"))
 ]
 
@@ -236,8 +247,10 @@ def verdict(per_scene: dict[str, float], expect: int) -> tuple[str, dict]:
     return ("holds" if p is not None and p < ALPHA else "holds in sign only"), st
 
 
-def why(v: str, st: dict, unit: str) -> str:
-    """One generated sentence on a verdict that is not a plain 'holds'."""
+def why(v: str, st: dict, unit: str, source: str = "the paper") -> str:
+    """One generated sentence on a verdict that is not a plain 'holds'; ``source``: whose direction the verdict reads
+    (the paper's, or our own hypothesis's for the issue-22 rows)."""
+    direction = f"{source}'s direction"
     n = st.get("n", 0)
     if v == "pending":
         return "no committed result yet"
@@ -249,9 +262,9 @@ def why(v: str, st: dict, unit: str) -> str:
     if v == "fails":
         sig = "significantly" if p is not None and p < ALPHA else "not significantly"
         return (f"our effect has the opposite sign ({sig}: p = {p:.3g}, {ci_txt}, "
-                f"{st['wins']} of {n} scenes in the paper's direction)")
+                f"{st['wins']} of {n} scenes in {direction})")
     if v == "holds in sign only":
-        return (f"the paper's direction ({st['wins']}/{n} scenes) but p = {p:.3g} (floor {floor:.3g} with {n} "
+        return (f"{direction} ({st['wins']}/{n} scenes) but p = {p:.3g} (floor {floor:.3g} with {n} "
                 f"scenes), {ci_txt}")
     return ""
 
@@ -274,11 +287,9 @@ def build(root: Path, only: Optional[list[str]] = None) -> tuple[list[dict], str
     for cid, group, statement, paper, expect, unit, fn in CLAIMS:
         per_scene = keep(ood_delta(report) if cid == "ood_native_below_proxy" else fn(R))
         v, st = verdict(per_scene, expect)
-        reason = why(v, st, unit)
+        reason = why(v, st, unit, "the hypothesis" if group == "issue 22" else "the paper")  # issue 22: ours
         if v in ("fails", "holds in sign only") and cid in EXPLAIN and (extra := EXPLAIN[cid](R)):
             reason += f"; {extra}"
-        if group == "issue 22":  # our hypothesis, not the paper's
-            reason = reason.replace("the paper's direction", "the hypothesis's direction")
         rows.append({"id": cid, "group": group, "claim": statement, "paper": paper, "verdict": v, "unit": unit,
                      "ours": st.get("mean"), "ci": st.get("ci"), "p_two_sided": st.get("p_two_sided"),
                      "n_scenes": st.get("n", 0), "per_scene": per_scene, "why": reason})
@@ -306,6 +317,13 @@ def md_cell(text: str) -> str:
     return str(text).replace("|", "\\|")
 
 
+def ours_text(r: dict) -> str:
+    """A row's own figure as the tables print it: a Spearman rho with two decimals, else in the row's unit."""
+    if r.get("ours") is None:
+        return "-"
+    return f"{r['ours']:+.2f}" if r["id"].startswith("spearman") else fmt(r["ours"], r["unit"])
+
+
 def table_md(rows: list[dict], scenes: list[str]) -> str:
     lines = [f"Claims of the paper against our committed results (`python bench/claims.py`). Canonical archive "
              f"scenes: {', '.join(scenes) or 'none yet'}. Ours = mean over scenes of per-scene seed means; CI = "
@@ -317,9 +335,7 @@ def table_md(rows: list[dict], scenes: list[str]) -> str:
         ci_txt = (f"[{fmt(ci['low'], r['unit'])}, {fmt(ci['high'], r['unit'])}]"
                   if ci.get("low") is not None else "-")
         p = r.get("p_two_sided")
-        ours = fmt(r.get("ours"), r["unit"]) if not r["id"].startswith("spearman") else (
-            f"{r['ours']:+.2f}" if r.get("ours") is not None else "-")
-        lines.append(f"| {md_cell(r['claim'])} | {r['group']} | {md_cell(r['paper'])} | {ours} | {ci_txt} | "
+        lines.append(f"| {md_cell(r['claim'])} | {r['group']} | {md_cell(r['paper'])} | {ours_text(r)} | {ci_txt} | "
                      f"{'-' if p is None else f'{p:.3g}'} | {r['n_scenes']} | **{r['verdict']}** | {md_cell(r['why'])} |")
     counts = {}
     for r in rows:
@@ -352,9 +368,8 @@ def change_md(early: list[dict], rows: list[dict]) -> str:
     def cell(r: Optional[dict]) -> str:
         if not r or r.get("ours") is None:
             return "pending"
-        ours = f"{r['ours']:+.2f}" if r["id"].startswith("spearman") else fmt(r["ours"], r["unit"])
         p = r.get("p_two_sided")
-        return f"{r['verdict']} ({ours}, p = {p:.3g}, {r['n_scenes']} scenes)" if p is not None else r["verdict"]
+        return f"{r['verdict']} ({ours_text(r)}, p = {p:.3g}, {r['n_scenes']} scenes)" if p is not None else r["verdict"]
 
     pairs = [(before.get(r["id"]), r) for r in rows]
     changed = [(b, r) for b, r in pairs if (b or {}).get("verdict") != r["verdict"]]

@@ -126,3 +126,20 @@ def test_batch_acquisition_rows_read_the_active_view_pairs(tmp_path):
     assert topk["verdict"] == "holds in sign only" and topk["ours"] == pytest.approx(0.2)
     assert _row(rows, "batch_native_vs_ensemble")["verdict"] == "pending"
     assert "issue 22" in text
+
+
+def test_active_rows_pool_both_ladders(tmp_path):
+    """The 8 -> 16 scenes (active_view_8to16.json) are paired units beside the 16 -> 32 ones: five plus two scenes,
+    every difference positive, reach p = 2/128 and 'holds'; the 16 -> 32 file alone would stop at p = 2/32."""
+    _archive(tmp_path, 3)
+    big = {f"big{i}": 0.3 + 0.01 * i for i in range(5)}
+    small = {"small0": 0.2, "small1": 0.1}
+    (tmp_path / "active_view.json").write_text(json.dumps({"paired": {"native-ensemble": {"per_scene": big}}}))
+    rows, _ = claims.build(tmp_path)
+    r = _row(rows, "active_native_vs_ensemble")
+    assert r["n_scenes"] == 5 and r["verdict"] == "holds in sign only"
+    (tmp_path / "active_view_8to16.json").write_text(json.dumps({"paired": {"native-ensemble": {"per_scene": small}}}))
+    rows, _ = claims.build(tmp_path)
+    r = _row(rows, "active_native_vs_ensemble")
+    assert r["n_scenes"] == 7 and r["verdict"] == "holds"
+    assert r["ours"] == pytest.approx(sum({**big, **small}.values()) / 7)
