@@ -428,3 +428,21 @@ def test_cpu_gradients_of_a_subset_of_outputs(cpu_ext, outputs):
         grads[backend] = [t.grad for t in ins]
     for a, b in zip(grads["torch"], grads["cpu"]):
         torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-12)
+
+
+def test_default_build_has_no_lane_counters(cpu_ext):
+    """The lane-occupancy counters (bench/lanes.py) exist only in the B3DGS_LANE_STATS=1 build: the default kernels
+    count nothing, and the two builds never share a cache entry."""
+    import os
+
+    from b3dgs.render import _ext
+
+    assert os.environ.get(_ext.LANE_STATS_ENV) != "1"
+    assert list(cpu_ext.lane_stats(False)) == []
+    default = _ext.cache_dir()
+    os.environ[_ext.LANE_STATS_ENV] = "1"
+    try:
+        assert _ext.cache_dir() != default and "-DB3_LANE_STATS" in _ext._cflags()
+    finally:
+        del os.environ[_ext.LANE_STATS_ENV]
+    assert _ext.cache_dir() == default

@@ -28,6 +28,12 @@ _HASHED = [_CSRC / "ext.cpp", _CSRC / "kernels.h", _CSRC / "preprocess.h", _CSRC
 # Portable flags: no -march=native, no -ffast-math (NaN semantics must hold). FMA contraction off
 # so that float32 results track the pure-PyTorch backend as closely as possible.
 _CFLAGS = ("-O3", "-fopenmp", "-fno-math-errno", "-ffp-contract=off")
+# B3DGS_LANE_STATS=1: a separate build whose kernels count SIMD lane occupancy (bench/lanes.py); slower, never default
+LANE_STATS_ENV = "B3DGS_LANE_STATS"
+
+
+def _cflags() -> tuple[str, ...]:
+    return _CFLAGS + (("-DB3_LANE_STATS",) if os.environ.get(LANE_STATS_ENV) == "1" else ())
 _LDFLAGS = ("-fopenmp",)
 HINT = "use renderer=torch (pure PyTorch backend)"
 
@@ -40,7 +46,7 @@ def _build_hash() -> str:
     for src in _HASHED:
         h.update(src.name.encode())
         h.update(src.read_bytes())
-    h.update(" ".join(_CFLAGS + _LDFLAGS).encode())
+    h.update(" ".join(_cflags() + _LDFLAGS).encode())
     h.update(torch.__version__.encode())
     h.update(sys.version.encode())
     h.update(os.environ.get("CXX", "c++").encode())  # the compiler torch's build uses
@@ -84,7 +90,7 @@ def _build_locked(build_dir: Path, name: str, verbose: bool) -> ModuleType:
             return cpp_extension.load(
                 name=name,
                 sources=[str(s) for s in _SOURCES],
-                extra_cflags=list(_CFLAGS),
+                extra_cflags=list(_cflags()),
                 extra_ldflags=list(_LDFLAGS),
                 build_directory=str(build_dir),
                 verbose=verbose,

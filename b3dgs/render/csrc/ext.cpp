@@ -311,9 +311,24 @@ std::vector<torch::Tensor> niw_draw(torch::Tensor m, torch::Tensor kappa, torch:
   return {means, covs, torch::tensor(floored)};
 }
 
+// The lane-occupancy counters (bench/lanes.py) since the last reset, or an empty list when the extension was built
+// without -DB3_LANE_STATS (the default).
+std::vector<int64_t> lane_stats(bool reset) {
+#ifdef B3_LANE_STATS
+  std::vector<int64_t> out(b3dgs::g_lane_stats, b3dgs::g_lane_stats + b3dgs::kLaneStats);
+  if (reset)
+    for (auto& v : b3dgs::g_lane_stats) v = 0;
+  return out;
+#else
+  (void)reset;
+  return {};
+#endif
+}
+
 }  // namespace
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("lane_stats", &lane_stats, "lane-occupancy counters of an instrumented build (empty otherwise)");
   m.def("forward", &rasterize_forward, "3DGS tile rasterizer forward (CPU)");
   m.def("backward", &rasterize_backward, "3DGS tile rasterizer backward (CPU)");
   m.def("preprocess_forward", &preprocess_forward, "projection + SH + opacity (CPU)");

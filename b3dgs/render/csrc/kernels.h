@@ -120,6 +120,23 @@ B3_INLINE void exp_neg(const Vec<double>::V& x, Vec<double>::V& out) {
   for (int l = 0; l < kLanes; ++l) out[l] = std::exp(x[l]);
 }
 
+// Lane-occupancy counters of the SIMD chunks (diagnostic for bench/lanes.py): compiled only with -DB3_LANE_STATS
+// (B3DGS_LANE_STATS=1 builds a separate extension), so the default kernels carry no counting at all.
+enum LaneStat { kFwdChunks, kFwdLive, kFwdUsed, kBwdChunks, kBwdLive, kBwdUsed, kBwdRows, kBwdRowPixels,
+                kBwdNarrowRows, kBwdUnalignedChunks, kBwdAlignedChunks, kLaneStats };
+#ifdef B3_LANE_STATS
+inline int64_t g_lane_stats[kLaneStats] = {};
+template <typename Mask>
+B3_INLINE int64_t lanes_set(const Mask& m) {
+  int64_t n = 0;
+  for (int l = 0; l < kLanes; ++l) n += m[l] != 0;
+  return n;
+}
+#define B3_COUNT(i, v) __atomic_fetch_add(&g_lane_stats[i], (int64_t)(v), __ATOMIC_RELAXED)
+#else
+#define B3_COUNT(i, v) ((void)0)
+#endif
+
 struct Geometry {
   int S, N, W, H, ts, tiles_x, tiles_y;
   int64_t P;
@@ -436,6 +453,11 @@ B3_INLINE void forward_tile_body(const TileCache<scalar_t>& tc, int64_t K, int p
         const V t0 = load<V>(st.T + off);
         const V test_T = t0 * (one - alpha);
         const M stop = contrib & (test_T < min_T);
+#ifdef B3_LANE_STATS
+        B3_COUNT(kFwdChunks, 1);
+        B3_COUNT(kFwdLive, lanes_set(live));
+        B3_COUNT(kFwdUsed, lanes_set(contrib));
+#endif
         const M use = contrib & ~stop;
         const V w = use ? alpha * t0 : zero;
         // w = +0 on unused lanes, and x + (+-0) = x for the accumulators (never -0): no selects
@@ -495,6 +517,11 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
         const scalar_t cdy2 = cc * dy * dy, hdy2 = mhalf * dy * dy;
         const int lo = xa - px0, hi = xb - px0;
         const int row = (yy - py0) * ps;
+        B3_COUNT(kBwdRows, 1);
+        B3_COUNT(kBwdRowPixels, hi - lo);
+        B3_COUNT(kBwdNarrowRows, hi - lo <= kLanes / 2);
+        B3_COUNT(kBwdUnalignedChunks, (hi - lo + kLanes - 1) / kLanes);
+        B3_COUNT(kBwdAlignedChunks, (hi + kLanes - 1) / kLanes - lo / kLanes);  // before skipping dead chunks
         // chunks aligned to multiples of kLanes (lanes before lo masked): every pixel already sits in the lane
         // of its column mod kLanes, so the per-pair sums need no lane moves, and each lane adds its pixels in
         // the same order as the forward's chunks starting at lo would (increasing column): the same bits
@@ -512,6 +539,11 @@ B3_INLINE void backward_tile_body(const TileCache<scalar_t>& tc, int64_t kmax, i
           const V raw = go * G;
           const V alpha = raw < max_alpha ? raw : max_alpha;  // std::min(max_alpha, raw)
           const M use = live & ~(power > zero) & ~(alpha < min_alpha);
+#ifdef B3_LANE_STATS
+          B3_COUNT(kBwdChunks, 1);
+          B3_COUNT(kBwdLive, lanes_set(live));
+          B3_COUNT(kBwdUsed, lanes_set(use));
+#endif
           const V one_m = one - alpha;
           const V inv_om = one / one_m;
           const V t0 = load<V>(st.T + off);
