@@ -446,3 +446,43 @@ def test_default_build_has_no_lane_counters(cpu_ext):
     finally:
         del os.environ[_ext.LANE_STATS_ENV]
     assert _ext.cache_dir() == default
+
+
+@pytest.mark.slow
+def test_fma_build_matches_the_default_build(cpu_ext, tmp_path):
+    """The opt-in B3DGS_FMA=1 build (its own cache entry, a separate compile) renders and differentiates like the
+    default build up to float32 rounding (bench/results/fma.md measures its speed)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from b3dgs.render import _ext
+
+    os.environ[_ext.FMA_ENV] = "1"
+    try:
+        flags, fma_dir = _ext._cflags(), _ext.cache_dir()
+    finally:
+        del os.environ[_ext.FMA_ENV]
+    assert "-DB3_FMA" in flags and "-ffp-contract=fast" in flags and "-ffp-contract=off" not in flags
+    assert fma_dir != _ext.cache_dir()
+    root = Path(__file__).resolve().parents[1]
+    child = (
+        "import sys, torch\n"
+        f"sys.path.insert(0, {str(root / 'bench')!r})\n"
+        "from render import camera, random_gaussians\n"
+        "from b3dgs.render.renderers import make_renderer\n"
+        "p = {k: v.clone().requires_grad_(True) for k, v in random_gaussians(3000).items()}\n"
+        "out = make_renderer('cpu').render(p, camera(64, 64), sh_degree=3, retain_means2d_grad=True)\n"
+        "out.rgb.sum().backward()\n"
+        "torch.save({'rgb': out.rgb.detach(), **{k: v.grad for k, v in p.items()}}, sys.argv[1])\n")
+    res = {}
+    for label, extra in (("default", {}), ("fma", {_ext.FMA_ENV: "1"})):
+        env = {k: v for k, v in os.environ.items() if k != _ext.FMA_ENV}
+        env.update(extra, PYTHONPATH=str(root))
+        subprocess.run([sys.executable, "-c", child, str(tmp_path / f"{label}.pt")], env=env, check=True, cwd=root)
+        res[label] = torch.load(tmp_path / f"{label}.pt")
+    for k, a in res["default"].items():
+        b = res["fma"][k]
+        scale = float(a.abs().max()) + 1e-12
+        assert torch.isfinite(b).all() and float((a - b).abs().max()) <= 1e-4 * scale, k

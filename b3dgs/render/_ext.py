@@ -32,8 +32,17 @@ _CFLAGS = ("-O3", "-fopenmp", "-fno-math-errno", "-ffp-contract=off")
 LANE_STATS_ENV = "B3DGS_LANE_STATS"
 
 
+# B3DGS_FMA=1: a separate build whose tile kernels contract a*b + c into fused multiply-adds on CPUs with AVX2 + FMA
+# (GCC target clone arch=x86-64-v3). Faster (bench/results/fma.md); results differ from the default build in the last
+# bits, and between FMA and non-FMA machines, so it is opt-in: the default build gives the same bits on every x86 CPU.
+FMA_ENV = "B3DGS_FMA"
+
+
 def _cflags() -> tuple[str, ...]:
-    return _CFLAGS + (("-DB3_LANE_STATS",) if os.environ.get(LANE_STATS_ENV) == "1" else ())
+    flags = _CFLAGS
+    if os.environ.get(FMA_ENV) == "1":
+        flags = tuple(f for f in flags if not f.startswith("-ffp-contract")) + ("-ffp-contract=fast", "-DB3_FMA")
+    return flags + (("-DB3_LANE_STATS",) if os.environ.get(LANE_STATS_ENV) == "1" else ())
 _LDFLAGS = ("-fopenmp",)
 HINT = "use renderer=torch (pure PyTorch backend)"
 

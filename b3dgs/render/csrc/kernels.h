@@ -48,7 +48,11 @@ constexpr int kMaxTile = 64;  // largest supported tile size (row buffers)
 constexpr double kPixMargin = 1e-3;
 
 #if defined(__GNUC__) && !defined(__clang__) && (defined(__x86_64__) || defined(__i386__))
+#ifdef B3_FMA  // opt-in build (B3DGS_FMA=1, -ffp-contract=fast): fused multiply-adds on AVX2 + FMA machines
+#define B3_CLONES __attribute__((target_clones("arch=x86-64-v3", "default")))
+#else
 #define B3_CLONES __attribute__((target_clones("avx2", "default")))
+#endif
 #else
 #define B3_CLONES
 #endif
