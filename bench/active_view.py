@@ -306,6 +306,39 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict, scene_args: dict 
             "runs": {sc: s["runs"] for sc, s in per_scene.items()}}
 
 
+def pooled_pairs(results: list[dict]) -> dict:
+    """Each paired difference with every scene of every ladder as one unit (a scene's seed-mean difference compares
+    two policies on that scene's own ladder): the sign-flip test over all scenes, whose floor two ladders reported apart
+    cannot reach (5 scenes: 2/32 > 0.05; 7: 2/128)."""
+    keys = [k for res in results for k in res.get("paired", {})]
+    out = {}
+    for k in dict.fromkeys(keys):
+        per = {}
+        for res in results:
+            per.update(res.get("paired", {}).get(k, {}).get("per_scene", {}))
+        sm = list(per.values())
+        out[k] = {"delta_psnr": float(np.mean(sm)), "sem": mean_sem(sm)[1], "scene_wins": int(sum(x > 0 for x in sm)),
+                  "n_scenes": len(sm), "scene_sign_flip_p": sign_flip_p(sm), "p_floor": p_floor(len(sm)),
+                  "per_scene": per}
+    return out
+
+
+def pooled_markdown(pooled: dict, ladders: dict) -> str:
+    by = {}
+    for sc, lad in ladders.items():
+        by.setdefault(lad, []).append(sc)
+    lines = ["", "## Paired differences over both ladders (each scene one unit)", "",
+             "Scenes of the 8 → 16 ladder (`active_view_8to16.md`) pooled with these: a scene's seed-mean difference "
+             "compares two policies on that scene's own ladder. Ladders: "
+             + "; ".join(f"{lad} {', '.join(scs)}" for lad, scs in by.items()) + ".", ""]
+    lines += markdown_table(
+        ["pair", "ΔPSNR dB, mean over scenes (± SEM)", "scene wins", "sign-flip p over scenes (floor)", "per scene"],
+        [[k.replace("-", " − "), f"{_f(v['delta_psnr'], sign=True)} ± {_f(v['sem'])}",
+          f"{v['scene_wins']}/{v['n_scenes']}", f"{_f(v.get('scene_sign_flip_p'), 3)} ({_f(v.get('p_floor'), 3)})",
+          ", ".join(f"{sc} {x:+.3f}" for sc, x in v["per_scene"].items())] for k, v in pooled.items()])
+    return "\n".join(lines) + "\n"
+
+
 def _f(v, nd=3, sign=False):
     if v is None:
         return "—"
@@ -494,15 +527,21 @@ def main() -> None:
         (out / "active_view_smoke.md").write_text(text)
         print(text)
         return
-    for lad in LADDERS:  # one table per ladder: 16 -> 32 scenes are never pooled with 8 -> 16 ones
+    results = {}
+    for lad in LADDERS:  # one table per ladder: 16 -> 32 scenes are never pooled with 8 -> 16 ones in a table
         group = [sc for sc in scenes if ladders.get(sc) == lad]
-        if not group:
-            continue
-        res = aggregate(group, out, walls)
-        res["ladder"] = lad
+        if group:
+            results[lad] = aggregate(group, out, walls)
+            results[lad]["ladder"] = lad
+    pooled = pooled_pairs(list(results.values())) if len(results) > 1 else None
+    for lad, res in results.items():
+        text = markdown(res)
         if lad == "16to32":
             plots(res)
-        write_results(NAME if lad == "16to32" else f"{NAME}_{lad}", res, markdown(res))
+            if pooled:  # the paired answers over every scene sit with the main table
+                res["paired_all_ladders"] = pooled
+                text += pooled_markdown(pooled, {sc: lad2 for sc, lad2 in ladders.items() if sc in scenes})
+        write_results(NAME if lad == "16to32" else f"{NAME}_{lad}", res, text)
 
 
 if __name__ == "__main__":

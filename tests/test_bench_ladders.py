@@ -81,3 +81,19 @@ def test_support_spearman_is_none_when_every_row_has_the_same_coverage(monkeypat
     write_json(tmp_path / "support.json", out)  # no NaN left to refuse
     runs[0]["selected"] = ["t0", "c1"]  # one row now covers the test view: the correlation is defined again
     assert active_view.add_support(per_scene)["fern"]["psnr_vs_support_spearman"] is not None
+
+
+def test_pooled_pairs_take_every_scene_of_both_ladders_as_one_unit():
+    """Five 16 -> 32 scenes and two 8 -> 16 ones, all positive: pooled, the sign-flip p reaches 2/128 (each ladder
+    alone stops at 2/32 and 2/4); a pair only one ladder has keeps its scenes; the markdown names both ladders."""
+    big = {"paired": {"native-ensemble": {"per_scene": {f"b{i}": 0.1 * (i + 1) for i in range(5)}},
+                      "native-proxy": {"per_scene": {"b0": -0.2}}}}
+    small = {"paired": {"native-ensemble": {"per_scene": {"s0": 0.05, "s1": 0.2}}}}
+    pooled = active_view.pooled_pairs([big, small])
+    ne = pooled["native-ensemble"]
+    assert ne["n_scenes"] == 7 and ne["scene_wins"] == 7
+    assert ne["scene_sign_flip_p"] == pytest.approx(2 / 128) and ne["p_floor"] == pytest.approx(2 / 128)
+    assert ne["delta_psnr"] == pytest.approx((0.1 + 0.2 + 0.3 + 0.4 + 0.5 + 0.05 + 0.2) / 7)
+    assert pooled["native-proxy"]["n_scenes"] == 1 and pooled["native-proxy"]["scene_wins"] == 0
+    text = active_view.pooled_markdown(pooled, {"b0": "16to32", "s0": "8to16"})
+    assert "16to32 b0" in text and "8to16 s0" in text and "native − ensemble" in text
