@@ -15,6 +15,9 @@
 #              changes (e.g. kernels that change results bitwise), so every row of a study comes from the same code.
 #   B3DGS_SHARED  the shared data folder (default: ../shared beside this checkout)
 set -euo pipefail
+# The whole script is one brace group ending in exit: bash parses it completely before running anything, so a
+# git pull or an edit of this file while a campaign runs (hours) cannot change the commands still to come.
+{
 ROOT="$(cd "$(dirname "$0")/.." && pwd)"
 CAMPAIGN="${CAMPAIGN:-/work/campaign}"
 JOBS="${JOBS:-2}"
@@ -78,3 +81,5 @@ if [ "$what" = active ] || [ "$what" = all ]; then
 fi
 (cd "$ROOT" && python bench/claims.py > /dev/null)
 echo "=== $(date -u +%FT%TZ) campaign $what done; commit bench/results/ in $ROOT" | tee -a "$log"
+exit 0
+}

@@ -18,3 +18,11 @@ def test_campaign_script_parses_and_rejects_unknown_step(tmp_path):
     assert "unknown step 'activ'" in r.stderr and "fix:" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "camp").exists()
+
+
+def test_campaign_script_is_parsed_whole_before_it_runs():
+    """Bash reads a script as it executes: an edit (git pull) during an hours-long campaign would change the commands
+    still to come. The body is one brace group ending in exit, which bash parses completely first."""
+    lines = [ln for ln in SCRIPT.read_text().splitlines() if ln.strip()]
+    body = lines[lines.index("{"):]
+    assert body[-2:] == ["exit 0", "}"]
