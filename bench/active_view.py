@@ -406,7 +406,9 @@ def markdown(res: dict) -> str:
                                                            for k, v in res["jaccard"].items()])
     lines += ["", "## Compute per scene-seed", "",
               "Phase-1 models first trained for that seed, every row's second round (shared rows cost nothing) and "
-              "scoring; evaluation excluded. 1 thread per study, two scenes at once on the 2 cores.", ""]
+              "scoring; evaluation excluded. 1 thread per study, two scenes at once on the 2 cores. Job wall: the study "
+              "processes' wall time summed over the sessions that ran the scene-seed (before 2026-11-25 only the last "
+              "session's was kept, so a seed finished earlier may show the seconds of a session that only resumed it).", ""]
     lines += markdown_table(
         ["scene/seed", "rows", "phase 1 s", "round 2 s", "scoring s", "total min", "job wall min"],
         [[k, str(c["rows"]), f"{c['phase1_s']:.0f}", f"{c['round2_s']:.0f}", f"{c['scoring_s']:.0f}",
@@ -513,7 +515,7 @@ def main() -> None:
                                   args.score_max_side, (scene_args or {}).get(sc)) for sc in scenes}
             for sc, f in futs.items():
                 for sd, w in f.result().items():
-                    walls[f"{sc}/s{sd}"] = w
+                    walls[f"{sc}/s{sd}"] = walls.get(f"{sc}/s{sd}", 0.0) + w  # summed over the sessions it took
         from b3dgs.io import write_json
 
         write_json(walls_path, walls)
