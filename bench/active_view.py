@@ -473,7 +473,7 @@ def main() -> None:
     ap.add_argument("--scenes", nargs="+", default=list(STUDY_SCENES), choices=sorted(SCENES),
                     help="default: the seven scenes of conf/report.yaml; scenes with < 40 train views run 8 -> 16")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--jobs", type=int, default=2, help="scenes run at once (one thread each)")
+    ap.add_argument("--jobs", type=int, default=2, help="scene-seeds run at once (one thread each)")
     ap.add_argument("--study-out", default=None, help="default outputs/study (--smoke: outputs/study_smoke)")
     ap.add_argument("--aggregate-only", action="store_true")
     ap.add_argument("--score-max-side", default="64",
@@ -509,11 +509,14 @@ def main() -> None:
     walls = json.loads(walls_path.read_text()) if walls_path.exists() else {}
     if not args.aggregate_only:
         with PeriodicSync(out, archive, ARCHIVED), ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-            futs = {sc: ex.submit(run_scene, sc, args.seeds, out,
-                                  extra + ([f"initial_views={LADDERS[ladders[sc]][0]}",
-                                            f"acquire={LADDERS[ladders[sc]][1]}"] if sc in ladders else []),
-                                  args.score_max_side, (scene_args or {}).get(sc)) for sc in scenes}
-            for sc, f in futs.items():
+            # one job per scene-seed (seed-major: every scene's seed 0 first); seeds of one scene share its phase-1
+            # models, which the study trains under a file lock, so they may run at once
+            futs = {(sc, sd): ex.submit(run_scene, sc, [sd], out,
+                                        extra + ([f"initial_views={LADDERS[ladders[sc]][0]}",
+                                                  f"acquire={LADDERS[ladders[sc]][1]}"] if sc in ladders else []),
+                                        args.score_max_side, (scene_args or {}).get(sc))
+                    for sd in args.seeds for sc in scenes}
+            for (sc, _), f in futs.items():
                 for sd, w in f.result().items():
                     walls[f"{sc}/s{sd}"] = walls.get(f"{sc}/s{sd}", 0.0) + w  # summed over the sessions it took
         from b3dgs.io import write_json

@@ -97,3 +97,23 @@ def test_pooled_pairs_take_every_scene_of_both_ladders_as_one_unit():
     assert pooled["native-proxy"]["n_scenes"] == 1 and pooled["native-proxy"]["scene_wins"] == 0
     text = active_view.pooled_markdown(pooled, {"b0": "16to32", "s0": "8to16"})
     assert "16to32 b0" in text and "8to16 s0" in text and "native − ensemble" in text
+
+
+def test_each_scene_seed_is_one_job_and_walls_add_up(monkeypatch, tmp_path):
+    """bench/active_view.py submits one job per scene-seed (so two seeds of one scene use both cores) and sums a
+    scene-seed's wall time over the sessions that ran it."""
+    import json
+
+    calls = []
+    monkeypatch.setattr(active_view, "run_scene", lambda sc, seeds, *a, **k: calls.append((sc, tuple(seeds)))
+                        or {sd: 1.0 for sd in seeds})
+    monkeypatch.setattr(active_view, "scene_ladders", lambda scenes: {})
+    out = tmp_path / "study"
+    out.mkdir()
+    (out / "walls.json").write_text(json.dumps({"fox/s1": 5.0}))
+    monkeypatch.setattr(sys, "argv", ["active_view.py", "--scenes", "fox", "ethiopian_head", "--seeds", "1", "2",
+                                      "--jobs", "2", "--study-out", str(out), "--archive", str(tmp_path / "arch")])
+    active_view.main()
+    assert sorted(calls) == [("ethiopian_head", (1,)), ("ethiopian_head", (2,)), ("fox", (1,)), ("fox", (2,))]
+    walls = json.loads((out / "walls.json").read_text())
+    assert walls["fox/s1"] == 6.0 and walls["ethiopian_head/s2"] == 1.0
