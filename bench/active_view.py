@@ -306,16 +306,22 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict, scene_args: dict 
             "runs": {sc: s["runs"] for sc, s in per_scene.items()}}
 
 
+def pooled_per_scene(results: list[dict], key: str) -> dict[str, float]:
+    """Per scene, the seed-mean paired PSNR difference ``key`` (e.g. 'native-ensemble') of every ladder's aggregate in
+    ``results``: a scene's difference compares two policies on that scene's own ladder, so each scene is one unit."""
+    per: dict[str, float] = {}
+    for res in results:
+        per.update(res.get("paired", {}).get(key, {}).get("per_scene", {}))
+    return per
+
+
 def pooled_pairs(results: list[dict]) -> dict:
-    """Each paired difference with every scene of every ladder as one unit (a scene's seed-mean difference compares
-    two policies on that scene's own ladder): the sign-flip test over all scenes, whose floor two ladders reported apart
-    cannot reach (5 scenes: 2/32 > 0.05; 7: 2/128)."""
+    """Each paired difference with every scene of every ladder as one unit (:func:`pooled_per_scene`): the sign-flip
+    test over all scenes, whose floor two ladders reported apart cannot reach (5 scenes: 2/32 > 0.05; 7: 2/128)."""
     keys = [k for res in results for k in res.get("paired", {})]
     out = {}
     for k in dict.fromkeys(keys):
-        per = {}
-        for res in results:
-            per.update(res.get("paired", {}).get(k, {}).get("per_scene", {}))
+        per = pooled_per_scene(results, k)
         sm = list(per.values())
         out[k] = {"delta_psnr": float(np.mean(sm)), "sem": mean_sem(sm)[1], "scene_wins": int(sum(x > 0 for x in sm)),
                   "n_scenes": len(sm), "scene_sign_flip_p": sign_flip_p(sm), "p_floor": p_floor(len(sm)),

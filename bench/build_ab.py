@@ -85,6 +85,8 @@ def main() -> None:
     args = ap.parse_args()
     import torch
 
+    from b3dgs.io import write_json
+
     other = dict(kv.split("=", 1) for kv in args.env)
     path = RESULTS / f"{args.name}.json"
     prev = json.loads(path.read_text()) if path.exists() else {}
@@ -101,11 +103,8 @@ def main() -> None:
         rounds.append(rnd)
         a, b = torch.load(tmp / "default.pt"), torch.load(tmp / "other.pt")
         diffs = {case: {k: float((a[case][k] - b[case][k]).abs().max()) for k in a[case]} for case in a}
-        write_json_partial = {"machine": machine(), "env": other, "checkpoint": args.checkpoint, "rounds": rounds,
-                              "max_abs_diff": diffs}
-        from b3dgs.io import write_json
-
-        write_json(path, write_json_partial)  # each finished round is kept
+        write_json(path, {"machine": machine(), "env": other, "checkpoint": args.checkpoint, "rounds": rounds,
+                          "max_abs_diff": diffs})  # each finished round is kept
     rows = []
     for case in rounds[0]["default"]:
         for what in ("fwd_ms", "fwdbwd_ms"):

@@ -87,12 +87,10 @@ class Results:
 
     def active_paired(self, key: str) -> dict[str, float]:
         """Per scene, the active-view study's seed-mean paired PSNR difference ``key`` (e.g. 'native-ensemble'),
-        pooled over both ladders: 16 -> 32 scenes and the 8 -> 16 ones (fern, flower). A difference within a scene
-        compares two policies on the same ladder, so each scene is one paired unit whatever its ladder."""
-        out: dict[str, float] = {}
-        for res in (self.active, self.active_small):
-            out.update(res.get("paired", {}).get(key, {}).get("per_scene", {}))
-        return out
+        pooled over both ladders as bench/active_view.py pools them: 16 -> 32 scenes and the 8 -> 16 ones."""
+        from active_view import pooled_per_scene
+
+        return pooled_per_scene([self.active, self.active_small], key)
 
     def uq_scene(self, row: str, metric: str) -> dict[str, float]:
         """bench/uq.py's per-scene means of ``row`` (e.g. 'ensemble (3)')."""
