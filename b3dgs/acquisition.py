@@ -32,11 +32,10 @@ from typing import Any, Callable, ClassVar, Optional, Sequence
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from b3dgs.errors import B3dgsError, did_you_mean
-from b3dgs.types import Camera
+from b3dgs.types import Camera, resize_image
 
 __all__ = ["AcquisitionPolicy", "BatchSelector", "ScoringContext", "Selection", "diverse_picks", "downscale_camera",
            "downscale_image", "epistemic_scores", "top_k"]
@@ -171,24 +170,17 @@ def diverse_picks(scores: Sequence[float], cand: np.ndarray, train: np.ndarray, 
 # ---------------------------------------------------------------------------------------------- context
 def downscale_camera(camera: Camera, max_side: Optional[int]) -> Camera:
     """``camera`` rendered at most ``max_side`` pixels on its longest side (K scaled per axis); no image."""
-    from b3dgs.data.scene import scale_intrinsics
-
     w, h = int(camera.width), int(camera.height)
+    bare = camera.with_image(None)
     if not max_side or max(w, h) <= int(max_side):
-        return Camera(camera.name, camera.K, camera.viewmat, w, h, None)
+        return bare
     s = int(max_side) / max(w, h)
-    w2, h2 = max(1, round(w * s)), max(1, round(h * s))
-    K = torch.tensor(scale_intrinsics(camera.K.double().cpu().numpy(), w2 / w, h2 / h), dtype=camera.K.dtype,
-                     device=camera.K.device)
-    return Camera(camera.name, K, camera.viewmat, w2, h2, None)
+    return bare.resized(max(1, round(w * s)), max(1, round(h * s)))
 
 
 def downscale_image(image: Tensor, width: int, height: int) -> Tensor:
-    """(H, W, 3) -> (height, width, 3) by area averaging (the image's own device and dtype)."""
-    if tuple(image.shape[:2]) == (height, width):
-        return image
-    x = image.permute(2, 0, 1).unsqueeze(0)
-    return F.interpolate(x, size=(height, width), mode="area")[0].permute(1, 2, 0).contiguous()
+    """(H, W, 3) -> (height, width, 3) by area averaging (:func:`b3dgs.types.resize_image`)."""
+    return resize_image(image, width, height)
 
 
 class ScoringContext:

@@ -95,11 +95,18 @@ def scene_fingerprint(scene: Any) -> Optional[str]:
     return hashlib.sha256(json.dumps(rec, sort_keys=True).encode()).hexdigest()[:16]
 
 
-def run_identity(hparams: Mapping[str, Any], strategy: Any, posterior: Mapping[str, Any], scene: Any) -> dict:
+#: the identity's schedule of checkpoints written before training schedules existed (they all trained at a
+#: constant resolution)
+CONSTANT_SCHEDULE = {"_target_": "b3dgs.schedule.ConstantSchedule"}
+
+
+def run_identity(hparams: Mapping[str, Any], strategy: Any, posterior: Mapping[str, Any], scene: Any,
+                 schedule: Any = None) -> dict:
     """What must agree between a checkpoint and the run that resumes or evaluates it."""
     hp = _plain(dict(hparams))
     return {"model": hp.get("name"), "posterior": {str(k): plugin_config(b) for k, b in posterior.items()},
-            "scene": scene_fingerprint(scene), "strategy": plugin_config(strategy), "hparams": hp}
+            "scene": scene_fingerprint(scene), "strategy": plugin_config(strategy), "hparams": hp,
+            "schedule": CONSTANT_SCHEDULE if schedule is None else plugin_config(schedule)}
 
 
 def _hp_path(key: str) -> str:
@@ -140,6 +147,14 @@ def identity_mismatch(saved: Optional[Mapping], current: Mapping) -> Optional[tu
         if sh.get(key) != ch.get(key):
             return (f"it was trained with {_hp_path(key)}={_show(sh.get(key))}, this run has {_hp_path(key)}="
                     f"{_show(ch.get(key))}", f"{_hp_path(key)}={_show(sh.get(key))}")
+    sc, cc = saved.get("schedule") or CONSTANT_SCHEDULE, current.get("schedule") or CONSTANT_SCHEDULE
+    if sc.get("_target_") != cc.get("_target_"):
+        name = str(sc.get("_target_", "")).rsplit(".", 1)[-1].replace("Schedule", "").lower() or "constant"
+        return (f"it was trained with the {sc.get('_target_')} schedule, this run uses {cc.get('_target_')}",
+                f"schedule={name}")
+    k = _first_diff(sc, cc)
+    if k is not None:
+        return (f"its schedule.{k} is {_show(sc.get(k))}, this run's {_show(cc.get(k))}", f"schedule.{k}={_show(sc.get(k))}")
     ss, cs = saved.get("strategy") or {}, current.get("strategy") or {}
     k = _first_diff(ss, cs)
     if k is not None:

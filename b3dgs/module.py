@@ -19,6 +19,7 @@ from b3dgs.ops import TopologyOps
 from b3dgs.plugin import Plugin, PosteriorBlock
 from b3dgs.render.render import RenderOutput
 from b3dgs.render.renderers import Renderer, make_renderer
+from b3dgs.schedule import ConstantSchedule, TrainingSchedule
 from b3dgs.types import Camera, Scene
 
 log = logging.getLogger(__name__)
@@ -60,6 +61,7 @@ class SplatModule(L.LightningModule):
         max_steps: int = 30000,
         seed: int = 0,
         name: str = "standard",
+        schedule: Optional[TrainingSchedule] = None,
     ) -> None:
         super().__init__()
         self.automatic_optimization = False
@@ -69,9 +71,11 @@ class SplatModule(L.LightningModule):
             raise ValueError(f"model.sh_degree must be in 0..3, got {sh_degree}")
         if max_steps <= 0:
             raise ValueError(f"trainer.max_steps must be > 0, got {max_steps}")
-        self.save_hyperparameters(ignore=["strategy", "posterior", "renderer"])
+        self.save_hyperparameters(ignore=["strategy", "posterior", "renderer", "schedule"])
         self.renderer: Renderer = make_renderer(renderer)
         self.strategy = strategy
+        self.schedule: TrainingSchedule = schedule if schedule is not None else ConstantSchedule()
+        self.schedule.check_sanity()
         self.posterior: "OrderedDict[str, PosteriorBlock]" = OrderedDict(posterior or {})
         self.strategy.check_sanity()
         for blk in self.posterior.values():
@@ -115,6 +119,7 @@ class SplatModule(L.LightningModule):
             self.hparams.init_opacity, self.hparams.init_scale, generator=g,
         )
         self._set_params(params)
+        self.schedule.initialize(scene.train, int(self.hparams.max_steps))
         self._init_states()
         self.states = move_tree(self.states, self.splats["means"].device)
 
@@ -177,7 +182,7 @@ class SplatModule(L.LightningModule):
         """Exponential decay from ``lr_means`` to ``lr_means_final`` over ``max_steps`` (the TOTAL budget,
         also when trained in rounds: ``step`` is the global step, which continues), times the extent."""
         hp = self.hparams
-        t = min(max(step / max(hp.max_steps, 1), 0.0), 1.0)
+        t = self.schedule.lr_progress(step, int(hp.max_steps))
         lr = math.exp((1 - t) * math.log(hp.lr_means) + t * math.log(hp.lr_means_final))
         extent = float(self.scene.extent) if self.scene is not None else 1.0
         return lr * extent
@@ -234,6 +239,7 @@ class SplatModule(L.LightningModule):
         ops = self._get_ops()
         ops.step = step
         need_weights = any(b.needs_weights for b in self.posterior.values())
+        cam = self.schedule.camera(self.device_camera(cam), step)  # the step's resolution (schedule=dash)
         try:
             out = self.render_camera(cam, retain_means2d_grad=True, return_weights=need_weights)
         except ValueError as e:
@@ -255,7 +261,8 @@ class SplatModule(L.LightningModule):
         info = {
             **self._static_info(), "ops": ops, "camera": cam, "render": out, "per_gaussian": ops.per_gaussian,
             "width": cam.width, "height": cam.height, "gt": gt, "loss": loss.detach(),
-            "l1": l1.detach(), "num_values": gt.numel(), "loss_terms": [],
+            "l1": l1.detach(), "num_values": gt.numel(), "loss_terms": [], **self.schedule.step_info(step),
+            "view_sums": self.view_sums,  # a pass over the training views, for plugins that need one (rarely)
         }
         if any(p.needs_residuals for p in self.plugins.values()):
             info["sq_err_sum"] = ((out.rgb.detach() - gt) ** 2).sum()
@@ -304,7 +311,7 @@ class SplatModule(L.LightningModule):
         run that resumes or evaluates it (:mod:`b3dgs.checkpoint`)."""
         from b3dgs.checkpoint import run_identity
 
-        return run_identity(self.hparams, self.strategy, self.posterior, self.scene)
+        return run_identity(self.hparams, self.strategy, self.posterior, self.scene, self.schedule)
 
     def check_checkpoint_identity(self, checkpoint: Mapping[str, Any], what: str, fix: str) -> None:
         """Refuse a checkpoint of another model, posterior, strategy, scene or schedule with a one-line
@@ -378,6 +385,64 @@ class SplatModule(L.LightningModule):
             ops = self._get_ops()
             ops.removed.update(removed)
             ops.added.update(added)
+
+    # ------------------------------------------------------------------ view passes
+    def view_sums(self, cameras: Optional[Sequence[Camera]] = None, *, weights: bool = True, fisher_probes: int = 0,
+                  seed: int = 0) -> dict[str, Tensor]:
+        """Per-Gaussian sums over ``cameras`` (default: the training views), one render each, in float64 on the
+        splats' device, in the pixels of the cameras given:
+
+        * ``weight_sum`` (N,): Σ_views Σ_p w_kp, the compositing weight T·α Gaussian k contributes (how many pixels it
+          explains); ``visible_views`` (N,): in how many of the views it is drawn;
+        * with ``fisher_probes`` = M > 0, ``fisher`` (N, 3, 3): Σ_views Σ_p Σ_c ∇_μk C_pc ∇_μk C_pcᵀ, the Fisher
+          information of the centre under a unit-variance pixel likelihood (FisherRF's quantity; divide by σ² for
+          the Laplace precision). Estimated with M Rademacher probes per view, E_z[(Σ_p z_p ∇C_p)(Σ_p z_p ∇C_p)ᵀ] =
+          Σ_p ∇C_p ∇C_pᵀ for independent ±1 z_p (Hutchinson's estimator): one backward pass of the renderer per
+          probe instead of one per pixel, on every backend (the CUDA path differentiates through gsplat), unbiased;
+          relative error ~ √(2 / (M · views seeing k)). ``b3dgs.fisher.pixel_set_grads`` is the exact reference.
+        """
+        cams = list(self.scene.train if cameras is None else cameras)
+        sp = self.params()
+        dev = sp["means"].device
+        n = sp["means"].shape[0]
+        out = {"weight_sum": torch.zeros(n, dtype=torch.float64, device=dev),
+               "visible_views": torch.zeros(n, dtype=torch.float64, device=dev)}
+        probes = int(fisher_probes)
+        if probes > 0:
+            out["fisher"] = torch.zeros(n, 3, 3, dtype=torch.float64, device=dev)
+            g = torch.Generator(device="cpu").manual_seed(int(seed))
+        sh = self.active_sh_degree()
+        for cam in cams:
+            if probes > 0:
+                means = sp["means"].detach().requires_grad_(True)
+                params = {**{k: v.detach() for k, v in sp.items()}, "means": means}
+                with torch.enable_grad():
+                    ro = self.render_camera(cam, params=params, sh_degree=sh, return_weights=weights)
+                    for m in range(probes):
+                        z = (torch.randint(0, 2, ro.rgb.shape, generator=g) * 2 - 1).to(ro.rgb.dtype).to(dev)
+                        (gm,) = torch.autograd.grad(ro.rgb, means, grad_outputs=z, retain_graph=m < probes - 1)
+                        gm = gm.double()
+                        out["fisher"] += (gm.unsqueeze(-1) * gm.unsqueeze(-2)) / probes
+            else:
+                with torch.no_grad():
+                    ro = self.render_camera(cam, sh_degree=sh, return_weights=weights)
+            if weights and ro.weight_sum is not None:
+                out["weight_sum"] += ro.weight_sum.detach().reshape(-1).double()
+            out["visible_views"] += (ro.radii.detach().reshape(-1) > 0).double()
+        return out
+
+    def prepare_posterior(self, cameras: Optional[Sequence[Camera]] = None) -> None:
+        """Give every posterior block that asks for one (:meth:`b3dgs.plugin.PosteriorBlock.view_pass`) the sums of
+        one pass over ``cameras`` (default: the training views); called before the posterior is used (the end of
+        training, ``uq=native``, acquisition). Deterministic: the Fisher probes are seeded with the run's seed."""
+        reqs = {name: blk.view_pass(state=self.states[name]) for name, blk in self.posterior.items()}
+        reqs = {k: v for k, v in reqs.items() if v is not None}
+        if not reqs:
+            return
+        probes = max(int(v.get("fisher_probes", 0)) for v in reqs.values())
+        sums = self.view_sums(cameras, weights=True, fisher_probes=probes, seed=int(self.hparams.seed))
+        for name in reqs:
+            self.posterior[name].absorb_view_sums(splats=self.splats, state=self.states[name], sums=sums)
 
     # ------------------------------------------------------------------ evaluation
     @torch.no_grad()

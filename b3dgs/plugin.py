@@ -11,7 +11,10 @@ Every hook is called as ``hook(splats=, optimizers=, state=, step=, info=)``:
   ``info["per_gaussian"]`` holds this step's per-Gaussian render data as (S, N, ...) tensors (``radii``,
   ``means2d_grad``, ``weight_sum``, ``weight_sq_sum``), re-indexed by every topology change, so a plugin
   running after another one's prune still sees aligned values; ``info["loss_terms"]``: a list a plugin may
-  append differentiable scalars to in ``step_pre_backward`` (added to the photometric loss before backward).
+  append differentiable scalars to in ``step_pre_backward`` (added to the photometric loss before backward);
+  with a training schedule (``schedule=dash``), ``info["resolution_scale"]`` (the step's view size over the
+  full view's, so pixel sums convert to full-resolution units by / scale²) and ``info["budget_fraction"]``
+  (see :meth:`Plugin.scheduled_cap`); both absent under ``schedule=constant``.
 New needs go into ``info``, never into new arguments, so the core never branches on a plugin's type.
 """
 from __future__ import annotations
@@ -55,6 +58,18 @@ class Plugin:
 
     def step_post_backward(self, *, splats, optimizers, state, step, info) -> None:
         pass
+
+    @staticmethod
+    def scheduled_cap(cap: Optional[int], n_init: int, info: dict) -> Optional[int]:
+        """The Gaussian count a densifying strategy may reach at this step: its own ``cap`` when the training
+        schedule sets no budget, else ``n_init + (cap - n_init) * info["budget_fraction"]`` (the primitive
+        schedule of ``schedule=dash``, :mod:`b3dgs.schedule`); without a cap, the head-room is 5 x ``n_init``
+        (DashGaussian's initial primitive momentum)."""
+        f = info.get("budget_fraction")
+        if f is None:
+            return cap
+        ref = int(cap) if cap is not None else 6 * int(n_init)
+        return int(n_init + max(ref - int(n_init), 0) * min(max(float(f), 0.0), 1.0))
 
     def on_topology(self, *, splats, optimizers, state, step, info) -> None:
         """Called after clone/split/prune. ``info`` holds ``op``, ``index`` (N',) source rows,
@@ -103,6 +118,15 @@ class PosteriorBlock(Plugin):
         render, in training-resolution pixels (the unit of the renderer-derived counts). ``state`` must not be
         modified. None (default): this block's posterior does not change with such pseudo-observations."""
         return None
+
+    def view_pass(self, *, state) -> Optional[dict]:
+        """What this block needs from one pass over the training views before its posterior is used (None:
+        nothing): ``{"fisher_probes": M}`` asks :meth:`b3dgs.module.SplatModule.view_sums` for the weight sums and,
+        with M > 0, the centres' Fisher information; the result goes to :meth:`absorb_view_sums`."""
+        return None
+
+    def absorb_view_sums(self, *, splats, state, sums: dict) -> None:
+        """Update ``state`` from a view pass (``sums``: the dict of ``SplatModule.view_sums``)."""
 
     def aleatoric_variance(self, *, state) -> Optional[float]:
         """Per-pixel aleatoric variance this block provides (noise posterior), or None."""

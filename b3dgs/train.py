@@ -62,9 +62,11 @@ def build_renderer(node) -> "Renderer":
 def build_module(cfg: DictConfig, strategy, blocks, renderer=None):
     from hydra.utils import instantiate
 
+    from b3dgs.schedule import make_schedule
+
     return instantiate(cfg.model, _partial_=True)(
         strategy=strategy, posterior=blocks, renderer=renderer if renderer is not None else build_renderer(cfg.get("renderer")),
-        max_steps=int(cfg.trainer.max_steps), seed=int(cfg.seed),
+        max_steps=int(cfg.trainer.max_steps), seed=int(cfg.seed), schedule=make_schedule(cfg.get("schedule")),
     )
 
 
@@ -350,6 +352,7 @@ def _finish(cfg: DictConfig, run_dir: Path, module, scene, renderer, trainer, cu
     # ------------------------------------------------------------ final evaluation and outputs
     # written in this order, each atomically: renders, PLY, curve, then metrics.json (the done marker)
     final = checkpoint_record(torch.load(ckpt.last_path, map_location="cpu", weights_only=False, mmap=True))
+    module.prepare_posterior(scene.train)  # counts from a view pass (posterior.niw.count other than paper)
     lpips_model, lpips_reason = get_lpips(cfg.get("lpips_weights"))
     ev = evaluate_views(module, scene.test, lpips_model=lpips_model,
                         render_dir=run_dir / "renders" if tcfg.get("save_renders", True) else None)
@@ -370,6 +373,7 @@ def _finish(cfg: DictConfig, run_dir: Path, module, scene, renderer, trainer, cu
         "removed": dict(module.ops.removed) if module.ops else {},
         "added": dict(module.ops.added) if module.ops else {},
         "block_time_s": {k: round(v, 4) for k, v in module.block_time_s.items()},
+        "schedule": module.schedule.summary(),
         "posterior": {name: blk.summary(state=module.states[name]) for name, blk in module.posterior.items()},
         "numerical_guards": guard_counts(),  # how often each clamp / jitter / floor fired (never silent)
         "checkpoint": final,  # b3dgs-eval refuses a last.ckpt that is not this model

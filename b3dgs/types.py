@@ -58,6 +58,18 @@ class Camera:
     def with_image(self, image: Optional[Tensor]) -> "Camera":
         return replace(self, image=image)
 
+    def resized(self, width: int, height: int) -> "Camera":
+        """This camera rendered at ``width`` x ``height``: K scaled per axis (exact in the pixel-centre-at-0.5
+        convention, computed in float64) and the image, if any, area-averaged on its own device."""
+        width, height = int(width), int(height)
+        if (width, height) == (self.width, self.height):
+            return self
+        sx, sy = width / self.width, height / self.height
+        K = self.K.double()
+        K = torch.stack([K[0] * sx, K[1] * sy, K.new_tensor([0.0, 0.0, 1.0])]).to(self.K.dtype)
+        image = None if self.image is None else resize_image(self.image, width, height)
+        return Camera(self.name, K, self.viewmat, width, height, image)
+
     def to(self, device: "torch.device | str") -> "Camera":
         """This camera with K, viewmat and image on ``device`` (itself if already there)."""
         device = torch.device(device)
@@ -67,6 +79,17 @@ class Camera:
         moved.K, moved.viewmat = self.K.to(device), self.viewmat.to(device)
         moved.image = None if self.image is None else self.image.to(device, non_blocking=True)
         return moved
+
+
+def resize_image(image: Tensor, width: int, height: int) -> Tensor:
+    """(H, W, C) -> (height, width, C) by area averaging (exact box filter for integer factors), on the image's
+    own device and dtype; the one downscale of tensors in b3dgs (decoding from files goes through PIL's BOX)."""
+    if tuple(image.shape[:2]) == (int(height), int(width)):
+        return image
+    import torch.nn.functional as F
+
+    x = image.permute(2, 0, 1).unsqueeze(0)
+    return F.interpolate(x, size=(int(height), int(width)), mode="area")[0].permute(1, 2, 0).contiguous()
 
 
 @dataclass

@@ -30,7 +30,7 @@ from b3dgs import conf_dir
 from b3dgs.errors import B3dgsError, did_you_mean
 
 CONF_DIR = Path(conf_dir())
-TRAIN_GROUPS = ("data", "model", "renderer", "strategy", "posterior", "trainer", "logger")
+TRAIN_GROUPS = ("data", "model", "renderer", "strategy", "posterior", "schedule", "trainer", "logger")
 EVAL_GROUPS = ("uq",)
 _MISSING = object()
 
@@ -355,7 +355,7 @@ def _check_plugins(cfg: DictConfig) -> None:
     from hydra.utils import instantiate
 
     max_steps = int(cfg.trainer.max_steps)
-    nodes = [("strategy", cfg.strategy)] if isinstance(cfg.get("strategy"), DictConfig) else []
+    nodes = [(g, cfg[g]) for g in ("strategy", "schedule") if isinstance(cfg.get(g), DictConfig)]
     post = cfg.get("posterior") or {}
     blocks = [name for name, _ in _group_options("posterior")]
     for name in post.keys():

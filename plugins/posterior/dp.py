@@ -261,7 +261,11 @@ class DPBlock(PosteriorBlock):
     def step_post_backward(self, *, splats, optimizers, state, step, info):
         ws = info["per_gaussian"].get("weight_sum")
         if ws is not None:
-            state["usage"].mul_(self.ema).add_((1 - self.ema) * ws[0].double() * self.train_views(state, info))
+            w = ws[0].double()
+            rs = info.get("resolution_scale", 1.0)
+            if rs != 1.0:  # a downsampled step (schedule=dash): the weights in full-resolution pixels
+                w = w / (rs * rs)
+            state["usage"].mul_(self.ema).add_((1 - self.ema) * w * self.train_views(state, info))
         if step < self.stage_start(self.t_dp, info, 6) or step % self.cavi_every != 0:
             return
         self.cavi(state)

@@ -1,16 +1,13 @@
-"""NIW geometry posterior over each Gaussian's mean and covariance (paper Eq. 1-3).
+"""NIW geometry posterior over each Gaussian's mean and covariance (paper Eq. 1-3): the pure batched math
+(Murphy 2012, Sec. 4.6.3; tested against textbook formulas in tests/test_posterior_math.py) and the block
+(:class:`NIWBlock`) that feeds it renderer-derived counts.
 
-The block (:class:`NIWBlock`) follows its math, the pure batched functions below
-(tested against textbook formulas in tests/test_posterior_math.py):
-
-Batched Normal-Inverse-Wishart posterior math (paper Eq. 1-3; Murphy 2012, Sec. 4.6.3).
-
-All functions are batched over K Gaussians with dimension D (D=3 in 3DGS), compute
-in float64 internally and return the dtype of their main input. Numerical guards
-(floors, jitter) are counted in :mod:`b3dgs.numerics`.
+All functions are batched over K Gaussians with dimension D (D=3 in 3DGS), compute in float64 internally and
+return the dtype of their main input. Numerical guards (floors, jitter) are counted in :mod:`b3dgs.numerics`.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import ClassVar, Optional, Sequence, Tuple, Union
 
@@ -24,6 +21,8 @@ from b3dgs.render.projection import covariance_3d
 
 
 Scalar = Union[float, int, torch.Tensor]
+
+D = 3  # the dimension of a Gaussian's centre
 
 #: Floor on nu_n - D - 1 in E[Sigma] = S_n / (nu_n - D - 1). With nu_n within 1e-3 of D+1 the
 #: posterior mean of Sigma is (nearly) infinite; the floor caps E[Sigma] at 1e3 * S_n.
@@ -385,7 +384,31 @@ def sample_niw(
     return mu.to(dtype), Sigma.to(dtype)
 
 
-D = 3
+#: the counts ``posterior.niw.count`` offers (names kept stable for scripts outside the project)
+COUNTS = ("paper", "weight", "fisher", "fisher3")
+#: floor on the plug-in residual variance σ̂² that turns Fisher information into precision
+SIGMA2_FLOOR = 1e-8
+
+
+def fisher_count(fisher_trace: Tensor, S0: Tensor, kappa0: float, nu0: float) -> Tensor:
+    """(K,) the count N̂ whose NIW centre variance under Eq. 2-3 equals the Laplace variance of the centre.
+
+    With the pseudo-observations at the centre (C = 0) and S_n ≈ S0, Eq. 2-3 give Var[μ] = E[Σ]/κ_n =
+    S0 / ((ν0 + N̂ - D - 1)(κ0 + N̂)). Equating its mean per-axis precision, (κ0 + N̂)(ν0 - D - 1 + N̂) / s0 with
+    s0 = tr S0 / D, to the Laplace one, p = tr(F) / D (F: the Fisher information of μ over the training pixels, over
+    σ̂²), gives N̂² + (κ0 + a) N̂ + κ0 a - s0 p = 0 with a = ν0 - D - 1, whose non-negative root this returns (0 where
+    the data add no precision beyond the prior's). Non-finite inputs give 0 (guard ``niw.count_nonfinite``)."""
+    a = float(nu0) - D - 1
+    s0 = torch.diagonal(S0.double(), dim1=-2, dim2=-1).sum(-1) / D
+    p = fisher_trace.double() / D
+    c = float(kappa0) * a - s0 * p
+    b = float(kappa0) + a
+    disc = (b * b - 4.0 * c).clamp_min(0.0)
+    n = (0.5 * (torch.sqrt(disc) - b)).clamp_min(0.0)
+    bad = ~torch.isfinite(n)
+    if guard("niw.count_nonfinite", bad):
+        n = torch.where(bad, torch.zeros_like(n), n)
+    return n
 
 
 @dataclass
@@ -420,6 +443,22 @@ class NIWBlock(PosteriorBlock):
     ``plugin_noise``: track the plug-in residual MSE σ̂² (EMA) and offer it as the aleatoric
     variance, as in the paper's NIW rows; turn it off when a NoiseBlock supplies E[σ²].
 
+    ``count`` (``posterior.niw.count``) chooses N̂_k (beyond the paper, except ``paper``):
+
+    - ``paper``: the EMA above (bit for bit the paper's online path);
+    - ``weight``: Σ over the training views' pixels of the compositing weight T·α of Gaussian k (how many training
+      pixels it explains, from every view, not an EMA of one);
+    - ``fisher``: the count whose centre variance under Eq. 2-3 equals the Laplace variance of the centre under the
+      photometric likelihood, from tr F_k / σ̂², F_k = Σ_views Σ_p ∇_μk C_p ∇_μk C_pᵀ (:func:`fisher_count`);
+    - ``fisher3``: the ``fisher`` count for the IW part (Σ_k), and a centre posterior whose covariance follows the
+      information the cameras give: Cov[μ_k] = (κ0 E0[Σ_k]⁻¹ + c F_k / σ̂²)⁻¹ (the NIW prior's precision of the
+      centre plus the Laplace precision), so a Gaussian seen from one direction stays uncertain along its rays.
+
+    The three new counts come from one pass over the training views (:meth:`b3dgs.module.SplatModule.view_sums`:
+    weight sums from the renderer, F with ``fisher_probes`` Rademacher probes per view), taken when the posterior
+    is used (end of training, ``uq=native``, acquisition), so they cost nothing per training step; σ̂² is the
+    block's plug-in residual MSE. With them the per-step EMA is not computed.
+
     ``count_scale`` (c, default 1 = the paper): the posterior refresh uses c·N̂_k in place of N̂_k in
     Eq. 2-3 (the stored summary ``state["N"]`` is unchanged). Because N̂ is normalised to the effective
     pixel count it is large, and the posterior concentrates as E[Σ] ≈ S0/(c N̂), Var[μ] ≈ S0/(c N̂)²
@@ -428,7 +467,8 @@ class NIWBlock(PosteriorBlock):
     ``count_scale`` on the loaded block (every use of the posterior refreshes it from the summaries).
     """
 
-    per_gaussian_state: ClassVar[tuple[str, ...]] = ("m0", "S0", "N", "ediag", "m_n", "kappa_n", "nu_n", "S_n")
+    per_gaussian_state: ClassVar[tuple[str, ...]] = ("m0", "S0", "N", "ediag", "m_n", "kappa_n", "nu_n", "S_n",
+                                                     "F", "mu_prec_chol")
 
     needs_residuals: ClassVar[bool] = True  # reads info["sq_err_sum"]
     changes_training: ClassVar[bool] = False  # it reads summaries; splats, optimizers, gradients untouched
@@ -443,6 +483,8 @@ class NIWBlock(PosteriorBlock):
     mse_ema: float = 0.99
     sampler_backend: str = "auto"  # posterior draws: "cpu" (C++, one pass), "torch" (reference) or "auto"
     count_scale: float = 1.0  # c in N̂ <- c·N̂ at the posterior refresh (Eq. 2-3); 1 = the paper
+    count: str = "paper"  # paper | weight | fisher | fisher3 (see the class docstring)
+    fisher_probes: int = 4  # Rademacher probes per training view for the Fisher counts
 
     def check_sanity(self, max_steps: int = 0, **kw) -> None:
         if self.kappa0 <= 0:
@@ -459,6 +501,13 @@ class NIWBlock(PosteriorBlock):
             raise ValueError("posterior.niw.sampler_backend must be auto | cpu | torch")
         if not (isinstance(self.count_scale, (int, float)) and 0 < float(self.count_scale) < float("inf")):
             raise ValueError(f"posterior.niw.count_scale must be a finite number > 0, got {self.count_scale}")
+        if self.count not in COUNTS:
+            from b3dgs.errors import did_you_mean
+
+            raise ValueError(f"posterior.niw.count={self.count} is not a count{did_you_mean(str(self.count), COUNTS)} "
+                             f"(fix: pass posterior.niw.count={'|'.join(COUNTS)})")
+        if isinstance(self.fisher_probes, bool) or not isinstance(self.fisher_probes, int) or self.fisher_probes < 1:
+            raise ValueError(f"posterior.niw.fisher_probes must be an integer >= 1, got {self.fisher_probes}")
 
     # ------------------------------------------------------------------ state
     def _prior_for(self, splats, rows: Optional[Tensor] = None):
@@ -489,17 +538,20 @@ class NIWBlock(PosteriorBlock):
     @torch.no_grad()
     def step_post_backward(self, *, splats, optimizers, state, step, info):
         # tensor arithmetic only (no host synchronisation per step on a GPU)
-        if self.plugin_noise:
+        if self.plugin_noise or self.count != "paper":  # σ̂²: the aleatoric variance, and the Fisher counts' scale
             mse = info["sq_err_sum"].double() / max(int(info["num_values"]), 1)
             state["mse"] = self.mse_ema * state["mse"] + (1 - self.mse_ema) * mse
             state["mse_n"] = self.mse_ema * state["mse_n"] + (1 - self.mse_ema)
-        if step < self._t_niw(info):
+        if step < self._t_niw(info) or self.count != "paper":  # the other counts come from a view pass
             return
         vis = info["per_gaussian"]["radii"][0] > 0
         o = torch.sigmoid(splats["opacities"].detach()).double() * vis
         raw = o * torch.sqrt(torch.clamp(state["ediag"].prod(-1), min=0.0))
         total = raw.sum()
         eff_pixels = info["render"].alpha.detach().sum().double()
+        rs = info.get("resolution_scale", 1.0)
+        if rs != 1.0:  # a downsampled step (schedule=dash): the count in full-resolution pixels
+            eff_pixels = eff_pixels / (rs * rs)
         ok = (total > 0) & (eff_pixels > 0)
         target = raw * torch.where(ok, eff_pixels * self.train_views(state, info) / torch.where(ok, total, 1.0), 0.0)
         keep = torch.where(vis.any(), self.ema, 1.0)  # no visible Gaussian: the counts stay as they are
@@ -520,6 +572,11 @@ class NIWBlock(PosteriorBlock):
                                                  state["N"] * float(self.count_scale), xbar, C)
         state["m_n"], state["kappa_n"], state["nu_n"], state["S_n"] = m_n, k_n, nu_n, S_n
         state["ediag"] = torch.diagonal(expected_cov(S_n, nu_n), dim1=-2, dim2=-1).clone()
+        if self.count == "fisher3" and "F" in state and state["F"].shape[0] == n:
+            # centre precision: the NIW prior's, κ0 E0[Σ]⁻¹ with E0[Σ] = S0 / (ν0 - D - 1), plus c·F/σ̂²
+            prior_cov = state["S0"] / (float(self.nu0) - D - 1)
+            prec = float(self.kappa0) * torch.cholesky_inverse(safe_cholesky(prior_cov))
+            state["mu_prec_chol"] = safe_cholesky(_sym(prec + float(self.count_scale) * state["F"]))
 
     @torch.no_grad()
     def on_topology(self, *, splats, optimizers, state, step, info):
@@ -531,7 +588,43 @@ class NIWBlock(PosteriorBlock):
         state["m0"][rows] = m0
         state["S0"][rows] = S0
         state["N"][rows] = 0.5 * state["N"][rows]
+        if "F" in state and state["F"].shape[0] == state["N"].shape[0]:
+            state["F"][rows] = 0.5 * state["F"][rows]  # the parent's information, shared like its count
         # the posterior (m_n, S_n, ...) of new rows is refreshed at the next scheduled update or on use
+
+    # ------------------------------------------------------------------ counts from a pass over the views
+    def view_pass(self, *, state) -> Optional[dict]:
+        if self.count == "paper":
+            return None
+        return {"fisher_probes": int(self.fisher_probes) if self.count.startswith("fisher") else 0}
+
+    @torch.no_grad()
+    def absorb_view_sums(self, *, splats, state, sums: dict) -> None:
+        """Set N̂ (and F for ``fisher3``) from :meth:`b3dgs.module.SplatModule.view_sums` over the training views,
+        then refresh the posterior (Eq. 2-3)."""
+        n = splats["means"].shape[0]
+        if self.count == "weight":
+            count = sums["weight_sum"].double()
+        else:
+            F = sums["fisher"].double()
+            if tuple(F.shape) != (n, D, D):
+                raise ValueError(f"posterior.niw: the view pass gave a Fisher of shape {tuple(F.shape)}, expected ({n}, 3, 3)")
+            s2 = float(state["mse"] / state["mse_n"]) if float(state["mse_n"]) > 0 else None  # plug-in σ̂²
+            low = s2 is None or not s2 >= SIGMA2_FLOOR
+            if guard("niw.sigma2_floor", int(low)):
+                s2 = SIGMA2_FLOOR if s2 is None or not math.isfinite(s2) else max(s2, SIGMA2_FLOOR)
+            P = _sym(F) / float(s2)
+            count = fisher_count(torch.diagonal(P, dim1=-2, dim2=-1).sum(-1), state["S0"], self.kappa0, self.nu0)
+            if self.count == "fisher3":
+                bad = ~torch.isfinite(P).all(-1).all(-1)
+                if guard("niw.count_nonfinite", bad):
+                    P = torch.where(bad[:, None, None], torch.zeros_like(P), P)
+                state["F"] = P
+        bad = ~(torch.isfinite(count) & (count >= 0))
+        if guard("niw.count_nonfinite", bad):
+            count = torch.where(bad, torch.zeros_like(count), count)
+        state["N"] = count.to(state["N"].dtype)
+        self._refresh(state, splats)
 
     # ------------------------------------------------------------------ posterior use
     def posterior(self, state, splats) -> dict[str, Tensor]:
@@ -563,6 +656,18 @@ class NIWBlock(PosteriorBlock):
             args = (prep.m.contiguous(), prep.kappa.contiguous(), prep.nu.contiguous(), prep.L.contiguous(),
                     LrT[0].contiguous() if mode == 2 else empty, sqrt_c.reshape(-1).contiguous() if mode == 2 else empty)
 
+        chol = state.get("mu_prec_chol") if self.count == "fisher3" else None
+        if chol is not None and chol.shape[0] != prep.m.shape[0]:
+            chol = None
+
+        def centre(out, n, generator):
+            """fisher3: μ ~ N(m_n, (L Lᵀ)⁻¹) with L the Cholesky factor of the centre precision, as L⁻ᵀ ε."""
+            if chol is not None:
+                eps = randn((n,) + tuple(prep.m.shape), generator=generator, dtype=torch.float64, device=prep.m.device)
+                x = torch.linalg.solve_triangular(chol.transpose(-1, -2).unsqueeze(0), eps.unsqueeze(-1), upper=True)
+                out["means"] = (prep.m.unsqueeze(0) + x.squeeze(-1)).to(dtype)
+            return out
+
         @torch.no_grad()
         def draw(n, generator, params):
             out = dict(params)
@@ -574,13 +679,13 @@ class NIWBlock(PosteriorBlock):
                 out["means"] = means
                 if mode:
                     out["covars"] = covs
-                return out
+                return centre(out, n, generator)
             mu, X, A = draw_niw(prep, n, generator)
             out["means"] = mu.to(dtype)
             if self.cov_mode != "none":
                 Y = X if self.cov_mode == "absolute" else tril_solve(A, LrT) * sqrt_c  # Σ = YᵀY
                 out["covars"] = (Y.unsqueeze(-1) * Y.unsqueeze(-2)).sum(-3).to(dtype)  # symmetric by construction
-            return out
+            return centre(out, n, generator)
 
         return draw
 
@@ -606,6 +711,8 @@ class NIWBlock(PosteriorBlock):
         appendix applied to the current posterior. The summaries already sit at μ_k with C = 0, and two such
         batches at one point combine into one of summed count (conjugacy), so this is N̂ ← N̂ + w on a copy of
         the state, refreshed."""
+        if self.count.startswith("fisher"):
+            return None  # a view's Fisher needs its render's per-pixel gradients, not its weight sums
         st = dict(state)
         st["N"] = state["N"] + weight_sums.to(state["N"].dtype).to(state["N"].device).clamp_min(0.0)
         self._refresh(st, splats)
@@ -627,6 +734,9 @@ class NIWBlock(PosteriorBlock):
         if splats is not None:
             self._refresh(state, splats)
         var_mu = mean_variance(state["S_n"], state["nu_n"], state["kappa_n"])
+        chol = state.get("mu_prec_chol") if self.count == "fisher3" else None
+        if chol is not None and chol.shape[0] == var_mu.shape[0]:
+            var_mu = torch.cholesky_inverse(chol)
         return {
             "niw_pos_var": (torch.diagonal(var_mu, dim1=-2, dim2=-1).sum(-1) / D).float(),
             "niw_kappa": state["kappa_n"].float(),

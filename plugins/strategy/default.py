@@ -19,7 +19,8 @@ class AdaptiveDensityControl(Plugin):
     first opacity reset (or after ``prune_big_after`` steps), Gaussians that are huge in world or
     screen space are pruned too.
     ``max_gaussians`` caps growth: when the candidates would exceed it, the highest-gradient
-    ones are densified first.
+    ones are densified first; a training schedule may lower the cap early in the run
+    (:meth:`b3dgs.plugin.Plugin.scheduled_cap`).
     """
 
     per_gaussian_state: ClassVar[tuple[str, ...]] = ("grad2d", "count", "max_radii")
@@ -56,9 +57,12 @@ class AdaptiveDensityControl(Plugin):
             "grad2d": torch.zeros(n, device=dev),
             "count": torch.zeros(n, device=dev),
             "max_radii": torch.zeros(n, device=dev),
+            "n_init": torch.tensor(n, device=dev),  # the schedule's budget grows from here (schedule=dash)
         }
 
     def step_post_backward(self, *, splats, optimizers, state, step, info):
+        if "budget_fraction" in info:  # a schedule's budget below the count (schedule=dash's trim): prune to it
+            self._trim(splats, state, info)
         if step >= self.refine_stop:
             return
         pg = info["per_gaussian"]
@@ -83,6 +87,20 @@ class AdaptiveDensityControl(Plugin):
             info["ops"].reset_opacity(2.0 * self.prune_opacity)
 
     @torch.no_grad()
+    def _trim(self, splats, state, info) -> None:
+        """Prune the Gaussians that explain the fewest training pixels (Σ over the training views of their
+        compositing weights, ``info["view_sums"]``) until the count fits the schedule's budget."""
+        n = info["ops"].num
+        cap = self.scheduled_cap(self.max_gaussians, int(state.get("n_init", n)), info)
+        if cap is None or n <= cap:
+            return
+        usage = info["view_sums"]()["weight_sum"]
+        order = torch.argsort(usage, stable=True)  # least used first (ties: lower index first)
+        prune = torch.zeros(n, dtype=torch.bool, device=usage.device)
+        prune[order[: n - cap]] = True
+        info["ops"].prune(prune, reason="budget")
+
+    @torch.no_grad()
     def _refine(self, splats, state, step, info) -> None:
         ops = info["ops"]
         extent = info["scene_extent"]
@@ -92,8 +110,9 @@ class AdaptiveDensityControl(Plugin):
         clone = high & small
         split = high & ~small
         n = ops.num
-        if self.max_gaussians is not None:
-            budget = max(self.max_gaussians - n, 0)
+        cap = self.scheduled_cap(self.max_gaussians, int(state.get("n_init", n)), info)
+        if cap is not None:
+            budget = max(cap - n, 0)
             # a clone adds one Gaussian, a split adds one net (two children replace the parent)
             cand = torch.nonzero(clone | split, as_tuple=False).flatten()
             if cand.numel() > budget:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, Optional
 
 import torch
 from torch import Tensor
@@ -77,7 +77,8 @@ class MCMCStrategy(Plugin):
     def initialize_state(self, *, splats, scene, info):
         dev = splats["means"].device
         return {"relocated": torch.zeros((), dtype=torch.long, device=dev),
-                "grown": torch.zeros((), dtype=torch.long, device=dev)}
+                "grown": torch.zeros((), dtype=torch.long, device=dev),
+                "n_init": torch.tensor(splats["means"].shape[0], device=dev)}  # the schedule's budget base
 
     def step_pre_backward(self, *, splats, optimizers, state, step, info):
         terms = info["loss_terms"]
@@ -88,7 +89,7 @@ class MCMCStrategy(Plugin):
 
     def step_post_backward(self, *, splats, optimizers, state, step, info):
         if self.refine_start <= step < self.refine_stop and step % self.refine_every == 0 and step > 0:
-            self._relocate_and_grow(splats, state, info["ops"])
+            self._relocate_and_grow(splats, state, info["ops"], info)
         self._inject_noise(splats, optimizers)
 
     # ------------------------------------------------------------------ ops
@@ -118,7 +119,7 @@ class MCMCStrategy(Plugin):
         return live[torch.multinomial(w / w.sum(), k, replacement=True)]
 
     @torch.no_grad()
-    def _relocate_and_grow(self, splats, state, ops) -> None:
+    def _relocate_and_grow(self, splats, state, ops, info: Optional[dict] = None) -> None:
         dead = torch.sigmoid(splats["opacities"].data).flatten() <= self.min_opacity
         live = torch.nonzero(~dead, as_tuple=False).flatten()
         n_dead = int(dead.sum())
@@ -131,7 +132,8 @@ class MCMCStrategy(Plugin):
             ops.added["mcmc_relocate"] += n_dead
             ops.removed["mcmc_dead"] += n_dead
         n = ops.num
-        n_add = max(0, min(int(self.cap_max), int(math.floor(n * (1 + self.grow_rate)))) - n)
+        cap = self.scheduled_cap(int(self.cap_max), int(state.get("n_init", n)), info or {})
+        n_add = max(0, min(int(cap), int(math.floor(n * (1 + self.grow_rate)))) - n)
         live = torch.nonzero(torch.sigmoid(splats["opacities"].data).flatten() > self.min_opacity, as_tuple=False).flatten()
         if n_add and live.numel():
             sources = self._draw(splats, live, n_add)

@@ -40,6 +40,7 @@ class NativeUQ(UQRegime):
             raise ValueError("uq=native needs a model trained with posterior blocks (model=niw or model=dpmm); "
                              "use uq=proxy for a standard model")
         self.sigma2 = 0.0
+        m.prepare_posterior(scene.train if scene is not None else None)  # counts that need a view pass
         # one prepared draw function per block: posterior set-up once, not per chunk or view
         self._fitted = self._blocks(m)
         self.reset_conditioning()

@@ -1,0 +1,268 @@
+"""Training schedules: the resolution each step trains at and the Gaussian budget it may densify to.
+
+``schedule=constant`` trains every step at the data's resolution with densification unconstrained by the
+schedule (the trainer as it always was, bit for bit). ``schedule=dash`` follows DashGaussian (Chen et al.,
+CVPR 2025): early steps train on downsampled views and the resolution rises, by the training images'
+frequency content, to full resolution at ``full_res_at`` of the run; the densification budget grows with it.
+
+What the core reads from a schedule (the trainer never asks which one it holds):
+
+* :meth:`TrainingSchedule.camera` — the training camera of a step (a downsampled copy, intrinsics scaled per
+  axis, image from a per-level cache that is built once per camera and level);
+* :meth:`TrainingSchedule.step_info` — what goes into the hooks' ``info``: ``resolution_scale`` (pixels of the
+  step's view over the full view's, per axis) and ``budget_fraction`` (the share of a strategy's densification
+  head-room it may fill by now; strategies read it, see :class:`b3dgs_plugins.strategy.default.AdaptiveDensityControl`);
+* :meth:`TrainingSchedule.lr_progress` — the progress t in [0, 1] of the means' learning-rate decay.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, ClassVar, Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from b3dgs.types import Camera
+
+__all__ = ["ConstantSchedule", "DashSchedule", "TrainingSchedule", "band_energy", "make_schedule"]
+
+
+@dataclass
+class TrainingSchedule:
+    """Base: full resolution, no budget, the means' learning rate decayed over the whole run."""
+
+    name: ClassVar[str] = "constant"
+
+    def check_sanity(self, **kwargs: Any) -> None:
+        """Validate configuration values; raise ValueError naming the bad field and the fix."""
+
+    def initialize(self, train: Sequence[Camera], max_steps: int) -> None:
+        """Derive the schedule from the training views (called once when the Gaussians are created)."""
+
+    def scale(self, step: int) -> float:
+        """Downscale factor s >= 1 of ``step`` (rendered size = full size / s)."""
+        return 1.0
+
+    def camera(self, camera: Camera, step: int) -> Camera:
+        return camera
+
+    def step_info(self, step: int) -> dict:
+        return {}
+
+    def lr_progress(self, step: int, max_steps: int) -> float:
+        return min(max(step / max(max_steps, 1), 0.0), 1.0)
+
+    def summary(self) -> dict:
+        """What metrics.json records about the schedule."""
+        return {"name": self.name}
+
+
+@dataclass
+class ConstantSchedule(TrainingSchedule):
+    """Every step at the data's resolution; densification as the strategy alone decides (today's training)."""
+
+
+def band_energy(spectrum: Tensor, scale: float) -> float:
+    """Sum of a centred magnitude spectrum (H, W) inside the central window of size (H/scale, W/scale): the part
+    of the spectrum that an image downsampled by ``scale`` can still represent (its Nyquist band)."""
+    h, w = spectrum.shape[-2:]
+    ch, cw = h // 2, w // 2
+    hh, hw = max(int(h / scale) // 2, 0), max(int(w / scale) // 2, 0)
+    return float(spectrum[..., ch - hh: ch + hh + 1, cw - hw: cw + hw + 1].sum())
+
+
+def _solve_scale(spectrum: Tensor, target: float, s_max: float, iters: int = 40) -> float:
+    """The largest downscale factor in [1, s_max] whose band still holds ``target`` (bisection; the band energy
+    falls monotonically as the factor grows)."""
+    lo, hi = 1.0, float(s_max)
+    if band_energy(spectrum, hi) >= target:
+        return hi
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        if band_energy(spectrum, mid) >= target:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+def mean_spectrum(images: Sequence[Tensor]) -> Tensor:
+    """Mean centred FFT magnitude (H, W) of images (H, W, 3) of one size, channels summed, in float64."""
+    acc: Optional[Tensor] = None
+    for img in images:
+        f = torch.fft.fftshift(torch.fft.fft2(img.detach().to("cpu", torch.float64).permute(2, 0, 1)), dim=(-2, -1))
+        mag = f.abs().sum(0)
+        acc = mag if acc is None else acc + mag
+    assert acc is not None
+    return acc / len(images)
+
+
+@dataclass
+class DashSchedule(TrainingSchedule):
+    """Resolution and primitive schedule after DashGaussian (Chen et al., CVPR 2025), written for our trainer.
+
+    Frequency criterion: downsampling by s keeps the central (H/s x W/s) band of an image's spectrum. With E(s)
+    the mean magnitude spectrum of the training views inside that band, training starts at the largest factor
+    ``s0 <= max_scale`` whose band still holds ``1 / start_energy_factor`` of the total (for every view), and the
+    band energy then rises log-linearly in the step: E(t) = E(s0) (E(1) / E(s0))^(t / T) with T = ``full_res_at``
+    x max_steps, so the resolution climbs fast through the low frequencies (where most of an image's energy is)
+    and slowly through the fine ones. The factor is quantised to ``levels`` values (geometric in s between s0
+    and 1) so that each view is resized at most ``levels`` times in a run (each level's images are cached while
+    it is in use; the schedule only ever rises).
+
+    Primitive schedule: a strategy may fill the share ``(1/s)^(2 - t/T)`` of its densification head-room
+    (``budget_fraction`` in the hooks' info; DashGaussian's primitive scheduler), so the Gaussian count grows
+    with the number of pixels it has to explain instead of densifying freely at low resolution. From full
+    resolution on the share is ``final_budget``; below 1, the strategy trims the Gaussians that explain the
+    fewest training pixels (Σ of their compositing weights over the training views) down to it once, at T,
+    so the full-resolution steps, the costly ones, draw fewer Gaussians (beyond DashGaussian).
+
+    Learning rate: the means' exponential decay starts when the factor first drops below 2 (as DashGaussian):
+    the early low-resolution steps move the centres with the initial rate.
+
+    Densification statistics need no rescaling: the strategies accumulate the 2-D mean gradients in NDC units
+    (pixel gradient x half the image size), which are resolution-independent to first order (a Gaussian covering
+    area fraction a of the view contributes ~sqrt(a) whatever the pixel count), and screen-size pruning uses the
+    radius over the image's long side; ``tests/test_schedule.py`` checks both on a trained model.
+    """
+
+    name: ClassVar[str] = "dash"
+    full_res_at: float = 0.5        # fraction of max_steps at which training reaches full resolution
+    max_scale: float = 8.0          # cap on the starting downscale factor
+    start_energy_factor: float = 4.0  # start where the band holds 1/this of every view's spectrum magnitude
+    levels: int = 12                # number of distinct resolutions (incl. full)
+    min_side: int = 16              # never train below this many pixels on the SHORT side (>= 11: the SSIM window)
+    budget: bool = True             # grow the densification budget with the resolution (False: no cap before T)
+    final_budget: float = 1.0       # share of the strategy's head-room kept from full resolution on (< 1: trim)
+    delay_lr_decay: bool = True     # start the means' lr decay when the factor drops below 2
+
+    def __post_init__(self) -> None:
+        # derived by initialize() from the training views (not configuration, not dataclass fields)
+        self._scales: list[float] = []  # level factors, descending, the last one 1
+        self._starts: list[int] = []  # first step of each level
+        self._full_steps = 0
+        self._lr_start = 0
+        self._cache: dict = {}
+        self._cache_level = -1
+
+    def check_sanity(self, **kwargs: Any) -> None:
+        if not 0.0 <= float(self.full_res_at) <= 1.0:
+            raise ValueError(f"schedule.full_res_at must be in [0, 1], got {self.full_res_at} (fix: e.g. schedule.full_res_at=0.5)")
+        if not float(self.max_scale) >= 1.0:
+            raise ValueError(f"schedule.max_scale must be >= 1, got {self.max_scale} (fix: e.g. schedule.max_scale=8)")
+        if not float(self.start_energy_factor) > 1.0:
+            raise ValueError(f"schedule.start_energy_factor must be > 1, got {self.start_energy_factor} "
+                             "(fix: e.g. schedule.start_energy_factor=4)")
+        if not 0.0 < float(self.final_budget) <= 1.0:
+            raise ValueError(f"schedule.final_budget must be in (0, 1], got {self.final_budget} "
+                             "(fix: e.g. schedule.final_budget=1.0)")
+        if int(self.levels) < 2:
+            raise ValueError(f"schedule.levels must be >= 2, got {self.levels} (fix: e.g. schedule.levels=12)")
+        if int(self.min_side) < 11:
+            raise ValueError(f"schedule.min_side must be >= 11 (the SSIM loss's window), got {self.min_side} "
+                             "(fix: e.g. schedule.min_side=16)")
+
+    # ------------------------------------------------------------------ set-up
+    def initialize(self, train: Sequence[Camera], max_steps: int) -> None:
+        self.check_sanity()
+        self._cache, self._cache_level = {}, -1
+        self._full_steps = int(round(float(self.full_res_at) * int(max_steps)))
+        imgs = [c.image for c in train if c.image is not None]
+        if not imgs or self._full_steps <= 0:
+            self._scales, self._starts, self._lr_start = [1.0], [0], 0
+            return
+        short_side = min(min(int(c.width), int(c.height)) for c in train)
+        s_cap = max(1.0, min(float(self.max_scale), short_side / float(self.min_side)))
+        by_size: dict[tuple, list[Tensor]] = {}
+        for im in imgs:
+            by_size.setdefault(tuple(im.shape[:2]), []).append(im)
+        # the starting factor: the largest one whose band keeps 1/start_energy_factor of EVERY view's magnitude
+        s0 = s_cap
+        spectra = []
+        for group in by_size.values():
+            for im in group:
+                spec = mean_spectrum([im])
+                s0 = min(s0, _solve_scale(spec, band_energy(spec, 1.0) / float(self.start_energy_factor), s_cap))
+            spectra.append((mean_spectrum(group), len(group)))
+        # the schedule follows the largest group's mean spectrum (one size in every scene we know; mixed sizes
+        # share the criterion through the relative band)
+        spec = max(spectra, key=lambda x: x[1])[0]
+        e_tot, e0 = band_energy(spec, 1.0), band_energy(spec, s0)
+        n = int(self.levels)
+        scales = [s0 ** (1.0 - k / (n - 1)) for k in range(n)]  # geometric from s0 down to 1
+        scales[-1] = 1.0
+        starts = [0]
+        for s in scales[1:]:
+            e = band_energy(spec, s)
+            frac = 1.0 if not (e_tot > e0 > 0) else math.log(max(e, e0) / e0) / math.log(e_tot / e0)
+            starts.append(int(round(min(max(frac, 0.0), 1.0) * self._full_steps)))
+        for i in range(1, n):  # monotone (quantisation can tie)
+            starts[i] = max(starts[i], starts[i - 1])
+        starts[-1] = self._full_steps
+        self._scales, self._starts = scales, starts
+        below2 = [st for s, st in zip(scales, starts) if s < 2.0]
+        self._lr_start = below2[0] if (below2 and self.delay_lr_decay) else 0
+
+    # ------------------------------------------------------------------ per step
+    def level(self, step: int) -> int:
+        lv = 0
+        for i, st in enumerate(self._starts):
+            if step >= st:
+                lv = i
+        return lv
+
+    def scale(self, step: int) -> float:
+        return float(self._scales[self.level(step)]) if self._scales else 1.0
+
+    def camera(self, camera: Camera, step: int) -> Camera:
+        lv = self.level(step) if self._scales else 0
+        s = self._scales[lv] if self._scales else 1.0
+        if s <= 1.0:
+            if self._cache:
+                self._cache, self._cache_level = {}, -1
+            return camera
+        if lv != self._cache_level:  # the schedule only rises: the lower level's images are never needed again
+            self._cache, self._cache_level = {}, lv
+        w, h = max(1, int(round(camera.width / s))), max(1, int(round(camera.height / s)))
+        key = (camera.name, id(camera))
+        hit = self._cache.get(key)
+        if hit is None or hit[0] is not camera:
+            hit = (camera, camera.resized(w, h))
+            self._cache[key] = hit
+        return hit[1]
+
+    def step_info(self, step: int) -> dict:
+        s = self.scale(step)
+        out = {"resolution_scale": 1.0 / s}
+        if step >= self._full_steps or s <= 1.0:
+            if float(self.final_budget) < 1.0 or self.budget:
+                out["budget_fraction"] = float(self.final_budget)
+        elif self.budget:
+            t = min(step / self._full_steps, 1.0) if self._full_steps > 0 else 1.0
+            out["budget_fraction"] = float((1.0 / s) ** (2.0 - t))
+        return out
+
+    def lr_progress(self, step: int, max_steps: int) -> float:
+        if self._lr_start <= 0:
+            return super().lr_progress(step, max_steps)
+        span = max(int(max_steps) - self._lr_start, 1)
+        return min(max((step - self._lr_start) / span, 0.0), 1.0)
+
+    def summary(self) -> dict:
+        return {"name": self.name, "full_res_step": self._full_steps, "lr_decay_from": self._lr_start,
+                "levels": [{"scale": round(float(s), 4), "from_step": int(st)} for s, st in zip(self._scales, self._starts)]}
+
+
+def make_schedule(node: Any) -> TrainingSchedule:
+    """The schedule of a config's ``schedule`` node (``None``: constant, as in run dirs written before schedules)."""
+    if node is None:
+        return ConstantSchedule()
+    if isinstance(node, TrainingSchedule):
+        return node
+    from hydra.utils import instantiate
+
+    sched = instantiate(node)
+    if not isinstance(sched, TrainingSchedule):
+        raise TypeError(f"schedule._target_ must build a b3dgs.schedule.TrainingSchedule, got {type(sched).__name__}")
+    return sched

@@ -1,0 +1,233 @@
+"""Training schedules side by side (issue 30): ``schedule=constant`` against ``schedule=dash`` (or any other
+schedule overrides), paired over scenes and seeds, at the quick protocol (256 px, 3000 steps), on one machine.
+
+    python bench/schedule.py                                   # 7 scenes x seeds 0 1 2, both schedules, 2 jobs
+    python bench/schedule.py --scenes fox fern --seeds 0 --variant dash_nolr="schedule=dash schedule.delay_lr_decay=false"
+    python bench/schedule.py --models niw dpmm --seeds 0        # the posterior models under both schedules
+
+Every (scene, seed) runs its variants back to back in one queue served by ``--jobs`` workers (one thread each), so
+the variants of a scene-seed share the machine's conditions (interleaved, never one schedule first and the other
+hours later). A finished run dir is reused and its small files are archived to ``--archive`` (committed), so the
+grid resumes across sessions. Output: ``bench/results/schedule.json`` and ``schedule.md`` (per-run rows, paired
+differences over scenes with bootstrap CIs and exact sign-flip p, the time ratio, time to 95 % of the reference's
+final PSNR gain along the curves) and ``schedule.png`` (PSNR against training time per scene).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import QUICK, RESULTS, machine, scene_overrides, sync_results, train_run  # noqa: E402
+
+SEVEN = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
+ARCHIVED = ["*/*/*/s*/config.yaml", "*/*/*/s*/metrics.json", "*/*/*/s*/curve.json"]
+METRICS = [("psnr", True), ("ssim", True), ("lpips", False), ("num_gaussians", False), ("train_time_s", False)]
+
+
+def parse_variants(items: list[str]) -> dict[str, list[str]]:
+    """``name=overrides`` strings -> {name: [override, ...]}; the first variant is the reference."""
+    out: dict[str, list[str]] = {}
+    for it in items:
+        if "=" not in it:
+            raise SystemExit(f"bench/schedule.py: --variant {it!r} is not NAME=OVERRIDES (fix: e.g. dash=schedule=dash)")
+        name, over = it.split("=", 1)
+        out[name] = over.split()
+    return out
+
+
+def time_to_target(points: list[dict], target: float) -> Optional[float]:
+    """Training seconds at which a curve first reaches ``target`` PSNR (linear between logged points); None if never."""
+    prev = None
+    for p in points:
+        if p["psnr"] >= target:
+            if prev is None or p["psnr"] == prev["psnr"]:
+                return float(p["train_time_s"])
+            w = (target - prev["psnr"]) / (p["psnr"] - prev["psnr"])
+            return float(prev["train_time_s"] + w * (p["train_time_s"] - prev["train_time_s"]))
+        prev = p
+    return None
+
+
+def paired(rows: list[dict], a: str, b: str, key: str, higher: bool, model: str) -> dict:
+    """Scene-level paired difference a − b of ``key`` (each scene's seed mean over seeds both have)."""
+    from b3dgs.report.stats import paired_stats
+
+    per_scene = {}
+    for scene in sorted({r["scene"] for r in rows}):
+        va = {r["seed"]: r[key] for r in rows if r["scene"] == scene and r["variant"] == a and r["model"] == model}
+        vb = {r["seed"]: r[key] for r in rows if r["scene"] == scene and r["variant"] == b and r["model"] == model}
+        d = [va[s] - vb[s] for s in sorted(va.keys() & vb.keys()) if va[s] is not None and vb[s] is not None]
+        if d:
+            per_scene[scene] = float(np.mean(d))
+    st = paired_stats(list(per_scene.values()), higher_is_better=higher)
+    return {"a": a, "b": b, "model": model, "metric": key, "per_scene": per_scene, **st}
+
+
+def macro(rows: list[dict], variant: str, key: str, model: str) -> Optional[float]:
+    """Macro mean over scenes of the seed means of ``key``."""
+    per = {}
+    for r in rows:
+        if r["variant"] == variant and r["model"] == model and r.get(key) is not None:
+            per.setdefault(r["scene"], []).append(r[key])
+    return float(np.mean([np.mean(v) for v in per.values()])) if per else None
+
+
+def plot(curves: dict, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from b3dgs.io import atomic_path
+
+    scenes = sorted({k[0] for k in curves})
+    n = len(scenes)
+    cols = min(4, n)
+    rows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.8 * rows), dpi=100, squeeze=False)
+    colors = {}
+    for i, scene in enumerate(scenes):
+        ax = axes[i // cols][i % cols]
+        for (sc, model, variant, seed), pts in sorted(curves.items()):
+            if sc != scene:
+                continue
+            c = colors.setdefault((model, variant), f"C{len(colors)}")
+            ax.plot([p["train_time_s"] for p in pts], [p["psnr"] for p in pts], "-", color=c, lw=1, alpha=0.8,
+                    label=f"{model} {variant}" if seed == min(k[3] for k in curves if k[:3] == (sc, model, variant)) else None)
+        ax.set_title(scene, fontsize=9)
+        ax.set_xlabel("training time (s)", fontsize=8)
+        ax.set_ylabel("test PSNR (dB)", fontsize=8)
+        ax.tick_params(labelsize=7)
+    for j in range(n, rows * cols):
+        axes[j // cols][j % cols].axis("off")
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle("Test PSNR against training time (one line per seed)", fontsize=10)
+    fig.tight_layout()
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png")
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", nargs="+", default=SEVEN)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--models", nargs="+", default=["standard"])
+    ap.add_argument("--variant", action="append", default=None,
+                    help="NAME=OVERRIDES (repeatable; the first is the reference; default constant and dash)")
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--out", default="outputs/bench_schedule")
+    ap.add_argument("--archive", default=str(RESULTS / "schedule_runs"))
+    ap.add_argument("--name", default="schedule", help="result files bench/results/<name>.{json,md,png}")
+    ap.add_argument("--extra", nargs="*", default=[], help="overrides for every run")
+    args = ap.parse_args()
+    variants = parse_variants(args.variant or ["constant=schedule=constant", "dash=schedule=dash"])
+    ref = next(iter(variants))
+    out, archive = Path(args.out), Path(args.archive)
+    sync_results(archive, out, ARCHIVED, only_missing=True)  # rows finished in earlier sessions count as finished
+    jobs = [(scene, model, name, seed) for seed in args.seeds for scene in args.scenes for model in args.models
+            for name in variants]
+
+    def run(job):
+        scene, model, name, seed = job
+        run_dir = out / scene / model / name / f"s{seed}"
+        over = scene_overrides(scene) + QUICK + [f"model={model}", f"seed={seed}", f"threads={args.threads}",
+                                                 *variants[name], *args.extra]
+        try:
+            m = train_run(run_dir, over, timeout_s=4 * 3600)
+        except Exception as e:  # noqa: BLE001 - one failed run must not stop the grid; it is reported
+            print(f"FAILED {job}: {str(e)[-400:]}", flush=True)
+            return None
+        sync_results(out, archive, ARCHIVED)
+        print(f"{scene} {model} {name} s{seed}: PSNR {m['psnr']:.3f}, {m['num_gaussians']} Gaussians, "
+              f"{m['train_time_s']:.1f} s", flush=True)
+        return job
+
+    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
+        list(ex.map(run, jobs))
+
+    rows, curves = [], {}
+    for scene, model, name, seed in jobs:
+        d = out / scene / model / name / f"s{seed}"
+        if not (d / "metrics.json").is_file():
+            continue
+        m = json.loads((d / "metrics.json").read_text())
+        pts = json.loads((d / "curve.json").read_text())["points"] if (d / "curve.json").is_file() else []
+        curves[(scene, model, name, seed)] = pts
+        bt = m.get("block_time_s") or {}
+        rows.append({"scene": scene, "model": model, "variant": name, "seed": seed, "psnr": m["psnr"],
+                     "ssim": m["ssim"], "lpips": m["lpips"], "num_gaussians": m["num_gaussians"],
+                     "train_time_s": m["train_time_s"],
+                     "block_pct": round(100 * sum(bt.values()) / m["train_time_s"], 2) if bt else 0.0})
+    # time to 95 % of the reference's final PSNR gain (its first logged point to its end), on every variant's curve
+    for r in rows:
+        refpts = curves.get((r["scene"], r["model"], ref, r["seed"]))
+        pts = curves.get((r["scene"], r["model"], r["variant"], r["seed"]))
+        if refpts and pts:
+            target = refpts[0]["psnr"] + 0.95 * (refpts[-1]["psnr"] - refpts[0]["psnr"])
+            r["t95_ref"] = time_to_target(pts, target)
+    summary = []
+    for model in args.models:
+        t_ref = macro(rows, ref, "train_time_s", model)
+        t95_ref = macro(rows, ref, "t95_ref", model)
+        for name in variants:
+            if name == ref:
+                continue
+            t = macro(rows, name, "train_time_s", model)
+            t95 = macro(rows, name, "t95_ref", model)
+            summary.append({
+                "model": model, "variant": name, "reference": ref,
+                "time_ratio": (t / t_ref) if t and t_ref else None,
+                "t95_ratio": (t95 / t95_ref) if t95 and t95_ref else None,
+                "paired": {k: paired(rows, name, ref, k, hi, model) for k, hi in METRICS + [("block_pct", False)]},
+            })
+    lines = [f"# Training schedules side by side ({', '.join(variants)}; reference: {ref})", "",
+             f"Quick protocol (256 px, 3000 steps), {args.jobs} jobs x {args.threads} thread(s) on one machine, variants "
+             "of a scene-seed interleaved. Paired differences (variant − reference): each scene's seed mean is one unit; "
+             "bootstrap CI (BCa with >= 6 scenes) and exact sign-flip p.", ""]
+    for s in summary:
+        lines += [f"## {s['model']}: {s['variant']} − {s['reference']}", "",
+                  f"- training time ratio (macro mean over scenes of seed means): **{s['time_ratio']:.3f}**"
+                  if s["time_ratio"] else "- training time ratio: n/a",
+                  f"- time to 95 % of the reference's final PSNR gain, ratio: **{s['t95_ratio']:.3f}**"
+                  if s["t95_ratio"] else "- time-to-target ratio: n/a", "",
+                  "| metric | mean Δ | 95 % CI | p (two-sided) | better / worse | scenes |", "|---|---|---|---|---|---|"]
+        for k, p in s["paired"].items():
+            if p["mean"] is None:
+                continue
+            ci = p["ci"]
+            cis = f"[{ci['low']:+.4g}, {ci['high']:+.4g}]" if ci.get("low") is not None else "—"
+            pp = "—" if p["p_two_sided"] is None else f"{p['p_two_sided']:.3g}"
+            lines.append(f"| {k} | {p['mean']:+.4g} | {cis} | {pp} | {p['wins']} / {p['losses']} | {p['n']} |")
+        lines.append("")
+    lines += ["## Runs", "", "| scene | model | variant | seed | PSNR | SSIM | LPIPS | #Gaussians | train s | t95 s | block % |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in sorted(rows, key=lambda r: (r["model"], r["scene"], r["seed"], r["variant"])):
+        t95 = "—" if r.get("t95_ref") is None else f"{r['t95_ref']:.1f}"
+        lp = "—" if r["lpips"] is None else f"{r['lpips']:.4f}"
+        lines.append(f"| {r['scene']} | {r['model']} | {r['variant']} | {r['seed']} | {r['psnr']:.3f} | {r['ssim']:.4f} | "
+                     f"{lp} | {r['num_gaussians']} | {r['train_time_s']:.1f} | {t95} | {r['block_pct']} |")
+    from b3dgs.io import atomic_path, write_json
+
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    write_json(RESULTS / f"{args.name}.json", {"machine": machine(), "variants": variants, "reference": ref,
+                                               "jobs": args.jobs, "threads": args.threads, "rows": rows,
+                                               "summary": summary})
+    with atomic_path(RESULTS / f"{args.name}.md") as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
+    if curves:
+        plot(curves, RESULTS / f"{args.name}.png")
+    print("\n".join(lines[:40]))
+    print(f"wrote {RESULTS / (args.name + '.md')}")
+
+
+if __name__ == "__main__":
+    main()
