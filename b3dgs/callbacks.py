@@ -5,7 +5,8 @@
   counters and the train view sampler's position go into each checkpoint and are restored right before
   the first step after a resume, so that a resumed run is bit-identical to an uninterrupted one.
 * :class:`RunCheckpoint`: ``checkpoints/last.ckpt`` (always that name, overwritten atomically) every
-  ``every_n_steps`` steps, every ``every_s`` seconds of training wall-clock, and at the end.
+  ``every_n_steps`` steps, every ``every_s`` seconds of training wall-clock, and at the end; each holds the
+  scene's normalisation (``scene_transform``).
 
 Signals: while training, SIGINT / SIGTERM (recorded by :func:`b3dgs.rundir.interrupt_handlers`) make
 :class:`RunCheckpoint` save ``last.ckpt`` after the current step and raise :class:`b3dgs.rundir.Interrupted`.
@@ -150,6 +151,14 @@ class RunCheckpoint(Checkpoint):
             with atomic_path(self.dirpath / f"step{step}.ckpt") as tmp:
                 shutil.copyfile(self.last_path, tmp)
         self._t_last = time.monotonic()
+
+    def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict) -> None:
+        """The scene's normalisation goes into every checkpoint: a model can be exported in the scene's own frame
+        from its checkpoint alone (:func:`b3dgs.data.scene.scene_transform`)."""
+        from b3dgs.data.scene import scene_transform
+
+        if getattr(pl_module, "scene", None) is not None:
+            checkpoint["scene_transform"] = scene_transform(pl_module.scene).to_dict()
 
     def on_train_start(self, trainer, pl_module) -> None:
         from b3dgs.rundir import PENDING

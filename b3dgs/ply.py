@@ -16,6 +16,9 @@ One ``vertex`` element, binary little-endian, all properties ``float`` (float32)
 :func:`read_ply` reverses this. Any vertex property outside the standard set is returned as an extra,
 ``name_0 .. name_{d-1}`` (indices contiguous from 0, no plain ``name`` alongside) regrouped into an
 ``(N, d)`` tensor; so a ``(N, 1)`` extra comes back as ``(N, 1)``.
+
+:func:`write_splats` writes a model's Gaussians in a scene's own frame: :func:`transform_gaussians` maps the
+centres by a similarity ``x -> s R x + t``, adds ``log s`` to the log-scales and turns the quaternions by ``R``.
 """
 from __future__ import annotations
 
@@ -23,7 +26,7 @@ import os
 import re
 from collections import OrderedDict
 from pathlib import Path
-from typing import Mapping, Optional
+from typing import Mapping, Optional, Sequence
 
 import numpy as np
 import torch
@@ -31,7 +34,7 @@ from torch import Tensor
 
 from b3dgs.io import atomic_path
 
-__all__ = ["write_ply", "read_ply", "standard_property_names"]
+__all__ = ["frame_comments", "write_ply", "read_ply", "standard_property_names", "transform_gaussians", "write_splats"]
 
 _BASE_BEFORE = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
 _BASE_AFTER = ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
@@ -70,6 +73,7 @@ def write_ply(
     sh0: Tensor,
     shN: Optional[Tensor] = None,
     extra: Optional[Mapping[str, Tensor]] = None,
+    comments: Sequence[str] = (),
 ) -> Path:
     """Write Gaussians to ``path`` (atomically) in the standard 3DGS PLY layout; return the path.
 
@@ -77,6 +81,7 @@ def write_ply(
     (N,) (an (N, 1) tensor is accepted); ``sh0`` (N, 3) DC coefficients ((N, 1, 3) accepted); ``shN``
     (N, K, 3) rest coefficients, K >= 0 (None means K = 0); ``extra``: name -> (N,) or (N, d) values.
     All values must be finite; they are stored as float32. Tensors may require grad (they are detached).
+    ``comments``: header comment lines (readers skip them).
     """
     m = _as_f32("means", means, (-1, 3))
     n = m.shape[0]
@@ -125,7 +130,8 @@ def write_ply(
     vertex = data.view(np.dtype([(nm, "<f4") for nm in names])).reshape(n)
     path = Path(path)
     with atomic_path(path) as tmp:
-        PlyData([PlyElement.describe(vertex, "vertex")], text=False, byte_order="<").write(str(tmp))
+        PlyData([PlyElement.describe(vertex, "vertex")], text=False, byte_order="<",
+                comments=[" ".join(str(c).split()) for c in comments]).write(str(tmp))
         os.chmod(tmp, 0o644)  # mkstemp creates 0600; an export is meant to be shared
     return path
 
@@ -212,3 +218,70 @@ def read_ply(path: str | os.PathLike) -> dict:
     result = {key: torch.from_numpy(np.ascontiguousarray(v)) for key, v in out.items()}
     result["extra"] = {key: torch.from_numpy(np.ascontiguousarray(v)) for key, v in extra.items()}
     return result
+
+
+def _quat_of(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) of a rotation matrix (the largest-component branch, stable everywhere)."""
+    m = R
+    w2 = np.array([1 + m[0, 0] + m[1, 1] + m[2, 2], 1 + m[0, 0] - m[1, 1] - m[2, 2],
+                   1 - m[0, 0] + m[1, 1] - m[2, 2], 1 - m[0, 0] - m[1, 1] + m[2, 2]])
+    i = int(np.argmax(w2))
+    r = 0.5 * np.sqrt(max(w2[i], 1e-300))
+    q = {0: [r, (m[2, 1] - m[1, 2]) / (4 * r), (m[0, 2] - m[2, 0]) / (4 * r), (m[1, 0] - m[0, 1]) / (4 * r)],
+         1: [(m[2, 1] - m[1, 2]) / (4 * r), r, (m[0, 1] + m[1, 0]) / (4 * r), (m[0, 2] + m[2, 0]) / (4 * r)],
+         2: [(m[0, 2] - m[2, 0]) / (4 * r), (m[0, 1] + m[1, 0]) / (4 * r), r, (m[1, 2] + m[2, 1]) / (4 * r)],
+         3: [(m[1, 0] - m[0, 1]) / (4 * r), (m[0, 2] + m[2, 0]) / (4 * r), (m[1, 2] + m[2, 1]) / (4 * r), r]}[i]
+    return np.asarray(q) / np.linalg.norm(q)
+
+
+def transform_gaussians(means: Tensor, scales_log: Tensor, quats: Tensor, scale: float, rotation=None,
+                        translation=None) -> tuple[Tensor, Tensor, Tensor]:
+    """(means, scales_log, quats) of Gaussians under ``x -> scale * rotation @ x + translation``: centres mapped,
+    ``log(scale)`` added to every log-scale, each quaternion (w, x, y, z) left-multiplied by ``rotation``'s (its
+    covariance becomes ``s² R Σ Rᵀ``). Computed in float64, returned in the input dtype."""
+    if not (scale > 0 and np.isfinite(scale)):
+        raise ValueError(f"transform_gaussians: scale must be a positive finite number, got {scale}")
+    R = np.eye(3) if rotation is None else np.asarray(rotation, np.float64)
+    t = np.zeros(3) if translation is None else np.asarray(translation, np.float64)
+    dt = means.dtype
+    m = means.detach().double().cpu()
+    out_means = float(scale) * m @ torch.from_numpy(R).T + torch.from_numpy(t)
+    out_scales = scales_log.detach().double().cpu() + float(np.log(scale))
+    q = quats.detach().double().cpu()
+    if not np.allclose(R, np.eye(3), atol=1e-12):
+        a = torch.from_numpy(_quat_of(R))
+        w0, x0, y0, z0 = a
+        w1, x1, y1, z1 = q.unbind(-1)
+        q = torch.stack([w0 * w1 - x0 * x1 - y0 * y1 - z0 * z1, w0 * x1 + x0 * w1 + y0 * z1 - z0 * y1,
+                         w0 * y1 - x0 * z1 + y0 * w1 + z0 * x1, w0 * z1 + x0 * y1 - y0 * x1 + z0 * w1], -1)
+    return out_means.to(dt), out_scales.to(dt), q.to(quats.dtype)
+
+
+def write_splats(path: str | os.PathLike, splats: Mapping[str, Tensor], transform=None,
+                 extra: Optional[Mapping[str, Tensor]] = None, comments: Sequence[str] = ()) -> Path:
+    """Write a model's Gaussians (``splats``: means, scales, quats, opacities, sh0 (N, 1, 3), shN) with
+    :func:`write_ply`, mapped by ``transform`` first when given: an object with ``scale``, ``rotation`` and
+    ``translation`` taking the model's frame to the PLY's (e.g. ``scene.transform.inverse()``, back to the
+    COLMAP / transforms.json frame). A rotation other than the identity is refused for view-dependent colour
+    (``shN`` with K > 0 would need its SH coefficients rotated too)."""
+    means, scales, quats = splats["means"], splats["scales"], splats["quats"]
+    shN = splats["shN"]
+    if transform is not None:
+        rot = np.asarray(transform.rotation, np.float64)
+        if shN.shape[1] and not np.allclose(rot, np.eye(3), atol=1e-12):
+            raise ValueError("write_splats: a rotating transform would need the f_rest_* SH coefficients rotated too")
+        means, scales, quats = transform_gaussians(means, scales, quats, float(transform.scale), rot,
+                                                   transform.translation)
+    return write_ply(path, means, scales, quats, splats["opacities"], splats["sh0"][:, 0], shN, extra=extra,
+                     comments=comments)
+
+
+def frame_comments(frame) -> list[str]:
+    """Header comments of a PLY written in a scene's own frame: the training frame's transform ``frame`` (scale,
+    translation) and that posterior extras keep the training frame's units."""
+    from b3dgs import __version__
+
+    t = ", ".join(f"{v:.9g}" for v in frame.translation)
+    return [f"b3dgs {__version__}: x y z scale_* rot_* in the scene's own frame (COLMAP / transforms.json); "
+            f"training frame x_norm = {float(frame.scale):.9g} * R x + ({t})",
+            "b3dgs: extra properties (posterior summaries) are in the training frame's units"]

@@ -24,8 +24,10 @@ from b3dgs.io import write_json
 log = logging.getLogger(__name__)
 
 from b3dgs import conf_dir
+from b3dgs.labels import method_label, register_resolver
 
 CONF_DIR = conf_dir()
+register_resolver()  # ${b3dgs.method:} in run dir names (conf/hydra/default.yaml)
 
 
 def build_plugins(cfg: DictConfig):
@@ -356,14 +358,15 @@ def _finish(cfg: DictConfig, run_dir: Path, module, scene, renderer, trainer, cu
     lpips_model, lpips_reason = get_lpips(cfg.get("lpips_weights"))
     ev = evaluate_views(module, scene.test, lpips_model=lpips_model,
                         render_dir=run_dir / "renders" if tcfg.get("save_renders", True) else None)
-    from b3dgs.ply import write_ply
+    from b3dgs.data.scene import scene_transform
+    from b3dgs.ply import frame_comments, write_splats
 
-    sp = module.splats
-    write_ply(run_dir / "point_cloud.ply", sp["means"].data, sp["scales"].data, sp["quats"].data, sp["opacities"].data,
-              sp["sh0"].data[:, 0], sp["shN"].data, extra=module.export_extras())
+    frame = scene_transform(scene)  # point_cloud.ply in the scene's own (COLMAP / transforms.json) frame
+    write_splats(run_dir / "point_cloud.ply", {k: v.data for k, v in module.splats.items()}, frame.inverse(),
+                 extra=module.export_extras(), comments=frame_comments(frame))
     curve.write()
     metrics = {
-        "method": cfg.model.get("name", "custom"), "scene": scene.name, "seed": seed, "steps": int(trainer.global_step),
+        "method": method_label(cfg), "scene": scene.name, "seed": seed, "steps": int(trainer.global_step),
         "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": ev.get("lpips"),
         "lpips_reason": None if lpips_model is not None else lpips_reason,
         "num_gaussians": module.num_gaussians, "train_time_s": round(curve.train_time_s, 3),
@@ -377,6 +380,7 @@ def _finish(cfg: DictConfig, run_dir: Path, module, scene, renderer, trainer, cu
         "posterior": {name: blk.summary(state=module.states[name]) for name, blk in module.posterior.items()},
         "numerical_guards": guard_counts(),  # how often each clamp / jitter / floor fired (never silent)
         "checkpoint": final,  # b3dgs-eval refuses a last.ckpt that is not this model
+        "scene_transform": frame.to_dict(),  # normalised frame <- the scene's own (point_cloud.ply is in the latter)
         "per_view": ev["per_view"],
     }
     write_json(run_dir / "metrics.json", metrics)

@@ -9,7 +9,9 @@ the steps common to all formats:
    scale so ``extent`` = 1.1 x (max distance of a camera centre from that mean), i.e. the 3DGS
    ``cameras_extent``, equals 1. Computed over *all* loaded cameras (train and test), so the world
    frame does not depend on the split or on ``train_indices``. Poses and points get the same
-   similarity transform. ``normalize=False`` keeps the raw frame and reports the raw extent.
+   similarity transform, recorded as ``scene.transform`` (:class:`SceneTransform`, identity with
+   ``normalize=False``), so that exports can go back to the format's own frame. ``normalize=False`` keeps
+   the raw frame and reports the raw extent.
 2. **held-out split**: cameras sorted by name; index ``i`` is a test view iff ``i % test_every == 0``
    (``test_every=0``: no test views).
 3. **calibration split** (``calib_every``, off by default): the ``calib_every``-th, 2·``calib_every``-th,
@@ -60,6 +62,7 @@ __all__ = [
     "SCENE_KINDS",
     "FrameSpec",
     "RawScene",
+    "SceneTransform",
     "check_intrinsics",
     "check_layout",
     "check_near_plane",
@@ -71,6 +74,7 @@ __all__ = [
     "materialize",
     "normalize_scene",
     "preprocess",
+    "scene_transform",
     "select_evenly",
     "split_calibration",
     "split_indices",
@@ -98,6 +102,47 @@ class RawScene:
     points: Optional[np.ndarray] = None  # (M, 3)
     point_colors: Optional[np.ndarray] = None  # (M, 3) in [0, 1]
     extras: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class SceneTransform:
+    """The similarity ``x_norm = scale * rotation @ x_scene + translation`` that :func:`load_scene` applied to
+    the format's own world frame (COLMAP's, transforms.json's); the identity when nothing was applied."""
+
+    scale: float = 1.0
+    rotation: tuple = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    translation: tuple = (0.0, 0.0, 0.0)
+
+    @classmethod
+    def from_normalisation(cls, mean: np.ndarray, scale: float) -> "SceneTransform":
+        """The transform of :func:`normalize_scene`: ``x' = s (x - m)``."""
+        return cls(float(scale), translation=tuple(float(v) for v in -float(scale) * np.asarray(mean, np.float64)))
+
+    def to_dict(self) -> dict:
+        return {"scale": self.scale, "rotation": [list(r) for r in self.rotation], "translation": list(self.translation),
+                "maps": "x_normalised = scale * rotation @ x_scene + translation"}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SceneTransform":
+        return cls(float(d["scale"]), tuple(tuple(float(v) for v in r) for r in d["rotation"]),
+                   tuple(float(v) for v in d["translation"]))
+
+    def inverse(self) -> "SceneTransform":
+        """The transform from the normalised frame back to the scene's own."""
+        R = np.asarray(self.rotation, np.float64)
+        t = -(R.T @ np.asarray(self.translation, np.float64)) / self.scale
+        return SceneTransform(1.0 / self.scale, tuple(map(tuple, R.T.tolist())), tuple(t.tolist()))
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) points mapped by this transform (float64)."""
+        R = np.asarray(self.rotation, np.float64)
+        return self.scale * np.asarray(points, np.float64) @ R.T + np.asarray(self.translation, np.float64)
+
+
+def scene_transform(scene: Scene) -> SceneTransform:
+    """The normalisation ``load_scene`` applied to ``scene`` (the identity for a scene built another way)."""
+    t = getattr(scene, "transform", None)
+    return t if isinstance(t, SceneTransform) else SceneTransform()
 
 
 # ----------------------------------------------------------------------------------------------
@@ -370,8 +415,10 @@ def preprocess(
         colors = None if colors is None else colors[keep]
 
     focus = raw.extras.get("focus_depth")
+    transform = SceneTransform()
     if normalize:
-        viewmats, points, extent, _, scale = normalize_scene(viewmats, points)
+        viewmats, points, extent, mean, scale = normalize_scene(viewmats, points)
+        transform = SceneTransform.from_normalisation(mean, scale)
         focus = None if focus is None else focus * scale
         cams = [
             Camera(c.name, c.K, torch.tensor(v, dtype=torch.float32), c.width, c.height, c.image)
@@ -417,6 +464,7 @@ def preprocess(
         background=tuple(float(x) for x in background),
     )
     scene.calib = list(calib)  # calibration views (data.calib_every); [] when off
+    scene.transform = transform  # normalised frame <- the format's own (exports go back through its inverse)
     if candidates:  # active-view pool: cameras only; the images go to the driver's store
         scene.candidates = [c.with_image(None) for c in candidates]
         scene._candidate_store = CandidateStore({c.name: c.image for c in candidates})
