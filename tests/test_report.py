@@ -72,16 +72,21 @@ def test_pareto_front_and_time_to_fraction():
 
 
 # ------------------------------------------------------------------------------------------ fixtures
+MODEL_BLOCKS = {"niw": ["niw"], "dpmm": ["niw", "dp", "noise", "opacity", "color"]}  # conf/model/<name>.yaml
+
+
 def write_run(path: Path, scene: str, method: str, seed: int, psnr: float, *, lpips=0.2, t=100.0, n=1000,
-              fps=100.0, data=None, study=None, init_max_points=100000, uq=None, max_steps=300) -> Path:
-    """A run dir shaped like b3dgs-train's: config.yaml, metrics.json (done marker), curve.json, uq.json."""
+              fps=100.0, data=None, study=None, init_max_points=100000, uq=None, max_steps=300, posterior=None) -> Path:
+    """A run dir shaped like b3dgs-train's: config.yaml, metrics.json (done marker), curve.json, uq.json;
+    ``posterior``: its blocks (default: the model's own)."""
     path.mkdir(parents=True, exist_ok=True)
-    cfg = {"posterior": {}, "data": {**DATA, "name": scene, **(data or {})},
+    blocks = MODEL_BLOCKS.get(method, []) if posterior is None else posterior
+    cfg = {"posterior": {b: {} for b in blocks}, "data": {**DATA, "name": scene, **(data or {})},
            "model": {"_target_": "b3dgs.module.SplatModule", "name": method, "init_max_points": init_max_points},
            "trainer": {"max_steps": max_steps, "eval_every": 100}, "seed": seed, "threads": None, "resume": None}
     if study:
         cfg["study"] = {"name": study}
-    (path / "config.yaml").write_text(yaml.safe_dump(cfg))
+    (path / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     pts = [{"step": s, "train_time_s": t * s / max_steps, "psnr": psnr - 6.0 * (1 - s / max_steps) ** 2,
             "num_gaussians": n} for s in range(100, max_steps + 1, 100)]
     (path / "curve.json").write_text(json.dumps({"x": "train_time_s", "points": pts}))
@@ -122,6 +127,33 @@ def test_grouping_reads_the_config_not_folder_names(tmp_path):
     assert len(load_runs(str(tmp_path))[0]) == 4
 
 
+def test_methods_are_labelled_by_what_ran(tmp_path, monkeypatch):
+    """posterior=[niw,dp] on the standard model is its own method (not a duplicate of standard); the paired plot
+    of two identical methods says so instead of drawing a 1e-17 axis; the default pair is not niw − standard."""
+    from b3dgs.report.app import build_report
+
+    for scene in ("sceneA", "sceneB"):
+        write_run(tmp_path / "runs" / scene / "std", scene, "standard", 0, 20.0)
+        write_run(tmp_path / "runs" / scene / "nd", scene, "standard", 0, 20.0, posterior=["niw", "dp"])
+        write_run(tmp_path / "runs" / scene / "dpmm", scene, "dpmm", 0, 20.5)
+    runs, _ = load_runs(str(tmp_path / "runs" / "**"))
+    assert sorted({r.method for r in runs}) == ["dpmm", "standard", "standard+niw+dp"]
+    cfg = report_cfg(f"{tmp_path / 'runs'}/**", tmp_path / "rep")
+    assert list(cfg.pair) == ["dpmm", "standard"]
+    data = json.loads(build_report(cfg)["json"].read_text())
+    assert set(data["canonical"]["table"]) == {"standard", "standard+niw+dp", "dpmm"}
+    assert data["canonical"]["paired"][0]["mean"] == pytest.approx(0.5)
+    from b3dgs.report import plots
+    from b3dgs.report.analysis import paired
+
+    same = [paired(runs, "standard+niw+dp", "standard", "psnr")]
+    assert same[0]["per_scene"] == {"sceneA": 0.0, "sceneB": 0.0}
+    drawn = []
+    monkeypatch.setattr(plots, "_save", lambda fig, path: drawn.extend(fig.axes))
+    plots.plot_paired(same, tmp_path / "same.png")
+    assert "Δ = 0 in all 2 scenes" in drawn[0].texts[0].get_text() and not drawn[0].get_yticks().size
+
+
 def test_block_time_share_is_derived_from_the_run_itself():
     from b3dgs.report.collect import Run
 
@@ -149,6 +181,7 @@ def test_no_runs_is_a_one_line_error(tmp_path):
     assert res.returncode == 2
     err = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert len(err) == 1 and pattern in err[0] and "runs=" in err[0] and "Traceback" not in res.stderr
+    assert not (tmp_path / "r").exists()  # a refused report leaves no folder and no empty app.log
 
 
 # ------------------------------------------------------------------------------------------ OOD
@@ -200,7 +233,7 @@ def test_report_from_synthetic_runs(tmp_path):
     out = tmp_path / "report"
     from b3dgs.report.app import build_report
 
-    paths = build_report(report_cfg(f"{tmp_path / 'runs'}/**", out))
+    paths = build_report(report_cfg(f"{tmp_path / 'runs'}/**", out, "pair=[niw,standard]"))
     data = json.loads(paths["json"].read_text())
     # canonical: macro mean of per-scene seed means (not the pooled mean over runs)
     std = data["canonical"]["table"]["standard"]
@@ -275,7 +308,7 @@ def test_report_html_renders_in_headless_chromium(tmp_path):
     synthetic_bench(tmp_path / "runs")
     from b3dgs.report.app import build_report
 
-    paths = build_report(report_cfg(f"{tmp_path / 'runs'}/**", tmp_path / "report"))
+    paths = build_report(report_cfg(f"{tmp_path / 'runs'}/**", tmp_path / "report", "pair=[niw,standard]"))
     probe = tmp_path / "probe.html"
     probe.write_text(paths["html"].read_text().replace("</body>", CHECK_JS + "</body>"))
     flags = [chromium(), "--headless", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage",

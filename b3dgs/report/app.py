@@ -315,16 +315,29 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="report")
 def _hydra_main(cfg: DictConfig) -> None:
+    from b3dgs.rundir import arm_run_log
+
+    out = Path(str(cfg.out))
+    existed = out.is_dir() and any(out.iterdir())
     try:
         paths = build_report(cfg)
     except ReportError as e:
+        if not existed:  # Hydra made the folder for the job log; a refused report leaves nothing
+            try:
+                out.rmdir()
+            except OSError:
+                pass
         print(f"b3dgs-report: error: {e}", file=sys.stderr)
         sys.exit(2)
+    arm_run_log()  # the job log (conf/report.yaml: held in memory until the report is written)
     print(f"b3dgs-report: wrote {paths['md']}, {paths['html']}, {paths['json']}")
 
 
 def main() -> None:
-    _hydra_main()
+    """``b3dgs-report``: composition errors (a bad override) as one line with exit code 2 too."""
+    from b3dgs.errors import run_cli
+
+    run_cli("b3dgs-report", _hydra_main)
 
 
 if __name__ == "__main__":

@@ -3,7 +3,9 @@
 A run dir holds ``config.yaml`` (the composed config written by ``b3dgs-train``); ``metrics.json`` is
 its done marker. A run is keyed by (study, level, scene, method, seed), all read from ``config.yaml``:
 
-* scene = ``data.name``, method = ``model.name``, seed = ``seed``;
+* scene = ``data.name``, seed = ``seed``, method = the label of what ran (:func:`b3dgs.labels.method_label`:
+  ``model.name`` plus posterior / strategy / schedule changes, so ``posterior=[niw,dp]`` on the standard model
+  is ``standard+niw+dp``, not ``standard``);
 * study = ``sparse`` when ``data.train_indices`` is set, else ``initcap`` when ``model.init_max_points``
   is below the standard model's default (``conf/model/standard.yaml``), else ``canonical``; a ``study``
   node (``name``, ``level``) in the config, where one is allowed, wins;
@@ -24,6 +26,7 @@ from omegaconf import OmegaConf
 
 from b3dgs.checkpoint import upgrade_targets
 from b3dgs.protocol import describe_diff, differing_keys, flatten, run_protocol
+from b3dgs.labels import method_label
 
 __all__ = ["ReportError", "Run", "find_runs", "load_runs", "group", "METHOD_ORDER", "method_order"]
 
@@ -142,7 +145,8 @@ def read_run(path: Path) -> Run:
         raise ReportError(f"cannot read {path / 'config.yaml'}: {e}") from e
     metrics = _read_json(path / "metrics.json")
     try:
-        scene, method, seed = str(cfg["data"]["name"]), str(cfg["model"]["name"]), int(cfg["seed"])
+        scene, seed, _ = str(cfg["data"]["name"]), int(cfg["seed"]), cfg["model"]["name"]
+        method = method_label(cfg)
     except (KeyError, TypeError, ValueError) as e:
         raise ReportError(f"{path / 'config.yaml'} lacks data.name, model.name or seed ({e}); "
                           "is it a b3dgs-train run dir?") from e

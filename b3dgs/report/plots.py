@@ -16,6 +16,8 @@ from b3dgs.report.collect import METHOD_ORDER, method_order  # noqa: E402
 
 __all__ = ["plot_curves", "plot_pareto", "plot_paired", "plot_ood", "plot_levels"]
 
+ZERO = 1e-9  # a paired difference this small is float noise of identical runs
+
 
 def _color(method: str) -> str:
     i = METHOD_ORDER.index(method) if method in METHOD_ORDER else len(METHOD_ORDER) + sum(map(ord, method)) % 5
@@ -84,10 +86,18 @@ def plot_pareto(panels: dict, path: Path) -> Path:
 
 
 def plot_paired(results: Sequence[dict], path: Path) -> Path:
-    """One panel per metric: per-scene Δ (points), the mean Δ (line) and its bootstrap CI (band)."""
+    """One panel per metric: per-scene Δ (points), the mean Δ (line) and its bootstrap CI (band); a metric whose
+    Δ is zero in every scene gets a panel saying so."""
     fig, axes = _grid(len(results), ncols=len(results))
     for ax, r in zip(axes, results):
         scenes = list(r["per_scene"])
+        if scenes and all(abs(v) <= ZERO for v in r["per_scene"].values()):  # identical runs: say so, not a 1e-17 axis
+            ax.text(0.5, 0.5, f"Δ = 0 in all {len(scenes)} scenes\n({r['a']} and {r['b']} are identical)",
+                    ha="center", va="center", transform=ax.transAxes, fontsize=9)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_title(f"Δ{r['metric']} ({r['a']} − {r['b']})", fontsize=9)
+            continue
         ax.axhline(0, color="grey", lw=1)
         ax.bar(range(len(scenes)), [r["per_scene"][s] for s in scenes], color="C0", alpha=0.7)
         if r["mean"] is not None:
