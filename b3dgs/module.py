@@ -292,7 +292,7 @@ class SplatModule(L.LightningModule):
                 on_step=True, prog_bar=False, logger=True, batch_size=1,
             )
         if self.trainer.progress_bar_callback is not None:  # values shown only in the progress bar
-            self.log("n", float(self.num_gaussians), prog_bar=True, logger=False, batch_size=1)
+            self.log("gaussians", float(self.num_gaussians), prog_bar=True, logger=False, batch_size=1)
             self.log("loss", loss.detach(), prog_bar=True, logger=False, batch_size=1)
         return loss.detach()
 
@@ -307,11 +307,11 @@ class SplatModule(L.LightningModule):
 
     # ------------------------------------------------------------------ checkpoints
     def run_identity(self) -> dict:
-        """Model, posterior blocks, strategy and scene fingerprint: what a checkpoint must share with the
-        run that resumes or evaluates it (:mod:`b3dgs.checkpoint`)."""
+        """Model, posterior blocks, strategy, scene fingerprint and renderer: what a checkpoint must share with
+        the run that resumes or evaluates it (:mod:`b3dgs.checkpoint`; the renderer for resumes only)."""
         from b3dgs.checkpoint import run_identity
 
-        return run_identity(self.hparams, self.strategy, self.posterior, self.scene, self.schedule)
+        return run_identity(self.hparams, self.strategy, self.posterior, self.scene, self.schedule, self.renderer)
 
     def check_checkpoint_identity(self, checkpoint: Mapping[str, Any], what: str, fix: str) -> None:
         """Refuse a checkpoint of another model, posterior, strategy, scene or schedule with a one-line
@@ -431,18 +431,20 @@ class SplatModule(L.LightningModule):
             out["visible_views"] += (ro.radii.detach().reshape(-1) > 0).double()
         return out
 
-    def prepare_posterior(self, cameras: Optional[Sequence[Camera]] = None) -> None:
+    def prepare_posterior(self, cameras: Optional[Sequence[Camera]] = None, blocks=None) -> None:
         """Give every posterior block that asks for one (:meth:`b3dgs.plugin.PosteriorBlock.view_pass`) the sums of
         one pass over ``cameras`` (default: the training views); called before the posterior is used (the end of
-        training, ``uq=native``, acquisition). Deterministic: the Fisher probes are seeded with the run's seed."""
-        reqs = {name: blk.view_pass(state=self.states[name]) for name, blk in self.posterior.items()}
-        reqs = {k: v for k, v in reqs.items() if v is not None}
+        training, ``uq=native``, acquisition). ``blocks``: (name, block, state) triples to prepare instead of the
+        model's own (e.g. copies with another count). Deterministic: the Fisher probes are seeded with the run's seed."""
+        triples = blocks if blocks is not None else [(n, b, self.states[n]) for n, b in self.posterior.items()]
+        reqs = [(b, st, b.view_pass(state=st)) for _, b, st in triples]
+        reqs = [r for r in reqs if r[2] is not None]
         if not reqs:
             return
-        probes = max(int(v.get("fisher_probes", 0)) for v in reqs.values())
+        probes = max(int(r[2].get("fisher_probes", 0)) for r in reqs)
         sums = self.view_sums(cameras, weights=True, fisher_probes=probes, seed=int(self.hparams.seed))
-        for name in reqs:
-            self.posterior[name].absorb_view_sums(splats=self.splats, state=self.states[name], sums=sums)
+        for blk, st, _ in reqs:
+            blk.absorb_view_sums(splats=self.splats, state=st, sums=sums)
 
     # ------------------------------------------------------------------ evaluation
     @torch.no_grad()

@@ -14,7 +14,8 @@ Every hook is called as ``hook(splats=, optimizers=, state=, step=, info=)``:
   append differentiable scalars to in ``step_pre_backward`` (added to the photometric loss before backward);
   with a training schedule (``schedule=dash``), ``info["resolution_scale"]`` (the step's view size over the
   full view's, so pixel sums convert to full-resolution units by / scale²) and ``info["budget_fraction"]``
-  (see :meth:`Plugin.scheduled_cap`); both absent under ``schedule=constant``.
+  (see :meth:`Plugin.scheduled_cap`) and ``info["keep_fraction"]`` (trim to that share once, by usage; see
+  ``AdaptiveDensityControl``); all absent under ``schedule=constant``.
 New needs go into ``info``, never into new arguments, so the core never branches on a plugin's type.
 """
 from __future__ import annotations

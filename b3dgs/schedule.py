@@ -113,10 +113,12 @@ class DashSchedule(TrainingSchedule):
 
     Primitive schedule: a strategy may fill the share ``(1/s)^(2 - t/T)`` of its densification head-room
     (``budget_fraction`` in the hooks' info; DashGaussian's primitive scheduler), so the Gaussian count grows
-    with the number of pixels it has to explain instead of densifying freely at low resolution. From full
-    resolution on the share is ``final_budget``; below 1, the strategy trims the Gaussians that explain the
-    fewest training pixels (Σ of their compositing weights over the training views) down to it once, at T,
-    so the full-resolution steps, the costly ones, draw fewer Gaussians (beyond DashGaussian).
+    with the number of pixels it has to explain instead of densifying freely at low resolution.
+
+    Trim (beyond DashGaussian): with ``keep`` < 1, from full resolution on the hooks' info holds ``keep_fraction``;
+    the strategy then keeps that share of its Gaussians once, the ones that explain the most training pixels (Σ of
+    their compositing weights over the training views), and never grows past that count again, so the
+    full-resolution steps, the costly ones, draw fewer Gaussians.
 
     Learning rate: the means' exponential decay starts when the factor first drops below 2 (as DashGaussian):
     the early low-resolution steps move the centres with the initial rate.
@@ -134,7 +136,7 @@ class DashSchedule(TrainingSchedule):
     levels: int = 12                # number of distinct resolutions (incl. full)
     min_side: int = 16              # never train below this many pixels on the SHORT side (>= 11: the SSIM window)
     budget: bool = True             # grow the densification budget with the resolution (False: no cap before T)
-    final_budget: float = 1.0       # share of the strategy's head-room kept from full resolution on (< 1: trim)
+    keep: float = 1.0               # < 1: at full resolution keep this share of the Gaussians, the most used
     delay_lr_decay: bool = True     # start the means' lr decay when the factor drops below 2
 
     def __post_init__(self) -> None:
@@ -154,9 +156,8 @@ class DashSchedule(TrainingSchedule):
         if not float(self.start_energy_factor) > 1.0:
             raise ValueError(f"schedule.start_energy_factor must be > 1, got {self.start_energy_factor} "
                              "(fix: e.g. schedule.start_energy_factor=4)")
-        if not 0.0 < float(self.final_budget) <= 1.0:
-            raise ValueError(f"schedule.final_budget must be in (0, 1], got {self.final_budget} "
-                             "(fix: e.g. schedule.final_budget=1.0)")
+        if not 0.0 < float(self.keep) <= 1.0:
+            raise ValueError(f"schedule.keep must be in (0, 1], got {self.keep} (fix: e.g. schedule.keep=1.0)")
         if int(self.levels) < 2:
             raise ValueError(f"schedule.levels must be >= 2, got {self.levels} (fix: e.g. schedule.levels=12)")
         if int(self.min_side) < 11:
@@ -236,8 +237,8 @@ class DashSchedule(TrainingSchedule):
         s = self.scale(step)
         out = {"resolution_scale": 1.0 / s}
         if step >= self._full_steps or s <= 1.0:
-            if float(self.final_budget) < 1.0 or self.budget:
-                out["budget_fraction"] = float(self.final_budget)
+            if float(self.keep) < 1.0:
+                out["keep_fraction"] = float(self.keep)
         elif self.budget:
             t = min(step / self._full_steps, 1.0) if self._full_steps > 0 else 1.0
             out["budget_fraction"] = float((1.0 / s) ** (2.0 - t))

@@ -72,13 +72,15 @@ def test_budget_fraction_and_scheduled_cap():
     sc = _scene()
     d = DashSchedule(full_res_at=0.5, levels=6, min_side=11)
     d.initialize(sc.train, max_steps=1000)
-    fr = [d.step_info(t)["budget_fraction"] for t in range(0, 1000, 50)]
-    assert all(0 < f <= 1 for f in fr) and fr[0] < 0.2 and fr[-1] == 1.0
+    fr = [d.step_info(t)["budget_fraction"] for t in range(0, 500, 25)]
+    assert all(0 < f < 1 for f in fr) and fr[0] < 0.2 and fr[-1] > 0.5
     assert all(a <= b + 1e-12 for a, b in zip(fr, fr[1:]))
+    assert "budget_fraction" not in d.step_info(500)  # full resolution: the strategy's own cap
     assert Plugin.scheduled_cap(50000, 1000, {}) == 50000  # schedule=constant: the strategy's own cap
     assert Plugin.scheduled_cap(50000, 1000, {"budget_fraction": 0.5}) == 1000 + 24500
     assert Plugin.scheduled_cap(None, 1000, {"budget_fraction": 1.0}) == 6000
     assert "budget_fraction" not in DashSchedule(budget=False).step_info(0)
+    assert "keep_fraction" not in d.step_info(999) and DashSchedule(keep=0.5).step_info(0)["keep_fraction"] == 0.5
 
 
 def test_density_statistics_are_resolution_consistent():
@@ -141,8 +143,8 @@ def test_schedule_group_is_validated():
 
 
 def test_dash_training_learns_resumes_exactly_and_refuses_another_schedule(tmp_path):
-    """A short dash run trains at rising resolution (levels recorded in metrics.json), keeps under the scheduled
-    budget, and a resume from its mid-run checkpoint ends bit for bit like the uninterrupted run; resuming it with
+    """A short dash run trains at rising resolution (levels recorded in metrics.json), trims to half its Gaussians at
+    full resolution (schedule.keep=0.5) and never grows back, and a resume from its mid-run checkpoint ends bit for bit like the uninterrupted run; resuming it with
     schedule=constant is refused with the schedule named."""
     import json
 
@@ -150,11 +152,15 @@ def test_dash_training_learns_resumes_exactly_and_refuses_another_schedule(tmp_p
 
     over = QUICK + ["trainer.max_steps=120", "trainer.eval_every=60", "trainer.checkpoint_every=60",
                     "trainer.keep_checkpoints=true", "trainer.save_renders=false", "schedule=dash",
-                    "schedule.levels=4", "schedule.min_side=11", "strategy.refine_start=20", "strategy.refine_every=20",
-                    "strategy.refine_stop=100"]
+                    "schedule.levels=4", "schedule.min_side=11", "schedule.keep=0.5", "strategy.refine_start=20",
+                    "strategy.refine_every=20", "strategy.refine_stop=100"]
     a = tmp_path / "a"
     m = run_train(a, over)
     assert m["psnr"] > 15.0
+    # the trim at full resolution (step 60) kept half the Gaussians, by usage, and the count never grew back
+    ck = torch.load(a / "checkpoints" / "last.ckpt", weights_only=False)
+    trimmed = int(ck["b3dgs"]["states"]["strategy"]["trimmed_cap"])
+    assert m["removed"].get("budget", 0) > 0 and m["num_gaussians"] <= trimmed
     lv = m["schedule"]["levels"]
     assert m["schedule"]["name"] == "dash" and lv[0]["scale"] > 1 and lv[-1] == {"scale": 1.0, "from_step": 60}
     b = tmp_path / "b"

@@ -61,7 +61,7 @@ class AdaptiveDensityControl(Plugin):
         }
 
     def step_post_backward(self, *, splats, optimizers, state, step, info):
-        if "budget_fraction" in info:  # a schedule's budget below the count (schedule=dash's trim): prune to it
+        if "keep_fraction" in info and "trimmed_cap" not in state:  # schedule=dash's trim, once
             self._trim(splats, state, info)
         if step >= self.refine_stop:
             return
@@ -88,11 +88,12 @@ class AdaptiveDensityControl(Plugin):
 
     @torch.no_grad()
     def _trim(self, splats, state, info) -> None:
-        """Prune the Gaussians that explain the fewest training pixels (Σ over the training views of their
-        compositing weights, ``info["view_sums"]``) until the count fits the schedule's budget."""
+        """Keep the share ``info["keep_fraction"]`` of the Gaussians that explain the most training pixels (Σ over the
+        training views of their compositing weights, ``info["view_sums"]``); the count never grows past it again."""
         n = info["ops"].num
-        cap = self.scheduled_cap(self.max_gaussians, int(state.get("n_init", n)), info)
-        if cap is None or n <= cap:
+        cap = max(1, int(n * float(info["keep_fraction"])))
+        state["trimmed_cap"] = torch.tensor(cap, device=splats["means"].device)
+        if n <= cap:
             return
         usage = info["view_sums"]()["weight_sum"]
         order = torch.argsort(usage, stable=True)  # least used first (ties: lower index first)
@@ -111,6 +112,8 @@ class AdaptiveDensityControl(Plugin):
         split = high & ~small
         n = ops.num
         cap = self.scheduled_cap(self.max_gaussians, int(state.get("n_init", n)), info)
+        if "trimmed_cap" in state:
+            cap = int(state["trimmed_cap"]) if cap is None else min(cap, int(state["trimmed_cap"]))
         if cap is not None:
             budget = max(cap - n, 0)
             # a clone adds one Gaussian, a split adds one net (two children replace the parent)

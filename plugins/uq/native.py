@@ -22,15 +22,21 @@ class NativeUQ(UQRegime):
     training are untouched (``bench/uq_count_scale.py`` measures what c does)."""
 
     count_scale: Optional[float] = None
+    count: Optional[str] = None
 
     def _blocks(self, m):
-        """(block, state) pairs to draw from: the model's own, or copies with ``count_scale`` applied."""
+        """(name, block, state) to draw from: the model's own, or copies with ``count_scale`` / ``count`` applied
+        (``count``: ``posterior.niw.count``, e.g. ``weight``, re-evaluated on the trained model without retraining)."""
         out = []
         for name, blk in m.posterior.items():
             st = m.states[name]
-            if self.count_scale is not None and "count_scale" in {f.name for f in fields(blk)}:
+            names = {f.name for f in fields(blk)}
+            if self.count_scale is not None and "count_scale" in names:
                 blk, st = replace(blk, count_scale=float(self.count_scale)), dict(st)
-            out.append((blk, st))
+            if self.count is not None and "count" in names and blk.count != self.count:
+                blk, st = replace(blk, count=str(self.count)), dict(st)
+                blk.check_sanity()
+            out.append((name, blk, st))
         return out
 
     def fit(self, models, scene):
@@ -40,9 +46,10 @@ class NativeUQ(UQRegime):
             raise ValueError("uq=native needs a model trained with posterior blocks (model=niw or model=dpmm); "
                              "use uq=proxy for a standard model")
         self.sigma2 = 0.0
-        m.prepare_posterior(scene.train if scene is not None else None)  # counts that need a view pass
         # one prepared draw function per block: posterior set-up once, not per chunk or view
-        self._fitted = self._blocks(m)
+        blocks = self._blocks(m)
+        m.prepare_posterior(scene.train if scene is not None else None, blocks=blocks)  # counts from a view pass
+        self._fitted = [(blk, st) for _, blk, st in blocks]
         self.reset_conditioning()
         self.base = render_params(m)
         for name, blk in m.posterior.items():
