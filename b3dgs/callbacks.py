@@ -11,6 +11,9 @@
 Signals: while training, SIGINT / SIGTERM (recorded by :func:`b3dgs.rundir.interrupt_handlers`) make
 :class:`RunCheckpoint` save ``last.ckpt`` after the current step and raise :class:`b3dgs.rundir.Interrupted`.
 
+* :class:`StepProgressBar`: one bar over the run's global steps (``step/max_steps``, rate, ETA) with the Gaussian
+  count, the loss and the last test PSNR; the trainer uses it whenever ``trainer.enable_progress_bar`` is true.
+
 The trainer runs these with the configured extra callbacks (``callbacks:`` in the config; the tests' kill
 points are one, ``tests/kill_hooks.py``).
 """
@@ -19,6 +22,7 @@ from __future__ import annotations
 import logging
 import random
 import shutil
+import sys
 import time
 from pathlib import Path
 from typing import Any, Optional
@@ -26,7 +30,7 @@ from typing import Any, Optional
 import lightning as L
 import numpy as np
 import torch
-from lightning.pytorch.callbacks import Checkpoint
+from lightning.pytorch.callbacks import Checkpoint, TQDMProgressBar
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from b3dgs.device import timed_clock
@@ -283,3 +287,48 @@ def plot_curve(points: list[dict], path: Path, title: str = "Test PSNR and #Gaus
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png")
     plt.close(fig)
+
+
+class StepProgressBar(TQDMProgressBar):
+    """Lightning's tqdm bar over global steps instead of epochs: ``train 12%|██ | 360/3000 steps [01:02<07:40 ETA,
+    5.7 steps/s, gaussians=12,345, loss=0.0831, test PSNR=24.12 dB]``. A resumed run starts the bar at its step
+    (the rate and ETA count only the steps of this process); the test PSNR is :class:`CurveCallback`'s last point."""
+
+    BAR_FORMAT = "{desc} {percentage:3.0f}%|{bar:16}| {n_fmt}/{total_fmt} steps [{elapsed}<{remaining} ETA, {rate_fmt}{postfix}]"
+
+    def init_train_tqdm(self):
+        from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm
+
+        step = int(self.trainer.global_step)
+        return Tqdm(desc="train", total=int(self.trainer.max_steps), initial=step, position=2 * self.process_position,
+                    disable=self.is_disabled, leave=True, dynamic_ncols=True, file=sys.stdout, smoothing=0.05,
+                    unit=" steps", bar_format=self.BAR_FORMAT)
+
+    def on_train_start(self, trainer, *_: Any) -> None:
+        self.train_progress_bar = self.init_train_tqdm()
+
+    def on_train_epoch_start(self, trainer, *_: Any) -> None:
+        pass  # one bar for the whole run, not one per pass over the views
+
+    def on_train_epoch_end(self, trainer, pl_module) -> None:
+        pass
+
+    def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
+        bar, n = self.train_progress_bar, int(trainer.global_step)
+        if bar is not None and self._should_update(n, bar.total):
+            bar.n = n
+            bar.set_postfix(self.get_metrics(trainer, pl_module), refresh=False)
+            bar.refresh()
+
+    def get_metrics(self, trainer, pl_module) -> dict:
+        shown = super().get_metrics(trainer, pl_module)
+        shown.pop("v_num", None)
+        out = {}
+        if "gaussians" in shown:
+            out["gaussians"] = f"{int(round(float(shown.pop('gaussians')))):,}"
+        if "loss" in shown:
+            out["loss"] = f"{float(shown.pop('loss')):.4f}"
+        curve = next((c for c in trainer.callbacks if isinstance(c, CurveCallback)), None)
+        if curve is not None and curve.cameras:
+            out["test PSNR"] = f"{curve.points[-1]['psnr']:.2f} dB" if curve.points else "—"
+        return {**out, **shown}

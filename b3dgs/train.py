@@ -103,10 +103,12 @@ def build_callbacks(node) -> list:
 def build_trainer(tcfg, renderer, callbacks: list, logger=False, **fixed):
     """The ``trainer`` node's ``_target_`` (``lightning.Trainer``) built with its own arguments, the accelerator
     resolved from the renderer (:func:`resolve_accelerator`), ``callbacks``, ``logger``, b3dgs's atomic checkpoint
-    IO, and ``fixed`` (what a caller sets whatever the config says, e.g. a round's ``max_steps``)."""
+    IO, and ``fixed`` (what a caller sets whatever the config says, e.g. a round's ``max_steps``). With the progress
+    bar on, it is b3dgs's bar over global steps (:class:`b3dgs.callbacks.StepProgressBar`) unless ``callbacks`` has one."""
     from hydra.utils import instantiate
+    from lightning.pytorch.callbacks import ProgressBar
 
-    from b3dgs.callbacks import AtomicCheckpointIO
+    from b3dgs.callbacks import AtomicCheckpointIO, StepProgressBar
 
     keys = [str(k) for k in tcfg.keys() if k not in RUN_KEYS and _OLD_TRAINER_KEYS.get(k, k) not in fixed]
     # resolved one by one in place (interpolations may point anywhere in the config; fixed ones are never read)
@@ -115,6 +117,8 @@ def build_trainer(tcfg, renderer, callbacks: list, logger=False, **fixed):
     args.setdefault("_target_", "lightning.Trainer")
     args["accelerator"] = resolve_accelerator(args.get("accelerator"), renderer)
     args.update(fixed)
+    if args.get("enable_progress_bar", True) and not any(isinstance(c, ProgressBar) for c in callbacks):
+        callbacks = [*callbacks, StepProgressBar()]
     # objects go in through a partial (instantiate would turn them into configs: hydra#2591)
     return instantiate(args, _partial_=True)(callbacks=callbacks, logger=logger, plugins=[AtomicCheckpointIO()])
 

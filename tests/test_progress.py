@@ -1,0 +1,69 @@
+"""What a training run shows and is called: the progress bar over global steps (step/max_steps, ETA, integer Gaussian
+count, loss, last test PSNR), the summary table at the end of a ``-m`` sweep, and method labels from what ran
+(run dir names, metrics.json)."""
+from __future__ import annotations
+
+import json
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from b3dgs.labels import method_label
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+
+
+@pytest.mark.parametrize("overrides, label", [
+    ([], "standard"), (["model=niw"], "niw"), (["model=dpmm"], "dpmm"), (["model=mcmc"], "mcmc"),
+    (["posterior=[niw,dp]"], "standard+niw+dp"), (["posterior=[niw,dp]", "strategy.max_gaussians=5000"], "standard+niw+dp"),
+    (["model=mcmc", "strategy=default"], "mcmc+adc"), (["model=niw", "posterior=[]"], "niw-niw"),
+    (["schedule=dash"], "standard+dash"), (["model=niw", "strategy=mcmc", "schedule=dash"], "niw+mcmc+dash"),
+])
+def test_method_label_says_what_ran(overrides, label):
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import open_dict
+
+    from b3dgs.train import CONF_DIR
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        cfg = compose(config_name="train", overrides=overrides)
+    assert method_label(cfg) == label
+    with open_dict(cfg):
+        del cfg["schedule"]  # run dirs from before schedules existed ran the constant one
+    assert method_label(cfg) == label.replace("+dash", "")
+
+
+def test_sweep_shows_steps_eta_and_ends_with_a_summary_table(tmp_path):
+    """A 3-seed sweep of standard and posterior=[niw,dp]: the bar counts global steps with an ETA, run dirs and
+    metrics.json carry the method label, and the sweep's last lines are the mean ± SEM table and where it is."""
+    cmd = [sys.executable, "-m", "b3dgs.train", "-m", "seed=0,1,2", "posterior=[],[niw,dp]", "data.max_side=32",
+           "+data.n_views=16", "trainer.max_steps=12", "trainer.eval_every=6", "logger=none",
+           "trainer.save_renders=false", f"hydra.sweep.dir={tmp_path}"]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
+    assert res.returncode == 0, res.stderr[-3000:]
+    bars = [ln for ln in re.split(r"[\r\n]", res.stdout) if ln.startswith("train ")]
+    final = [ln for ln in bars if " 12/12 steps" in ln]
+    assert final, bars[-3:]
+    assert re.search(r"\[\d\d:\d\d<00:00 ETA, +[\d.]+ steps/s, gaussians=3,874, loss=0\.\d{4}, test PSNR=\d+\.\d\d dB\]",
+                     final[-1]), final[-1]
+    assert any(re.search(r" [1-9]/12 steps \[\d\d:\d\d<\d\d:\d\d ETA", ln) for ln in bars)  # an ETA while running
+    dirs = sorted(d.name for d in tmp_path.iterdir() if d.is_dir())
+    assert [d.split("_", 1)[1] for d in dirs] == ["synthetic_standard_s0", "synthetic_standard+niw+dp_s0",
+                                                   "synthetic_standard_s1", "synthetic_standard+niw+dp_s1",
+                                                   "synthetic_standard_s2", "synthetic_standard+niw+dp_s2"]
+    assert json.loads((tmp_path / dirs[1] / "metrics.json").read_text())["method"] == "standard+niw+dp"
+    lines = res.stdout.strip().splitlines()
+    assert lines[-1] == f"b3dgs-train: 6 runs in {tmp_path}; summary in {tmp_path / 'summary.md'}"
+    rows = [ln for ln in lines if ln.startswith("| synthetic |")]
+    assert [r.split(" | ")[1] for r in rows] == ["standard", "standard+niw+dp"]
+    assert all("| 3 (0, 1, 2) |" in r and re.search(r"\d+\.\d{3} ± \d+\.\d{3}", r) for r in rows)
+    assert "| 3 (0, 1, 2) |" in (tmp_path / "summary.md").read_text()
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert [g["key"]["method"] for g in summary["groups"]] == ["standard", "standard+niw+dp"]
