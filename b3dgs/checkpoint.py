@@ -4,7 +4,8 @@ A b3dgs checkpoint holds, under ``checkpoint["b3dgs"]["identity"]`` (:func:`run_
 name and hyper-parameters (``trainer.max_steps`` and ``seed`` among them), the posterior blocks (names
 and settings), the strategy's settings and a scene fingerprint (:func:`scene_fingerprint`). A resume
 (``b3dgs-train resume=...``) and ``b3dgs-eval``'s ``load_run`` compare it with the run being built
-(:func:`identity_mismatch`) and refuse any difference with a one-line reason.
+(:func:`identity_mismatch`) and refuse any difference with a one-line reason. The identity also records the
+renderer (:func:`renderer_identity`), which only a resume must keep (:func:`renderer_mismatch`).
 
 ``metrics.json`` records the final checkpoint's global step, Gaussian count and a digest of the Gaussian
 parameters (:func:`params_digest`), so that a run dir whose ``last.ckpt`` is not the model its metrics
@@ -20,8 +21,8 @@ from typing import Any, Mapping, Optional
 
 import torch
 
-__all__ = ["checkpoint_record", "identity_mismatch", "params_digest", "plugin_config", "run_identity",
-           "scene_fingerprint", "upgrade_targets"]
+__all__ = ["checkpoint_record", "identity_mismatch", "params_digest", "plugin_config", "renderer_identity",
+           "renderer_mismatch", "run_identity", "scene_fingerprint", "upgrade_targets"]
 
 #: Class-path prefixes renamed since a run was written: (old, new). Plugins were the top-level package
 #: ``plugins`` until they were installed as ``b3dgs_plugins`` (a name that cannot clash with another project's).
@@ -101,12 +102,54 @@ CONSTANT_SCHEDULE = {"_target_": "b3dgs.schedule.ConstantSchedule"}
 
 
 def run_identity(hparams: Mapping[str, Any], strategy: Any, posterior: Mapping[str, Any], scene: Any,
-                 schedule: Any = None) -> dict:
-    """What must agree between a checkpoint and the run that resumes or evaluates it."""
+                 schedule: Any = None, renderer: Any = None) -> dict:
+    """What must agree between a checkpoint and the run that resumes or evaluates it. The renderer is recorded
+    for resumes only (:func:`renderer_mismatch`): an evaluation may score a run with another renderer."""
     hp = _plain(dict(hparams))
     return {"model": hp.get("name"), "posterior": {str(k): plugin_config(b) for k, b in posterior.items()},
             "scene": scene_fingerprint(scene), "strategy": plugin_config(strategy), "hparams": hp,
-            "schedule": CONSTANT_SCHEDULE if schedule is None else plugin_config(schedule)}
+            "schedule": CONSTANT_SCHEDULE if schedule is None else plugin_config(schedule),
+            "renderer": renderer_identity(renderer)}
+
+
+def renderer_identity(renderer: Any) -> Optional[dict]:
+    """The renderer's backend (class), its settings and the type of device it runs on; ``None`` without one."""
+    if renderer is None:
+        return None
+    return {**plugin_config(renderer), "name": str(getattr(renderer, "name", "")), "device": renderer.device.type}
+
+
+#: renderer settings that do not change results (which GPU of one type)
+_RENDERER_IGNORED = ("device_name", "name")
+
+
+def _renderer_option(target: Any) -> str:
+    """The ``renderer=`` option of a renderer class path (``auto`` for the auto_renderer factory)."""
+    cls = str(target).rsplit(".", 1)[-1]
+    return {"auto_renderer": "auto", "CPURenderer": "cpu", "TorchRenderer": "torch",
+            "GsplatRenderer": "gsplat"}.get(cls, cls)
+
+
+def renderer_mismatch(saved: Optional[Mapping], current: Optional[Mapping],
+                      resolved: bool = True) -> Optional[tuple[str, str]]:
+    """``(problem, key=value to pass)`` when ``current`` renders differently from the ``saved`` renderer, else
+    ``None`` (also when either is unknown). ``resolved``: both are :func:`renderer_identity` records; else both
+    are config nodes (``renderer=auto`` unresolved), compared as they are."""
+    if not isinstance(saved, Mapping) or not isinstance(current, Mapping) or "_target_" not in saved \
+            or "_target_" not in current:
+        return None
+    saved = upgrade_targets(dict(saved))
+    a, b = _renderer_option(saved["_target_"]), _renderer_option(current["_target_"])
+    if a != b:
+        return f"it was trained with renderer={a}, this run uses renderer={b}", f"renderer={a}"
+    if resolved and saved.get("device") != current.get("device"):
+        return (f"its renderer ran on {saved.get('device')}, this run's on {current.get('device')}",
+                f"renderer.device_name={saved.get('device')}")
+    keys = [k for k in sorted(set(saved) & set(current)) if k not in ("_target_", "device")]
+    for k in keys:
+        if (k not in _RENDERER_IGNORED or not resolved) and saved[k] != current[k]:
+            return f"its renderer.{k} is {_show(saved[k])}, this run's {_show(current[k])}", f"renderer.{k}={_show(saved[k])}"
+    return None
 
 
 def _hp_path(key: str) -> str:

@@ -5,9 +5,11 @@ A known problem raises :class:`B3dgsError` ``(problem, fix)``; the console entry
 with ``HYDRA_FULL_ERROR=1`` or ``b3dgs.debug=true`` on the command line.
 
 Besides :class:`B3dgsError`, "known" errors are Hydra's composition errors (bad override, unknown
-option), OmegaConf's missing values, missing files, and ``ValueError`` / ``IndexError``
+option), OmegaConf's missing values, missing files, ``ValueError`` / ``IndexError``
 raised deliberately by b3dgs's own code (the raising frame is in ``b3dgs`` or
-``plugins``): their messages already name the problem. Anything else is a bug and keeps its traceback.
+``plugins``) and ``RuntimeError`` raised there with a ``(fix: ...)`` (such as
+``RendererUnavailable``): their messages already name the problem. Anything else is a bug and keeps its
+traceback.
 
 :func:`quiet_known_noise` silences known-harmless library warnings and Lightning INFO lines by name.
 """
@@ -154,6 +156,8 @@ def format_error(exc: BaseException) -> Optional[str]:
     if isinstance(exc, (ValueError, IndexError)) and _raised_by_us(exc):
         msg = _one_line(exc)
         return msg if "(fix:" in msg else f"{msg} (fix: correct the input named above)"
+    if isinstance(exc, RuntimeError) and _raised_by_us(exc) and "(fix:" in str(exc):
+        return _one_line(exc)  # a machine limit b3dgs names with its fix (e.g. a renderer this machine cannot run)
     return None
 
 

@@ -11,18 +11,25 @@
   left behind.
 * :class:`Interrupted` / :func:`interrupt_handlers`: SIGINT and SIGTERM become a checkpoint at the next step
   boundary (:class:`b3dgs.callbacks.RunCheckpoint`) and an exit with 128 + the signal number.
+* The run manifest ``<run dir>/.b3dgs-run.json`` (:func:`write_manifest`), written when a run is accepted: what
+  marks a folder as a b3dgs run dir, and the patterns of every file b3dgs writes there (``b3dgs-eval`` adds its
+  own, :func:`record_written`). ``overwrite=true`` removes exactly the files it lists (:func:`run_files`);
+  a non-empty folder without it is someone else's (:func:`run_dir_kind`).
 """
 from __future__ import annotations
 
 import errno
 import fcntl
+import fnmatch
+import json
 import logging
 import os
 import signal
 import threading
+import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Iterable, Iterator, Optional
 
 from b3dgs.errors import B3dgsError
 
@@ -93,6 +100,193 @@ def remove_stale_tmp(run_dir: Path) -> list[Path]:
     return gone
 
 
+def run_dir_busy(run_dir: Path) -> Optional[str]:
+    """The pid of the live process that holds ``run_dir``'s lock (a training in progress), else ``None``."""
+    path = Path(run_dir) / LOCK_NAME
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        owner = os.pread(fd, 32, 0).decode(errors="replace").strip()
+        try:
+            os.kill(int(owner), 0)
+        except (ValueError, ProcessLookupError):
+            return None  # a lock file left by a dead process: no lock
+        except PermissionError:
+            pass  # alive, another user's
+        try:  # alive: confirm that it holds the lock (the pid may have been reused since a kill -9)
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError:
+            return owner
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
+# ------------------------------------------------------------------------------------------ run manifest
+MANIFEST_NAME = ".b3dgs-run.json"
+#: what b3dgs-train writes into its run dir (patterns relative to it, one per path component), besides its job log
+#: and ``renders/<view>.png`` for each view in metrics.json's ``per_view``
+TRAIN_WRITES = ("config.yaml", ".hydra/config.yaml", ".hydra/hydra.yaml", ".hydra/overrides.yaml", "metrics.json",
+                "curve.json", "curve.png", "point_cloud.ply", "checkpoints/last.ckpt", "checkpoints/step[0-9]*.ckpt",
+                "tb/events.out.tfevents.*", "tb/hparams.yaml")
+#: what b3dgs-eval writes into a folder besides its panels (``uq/<regime>_<view>.png``, listed one by one)
+EVAL_WRITES = ("uq.json", ".uq.json.lock", "uq/sparsification.png", "uq/reliability.png", "tb_uq/events.out.tfevents.*")
+RENDERS_NOTE = "renders/<view>.png for each view named in metrics.json per_view"
+
+
+def _rel_files(root: Path) -> list[str]:
+    """Every file below ``root`` (symlinks included, not followed) as a posix path relative to it, sorted."""
+    out = []
+    for d, dirs, files in os.walk(root):
+        base = Path(d).relative_to(root)
+        out += [(base / f).as_posix() for f in files]
+        out += [(base / x).as_posix() for x in dirs if (Path(d) / x).is_symlink()]
+    return sorted(out)
+
+
+def _matches(rel: str, pattern: str) -> bool:
+    a, b = rel.split("/"), pattern.split("/")
+    return len(a) == len(b) and all(fnmatch.fnmatchcase(x, y) for x, y in zip(a, b))
+
+
+def _read_json(path: Path) -> Optional[dict]:
+    try:
+        d = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return d if isinstance(d, dict) else None
+
+
+def read_manifest(run_dir: Path) -> Optional[dict]:
+    """The run manifest of ``run_dir``, ``None`` without one; a damaged one is refused in one line."""
+    path = Path(run_dir) / MANIFEST_NAME
+    if not path.exists() and not path.is_symlink():
+        return None
+    m = _read_json(path)
+    if m is None or not isinstance(m.get("writes"), list):
+        raise B3dgsError(f"the run manifest {path} is damaged",
+                         "pass another hydra.run.dir, or remove the run dir yourself (b3dgs removes only the files "
+                         "its manifest lists)")
+    return m
+
+
+def is_legacy_run(run_dir: Path) -> bool:
+    """Whether ``run_dir`` holds a run written before run manifests: a b3dgs config.yaml (data, model and seed)
+    with ``metrics.json`` or ``checkpoints/last.ckpt`` beside it."""
+    from omegaconf import DictConfig, OmegaConf
+
+    run_dir = Path(run_dir)
+    try:
+        cfg = OmegaConf.load(run_dir / "config.yaml")
+    except Exception:  # noqa: BLE001 - missing, unreadable or not YAML: not a b3dgs config
+        return False
+    if not isinstance(cfg, DictConfig) or not all(k in cfg for k in ("data", "model", "seed")):
+        return False
+    m = _read_json(run_dir / "metrics.json")
+    return (m is not None and "checkpoint" in m) or (run_dir / "checkpoints" / "last.ckpt").is_file()
+
+
+def run_dir_kind(run_dir: Path) -> str:
+    """``empty`` (nothing but the lock), ``run`` (a manifest), ``legacy`` (:func:`is_legacy_run`) or ``foreign``
+    (files b3dgs did not write, and no run of its own)."""
+    run_dir = Path(run_dir)
+    if read_manifest(run_dir) is not None:
+        return "run"
+    if not foreign_files(run_dir):
+        return "empty"
+    return "legacy" if is_legacy_run(run_dir) else "foreign"
+
+
+def foreign_files(run_dir: Path) -> list[str]:
+    """The files of a folder without a manifest (its lock file aside)."""
+    return [f for f in _rel_files(Path(run_dir)) if f != LOCK_NAME] if Path(run_dir).is_dir() else []
+
+
+def _uq_outputs(folder: Path) -> list[str]:
+    """The panels of the regimes in ``folder/uq.json``: each entry's ``panels``, or (files written before entries
+    listed them) ``uq/<regime>_<view>.png`` for the views of its ``_meta``."""
+    uq = _read_json(folder / "uq.json") or {}
+    views = [Path(str(v)).stem for v in (uq.get("_meta") or {}).get("views") or []]
+    out = []
+    for name, entry in uq.items():
+        if name.startswith("_") or not isinstance(entry, dict):
+            continue
+        panels = entry.get("panels")
+        out += [str(p) for p in panels] if isinstance(panels, list) else [f"uq/{name}_{v}.png" for v in views]
+    return out
+
+
+def _job_logs(run_dir: Path) -> list[str]:
+    """The job log of this process if it lies in ``run_dir`` (Hydra's ``<job name>.log``)."""
+    out = []
+    for h in logging.getLogger().handlers:
+        if isinstance(h, logging.FileHandler):
+            try:
+                out.append(Path(h.baseFilename).resolve().relative_to(Path(run_dir).resolve()).as_posix())
+            except ValueError:
+                pass
+    return out
+
+
+def write_manifest(run_dir: Path) -> None:
+    """Mark ``run_dir`` as a b3dgs run and list what it writes (kept: the entries of an earlier manifest, or, for a
+    run written before manifests, the outputs :func:`run_files` recognises as its own)."""
+    from b3dgs.io import write_json
+
+    run_dir = Path(run_dir)
+    old = read_manifest(run_dir)
+    before = old["writes"] if old else (["train.log", *EVAL_WRITES, *_uq_outputs(run_dir)]
+                                        if is_legacy_run(run_dir) else [])
+    writes = list(dict.fromkeys([*TRAIN_WRITES, *_job_logs(run_dir), *map(str, before)]))
+    write_json(run_dir / MANIFEST_NAME, {
+        "b3dgs_run": 1, "created": (old or {}).get("created") or time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "writes": writes, "also": RENDERS_NOTE})
+
+
+def record_written(folder: Path, names: Iterable[str]) -> None:
+    """Add ``names`` (paths relative to ``folder``) to its manifest, if it has one (callers hold a lock)."""
+    from b3dgs.io import write_json
+
+    m = read_manifest(folder)
+    if m is None:
+        return
+    writes = list(dict.fromkeys([*map(str, m["writes"]), *map(str, names)]))
+    if writes != m["writes"]:
+        write_json(Path(folder) / MANIFEST_NAME, {**m, "writes": writes})
+
+
+def run_files(run_dir: Path) -> list[str]:
+    """The files of ``run_dir`` that b3dgs wrote: those matching its manifest (for a run written before manifests,
+    the patterns a manifest lists), the renders of the views in metrics.json and the panels of uq.json."""
+    run_dir = Path(run_dir)
+    m = read_manifest(run_dir)
+    if m is None and not is_legacy_run(run_dir):
+        return []
+    patterns = [str(p) for p in m["writes"]] if m else [*TRAIN_WRITES, "train.log", *EVAL_WRITES]
+    per_view = (_read_json(run_dir / "metrics.json") or {}).get("per_view") or []
+    patterns += [f"renders/{Path(str(v.get('name'))).stem}.png" for v in per_view if isinstance(v, dict) and v.get("name")]
+    patterns += _uq_outputs(run_dir)
+    return [f for f in _rel_files(run_dir) if any(_matches(f, p) for p in patterns)]
+
+
+def remove_run_files(run_dir: Path, keep: Iterable[str] = ()) -> list[str]:
+    """Remove :func:`run_files` (but ``keep`` patterns) and the folders they leave empty; returns what went."""
+    run_dir = Path(run_dir)
+    keep = list(keep)
+    gone = [f for f in run_files(run_dir) if not any(_matches(f, k) for k in keep)]
+    for f in gone:
+        (run_dir / f).unlink(missing_ok=True)
+    for d in sorted({p for f in gone for p in Path(f).parents if p != Path(".")}, key=lambda p: -len(p.parts)):
+        try:
+            (run_dir / d).rmdir()
+        except OSError:
+            pass  # not empty: someone else's files are in it
+    return gone
+
+
 # ------------------------------------------------------------------------------ job log and .hydra/
 class DeferredFileHandler(logging.FileHandler):
     """Hydra's job-log file handler, holding records in memory until :func:`arm_run_log` (a refused run
@@ -125,12 +319,14 @@ def arm_run_log(fresh: bool = False) -> None:
 
 
 def write_hydra_files(run_dir: Path, cfg) -> None:
-    """Hydra's ``.hydra/{config,hydra,overrides}.yaml`` for this job, written once the run is accepted."""
+    """The run manifest (:func:`write_manifest`) and Hydra's ``.hydra/{config,hydra,overrides}.yaml`` for this
+    job, written once the run is accepted."""
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import OmegaConf, open_dict
 
     from b3dgs.io import atomic_path
 
+    write_manifest(run_dir)
     if not HydraConfig.initialized():
         return
     hc = HydraConfig.instance().cfg

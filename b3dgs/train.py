@@ -152,30 +152,52 @@ def resolve_resume(cfg: DictConfig, run_dir: Path) -> Optional[str]:
     return str(p)
 
 
-#: what marks a dir as holding a run, and what ``overwrite=true`` removes (Hydra's own ``.hydra/`` and
-#: job log belong to the new run and stay)
-RUN_MARKERS = ("config.yaml", "checkpoints", "metrics.json")
-RUN_OUTPUTS = RUN_MARKERS + ("curve.json", "curve.png", "point_cloud.ply", "renders", "tb", "uq.json", "uq", "tb_uq")
+#: what marks a b3dgs run dir (one with a run manifest, :mod:`b3dgs.rundir`) as holding a run
+RUN_MARKERS = ("config.yaml", "checkpoints/last.ckpt", "metrics.json")
+#: what ``overwrite=true`` leaves of the replaced run: the new run rewrites Hydra's ``.hydra/`` and its job log
+RUN_OUTPUTS_KEPT = (".hydra/*", "*.log")
 
 
-def _remove_outputs(run_dir: Path, names=RUN_OUTPUTS) -> None:
-    import shutil
+def _remove_outputs(run_dir: Path, names=None) -> None:
+    """Remove ``names`` (files of the run dir), or by default every file the previous run wrote: exactly what its
+    manifest lists (:func:`b3dgs.rundir.remove_run_files`), never a file b3dgs did not write."""
+    from b3dgs.rundir import remove_run_files
 
+    if names is None:
+        remove_run_files(run_dir, keep=RUN_OUTPUTS_KEPT)
+        return
     for name in names:
         p = run_dir / name
-        if p.is_dir() and not p.is_symlink():
-            shutil.rmtree(p)
-        elif p.exists() or p.is_symlink():
+        if p.is_file() or p.is_symlink():
             p.unlink()
+
+
+def _foreign_dir_error(run_dir: Path):
+    from b3dgs.errors import B3dgsError
+    from b3dgs.rundir import foreign_files
+
+    files = foreign_files(run_dir)
+    shown = ", ".join(files[:4]) + (f" and {len(files) - 4} more" if len(files) > 4 else "")
+    return B3dgsError(f"{run_dir} is not empty and holds no b3dgs run ({shown})",
+                      "pass hydra.run.dir=PATH to a new or empty folder; b3dgs writes only there or into its own run "
+                      "dirs, and overwrite=true removes only files a b3dgs run wrote")
 
 
 def prepare_run_dir(cfg: DictConfig, run_dir: Path) -> tuple[Optional[str], bool]:
     """``(checkpoint to resume from or None, whether to remove the old run's outputs first)``.
 
-    A dir that already holds a run (config.yaml, checkpoints/ or metrics.json) is refused unless
-    ``resume=auto`` (or ``resume=`` one of its own checkpoints) continues it or ``overwrite=true``
-    replaces it; nothing is removed here (the caller removes after every other check has passed).
+    A b3dgs run dir carries the run manifest ``.b3dgs-run.json`` (:mod:`b3dgs.rundir`). One that already holds a
+    run (config.yaml, checkpoints/last.ckpt or metrics.json) is refused unless ``resume=auto`` (or ``resume=`` one
+    of its own checkpoints) continues it or ``overwrite=true`` replaces it (removing only what its manifest lists).
+    A non-empty folder without a manifest is someone else's: refused, naming its files, whatever the flags.
+    Run dirs written before manifests (a b3dgs config.yaml with metrics.json or checkpoints/last.ckpt, e.g. the
+    archived ``bench/results/runs/*``) count as runs: ``resume=auto`` continues them, ``overwrite=true`` removes
+    only the outputs a manifest would list (:func:`b3dgs.rundir.run_files`), and the run's start writes their
+    manifest. A resume with another renderer is refused (:func:`check_resume_renderer`). Nothing is removed
+    here (the caller removes after every other check has passed).
     """
+    from b3dgs.rundir import run_dir_kind
+
     overwrite = cfg.get("overwrite", False)
     if not isinstance(overwrite, bool):
         raise ValueError(f"overwrite={overwrite} is invalid: it must be true or false "
@@ -185,10 +207,15 @@ def prepare_run_dir(cfg: DictConfig, run_dir: Path) -> tuple[Optional[str], bool
     if overwrite and resuming:
         raise ValueError(f"resume={resume} and overwrite=true contradict each other (fix: pass resume=auto to "
                          "continue the run in the run dir, or overwrite=true to replace it, not both)")
+    kind = run_dir_kind(run_dir)
+    if kind == "foreign":
+        raise _foreign_dir_error(run_dir)
     held = [n for n in RUN_MARKERS if (run_dir / n).exists()]
     if overwrite:
-        return None, bool(held)
+        return None, kind != "empty"
     ckpt = resolve_resume(cfg, run_dir)
+    if ckpt is not None:
+        check_resume_renderer(cfg, ckpt)
     if not held:
         return ckpt, False
     if resume in ("auto", True):
@@ -203,6 +230,43 @@ def prepare_run_dir(cfg: DictConfig, run_dir: Path) -> tuple[Optional[str], bool
         return ckpt, False
     raise ValueError(f"{run_dir} already holds a run ({', '.join(held)}) (fix: pass resume=auto to continue it, "
                      "overwrite=true to replace it, or another hydra.run.dir)")
+
+
+def check_resume_renderer(cfg: DictConfig, ckpt_path: str) -> None:
+    """Refuse to resume with another renderer (backend, device or setting) than the checkpoint's run used: the
+    identity of the renderer in the checkpoint, or (checkpoints written before it was recorded) the ``renderer``
+    node of its run dir's config.yaml. A damaged checkpoint passes here (:func:`check_resume` names it)."""
+    from b3dgs.checkpoint import renderer_identity, renderer_mismatch
+    from b3dgs.errors import B3dgsError
+
+    try:
+        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False, mmap=True)
+        saved = ((ck.get("b3dgs") or {}).get("identity") or {}).get("renderer")
+    except Exception:  # noqa: BLE001
+        return
+    node = cfg.get("renderer")
+    if saved:
+        logger = logging.getLogger("b3dgs.render.renderers")
+        level = logger.level
+        logger.setLevel(logging.WARNING)  # the run builds (and names) its renderer again later
+        try:
+            current = renderer_identity(build_renderer(node))
+        finally:
+            logger.setLevel(level)
+        bad = renderer_mismatch(saved, current)
+    else:
+        cfg_path = Path(ckpt_path).resolve().parent.parent / "config.yaml"
+        try:
+            old = OmegaConf.load(cfg_path).get("renderer") if cfg_path.is_file() else None
+        except Exception:  # noqa: BLE001
+            old = None
+        plain = (lambda n: OmegaConf.to_container(n, resolve=True) if OmegaConf.is_config(n) else n)  # noqa: E731
+        bad = renderer_mismatch(plain(old), plain(node), resolved=False)
+    if bad is not None:
+        problem, want = bad
+        raise B3dgsError(f"resume: the checkpoint {ckpt_path} does not match this run: {problem}",
+                         f"pass {want}, or start afresh with overwrite=true or another hydra.run.dir (a resume "
+                         "continues the same run exactly)")
 
 
 def check_resume(module, ckpt_path: str) -> None:
@@ -225,6 +289,50 @@ def _checkpoint_every_s(tcfg) -> Optional[float]:
         raise ValueError(f"trainer.checkpoint_every_s={v} is invalid: it must be a number of seconds >= 0 or null "
                          "(fix: pass trainer.checkpoint_every_s=300, or 0 / null for step-based checkpoints only)")
     return float(v)
+
+
+def _device_count(v: Any) -> int:
+    """How many devices ``trainer.devices`` asks for (-1: all of them, as Lightning reads it)."""
+    if isinstance(v, (list, tuple)) or OmegaConf.is_list(v):
+        return len(v)
+    try:
+        return int(str(v))
+    except ValueError:
+        return 1  # "auto": one device on the CPU
+
+
+def check_devices(cfg: DictConfig) -> None:
+    """Refuse ``trainer.devices`` > 1 (or -1) on the CPU: Lightning would start training processes that fight
+    over the run dir."""
+    from b3dgs.errors import B3dgsError
+
+    devices = cfg.trainer.get("devices", 1)
+    n = _device_count(devices)
+    node = cfg.get("renderer")
+    target = str(node.get("_target_", "")) if isinstance(node, DictConfig) else str(node or "")
+    on_cpu = (not torch.cuda.is_available() or str(cfg.trainer.get("accelerator", "auto")) == "cpu"
+              or target.endswith(("CPURenderer", "cpu"))
+              or (target.endswith("TorchRenderer") and str(node.get("device_name", "auto")) == "cpu"))
+    if on_cpu and (n > 1 or n == -1):
+        raise B3dgsError(f"trainer.devices={_show_value(devices)} asks for several training processes on the CPU, "
+                         "which b3dgs does not run (they would share one run dir)",
+                         "pass trainer.devices=1; threads=N sets how many CPU threads the one process uses")
+
+
+def _show_value(v: Any) -> str:
+    if OmegaConf.is_config(v):
+        v = OmegaConf.to_container(v)
+    return "[" + ",".join(map(str, v)) + "]" if isinstance(v, (list, tuple)) else str(v)
+
+
+def warn_disabled_options(module) -> None:
+    """Warn where one setting silently turns off another (``strategy.max_gaussians`` below the initial count)."""
+    cap = getattr(module.strategy, "max_gaussians", None)
+    n = int(module.num_gaussians)
+    if isinstance(cap, int) and not isinstance(cap, bool) and cap < n:
+        log.warning("strategy.max_gaussians=%d is below the %d initial Gaussians: no Gaussian is ever added "
+                    "(densification by clone and split is off; only pruning changes the count) (fix: raise "
+                    "strategy.max_gaussians above %d, or lower model.init_max_points)", cap, n, n)
 
 
 def _rmdir_if_empty(path: Path) -> None:
@@ -266,6 +374,7 @@ def train(cfg: DictConfig) -> dict:
     run_dir = Path(cfg.trainer.default_root_dir)
     try:
         validate_config(cfg, app="train")
+        check_devices(cfg)
     except Exception:
         _rmdir_if_empty(run_dir)  # Hydra made it; a refused run leaves nothing
         raise
@@ -301,6 +410,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
     renderer = build_renderer(cfg.get("renderer"))
     module = build_module(cfg, strategy, blocks, renderer)
     module.init_from_scene(scene)
+    warn_disabled_options(module)
     if ckpt_path is not None:
         check_resume(module, ckpt_path)
     done = None if clear else finished_metrics(run_dir)

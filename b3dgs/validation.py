@@ -123,12 +123,13 @@ def _typed_by_annotation(fn: Callable) -> dict[str, Any]:
     return out
 
 
-def _check_type(path: str, v: Any, default: Any) -> None:
+def _check_type(path: str, v: Any, default: Any, example: bool = True) -> None:
     """``v`` must have the type of ``default`` (bool, int, float, str, list); None is always allowed
-    where the default is None, and ints where floats are expected."""
+    where the default is None, and ints where floats are expected. ``example``: whether ``default`` is a real
+    default to show in the fix (not a value standing for an annotated type)."""
     if default is inspect.Parameter.empty or default is None or v is None or v is _MISSING:
         return
-    fix = f"pass {path}=<{type(default).__name__}>, like its default {_show(default)}"
+    fix = f"pass {path}=<{type(default).__name__}>" + (f", like its default {_show(default)}" if example else "")
     if isinstance(default, bool):
         _need(isinstance(v, bool), path, v, "true or false", fix)
     elif isinstance(default, int):
@@ -146,8 +147,10 @@ def _unknown(path: str, key: str, known: Iterable[str]) -> B3dgsError:
                       f"remove it or correct its spelling (keys of {path}: {', '.join(sorted(known))})")
 
 
-def _check_target_node(node: DictConfig, path: str, extra: Optional[dict[str, Any]] = None) -> dict[str, Any]:
-    """Keys and types of a ``_target_`` node against its target's signature; returns the values."""
+def _check_target_node(node: DictConfig, path: str, extra: Optional[dict[str, Any]] = None,
+                       type_only: Iterable[str] = ()) -> dict[str, Any]:
+    """Keys and types of a ``_target_`` node against its target's signature; returns the values. ``type_only``:
+    keys whose value in ``extra`` stands for a type, not a default."""
     target = _locate(str(node["_target_"]))
     params, var_kw = _signature(target)
     if extra is not None:  # what the target forwards through **kwargs
@@ -160,7 +163,7 @@ def _check_target_node(node: DictConfig, path: str, extra: Optional[dict[str, An
         if key not in params and not var_kw:
             raise _unknown(path, key, [k for k in params if not k.startswith("_")])
         values[key] = v = _get(node, key, f"{path}.{key}")
-        _check_type(f"{path}.{key}", v, params.get(key, inspect.Parameter.empty))
+        _check_type(f"{path}.{key}", v, params.get(key, inspect.Parameter.empty), example=key not in type_only)
     return values
 
 
@@ -331,16 +334,35 @@ def _check_model(cfg: DictConfig) -> None:
         _int_at_least("model.init_num_random", v["init_num_random"], 0, fix)
 
 
+def _trainer_choice(cfg: DictConfig) -> str:
+    """The ``trainer=`` option this config was composed with (``default`` where Hydra does not say)."""
+    if "hydra" in cfg and OmegaConf.select(cfg, "hydra.runtime.choices.trainer", default=None):
+        return str(OmegaConf.select(cfg, "hydra.runtime.choices.trainer"))
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        if HydraConfig.initialized():
+            return str(HydraConfig.get().runtime.choices.get("trainer") or "default")
+    except Exception:  # noqa: BLE001
+        pass
+    return "default"
+
+
 def _check_trainer(cfg: DictConfig) -> None:
     """Keys of the trainer's ``_target_`` (lightning.Trainer, which checks its own values when built) and
     b3dgs's own run settings (the keys of the trainer option files that are no Trainer argument:
     :data:`b3dgs.train.RUN_KEYS`, typed by their values there)."""
     node = cfg.trainer
     if "_target_" in node:
-        lightning_args = _typed_by_annotation(_locate(str(node["_target_"])))
-        own = {k: d for _, data in _group_options("trainer") for k, d in data.items()
-               if k not in lightning_args and not k.startswith("_")}
-        v = _check_target_node(node, "trainer", extra={**lightning_args, **own})
+        typed = _typed_by_annotation(_locate(str(node["_target_"])))
+        options = dict(_group_options("trainer"))
+        files = {k: d for data in [*options.values(), options.get(_trainer_choice(cfg), {})] for k, d in data.items()
+                 if not k.startswith("_")}  # the chosen option file's values win
+        # an annotated type shows the option files' value as its default where they set one of that type
+        shown = {k for k, t in typed.items() if k in files and type(files[k]) is type(t)}
+        lightning_args = {k: files[k] if k in shown else t for k, t in typed.items()}
+        own = {k: d for k, d in files.items() if k not in lightning_args}
+        v = _check_target_node(node, "trainer", extra={**lightning_args, **own}, type_only=set(typed) - shown)
     else:
         v = _check_plain_group(node, "trainer")
     fix = "see conf/trainer/default.yaml for the defaults"

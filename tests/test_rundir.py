@@ -96,13 +96,13 @@ def test_refused_run_leaves_no_hydra_files_or_log(tmp_path):
     _, err = p.communicate(timeout=300)
     assert p.returncode == 2 and "data.max_side=0" in err, err[-2000:]
     assert not d.exists()
-    # a dir that holds a run of someone else's: untouched
+    # a dir that holds someone else's files (no b3dgs run manifest): untouched
     d = tmp_path / "held"
     d.mkdir()
     (d / "config.yaml").write_text("seed: 0\n")
     p = _train([f"hydra.run.dir={d}"])
     _, err = p.communicate(timeout=300)
-    assert p.returncode == 2 and "already holds a run" in err, err[-2000:]
+    assert p.returncode == 2 and "is not empty and holds no b3dgs run (config.yaml)" in err, err[-2000:]
     assert sorted(x.name for x in d.iterdir()) == ["config.yaml"]
 
 

@@ -172,8 +172,8 @@ class GsplatRenderer(Renderer):
                                           "CPU emulation of gsplat's kernels (fix: renderer=cpu on the CPU)")
             return
         if not torch.cuda.is_available():
-            raise RendererUnavailable("renderer=gsplat needs a CUDA GPU, and none is visible "
-                                      "(fix: renderer=auto picks the C++ CPU backend here)")
+            raise RendererUnavailable("renderer=gsplat needs a CUDA GPU, and none is visible here "
+                                      "(fix: pass renderer=cpu or renderer=auto, which picks the C++ CPU backend here)")
         if importlib.util.find_spec("gsplat") is None:
             raise RendererUnavailable('renderer=gsplat: gsplat is not installed (fix: pip install -e ".[cuda]")')
 
