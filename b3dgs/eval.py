@@ -1,8 +1,10 @@
 """``b3dgs-eval``: uncertainty regimes and calibration metrics for one run (or an ensemble of runs).
 
-Writes ``uq.json`` shaped ``{regime: {cov95, cov95_err, ause_rmse, ause_mae, ece, nll, spearman,
-time_s, psnr, lpips, ..., per_view: [...]}}`` plus sparsification/reliability plots and
-render | GT | error | uncertainty panels (PNG and TensorBoard) into the run dir. Known errors print
+Adds to ``uq.json`` shaped ``{regime: {cov95, cov95_err, ause_rmse, ause_mae, ece, nll, spearman,
+time_s, psnr, lpips, ..., runs, run_checkpoints, per_view: [...]}, _meta: {...}}`` regime by regime (the regimes
+already there stay), with sparsification/reliability plots and render | GT | error | uncertainty panels (PNG
+and TensorBoard): in the run dir, for an ensemble in its own folder beside its first member (``out=`` picks
+the folder for both). The last line says where it wrote. Known errors print
 ``b3dgs-eval: error: <problem> (fix: <what to do>)`` and exit with code 2.
 """
 from __future__ import annotations
@@ -18,7 +20,6 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from tqdm.auto import tqdm
 
-from b3dgs.io import write_json
 from b3dgs.train import CONF_DIR
 
 log = logging.getLogger(__name__)
@@ -36,22 +37,55 @@ def regimes_from_cfg(cfg: DictConfig) -> dict:
     return out
 
 
+def refuse_running(run_dirs) -> None:
+    """Refuse a run dir that a ``b3dgs-train`` is still writing (its lock is held by a live process)."""
+    from b3dgs.errors import B3dgsError
+    from b3dgs.rundir import run_dir_busy
+
+    for r in run_dirs:
+        pid = run_dir_busy(Path(str(r)))
+        if pid is not None:
+            raise B3dgsError(f"the run {r} is still training (b3dgs-train pid {pid} holds it)",
+                             "wait for that training to finish, then run b3dgs-eval again")
+
+
+def _destinations(regimes: dict, runs: list, out_dir: Optional[Path]) -> dict[str, Path]:
+    """Where each regime's results go: ``out_dir`` when given; else a regime that combines several runs (an
+    ensemble) into its own folder (:func:`b3dgs.uq.store.ensemble_dir`), the others into the first run's dir."""
+    from b3dgs.uq.store import ensemble_dir
+
+    out = {}
+    for name, regime in regimes.items():
+        multi = bool(getattr(regime, "min_members", 0)) and len(runs) > 1
+        out[name] = Path(out_dir) if out_dir else ensemble_dir([r.path for r in runs]) if multi else Path(runs[0].path)
+    return out
+
+
 def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Optional[int] = None,
                 panels: int = 3, out_dir: Optional[Path] = None, loaded: Optional[list] = None,
                 meta: Optional[dict] = None, lpips_weights: Optional[str] = None) -> dict:
-    """Fit every regime on the loaded run(s) and score it on the test views.
+    """Fit every regime on the loaded run(s), score it on the test views and add it to a ``uq.json``.
 
     Regimes with an epistemic part (``has_epistemic``) are also scored on that part alone
     (:func:`b3dgs.uq.metrics.epistemic_view`: ``epi_ause_rmse``, ``epi_spearman_sq``, ...; over the views
     ``epi_view_spearman`` and ``epistemic_fraction``); what a regime's ``fit`` estimated goes under
     ``fit``. ``loaded``: already loaded runs (:class:`b3dgs.runs.LoadedRun`, e.g. with a posterior
     setting changed after loading) used instead of loading ``run_dirs``; ``meta``: extra ``_meta`` entries.
+
+    Results go to ``out_dir``, or by default an ensemble's into its own folder and the others into the first
+    run's dir; each regime is merged into the folder's ``uq.json`` with its panels (:func:`b3dgs.uq.store.merge_into`),
+    keeping the regimes already there. Each entry records its runs (paths, and ``run_checkpoints``: the
+    parameter digests of their final checkpoints, which the report matches), views, seed, panels and mean curves.
+    Returns this evaluation's regimes and ``_meta``.
     """
+    import tempfile
+
     from b3dgs.metrics.image import psnr as psnr_fn
     from b3dgs.metrics.lpips import get_lpips
     from b3dgs.runs import load_run
     from b3dgs.uq.metrics import epistemic_summary, epistemic_view, evaluate_view, summarize, to_jsonable
-    from b3dgs.uq.plots import plot_reliability, plot_sparsification, plot_uncertainty_panel
+    from b3dgs.uq.plots import plot_uncertainty_panel
+    from b3dgs.uq.store import check_members, merge_into, read_uq, remove_staging, run_digest
 
     if loaded:
         runs = list(loaded)
@@ -59,78 +93,115 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     else:
         if not run_dirs:
             raise ValueError("run= must name at least one run dir")
+        refuse_running(run_dirs)
+        if len(run_dirs) > 1 and any(getattr(r, "min_members", 0) for r in regimes.values()):
+            check_members(run_dirs)
         first = load_run(run_dirs[0])
         runs = [first] + [load_run(r, scene=first.scene) for r in run_dirs[1:]]
     scene = first.scene
     cams = scene.test[:max_views] if max_views else scene.test
     if not cams:
         raise ValueError("The scene has no test views (data.test_every=0?); nothing to evaluate")
-    out_dir = Path(out_dir or first.path)
+    dests = _destinations(regimes, runs, out_dir)
+    made = [d for d in dict.fromkeys(dests.values()) if not d.exists()]
+    for d in dict.fromkeys(dests.values()):
+        read_uq(d)  # a damaged uq.json is refused before any work, not after
     lpips_model, lpips_reason = get_lpips(lpips_weights)
     train_times = [float((r.metrics or {}).get("train_time_s") or 0.0) for r in runs]
-    writer = None
-    try:
-        from torch.utils.tensorboard import SummaryWriter
+    writers: dict = {}
+    staging: dict[Path, Path] = {}
 
-        writer = SummaryWriter(str(out_dir / "tb_uq"))
-    except Exception as e:  # tensorboard missing: PNGs only
-        log.warning("TensorBoard unavailable (%s); panels are written as PNG only", e)
+    def writer_for(d: Path):
+        if d not in writers:
+            try:
+                from torch.utils.tensorboard import SummaryWriter
+
+                writers[d] = SummaryWriter(str(d / "tb_uq"))
+            except Exception as e:  # tensorboard missing: PNGs only
+                log.warning("TensorBoard unavailable (%s); panels are written as PNG only", e)
+                writers[d] = None
+        return writers[d]
+
     result: dict = {}
-    curves: dict = {}
-    for name, regime in regimes.items():
-        # regimes that combine several runs declare ``min_members``; the others use the first run
-        multi = bool(getattr(regime, "min_members", 0))
-        members = [r.module for r in runs] if multi else [first.module]
-        t0 = time.perf_counter()
-        regime.fit(members, scene)
-        gen = torch.Generator().manual_seed(int(seed))
-        per_view = []
-        for i, cam in enumerate(tqdm(cams, desc=f"uq {name}", leave=False)):
-            pred = regime.predict(cam, generator=gen).cpu()
-            row = evaluate_view(pred.mean, pred.var, cam.image)
-            row["name"] = cam.name
-            row["psnr"] = float(psnr_fn(pred.mean.clamp(0, 1), cam.image))
-            if lpips_model is not None:
-                row["lpips"] = float(lpips_model(pred.mean.clamp(0, 1), cam.image))
-            row["mean_epistemic"] = float(pred.epistemic.mean())
-            row["aleatoric"] = pred.aleatoric
+    meta = {"nll_note": "NLL is comparable only within one uncertainty regime",
+            "views": [c.name for c in cams], "seed": int(seed),
+            "calib_views": [c.name for c in getattr(scene, "calib", None) or []], **(meta or {})}
+    try:
+        for name, regime in regimes.items():
+            # regimes that combine several runs declare ``min_members``; the others use the first run
+            multi = bool(getattr(regime, "min_members", 0))
+            members = runs if multi else [first]
+            dest = dests[name]
+            if dest not in staging:
+                dest.mkdir(parents=True, exist_ok=True)
+                staging[dest] = Path(tempfile.mkdtemp(prefix=".uq-staging.", dir=dest))
+            t0 = time.perf_counter()
+            regime.fit([r.module for r in members], scene)
+            gen = torch.Generator().manual_seed(int(seed))
+            per_view, panel_files = [], []
+            for i, cam in enumerate(tqdm(cams, desc=f"uq {name}", leave=False)):
+                pred = regime.predict(cam, generator=gen).cpu()
+                row = evaluate_view(pred.mean, pred.var, cam.image)
+                row["name"] = cam.name
+                row["psnr"] = float(psnr_fn(pred.mean.clamp(0, 1), cam.image))
+                if lpips_model is not None:
+                    row["lpips"] = float(lpips_model(pred.mean.clamp(0, 1), cam.image))
+                row["mean_epistemic"] = float(pred.epistemic.mean())
+                row["aleatoric"] = pred.aleatoric
+                if regime.has_epistemic:
+                    row.update(epistemic_view(pred.epistemic, pred.mean, cam.image, pred.var, seed=int(seed)))
+                per_view.append(row)
+                if i < panels:
+                    err = (pred.mean - cam.image).abs().mean(-1)
+                    panel = f"{name}_{Path(cam.name).stem}.png"
+                    img = plot_uncertainty_panel(pred.mean.clamp(0, 1), cam.image, err, pred.var.sqrt(),
+                                                 staging[dest] / panel, title=f"{name}: {cam.name}")
+                    panel_files.append(f"uq/{panel}")
+                    writer = writer_for(dest)
+                    if writer is not None:
+                        writer.add_image(f"uq/{name}/{cam.name}", torch.from_numpy(img).permute(2, 0, 1), 0)
+            elapsed = time.perf_counter() - t0
+            summ = summarize(per_view)
+            curves = summ.pop("mean_curves", None)
+            summ["spearman"] = summ.get("spearman_rho")
+            summ["has_epistemic"] = bool(regime.has_epistemic)
             if regime.has_epistemic:
-                row.update(epistemic_view(pred.epistemic, pred.mean, cam.image, pred.var, seed=int(seed)))
-            per_view.append(row)
-            if i < panels:
-                err = (pred.mean - cam.image).abs().mean(-1)
-                img = plot_uncertainty_panel(pred.mean.clamp(0, 1), cam.image, err, pred.var.sqrt(),
-                                             out_dir / "uq" / f"{name}_{Path(cam.name).stem}.png",
-                                             title=f"{name}: {cam.name}")
-                if writer is not None:
-                    writer.add_image(f"uq/{name}/{cam.name}", torch.from_numpy(img).permute(2, 0, 1), 0)
-        elapsed = time.perf_counter() - t0
-        summ = summarize(per_view)
-        curves[name] = summ
-        summ = {k: v for k, v in summ.items() if k != "mean_curves"}
-        summ["spearman"] = summ.get("spearman_rho")
-        summ["has_epistemic"] = bool(regime.has_epistemic)
-        if regime.has_epistemic:
-            summ.update(epistemic_summary(per_view))
-        summ["fit"] = dict(getattr(regime, "fit_info", None) or {})
-        summ["time_s"] = round(elapsed, 3)
-        summ["train_time_s"] = round(sum(train_times) if multi else train_times[0], 3)
-        summ["samples"] = getattr(regime, "samples", None)
-        summ["runs"] = [str(r.path) for r in runs] if multi else [str(first.path)]
-        if lpips_model is None:
-            summ["lpips_reason"] = lpips_reason
-        result[name] = to_jsonable(summ)
-        log.info("%s: Cov@95 %.3f (|err| %.3f), AUSE-RMSE %.4f, ECE %.4f, NLL %.3f, %.1f s", name,
-                 summ.get("cov95", float("nan")), summ.get("cov95_err", float("nan")), summ.get("ause_rmse", float("nan")),
-                 summ.get("ece", float("nan")), summ.get("nll", float("nan")), elapsed)
-    if writer is not None:
-        writer.close()
-    plot_sparsification(curves, out_dir / "uq" / "sparsification.png")
-    plot_reliability(curves, out_dir / "uq" / "reliability.png")
-    result["_meta"] = {"nll_note": "NLL is comparable only within one uncertainty regime",
-                       "views": [c.name for c in cams], "seed": int(seed),
-                       "calib_views": [c.name for c in getattr(scene, "calib", None) or []], **(meta or {})}
-    write_json(out_dir / "uq.json", result)
+                summ.update(epistemic_summary(per_view))
+            summ["fit"] = dict(getattr(regime, "fit_info", None) or {})
+            summ["time_s"] = round(elapsed, 3)
+            summ["train_time_s"] = round(sum(train_times) if multi else train_times[0], 3)
+            summ["samples"] = getattr(regime, "samples", None)
+            summ["runs"] = [str(r.path) for r in members]
+            summ["run_checkpoints"] = [run_digest(r.metrics) for r in members]
+            summ["views"] = [c.name for c in cams]
+            summ["seed"] = int(seed)
+            summ["panels"] = panel_files
+            summ["curves"] = curves
+            if lpips_model is None:
+                summ["lpips_reason"] = lpips_reason
+            result[name] = to_jsonable(summ)
+            log.info("%s: Cov@95 %.3f (|err| %.3f), AUSE-RMSE %.4f, ECE %.4f, NLL %.3f, %.1f s", name,
+                     summ.get("cov95", float("nan")), summ.get("cov95_err", float("nan")),
+                     summ.get("ause_rmse", float("nan")), summ.get("ece", float("nan")), summ.get("nll", float("nan")),
+                     elapsed)
+        for w in writers.values():
+            if w is not None:
+                w.close()
+        meta = to_jsonable(meta)
+        for dest in dict.fromkeys(dests.values()):
+            merge_into(dest, {k: v for k, v in result.items() if dests[k] == dest}, meta, staging.get(dest))
+    finally:
+        for d in staging.values():
+            remove_staging(d)
+        for d in made:
+            try:
+                d.rmdir()  # a folder made for an evaluation that failed
+            except OSError:
+                pass
+    wrote = "; ".join(f"{', '.join(k for k in result if dests[k] == d)} to {d / 'uq.json'} (plots in {d / 'uq'})"
+                      for d in dict.fromkeys(dests.values()))
+    log.info("Wrote %s", wrote)
+    result["_meta"] = meta
     return result
 
 
@@ -141,11 +212,12 @@ def hydra_main(cfg: DictConfig) -> None:
 
     with known_errors("b3dgs-eval", cfg):
         quiet_known_noise()
+        runs = cfg.run
+        run_dirs = [str(r) for r in runs] if isinstance(runs, (ListConfig, list, tuple)) else [str(runs)]
+        refuse_running(run_dirs)  # before the checks that would call a running run unfinished
         validate_config(cfg, app="eval")
         if cfg.get("threads"):
             torch.set_num_threads(int(cfg.threads))
-        runs = cfg.run
-        run_dirs = [str(r) for r in runs] if isinstance(runs, (ListConfig, list, tuple)) else [str(runs)]
         evaluate_uq(run_dirs, regimes_from_cfg(cfg), seed=int(cfg.seed), max_views=cfg.get("max_views"),
                     panels=int(cfg.panels), out_dir=Path(cfg.out) if cfg.get("out") else None,
                     lpips_weights=cfg.get("lpips_weights"))

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import glob
 import json
+import logging
 import os
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -27,6 +28,8 @@ from omegaconf import OmegaConf
 from b3dgs.checkpoint import upgrade_targets
 from b3dgs.protocol import describe_diff, differing_keys, flatten, run_protocol
 from b3dgs.labels import method_label
+
+log = logging.getLogger(__name__)
 
 __all__ = ["ReportError", "Run", "find_runs", "load_runs", "group", "METHOD_ORDER", "method_order"]
 
@@ -151,22 +154,67 @@ def read_run(path: Path) -> Run:
         raise ReportError(f"{path / 'config.yaml'} lacks data.name, model.name or seed ({e}); "
                           "is it a b3dgs-train run dir?") from e
     curve = _read_json(path / "curve.json").get("points", []) if (path / "curve.json").is_file() else []
-    uq = _read_json(path / "uq.json") if (path / "uq.json").is_file() else {}
-    uq = {k: v for k, v in uq.items() if not k.startswith("_") and isinstance(v, dict)}
+    uq = _own_uq(path, metrics)
     study, level = classify(cfg)
     return Run(path, cfg, metrics, curve, uq, study, level, scene, method, seed)
 
 
+def _digest(metrics: Optional[dict]) -> Optional[str]:
+    return ((metrics or {}).get("checkpoint") or {}).get("params_sha256")
+
+
+def uq_scores_other_run(path: Path, metrics: dict, entry: dict) -> Optional[str]:
+    """The run a uq.json regime entry scores when that is not the run at ``path`` (else ``None``): its first
+    member's parameter digest (``run_checkpoints``) against the run's metrics.json; for entries written before
+    digests, the run dir it names, where that still exists (a copy of the same run, by digest, matches)."""
+    runs = entry.get("runs") or []
+    if not runs:
+        return None
+    mine = _digest(metrics)
+    theirs = (entry.get("run_checkpoints") or [None])[0]
+    if theirs and mine:
+        return None if theirs == mine else str(runs[0])
+    named = Path(str(runs[0]))
+    try:
+        if not named.exists() or named.resolve() == Path(path).resolve() or os.path.samefile(named, path):
+            return None  # moved or archived since (cannot tell), or this very run
+    except OSError:
+        return None
+    try:
+        other = json.loads((named / "metrics.json").read_text())
+    except (OSError, ValueError):
+        other = None
+    return None if mine and _digest(other) == mine else str(runs[0])
+
+
+def _own_uq(path: Path, metrics: dict) -> dict:
+    """The regimes of ``path/uq.json`` that score this run; the others are left out with a warning line."""
+    uq = _read_json(path / "uq.json") if (path / "uq.json").is_file() else {}
+    uq = {k: v for k, v in uq.items() if not k.startswith("_") and isinstance(v, dict)}
+    other = {k: uq_scores_other_run(path, metrics, v) for k, v in uq.items()}
+    bad = {k: o for k, o in other.items() if o}
+    if bad:
+        log.warning("%s: its uq.json regimes %s score the run %s, not this one: left out of the report (fix: run "
+                    "b3dgs-eval run=%s)", path, ", ".join(bad), ", ".join(sorted(set(bad.values()))), path)
+    return {k: v for k, v in uq.items() if k not in bad}
+
+
 def _attach_uq(runs: list[Run], uq_files: Sequence[Path]) -> None:
-    """uq.json files outside run dirs (e.g. a deep ensemble's) join the run they name first."""
+    """uq.json files outside run dirs (e.g. a deep ensemble's) join the run they name first (found by its path,
+    or by its parameter digest where it was moved), when that run's digest matches."""
     by_path = {r.path: r for r in runs}
+    by_digest = {_digest(r.metrics): r for r in runs if _digest(r.metrics)}
     for f in uq_files:
         for regime, summ in _read_json(f).items():
             if regime.startswith("_") or not isinstance(summ, dict):
                 continue
             for member in (summ.get("runs") or [])[:1]:
-                owner = by_path.get(Path(member).resolve())
-                if owner is not None and regime not in owner.uq:
+                theirs = (summ.get("run_checkpoints") or [None])[0]
+                owner = by_path.get(Path(member).resolve()) or by_digest.get(theirs)
+                if owner is not None and uq_scores_other_run(owner.path, owner.metrics, summ):
+                    log.warning("%s: regime %s names the run %s, which now holds another model: left out of the "
+                                "report (fix: run b3dgs-eval for it again)", f, regime, member)
+                elif owner is not None and regime not in owner.uq:
                     owner.uq[regime] = summ
 
 
