@@ -27,7 +27,7 @@ from torch import Tensor
 
 from b3dgs.types import Camera, Scene
 
-__all__ = ["MIN_ALPHA", "MODES", "Frame", "ModeRenderer", "ModeSpec", "colorize", "colormap_lut"]
+__all__ = ["MIN_ALPHA", "MODES", "Frame", "ModeRenderer", "ModeSpec", "colorize", "colormap_lut", "robust_max"]
 
 #: pixels whose accumulated α is below this show the background colour in depth and overlay modes
 MIN_ALPHA = 0.05
@@ -95,6 +95,21 @@ def normalise(values: Tensor, spec: ModeSpec) -> Tensor:
     if spec.log:
         v, lo, hi = v.clamp_min(1e-30).log10(), math.log10(lo), math.log10(hi)
     return ((v - lo) / (hi - lo)).clamp(0.0, 1.0)
+
+
+def robust_max(values: Tensor, q: float = 99.0, mask: Optional[Tensor] = None) -> Optional[float]:
+    """The top of an automatic colour scale: the ``q``-th percentile of ``values`` (where ``mask``), rounded up to two
+    significant digits; None when there is nothing positive to scale."""
+    v = values.detach().float().cpu()
+    v = v[mask.cpu()] if mask is not None else v.reshape(-1)
+    v = v[torch.isfinite(v)]
+    if v.numel() == 0:
+        return None
+    top = float(torch.quantile(v[:: max(1, v.numel() // 1_000_000)], q / 100.0))
+    if not top > 0:
+        return None
+    exp = math.floor(math.log10(top)) - 1
+    return round(math.ceil(top / 10.0 ** exp) * 10.0 ** exp, max(0, -exp))
 
 
 def colorize(unit: Tensor, cmap: str, mask: Optional[Tensor] = None) -> np.ndarray:

@@ -1,0 +1,220 @@
+"""``b3dgs-render run=DIR [path=test|train|interpolate] [panel=native_sigma]``: a finished run rendered along a camera
+path to PNG frames and an MP4 (``conf/render.yaml``).
+
+The path is the run's test (or training) cameras in name order, or a smooth closed loop through them
+(:func:`interpolate_cameras`: centres on a periodic cubic spline, orientations by spherical interpolation, the first
+camera's intrinsics). ``panel=`` puts one of ``b3dgs-view``'s modes beside the RGB (:class:`b3dgs.viewer.modes.
+ModeRenderer`), with one colour scale for the whole path (``panel_max``, by default the 99th percentile over the
+frames) drawn under it. The video is encoded by imageio-ffmpeg's own ffmpeg binary. Known problems print one line
+``b3dgs-render: error: ... (fix: ...)`` and exit with code 2; the last line says where the frames went.
+"""
+from __future__ import annotations
+
+import logging
+import sys
+from pathlib import Path
+from typing import Optional, Sequence
+
+import hydra
+import numpy as np
+import torch
+from omegaconf import DictConfig
+
+from b3dgs.errors import B3dgsError
+from b3dgs.train import CONF_DIR
+from b3dgs.types import Camera
+
+log = logging.getLogger(__name__)
+
+__all__ = ["camera_path", "interpolate_cameras", "main", "render_path", "write_video"]
+
+PATHS = ("test", "train", "interpolate")
+
+
+def interpolate_cameras(cams: Sequence[Camera], frames: int) -> list[Camera]:
+    """``frames`` cameras on a closed loop through ``cams`` (in their order): centres on a periodic cubic spline,
+    orientations by spherical linear interpolation between neighbours, the first camera's intrinsics and size."""
+    from scipy.interpolate import CubicSpline
+    from scipy.spatial.transform import Rotation, Slerp
+
+    cams = list(cams)
+    if len(cams) < 2:
+        return [cams[0]] * frames if cams else []
+    c2w = np.stack([c.camtoworld.double().cpu().numpy() for c in cams + cams[:1]])
+    knots = np.arange(len(c2w), dtype=np.float64)
+    centres = CubicSpline(knots, c2w[:, :3, 3], bc_type="periodic")
+    turns = Slerp(knots, Rotation.from_matrix(c2w[:, :3, :3]))
+    t = np.linspace(0.0, len(cams), frames, endpoint=False)
+    R, C = turns(t).as_matrix(), centres(t)
+    ref = cams[0]
+    out = []
+    for i, (r, c) in enumerate(zip(R, C)):
+        view = np.eye(4)
+        view[:3, :3], view[:3, 3] = r.T, -r.T @ c
+        out.append(Camera(f"path_{i:05d}", ref.K.clone(), torch.from_numpy(view).float(), ref.width, ref.height))
+    return out
+
+
+def camera_path(scene, path: str, frames: int) -> list[Camera]:
+    """The cameras of ``path`` (see the module doc), without images."""
+    if path not in PATHS:
+        raise B3dgsError(f"path={path} is not a camera path", f"pass path= one of {', '.join(PATHS)}")
+    source = scene.train if path == "train" else (scene.test or scene.train)
+    cams = [c.with_image(None) for c in sorted(source, key=lambda c: c.name)]
+    if not cams:
+        raise B3dgsError(f"the run's scene has no {path} cameras", "pass path=train")
+    if path != "interpolate":
+        return cams
+    if not isinstance(frames, int) or isinstance(frames, bool) or frames < 2:
+        raise B3dgsError(f"frames={frames} is too few for a path", "pass frames= an integer >= 2, e.g. frames=120")
+    return interpolate_cameras(cams, frames)
+
+
+def _sized(cam: Camera, max_side: Optional[int]) -> Camera:
+    if not max_side:
+        return cam
+    f = float(max_side) / max(cam.width, cam.height)
+    return cam.resized(max(8, round(cam.width * f)), max(8, round(cam.height * f)))
+
+
+def _legend(width: int, cmap: str, lo: float, hi: float, unit: str) -> np.ndarray:
+    """A colour bar ``width`` px wide with its two ends written under it (uint8, (28, width, 3))."""
+    from PIL import Image, ImageDraw
+
+    from b3dgs.viewer.modes import colormap_lut
+
+    bar = colormap_lut(cmap)[np.linspace(0, 255, width).round().astype(int)]
+    img = np.full((28, width, 3), 255, np.uint8)
+    img[2:12] = bar[None]
+    pil = Image.fromarray(img)
+    draw = ImageDraw.Draw(pil)
+    draw.text((1, 14), f"{lo:.3g}", fill=(0, 0, 0))
+    right = f"{hi:.3g} {unit}".strip()
+    draw.text((max(1, width - 6 * len(right) - 1), 14), right, fill=(0, 0, 0))
+    return np.asarray(pil)
+
+
+def render_path(run, cams: Sequence[Camera], panel: Optional[str] = None, panel_max: Optional[float] = None,
+                samples: int = 16, count_scale: Optional[float] = 0.1) -> tuple[list[np.ndarray], Optional[float]]:
+    """The frames (uint8 (H, W', 3)) of ``run`` (a :class:`b3dgs.viewer.run.ViewedRun`) along ``cams``: the RGB,
+    with the ``panel`` mode beside it on one colour scale for the path (and its colour bar under it). Returns the
+    frames and the panel's scale top (None without a panel)."""
+    from tqdm.auto import tqdm
+
+    from b3dgs.viewer.modes import MODES, ModeRenderer, colorize, normalise, robust_max
+
+    modes = None
+    if panel:
+        if panel not in MODES or panel == "rgb":
+            raise B3dgsError(f"panel={panel} is not a panel mode",
+                             f"pass panel= one of {', '.join(k for k in MODES if k != 'rgb')}, or null")
+        modes = ModeRenderer(run.module, run.scene, samples=samples, count_scale=count_scale)
+        why = modes.unavailable().get(panel)
+        if why is not None:
+            raise B3dgsError(f"panel={panel} is not available for this run: {why}", "pass panel=proxy_sigma, or null")
+    rgbs, values = [], []
+    for cam in tqdm(cams, desc="render", unit=" frames", file=sys.stdout, disable=len(cams) < 2):
+        rgbs.append((run.module.render_eval(cam).cpu().numpy() * 255.0 + 0.5).astype(np.uint8))
+        if modes is not None:
+            fr = modes.render(panel, cam)
+            values.append((fr.values, fr.mask))
+    if modes is None:
+        return rgbs, None
+    spec = modes.specs[panel]
+    top = panel_max
+    if top is None and spec.kind == "pixel" and panel != "alpha":  # σ and depth: the path's own scale
+        top = robust_max(torch.cat([v.reshape(-1) if m is None else v[m] for v, m in values]))
+    if top is not None:
+        from dataclasses import replace
+
+        spec = replace(spec, hi=float(top))
+    legend = _legend(rgbs[0].shape[1], spec.cmap, spec.lo, spec.hi, spec.unit.strip("()").split(",")[0])
+    frames = []
+    for rgb, (v, m) in zip(rgbs, values):
+        side = np.concatenate([colorize(normalise(v, spec), spec.cmap, m), legend], axis=0)
+        pad = np.full((legend.shape[0], rgb.shape[1], 3), 255, np.uint8)
+        frames.append(np.concatenate([np.concatenate([rgb, pad], axis=0), side], axis=1))
+    return frames, spec.hi
+
+
+def write_video(path: Path, frames: Sequence[np.ndarray], fps: int) -> Path:
+    """``frames`` as an H.264 MP4 (yuv420p, sizes padded to even numbers), written atomically."""
+    try:
+        import imageio_ffmpeg
+    except ImportError:
+        raise B3dgsError("writing the MP4 needs imageio-ffmpeg, which is not installed",
+                         "pip install imageio-ffmpeg, or pass video=false") from None
+    from b3dgs.io import atomic_path
+
+    h, w = frames[0].shape[:2]
+    H, W = h + h % 2, w + w % 2
+    with atomic_path(path) as tmp:
+        writer = imageio_ffmpeg.write_frames(str(tmp), (W, H), fps=float(fps), codec="libx264", pix_fmt_out="yuv420p",
+                                             macro_block_size=1, quality=8, output_params=["-f", "mp4"],
+                                             ffmpeg_log_level="error")
+        writer.send(None)
+        for f in frames:
+            writer.send(np.ascontiguousarray(np.pad(f, ((0, H - h), (0, W - w), (0, 0)), mode="edge")))
+        writer.close()
+    return path
+
+
+def render(cfg: DictConfig) -> dict:
+    """Render ``cfg.run`` along ``cfg.path`` into ``cfg.out``; returns what was written."""
+    from b3dgs.data.images import save_png
+    from b3dgs.viewer.run import open_run
+
+    if cfg.get("threads"):
+        torch.set_num_threads(int(cfg.threads))
+    fps = cfg.get("fps")
+    if not isinstance(fps, int) or isinstance(fps, bool) or fps < 1:
+        raise B3dgsError(f"fps={fps} is not a frame rate", "pass fps= an integer >= 1, e.g. fps=24")
+    max_side = cfg.get("max_side")
+    if max_side is not None and (not isinstance(max_side, int) or isinstance(max_side, bool) or max_side < 8):
+        raise B3dgsError(f"max_side={max_side} is too small", "pass max_side= an integer >= 8, or null")
+    panel_max = cfg.get("panel_max")
+    if panel_max is not None and not (isinstance(panel_max, (int, float)) and panel_max > 0):
+        raise B3dgsError(f"panel_max={panel_max} must be a positive number", "pass panel_max=0.05, or null (auto)")
+    renderer = None
+    if cfg.get("renderer"):
+        from b3dgs.render.renderers import make_renderer
+
+        renderer = make_renderer(str(cfg.renderer))
+        renderer.check_available()
+    run = open_run(Path(str(cfg.run)), renderer=renderer)
+    path = str(cfg.path)
+    cams = [_sized(c, max_side) for c in camera_path(run.scene, path, cfg.get("frames"))]
+    frames, top = render_path(run, cams, cfg.get("panel"), panel_max, int(cfg.samples), cfg.get("count_scale"))
+    out = Path(str(cfg.out)) if cfg.get("out") else run.path / "render" / path
+    out.mkdir(parents=True, exist_ok=True)
+    for old in out.glob("frame_*.png"):  # a shorter path must not leave the frames of a longer one
+        old.unlink()
+    pngs = [save_png(out / f"frame_{i:05d}.png", f) for i, f in enumerate(frames)]
+    video = write_video(out / f"{path}.mp4", frames, fps) if cfg.get("video", True) and len(frames) > 1 else None
+    written = {"frames": [str(p) for p in pngs], "video": None if video is None else str(video), "panel_max": top}
+    log.info("%s: %d frames of path=%s at %dx%d%s", run.path, len(frames), path, frames[0].shape[1], frames[0].shape[0],
+             f", panel {cfg.get('panel')} 0 to {top:.3g}" if top is not None else "")
+    return written
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="render")
+def hydra_main(cfg: DictConfig) -> None:
+    from b3dgs.errors import known_errors, quiet_known_noise
+
+    with known_errors("b3dgs-render", cfg):
+        quiet_known_noise()
+        w = render(cfg)
+        where = Path(w["frames"][0]).parent
+        video = f" and {w['video']}" if w["video"] else ""
+        print(f"b3dgs-render: wrote {len(w['frames'])} frames to {where}/frame_*.png{video}", flush=True)
+
+
+def main() -> None:
+    """``b3dgs-render``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
+    from b3dgs.errors import run_cli
+
+    run_cli("b3dgs-render", hydra_main)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,102 @@
+"""b3dgs-render: a trained synthetic run rendered along its test cameras and an interpolated loop, to PNG frames and an
+MP4 (with the native-σ panel beside the RGB), and its one-line refusals."""
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from b3dgs.types import Camera
+from b3dgs.viewer.modes import colormap_lut
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+
+
+def cli(*args, cwd=ROOT):
+    return subprocess.run([sys.executable, "-m", "b3dgs.render_cli", *args], capture_output=True, text=True,
+                          timeout=600, cwd=cwd, env=ENV)
+
+
+@pytest.fixture(scope="module")
+def niw_run(tmp_path_factory):
+    run = tmp_path_factory.mktemp("render") / "niw"
+    res = subprocess.run([sys.executable, "-m", "b3dgs.train", "model=niw", "data.max_side=48", "+data.n_views=24",
+                          "trainer.max_steps=20", "trainer.eval_every=20", "logger=none", "trainer.enable_progress_bar=false",
+                          f"hydra.run.dir={run}"], capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
+    assert res.returncode == 0, res.stderr[-3000:]
+    return run
+
+
+def video_frames(path: Path) -> tuple[int, tuple[int, int]]:
+    import imageio_ffmpeg
+
+    reader = imageio_ffmpeg.read_frames(str(path))
+    meta = next(reader)
+    return sum(1 for _ in reader), tuple(meta["size"])
+
+
+def test_interpolated_loop_passes_through_the_cameras():
+    from b3dgs.render_cli import interpolate_cameras
+
+    def cam(angle):
+        c = np.array([3 * np.cos(angle), 3 * np.sin(angle), 0.5])
+        z = -c / np.linalg.norm(c)
+        x = np.cross(z, [0.0, 0.0, 1.0])
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(z, x), z])  # rows: camera axes in world coordinates (w2c rotation)
+        v = np.eye(4)
+        v[:3, :3], v[:3, 3] = R, -R @ c
+        return Camera(f"c{angle:.2f}", torch.tensor([[40.0, 0, 20], [0, 40, 15], [0, 0, 1]]), torch.from_numpy(v).float(), 40, 30)
+
+    cams = [cam(a) for a in np.linspace(0, 2 * np.pi, 4, endpoint=False)]
+    path = interpolate_cameras(cams, 16)
+    assert len(path) == 16 and all((p.width, p.height) == (40, 30) for p in path)
+    for i, c in enumerate(cams):  # every 4th frame is a source camera
+        assert torch.allclose(path[4 * i].viewmat, c.viewmat, atol=1e-5)
+    radii = [float(p.center[:2].norm()) for p in path]
+    assert min(radii) > 2.5 and max(radii) < 3.5  # a smooth loop around the subject, not a polygon through its middle
+
+
+def test_render_writes_pngs_and_an_mp4_of_the_test_path(niw_run, tmp_path):
+    res = cli(f"run={niw_run}", "panel=native_sigma", "max_side=64")
+    assert res.returncode == 0, res.stderr[-3000:]
+    out = niw_run / "render" / "test"
+    pngs = sorted(out.glob("frame_*.png"))
+    assert len(pngs) == 3  # 24 views, every 8th a test view
+    assert res.stdout.strip().splitlines()[-1] == f"b3dgs-render: wrote 3 frames to {out}/frame_*.png and {out / 'test.mp4'}"
+    img = np.asarray(Image.open(pngs[0]).convert("RGB")).astype(float)
+    h, w = img.shape[:2]
+    assert w == 128 and h > 64  # RGB | native σ side by side at 64 px, the σ colour bar under them
+    rgb, sigma = img[:64, :64], img[:64, 64:]
+    assert rgb.std() > 5 and sigma.std() > 5
+    top = colormap_lut("inferno")[-1].astype(float)
+    saturated = (np.abs(sigma - top).sum(axis=2) < 30).mean()
+    assert saturated < 0.05, f"{saturated:.0%} of the σ panel is at the top colour: its scale is not the path's own"
+    n, size = video_frames(out / "test.mp4")
+    assert n == 3 and size == (128, h + h % 2)
+    res = cli(f"run={niw_run}", "path=interpolate", "frames=10", f"out={tmp_path / 'loop'}", "fps=10")
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert len(list((tmp_path / "loop").glob("frame_*.png"))) == 10
+    assert video_frames(tmp_path / "loop" / "interpolate.mp4")[0] == 10
+    frames = [np.asarray(Image.open(p)).astype(float) for p in sorted((tmp_path / "loop").glob("frame_*.png"))]
+    assert all(np.abs(a - b).mean() > 0.5 for a, b in zip(frames, frames[1:]))  # the camera moves
+
+
+def test_render_refuses_in_one_line(niw_run, tmp_path):
+    for args, match in ((["run=" + str(tmp_path / "missing")], "no run dir at"),
+                        ([f"run={niw_run}", "path=spiral"], "path=spiral is not a camera path"),
+                        ([f"run={niw_run}", "panel=pos"], "panel=pos is not a panel mode"),
+                        ([f"run={niw_run}", "path=interpolate", "frames=1"], "frames=1 is too few"),
+                        ([f"run={niw_run}", "fps=0"], "fps=0 is not a frame rate")):
+        res = cli(*args, cwd=tmp_path)
+        assert res.returncode == 2, res.stderr[-2000:]
+        lines = [ln for ln in res.stderr.splitlines() if ln.startswith("b3dgs-render: error:")]
+        assert len(lines) == 1 and match in lines[0] and "(fix: " in lines[0], res.stderr[-2000:]
+    assert not any(tmp_path.iterdir())
