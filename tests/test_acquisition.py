@@ -303,3 +303,14 @@ def test_every_acquisition_option_builds(name):
     pol = _policy(name)
     assert isinstance(pol, AcquisitionPolicy) and pol.family in ("standard", "niw")
     assert pol.uses_ground_truth == (name == "oracle")
+
+
+def test_study_md_states_the_scoring_resolution_and_point_filter_in_words():
+    from b3dgs.study.active_tables import markdown
+
+    base = {"scene": "s", "seeds": [0], "table": {}, "paired": [], "jaccard": {}}
+    head = markdown({**base, "meta": {"score_max_side": None, "point_filter": None}}).splitlines()[2]
+    assert "scoring at the training resolution;" in head and "initial points: all (not filtered)." in head
+    pf = {"method": "sfm_tracks", "total": 4767, "kept": 1265, "train_views": 16}
+    head = markdown({**base, "meta": {"score_max_side": 64, "point_filter": pf}}).splitlines()[2]
+    assert "scoring at 64 px" in head and "1265 of 4767 kept" in head

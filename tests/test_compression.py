@@ -149,9 +149,17 @@ def test_study_end_to_end_resumes_and_writes_tables(tmp_path):
     ctl = json.loads((out / "synthetic" / "s0" / "finetune_only_r2_k100" / "result.json").read_text())
     assert ctl["keep"] == 1.0 and ctl["num_gaussians"] == n_base and len(ctl["per_round"]) == 2 and ctl["control"]
     assert "Fine-tune-only controls" in (out / "compression.md").read_text()
+    assert res.stdout.strip().splitlines()[-1] == f"b3dgs-study: wrote {out} (compression.md)"
+    from b3dgs.ply import read_ply
+
+    base_ply = read_ply(run / "point_cloud.ply")
     for p in rows:
         r = json.loads(p.read_text())
         assert r["num_gaussians"] == round(n_base * r["keep"])  # the ladder lands exactly
+        ply = read_ply(p.parent / "point_cloud.ply")  # each row keeps its pruned model, in the base PLY's frame
+        assert len(ply["means"]) == r["num_gaussians"]
+        lo, hi = base_ply["means"].min(0).values, base_ply["means"].max(0).values
+        assert ((ply["means"] >= lo - 0.1 * (hi - lo)) & (ply["means"] <= hi + 0.1 * (hi - lo))).all(1).float().mean() > 0.95
         assert len(r["per_round"]) == r["rounds"] == 2
         assert r["psnr"] is not None and r["time_s"] >= r["finetune_s"] > 0
     s = json.loads((out / "compression.json").read_text())

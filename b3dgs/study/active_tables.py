@@ -91,12 +91,23 @@ def _fmt(m, s=None, nd=3):
     return f"{m:.{nd}f}" if s is None else f"{m:.{nd}f} ± {s:.{nd}f}"
 
 
+def _scoring(side) -> str:
+    return f"{side} px (longest side)" if side else "the training resolution"
+
+
+def _points(pf) -> str:
+    if not isinstance(pf, dict):
+        return "all (not filtered)"
+    return f"{pf.get('kept')} of {pf.get('total')} kept (seen by >= 2 of the {pf.get('train_views')} initial views, {pf.get('method')})"
+
+
 def markdown(summary: dict) -> str:
     meta = summary["meta"]
     lines = [f"# Active view selection: {summary['scene']}", "",
              f"{len(meta.get('initial_views', []))} initial views → +{meta.get('acquire')} views; phase 1 "
              f"{meta.get('phase1_steps')} of {meta.get('total_steps')} steps; variant {meta.get('variant')}; seeds "
-             f"{summary['seeds']}; scoring at {meta.get('score_max_side')} px; initial points: {meta.get('point_filter')}.", ""]
+             f"{summary['seeds']}; scoring at {_scoring(meta.get('score_max_side'))}; initial points: "
+             f"{_points(meta.get('point_filter'))}.", ""]
     rows = []
     for pol, e in sorted(summary["table"].items(), key=lambda kv: (kv[1]["family"] != "standard", kv[1]["family"])):
         name = f"{pol} (ORACLE, analysis only)" if e["oracle"] else pol

@@ -14,7 +14,8 @@ STUDIES = {
 
 
 def study_app(config_name: str, study_cls):
-    """The Hydra app of a study: ``study_cls(cfg).run()`` with ``threads`` applied and one-line errors."""
+    """The Hydra app of a study: ``study_cls(cfg).run()`` with ``threads`` applied and one-line errors; its last line
+    names the study's folder (``study.out``) and the tables written there."""
     import hydra
     import torch
 
@@ -26,7 +27,11 @@ def study_app(config_name: str, study_cls):
             quiet_known_noise()
             if cfg.get("threads"):
                 torch.set_num_threads(int(cfg.threads))
-            study_cls(cfg).run()
+            study = study_cls(cfg)
+            study.run()
+            tables = sorted(p.name for p in study.out.glob("*.md"))
+            print(f"b3dgs-study: wrote {study.out}" + (f" ({', '.join(tables)})" if tables else ""),
+                  flush=True)
 
     return app
 

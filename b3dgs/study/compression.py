@@ -9,7 +9,8 @@ on exactly round(keep × N_base) Gaussians. The row is evaluated on the test vie
 FPS) with its compression time (scoring + fine-tuning) next to the base's training time. The first round's
 scores of a base are computed once and shared by every keep ratio (``scores/<name>.pt``).
 
-Resumable: finished rows (``result.json``) are never recomputed; the tables (``compression.json``,
+Each row keeps its pruned, fine-tuned model (``<row>/point_cloud.ply``, in the scene's own frame like
+``b3dgs-train``'s). Resumable: finished rows (``result.json``) are never recomputed; the tables (``compression.json``,
 ``compression.md``, ``plots/``) are rebuilt from the rows on disk (:func:`write_report`, below).
 """
 from __future__ import annotations
@@ -184,6 +185,7 @@ class CompressionStudy:
             log.info("%s %s keep %.2f round %d: %d Gaussians (score %.1f s, fine-tune %.1f s)",
                      d.parent.name, name, keep, r, int(mask.sum()), dt, ft)
         ev = evaluate_views(module, loaded.scene.test, lpips_model=lp)
+        keep_ply(d, module, loaded.scene)
         res = {"scene": str(loaded.cfg.data.name), "seed": seed, "base_run": str(loaded.path), "strategy": name,
                "keep": keep, "rounds": int(score_fn.rounds), "finetune_steps": int(self.cfg.finetune_steps),
                "num_base": n_base, "num_gaussians": module.num_gaussians,
@@ -215,6 +217,7 @@ class CompressionStudy:
             finetune_s += ft
             per_round.append({"round": r, "kept": module.num_gaussians, "score_s": 0.0, "finetune_s": ft})
         ev = evaluate_views(module, loaded.scene.test, lpips_model=lp)
+        keep_ply(d, module, loaded.scene)
         n_base = loaded.module.num_gaussians
         res = {"scene": str(loaded.cfg.data.name), "seed": seed, "base_run": str(loaded.path), "strategy": name,
                "keep": 1.0, "rounds": rounds, "finetune_steps": int(self.cfg.finetune_steps), "num_base": n_base,
@@ -296,6 +299,16 @@ class CompressionStudy:
                                            "finetune_overrides": list(self.cfg.finetune_overrides or []),
                                            "score_max_side": self.cfg.get("score_max_side")})
         return write_report(self.out, plots=bool(self.cfg.get("plots", True)))
+
+
+def keep_ply(row_dir: Path, module, scene) -> Path:
+    """The row's pruned, fine-tuned model as ``<row>/point_cloud.ply`` in the scene's own frame (as b3dgs-train's)."""
+    from b3dgs.data.scene import scene_transform
+    from b3dgs.ply import frame_comments, write_splats
+
+    frame = scene_transform(scene)
+    return write_splats(row_dir / "point_cloud.ply", {k: v.detach() for k, v in module.params().items()},
+                        frame.inverse(), comments=frame_comments(frame))
 
 
 def _check_score(name: str, s: torch.Tensor, n: int) -> None:
