@@ -8,7 +8,10 @@ refused input, the warning or the final ``Done:`` line for an accepted one.
 Scenario rows (issue 20: concurrent trainings, signals, kills inside the final writes, finished runs,
 stored results reused or pooled, multiruns) run several commands; their row keeps the decisive command's
 exit code and line and says what was checked besides (``expect`` names the outcome: ``refused``,
-``accepted`` or ``interrupted`` with exit 130 / 143).
+``accepted`` or ``interrupted`` with exit 130 / 143). The third-pass rows check that no result is lost or
+misattributed: ``b3dgs-eval`` run after run and at once on one run, into another run's folder, on a running run
+and over mismatched ensemble members; ``overwrite=true`` next to files b3dgs did not write (compared byte for
+byte); a resume with another renderer; gsplat or several devices on the CPU.
 
 Damaged scenes are built under ``outputs/bench/reliability/fixtures`` from copies of the shared
 scenes (never written to). Results go to ``bench/results/reliability.{json,md}``, rewritten
@@ -376,6 +379,145 @@ def _non_numeric(meta, d):
     meta["frames"][3]["fl_x"] = "abc"
 
 
+# ------------------------------------------------------------------------- third pass: results, run dirs
+EVAL_SIDE = ["data.max_side=32"]  # LPIPS needs 31 px
+EVAL_FAST = ["uq.samples=3", "max_views=2", "panels=1"]
+
+
+def _eval(args: list[str], where: Path) -> tuple[int, str, str]:
+    return _run("b3dgs.eval", [*args, *EVAL_FAST, f"hydra.run.dir={where}"])
+
+
+def _regimes(path: Path) -> list[str]:
+    return sorted(k for k in json.loads(path.read_text()) if not k.startswith("_")) if path.is_file() else []
+
+
+def _last_line(out: str, err: str) -> str:
+    """The last log line (progress bars aside)."""
+    lines = [ln.split("] - ", 1)[-1] for ln in (out + "\n" + err).replace("\r", "\n").splitlines() if "] - " in ln]
+    return lines[-1] if lines else ""
+
+
+def sc_eval_keeps_regimes() -> dict:
+    """uq=[proxy], then uq=[constant], then run=[A,B] uq=[ensemble]: A keeps both, the ensemble has its own folder."""
+    base = _fresh("eval_keeps")
+    a, b = _finished_run(base / "A", *EVAL_SIDE), _finished_run(base / "B", *EVAL_SIDE, "seed=1")
+    rcs = [_eval([f"run={a}", f"uq=[{u}]"], base / "ev")[0] for u in ("proxy", "constant")]
+    rc, out, err = _eval([f"run=[{a},{b}]", "uq=[ensemble]"], base / "ev")
+    ens = base / "ensemble_A+B" / "uq.json"
+    return {"exit_code": rc, "message": _last_line(out, err), "ok": rcs == [0, 0] and rc == 0 and _regimes(a / "uq.json")
+            == ["constant", "proxy"] and _regimes(ens) == ["ensemble"],
+            "checked": f"A/uq.json holds {_regimes(a / 'uq.json')}, ensemble_A+B/uq.json {_regimes(ens)}"}
+
+
+def sc_eval_concurrent() -> dict:
+    """Two b3dgs-eval on one run at once (uq=[proxy] and uq=[constant])."""
+    base = _fresh("eval_concurrent")
+    a = _finished_run(base / "A", *EVAL_SIDE)
+    procs = [_popen("b3dgs.eval", [f"run={a}", f"uq=[{u}]", *EVAL_FAST, f"hydra.run.dir={base / u}"])
+             for u in ("proxy", "constant")]
+    res = [(p.wait(timeout=300), *p.communicate()) for p in procs]
+    rc = max(r[0] for r in res)
+    return {"exit_code": rc, "message": _last_line(res[-1][1], res[-1][2]),
+            "ok": rc == 0 and _regimes(a / "uq.json") == ["constant", "proxy"],
+            "checked": f"both exit 0; A/uq.json holds {_regimes(a / 'uq.json')}"}
+
+
+def sc_eval_other_run() -> dict:
+    """b3dgs-eval run=A out=B, then b3dgs-report runs=B: B's row must not show A's uncertainty."""
+    base = _fresh("eval_other_run")
+    a, b = _finished_run(base / "A", *EVAL_SIDE), _finished_run(base / "B", *EVAL_SIDE, "seed=1")
+    rc0, _, _ = _eval([f"run={a}", "uq=[proxy]", f"out={b}"], base / "ev")
+    rc, out, err = _run("b3dgs.report.app", [f"runs={b}", f"out={base / 'report'}"])
+    rows = json.loads((base / "report" / "report.json").read_text())["runs"] if rc == 0 else []
+    flagged = [ln.split("] - ", 1)[-1] for ln in (out + err).splitlines() if "left out of the report" in ln]
+    ok = rc0 == 0 and rc == 0 and bool(flagged) and all(not r["uq_regimes"] for r in rows)
+    return {"exit_code": rc, "message": flagged[0] if flagged else _line("b3dgs-report", rc, out, err), "ok": ok,
+            "checked": f"B's report row has uq regimes {[r['uq_regimes'] for r in rows]}"}
+
+
+def sc_eval_running() -> dict:
+    """b3dgs-eval on a run that is still training (stopped by its own test hook at step 1)."""
+    d = _fresh("eval_running") / "run"
+    first = _popen("b3dgs.train", [*TINY, *EVAL_SIDE, f"hydra.run.dir={d}", *kill_args(step=1, sig="STOP")], limit=False)
+    os.waitpid(first.pid, os.WUNTRACED)
+    try:
+        rc, out, err = _eval([f"run={d}", "uq=[proxy]"], d.parent / "ev")
+    finally:
+        os.kill(first.pid, signal.SIGCONT)
+    first.communicate(timeout=300)
+    return {"exit_code": rc, "message": _line("b3dgs-eval", rc, out, err), "ok": rc == 2 and "still training" in err,
+            "checked": f"the training then finished (exit {first.returncode})"}
+
+
+def sc_ensemble_mismatch(extra: list[str]) -> dict:
+    base = _fresh("ensemble_mismatch_" + extra[0].split("=")[0].replace(".", "_"))
+    a, b = _finished_run(base / "A", *EVAL_SIDE), _finished_run(base / "B", *EVAL_SIDE, "seed=1", *extra)
+    rc, out, err = _eval([f"run=[{a},{b}]", "uq=[ensemble]"], base / "ev")
+    return {"exit_code": rc, "message": _line("b3dgs-eval", rc, out, err), "ok": rc == 2 and not (a / "uq.json").exists()
+            and not list(base.glob("ensemble_*")), "checked": "nothing written"}
+
+
+USER_FILES = {"config.yaml": b"model: resnet50\n", "checkpoints/resnet_epoch90.ckpt": b"\x00resnet weights",
+              "renders/figure1.png": b"\x89PNG figure 1"}
+
+
+def _user_files(d: Path, names=USER_FILES) -> dict:
+    for name, data in names.items():
+        (d / name).parent.mkdir(parents=True, exist_ok=True)
+        (d / name).write_bytes(data)
+    return {k: (d / k).read_bytes() for k in names}
+
+
+def _all_bytes(d: Path) -> dict:
+    return {str(p.relative_to(d)): p.read_bytes() for p in sorted(d.rglob("*")) if p.is_file()}
+
+
+def sc_overwrite_foreign() -> dict:
+    """overwrite=true on a folder of someone else's config.yaml, checkpoints/ and renders/."""
+    d = _fresh("overwrite_foreign") / "work"
+    _user_files(d)
+    before = _all_bytes(d)
+    rc, out, err = _run("b3dgs.train", [*TINY, "overwrite=true", f"hydra.run.dir={d}"])
+    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err), "ok": rc == 2 and _all_bytes(d) == before,
+            "checked": "every file byte for byte"}
+
+
+def sc_overwrite_user_files() -> dict:
+    """overwrite=true on a b3dgs run dir into whose renders/ and checkpoints/ a user put files of their own."""
+    d = _finished_run(_fresh("overwrite_run") / "run")
+    mine = _user_files(d, {k: v for k, v in USER_FILES.items() if k != "config.yaml"})
+    rc, out, err = _run("b3dgs.train", [*TINY, "overwrite=true", "seed=1", f"hydra.run.dir={d}"])
+    kept = {k: (d / k).read_bytes() for k in mine if (d / k).exists()} == mine
+    seed = json.loads((d / "metrics.json").read_text())["seed"] if (d / "metrics.json").exists() else None
+    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err), "ok": rc == 0 and kept and seed == 1,
+            "checked": f"the user's files byte for byte: {kept}; metrics.json of the new run (seed {seed})"}
+
+
+def sc_run_dir_dot() -> dict:
+    """`hydra.run.dir=.` in a folder whose renders/ holds a user's file."""
+    d = _fresh("run_dir_dot")
+    _user_files(d, {"renders/figure1.png": USER_FILES["renders/figure1.png"]})
+    before = _all_bytes(d)
+    rc, out, err = _run("b3dgs.train", [*TINY, "hydra.run.dir=."], cwd=d)
+    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err).replace(str(d), "<folder>"),
+            "ok": rc == 2 and _all_bytes(d) == before, "checked": "the folder byte for byte"}
+
+
+def sc_resume_renderer() -> dict:
+    """SIGTERM a renderer=cpu run after its first checkpoint, then `resume=auto renderer=torch`."""
+    d = _fresh("resume_renderer") / "run"
+    rc0, _, _ = _run("b3dgs.train", [*TINY, "renderer=cpu", f"hydra.run.dir={d}", *kill_args(step=3, sig="TERM")])
+    config = (d / "config.yaml").read_text() if (d / "config.yaml").exists() else None
+    rc, out, err = _run("b3dgs.train", [*TINY, "resume=auto", "renderer=torch", f"hydra.run.dir={d}"])
+    same = config is not None and (d / "config.yaml").read_text() == config
+    rc2, _, _ = _run("b3dgs.train", [*TINY, "resume=auto", "renderer=cpu", f"hydra.run.dir={d}"])
+    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err),
+            "ok": rc0 == 143 and rc == 2 and same and rc2 == 0 and (d / "metrics.json").exists(),
+            "checked": f"stopped with exit {rc0}; config.yaml kept the C++ renderer; resume=auto renderer=cpu then "
+                       f"finished (exit {rc2})"}
+
+
 def rows() -> list[dict]:
     """(id, what, app, overrides or a fixture builder returning them, expected outcome)."""
     S = shared_dir() / "data"
@@ -497,6 +639,32 @@ def rows() -> list[dict]:
          "accepted")
     scen("png16_scaling", "16-bit PNGs: one raw value in a dark and in a bright frame (0.784 vs 0.003)", sc_png16,
          "accepted")
+
+    # --- third pass: results never lost, run dirs, renderers, devices
+    scen("eval_keeps_regimes", "`uq=[proxy]`, then `uq=[constant]`, then `run=[A,B] uq=[ensemble]` (A kept only "
+         "the last regime; the ensemble replaced A's)", sc_eval_keeps_regimes, "accepted")
+    scen("eval_concurrent", "two `b3dgs-eval` on one run at once (one result lost)", sc_eval_concurrent, "accepted")
+    scen("eval_out_other_run", "`b3dgs-eval run=A out=B`, then `b3dgs-report runs=B` (B's row showed A's AUSE and "
+         "ECE)", sc_eval_other_run, "accepted")
+    scen("eval_running_run", "`b3dgs-eval` on a run still training (fix said resume=auto)", sc_eval_running)
+    scen("ensemble_other_model", "`run=[standard, niw] uq=[ensemble]` (accepted, NLL 378159)",
+         lambda: sc_ensemble_mismatch(["model=niw"]))
+    scen("ensemble_other_steps", "`run=[4-step, 6-step] uq=[ensemble]` (accepted)",
+         lambda: sc_ensemble_mismatch(["trainer.max_steps=6"]))
+    scen("overwrite_foreign", "`overwrite=true` on a folder of a user's config.yaml, checkpoints/resnet_epoch90.ckpt "
+         "and renders/figure1.png (both files deleted)", sc_overwrite_foreign)
+    scen("overwrite_user_files", "`overwrite=true` on a b3dgs run dir holding a user's files in renders/ and "
+         "checkpoints/", sc_overwrite_user_files, "accepted")
+    scen("run_dir_dot", "`hydra.run.dir=.` in a folder whose renders/ holds a user's file (accepted; a later "
+         "overwrite=true deleted it)", sc_run_dir_dot)
+    scen("resume_other_renderer", "SIGTERM after the first checkpoint, then `resume=auto renderer=torch` after a C++ "
+         "start (accepted: 34.472 vs 34.424 dB)", sc_resume_renderer)
+    add("gsplat_on_cpu", "`renderer=gsplat` on a CPU-only machine (\"unexpected error (a bug)\", exit 1)",
+        ["renderer=gsplat", *TINY])
+    add("devices_2_cpu", "`trainer.devices=2` on the CPU (a child fought its parent for the lock, left config.yaml)",
+        ["trainer.devices=2", *TINY])
+    add("max_gaussians_below_init", "`strategy.max_gaussians=100`, below the initial Gaussians (no warning)",
+        ["strategy.max_gaussians=100", *TINY], expect="accepted")
     return R
 
 
