@@ -137,14 +137,17 @@ EVAL_WRITES = ("uq.json", ".uq.json.lock", "uq/sparsification.png", "uq/reliabil
 RENDERS_NOTE = "renders/<view>.png for each view named in metrics.json per_view"
 
 
-def _rel_files(root: Path) -> list[str]:
-    """Every file below ``root`` (symlinks included, not followed) as a posix path relative to it, sorted."""
-    out = []
+def _iter_files(root: Path) -> Iterator[str]:
+    """Every file below ``root`` (symlinks included, not followed) as a posix path relative to it."""
     for d, dirs, files in os.walk(root):
+        dirs.sort()
         base = Path(d).relative_to(root)
-        out += [(base / f).as_posix() for f in files]
-        out += [(base / x).as_posix() for x in dirs if (Path(d) / x).is_symlink()]
-    return sorted(out)
+        yield from ((base / f).as_posix() for f in sorted(files))
+        yield from ((base / x).as_posix() for x in dirs if (Path(d) / x).is_symlink())
+
+
+def _rel_files(root: Path) -> list[str]:
+    return sorted(_iter_files(root))
 
 
 def _matches(rel: str, pattern: str) -> bool:
@@ -195,14 +198,23 @@ def run_dir_kind(run_dir: Path) -> str:
     run_dir = Path(run_dir)
     if read_manifest(run_dir) is not None:
         return "run"
-    if not foreign_files(run_dir):
+    if not foreign_files(run_dir, limit=1):
         return "empty"
     return "legacy" if is_legacy_run(run_dir) else "foreign"
 
 
-def foreign_files(run_dir: Path) -> list[str]:
-    """The files of a folder without a manifest (its lock file aside)."""
-    return [f for f in _rel_files(Path(run_dir)) if f != LOCK_NAME] if Path(run_dir).is_dir() else []
+def foreign_files(run_dir: Path, limit: Optional[int] = None) -> list[str]:
+    """The files of a folder without a manifest (its lock file aside): the first ``limit`` found, sorted (a
+    folder such as a home directory is not walked to its end)."""
+    if not Path(run_dir).is_dir():
+        return []
+    out = []
+    for f in _iter_files(Path(run_dir)):
+        if f != LOCK_NAME:
+            out.append(f)
+            if limit is not None and len(out) >= limit:
+                break
+    return sorted(out)
 
 
 def _uq_outputs(folder: Path) -> list[str]:

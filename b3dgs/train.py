@@ -176,8 +176,8 @@ def _foreign_dir_error(run_dir: Path):
     from b3dgs.errors import B3dgsError
     from b3dgs.rundir import foreign_files
 
-    files = foreign_files(run_dir)
-    shown = ", ".join(files[:4]) + (f" and {len(files) - 4} more" if len(files) > 4 else "")
+    files = foreign_files(run_dir, limit=5)
+    shown = ", ".join(files[:4]) + (" and more" if len(files) > 4 else "")
     return B3dgsError(f"{run_dir} is not empty and holds no b3dgs run ({shown})",
                       "pass hydra.run.dir=PATH to a new or empty folder; b3dgs writes only there or into its own run "
                       "dirs, and overwrite=true removes only files a b3dgs run wrote")

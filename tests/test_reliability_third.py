@@ -312,3 +312,27 @@ def test_report_uses_only_the_uq_of_its_own_run(tmp_path, caplog):
     msgs = [r.getMessage() for r in caplog.records]
     assert any(m.startswith(f"{b}: its uq.json regimes proxy score the run {a}, not this one: left out") for m in msgs)
     assert any(m.startswith(f"{c}: its uq.json regimes proxy score the run {a}") for m in msgs)
+
+
+def test_run_files_match_whole_path_components(tmp_path):
+    """Manifest patterns match one path component each: a user's checkpoints/step1/x.ckpt or renders/figure.png
+    is not b3dgs's; a folder without a manifest is listed (up to a limit) as someone else's."""
+    from b3dgs.rundir import MANIFEST_NAME, foreign_files, remove_run_files, run_dir_kind, run_files
+
+    for name in ("checkpoints/last.ckpt", "checkpoints/step12.ckpt", "checkpoints/step1/x.ckpt", "renders/view_000.png",
+                 "renders/figure.png", "uq/proxy_view_000.png", "uq/proxy_mine.png", "notes/config.yaml"):
+        (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / name).write_text("x")
+    (tmp_path / "metrics.json").write_text(json.dumps({"per_view": [{"name": "view_000.png"}]}))
+    (tmp_path / "uq.json").write_text(json.dumps({"proxy": {"panels": ["uq/proxy_view_000.png"]}}))
+    assert run_dir_kind(tmp_path) == "foreign" and run_files(tmp_path) == []
+    assert len(foreign_files(tmp_path, limit=3)) == 3
+    (tmp_path / MANIFEST_NAME).write_text(json.dumps({"b3dgs_run": 1, "writes": ["metrics.json", "checkpoints/last.ckpt",
+                                                                                 "checkpoints/step[0-9]*.ckpt", "uq.json"]}))
+    assert run_dir_kind(tmp_path) == "run"
+    assert run_files(tmp_path) == ["checkpoints/last.ckpt", "checkpoints/step12.ckpt", "metrics.json",
+                                   "renders/view_000.png", "uq.json", "uq/proxy_view_000.png"]
+    remove_run_files(tmp_path)
+    left = sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*") if p.is_file())
+    assert left == [MANIFEST_NAME, "checkpoints/step1/x.ckpt", "notes/config.yaml", "renders/figure.png",
+                    "uq/proxy_mine.png"]
