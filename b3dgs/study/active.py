@@ -50,12 +50,15 @@ def compose_config(config_name: str, overrides: list[str]) -> DictConfig:
 
 
 def family_config(cfg: DictConfig, family: str, seed: int) -> DictConfig:
-    """A ``b3dgs-train``-shaped config: the study's data, renderer, strategy and trainer with ``model=family``."""
+    """A ``b3dgs-train``-shaped config: the study's data, renderer, strategy, trainer (and ``schedule`` when the study
+    sets one, ``+schedule=dash``) with ``model=family``."""
     fam = compose_config("train", [f"model={family}", *[str(o) for o in (cfg.get("model_overrides") or [])]])
     out = OmegaConf.create({"data": cfg.data, "renderer": cfg.renderer, "strategy": cfg.strategy,
                             "trainer": cfg.trainer, "model": fam.model, "posterior": fam.get("posterior") or {},
                             "seed": int(seed), "threads": cfg.get("threads"),
                             "callbacks": cfg.get("callbacks") or {}})
+    if cfg.get("schedule") is not None:  # +schedule=dash: every round follows that training schedule
+        out.schedule = cfg.schedule
     return out
 
 

@@ -18,7 +18,9 @@ class NativePolicy(AcquisitionPolicy):
     ``count_scale`` = 0.1 by default: the posterior is drawn with N̂ ← 0.1·N̂. In ``bench/uq_count_scale.py``
     (seed 0, both shared scenes) that setting gave the epistemic part its best pixel-level ranking (Spearman ρ
     with the squared error 0.51 / 0.42 against 0.41 / 0.41 at the paper's c = 1) without moving the
-    posterior-mean render; ``null`` scores with the model's own setting (the paper's).
+    posterior-mean render; ``null`` scores with the model's own setting (the paper's). ``count`` scores with another
+    NIW count (``posterior.niw.count``; the trained model is the same, the count comes from one pass over the
+    current training views: ``acquisition=native_fisher3`` and friends).
 
     ``condition(ctx, camera)`` (batch=greedy_conditioned): one point-estimate render of ``camera`` at the
     scoring resolution gives each Gaussian's compositing weight sum w_k = Σ_p w_kp, scaled by the pixel-count
@@ -30,10 +32,11 @@ class NativePolicy(AcquisitionPolicy):
     samples: int = 16
     chunk: int = 8
     count_scale: Optional[float] = 0.1
+    count: Optional[str] = None  # posterior.niw.count to score with (None: the model's own; e.g. fisher3)
 
     def _native(self) -> NativeUQ:
         regime = getattr(self, "_regime", None) or NativeUQ(samples=self.samples, chunk=self.chunk,
-                                                             count_scale=self.count_scale)
+                                                             count_scale=self.count_scale, count=self.count)
         self._regime = regime
         return regime
 

@@ -1,0 +1,209 @@
+"""The NIW counts on the canonical grid (issue 29): ``posterior.niw.count=weight|fisher|fisher3`` against the paper's
+count, the deep ensemble and the constant baseline, over the seven scenes x seeds 0 1 2.
+
+    python bench/counts.py --jobs 2 --threads 1           # retrain what is missing, score, merge, tabulate
+    python bench/counts.py --table-only                   # tables from the archive only
+
+Posterior re-evaluation without retraining: a count is a function of the trained Gaussians (one pass over the
+training views, :meth:`b3dgs.module.SplatModule.view_sums`), so each canonical NIW run is scored under every count
+as the uq regimes ``native_<count>`` (conf/uq/native_<count>.yaml, c = 1 like the canonical ``native``). The
+archive (bench/results/runs) keeps no checkpoints, so a run without the new regimes is trained again into
+``--out`` (the canonical quick protocol; NIW only observes training, so the run is the archived one bit for bit:
+its final parameter digest must equal the archived metrics.json's, else the row is refused and reported); its new
+regimes are merged into the archived uq.json (same views and seed, checked). Resumable: finished rows are skipped.
+
+Output: bench/results/counts.{json,md}: per regime, the macro means over scenes (of seed means) of the support-deficit
+OOD AUROC (b3dgs.report.ood), AUSE, |Cov@95 − 0.95|, NLL and the epistemic Spearman ρ with the squared error, and
+paired scene-level differences (bootstrap CI, exact sign-flip p, per-scene signs) of each count against the paper's
+count, the deep ensemble and the constant σ̂² baseline.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from common import QUICK, RESULTS, scene_overrides, train_run  # noqa: E402
+
+SEVEN = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
+COUNTS = ["weight", "fisher", "fisher3"]
+#: (uq.json key, higher is better) of the calibration columns
+COLUMNS = [("ause_rmse", False), ("cov95_err", False), ("nll", False), ("epi_spearman_sq", True)]
+
+
+def new_regimes(archive_dir: Path, counts: list[str]) -> list[str]:
+    have = json.loads((archive_dir / "uq.json").read_text()) if (archive_dir / "uq.json").is_file() else {}
+    return [f"native_{c}" for c in counts if f"native_{c}" not in have]
+
+
+def regimes(names: list[str], samples: int, seed: int) -> dict:
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from b3dgs.train import CONF_DIR
+
+    cfg = OmegaConf.create({"uq": {"samples": samples}, "seed": seed})
+    for n in names:
+        cfg = OmegaConf.merge(cfg, OmegaConf.load(Path(CONF_DIR) / "uq" / f"{n}.yaml"))
+    return {n: instantiate(cfg[n]) for n in names}
+
+
+def score_one(run_dir: Path, archive_dir: Path, names: list[str], samples: int) -> None:
+    """Score ``names`` on the trained run and merge them into the archived uq.json (views and seed checked)."""
+    from b3dgs.eval import evaluate_uq
+    from b3dgs.io import write_json
+
+    have = json.loads((archive_dir / "uq.json").read_text())
+    seed = int(have.get("_meta", {}).get("seed", 0))
+    with tempfile.TemporaryDirectory(prefix=".uq.", dir=run_dir) as tmp:
+        res = evaluate_uq([str(run_dir)], regimes(names, samples, seed), seed=seed, panels=0, out_dir=Path(tmp))
+    views_old, views_new = have.get("_meta", {}).get("views"), res.get("_meta", {}).get("views")
+    if views_old is not None and views_new is not None and views_old != views_new:
+        raise RuntimeError(f"{run_dir}: the new regimes score other views than {archive_dir / 'uq.json'}")
+    have = json.loads((archive_dir / "uq.json").read_text())  # re-read: another job may have merged meanwhile
+    have.update({k: v for k, v in res.items() if k in names})
+    write_json(archive_dir / "uq.json", have)
+
+
+def run_row(args, scene: str, seed: int) -> Optional[str]:
+    archive_dir = Path(args.archive) / scene / "niw" / f"s{seed}"
+    names = new_regimes(archive_dir, args.counts)
+    if not names:
+        return None
+    run_dir = Path(args.out) / scene / "niw" / f"s{seed}"
+    over = scene_overrides(scene) + QUICK + ["model=niw", f"seed={seed}", f"threads={args.threads}"]
+    m = train_run(run_dir, over, timeout_s=4 * 3600)
+    want = json.loads((archive_dir / "metrics.json").read_text())["checkpoint"]["params_sha256"]
+    got = m["checkpoint"]["params_sha256"]
+    if got != want:
+        return f"{scene} s{seed}: retrained parameters {got} differ from the archived run's {want}; not merged"
+    import subprocess
+
+    cmd = [sys.executable, __file__, "--score-one", str(run_dir), str(archive_dir), str(args.samples),
+           str(args.threads), *names]
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    if res.returncode != 0:
+        return f"{scene} s{seed}: scoring failed: {res.stderr[-1500:]}"
+    print(f"{scene} s{seed}: merged {', '.join(names)} (parameters match the archive: {got})", flush=True)
+    return None
+
+
+def table(args) -> dict:
+    """Macro means and paired differences from the archived uq.json files."""
+    from b3dgs.report.collect import load_runs
+    from b3dgs.report.ood import ood_study
+    from b3dgs.report.stats import paired_stats
+
+    runs = [r for r in load_runs([str(Path(args.archive))], on_duplicate="newest")[0]
+            if r.scene in args.scenes and r.seed in args.seeds and r.method in ("niw", "standard")
+            and r.study == "canonical"]
+    niw = [r for r in runs if r.method == "niw"]
+    ens = [r for r in runs if r.method == "standard" and "ensemble" in r.uq]
+    regs = ["native"] + [f"native_{c}" for c in args.counts] + ["proxy", "constant", "ppu"]
+    ood = ood_study(niw + ens, regimes=regs + ["ensemble"])
+    per = {}  # regime -> scene -> {metric: seed mean}
+    for row in ood["runs"]:
+        reg = "ensemble" if row["regime"] == "ensemble" else row["regime"]
+        per.setdefault(reg, {}).setdefault(row["scene"], {}).setdefault("auroc", []).append(row["auroc"])
+    for r in niw:
+        for reg in regs:
+            if reg in r.uq:
+                for key, _ in COLUMNS:
+                    v = r.value(key, reg)
+                    if v is not None:
+                        per.setdefault(reg, {}).setdefault(r.scene, {}).setdefault(key, []).append(v)
+    for r in ens:
+        for key, _ in COLUMNS:
+            v = r.value(key, "ensemble")
+            if v is not None:
+                per.setdefault("ensemble", {}).setdefault(r.scene, {}).setdefault(key, []).append(v)
+    means = {reg: {sc: {k: float(np.mean(v)) for k, v in d.items()} for sc, d in by.items()} for reg, by in per.items()}
+    metrics = [("auroc", True)] + COLUMNS
+    macro = {reg: {k: (float(np.mean([d[k] for d in by.values() if k in d])) if any(k in d for d in by.values())
+                       else None) for k, _ in metrics} | {"n_scenes": len(by)} for reg, by in means.items()}
+    paired = []
+    for c in args.counts:
+        a = f"native_{c}"
+        for b in ("native", "ensemble", "constant"):
+            for k, hi in metrics:
+                common = sorted(s for s in means.get(a, {}) if k in means[a][s] and k in means.get(b, {}).get(s, {}))
+                if len(common) < 2:
+                    continue
+                d = [means[a][s][k] - means[b][s][k] for s in common]
+                st = paired_stats(d, higher_is_better=hi)
+                paired.append({"a": a, "b": b, "metric": k, "per_scene": dict(zip(common, d)), **st})
+    return {"macro": macro, "per_scene": means, "paired": paired, "ood_skipped": ood["skipped"]}
+
+
+def write(args, res: dict, problems: list[str]) -> None:
+    from b3dgs.io import atomic_path, write_json
+
+    names = {"auroc": "OOD AUROC ↑", "ause_rmse": "AUSE ↓", "cov95_err": "\\|Cov@95 − 0.95\\| ↓", "nll": "NLL ↓",
+             "epi_spearman_sq": "ρ(u, err²) ↑"}
+    lines = ["# NIW counts on the canonical grid", "",
+             f"{', '.join(args.scenes)} x seeds {' '.join(map(str, args.seeds))}; quick protocol; native regimes with "
+             f"{args.samples} posterior samples at c = 1 (the canonical `native` is the paper's count); ensemble: the "
+             "3-member deep ensemble of the standard runs; OOD: support-deficit AUROC of the per-view mean variance "
+             "(ID = best-supported third of the test views, OOD = worst third). Macro means over scenes of seed means.",
+             "", "| regime | " + " | ".join(names[k] for k in names) + " | scenes |", "|---|" + "---|" * (len(names) + 1)]
+    for reg, row in res["macro"].items():
+        cells = ["—" if row.get(k) is None else f"{row[k]:.4g}" for k in names]
+        lines.append(f"| {reg} | " + " | ".join(cells) + f" | {row['n_scenes']} |")
+    lines += ["", "## Paired differences over scenes (a − b; each scene's seed mean one unit)", "",
+              "| a | b | metric | mean Δ | 95 % CI | p (two-sided) | a better / worse | per scene |", "|---|---|---|---|---|---|---|---|"]
+    for p in res["paired"]:
+        ci = p["ci"]
+        cis = "—" if ci.get("low") is None else f"[{ci['low']:+.3g}, {ci['high']:+.3g}]"
+        pp = "—" if p["p_two_sided"] is None else f"{p['p_two_sided']:.3g}"
+        signs = " ".join(f"{s[:6]}{'+' if v > 0 else '−' if v < 0 else '0'}" for s, v in p["per_scene"].items())
+        lines.append(f"| {p['a']} | {p['b']} | {names.get(p['metric'], p['metric'])} | {p['mean']:+.4g} | {cis} | {pp} | "
+                     f"{p['wins']} / {p['losses']} | {signs} |")
+    if problems:
+        lines += ["", "## Rows not merged", ""] + [f"- {x}" for x in problems]
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    write_json(RESULTS / "counts.json", {**res, "problems": problems, "samples": args.samples})
+    with atomic_path(RESULTS / "counts.md") as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    print(f"wrote {RESULTS / 'counts.md'}")
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--score-one":  # internal: one run's scoring in its own process
+        import torch
+
+        run_dir, archive_dir, samples, threads, *names = sys.argv[2:]
+        torch.set_num_threads(int(threads))
+        score_one(Path(run_dir), Path(archive_dir), names, int(samples))
+        return
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", nargs="+", default=SEVEN)
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--counts", nargs="+", default=COUNTS, choices=COUNTS)
+    ap.add_argument("--samples", type=int, default=50)
+    ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--out", default="outputs/bench_counts")
+    ap.add_argument("--archive", default=str(RESULTS / "runs"))
+    ap.add_argument("--table-only", action="store_true")
+    args = ap.parse_args()
+    problems: list[str] = []
+    if not args.table_only:
+        rows = [(scene, seed) for seed in args.seeds for scene in args.scenes]
+        with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
+            for p in ex.map(lambda r: run_row(args, *r), rows):
+                if p:
+                    print("PROBLEM", p, flush=True)
+                    problems.append(p)
+    write(args, table(args), problems)
+
+
+if __name__ == "__main__":
+    main()
