@@ -235,6 +235,7 @@ def test_cli_refuses_in_one_line(tiny_runs, tmp_path):
     for args, match in ((["run=" + str(tmp_path / "missing")], "no run dir at"),
                         ([f"run={tiny_runs['standard']}", "mode=native_sigma"], "not available for this run"),
                         ([f"run={tiny_runs['standard']}", "mode=sigma"], "unknown viewer mode"),
+                        ([f"run={tiny_runs['standard']}", "start=top"], "start=top is not a start view"),
                         ([f"run={tiny_runs['standard']}", "prot=9000"], "prot")):
         res = subprocess.run([sys.executable, "-m", "b3dgs.viewer.app", *args], capture_output=True, text=True,
                              timeout=300, cwd=tmp_path, env=ENV)
@@ -242,6 +243,73 @@ def test_cli_refuses_in_one_line(tiny_runs, tmp_path):
         lines = [ln for ln in res.stderr.splitlines() if ln.startswith("b3dgs-view: error:")]
         assert len(lines) == 1 and match in lines[0], res.stderr[-2000:]
     assert not any(tmp_path.iterdir())  # the viewer writes no files
+
+
+@pytest.mark.parametrize("arg, match", [("port=70000", "port=70000 is not a TCP port (0-65535)"),
+                                        ("host=10.255.255.1", "cannot serve on host=10.255.255.1"),
+                                        ("host=no-such-host.invalid", "host=no-such-host.invalid is not a known host")])
+def test_an_address_it_cannot_serve_on_ends_the_viewer_at_once(tiny_runs, tmp_path, arg, match):
+    """Refused before the run is loaded or anything is served: one line, exit code 2, within 5 s (not a hang)."""
+    t0 = time.time()
+    res = subprocess.run([sys.executable, "-m", "b3dgs.viewer.app", f"run={tiny_runs['standard']}", arg],
+                         capture_output=True, text=True, timeout=60, cwd=tmp_path, env=ENV)
+    took = time.time() - t0
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1 and match in lines[0] and "(fix: " in lines[0], res.stderr[-2000:]
+    assert took < 5.0, f"took {took:.1f} s"
+
+
+def test_duration_s_ends_the_viewer(tiny_runs, tmp_path):
+    pytest.importorskip("viser", reason='viser not installed (fix: pip install -e ".[viewer]")')
+    res = subprocess.run([sys.executable, "-m", "b3dgs.viewer.app", f"run={tiny_runs['standard']}", "port=0",
+                          "duration_s=1"], capture_output=True, text=True, timeout=120, cwd=tmp_path, env=ENV)
+    assert res.returncode == 0 and " at http://127.0.0.1:" in res.stdout, res.stderr[-2000:]
+
+
+def test_help_lists_the_modes_and_options():
+    from omegaconf import OmegaConf
+
+    from b3dgs.train import CONF_DIR
+
+    res = subprocess.run([sys.executable, "-m", "b3dgs.viewer.app", "--help"], capture_output=True, text=True,
+                         timeout=60, cwd=ROOT, env=ENV)
+    assert res.returncode == 0 and res.stdout.startswith("usage: b3dgs-view run=DIR"), res.stderr[-2000:]
+    for key in MODES:
+        assert re.search(rf"^  {key} +\S", res.stdout, re.M), key
+    options = [k for k in OmegaConf.load(Path(CONF_DIR) / "view.yaml") if k not in ("defaults", "b3dgs", "hydra")]
+    for key in options:
+        assert re.search(rf"^  {key}=", res.stdout, re.M), key
+    assert "Hydra" not in res.stdout and "hydra/" not in res.stdout  # not Hydra's boilerplate
+
+
+def test_home_view_frames_what_the_cameras_look_at():
+    """The orbit view looks at the cameras' common point from their median distance, at a positive elevation for
+    cameras all around the subject (the synthetic scene), with their field of view."""
+    from b3dgs.data.scene import load_scene, look_at_point
+    from b3dgs.viewer.server import home_view
+
+    scene = load_scene("synthetic", None, max_side=32, n_views=24)
+    up = np.mean([-c.camtoworld[:3, 1].double().numpy() for c in scene.train], axis=0)
+    up /= np.linalg.norm(up)
+    home = home_view(scene, up)
+    cams = scene.train + scene.test
+    target, _ = look_at_point(np.stack([c.viewmat.double().numpy() for c in cams]))
+    assert np.allclose(home["look_at"], target)
+    dist = np.median([np.linalg.norm(c.center.double().numpy() - target) for c in cams])
+    assert np.linalg.norm(home["position"] - target) == pytest.approx(dist)
+    elev = (home["position"] - target) @ up / dist
+    assert 0.25 < elev < 0.81
+    cam = view_camera(mat_to_wxyz(_look_rotation(home["position"], target, up)), home["position"], home["fov"], 64, 64)
+    x = cam.viewmat[:3, :3].double() @ torch.from_numpy(target) + cam.viewmat[:3, 3].double()
+    assert x[2] > 0 and torch.allclose(x[:2] / x[2], torch.zeros(2, dtype=torch.float64), atol=1e-5)
+
+
+def _look_rotation(pos, target, up) -> np.ndarray:
+    """Camera-to-world rotation (OpenCV axes) of a camera at ``pos`` looking at ``target``."""
+    z = (target - pos) / np.linalg.norm(target - pos)
+    x = np.cross(z, -up)
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z], axis=1)
 
 
 def test_view_settings_count_scale():
@@ -263,29 +331,50 @@ def test_view_settings_count_scale():
 
 
 # ------------------------------------------------------------------------------------ a real browser
-def render_area(png: bytes) -> np.ndarray:
-    """The screenshot's pixels left of the side panel (the rendered view), as float RGB."""
+def screenshot_pixels(png: bytes) -> np.ndarray:
     import io
 
     from PIL import Image
 
-    img = np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.float64)
-    return img[120:-60, 20:900]  # below the notifications, left of the panel, above the axes gizmo
+    return np.asarray(Image.open(io.BytesIO(png)).convert("RGB")).astype(np.float64)
+
+
+def render_area(png: bytes) -> np.ndarray:
+    """The screenshot's pixels left of the side panel (the rendered view), as float RGB."""
+    return screenshot_pixels(png)[160:-60, 20:900]  # below the notifications, left of the panel, above the axes gizmo
+
+
+def centre_patch(png: bytes, half: int = 40) -> np.ndarray:
+    """The pixels around the centre of the canvas (the page: the canvas fills it)."""
+    img = screenshot_pixels(png)
+    cy, cx = img.shape[0] // 2, img.shape[1] // 2
+    return img[cy - half:cy + half, cx - half:cx + half]
+
+
+def saturated_share(pixels: np.ndarray, cmap: str = "inferno") -> float:
+    """The share of pixels at (JPEG-close to) the colour map's top colour."""
+    top = colormap_lut(cmap)[-1].astype(np.float64)
+    return float((np.abs(pixels - top).sum(axis=-1) < 40).mean())
 
 
 @pytest.mark.slow
 @pytest.mark.skipif(shutil.which("chromium") is None and shutil.which("chromium-browser") is None,
                     reason="chromium not installed (apt-get install -y chromium)")
 def test_viewer_in_headless_chromium(tiny_runs, tmp_path):
-    """Start b3dgs-view on 127.0.0.1, open it in headless Chromium, wait for the canvas and a full frame,
-    switch to native σ with real mouse clicks on the panel's mode menu, drag the view (a low-resolution
-    pass, then full again), and compare screenshots. ``target_ms=1``: every moving frame takes the low pass."""
+    """Start b3dgs-view on 127.0.0.1, open it in headless Chromium and wait until the scene has drawn at full
+    resolution: it opens on the orbit view with the scene at the centre of the canvas (not the background, not a
+    frustum). Every mode of the DPMM run, picked with real mouse clicks on the panel's mode menu, shows a drawn view
+    that differs from the RGB one; native σ's automatic scale leaves it unsaturated. Then drag the view (a
+    low-resolution pass, then full again). ``target_ms=1``: every moving frame takes the low pass.
+    ``B3DGS_VIEWER_SHOTS=DIR`` keeps the screenshots there."""
     pytest.importorskip("viser", reason='viser not installed (fix: pip install -e ".[viewer]")')
     from b3dgs.viewer.browser import Browser
 
+    shots = Path(os.environ.get("B3DGS_VIEWER_SHOTS", tmp_path))
+    shots.mkdir(parents=True, exist_ok=True)
     proc = subprocess.Popen([sys.executable, "-m", "b3dgs.viewer.app", f"run={tiny_runs['dpmm']}", "port=0",
-                             "max_side=96", "target_ms=1", "duration_s=600"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            text=True, cwd=tmp_path, env=ENV)
+                             "max_side=320", "target_ms=1", "samples=8", "duration_s=900"], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, cwd=tmp_path, env=ENV)
     browser = None
     try:
         url = None
@@ -298,19 +387,32 @@ def test_viewer_in_headless_chromium(tiny_runs, tmp_path):
         threading.Thread(target=proc.stdout.read, daemon=True).start()  # keep the pipe drained
         browser = Browser(url + "/")
         browser.wait_for("document.querySelector('canvas') !== null", 120)
-        browser.wait_frame("(RGB", "full resolution")
+        browser.wait_frame("(RGB", "full resolution", "full = 320 px")  # the window's size, capped at max_side
         time.sleep(2.0)  # the page's fade-in
         rgb = browser.screenshot()
-        browser.choose("RGB", "Native σ")  # real mouse clicks on the panel's mode menu, then on the option
-        browser.wait_frame("Native σ", "full resolution")
-        assert "right 0.03" in browser.evaluate("document.body.innerText")  # the legend states the fixed scale
-        time.sleep(1.0)
-        sigma = browser.screenshot()
-        (tmp_path / "rgb.png").write_bytes(rgb)
-        (tmp_path / "sigma.png").write_bytes(sigma)
-        a, b = render_area(rgb), render_area(sigma)
-        assert a.std() > 5 and b.std() > 5, "a blank screenshot"
-        assert np.abs(a - b).mean() > 5, "RGB and σ screenshots do not differ"
+        (shots / "rgb.png").write_bytes(rgb)
+        centre = centre_patch(rgb)
+        assert centre.mean() > 25 and centre.std() > 3, "the centre of the opening view is not the scene"
+        assert render_area(rgb).std() > 5, "a blank screenshot"
+        current = "RGB"
+        labels = {"depth": "Depth", "alpha": "Alpha", "native_sigma": "Native σ", "proxy_sigma": "Proxy σ",
+                  "dp_activity": "DP activity E[a_k]", "pos_std": "Posterior position std", "opacity": "Opacity"}
+        for key, label in labels.items():
+            browser.choose(current, label)  # real mouse clicks on the panel's mode menu, then on the option
+            current = label
+            browser.wait_frame(f"({label}", "full resolution", timeout=300)
+            time.sleep(1.0)
+            png = browser.screenshot()
+            (shots / f"{key}.png").write_bytes(png)
+            area = render_area(png)
+            assert area.std() > 5, f"{key}: a blank screenshot"
+            assert np.abs(area - render_area(rgb)).mean() > 5, f"{key}: the same picture as RGB"
+            if key == "native_sigma":
+                text = browser.evaluate("document.body.innerText")
+                top = re.search(r"Native σ: left 0 → right ([0-9.e-]+) .*auto: the 99th percentile", text)
+                assert top and float(top.group(1)) > 0, text[:1500]
+                assert saturated_share(area) < 0.05, "native σ is saturated"
+                assert np.median(centre_patch(png).sum(axis=-1)) > 60, "native σ shows nothing at the centre"
         # drag the view: frames at low resolution while moving, then full resolution once still
         seen = set()
         browser.call("Input.dispatchMouseEvent", type="mousePressed", x=400, y=400, button="left", clickCount=1)
@@ -321,7 +423,7 @@ def test_viewer_in_headless_chromium(tiny_runs, tmp_path):
         browser.call("Input.dispatchMouseEvent", type="mouseReleased", x=580, y=400, button="left", clickCount=1)
         if not any(s and "low resolution" in s for s in seen):
             browser.wait_frame("low resolution", timeout=60)
-        browser.wait_frame("full resolution")
+        browser.wait_frame("full resolution", timeout=300)
     finally:
         if browser is not None:
             browser.close()

@@ -1,7 +1,9 @@
 """``b3dgs-view run=DIR [port=8080] [mode=...]``: serve the viewer of a finished run (``conf/view.yaml``).
 
 Known problems (a missing, unfinished or other-version run dir, viser not installed, a mode the run cannot
-show) print one line ``b3dgs-view: error: ... (fix: ...)`` and exit with code 2.
+show, a port outside 0-65535, a host that is not an address of this machine) print one line
+``b3dgs-view: error: ... (fix: ...)`` and exit with code 2, before anything is served. ``--help`` lists the
+modes and every option (from ``conf/view.yaml``).
 """
 from __future__ import annotations
 
@@ -14,14 +16,17 @@ import hydra
 from omegaconf import DictConfig
 
 from b3dgs.errors import B3dgsError
-from b3dgs.train import CONF_DIR
+from b3dgs import conf_dir
+
+CONF_DIR = conf_dir()
 
 log = logging.getLogger(__name__)
 
 __all__ = ["main", "serve"]
 
 SETTINGS = ("host", "port", "max_side", "min_side", "target_ms", "still_ms", "samples", "jitter", "sigma_max", "mode",
-            "frusta")
+            "frusta", "photos", "start")
+STARTS = ("orbit", "camera")
 
 
 def settings_from_cfg(cfg: DictConfig):
@@ -34,8 +39,16 @@ def settings_from_cfg(cfg: DictConfig):
     for key, least in (("port", 0), ("min_side", 8), ("samples", 2)):
         if key in kw and (not isinstance(kw[key], int) or isinstance(kw[key], bool) or kw[key] < least):
             raise B3dgsError(f"{key}={kw[key]} is not a valid {key}", f"pass {key}= an integer >= {least}")
+    check_port(kw.get("port", 0))
     if "max_side" in kw and (not isinstance(kw["max_side"], int) or kw["max_side"] < 8):
         raise B3dgsError(f"max_side={kw['max_side']} is too small", "pass max_side= an integer >= 8, or null")
+    if "max_side" in cfg and cfg.get("max_side") is None:
+        kw["max_side"] = None  # no cap: frames as large as the browser window
+    if str(kw.get("start", "orbit")) not in STARTS:
+        raise B3dgsError(f"start={kw['start']} is not a start view", f"pass start= one of {', '.join(STARTS)}")
+    for key in ("frusta", "photos"):
+        if key in kw and not isinstance(kw[key], bool):
+            raise B3dgsError(f"{key}={kw[key]} is not true or false", f"pass {key}=true or {key}=false")
     for key in ("target_ms", "still_ms", "jitter", "sigma_max"):
         if key in kw and not (isinstance(kw[key], (int, float)) and kw[key] > 0):
             raise B3dgsError(f"{key}={kw[key]} must be a positive number", f"pass {key}= a number > 0")
@@ -47,8 +60,43 @@ def settings_from_cfg(cfg: DictConfig):
     return ViewerSettings(**kw)
 
 
-def serve(cfg: DictConfig):
+def check_port(port) -> None:
+    if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
+        raise B3dgsError(f"port={port} is not a TCP port (0-65535)", "pass port=8080, or port=0 for any free port")
+
+
+def check_host(host: str, timeout: float = 3.0) -> None:
+    """Refuse (one line) a ``host`` that does not resolve, within ``timeout`` seconds, to an address of this machine
+    (the server could not bind to it)."""
+    import socket
+    from concurrent.futures import ThreadPoolExecutor, TimeoutError as Late
+
+    fix = "pass host=127.0.0.1 (this machine only) or host=0.0.0.0 (every interface of this machine)"
+    pool = ThreadPoolExecutor(max_workers=1)
+    try:
+        infos = pool.submit(socket.getaddrinfo, host, 0, 0, socket.SOCK_STREAM).result(timeout=timeout)
+    except Late:
+        raise B3dgsError(f"host={host} did not resolve within {timeout:g} s", fix) from None
+    except (socket.gaierror, UnicodeError) as e:
+        raise B3dgsError(f"host={host} is not a known host name or address ({e})", fix) from None
+    finally:
+        pool.shutdown(wait=False)
+    why = None
+    for family, kind, proto, _, addr in infos:
+        with socket.socket(family, kind, proto) as sock:
+            try:
+                sock.bind((addr[0], 0, *addr[2:]))
+                return
+            except OSError as e:
+                why = e.strerror or str(e)
+    raise B3dgsError(f"cannot serve on host={host}: {why} (it is not an address of this machine)", fix)
+
+
+def serve(cfg: DictConfig, settings=None):
     """Open the run, start the viewer; returns the started :class:`~b3dgs.viewer.server.ViewerApp`."""
+    if settings is None:
+        settings = settings_from_cfg(cfg)
+        check_host(settings.host)
     import torch
 
     try:
@@ -58,7 +106,6 @@ def serve(cfg: DictConfig):
     from b3dgs.viewer.run import open_run
     from b3dgs.viewer.server import ViewerApp
 
-    settings = settings_from_cfg(cfg)
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     renderer = None
@@ -81,9 +128,12 @@ def hydra_main(cfg: DictConfig) -> None:
     from b3dgs.errors import known_errors, quiet_known_noise
 
     with known_errors("b3dgs-view", cfg):
+        check_port(cfg.get("port", 8080))  # an address it cannot serve on is refused first, within a second or two
+        check_host(str(cfg.get("host", "127.0.0.1")))
+        settings = settings_from_cfg(cfg)
         quiet_known_noise()
         logging.getLogger("websockets").setLevel(logging.WARNING)
-        app = serve(cfg)
+        app = serve(cfg, settings)
         limit = cfg.get("duration_s")
         t0 = time.time()
         try:
@@ -95,10 +145,38 @@ def hydra_main(cfg: DictConfig) -> None:
             app.stop()
 
 
+def help_text() -> str:
+    """``b3dgs-view --help``: usage, the modes (:data:`b3dgs.viewer.modes.MODES`) and the options with their defaults
+    and comments (``conf/view.yaml``)."""
+    import re
+
+    from b3dgs.viewer.modes import MODES
+
+    lines = ["usage: b3dgs-view run=DIR [key=value ...]", "",
+             "A local web viewer (viser) of a finished b3dgs-train run and its uncertainty: open the printed URL.",
+             "", "Modes (mode=NAME at start, or the panel's Mode menu; a run offers those its model supports):"]
+    lines += [f"  {m.key:<14}{m.label}: {m.what}" for m in MODES.values()]
+    lines += ["", "Options (key=value; defaults from conf/view.yaml):"]
+    text = (Path(CONF_DIR) / "view.yaml").read_text()
+    for ln in text[text.index("\nrun:") + 1:text.index("\nb3dgs:")].splitlines():
+        opt = re.match(r"^(\w+):\s*(.*?)\s*(?:#\s?(.*))?$", ln)
+        more = re.match(r"^\s+#\s?(.*)$", ln)
+        if opt:
+            lines.append(f"  {opt.group(1) + '=' + opt.group(2):<22}{opt.group(3) or ''}")
+        elif more:
+            lines.append(f"  {'':<22}{more.group(1)}")
+    lines += ["", "Examples:", "  b3dgs-view run=outputs/train/RUN", "  b3dgs-view run=RUN mode=native_sigma port=0",
+              "  b3dgs-view run=RUN sigma_max=0.05 max_side=512 photos=true"]
+    return "\n".join(lines)
+
+
 def main() -> None:
-    """``b3dgs-view``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
+    """``b3dgs-view``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`); ``--help`` lists modes and options."""
     from b3dgs.errors import run_cli
 
+    if any(a in ("--help", "-h") for a in sys.argv[1:]):
+        print(help_text())
+        return
     run_cli("b3dgs-view", hydra_main)
 
 

@@ -10,7 +10,8 @@ A per-Gaussian overlay renders the Gaussians with their value as a grey colour o
 Σ_k w_k v_k and α = Σ_k w_k; the map shows v̄ = Σ_k w_k v_k / α, the compositing-weighted mean of the
 values along the ray, where α ≥ :data:`MIN_ALPHA` (elsewhere the background colour). Scalar maps are never
 normalised per frame: each mode has one range for the session, stated in its legend (depth's from the
-scene's cameras, σ's from ``sigma_max``), so two views or two moments compare.
+scene's cameras, σ's from ``sigma_max``; the viewer sets σ's from its first frame, :func:`robust_max`), so two
+views or two moments compare.
 
 Nothing here imports viser: :class:`ModeRenderer` renders for tests and scripts as well.
 """
@@ -180,7 +181,11 @@ class ModeRenderer:
 
     def set_sigma_max(self, sigma_max: float) -> None:
         for k in ("native_sigma", "proxy_sigma"):
-            self.specs[k] = replace(MODES[k], hi=float(sigma_max))
+            self.set_scale(k, sigma_max)
+
+    def set_scale(self, mode: str, hi: float) -> None:
+        """The top of ``mode``'s colour scale (its values map onto [lo, hi])."""
+        self.specs[mode] = replace(self.specs[mode], hi=float(hi))
 
     # ------------------------------------------------------------------ rendering
     @torch.no_grad()

@@ -94,7 +94,8 @@ def open_run(run_dir, acquired: Optional[str] = None, renderer=None) -> ViewedRu
     pid = _training_pid(run_dir)
     if pid is not None:
         raise B3dgsError(f"{run_dir} is still training (b3dgs-train pid {pid}); it has no final model yet",
-                         "wait for it to finish, or watch it live with b3dgs-train ... viewer=true")
+                         "wait for it to finish: b3dgs-view opens finished runs (their checkpoints/last.ckpt and "
+                         "metrics.json)")
     if not (run_dir / "metrics.json").is_file() or not (run_dir / "checkpoints" / "last.ckpt").is_file():
         missing = "metrics.json" if not (run_dir / "metrics.json").is_file() else "checkpoints/last.ckpt"
         raise B3dgsError(f"{run_dir} holds an unfinished run: no {missing}",
