@@ -64,6 +64,17 @@ def _raised_by_us(exc: BaseException) -> bool:
     return str(Path(last.tb_frame.f_code.co_filename).resolve()).startswith(_OWN_ROOTS)
 
 
+def _key_suggestion(key: str) -> str:
+    """``"; did you mean X?"`` for a misspelt dotted config key, from the keys b3dgs's config files give its node."""
+    parent, _, leaf = str(key).rpartition(".")
+    try:
+        from b3dgs.confs import known_keys
+
+        return did_you_mean(leaf, known_keys(parent))
+    except Exception:  # noqa: BLE001 - a suggestion must never hide the error itself
+        return ""
+
+
 def _hydra_error(exc: BaseException) -> Optional[B3dgsError]:
     """A one-line form of Hydra's composition errors (bad override, unknown option or key)."""
     try:
@@ -89,7 +100,7 @@ def _hydra_error(exc: BaseException) -> Optional[B3dgsError]:
         return B3dgsError(f"+{key} adds a key the config already has", f"pass {key}=VALUE without the +")
     if "Could not override" in head or "Could not append" in head or "not in struct" in text:
         key = head.split("'")[1] if "'" in head else head
-        return B3dgsError(f"unknown config key {key}",
+        return B3dgsError(f"unknown config key {key}{_key_suggestion(key)}",
                           "check its spelling; `--cfg job` prints every key of the composed config")
     if "Could not find" in head or "In '" in head:
         avail = [ln for ln in lines[1:] if not ln.startswith(("Config search path", "provider=", "In "))]

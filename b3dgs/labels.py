@@ -17,38 +17,15 @@ from __future__ import annotations
 
 import re
 from functools import lru_cache
-from pathlib import Path
 from typing import Any, Mapping, Optional
 
 from omegaconf import DictConfig, OmegaConf
 
-from b3dgs import conf_dir
+from b3dgs.confs import conf_roots, load_option as _option
 
 __all__ = ["method_label", "register_resolver"]
 
 _DEFAULT_STRATEGY, _DEFAULT_SCHEDULE = "default", "constant"  # conf/train.yaml's defaults list
-
-
-def _roots() -> list[Path]:
-    """b3dgs's conf dir and those of installed packages (``b3dgs.conf`` entry points)."""
-    roots = [Path(conf_dir())]
-    try:
-        from importlib import resources
-        from importlib.metadata import entry_points
-
-        roots += [Path(str(resources.files(ep.value))) for ep in entry_points(group="b3dgs.conf")]
-    except Exception:  # noqa: BLE001 - a broken extension package must not hide b3dgs's own options
-        pass
-    return roots
-
-
-@lru_cache(maxsize=None)
-def _option(group: str, name: str) -> Optional[dict]:
-    for root in _roots():
-        f = root / group / f"{name}.yaml"
-        if f.is_file():
-            return OmegaConf.to_container(OmegaConf.load(f), resolve=False) or {}
-    return None
 
 
 @lru_cache(maxsize=None)
@@ -80,7 +57,7 @@ def _class(target: Any) -> str:
 @lru_cache(maxsize=None)
 def _option_of(group: str, cls: str) -> Optional[str]:
     """The option of ``group`` whose ``_target_`` is class ``cls``."""
-    for root in _roots():
+    for root in conf_roots():
         for f in sorted((root / group).glob("*.yaml")):
             if _class((_option(group, f.stem) or {}).get("_target_")) == cls:
                 return f.stem

@@ -546,3 +546,32 @@ def validate_config(cfg: DictConfig, app: str = "train") -> None:
     if isinstance(cfg.get("logger"), DictConfig) and "_target_" in cfg.logger:
         _check_target_node(cfg.logger, "logger")
     _check_resume(cfg)
+    warn_slow_renderer(cfg)
+
+
+#: a run the renderer's stated speed puts above this many seconds gets a warning before it starts
+SLOW_RUN_S = 600.0
+
+
+def warn_slow_renderer(cfg: DictConfig) -> Optional[str]:
+    """A warning (logged and returned) when the renderer states a CPU cost per step (``cpu_seconds_per_step``, e.g.
+    the pure-PyTorch reference's ~1 s) that puts ``trainer.max_steps`` above :data:`SLOW_RUN_S` on the CPU."""
+    import logging
+
+    node = cfg.get("renderer")
+    if not isinstance(node, DictConfig) or "_target_" not in node:
+        return None
+    target = _locate(str(node["_target_"]))
+    per_step = getattr(target, "cpu_seconds_per_step", None)
+    steps = _get(cfg.trainer, "max_steps", "trainer.max_steps")
+    device = str(node.get("device_name", "cpu"))
+    import torch
+
+    on_cpu = device == "cpu" or (device == "auto" and not torch.cuda.is_available())
+    if not (per_step and on_cpu and _is_int(steps) and steps * per_step > SLOW_RUN_S):
+        return None
+    msg = (f"renderer={getattr(target, 'name', node['_target_'])} trains at about "
+           f"{per_step:g} s per step on the CPU: trainer.max_steps={steps} will take about {steps * per_step / 60:.0f} "
+           f"min (fix: renderer=cpu, the C++ backend, is ~40x faster; or fewer trainer.max_steps)")
+    logging.getLogger(__name__).warning(msg)
+    return msg

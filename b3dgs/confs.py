@@ -1,0 +1,66 @@
+"""b3dgs's config folders and the keys their option files define (for labels and "did you mean" suggestions)."""
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from omegaconf import OmegaConf
+
+from b3dgs import conf_dir
+
+__all__ = ["conf_roots", "known_keys", "load_option"]
+
+
+def conf_roots() -> list[Path]:
+    """b3dgs's conf dir and those of installed packages (``b3dgs.conf`` entry points)."""
+    roots = [Path(conf_dir())]
+    try:
+        from importlib import resources
+        from importlib.metadata import entry_points
+
+        roots += [Path(str(resources.files(ep.value))) for ep in entry_points(group="b3dgs.conf")]
+    except Exception:  # noqa: BLE001 - a broken extension package must not hide b3dgs's own options
+        pass
+    return roots
+
+
+def _load(f: Path) -> tuple[dict, bool]:
+    """(the file's contents, whether it is a ``@package _global_`` file)."""
+    text = f.read_text()
+    data = OmegaConf.to_container(OmegaConf.create(text), resolve=False) or {}
+    return (data if isinstance(data, dict) else {}), any("@package _global_" in ln for ln in text.splitlines()[:5])
+
+
+@lru_cache(maxsize=None)
+def load_option(group: str, name: str):
+    """The contents of option ``name`` of config ``group`` (the first root that has it), None if none has."""
+    for root in conf_roots():
+        f = root / group / f"{name}.yaml"
+        if f.is_file():
+            return _load(f)[0]
+    return None
+
+
+@lru_cache(maxsize=None)
+def known_keys(path: str) -> tuple[str, ...]:
+    """The keys that b3dgs's config files give the node at dotted ``path`` ("" for the top level): the primary configs'
+    and every option file's of the group the path starts with (e.g. ``trainer`` -> ``conf/trainer/*.yaml``)."""
+    parts = [p for p in path.split(".") if p]
+    keys: set[str] = set()
+
+    def descend(node, rest):
+        for p in rest:
+            node = node.get(p) if isinstance(node, dict) else None
+        if isinstance(node, dict):
+            keys.update(str(k) for k in node if k not in ("defaults", "_target_"))
+
+    for root in conf_roots():
+        for f in sorted(root.glob("*.yaml")):  # primary configs (train, eval, view, ...)
+            descend(_load(f)[0], parts)
+        if not parts:
+            keys.update(d.name for d in root.iterdir() if d.is_dir() and d.name != "hydra")
+        elif (root / parts[0]).is_dir():
+            for f in sorted((root / parts[0]).glob("*.yaml")):
+                data, is_global = _load(f)
+                descend(data, parts if is_global else parts[1:])
+    return tuple(sorted(keys))

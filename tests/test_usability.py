@@ -1,0 +1,57 @@
+"""Small things a user meets: "did you mean" for a misspelt key given without ``+``, the warning before a long run on
+the pure-PyTorch renderer, and ``renderer=auto -> ...`` said once per process."""
+from __future__ import annotations
+
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+ENV = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+
+
+@pytest.mark.parametrize("arg, want", [("trainer.max_stpes=10", "max_steps"), ("trainer.max_step=10", "max_steps"),
+                                       ("data.max_sid=10", "max_side"), ("sed=1", "seed")])
+def test_misspelt_key_suggests_the_right_one(tmp_path, arg, want):
+    res = subprocess.run([sys.executable, "-m", "b3dgs.train", arg], capture_output=True, text=True, timeout=120,
+                         cwd=tmp_path, env=ENV)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1, res.stderr[-2000:]
+    assert f"unknown config key {arg.split('=')[0]}; did you mean {want}? (fix: " in lines[0], lines[0]
+    assert not any(tmp_path.iterdir())
+
+
+def _train_cfg(*overrides):
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    from b3dgs.train import CONF_DIR
+
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name="train", overrides=list(overrides))
+
+
+def test_torch_renderer_warns_before_a_long_cpu_run(caplog):
+    from b3dgs.validation import warn_slow_renderer
+
+    with caplog.at_level(logging.WARNING, logger="b3dgs.validation"):
+        msg = warn_slow_renderer(_train_cfg("renderer=torch", "renderer.device_name=cpu"))
+    assert msg and "renderer=torch trains at about 1 s per step" in msg and "about 50 min" in msg
+    assert "renderer=cpu" in msg and msg in caplog.text
+    assert warn_slow_renderer(_train_cfg("renderer=torch", "renderer.device_name=cpu", "trainer.max_steps=300")) is None
+    assert warn_slow_renderer(_train_cfg("renderer=cpu")) is None
+
+
+def test_auto_renderer_is_announced_once_per_process(caplog, monkeypatch):
+    from b3dgs.render import renderers
+
+    monkeypatch.setattr(renderers, "_SAID", set())  # as in a fresh process
+    with caplog.at_level(logging.INFO, logger="b3dgs.render.renderers"):
+        for _ in range(3):
+            renderers.auto_renderer()
+    assert sum("renderer=auto ->" in r.getMessage() for r in caplog.records) == 1
