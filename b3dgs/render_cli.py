@@ -159,6 +159,21 @@ def write_video(path: Path, frames: Sequence[np.ndarray], fps: int) -> Path:
     return path
 
 
+def _record(run_dir: Path, files: Sequence[Path]) -> None:
+    """Files written inside the run dir join its manifest (``overwrite=true`` of that run then removes them too)."""
+    from b3dgs.rundir import record_written, run_dir_lock
+
+    base, rel = run_dir.resolve(), set()
+    for f in files:
+        q = Path(f).resolve()
+        if q.is_relative_to(base):
+            folder = q.relative_to(base).parent.as_posix()
+            rel.add(f"{folder}/frame_[0-9]*.png" if q.suffix == ".png" else f"{folder}/*.mp4")
+    if rel:
+        with run_dir_lock(run_dir, prog="b3dgs-render"):
+            record_written(run_dir, sorted(rel))
+
+
 def render(cfg: DictConfig) -> dict:
     """Render ``cfg.run`` along ``cfg.path`` into ``cfg.out``; returns what was written."""
     from b3dgs.data.images import save_png
@@ -191,6 +206,7 @@ def render(cfg: DictConfig) -> dict:
         old.unlink()
     pngs = [save_png(out / f"frame_{i:05d}.png", f) for i, f in enumerate(frames)]
     video = write_video(out / f"{path}.mp4", frames, fps) if cfg.get("video", True) and len(frames) > 1 else None
+    _record(run.path, [*pngs, *([video] if video else [])])
     written = {"frames": [str(p) for p in pngs], "video": None if video is None else str(video), "panel_max": top}
     log.info("%s: %d frames of path=%s at %dx%d%s", run.path, len(frames), path, frames[0].shape[1], frames[0].shape[0],
              f", panel {cfg.get('panel')} 0 to {top:.3g}" if top is not None else "")

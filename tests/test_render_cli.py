@@ -81,6 +81,9 @@ def test_render_writes_pngs_and_an_mp4_of_the_test_path(niw_run, tmp_path):
     assert saturated < 0.05, f"{saturated:.0%} of the σ panel is at the top colour: its scale is not the path's own"
     n, size = video_frames(out / "test.mp4")
     assert n == 3 and size == (128, h + h % 2)
+    from b3dgs.rundir import run_files
+
+    assert {"render/test/test.mp4", *(f"render/test/{p.name}" for p in pngs)} <= set(run_files(niw_run))  # its own
     res = cli(f"run={niw_run}", "path=interpolate", "frames=10", f"out={tmp_path / 'loop'}", "fps=10")
     assert res.returncode == 0, res.stderr[-3000:]
     assert len(list((tmp_path / "loop").glob("frame_*.png"))) == 10
