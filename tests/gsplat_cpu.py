@@ -29,7 +29,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-CPU_EMULATION = True  # read by b3dgs.render.renderers.gsplat_emulated()
+CPU_EMULATION = True  # read by b3dgs.render.gsplat_backend.gsplat_emulated()
 ALPHA_THRESHOLD = 1.0 / 255.0
 MAX_ALPHA = 0.999
 T_STOP = 1e-4  # a pixel stops when the transmittance would reach this (exclusive)

@@ -1,41 +1,79 @@
-"""The import graph of ``b3dgs/`` is a DAG at the level of its top-level modules and subpackages (``b3dgs.render``,
-``b3dgs.metrics``, ``b3dgs.train``, ...), counting every import, also those inside functions: no cycle is hidden by
-a lazy import (render <-> metrics was one). ``import b3dgs`` itself (resolvers, ``conf_dir``) is a leaf."""
+"""The import graph of ``b3dgs/`` and ``plugins/`` has no cycle, at two levels, counting every import, also those
+inside functions (a lazy import hides a cycle from Python, not from this test):
+
+- between modules: no module imports, directly or through others, a module that imports it back (``render._ext``
+  -> ``render.renderers`` -> ``render._ext`` was one);
+- between the top-level modules and subpackages of ``b3dgs`` (``b3dgs.render``, ``b3dgs.metrics``, ``b3dgs.train``,
+  ...): the floors form a DAG (render <-> metrics was one). ``import b3dgs`` itself (resolvers, ``conf_dir``) is a
+  leaf.
+
+An import names a module (``from b3dgs.render import renderers``) or the package whose ``__init__`` defines the
+name (``from b3dgs.render import X``); the implicit import of a module's parent packages is not an edge.
+"""
 import ast
+import sys
 from pathlib import Path
 
-PKG = Path(__file__).resolve().parents[1] / "b3dgs"
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("b3dgs", "plugins")
+ALIASES = {"b3dgs_plugins": "plugins"}  # the installed name of plugins/
+
+
+def _modules() -> dict[str, tuple[Path, bool]]:
+    out = {}
+    for pkg in PACKAGES:
+        for path in (ROOT / pkg).rglob("*.py"):
+            parts = list(path.relative_to(ROOT).with_suffix("").parts)
+            is_pkg = parts[-1] == "__init__"
+            out[".".join(parts[:-1] if is_pkg else parts)] = (path, is_pkg)
+    return out
+
+
+def _canonical(name: str) -> str:
+    head, _, rest = name.partition(".")
+    head = ALIASES.get(head, head)
+    return f"{head}.{rest}" if rest else head
+
+
+def _targets(node, package: str, modules) -> list[str]:
+    if isinstance(node, ast.Import):
+        return [_canonical(a.name) for a in node.names]
+    base = node.module or ""
+    if node.level:
+        parts = package.split(".")
+        base = ".".join(parts[: len(parts) - node.level + 1] + ([base] if base else []))
+    base = _canonical(base)
+    return [f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base for a in node.names]
+
+
+def module_graph() -> dict[str, set[str]]:
+    modules = _modules()
+    graph: dict[str, set[str]] = {}
+    for module, (path, is_pkg) in modules.items():
+        package = module if is_pkg else module.rsplit(".", 1)[0]
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                for t in _targets(node, package, modules):
+                    if t in modules and t != module:
+                        graph.setdefault(module, set()).add(t)
+    return graph
 
 
 def _unit(module: str) -> str:
     return ".".join(module.split(".")[:2])
 
 
-def _graph() -> dict[str, set[str]]:
+def unit_graph() -> dict[str, set[str]]:
     graph: dict[str, set[str]] = {}
-    for path in PKG.rglob("*.py"):
-        parts = list(path.relative_to(PKG.parent).with_suffix("").parts)
-        is_pkg = parts[-1] == "__init__"
-        module = ".".join(parts[:-1] if is_pkg else parts)
-        package = module if is_pkg else module.rsplit(".", 1)[0]
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.Import):
-                targets = [a.name for a in node.names]
-            elif isinstance(node, ast.ImportFrom):
-                base = node.module or ""
-                if node.level:
-                    up = package.split(".")[: len(package.split(".")) - node.level + 1]
-                    base = ".".join(up + ([base] if base else []))
-                targets = [base]
-            else:
-                continue
+    for module, targets in module_graph().items():
+        if module.startswith("b3dgs"):
             for t in targets:
                 if t.startswith("b3dgs.") and _unit(t) != _unit(module):
                     graph.setdefault(_unit(module), set()).add(_unit(t))
     return graph
 
 
-def _cycle(graph: dict[str, set[str]]):
+def find_cycle(graph: dict[str, set[str]]):
     state: dict[str, int] = {}
     stack: list[str] = []
 
@@ -61,9 +99,30 @@ def _cycle(graph: dict[str, set[str]]):
     return None
 
 
-def test_b3dgs_import_graph_is_a_dag():
-    graph = _graph()
+def test_no_module_import_cycle():
+    graph = module_graph()
+    # the walk saw the code and plugins
+    assert "b3dgs.render._ext" in graph["b3dgs.render.renderers"]
+    assert any(m.startswith("plugins.") for m in graph)
+    cycle = find_cycle(graph)
+    assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+def test_b3dgs_floors_are_a_dag():
+    graph = unit_graph()
     assert "b3dgs.render" in graph and "b3dgs.metrics" in graph  # the walk saw the code
-    cycle = _cycle(graph)
+    cycle = find_cycle(graph)
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
     assert "b3dgs.metrics" not in graph["b3dgs.render"]
+
+
+def test_the_check_finds_a_lazy_cycle(tmp_path, monkeypatch):
+    """A cycle closed only by an import inside a function is reported."""
+    pkg = tmp_path / "b3dgs"
+    pkg.mkdir()
+    (pkg / "__init__.py").write_text("")
+    (pkg / "a.py").write_text("from b3dgs.b import g\n")
+    (pkg / "b.py").write_text("def g():\n    from b3dgs import a\n    return a\n")
+    (tmp_path / "plugins").mkdir()
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    assert find_cycle(module_graph()) in (["b3dgs.a", "b3dgs.b", "b3dgs.a"], ["b3dgs.b", "b3dgs.a", "b3dgs.b"])

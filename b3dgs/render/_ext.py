@@ -13,6 +13,7 @@ import hashlib
 import importlib.machinery
 import importlib.util
 import os
+import re
 import sys
 import threading
 import warnings
@@ -132,12 +133,19 @@ def load_extension(verbose: bool = False) -> ModuleType:
 
 
 _WARNED: set[str] = set()
+_COMPILER_ERROR = re.compile(r"error:.*")
+
+
+def first_compiler_error(message: str) -> str:
+    """The first ``error:`` line of a failed build's output (or the message's first line)."""
+    m = _COMPILER_ERROR.search(message)
+    line = m.group(0) if m else (message.strip().splitlines() or ["unknown error"])[0]
+    return line.strip()[:300]
+
 
 
 def warn_fallback(error: Exception, fallback: str) -> None:
     """One warning per fallback naming the compiler error (a failed build is never silent)."""
-    from b3dgs.render.renderers import first_compiler_error
-
     msg = f"b3dgs: the C++ extension did not build ({first_compiler_error(str(error))}); {fallback}"
     if msg not in _WARNED:
         _WARNED.add(msg)

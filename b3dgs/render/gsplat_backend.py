@@ -33,6 +33,7 @@ Left as gsplat has them (documented in README, "Renderers"; sizes measured on th
 """
 from __future__ import annotations
 
+import sys
 from typing import Mapping, Optional
 
 import torch
@@ -106,9 +107,13 @@ def _identity_for_zero(quats: Tensor) -> Tensor:
     return torch.where(zero, ident, quats)
 
 
-def _emulated(dev: torch.device) -> bool:
-    from b3dgs.render.renderers import gsplat_emulated
+def gsplat_emulated() -> bool:
+    """Whether gsplat's compiled backend is the test suite's CPU emulation (``tests/gsplat_cpu.py``)."""
+    backend = sys.modules.get("gsplat.cuda._backend")
+    return bool(getattr(getattr(backend, "_C", None), "CPU_EMULATION", False))
 
+
+def _emulated(dev: torch.device) -> bool:
     return dev.type == "cpu" and gsplat_emulated()
 
 

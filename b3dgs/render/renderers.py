@@ -18,14 +18,14 @@ from __future__ import annotations
 
 import importlib.util
 import logging
-import re
-import sys
 from dataclasses import dataclass
 from typing import Any, ClassVar, Mapping, Optional
 
 import torch
 from torch import Tensor
 
+from b3dgs.render._ext import first_compiler_error
+from b3dgs.render.gsplat_backend import gsplat_emulated
 from b3dgs.render.render import RenderOutput, render
 from b3dgs.types import Camera
 
@@ -137,12 +137,6 @@ def gsplat_available() -> bool:
     return torch.cuda.is_available() and importlib.util.find_spec("gsplat") is not None
 
 
-def gsplat_emulated() -> bool:
-    """Whether gsplat's compiled backend is the test suite's CPU emulation (``tests/gsplat_cpu.py``)."""
-    backend = sys.modules.get("gsplat.cuda._backend")
-    return bool(getattr(getattr(backend, "_C", None), "CPU_EMULATION", False))
-
-
 @dataclass
 class GsplatRenderer(Renderer):
     """gsplat's CUDA rasterizer (``pip install -e ".[cuda]"``), unpacked layout (``packed=False``).
@@ -186,16 +180,6 @@ class GsplatRenderer(Renderer):
         return render_gsplat(params, camera, sh_degree=sh_degree, background=background,
                              return_weights=return_weights, retain_means2d_grad=retain_means2d_grad,
                              near=self.near, tile_size=self.tile_size, eps2d=self.eps2d)
-
-
-_COMPILER_ERROR = re.compile(r"error:.*")
-
-
-def first_compiler_error(message: str) -> str:
-    """The first ``error:`` line of a failed build's output (or the message's first line)."""
-    m = _COMPILER_ERROR.search(message)
-    line = m.group(0) if m else (message.strip().splitlines() or ["unknown error"])[0]
-    return line.strip()[:300]
 
 
 def auto_renderer(near: float = 0.01) -> Renderer:
