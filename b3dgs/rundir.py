@@ -1,6 +1,6 @@
 """A run dir that one process owns: its lock, its deferred job log and ``.hydra/``, stale temp files, signals.
 
-* :func:`run_dir_lock`: an exclusive ``fcntl.flock`` on ``<run dir>/.b3dgs.lock`` (holding the owner's
+* :func:`run_dir_lock`: an exclusive lock (:mod:`b3dgs.locks`) on ``<run dir>/.b3dgs.lock`` (holding the owner's
   pid), taken before anything else is written; a second process is refused with one line. The kernel drops
   the lock when its process dies (even by ``kill -9``), so a lock file left behind is stale by
   construction: the next run takes it over.
@@ -18,8 +18,6 @@
 """
 from __future__ import annotations
 
-import errno
-import fcntl
 import fnmatch
 import json
 import logging
@@ -27,11 +25,12 @@ import os
 import signal
 import threading
 import time
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Iterable, Iterator, Optional
 
 from b3dgs.errors import B3dgsError
+from b3dgs.locks import LockHeld, lock_holder, process_lock
 
 LOCK_NAME = ".b3dgs.lock"
 
@@ -50,40 +49,19 @@ def run_dir_lock(run_dir: Path, prog: str = "b3dgs-train") -> Iterator[None]:
     except PermissionError:
         raise B3dgsError(f"cannot create the run dir {run_dir}: permission denied",
                          "pass hydra.run.dir=PATH to a writable folder") from None
-    path = run_dir / LOCK_NAME
-    while True:
-        try:
-            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
-        except PermissionError:
-            raise B3dgsError(f"the run dir {run_dir} is not writable",
-                             "pass hydra.run.dir=PATH to a writable folder") from None
-        try:
-            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except OSError as e:
-            if e.errno not in (errno.EAGAIN, errno.EACCES):
-                os.close(fd)
-                raise
-            owner = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
-            os.close(fd)
-            raise B3dgsError(f"the run dir {run_dir} is in use by another {prog} (pid {owner})",
-                             "wait for it to finish, or pass another hydra.run.dir") from None
-        try:  # the file may have been removed by its previous owner between our open and flock: retry
-            same = os.stat(path).st_ino == os.fstat(fd).st_ino
-        except FileNotFoundError:
-            same = False
-        if same:
-            break
-        os.close(fd)
-    os.ftruncate(fd, 0)
-    os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+    held = ExitStack()
     try:
-        yield
+        held.enter_context(process_lock(run_dir / LOCK_NAME, wait=False, remove=True))
+    except PermissionError:
+        raise B3dgsError(f"the run dir {run_dir} is not writable",
+                         "pass hydra.run.dir=PATH to a writable folder") from None
+    except LockHeld as e:
+        raise B3dgsError(f"the run dir {run_dir} is in use by another {prog} (pid {e.pid})",
+                         "wait for it to finish, or pass another hydra.run.dir") from None
+    try:
+        with held:
+            yield
     finally:
-        try:
-            path.unlink()
-        except FileNotFoundError:
-            pass
-        os.close(fd)
         try:
             run_dir.rmdir()  # only if the run left nothing (a refused run in a new dir)
         except OSError:
@@ -102,27 +80,7 @@ def remove_stale_tmp(run_dir: Path) -> list[Path]:
 
 def run_dir_busy(run_dir: Path) -> Optional[str]:
     """The pid of the live process that holds ``run_dir``'s lock (a training in progress), else ``None``."""
-    path = Path(run_dir) / LOCK_NAME
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return None
-    try:
-        owner = os.pread(fd, 32, 0).decode(errors="replace").strip()
-        try:
-            os.kill(int(owner), 0)
-        except (ValueError, ProcessLookupError):
-            return None  # a lock file left by a dead process: no lock
-        except PermissionError:
-            pass  # alive, another user's
-        try:  # alive: confirm that it holds the lock (the pid may have been reused since a kill -9)
-            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-        except OSError:
-            return owner
-        fcntl.flock(fd, fcntl.LOCK_UN)
-        return None
-    finally:
-        os.close(fd)
+    return lock_holder(Path(run_dir) / LOCK_NAME)
 
 
 # ------------------------------------------------------------------------------------------ run manifest

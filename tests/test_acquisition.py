@@ -276,7 +276,6 @@ def test_study_shares_a_second_round_only_when_it_is_the_same_run(tmp_path):
 def test_phase1_lock_serialises_jobs_that_share_a_phase1_model(tmp_path):
     """Parallel seed jobs (``-m`` with a parallel launcher) share the ensemble's phase-1 members: the second
     job waits for the first instead of training the same model into the same directory."""
-    pytest.importorskip("fcntl")
     from b3dgs.study.active import phase1_lock
 
     d = tmp_path / "phase1" / "standard_s1"

@@ -49,6 +49,30 @@ def test_lock_refuses_a_second_holder_and_cleans_up(tmp_path):
             pass
 
 
+def test_another_process_holding_the_lock_is_named_and_its_death_frees_it(tmp_path):
+    """b3dgs.locks across processes: the holder's pid in the refusal and in run_dir_busy; a killed holder
+    (kill -9) leaves a lock file that holds nothing."""
+    from b3dgs.rundir import run_dir_busy
+
+    d = tmp_path / "run"
+    code = ("import sys, time; from pathlib import Path; from b3dgs.rundir import run_dir_lock\n"
+            f"with run_dir_lock(Path({str(d)!r})):\n"
+            "    print('held', flush=True); time.sleep(60)\n")
+    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "held"
+        assert run_dir_busy(d) == str(child.pid)
+        with pytest.raises(B3dgsError, match=rf"in use by another b3dgs-train \(pid {child.pid}\)"):
+            with run_dir_lock(d):
+                pass
+    finally:
+        child.send_signal(signal.SIGKILL)
+        child.wait(timeout=30)
+    assert (d / LOCK_NAME).exists() and run_dir_busy(d) is None
+    with run_dir_lock(d):
+        assert (d / LOCK_NAME).read_text().strip() == str(os.getpid())
+
+
 def test_remove_stale_tmp(tmp_path):
     for name in (".point_cloud.ply.ab12.tmp", "checkpoints/.last.ckpt.x.tmp", "renders/.v0.png.q.tmp", "keep.tmp"):
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)

@@ -3,7 +3,7 @@
 The extension is compiled once with ``torch.utils.cpp_extension.load`` (ninja) into a per-user
 cache directory keyed by a hash of the sources, the compiler flags and the torch version:
 ``$B3DGS_CACHE/<hash>`` if ``B3DGS_CACHE`` is set, else ``~/.cache/b3dgs/ext/<hash>``.
-Concurrent builds from several processes are serialised with an ``fcntl`` lock (released by the
+Concurrent builds from several processes are serialised with a lock (:mod:`b3dgs.locks`, released by the
 kernel even if a process dies, unlike torch's file baton, whose stale lock files we clear while
 holding our lock). Later processes import the built module directly without invoking ninja.
 """
@@ -84,29 +84,25 @@ def _import_built(path: Path, name: str) -> ModuleType:
 
 
 def _build_locked(build_dir: Path, name: str, verbose: bool) -> ModuleType:
-    import fcntl
-
     from torch.utils import cpp_extension
 
+    from b3dgs.locks import process_lock
+
     so_path = build_dir / f"{name}.so"
-    with open(build_dir / "b3dgs_build.lock", "w") as lock_file:
-        fcntl.flock(lock_file, fcntl.LOCK_EX)  # blocks while another process builds
-        try:
-            if so_path.exists():
-                return _import_built(so_path, name)
-            stale = build_dir / "lock"  # torch FileBaton left over by a killed build
-            if stale.exists():
-                stale.unlink()
-            return cpp_extension.load(
-                name=name,
-                sources=[str(s) for s in _SOURCES],
-                extra_cflags=list(_cflags()),
-                extra_ldflags=list(_LDFLAGS),
-                build_directory=str(build_dir),
-                verbose=verbose,
-            )
-        finally:
-            fcntl.flock(lock_file, fcntl.LOCK_UN)
+    with process_lock(build_dir / "b3dgs_build.lock"):  # blocks while another process builds
+        if so_path.exists():
+            return _import_built(so_path, name)
+        stale = build_dir / "lock"  # torch FileBaton left over by a killed build
+        if stale.exists():
+            stale.unlink()
+        return cpp_extension.load(
+            name=name,
+            sources=[str(s) for s in _SOURCES],
+            extra_cflags=list(_cflags()),
+            extra_ldflags=list(_LDFLAGS),
+            build_directory=str(build_dir),
+            verbose=verbose,
+        )
 
 
 def load_extension(verbose: bool = False) -> ModuleType:

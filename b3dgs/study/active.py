@@ -231,20 +231,13 @@ def legacy_protocol(out: Path) -> Optional[dict]:
 
 @contextlib.contextmanager
 def phase1_lock(run_dir: Path):
-    """An exclusive lock on ``run_dir`` across processes (``fcntl.flock``: released when the holder exits,
-    also when it is killed), so two jobs never train the same phase-1 model; a no-op without ``fcntl``."""
-    try:
-        import fcntl
-    except ImportError:  # Windows: seeds of one scene must then run one after another
-        yield
-        return
+    """An exclusive lock on ``run_dir`` across processes (:mod:`b3dgs.locks`: released when the holder exits,
+    also when it is killed), so two jobs never train the same phase-1 model."""
+    from b3dgs.locks import process_lock
+
     run_dir.parent.mkdir(parents=True, exist_ok=True)
-    with open(run_dir.parent / f".{run_dir.name}.lock", "w") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(fh, fcntl.LOCK_UN)
+    with process_lock(run_dir.parent / f".{run_dir.name}.lock"):
+        yield
 
 
 class ActiveStudy:
