@@ -348,8 +348,7 @@ class ViewerApp:
 
         if self.s.start == "camera":
             self.jump(client, self._cameras[0][1])
-        else:
-            self.go_home(client)
+        # else: the browser starts at viser's initial camera, the home view (set once in __init__)
 
     def _on_disconnect(self, client) -> None:
         with self.lock:
