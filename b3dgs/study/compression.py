@@ -30,6 +30,7 @@ from omegaconf import DictConfig, OmegaConf, open_dict
 
 from b3dgs.compression import keep_top
 from b3dgs.io import atomic_path, write_json
+from b3dgs.labels import method_label
 from b3dgs.protocol import check_stored_protocol, flatten
 from b3dgs.report.document import markdown_table
 from b3dgs.report.stats import mean_sem, paired_stats
@@ -252,7 +253,7 @@ class CompressionStudy:
         res = {"scene": str(loaded.cfg.data.name), "seed": int(loaded.cfg.seed), "base_run": str(loaded.path),
                "num_gaussians": loaded.module.num_gaussians, "psnr": ev.get("psnr"), "ssim": ev.get("ssim"),
                "lpips": ev.get("lpips"), "render_fps": ev.get("render_fps"), "train_time_s": m.get("train_time_s"),
-               "model": str(loaded.cfg.model.get("name"))}
+               "model": method_label(loaded.cfg)}
         write_json(p, res)
         return res
 

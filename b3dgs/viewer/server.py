@@ -245,7 +245,7 @@ class ViewerApp:
             v = m.get(k)
             return "n/a" if v is None else format(v, spec)
 
-        rows = [("model", m.get("method")), ("scene", m.get("scene")), ("seed", m.get("seed")), ("steps", m.get("steps")),
+        rows = [("method", m.get("method")), ("scene", m.get("scene")), ("seed", m.get("seed")), ("steps", m.get("steps")),
                 ("PSNR", f"{f('psnr', '.2f')} dB"), ("SSIM", f("ssim", ".4f")), ("LPIPS", f("lpips", ".4f")),
                 ("Gaussians", f("num_gaussians", ",d")), ("train time", f"{f('train_time_s', '.1f')} s"),
                 ("render FPS (eval)", f("render_fps", ".1f")),
