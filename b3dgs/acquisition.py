@@ -35,6 +35,7 @@ import torch
 from torch import Tensor
 
 from b3dgs.errors import B3dgsError, did_you_mean
+from b3dgs.neighbours import nearest_distances, nearest_other_distances
 from b3dgs.types import Camera, resize_image
 
 __all__ = ["AcquisitionPolicy", "BatchSelector", "ScoringContext", "Selection", "diverse_picks", "downscale_camera",
@@ -135,9 +136,7 @@ def _pool_spacing(points: np.ndarray) -> float:
     """Median distance from each point to its nearest other point (0 when fewer than two)."""
     if len(points) < 2:
         return 0.0
-    d = np.linalg.norm(points[:, None] - points[None], axis=-1)
-    np.fill_diagonal(d, np.inf)
-    return float(np.median(d.min(axis=1)))
+    return float(np.median(nearest_other_distances(points)[:, 0]))
 
 
 def diverse_picks(scores: Sequence[float], cand: np.ndarray, train: np.ndarray, budget: int,
@@ -154,17 +153,28 @@ def diverse_picks(scores: Sequence[float], cand: np.ndarray, train: np.ndarray, 
     pool = np.concatenate([train.reshape(-1, 3), cand.reshape(-1, 3)])
     h = _pool_spacing(pool)
     scale2 = 2.0 * (float(radius) * h) ** 2
-    d = np.linalg.norm(cand[:, None] - train[None], axis=-1).min(axis=1) if len(train) else np.full(len(cand), np.inf)
+
+    def value(d):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            return s * np.where(np.isinf(d), 1.0, -np.expm1(-np.square(d) / scale2) if scale2 > 0 else (d > 0) * 1.0)
+
+    return greedy_spread(cand, train, budget, value)[0], h
+
+
+def greedy_spread(cand: np.ndarray, train: np.ndarray, budget: int,
+                  value: Callable[[np.ndarray], np.ndarray]) -> tuple[list[int], np.ndarray]:
+    """Greedy picks among the camera centres ``cand``: each time the (first) maximum of ``value(d)``, where d is each
+    candidate's distance to the nearest training (``train``) or already picked centre (inf with neither); picked
+    candidates are never picked again. Returns (picks, d before any pick)."""
+    d0 = d = nearest_distances(cand, train)
     picks: list[int] = []
     for _ in range(min(int(budget), len(cand))):
-        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            gain = np.where(np.isinf(d), 1.0, -np.expm1(-np.square(d) / scale2) if scale2 > 0 else (d > 0) * 1.0)
-        value = s * gain
-        value[picks] = -np.inf
-        i = int(np.argmax(value))
+        v = np.asarray(value(d), dtype=np.float64).copy()
+        v[picks] = -np.inf
+        i = int(np.argmax(v))  # the first of equal values: deterministic
         picks.append(i)
         d = np.minimum(d, np.linalg.norm(cand - cand[i], axis=-1))
-    return picks, h
+    return picks, d0
 
 
 # ---------------------------------------------------------------------------------------------- context

@@ -14,17 +14,15 @@ log = logging.getLogger(__name__)
 
 
 def knn_mean_dist(points: Tensor, k: int = 3) -> Tensor:
-    """Mean distance to the k nearest other points (``scipy.spatial.cKDTree``, float64; the same values, bit
+    """Mean distance to the k nearest other points (:mod:`b3dgs.neighbours`, float64; the same values, bit
     for bit, as the brute-force distances used before on the shared scenes and on 50k random points)."""
-    from scipy.spatial import cKDTree
+    from b3dgs.neighbours import nearest_other_distances
 
     n = points.shape[0]
     if n <= 1:
         return torch.ones(n, dtype=points.dtype)
-    k = min(k, n - 1)
-    p = points.detach().double().cpu().numpy()
-    d, _ = cKDTree(p).query(p, k=k + 1)  # the first neighbour is the point itself (or a duplicate: also 0)
-    return torch.from_numpy(d[:, 1:].mean(-1)).to(points.dtype)
+    d = nearest_other_distances(points.detach().double().cpu().numpy(), min(k, n - 1))
+    return torch.from_numpy(d.mean(-1)).to(points.dtype)
 
 
 def init_gaussians(

@@ -27,11 +27,12 @@ _SCENES: dict[str, dict[str, float]] = {}
 
 def support_distances(train_centres, test_centres, extent: float) -> np.ndarray:
     """The OOD support score of each test camera: the distance from its centre to the nearest training camera
-    centre, / the scene extent (1 where the extent is not positive). Float64, brute force (a few hundred views)."""
-    train = np.asarray(train_centres, dtype=np.float64).reshape(-1, 3)
+    centre, / the scene extent (1 where the extent is not positive). Float64 (:mod:`b3dgs.neighbours`)."""
+    from b3dgs.neighbours import nearest_distances
+
     ext = extent if extent > 0 else 1.0
-    return np.array([np.linalg.norm(train - t, axis=1).min() / ext
-                     for t in np.asarray(test_centres, dtype=np.float64).reshape(-1, 3)])
+    return nearest_distances(np.asarray(test_centres, dtype=np.float64).reshape(-1, 3),
+                             np.asarray(train_centres, dtype=np.float64).reshape(-1, 3)) / ext
 
 
 def support_scores(data_cfg: dict) -> dict[str, float]:
