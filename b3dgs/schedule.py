@@ -135,8 +135,8 @@ class DashSchedule(TrainingSchedule):
     start_energy_factor: float = 4.0  # start where the band holds 1/this of every view's spectrum magnitude
     levels: int = 12                # number of distinct resolutions (incl. full)
     min_side: int = 16              # never train below this many pixels on the SHORT side (>= 11: the SSIM window)
-    budget: bool = True             # grow the densification budget with the resolution (False: no cap before T)
-    keep: float = 1.0               # < 1: at full resolution keep this share of the Gaussians, the most used
+    budget: bool = False            # grow the densification budget with the resolution (DashGaussian's)
+    keep: float = 0.45              # < 1: at full resolution keep this share of the Gaussians, the most used
     delay_lr_decay: bool = True     # start the means' lr decay when the factor drops below 2
 
     def __post_init__(self) -> None:

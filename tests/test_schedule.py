@@ -70,7 +70,7 @@ def test_budget_fraction_and_scheduled_cap():
     from b3dgs.plugin import Plugin
 
     sc = _scene()
-    d = DashSchedule(full_res_at=0.5, levels=6, min_side=11)
+    d = DashSchedule(full_res_at=0.5, levels=6, min_side=11, budget=True, keep=1.0)
     d.initialize(sc.train, max_steps=1000)
     fr = [d.step_info(t)["budget_fraction"] for t in range(0, 500, 25)]
     assert all(0 < f < 1 for f in fr) and fr[0] < 0.2 and fr[-1] > 0.5
@@ -81,6 +81,7 @@ def test_budget_fraction_and_scheduled_cap():
     assert Plugin.scheduled_cap(None, 1000, {"budget_fraction": 1.0}) == 6000
     assert "budget_fraction" not in DashSchedule(budget=False).step_info(0)
     assert "keep_fraction" not in d.step_info(999) and DashSchedule(keep=0.5).step_info(0)["keep_fraction"] == 0.5
+    assert DashSchedule().keep == 0.45 and not DashSchedule().budget  # the defaults of conf/schedule/dash.yaml
 
 
 def test_density_statistics_are_resolution_consistent():
