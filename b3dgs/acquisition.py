@@ -38,8 +38,8 @@ from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.neighbours import nearest_distances, nearest_other_distances
 from b3dgs.types import Camera, resize_image
 
-__all__ = ["AcquisitionPolicy", "BatchSelector", "ScoringContext", "Selection", "diverse_picks", "downscale_camera",
-           "downscale_image", "epistemic_scores", "top_k"]
+__all__ = ["AcquisitionPolicy", "BatchSelector", "ScoringContext", "Selection", "diverse_picks",
+           "epistemic_scores", "top_k"]
 
 
 @dataclass
@@ -178,21 +178,6 @@ def greedy_spread(cand: np.ndarray, train: np.ndarray, budget: int,
 
 
 # ---------------------------------------------------------------------------------------------- context
-def downscale_camera(camera: Camera, max_side: Optional[int]) -> Camera:
-    """``camera`` rendered at most ``max_side`` pixels on its longest side (K scaled per axis); no image."""
-    w, h = int(camera.width), int(camera.height)
-    bare = camera.with_image(None)
-    if not max_side or max(w, h) <= int(max_side):
-        return bare
-    s = int(max_side) / max(w, h)
-    return bare.resized(max(1, round(w * s)), max(1, round(h * s)))
-
-
-def downscale_image(image: Tensor, width: int, height: int) -> Tensor:
-    """(H, W, 3) -> (height, width, 3) by area averaging (:func:`b3dgs.types.resize_image`)."""
-    return resize_image(image, width, height)
-
-
 class ScoringContext:
     """What a policy may use to score candidates (see the module docstring).
 
@@ -223,11 +208,10 @@ class ScoringContext:
 
     def camera(self, camera: Camera) -> Camera:
         """``camera`` at the scoring resolution (never with an image)."""
-        return downscale_camera(camera, self.score_max_side)
+        return camera.with_image(None).fit(self.score_max_side or None)
 
     def _small_train(self, c: Camera) -> Camera:
-        small = downscale_camera(c, self.score_max_side)
-        return small.with_image(None if c.image is None else downscale_image(c.image, small.width, small.height))
+        return c.fit(self.score_max_side or None)
 
     def generator(self, salt: int = 0) -> torch.Generator:
         return torch.Generator(device="cpu").manual_seed(self.seed * 1000003 + salt)
@@ -268,7 +252,7 @@ class ScoringContext:
             raise B3dgsError(f"a policy asked for the ground truth of candidate {camera.name!r}",
                              "only a policy that declares uses_ground_truth (the analysis-only oracle) gets it")
         small = self.camera(camera)
-        return downscale_image(self._gt(camera.name).to(self.device), small.width, small.height)
+        return resize_image(self._gt(camera.name).to(self.device), small.width, small.height)
 
 
 def epistemic_scores(ctx: ScoringContext, regime, candidates: Sequence[Camera], positions: Sequence[int]) -> Tensor:

@@ -70,13 +70,6 @@ def camera_path(scene, path: str, frames: int) -> list[Camera]:
     return interpolate_cameras(cams, frames)
 
 
-def _sized(cam: Camera, max_side: Optional[int]) -> Camera:
-    if not max_side:
-        return cam
-    f = float(max_side) / max(cam.width, cam.height)
-    return cam.resized(max(8, round(cam.width * f)), max(8, round(cam.height * f)))
-
-
 def _legend(width: int, cmap: str, lo: float, hi: float, unit: str) -> np.ndarray:
     """A colour bar ``width`` px wide with its two ends written under it (uint8, (28, width, 3))."""
     from PIL import Image, ImageDraw
@@ -198,7 +191,7 @@ def render(cfg: DictConfig) -> dict:
         renderer.check_available()
     run = open_run(Path(str(cfg.run)), renderer=renderer)
     path = str(cfg.path)
-    cams = [_sized(c, max_side) for c in camera_path(run.scene, path, cfg.get("frames"))]
+    cams = [c.fit(max_side, upscale=True, min_side=8) for c in camera_path(run.scene, path, cfg.get("frames"))]
     frames, top = render_path(run, cams, cfg.get("panel"), panel_max, int(cfg.samples), cfg.get("count_scale"))
     out = Path(str(cfg.out)) if cfg.get("out") else run.path / "render" / path
     out.mkdir(parents=True, exist_ok=True)

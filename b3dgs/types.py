@@ -70,6 +70,10 @@ class Camera:
         image = None if self.image is None else resize_image(self.image, width, height)
         return Camera(self.name, K, self.viewmat, width, height, image)
 
+    def fit(self, max_side: Optional[int], *, upscale: bool = False, min_side: int = 1) -> "Camera":
+        """This camera :meth:`resized` so that its longer side is ``max_side`` px (:func:`fit_size`)."""
+        return self.resized(*fit_size(self.width, self.height, max_side, upscale=upscale, min_side=min_side))
+
     def to(self, device: "torch.device | str") -> "Camera":
         """This camera with K, viewmat and image on ``device`` (itself if already there)."""
         device = torch.device(device)
@@ -79,6 +83,20 @@ class Camera:
         moved.K, moved.viewmat = self.K.to(device), self.viewmat.to(device)
         moved.image = None if self.image is None else self.image.to(device, non_blocking=True)
         return moved
+
+
+def fit_size(width: float, height: float, max_side: Optional[int], *, upscale: bool = False,
+             min_side: int = 1) -> tuple[int, int]:
+    """(w, h) of a ``width`` x ``height`` image scaled so that its longer side is ``max_side`` px, the shorter one
+    rounded (at least ``min_side``); the one "fit the long side" rule of b3dgs (data loading, scoring resolution,
+    rendered frames, the viewer's frames). ``max_side=None``, or an image already that small without ``upscale``,
+    keeps the size; ``max_side <= 0`` is a ValueError."""
+    if max_side is not None and max_side <= 0:
+        raise ValueError(f"max_side must be positive, got {max_side}")
+    if max_side is None or (not upscale and max(width, height) <= max_side):
+        return int(width), int(height)
+    s = max_side / max(width, height)
+    return max(min_side, int(round(width * s))), max(min_side, int(round(height * s)))
 
 
 def resize_image(image: Tensor, width: int, height: int) -> Tensor:

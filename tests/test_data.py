@@ -465,6 +465,26 @@ def test_load_image_resize(tmp_path):
     assert load_image(tmp_path / "a.png", max_side=100).shape == (40, 60, 3)  # never upscales
 
 
+def test_fit_size_is_the_one_long_side_rule():
+    """b3dgs.types.fit_size / Camera.fit: data loading and scoring never upscale (at least 1 px), b3dgs-render's
+    frames fit max_side both ways (at least 8 px), the viewer sizes a window's aspect."""
+    import torch
+
+    from b3dgs.types import Camera, fit_size
+
+    assert fit_size(60, 40, 30) == (30, 20) and fit_size(60, 40, 100) == (60, 40) and fit_size(60, 40, None) == (60, 40)
+    assert fit_size(1000, 3, 100) == (100, 1)
+    assert fit_size(60, 40, 120, upscale=True) == (120, 80) and fit_size(600, 10, 64, upscale=True, min_side=8) == (64, 8)
+    with pytest.raises(ValueError, match="max_side must be positive"):
+        fit_size(60, 40, 0)
+    K = torch.tensor([[50.0, 0, 30], [0, 50.0, 20], [0, 0, 1]])
+    cam = Camera("c", K, torch.eye(4), 60, 40, torch.rand(40, 60, 3))
+    small = cam.fit(30)
+    assert (small.width, small.height, tuple(small.image.shape)) == (30, 20, (20, 30, 3))
+    assert torch.allclose(small.K, torch.tensor([[25.0, 0, 15], [0, 25.0, 10], [0, 0, 1]]))
+    assert cam.fit(None) is cam and cam.fit(64) is cam and cam.fit(64, upscale=True).width == 64
+
+
 _ORDER_SCRIPT = """
 import sys
 {first}

@@ -25,6 +25,7 @@ from PIL import _imaging  # noqa: F401,E402
 from PIL import Image, UnidentifiedImageError
 
 from b3dgs.io import atomic_path
+from b3dgs.types import fit_size
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".bmp", ".tif", ".tiff", ".webp")
 
@@ -36,7 +37,6 @@ __all__ = [
     "list_images",
     "load_image",
     "save_png",
-    "target_size",
 ]
 
 
@@ -50,16 +50,6 @@ def import_pycolmap() -> Any:
     except ImportError as e:  # pragma: no cover - pycolmap is a hard dependency
         raise ImportError("Reading COLMAP scenes needs pycolmap (`pip install pycolmap`).") from e
     return pycolmap
-
-
-def target_size(width: int, height: int, max_side: Optional[int]) -> tuple[int, int]:
-    """Size (w, h) after downscaling so that the longest side is ``<= max_side`` (never upscales)."""
-    if max_side is None or max(width, height) <= max_side:
-        return int(width), int(height)
-    if max_side <= 0:
-        raise ValueError(f"max_side must be positive, got {max_side}")
-    s = max_side / max(width, height)
-    return max(1, int(round(width * s))), max(1, int(round(height * s)))
 
 
 def list_images(folder: str | os.PathLike) -> list[Path]:
@@ -148,7 +138,7 @@ def load_image(
                     f"{int(expected_size[0])}x{int(expected_size[1])} (w x h)"
                 )
             im.load()
-            out_size = tuple(size) if size is not None else target_size(native[0], native[1], max_side)
+            out_size = tuple(size) if size is not None else fit_size(native[0], native[1], max_side)
             if out_size == native and im.mode == "RGB":
                 return np.asarray(im, dtype=np.float32) / 255.0
             if out_size != native and im.mode == "RGB":

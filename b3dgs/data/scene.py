@@ -38,9 +38,9 @@ from typing import Any, Optional, Sequence
 import numpy as np
 import torch
 
-from b3dgs.data.images import load_image, target_size
+from b3dgs.data.images import load_image
 from b3dgs.errors import B3dgsError, did_you_mean
-from b3dgs.types import Camera, Scene
+from b3dgs.types import Camera, Scene, fit_size
 
 log = logging.getLogger(__name__)
 
@@ -237,7 +237,7 @@ def materialize(
     cams = []
     for f in frames:
         check_intrinsics(f.name, f.K, f.width, f.height)
-        w2, h2 = target_size(f.width, f.height, max_side)
+        w2, h2 = fit_size(f.width, f.height, max_side)
         img = load_image(f.path, size=(w2, h2), expected_size=(f.width, f.height), background=background)
         K = scale_intrinsics(f.K, w2 / f.width, h2 / f.height)
         cams.append(
