@@ -34,7 +34,7 @@ from lightning.pytorch.callbacks import Checkpoint, TQDMProgressBar
 from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from b3dgs.device import timed_clock
-from b3dgs.io import atomic_path, write_json
+from b3dgs.io import atomic_path, save_figure, write_json
 
 log = logging.getLogger(__name__)
 
@@ -284,9 +284,7 @@ def plot_curve(points: list[dict], path: Path, title: str = "Test PSNR and #Gaus
     ax2.set_ylabel("#Gaussians", color="tab:orange")
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 class StepProgressBar(TQDMProgressBar):

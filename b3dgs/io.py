@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import sys
 import tempfile
 from contextlib import contextmanager
 from pathlib import Path
@@ -34,6 +35,18 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int = 2) -> None:
     text = json.dumps(obj, indent=indent, allow_nan=False, default=_json_default)
     with atomic_path(path) as tmp:
         tmp.write_text(text + "\n")
+
+
+def save_figure(fig: Any, path: str | os.PathLike, dpi: Any = None) -> Path:
+    """Write a matplotlib figure to ``path`` as PNG, atomically (``dpi``: matplotlib's, default the figure's), and
+    close it if pyplot manages it; the one way b3dgs saves a figure. Returns ``path``."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", **({} if dpi is None else {"dpi": dpi}))
+    pyplot = sys.modules.get("matplotlib.pyplot")
+    if pyplot is not None:
+        pyplot.close(fig)
+    return path
 
 
 def _plain_leaf(o: Any) -> Any:

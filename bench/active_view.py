@@ -40,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import RESULTS, SCENES, PeriodicSync, machine, shared_dir, sync_results, write_results  # noqa: E402
 from omegaconf import OmegaConf  # noqa: E402
 
+from b3dgs.io import save_figure  # noqa: E402
 from b3dgs.report.document import markdown_table  # noqa: E402
 from b3dgs.report.stats import mean_sem, p_floor, sign_flip_p  # noqa: E402
 
@@ -446,8 +447,7 @@ def plots(res: dict) -> None:
     ax.set_title(f"16 → 32 views, {', '.join(res['scenes'])}: ±1 SEM over seeds\nblue standard, orange NIW, grey oracle",
                  fontsize=9)
     fig.tight_layout()
-    fig.savefig(d / "psnr.png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, d / "psnr.png", dpi=120)
     fig, ax = plt.subplots(figsize=(5.2, 3.8))
     for p in names:
         x = t[p].get("cost_s") or 0
@@ -457,8 +457,7 @@ def plots(res: dict) -> None:
     ax.set_ylabel("final test PSNR (dB)")
     ax.set_title("error against run time, per policy", fontsize=9)
     fig.tight_layout()
-    fig.savefig(d / "psnr_time.png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, d / "psnr_time.png", dpi=120)
 
 
 #: ``--smoke``: the embedded procedural scene at a tiny protocol (minutes on 2 cores): checks that every row,

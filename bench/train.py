@@ -64,7 +64,9 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     ax.set_title(f"Quick protocol (256 px, 3000 steps) on {args.device}", fontsize=9)
     fig.tight_layout()
-    fig.savefig(RESULTS / f"train{suffix}.png")
+    from b3dgs.io import save_figure
+
+    save_figure(fig, RESULTS / f"train{suffix}.png")
     text = table(rows, ["scene", "model", "seed", "device", "renderer", "psnr", "ssim", "lpips", "num_gaussians",
                         "train_time_s", "time_vs_standard", "render_fps"])
     write_results(f"train{suffix}", {"machine": machine(), "device": args.device, "rows": rows, "curves": curves},

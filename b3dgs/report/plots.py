@@ -10,7 +10,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 
-from b3dgs.io import atomic_path  # noqa: E402
+from b3dgs.io import save_figure  # noqa: E402
 from b3dgs.report.analysis import PARETO_AXES  # noqa: E402
 from b3dgs.report.collect import METHOD_ORDER, method_order  # noqa: E402
 
@@ -26,10 +26,7 @@ def _color(method: str) -> str:
 
 def _save(fig, path: Path) -> Path:
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path)
 
 
 def _grid(n: int, ncols: int = 3, size=(4.2, 3.2)):

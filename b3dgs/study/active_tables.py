@@ -11,7 +11,7 @@ from typing import Any, Optional
 
 import numpy as np
 
-from b3dgs.io import atomic_path, write_json
+from b3dgs.io import atomic_path, save_figure, write_json
 from b3dgs.report.document import markdown_table
 from b3dgs.report.stats import mean_sem
 
@@ -170,8 +170,7 @@ def make_plots(out: Path, summary: dict, store=None) -> None:
     ax.set_ylabel("final test PSNR (dB)")
     ax.set_title(f"{summary['scene']}: ±1 SEM over {len(summary['seeds'])} seeds (blue standard, orange NIW)")
     fig.tight_layout()
-    fig.savefig(pdir / "psnr.png", dpi=120)
-    plt.close(fig)
+    save_figure(fig, pdir / "psnr.png", dpi=120)
     layout = out / "layout.json"
     if layout.exists():
         lay = json.loads(layout.read_text())
@@ -200,8 +199,7 @@ def make_plots(out: Path, summary: dict, store=None) -> None:
             ax.axis("off")
         fig.suptitle(f"top view (PCA plane), seed {seed}: black initial, grey candidates, red picks")
         fig.tight_layout()
-        fig.savefig(pdir / "layout.png", dpi=110)
-        plt.close(fig)
+        save_figure(fig, pdir / "layout.png", dpi=110)
     if store is not None:
         seed = summary["seeds"][0]
         runs = sorted((r for r in summary["runs"] if int(r["seed"]) == seed), key=lambda r: r["policy"])
@@ -216,5 +214,4 @@ def make_plots(out: Path, summary: dict, store=None) -> None:
                         ax.imshow(store.image(r["selected"][j]).clamp(0, 1).cpu().numpy())
                 axes[i, 0].set_title(r["policy"], fontsize=7, loc="left")
             fig.tight_layout()
-            fig.savefig(pdir / "contact_sheet.png", dpi=100)
-            plt.close(fig)
+            save_figure(fig, pdir / "contact_sheet.png", dpi=100)

@@ -29,7 +29,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from b3dgs.compression import keep_top
-from b3dgs.io import atomic_path, write_json
+from b3dgs.io import atomic_path, save_figure, write_json
 from b3dgs.labels import method_label
 from b3dgs.protocol import check_stored_protocol, flatten
 from b3dgs.report.document import markdown_table
@@ -498,9 +498,7 @@ def plot(s: dict, out: Path) -> list[str]:
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()
-    with atomic_path(d / "ladder.png") as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, d / "ladder.png", dpi=110)
     written.append("plots/ladder.png")
 
     fig, ax = plt.subplots(figsize=(6.0, 4.2))
@@ -517,9 +515,7 @@ def plot(s: dict, out: Path) -> list[str]:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    with atomic_path(d / "time.png") as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
-    plt.close(fig)
+    save_figure(fig, d / "time.png", dpi=110)
     written.append("plots/time.png")
     return written
 

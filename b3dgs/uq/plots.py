@@ -2,7 +2,7 @@
 
 Figures are built with matplotlib's object API on an Agg canvas (no pyplot global state, no display
 needed) and written atomically: PNG bytes go to a temporary file in the target directory, which is then
-renamed onto the target with ``os.replace`` (:func:`b3dgs.io.atomic_path`).
+renamed onto the target with ``os.replace`` (:func:`b3dgs.io.save_figure`).
 
 Curve inputs accept any of: the ``"curves"`` dict of :func:`b3dgs.uq.metrics.evaluate_view`, the
 ``"mean_curves"`` dict of :func:`b3dgs.uq.metrics.summarize`, or either full result dict.
@@ -17,7 +17,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from b3dgs.io import atomic_path
+from b3dgs.io import save_figure
 
 __all__ = ["plot_sparsification", "plot_reliability", "plot_uncertainty_panel", "figure_to_array"]
 
@@ -48,13 +48,6 @@ def _new_figure(figsize: tuple[float, float], dpi: int) -> Figure:
     fig = Figure(figsize=figsize, dpi=dpi)
     FigureCanvasAgg(fig)
     return fig
-
-
-def _save(fig: Figure, path: str | os.PathLike) -> Path:
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    return path
 
 
 def figure_to_array(fig: Figure) -> np.ndarray:
@@ -93,7 +86,7 @@ def plot_sparsification(curves_by_regime: Mapping[str, Mapping], path: str | os.
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_reliability(levels_by_regime: Mapping[str, Mapping], path: str | os.PathLike,
@@ -123,7 +116,7 @@ def plot_reliability(levels_by_regime: Mapping[str, Mapping], path: str | os.Pat
     ax.legend(fontsize=8, loc="upper left")
     ax.set_title(title or "Reliability diagram")
     fig.tight_layout()
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def _image(x: Any, name: str) -> np.ndarray:
@@ -180,5 +173,5 @@ def plot_uncertainty_panel(render: Any, gt: Any, error_map: Any, uncertainty_map
     fig.tight_layout()
     arr = figure_to_array(fig)
     if path is not None:
-        _save(fig, path)
+        save_figure(fig, path)
     return arr
