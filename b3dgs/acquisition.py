@@ -13,7 +13,7 @@ the class declares:
 - ``selects_batch``: True when ``select`` builds the batch itself (uniform, farthest, fisher); only the
   ``topk`` batch option (the policy's own ``select``) applies to it.
 
-Batch selection (issue 22) is a component of its own, :class:`BatchSelector` (``conf/acquisition/batch/``:
+Batch selection is a component of its own, :class:`BatchSelector` (``conf/acquisition/batch/``:
 ``topk``, ``diverse``, ``greedy_conditioned``), composable with every score-based policy. It reads what the
 policy declares here, never the policy's type: ``score`` / ``score_at`` (a subset, scored as the full call
 would score it), ``condition`` / ``reset_conditioning`` (score as if a picked camera had been acquired,
@@ -89,7 +89,7 @@ class AcquisitionPolicy:
         scores = self.score(ctx, candidates)
         return Selection(top_k(scores, budget), [float(v) for v in scores.detach().double().cpu()])
 
-    # ---------------------------------------------------------------- what batch selectors use (issue 22)
+    # ---------------------------------------------------------------- what batch selectors use
     def score_at(self, ctx: "ScoringContext", candidates: Sequence[Camera], positions: Sequence[int]) -> Tensor:
         """Scores of ``candidates[i]`` for ``i`` in ``positions``, as ``score(ctx, candidates)`` gives them (a
         policy whose score draws per-candidate random numbers keys them by position). Default: score the

@@ -100,7 +100,7 @@ DEFAULT_BATCH = "topk"
 
 
 def load_batch(name: str, settings: Optional[DictConfig] = None):
-    """The batch selector ``conf/acquisition/batch/<name>.yaml`` with ``settings[name]`` merged in (issue 22)."""
+    """The batch selector ``conf/acquisition/batch/<name>.yaml`` with ``settings[name]`` merged in."""
     from hydra.utils import instantiate
 
     from b3dgs.errors import B3dgsError

@@ -16,7 +16,7 @@ from b3dgs.report.document import markdown_table
 from b3dgs.report.stats import mean_sem
 
 PAIRS = (("native", "ensemble"), ("native", "proxy"),
-         # issue 22: batch-aware native against top-k native, the ensemble and farthest (rows present only)
+         # batch selection: batch-aware native against top-k native, the ensemble and farthest (rows present only)
          ("native+greedy_conditioned", "native"), ("native+greedy_conditioned", "ensemble"),
          ("native+greedy_conditioned", "farthest"), ("native+diverse", "native"))
 
