@@ -47,7 +47,7 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
 
     from hydra.utils import instantiate
 
-    from b3dgs.train import build_module, build_plugins
+    from b3dgs.train import build_run
 
     run_dir = Path(run_dir)
     cfg_path = run_dir / "config.yaml"
@@ -75,11 +75,7 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
         dm = instantiate(cfg.data)
         dm.setup("fit")
         scene = dm.scene
-    strategy, blocks = build_plugins(cfg)
-    if renderer is None:
-        renderer = _run_renderer(cfg)
-    module = build_module(cfg, strategy, blocks, renderer)
-    module.scene = scene
+    module = build_run(cfg, scene, renderer=renderer if renderer is not None else _run_renderer, init=False)
     try:
         ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
     except Exception as e:  # corrupt or truncated file

@@ -72,6 +72,27 @@ def build_module(cfg: DictConfig, strategy, blocks, renderer=None):
     )
 
 
+def _config_renderer(cfg: DictConfig) -> "Renderer":
+    return build_renderer(cfg.get("renderer"))
+
+
+def build_run(cfg: DictConfig, scene: "Scene", *, renderer=None, init: bool = True):
+    """The model of a run, the one build sequence of b3dgs (training, rounds, loading a run, compression):
+    :func:`build_plugins` -> :func:`build_renderer` (unless ``renderer`` is given) -> :func:`build_module` ->
+    ``init_from_scene(scene)`` (the seeded initial Gaussians and every plugin's state). ``renderer``: a renderer
+    plugin, or a function of the config that makes one, in place of :func:`build_renderer`. ``init=False`` only
+    attaches ``scene``, for a caller that loads the parameters itself. The renderer is ``module.renderer``."""
+    strategy, blocks = build_plugins(cfg)
+    if renderer is None or callable(renderer):
+        renderer = (renderer or _config_renderer)(cfg)
+    module = build_module(cfg, strategy, blocks, renderer)
+    if init:
+        module.init_from_scene(scene)
+    else:
+        module.scene = scene
+    return module
+
+
 def resolve_accelerator(requested: Optional[str], renderer) -> str:
     """Lightning's accelerator for ``trainer.accelerator``: ``auto`` follows the renderer's device."""
     want = renderer.device.type
@@ -406,10 +427,8 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
     dm = instantiate(cfg.data)
     dm.setup("fit")
     scene = dm.scene
-    strategy, blocks = build_plugins(cfg)
-    renderer = build_renderer(cfg.get("renderer"))
-    module = build_module(cfg, strategy, blocks, renderer)
-    module.init_from_scene(scene)
+    module = build_run(cfg, scene)
+    renderer = module.renderer
     warn_disabled_options(module)
     if ckpt_path is not None:
         check_resume(module, ckpt_path)

@@ -113,14 +113,12 @@ class CompressionStudy:
         import lightning as L
 
         from b3dgs.data.datamodule import SceneDataModule
-        from b3dgs.train import build_module, build_plugins, build_renderer, build_trainer
+        from b3dgs.train import build_run, build_trainer
 
         os.environ.pop("PL_GLOBAL_SEED", None)
         L.seed_everything(int(seed), workers=True, verbose=False)
-        strategy, blocks = build_plugins(cfg)
-        renderer = build_renderer(cfg.get("renderer"))
-        module = build_module(cfg, strategy, blocks, renderer)
-        module.scene = scene
+        module = build_run(cfg, scene, init=False)
+        renderer = module.renderer
         module._set_params({k: v.detach().cpu().clone() for k, v in params.items()})
         module._init_states()
         trainer = build_trainer(cfg.trainer, renderer, [], enable_progress_bar=False, enable_checkpointing=False,

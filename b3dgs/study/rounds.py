@@ -38,8 +38,7 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
     from b3dgs.callbacks import ResumeState, RunCheckpoint
     from b3dgs.data.datamodule import SceneDataModule
     from b3dgs.numerics import reset_guards
-    from b3dgs.train import (_checkpoint_every_s, build_callbacks, build_module, build_plugins, build_renderer,
-                             build_trainer)
+    from b3dgs.train import _checkpoint_every_s, build_callbacks, build_run, build_trainer
 
     total = int(cfg.trainer.max_steps)
     if not 0 < int(stop_step) <= total:
@@ -50,10 +49,8 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
         reset_guards()
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
-    strategy, blocks = build_plugins(cfg)
-    renderer = build_renderer(cfg.get("renderer"))
-    module = build_module(cfg, strategy, blocks, renderer)
-    module.init_from_scene(scene)
+    module = build_run(cfg, scene)
+    renderer = module.renderer
     module.allow_new_views = bool(new_round)
     dm = SceneDataModule(scene=scene)
     dm.allow_new_views = bool(new_round)
@@ -74,12 +71,10 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
 
 def load_round(cfg: DictConfig, scene: Scene, ckpt_path: str):
     """A module holding ``ckpt_path``'s model for scoring or evaluation (no trainer; on the renderer's device)."""
-    from b3dgs.train import build_module, build_plugins, build_renderer
+    from b3dgs.train import build_run
 
-    strategy, blocks = build_plugins(cfg)
-    renderer = build_renderer(cfg.get("renderer"))
-    module = build_module(cfg, strategy, blocks, renderer)
-    module.init_from_scene(scene)
+    module = build_run(cfg, scene)
+    renderer = module.renderer
     ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
     module.allow_new_views = True
     module.on_load_checkpoint(ck)
