@@ -1,4 +1,4 @@
-"""The NIW counts on the canonical grid (issue 29): ``posterior.niw.count=weight|fisher|fisher3`` against the paper's
+"""The NIW counts on the canonical grid: ``posterior.niw.count=weight|fisher|fisher3`` against the paper's
 count, the deep ensemble and the constant baseline, over the seven scenes x seeds 0 1 2.
 
     python bench/counts.py --jobs 2 --threads 1           # retrain what is missing, score, merge, tabulate

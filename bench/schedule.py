@@ -1,4 +1,4 @@
-"""Training schedules side by side (issue 30): ``schedule=constant`` against ``schedule=dash`` (or any other
+"""Training schedules side by side: ``schedule=constant`` against ``schedule=dash`` (or any other
 schedule overrides), paired over scenes and seeds, at the quick protocol (256 px, 3000 steps), on one machine.
 
     python bench/schedule.py                                   # 7 scenes x seeds 0 1 2, both schedules, 2 jobs

@@ -706,7 +706,7 @@ class NIWBlock(PosteriorBlock):
 
     @torch.no_grad()
     def condition_on_view(self, *, splats, state, weight_sums):
-        """The posterior after one more view's pseudo-observations (acquisition, issue 22): n_k = c·w_k
+        """The posterior after one more view's pseudo-observations (acquisition: greedy conditioned batches): n_k = c·w_k
         observations at the current centre (x̄_k = μ_k, C_k = 0), the closed-form update of the paper's NIW
         appendix applied to the current posterior. The summaries already sit at μ_k with C = 0, and two such
         batches at one point combine into one of summed count (conjugacy), so this is N̂ ← N̂ + w on a copy of
