@@ -16,6 +16,18 @@ def conf_dir() -> str:
     return str(here / "conf" if (here / "conf" / "train.yaml").is_file() else here.parent / "conf")
 
 
+def data_root() -> str:
+    """The folder of the named scenes (``conf/scene/<name>.yaml``: ``<data_root>/<name>``): ``$B3DGS_DATA``, else
+    ``$B3DGS_SHARED/data``, else ``../shared/data`` beside a source checkout (where the benchmark scenes live)."""
+    import os
+    from pathlib import Path
+
+    if os.environ.get("B3DGS_DATA"):
+        return os.environ["B3DGS_DATA"]
+    shared = os.environ.get("B3DGS_SHARED") or str(Path(conf_dir()).resolve().parent.parent / "shared")
+    return str(Path(shared) / "data")
+
+
 def _register_resolvers() -> None:
     from pathlib import Path
 
@@ -26,6 +38,8 @@ def _register_resolvers() -> None:
     if not OmegaConf.has_resolver("b3dgs.div"):
         # integer division, for schedules that scale with trainer.max_steps (t_dp = max_steps / 6)
         OmegaConf.register_new_resolver("b3dgs.div", lambda a, b: int(a) // int(b))
+    if not OmegaConf.has_resolver("b3dgs.data_root"):
+        OmegaConf.register_new_resolver("b3dgs.data_root", data_root)
     if not OmegaConf.has_resolver("b3dgs.uid"):
         # default run dirs unique per process (conf/hydra/default.yaml): "<pid>-<4 random hex digits>", cached, so
         # resolved once per config in the launching process (joblib workers get the parent's value)

@@ -14,7 +14,7 @@ from typing import Any, Mapping, Optional
 from b3dgs.errors import B3dgsError
 
 #: keys of a b3dgs-train config that do not change a run's results (bookkeeping, logging, where it ran)
-RUN_IGNORED = ("seed", "hydra", "resume", "overwrite", "threads", "b3dgs", "logger", "renderer", "data.path",
+RUN_IGNORED = ("seed", "data_root", "hydra", "resume", "overwrite", "threads", "b3dgs", "logger", "renderer", "data.path",
                "trainer.progress_bar", "trainer.log_every", "trainer.eval_every", "trainer.checkpoint_every",
                "trainer.checkpoint_every_s", "trainer.keep_checkpoints", "trainer.save_renders",
                "trainer.default_root_dir", "trainer.curve_max_views", "trainer.accelerator", "study",

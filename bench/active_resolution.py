@@ -21,8 +21,10 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, SCENES, machine, shared_dir, table, write_results  # noqa: E402
+try:  # python -m bench.active_resolution
+    from bench.common import RESULTS, machine, scene_names, scene_overrides, table, write_results
+except ModuleNotFoundError:  # python bench/active_resolution.py
+    from common import RESULTS, machine, scene_names, scene_overrides, table, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 NAME = "active_resolution"
@@ -31,7 +33,7 @@ NAME = "active_resolution"
 def study_for(scene: str, study_out: str, threads: int):
     from b3dgs.study.active import ActiveStudy, compose_config
 
-    overrides = [o.format(shared=shared_dir()) for o in SCENES[scene]] + [
+    overrides = scene_overrides(scene) + [
         "renderer=cpu", f"out_dir={study_out}", f"threads={threads}", "trainer.enable_progress_bar=false"]
     return ActiveStudy(compose_config("study", overrides))
 
@@ -54,7 +56,7 @@ def main() -> None:
     import torch
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scene", default="ethiopian_head", choices=sorted(SCENES))
+    ap.add_argument("--scene", default="ethiopian_head", choices=scene_names())
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--sides", nargs="+", default=["full", "64"], help="first = the reference; 'full' = training size")
     ap.add_argument("--policies", nargs="+", default=["ensemble", "ppu", "fisher", "proxy", "native", "oracle"])

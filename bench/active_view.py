@@ -1,16 +1,16 @@
 """The active-view study (``b3dgs-study active``) on the shared scenes, and its cross-scene table.
 
-    python bench/active_view.py                              # the seven scenes, seeds 0 1 2, quick protocol
-    python bench/active_view.py --aggregate-only             # only rebuild the tables and plots
-    python bench/active_view.py --scenes fox --seeds 0 --jobs 1
-    python bench/active_view.py --scenes ethiopian_head fox lego fern flower dtu_scan24 dtu_scan65 --seeds 0
-    python bench/active_view.py --smoke                      # the embedded scene, tiny protocol (minutes)
+    python -m bench.active_view                              # the seven scenes, seeds 0 1 2, quick protocol
+    python -m bench.active_view --aggregate-only             # only rebuild the tables and plots
+    python -m bench.active_view --scenes fox --seeds 0 --jobs 1
+    python -m bench.active_view --scenes ethiopian_head fox lego fern flower dtu_scan24 dtu_scan65 --seeds 0
+    python -m bench.active_view --smoke                      # the embedded scene, tiny protocol (minutes)
 
-Budget ladders (issue 21): scenes with at least 40 train views run 16 -> 32 (``bench/results/active_view.md``);
+Budget ladders: scenes with at least 40 train views run 16 -> 32 (``bench/results/active_view.md``);
 smaller ones (fern, flower) run 8 -> 16 (``initial_views=8 acquire=8``) and get their own table
 (``bench/results/active_view_8to16.md``): the two ladders are never pooled.
 
-Batch options (issue 22): ``--batches topk greedy_conditioned diverse`` (the default) gives every score-based
+Batch options: ``--batches topk greedy_conditioned diverse`` (the default) gives every score-based
 policy a row per option (``native+greedy_conditioned``, ``ensemble+diverse``, ...); the topk rows are the
 rows the study always had. ``--batches topk`` runs only those.
 
@@ -36,13 +36,18 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, SCENES, PeriodicSync, machine, shared_dir, sync_results, write_results  # noqa: E402
-from omegaconf import OmegaConf  # noqa: E402
+from omegaconf import OmegaConf
 
-from b3dgs.io import save_figure  # noqa: E402
-from b3dgs.report.document import markdown_table  # noqa: E402
-from b3dgs.report.stats import mean_sem, p_floor, sign_flip_p  # noqa: E402
+from b3dgs.io import save_figure
+from b3dgs.report.document import markdown_table
+from b3dgs.report.stats import mean_sem, p_floor, sign_flip_p
+
+try:  # python -m bench.active_view
+    from bench.common import (RESULTS, PeriodicSync, compose, machine, n_train_views, scene_names, scene_overrides,
+                              sync_results, write_results)
+except ModuleNotFoundError:  # python bench/active_view.py
+    from common import (RESULTS, PeriodicSync, compose, machine, n_train_views, scene_names, scene_overrides,
+                        sync_results, write_results)
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY_SCENES = list(OmegaConf.load(ROOT / "conf" / "report.yaml").studies.scenes)
@@ -56,7 +61,7 @@ PAPER_PAIRED = {"native-ensemble": "+0.453 (29/39 scene-seeds, 10/13 scenes)", "
                 "native-ppu": "+0.355", "ensemble-uniform": "+0.449"}
 PAIRS = (("native", "ensemble"), ("native", "proxy"), ("native", "ppu"), ("native", "uniform@niw"),
          ("ensemble", "uniform"), ("fisher", "ensemble"), ("farthest", "uniform"), ("oracle", "uniform"),
-         # issue 22: does batch-aware native beat (a) top-k native, (b) the ensemble, (c) farthest?
+         # batch selection: does batch-aware native beat (a) top-k native, (b) the ensemble, (c) farthest?
          ("native+greedy_conditioned", "native"), ("native+greedy_conditioned", "ensemble"),
          ("native+greedy_conditioned", "farthest"), ("native+greedy_conditioned", "native+diverse"),
          ("native+diverse", "native"), ("native+diverse", "farthest"), ("ensemble+diverse", "ensemble"),
@@ -77,7 +82,7 @@ def row_order(table: dict) -> list[str]:
     return sorted(table, key=key)
 
 
-# Budget ladders (issue 21): a scene needs more train views than initial + acquired for the candidates to leave a
+# Budget ladders: a scene needs more train views than initial + acquired for the candidates to leave a
 # choice; scenes with fewer than MIN_VIEWS_16_32 train views (fern 17, flower 21 of the seven) run 8 -> 16 and are
 # reported in their own table (bench/results/active_view_8to16.md), never pooled with the 16 -> 32 scenes.
 LADDERS = {"16to32": (16, 16), "8to16": (8, 8)}
@@ -91,21 +96,19 @@ def ladder_of(n_train: int) -> str:
 
 def scene_ladders(scenes: list[str]) -> dict[str, str]:
     """scene -> its ladder, from the scene's training-view count (loads each scene's cameras once)."""
-    from studies import n_train_views
-
-    return {sc: ladder_of(n_train_views([o.format(shared=shared_dir()) for o in SCENES[sc]])) for sc in scenes}
+    return {sc: ladder_of(n_train_views(scene_overrides(sc))) for sc in scenes}
 
 
 def run_scene(scene: str, seeds: list[int], study_out: Path, extra: list[str], score_side: str = "64",
               scene_args: list[str] | None = None) -> dict:
     """Run the study for ``scene``, one seed after another; returns {seed: wall seconds} of the seeds run.
-    ``scene_args``: the data overrides (default ``SCENES[scene]``)."""
+    ``scene_args``: the data overrides (default ``scene=<scene>``)."""
     logs = study_out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     walls = {}
     for seed in seeds:
         cmd = [sys.executable, "-m", "b3dgs.study.active", "active",
-               *[o.format(shared=shared_dir()) for o in (scene_args or SCENES[scene])], "renderer=cpu", f"seeds=[{seed}]",
+               *(scene_args or scene_overrides(scene)), "renderer=cpu", f"seeds=[{seed}]",
                f"out_dir={study_out}", "threads=1", f"acquisition.score_max_side={score_side}", *extra]
         t0 = time.perf_counter()
         with open(logs / f"{scene}_s{seed}.log", "a") as log:
@@ -143,11 +146,9 @@ def compute_per_seed(out: Path, scene_summary: dict) -> dict:
 def camera_geometry(scene: str, scene_args: list[str] | None = None) -> tuple[dict, float]:
     """{view name: camera centre} for the scene's train and test views, and the scene extent."""
     from b3dgs.acquisition import camera_centres
-    from b3dgs.study.active import compose_config
-
     from hydra.utils import instantiate
 
-    cfg = compose_config("study", [o.format(shared=shared_dir()) for o in (scene_args or SCENES[scene])])
+    cfg = compose("study", scene_args or scene_overrides(scene))
     dm = instantiate(cfg.data)
     dm.setup("fit")
     cams = list(dm.scene.train) + list(dm.scene.test)
@@ -202,7 +203,7 @@ def add_support(per_scene: dict, scene_args: dict | None = None) -> dict:
 def aggregate(scenes: list[str], study_out: Path, walls: dict, scene_args: dict | None = None,
               results: Path | None = None) -> dict:
     """The cross-scene table of the studies under ``study_out`` (per-scene copies under ``results``, default
-    ``bench/results/active_view/``; ``scene_args``: data overrides per scene where not ``SCENES``)."""
+    ``bench/results/active_view/``; ``scene_args``: data overrides per scene where not ``scene=<scene>``)."""
     from b3dgs.study.active_tables import write_report
 
     per_scene = {}
@@ -475,7 +476,7 @@ ARCHIVED = ("walls.json", "*/protocol.json", "*/meta.json", "*/layout.json", "*/
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenes", nargs="+", default=list(STUDY_SCENES), choices=sorted(SCENES),
+    ap.add_argument("--scenes", nargs="+", default=list(STUDY_SCENES), choices=scene_names(),
                     help="default: the seven scenes of conf/report.yaml; scenes with < 40 train views run 8 -> 16")
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--jobs", type=int, default=2, help="scene-seeds run at once (one thread each)")

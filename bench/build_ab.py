@@ -19,8 +19,10 @@ import subprocess
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, machine, table, write_results  # noqa: E402
+try:  # python -m bench.build_ab
+    from bench.common import RESULTS, machine, table, write_results
+except ModuleNotFoundError:  # python bench/build_ab.py
+    from common import RESULTS, machine, table, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -29,8 +31,7 @@ CHILD = r'''
 import json, statistics, sys, time
 import torch
 torch.set_num_threads(1)
-sys.path.insert(0, sys.argv[1] + "/bench")
-from render import camera, random_gaussians
+from bench.render import camera, random_gaussians  # PYTHONPATH is this checkout (run_child)
 from b3dgs.render.renderers import make_renderer
 r = make_renderer("cpu")
 cases = {"random 100k": (random_gaussians(100_000), camera(), 3)}

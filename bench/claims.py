@@ -33,8 +33,10 @@ import sys
 from pathlib import Path
 from typing import Callable, Optional
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, write_results  # noqa: E402
+try:  # python -m bench.claims
+    from bench.common import RESULTS, write_results
+except ModuleNotFoundError:  # python bench/claims.py
+    from common import RESULTS, write_results
 
 from b3dgs.report.stats import paired_stats  # noqa: E402
 
@@ -89,7 +91,10 @@ class Results:
     def active_paired(self, key: str) -> dict[str, float]:
         """Per scene, the active-view study's seed-mean paired PSNR difference ``key`` (e.g. 'native-ensemble'),
         pooled over both ladders as bench/active_view.py pools them: 16 -> 32 scenes and the 8 -> 16 ones."""
-        from active_view import pooled_per_scene
+        try:  # python -m bench.claims
+            from bench.active_view import pooled_per_scene
+        except ModuleNotFoundError:  # python bench/claims.py
+            from active_view import pooled_per_scene
 
         return pooled_per_scene([self.active, self.active_small], key)
 

@@ -1,4 +1,8 @@
-"""Shared helpers for the benchmarks: medians, JSON + table output."""
+"""Shared helpers for the benchmarks: scenes and protocol (from b3dgs's config), medians, JSON + table output.
+
+``bench/`` is a package: ``python -m bench.<name>``; ``python bench/<name>.py`` works too (each script imports
+``bench.common``, or ``common`` from its own folder when run as a file).
+"""
 from __future__ import annotations
 
 import json
@@ -57,22 +61,71 @@ def write_results(name: str, payload: dict, text: str) -> Path:
     return RESULTS / f"{name}.json"
 
 
-# The benchmark scenes (../shared/data, see its README) and the loader each uses. lego: NeRF-synthetic, alpha on
-# white (data=blender). fern, flower: the COLMAP model with its triangulated points (as 3DGS does for LLFF), not
-# data=llff (same poses, but no points: random initialisation). DTU: COLMAP, full images (no masks in the data).
-# Every scene holds out every 8th view in sorted name order (data.test_every=8).
-SCENES = {
-    "ethiopian_head": ["data=colmap", "data.path={shared}/data/ethiopian_head"],
-    "fox": ["data=transforms", "data.path={shared}/data/fox"],
-    "lego": ["data=blender", "data.path={shared}/data/lego"],
-    "fern": ["data=colmap", "data.path={shared}/data/fern"],
-    "flower": ["data=colmap", "data.path={shared}/data/flower"],
-    "dtu_scan24": ["data=colmap", "data.path={shared}/data/dtu_scan24"],
-    "dtu_scan65": ["data=colmap", "data.path={shared}/data/dtu_scan65"],
-    "synthetic": ["data=synthetic"],
-}
-QUICK = ["data.max_side=256", "trainer.max_steps=3000", "trainer.enable_progress_bar=false", "logger=none",
-         "trainer.save_renders=false"]
+# The benchmark scenes are b3dgs's named scenes, conf/scene/<name>.yaml (loader + folder under the data root, see
+# b3dgs.data_root), plus those of installed packages (b3dgs.conf entry points): a scene is added with one YAML file.
+# The study protocol is conf/experiment/study.yaml (256 px, 3000 steps, no logger, progress bar or renders).
+QUICK = ["experiment=study"]
+
+
+def scene_names() -> list[str]:
+    """The configured scenes: ``scene/<name>.yaml`` in b3dgs's conf dir and in every installed package's."""
+    from b3dgs.confs import conf_roots
+
+    return sorted({p.stem for root in conf_roots() for p in (root / "scene").glob("*.yaml")})
+
+
+def compose(config_name: str, overrides: Sequence[str]):
+    """b3dgs's config ``config_name`` (train, study, report, ...) composed with ``overrides``."""
+    from hydra.core.global_hydra import GlobalHydra
+
+    from b3dgs.study.active import compose_config
+
+    GlobalHydra.instance().clear()
+    return compose_config(config_name, list(overrides))
+
+
+def n_train_views(overrides: Sequence[str]) -> int:
+    """Train views of the scene these overrides select (loads the scene once)."""
+    from hydra.utils import instantiate
+
+    dm = instantiate(compose("train", [o for o in overrides if o.startswith(("data", "scene="))]).data)
+    dm.setup("fit")
+    return len(dm.scene.train)
+
+
+def plain_overrides(overrides: Sequence[str]) -> list[str]:
+    """``overrides`` with each ``scene=`` / ``experiment=`` spelled out as the group choices and values its file sets
+    (``data=transforms``, ``data.path=/abs/fox``, ...), which a checkout from before those groups understands too."""
+    from omegaconf import OmegaConf
+
+    from b3dgs.confs import load_option
+    from b3dgs.protocol import flatten
+
+    cfg = compose("train", [*overrides, "trainer.default_root_dir=."])
+    out: list[str] = []
+    for o in overrides:
+        group, _, name = o.partition("=")
+        option = load_option(group, name) if group in ("scene", "experiment") else None
+        if option is None:
+            out.append(o)
+            continue
+        for d in option.get("defaults") or []:
+            out += [f"{k[len('override /'):]}={v}" for k, v in (d.items() if isinstance(d, dict) else ())
+                    if k.startswith("override /")]
+        out += [f"{k}={json.dumps(OmegaConf.to_object(v) if OmegaConf.is_config(v) else v)}"
+                for k in flatten({k: v for k, v in option.items() if k != "defaults"})
+                for v in [OmegaConf.select(cfg, k)]]
+    return out
+
+
+def load_file(path: Path):
+    """The Python module in file ``path``, loaded without changing ``sys.path``."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(Path(path).stem, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def archived_files(root: Path, patterns: Sequence[str]) -> list[Path]:
@@ -154,12 +207,14 @@ def train_run(run_dir: Path, overrides: list[str], timeout_s: int = 3600, force:
 
 
 def scene_overrides(scene: str) -> list[str]:
-    """The Hydra data overrides of benchmark scene ``scene`` (a key of :data:`SCENES`)."""
-    if scene not in SCENES:
+    """The Hydra overrides of benchmark scene ``scene`` (one of :func:`scene_names`)."""
+    names = scene_names()
+    if scene not in names:
         from b3dgs.errors import B3dgsError
 
-        raise B3dgsError(f"unknown benchmark scene {scene!r}", f"pass one of {', '.join(SCENES)}")
-    return [o.format(shared=shared_dir()) for o in SCENES[scene]]
+        raise B3dgsError(f"unknown benchmark scene {scene!r}",
+                         f"pass one of {', '.join(names)}, or add conf/scene/{scene}.yaml")
+    return [f"scene={scene}"]
 
 
 def ensure_lpips(run_dir: Path, metrics: dict) -> dict:

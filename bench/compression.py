@@ -22,8 +22,10 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, machine, sync_results, write_results  # noqa: E402
+try:  # python -m bench.compression
+    from bench.common import RESULTS, machine, sync_results, write_results
+except ModuleNotFoundError:  # python bench/compression.py
+    from common import RESULTS, machine, sync_results, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 NAME = "compression"

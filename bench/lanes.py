@@ -25,9 +25,12 @@ os.environ["B3DGS_LANE_STATS"] = "1"  # before the extension is loaded: the coun
 
 import torch  # noqa: E402
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, machine, table, write_results  # noqa: E402
-from render import camera, random_gaussians  # noqa: E402
+try:  # python -m bench.lanes
+    from bench.common import RESULTS, machine, table, write_results
+    from bench.render import camera, random_gaussians
+except ModuleNotFoundError:  # python bench/lanes.py
+    from common import RESULTS, machine, table, write_results
+    from render import camera, random_gaussians
 
 from b3dgs.render._ext import load_extension  # noqa: E402
 from b3dgs.render.renderers import make_renderer  # noqa: E402

@@ -14,8 +14,10 @@ import statistics
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import QUICK, ensure_lpips, machine, scene_overrides, table, train_run, write_results  # noqa: E402
+try:  # python -m bench.posterior
+    from bench.common import QUICK, ensure_lpips, machine, scene_overrides, table, train_run, write_results
+except ModuleNotFoundError:  # python bench/posterior.py
+    from common import QUICK, ensure_lpips, machine, scene_overrides, table, train_run, write_results
 
 METHODS = ["standard", "niw", "dpmm"]
 

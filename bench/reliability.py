@@ -36,10 +36,14 @@ from typing import Optional
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from bench.common import RESULTS, shared_dir  # noqa: E402
-from b3dgs.io import atomic_path, write_json  # noqa: E402
-from tests.kill_hooks import kill_args  # noqa: E402 - the test callback that kills a run at a chosen point
+from b3dgs.io import atomic_path, write_json
+
+try:  # python -m bench.reliability (from the checkout's root)
+    from bench.common import RESULTS, load_file, shared_dir
+except ModuleNotFoundError:  # python bench/reliability.py
+    from common import RESULTS, load_file, shared_dir
+# the test callback that kills a run at a chosen point (children run from the checkout's root and import it)
+kill_args = load_file(ROOT / "tests" / "kill_hooks.py").kill_args
 
 WORK = ROOT / "outputs" / "bench" / "reliability"
 FIX = WORK / "fixtures"

@@ -17,8 +17,10 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import machine, median_ms, table, write_results  # noqa: E402
+try:  # python -m bench.render
+    from bench.common import machine, median_ms, table, write_results
+except ModuleNotFoundError:  # python bench/render.py
+    from common import machine, median_ms, table, write_results
 
 from b3dgs.render.renderers import Renderer, gsplat_available, make_renderer  # noqa: E402
 from b3dgs.types import Camera  # noqa: E402

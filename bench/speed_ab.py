@@ -20,17 +20,21 @@ import subprocess
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import QUICK, machine, scene_overrides, table, write_results  # noqa: E402
+try:  # python -m bench.speed_ab
+    from bench.common import QUICK, machine, plain_overrides, scene_overrides, table, write_results
+except ModuleNotFoundError:  # python bench/speed_ab.py
+    from common import QUICK, machine, plain_overrides, scene_overrides, table, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 
 # Child for the render timing: bench/render.py's random scene and camera (they use only b3dgs.types.Camera, which
 # both checkouts have) rendered with the checkout on PYTHONPATH; prints one JSON line.
 RENDER_CHILD = r'''
-import json, statistics, sys, time, torch
-sys.path.insert(0, sys.argv[3])
-from render import camera, random_gaussians
+import importlib.util, json, statistics, sys, time, torch
+spec = importlib.util.spec_from_file_location("bench_render", sys.argv[3])  # this checkout's bench/render.py
+render = importlib.util.module_from_spec(spec)
+spec.loader.exec_module(render)
+camera, random_gaussians = render.camera, render.random_gaussians
 from b3dgs.render.renderers import make_renderer
 n, reps = int(sys.argv[1]), int(sys.argv[2])
 p = {k: v.clone().requires_grad_(True) for k, v in random_gaussians(n).items()}
@@ -60,7 +64,7 @@ def train_pair(base: Path, new: Path, out: Path, scene: str, seed: int, threads:
         dirs[label] = run_dir
         if (run_dir / "metrics.json").exists() and not force:
             continue
-        cmd = [sys.executable, "-m", "b3dgs.train", *scene_overrides(scene), *QUICK, "model=standard",
+        cmd = [sys.executable, "-m", "b3dgs.train", *plain_overrides([*scene_overrides(scene), *QUICK]), "model=standard",
                "renderer=cpu", f"seed={seed}", f"threads={threads}", f"hydra.run.dir={run_dir}",
                "overwrite=true" if force else "resume=auto"]
         procs[label] = subprocess.Popen(cmd, env=dict(os.environ, PYTHONPATH=str(code)), cwd=str(code),
@@ -73,7 +77,8 @@ def train_pair(base: Path, new: Path, out: Path, scene: str, seed: int, threads:
 
 
 def render_once(code: Path, n: int, reps: int) -> dict:
-    res = subprocess.run([sys.executable, "-c", RENDER_CHILD, str(n), str(reps), str(Path(__file__).resolve().parent)],
+    res = subprocess.run([sys.executable, "-c", RENDER_CHILD, str(n), str(reps),
+                          str(Path(__file__).resolve().parent / "render.py")],
                          capture_output=True, text=True,
                          env=dict(os.environ, PYTHONPATH=str(code)), cwd=str(code))
     line = [ln for ln in res.stdout.splitlines() if ln.startswith("RENDER ")]

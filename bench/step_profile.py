@@ -23,8 +23,10 @@ import sys
 import tempfile
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import QUICK, RESULTS, machine, scene_overrides, table, write_results  # noqa: E402
+try:  # python -m bench.step_profile
+    from bench.common import QUICK, RESULTS, machine, scene_overrides, table, write_results
+except ModuleNotFoundError:  # python bench/step_profile.py
+    from common import QUICK, RESULTS, machine, scene_overrides, table, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 PHASES = ("projection_fwd", "projection_bwd", "binning", "raster_fwd", "raster_bwd", "ssim_fwd", "ssim_bwd",

@@ -1,10 +1,13 @@
 """The paper's bounded studies at the quick protocol, resumably, then ``b3dgs-report`` over all runs.
 
-    python bench/studies.py                          # the grid of conf/report.yaml `studies` (days on 2 cores)
-    python bench/studies.py --studies canonical --uq --jobs 2 --threads 1   # the 7-scene x 3-seed canonical grid
-    python bench/studies.py --jobs 2 --threads 1                # two runs at once, one thread each (2 cores)
-    python bench/studies.py --studies sparse --scenes fox --seeds 0
-    python bench/studies.py --scenes synthetic --seeds 0 --budgets 8 all --max-steps 100 --out /tmp/b --report /tmp/b/report
+    python -m bench.studies                          # the grid of conf/report.yaml `studies` (days on 2 cores)
+    python -m bench.studies --studies canonical --uq --jobs 2 --threads 1   # the 7-scene x 3-seed canonical grid
+    python -m bench.studies --jobs 2 --threads 1                # two runs at once, one thread each (2 cores)
+    python -m bench.studies --studies sparse --scenes fox --seeds 0
+    python -m bench.studies --scenes synthetic --seeds 0 --budgets 8 all --max-steps 100 --out /tmp/b --report /tmp/b/report
+
+Scenes: any configured scene (``conf/scene/<name>.yaml``, or one an installed package adds); the protocol is
+``experiment=study`` (``conf/experiment/study.yaml``). ``python bench/studies.py`` runs the same.
 
 Studies (grid defaults from conf/report.yaml):
 * canonical: standard / NIW / DPMM, ``outputs/bench/<scene>/<method>/s<seed>`` (shared with bench/posterior.py
@@ -38,27 +41,13 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import QUICK, RESULTS, SCENES, scene_overrides, train_run  # noqa: E402
+try:  # python -m bench.studies
+    from bench.common import QUICK, RESULTS, compose, n_train_views, scene_names, scene_overrides, train_run
+except ModuleNotFoundError:  # python bench/studies.py
+    from common import QUICK, RESULTS, compose, n_train_views, scene_names, scene_overrides, train_run
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDIES = OmegaConf.load(ROOT / "conf" / "report.yaml").studies
-
-
-def n_train_views(overrides: list[str]) -> int:
-    """Train views of the scene these overrides select (loads the scene once)."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.utils import instantiate
-
-    from b3dgs.train import CONF_DIR
-
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="train", overrides=[o for o in overrides if o.startswith("data")])
-    dm = instantiate(cfg.data)
-    dm.setup("fit")
-    return len(dm.scene.train)
 
 
 def plan(args) -> list[tuple[Path, list[str], str]]:
@@ -101,14 +90,7 @@ def plan(args) -> list[tuple[Path, list[str], str]]:
 
 
 def _compose_train(overrides: list[str]):
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    from b3dgs.train import CONF_DIR
-
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose(config_name="train", overrides=overrides)
+    return compose("train", overrides)
 
 
 def training_signature(overrides: list[str]) -> str:
@@ -300,7 +282,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--studies", nargs="+", default=["canonical", "sparse", "initcap"],
                     choices=["canonical", "sparse", "initcap"])
-    ap.add_argument("--scenes", nargs="+", default=list(STUDIES.scenes), choices=sorted(SCENES))
+    ap.add_argument("--scenes", nargs="+", default=list(STUDIES.scenes), choices=scene_names(),
+                    help="configured scenes (conf/scene/<name>.yaml)")
     ap.add_argument("--seeds", type=int, nargs="+", default=list(STUDIES.seeds))
     ap.add_argument("--methods", nargs="+", default=list(STUDIES.canonical_methods), help="canonical methods")
     ap.add_argument("--budgets", nargs="+", default=[str(b) for b in STUDIES.sparse.budgets])
@@ -388,19 +371,12 @@ def main() -> None:
                     print(f"ensemble  {scene}: uq.json of {len(members)} standard runs", flush=True)
             if dest.is_file():
                 ensembles.append(dest)
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
     from b3dgs.report.app import build_report
-    from b3dgs.train import CONF_DIR
 
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        # exactly the grid's runs: outputs/bench also holds other benchmarks' runs of the same scene, method and
-        # seed (e.g. niw_calib), which the report would rightly refuse as duplicates
-        runs = [str(archive_dir(args, j[0])) for j in jobs if archive_dir(args, j[0]).is_dir()] + [str(e) for e in ensembles]
-        cfg = compose(config_name="report", overrides=[f"runs=[{','.join(runs)}]",
-                                                       f"out={args.report}"])
+    # exactly the grid's runs: outputs/bench also holds other benchmarks' runs of the same scene, method and
+    # seed (e.g. niw_calib), which the report would rightly refuse as duplicates
+    runs = [str(archive_dir(args, j[0])) for j in jobs if archive_dir(args, j[0]).is_dir()] + [str(e) for e in ensembles]
+    cfg = compose("report", [f"runs=[{','.join(runs)}]", f"out={args.report}"])
     paths = build_report(cfg)
     print(f"report: {paths['md']}")
 

@@ -14,8 +14,10 @@ import json
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import QUICK, ensure_lpips, RESULTS, machine, scene_overrides, table, train_run, write_results  # noqa: E402
+try:  # python -m bench.train
+    from bench.common import QUICK, ensure_lpips, RESULTS, machine, scene_overrides, table, train_run, write_results
+except ModuleNotFoundError:  # python bench/train.py
+    from common import QUICK, ensure_lpips, RESULTS, machine, scene_overrides, table, train_run, write_results
 
 
 def main() -> None:

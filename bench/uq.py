@@ -34,8 +34,10 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import QUICK, machine, scene_overrides, table, train_run, write_results  # noqa: E402
+try:  # python -m bench.uq
+    from bench.common import QUICK, machine, scene_overrides, table, train_run, write_results
+except ModuleNotFoundError:  # python bench/uq.py
+    from common import QUICK, machine, scene_overrides, table, train_run, write_results
 
 VERSION = 2  # bump when what an evaluation measures changes: cached uq.json files are then recomputed
 PAPER = {  # Table 3 of the paper (13 scenes, 30k steps, GPU): for side-by-side reading

@@ -34,8 +34,10 @@ import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import machine, table, write_results  # noqa: E402
+try:  # python -m bench.uq_count_scale
+    from bench.common import machine, table, write_results
+except ModuleNotFoundError:  # python bench/uq_count_scale.py
+    from common import machine, table, write_results
 
 VERSION = 1  # bump when the measurement changes, so cached settings are recomputed
 COLS = ["mean_epistemic", "epistemic_fraction", "epi_ause_rmse", "epi_spearman_sq", "epi_view_spearman",

@@ -18,8 +18,10 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import machine, median_ms, table, write_results  # noqa: E402
+try:  # python -m bench.uq_sampling
+    from bench.common import machine, median_ms, table, write_results
+except ModuleNotFoundError:  # python bench/uq_sampling.py
+    from common import machine, median_ms, table, write_results
 
 
 def build(run: str | None):

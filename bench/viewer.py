@@ -20,8 +20,10 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import machine, median_ms, table, write_results  # noqa: E402
+try:  # python -m bench.viewer
+    from bench.common import machine, median_ms, table, write_results
+except ModuleNotFoundError:  # python bench/viewer.py
+    from common import machine, median_ms, table, write_results
 
 from b3dgs.viewer.cameras import camera_pose, fov_y, render_size, view_camera  # noqa: E402
 from b3dgs.viewer.modes import ModeRenderer  # noqa: E402

@@ -1,13 +1,9 @@
 """bench/uq_count_scale.py: each count scale is paired against c = 1 by scene (issue 22's default evidence)."""
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-ucs = pytest.importorskip("uq_count_scale")
+ucs = pytest.importorskip("bench.uq_count_scale")
 
 
 def _row(scene, run, c, cov95_err, nll=-1.0):

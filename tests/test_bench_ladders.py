@@ -1,13 +1,11 @@
-"""bench/active_view.py: the budget ladder of a scene follows its train-view count (issue 21)."""
+"""bench/active_view.py: the budget ladder of a scene follows its train-view count."""
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-active_view = pytest.importorskip("active_view")
+active_view = pytest.importorskip("bench.active_view")
 
 
 @pytest.mark.parametrize("n,ladder", [(17, "8to16"), (21, "8to16"), (39, "8to16"), (40, "16to32"), (86, "16to32")])
@@ -20,8 +18,8 @@ def test_ladder_of(n, ladder):
 def test_compression_archive_round_trip(tmp_path):
     """bench/compression.py: finished rows, bases and meta reach the archive; a fresh out dir gets them back, and a
     restore never overwrites a file already there (only_missing)."""
-    compression = pytest.importorskip("compression")
-    from common import archived_files, sync_results
+    compression = pytest.importorskip("bench.compression")
+    from bench.common import archived_files, sync_results
 
     def sync(a, b, only_missing=False):
         return sync_results(a, b, compression.ARCHIVED, only_missing)
@@ -48,7 +46,7 @@ def test_periodic_sync_keeps_rows_finished_during_the_block(tmp_path):
     """bench/common.PeriodicSync: a row finished while the block runs reaches the archive before the block ends."""
     import time
 
-    from common import PeriodicSync
+    from bench.common import PeriodicSync
 
     src, dst = tmp_path / "study", tmp_path / "arch"
     with PeriodicSync(src, dst, ("*/*_s*/result.json",), every_s=0.05):

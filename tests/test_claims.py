@@ -2,13 +2,11 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import pytest
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-claims = pytest.importorskip("claims")
+claims = pytest.importorskip("bench.claims")
 
 
 def _archive(root: Path, n_scenes: int) -> None:
