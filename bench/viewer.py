@@ -21,9 +21,9 @@ from pathlib import Path
 import torch
 
 try:  # python -m bench.viewer
-    from bench.common import machine, median_ms, table, write_results
+    from bench.common import load_file, machine, median_ms, table, write_results
 except ModuleNotFoundError:  # python bench/viewer.py
-    from common import machine, median_ms, table, write_results
+    from common import load_file, machine, median_ms, table, write_results
 
 from b3dgs.viewer.cameras import camera_pose, fov_y, render_size, view_camera  # noqa: E402
 from b3dgs.viewer.modes import ModeRenderer  # noqa: E402
@@ -59,8 +59,9 @@ def frame_times(run_dir: str, samples: int, target_ms: float, repeats: int) -> l
 def screenshot_pair(run_dir: str, out: Path, width: int, height: int) -> dict:
     from PIL import Image
 
-    from b3dgs.viewer.browser import Browser
     from b3dgs.viewer.server import ViewerApp, ViewerSettings
+
+    Browser = load_file(Path(__file__).resolve().parents[1] / "tests" / "browser.py").Browser  # the tests' client
 
     app = ViewerApp(open_run(run_dir), ViewerSettings(port=0, frusta=False)).start()
     shots, texts = [], []

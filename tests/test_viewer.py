@@ -368,7 +368,7 @@ def test_viewer_in_headless_chromium(tiny_runs, tmp_path):
     low-resolution pass, then full again). ``target_ms=1``: every moving frame takes the low pass.
     ``B3DGS_VIEWER_SHOTS=DIR`` keeps the screenshots there."""
     pytest.importorskip("viser", reason='viser not installed (fix: pip install -e ".[viewer]")')
-    from b3dgs.viewer.browser import Browser
+    from tests.browser import Browser
 
     shots = Path(os.environ.get("B3DGS_VIEWER_SHOTS", tmp_path))
     shots.mkdir(parents=True, exist_ok=True)

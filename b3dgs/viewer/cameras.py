@@ -11,7 +11,7 @@ import math
 import numpy as np
 import torch
 
-from b3dgs.types import Camera
+from b3dgs.types import Camera, fit_size
 
 __all__ = ["camera_pose", "fov_y", "mat_to_wxyz", "render_size", "view_camera", "wxyz_to_mat"]
 
@@ -62,10 +62,7 @@ def render_size(aspect: float, max_side: int) -> tuple[int, int]:
     """(width, height) with the longer side ``max_side`` px and the given width / height ratio."""
     if not (aspect > 0 and math.isfinite(aspect)):
         aspect = 1.0
-    max_side = max(int(max_side), 8)
-    if aspect >= 1:
-        return max_side, max(8, int(round(max_side / aspect)))
-    return max(8, int(round(max_side * aspect))), max_side
+    return fit_size(aspect, 1.0, max(int(max_side), 8), upscale=True, min_side=8)
 
 
 def view_camera(wxyz, position, fov: float, width: int, height: int, name: str = "viewer") -> Camera:

@@ -7,10 +7,7 @@ checkpoint this code cannot rebuild: unknown settings, plugins or parameters).
 """
 from __future__ import annotations
 
-import errno
-import fcntl
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
@@ -41,22 +38,9 @@ class ViewedRun:
 
 def _training_pid(run_dir: Path) -> Optional[str]:
     """The pid of a live process holding the run dir's lock (``b3dgs.rundir.run_dir_lock``), else None."""
-    from b3dgs.rundir import LOCK_NAME
+    from b3dgs.rundir import run_dir_busy
 
-    path = run_dir / LOCK_NAME
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except OSError as e:
-        if e.errno in (errno.EAGAIN, errno.EACCES):
-            return os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
-        return None
-    finally:
-        os.close(fd)
-    return None
+    return run_dir_busy(run_dir)
 
 
 def acquired_views(path: Optional[Path]) -> list[str]:
