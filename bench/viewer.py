@@ -1,4 +1,4 @@
-"""b3dgs-view frame times per render mode, and the README's screenshot (RGB beside native σ in a real browser).
+"""b3dgs-view frame times per render mode, and the user guide's screenshot (RGB beside native σ in a real browser).
 
     python bench/viewer.py --runs RUN [RUN ...] [--threads 2] [--screenshot docs/viewer_ethiopian_head.png]
 

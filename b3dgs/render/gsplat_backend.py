@@ -19,7 +19,7 @@ Adapted here to our contract (each fix is tested on the CPU emulation of gsplat'
 - Jacobian clamp: our backends use gsplat's (and 3DGS's) margin, 0.3·tan(fov/2) = 0.15·W/fx beyond
   the image edge.
 
-Left as gsplat has them (documented in README, "Renderers"; sizes measured on the CPU emulation):
+Left as gsplat has them (documented in docs/design.md, "Renderers"; sizes measured on the CPU emulation):
 
 - radii: gsplat ceil(min(3.33, √(2 ln(255 o)))·σ) per axis (culling o < 1/255), ours ceil(3·√λmax);
   on the 60-Gaussian contract scene 41 of 60 radii are equal, the others within ×0.75–×1.25, and
