@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 from pathlib import Path
+from typing import Optional
 
 from omegaconf import OmegaConf
 
@@ -41,10 +42,20 @@ def load_option(group: str, name: str):
     return None
 
 
+def _defaults_groups(data: dict) -> set[str]:
+    """The config groups a primary config's defaults list names (``- data: synthetic``, ``- override /x: y``)."""
+    out = set()
+    for d in data.get("defaults") or []:
+        for k in (d if isinstance(d, dict) else {}):
+            out.add(str(k).removeprefix("override ").lstrip("/").split("@")[0].removeprefix("optional "))
+    return out
+
+
 @lru_cache(maxsize=None)
-def known_keys(path: str) -> tuple[str, ...]:
+def known_keys(path: str, config: Optional[str] = None) -> tuple[str, ...]:
     """The keys that b3dgs's config files give the node at dotted ``path`` ("" for the top level): the primary configs'
-    and every option file's of the group the path starts with (e.g. ``trainer`` -> ``conf/trainer/*.yaml``)."""
+    (only ``config``'s, e.g. ``train``, when given; at the top level with its config groups) and every option file's of
+    the group the path starts with (e.g. ``trainer`` -> ``conf/trainer/*.yaml``)."""
     parts = [p for p in path.split(".") if p]
     keys: set[str] = set()
 
@@ -55,11 +66,15 @@ def known_keys(path: str) -> tuple[str, ...]:
             keys.update(str(k) for k in node if k not in ("defaults", "_target_"))
 
     for root in conf_roots():
-        for f in sorted(root.glob("*.yaml")):  # primary configs (train, eval, view, ...)
-            descend(_load(f)[0], parts)
-        if not parts:
+        primaries = [root / f"{config}.yaml"] if config else sorted(root.glob("*.yaml"))
+        for f in (f for f in primaries if f.is_file()):  # primary configs (train, eval, view, ...)
+            data = _load(f)[0]
+            descend(data, parts)
+            if config and not parts:
+                keys.update(_defaults_groups(data) - {"hydra", "_self_"})
+        if not parts and not config:
             keys.update(d.name for d in root.iterdir() if d.is_dir() and d.name != "hydra")
-        elif (root / parts[0]).is_dir():
+        elif parts and (root / parts[0]).is_dir():
             for f in sorted((root / parts[0]).glob("*.yaml")):
                 data, is_global = _load(f)
                 descend(data, parts if is_global else parts[1:])

@@ -26,6 +26,7 @@ from typing import Callable, Iterable, Optional
 
 EXIT_CODE = 2
 DEBUG_KEY = "b3dgs.debug"
+_APP_CONFIG: Optional[str] = None  # the running CLI's primary config (run_cli), for "did you mean"
 _OWN_ROOTS = tuple(str(Path(__file__).resolve().parents[1] / d) for d in ("b3dgs", "plugins", "b3dgs_plugins"))
 
 __all__ = ["B3dgsError", "EXIT_CODE", "did_you_mean", "format_error", "known_errors", "quiet_known_noise", "run_cli"]
@@ -65,12 +66,24 @@ def _raised_by_us(exc: BaseException) -> bool:
 
 
 def _key_suggestion(key: str) -> str:
-    """``"; did you mean X?"`` for a misspelt dotted config key, from the keys b3dgs's config files give its node."""
-    parent, _, leaf = str(key).rpartition(".")
+    """``"; did you mean X?"`` for a misspelt dotted config key, from the keys b3dgs's config files give each node on
+    its path (those of the running app's primary config, :data:`_APP_CONFIG`, at the top): the leaf when only the leaf
+    is misspelt (``max_steps``), else the whole corrected key (``trainer.max_steps`` for ``traner.max_steps``)."""
     try:
         from b3dgs.confs import known_keys
 
-        return did_you_mean(leaf, known_keys(parent))
+        parts, fixed = str(key).split("."), []
+        for part in parts:
+            known = known_keys(".".join(fixed), _APP_CONFIG)
+            if part not in known and known:
+                close = difflib.get_close_matches(part, sorted(known), n=1, cutoff=0.6)
+                if not close:
+                    return ""
+                part = close[0]
+            fixed.append(part)
+        if fixed == parts:
+            return ""
+        return f"; did you mean {fixed[-1] if fixed[:-1] == parts[:-1] else '.'.join(fixed)}?"
     except Exception:  # noqa: BLE001 - a suggestion must never hide the error itself
         return ""
 
@@ -105,7 +118,9 @@ def _hydra_error(exc: BaseException) -> Optional[B3dgsError]:
     if "Could not find" in head or "In '" in head:
         avail = [ln for ln in lines[1:] if not ln.startswith(("Config search path", "provider=", "In "))]
         opts = " ".join(avail)[:200]
-        return B3dgsError(_one_line(head), f"pick an existing option{': ' + opts if opts else ''}")
+        wanted, options = head.split("Could not find '")[-1].split("'")[0], " ".join(avail).partition("':")[2]
+        hint = did_you_mean(wanted.rpartition("/")[2], options.split()) if "Could not find '" in head else ""
+        return B3dgsError(_one_line(head) + hint, f"pick an existing option{': ' + opts if opts else ''}")
     return B3dgsError(_one_line(head), "correct the config override named above")
 
 
@@ -237,13 +252,17 @@ def known_errors(prog: str, cfg=None):
         _report(prog, e)
 
 
-def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str]] = None) -> None:
+def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str]] = None,
+            config: Optional[str] = None) -> None:
     """Call a ``@hydra.main`` function; print known composition errors (bad override, unknown option)
     as one line and exit with code 2. Errors inside the task are handled by :func:`known_errors`.
+    ``config``: the app's primary config (``train``, ``eval``, ...), whose keys "did you mean" suggests first.
 
     Hydra is asked (through its own ``HYDRA_FULL_ERROR`` switch) to pass exceptions on, so that they
     reach this handler instead of Hydra's multi-line report.
     """
+    global _APP_CONFIG
+    _APP_CONFIG = config
     argv = sys.argv[1:] if argv is None else argv
     debug = _debug_requested(argv)
     old = os.environ.get("HYDRA_FULL_ERROR")

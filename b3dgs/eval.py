@@ -227,7 +227,7 @@ def main() -> None:
     """``b3dgs-eval``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
     from b3dgs.errors import run_cli
 
-    run_cli("b3dgs-eval", hydra_main)
+    run_cli("b3dgs-eval", hydra_main, config="eval")
 
 
 if __name__ == "__main__":

@@ -222,7 +222,7 @@ def main() -> None:
     """``b3dgs-render``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
     from b3dgs.errors import run_cli
 
-    run_cli("b3dgs-render", hydra_main)
+    run_cli("b3dgs-render", hydra_main, config="render")
 
 
 if __name__ == "__main__":

@@ -547,7 +547,7 @@ def main() -> None:
     """``b3dgs-train``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
     from b3dgs.errors import run_cli
 
-    run_cli("b3dgs-train", hydra_main)
+    run_cli("b3dgs-train", hydra_main, config="train")
 
 
 if __name__ == "__main__":

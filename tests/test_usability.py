@@ -1,5 +1,5 @@
-"""Small things a user meets: "did you mean" for a misspelt key given without ``+``, the warning before a long run on
-the pure-PyTorch renderer, and ``renderer=auto -> ...`` said once per process."""
+"""Small things a user meets: "did you mean" for a misspelt key (at any depth) or option, the warning before a long
+run on the pure-PyTorch renderer, and ``renderer=auto -> ...`` said once per process."""
 from __future__ import annotations
 
 import logging
@@ -23,6 +23,32 @@ def test_misspelt_key_suggests_the_right_one(tmp_path, arg, want):
     assert res.returncode == 2 and len(lines) == 1, res.stderr[-2000:]
     assert f"unknown config key {arg.split('=')[0]}; did you mean {want}? (fix: " in lines[0], lines[0]
     assert not any(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("config, key, want", [
+    ("train", "modle", "model"), ("train", "sede", "seed"), ("train", "traner.max_steps", "trainer.max_steps"),
+    ("train", "trainr.max_stps", "trainer.max_steps"), ("train", "trainer.max_stpes", "max_steps"),
+    ("train", "posterior.niww.kappa0", "posterior.niw.kappa0"), ("train", "posterior.niw.kapa0", "kappa0"),
+    ("train", "strategy.refine_stat", "refine_start"), ("train", "renderer.nearr", "near"),
+    ("study", "acquisiton.score_max_sid", "acquisition.score_max_side"), ("eval", "uq.native.samplez", "samples"),
+    ("view", "mdoe", "mode"), ("train", "trainer.max_steps", None), ("train", "zzzz.qqq", None)])
+def test_did_you_mean_at_any_depth(monkeypatch, config, key, want):
+    """Each component of a misspelt key is matched against the keys b3dgs's configs give its node, the top level
+    against the running app's own config (``modle`` -> model for b3dgs-train, not b3dgs-view's ``mode``)."""
+    from b3dgs import errors
+
+    monkeypatch.setattr(errors, "_APP_CONFIG", config)
+    assert errors._key_suggestion(key) == (f"; did you mean {want}?" if want else "")
+
+
+def test_misspelt_option_and_nested_key_in_one_line(tmp_path):
+    for args, want in ((["scene=foxx"], "Could not find 'scene/foxx'; did you mean fox? (fix: pick an existing option"),
+                       (["model=niw", "posterior.niww.kappa0=1"],
+                        "unknown config key posterior.niww.kappa0; did you mean posterior.niw.kappa0? (fix: ")):
+        res = subprocess.run([sys.executable, "-m", "b3dgs.train", *args], capture_output=True, text=True, timeout=120,
+                             cwd=tmp_path, env=ENV)
+        lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+        assert res.returncode == 2 and len(lines) == 1 and want in lines[0], res.stderr[-2000:]
 
 
 def _train_cfg(*overrides):

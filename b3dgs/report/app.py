@@ -337,7 +337,7 @@ def main() -> None:
     """``b3dgs-report``: composition errors (a bad override) as one line with exit code 2 too."""
     from b3dgs.errors import run_cli
 
-    run_cli("b3dgs-report", _hydra_main)
+    run_cli("b3dgs-report", _hydra_main, config="report")
 
 
 if __name__ == "__main__":

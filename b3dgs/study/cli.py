@@ -7,9 +7,10 @@ from b3dgs import conf_dir
 
 CONF_DIR = conf_dir()
 
-STUDIES = {
-    "active": ("b3dgs.study.active", "fixed-budget active view selection 16 -> 32 (conf/study.yaml)"),
-    "compress": ("b3dgs.study.compression", "compression ladder on matched checkpoints, with PUP (conf/compress.yaml)"),
+STUDIES = {  # name: (module, what it is, its config)
+    "active": ("b3dgs.study.active", "fixed-budget active view selection 16 -> 32 (conf/study.yaml)", "study"),
+    "compress": ("b3dgs.study.compression", "compression ladder on matched checkpoints, with PUP (conf/compress.yaml)",
+                 "compress"),
 }
 
 
@@ -42,12 +43,12 @@ def main() -> None:
     from b3dgs.errors import run_cli
 
     if len(sys.argv) < 2 or sys.argv[1] not in STUDIES:
-        lines = "\n".join(f"  b3dgs-study {k} ...   {doc}" for k, (_, doc) in STUDIES.items())
+        lines = "\n".join(f"  b3dgs-study {k} ...   {doc}" for k, (_, doc, _) in STUDIES.items())
         got = f" (got {sys.argv[1]!r})" if len(sys.argv) >= 2 else ""
         print(f"usage: b3dgs-study <study> [hydra overrides]{got}\n{lines}", file=sys.stderr)
         raise SystemExit(2)
-    mod = importlib.import_module(STUDIES[sys.argv.pop(1)][0])
-    run_cli("b3dgs-study", mod.hydra_main)
+    module, _, config = STUDIES[sys.argv.pop(1)]
+    run_cli("b3dgs-study", importlib.import_module(module).hydra_main, config=config)
 
 
 if __name__ == "__main__":

@@ -177,7 +177,7 @@ def main() -> None:
     if any(a in ("--help", "-h") for a in sys.argv[1:]):
         print(help_text())
         return
-    run_cli("b3dgs-view", hydra_main)
+    run_cli("b3dgs-view", hydra_main, config="view")
 
 
 if __name__ == "__main__":
