@@ -70,10 +70,10 @@ class AcquisitionPolicy:
     #: why ``condition`` cannot update this policy's score (recorded when greedy_conditioned falls back to diverse)
     no_conditioning: ClassVar[str] = "the policy declares no condition() (its score has no posterior to update)"
 
-    def check(self) -> None:
-        from b3dgs.validation import group_option_names
+    def validate(self, **kwargs) -> None:
+        from b3dgs.confs import option_names
 
-        families = group_option_names("model")  # any model= option, b3dgs's or a package's
+        families = option_names("model")  # any model= option, b3dgs's or a package's
         if self.family not in families:
             raise B3dgsError(f"acquisition family={self.family!r} is not a model option"
                              f"{did_you_mean(self.family, families)}",
@@ -121,7 +121,7 @@ class BatchSelector:
 
     own_batch_ok: ClassVar[bool] = False
 
-    def check(self) -> None:
+    def validate(self, **kwargs) -> None:
         """Refuse bad settings (one line, :class:`B3dgsError`)."""
 
     def applies_to(self, policy: AcquisitionPolicy) -> bool:

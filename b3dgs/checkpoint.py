@@ -17,11 +17,15 @@ import dataclasses
 import hashlib
 import json
 import math
+import zipfile
+from pathlib import Path
 from typing import Any, Mapping, Optional
 
 import torch
 
-__all__ = ["checkpoint_record", "identity_mismatch", "params_digest", "plugin_config", "renderer_identity",
+from b3dgs.errors import B3dgsError
+
+__all__ = ["check_checkpoint", "checkpoint_record", "identity_mismatch", "params_digest", "plugin_config", "renderer_identity",
            "renderer_mismatch", "run_identity", "scene_fingerprint", "upgrade_targets"]
 
 #: Class-path prefixes renamed since a run was written: (old, new). Plugins were the top-level package
@@ -231,3 +235,16 @@ def checkpoint_record(checkpoint: Mapping[str, Any]) -> dict:
     sd = checkpoint["state_dict"]
     return {"global_step": int(checkpoint.get("global_step", 0)), "num_gaussians": int(sd["splats.means"].shape[0]),
             "params_sha256": params_digest(sd, prefix="splats.")}
+
+
+def check_checkpoint(path: str | Path, fix: str) -> None:
+    """Refuse a checkpoint file that is missing or not a readable torch archive (e.g. truncated)."""
+    p = Path(path)
+    if not p.is_file():
+        raise B3dgsError(f"checkpoint {p} does not exist", fix)
+    try:
+        with zipfile.ZipFile(p) as z:
+            if not any(n.endswith("data.pkl") for n in z.namelist()):
+                raise zipfile.BadZipFile("no data.pkl")
+    except (zipfile.BadZipFile, OSError) as e:
+        raise B3dgsError(f"checkpoint {p} is damaged or not a checkpoint ({e})", fix) from None

@@ -21,6 +21,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from b3dgs.errors import B3dgsError
 from b3dgs.fisher import pixel_set_grads
 from b3dgs.plugin import Plugin
 
@@ -36,9 +37,9 @@ class PruningScore(Plugin):
 
     rounds: int = 1
 
-    def check_sanity(self, **kwargs: Any) -> None:
+    def validate(self, **kwargs: Any) -> None:
         if int(self.rounds) < 1:
-            raise ValueError(f"pruning {type(self).__name__}.rounds must be >= 1, got {self.rounds}")
+            raise B3dgsError(f"pruning {type(self).__name__}.rounds must be >= 1, got {self.rounds}")
 
     def score(self, *, splats, optimizers, state, step, info) -> Tensor:
         raise NotImplementedError
@@ -47,7 +48,7 @@ class PruningScore(Plugin):
 def keep_top(score: Tensor, keep: int) -> Tensor:
     """(N,) bool mask of the ``keep`` highest scores; ties go to the lower index (stable sort), NaN ranks last."""
     if score.dim() != 1:
-        raise ValueError(f"a pruning score must be (N,), got {tuple(score.shape)}")
+        raise B3dgsError(f"a pruning score must be (N,), got {tuple(score.shape)}")
     n = score.numel()
     keep = max(0, min(int(keep), n))
     s = torch.nan_to_num(score.detach().double(), nan=-float("inf"))

@@ -9,7 +9,7 @@ from omegaconf import OmegaConf
 
 from b3dgs import conf_dir
 
-__all__ = ["conf_roots", "known_keys", "load_option"]
+__all__ = ["conf_roots", "known_keys", "load_option", "option_names"]
 
 
 def conf_roots() -> list[Path]:
@@ -40,6 +40,12 @@ def load_option(group: str, name: str):
         if f.is_file():
             return _load(f)[0]
     return None
+
+
+@lru_cache(maxsize=None)
+def option_names(group: str) -> tuple[str, ...]:
+    """The option names of config ``group`` (b3dgs's and installed packages'), e.g. the ``model=`` options."""
+    return tuple(sorted({f.stem for root in conf_roots() for f in (root / group).glob("*.yaml")}))
 
 
 def _defaults_groups(data: dict) -> set[str]:

@@ -4,12 +4,10 @@ A known problem raises :class:`B3dgsError` ``(problem, fix)``; the console entry
 ``<prog>: error: <problem> (fix: <fix>)`` and exit with code 2. The full traceback is printed only
 with ``HYDRA_FULL_ERROR=1`` or ``b3dgs.debug=true`` on the command line.
 
-Besides :class:`B3dgsError`, "known" errors are Hydra's composition errors (bad override, unknown
-option), OmegaConf's missing values, missing files, ``ValueError`` / ``IndexError``
-raised deliberately by b3dgs's own code (the raising frame is in ``b3dgs`` or
-``plugins``) and ``RuntimeError`` raised there with a ``(fix: ...)`` (such as
-``RendererUnavailable``): their messages already name the problem. Anything else is a bug and keeps its
-traceback.
+Besides :class:`B3dgsError` (every error b3dgs and its plugins raise on purpose, also
+:class:`~b3dgs.render.renderers.RendererUnavailable`), "known" errors are Hydra's composition errors (bad override,
+unknown option), OmegaConf's missing values, missing files, full disks and running out of memory: their messages
+already name the problem. Anything else is a bug and keeps its traceback.
 
 :func:`quiet_known_noise` silences known-harmless library warnings and Lightning INFO lines by name.
 """
@@ -21,27 +19,27 @@ import os
 import sys
 import traceback
 from contextlib import contextmanager
-from pathlib import Path
 from typing import Callable, Iterable, Optional
 
 EXIT_CODE = 2
 DEBUG_KEY = "b3dgs.debug"
 _APP_CONFIG: Optional[str] = None  # the running CLI's primary config (run_cli), for "did you mean"
-_OWN_ROOTS = tuple(str(Path(__file__).resolve().parents[1] / d) for d in ("b3dgs", "plugins", "b3dgs_plugins"))
 
 __all__ = ["B3dgsError", "EXIT_CODE", "did_you_mean", "format_error", "known_errors", "quiet_known_noise", "run_cli"]
 
 
 class B3dgsError(ValueError):
-    """A known problem with its fix; ``str()`` is ``"<problem> (fix: <fix>)"``.
+    """A known problem with its fix; ``str()`` is ``"<problem> (fix: <fix>)"``, or the message as given when no
+    ``fix`` is passed (the one-line report then adds a general one unless the message holds ``(fix: ...)``).
 
-    Subclasses ``ValueError`` so callers that catch bad-value errors keep working.
+    The one error type of b3dgs and its plugins (``Plugin.validate`` raises it too); subclasses ``ValueError`` so
+    callers that catch bad-value errors keep working.
     """
 
-    def __init__(self, problem: str, fix: str):
+    def __init__(self, problem: str, fix: Optional[str] = None):
         self.problem = str(problem).strip()
-        self.fix = str(fix).strip()
-        super().__init__(f"{self.problem} (fix: {self.fix})")
+        self.fix = None if fix is None else str(fix).strip()
+        super().__init__(self.problem if fix is None else f"{self.problem} (fix: {self.fix})")
 
 
 def did_you_mean(word: str, choices: Iterable[str]) -> str:
@@ -52,17 +50,6 @@ def did_you_mean(word: str, choices: Iterable[str]) -> str:
 
 def _one_line(text: str) -> str:
     return " ".join(str(text).split())
-
-
-def _raised_by_us(exc: BaseException) -> bool:
-    tb = exc.__traceback__
-    last = None
-    while tb is not None:
-        last = tb
-        tb = tb.tb_next
-    if last is None:
-        return False
-    return str(Path(last.tb_frame.f_code.co_filename).resolve()).startswith(_OWN_ROOTS)
 
 
 def _key_suggestion(key: str) -> str:
@@ -158,7 +145,8 @@ def _io_error(exc: BaseException) -> Optional[str]:
 def format_error(exc: BaseException) -> Optional[str]:
     """``"<problem> (fix: <fix>)"`` for a known error, ``None`` for anything else (a bug)."""
     if isinstance(exc, B3dgsError):
-        return _one_line(exc)
+        msg = _one_line(exc)
+        return msg if "(fix:" in msg else f"{msg} (fix: correct the input named above)"
     h = _hydra_error(exc)
     if h is not None:
         return _one_line(h)
@@ -179,11 +167,6 @@ def format_error(exc: BaseException) -> Optional[str]:
     io = _io_error(exc)
     if io is not None:
         return io
-    if isinstance(exc, (ValueError, IndexError)) and _raised_by_us(exc):
-        msg = _one_line(exc)
-        return msg if "(fix:" in msg else f"{msg} (fix: correct the input named above)"
-    if isinstance(exc, RuntimeError) and _raised_by_us(exc) and "(fix:" in str(exc):
-        return _one_line(exc)  # a machine limit b3dgs names with its fix (e.g. a renderer this machine cannot run)
     return None
 
 

@@ -20,6 +20,7 @@ import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
 from tqdm.auto import tqdm
 
+from b3dgs.errors import B3dgsError
 from b3dgs.train import CONF_DIR
 
 log = logging.getLogger(__name__)
@@ -33,7 +34,7 @@ def regimes_from_cfg(cfg: DictConfig) -> dict:
         if isinstance(node, DictConfig) and "_target_" in node:
             out[name] = instantiate(node)
     if not out:
-        raise ValueError("No uncertainty regime selected: pass uq=[native,proxy] (options: native, proxy, ensemble, ppu)")
+        raise B3dgsError("No uncertainty regime selected: pass uq=[native,proxy] (options: native, proxy, ensemble, ppu)")
     return out
 
 
@@ -92,7 +93,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
         first = runs[0]
     else:
         if not run_dirs:
-            raise ValueError("run= must name at least one run dir")
+            raise B3dgsError("run= must name at least one run dir")
         refuse_running(run_dirs)
         if len(run_dirs) > 1 and any(getattr(r, "min_members", 0) for r in regimes.values()):
             check_members(run_dirs)
@@ -101,7 +102,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     scene = first.scene
     cams = scene.test[:max_views] if max_views else scene.test
     if not cams:
-        raise ValueError("The scene has no test views (data.test_every=0?); nothing to evaluate")
+        raise B3dgsError("The scene has no test views (data.test_every=0?); nothing to evaluate")
     dests = _destinations(regimes, runs, out_dir)
     made = [d for d in dict.fromkeys(dests.values()) if not d.exists()]
     for d in dict.fromkeys(dests.values()):

@@ -7,6 +7,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from b3dgs.errors import B3dgsError
 from b3dgs.render.projection import rgb_to_sh0
 from b3dgs.types import Scene
 
@@ -53,7 +54,7 @@ def init_gaussians(
         cols = torch.rand(n, 3, generator=generator)
         log.info("No SfM points: %d random Gaussians inside the scene bounds", n)
     if not torch.isfinite(pts).all():
-        raise ValueError("Initial points contain NaN/Inf; check the scene's points3D / bounds")
+        raise B3dgsError("Initial points contain NaN/Inf; check the scene's points3D / bounds")
     n = pts.shape[0]
     dist = knn_mean_dist(pts).clamp_min(1e-7 * max(scene.extent, 1e-12))
     scales = torch.log(dist * init_scale).unsqueeze(-1).repeat(1, 3)

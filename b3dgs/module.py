@@ -66,20 +66,20 @@ class SplatModule(L.LightningModule):
         super().__init__()
         self.automatic_optimization = False
         if not 0.0 <= lambda_dssim <= 1.0:
-            raise ValueError(f"model.lambda_dssim must be in [0, 1], got {lambda_dssim}")
+            raise B3dgsError(f"model.lambda_dssim must be in [0, 1], got {lambda_dssim}")
         if not 0 <= sh_degree <= 3:
-            raise ValueError(f"model.sh_degree must be in 0..3, got {sh_degree}")
+            raise B3dgsError(f"model.sh_degree must be in 0..3, got {sh_degree}")
         if max_steps <= 0:
-            raise ValueError(f"trainer.max_steps must be > 0, got {max_steps}")
+            raise B3dgsError(f"trainer.max_steps must be > 0, got {max_steps}")
         self.save_hyperparameters(ignore=["strategy", "posterior", "renderer", "schedule"])
         self.renderer: Renderer = make_renderer(renderer)
         self.strategy = strategy
         self.schedule: TrainingSchedule = schedule if schedule is not None else ConstantSchedule()
-        self.schedule.check_sanity()
+        self.schedule.validate()
         self.posterior: "OrderedDict[str, PosteriorBlock]" = OrderedDict(posterior or {})
-        self.strategy.check_sanity()
+        self.strategy.validate()
         for blk in self.posterior.values():
-            blk.check_sanity(max_steps=max_steps)
+            blk.validate(max_steps=max_steps)
         self.splats = nn.ParameterDict()
         self.states: dict[str, dict] = {}
         self.scene: Optional[Scene] = None
@@ -323,13 +323,13 @@ class SplatModule(L.LightningModule):
         if self.allow_new_views and saved:
             # a new round: the training set may hold acquired views; the pool (train + candidates + test) must agree
             if extra.get("pool") is not None and extra.get("pool") != self.pool_fingerprint():
-                raise ValueError(f"{what} does not match this run: it was trained on another view pool (scene "
+                raise B3dgsError(f"{what} does not match this run: it was trained on another view pool (scene "
                                  f"name, train + candidate + test cameras) (fix: {fix})")
             saved, current = {k: v for k, v in saved.items() if k != "scene"}, {k: v for k, v in current.items() if k != "scene"}
         bad = identity_mismatch(saved, current)
         if bad is not None:
             problem, want = bad
-            raise ValueError(f"{what} does not match this run: {problem} (fix: pass {want}, or {fix})")
+            raise B3dgsError(f"{what} does not match this run: {problem} (fix: pass {want}, or {fix})")
 
     def pool_fingerprint(self) -> Optional[str]:
         """Fingerprint of the whole view pool (train + candidates, and test): what training rounds share."""
@@ -359,7 +359,7 @@ class SplatModule(L.LightningModule):
         sd = checkpoint["state_dict"]
         shapes = {k: sd[f"splats.{k}"] for k in PARAM_ORDER if f"splats.{k}" in sd}
         if len(shapes) != len(PARAM_ORDER):
-            raise ValueError("Checkpoint has no Gaussian parameters (splats.*); is it a b3dgs checkpoint?")
+            raise B3dgsError("Checkpoint has no Gaussian parameters (splats.*); is it a b3dgs checkpoint?")
         # niw -> standard would keep the niw state, standard -> dpmm would fail later with a KeyError
         self.check_checkpoint_identity(checkpoint, "the checkpoint",
                                        "use a checkpoint of this model, posterior, strategy and scene")
@@ -388,7 +388,7 @@ class SplatModule(L.LightningModule):
 
     # ------------------------------------------------------------------ view passes
     def view_sums(self, cameras: Optional[Sequence[Camera]] = None, *, weights: bool = True, fisher_probes: int = 0,
-                  seed: int = 0) -> dict[str, Tensor]:
+                  seed: int = 0, sh_information: bool = False) -> dict[str, Tensor]:
         """Per-Gaussian sums over ``cameras`` (default: the training views), one render each, in float64 on the
         splats' device, in the pixels of the cameras given:
 
@@ -399,7 +399,11 @@ class SplatModule(L.LightningModule):
           the Laplace precision). Estimated with M Rademacher probes per view, E_z[(Σ_p z_p ∇C_p)(Σ_p z_p ∇C_p)ᵀ] =
           Σ_p ∇C_p ∇C_pᵀ for independent ±1 z_p (Hutchinson's estimator): one backward pass of the renderer per
           probe instead of one per pixel, on every backend (the CUDA path differentiates through gsplat), unbiased;
-          relative error ~ √(2 / (M · views seeing k)). ``b3dgs.fisher.pixel_set_grads`` is the exact reference.
+          relative error ~ √(2 / (M · views seeing k)). ``b3dgs.fisher.pixel_set_grads`` is the exact reference;
+        * with ``sh_information``, ``sh_information`` (N, B, B): Σ_views Σ_p w_kp² y(d_kv) y(d_kv)ᵀ, the information of
+          Gaussian k's SH coefficients under a unit-variance pixel likelihood (y: the real SH basis at the active
+          degree, B = (deg+1)², d_kv the unit direction from view v's centre to μ_k), and ``sq_err`` / ``n_values``:
+          the summed squared residual of the renders against the views' images and the number of values summed.
         """
         cams = list(self.scene.train if cameras is None else cameras)
         sp = self.params()
@@ -412,6 +416,14 @@ class SplatModule(L.LightningModule):
             out["fisher"] = torch.zeros(n, 3, 3, dtype=torch.float64, device=dev)
             g = torch.Generator(device="cpu").manual_seed(int(seed))
         sh = self.active_sh_degree()
+        if sh_information:
+            from b3dgs.render.projection import sh_basis
+
+            nb = (sh + 1) ** 2
+            out["sh_information"] = torch.zeros(n, nb, nb, dtype=torch.float64, device=dev)
+            out["sq_err"] = torch.zeros((), dtype=torch.float64, device=dev)
+            out["n_values"] = torch.zeros((), dtype=torch.float64, device=dev)
+            weights = True
         for cam in cams:
             if probes > 0:
                 means = sp["means"].detach().requires_grad_(True)
@@ -429,6 +441,17 @@ class SplatModule(L.LightningModule):
             if weights and ro.weight_sum is not None:
                 out["weight_sum"] += ro.weight_sum.detach().reshape(-1).double()
             out["visible_views"] += (ro.radii.detach().reshape(-1) > 0).double()
+            if sh_information:
+                wsq = ro.weight_sq_sum.detach().reshape(-1).double()
+                seen = torch.nonzero(wsq > 0).squeeze(-1)
+                d = torch.nn.functional.normalize(sp["means"].detach()[seen].double()
+                                                  - cam.center.to(dev, torch.float64), dim=-1)
+                y = sh_basis(sh, d)
+                out["sh_information"].index_add_(0, seen, wsq[seen, None, None] * (y[:, :, None] * y[:, None, :]))
+                if cam.image is not None:
+                    diff = ro.rgb.detach().double().reshape(-1) - cam.image.to(dev).double().reshape(-1)
+                    out["sq_err"] += diff.square().sum()
+                    out["n_values"] += diff.numel()
         return out
 
     def prepare_posterior(self, cameras: Optional[Sequence[Camera]] = None, blocks=None) -> None:
@@ -442,7 +465,9 @@ class SplatModule(L.LightningModule):
         if not reqs:
             return
         probes = max(int(r[2].get("fisher_probes", 0)) for r in reqs)
-        sums = self.view_sums(cameras, weights=True, fisher_probes=probes, seed=int(self.hparams.seed))
+        sh_info = any(bool(r[2].get("sh_information", False)) for r in reqs)
+        sums = self.view_sums(cameras, weights=True, fisher_probes=probes, seed=int(self.hparams.seed),
+                              sh_information=sh_info)
         for blk, st, _ in reqs:
             blk.absorb_view_sums(splats=self.splats, state=st, sums=sums)
 

@@ -15,6 +15,8 @@ from typing import Union
 
 import torch
 
+from b3dgs.errors import B3dgsError
+
 __all__ = ["guard", "guard_counts", "guard_calls", "reset_guards", "LOG_EVERY"]
 
 log = logging.getLogger(__name__)
@@ -33,12 +35,12 @@ def _to_count(mask_or_count: Union[torch.Tensor, int, bool, float]) -> int:
             return int(mask_or_count.sum().item())
         if mask_or_count.numel() == 1:
             return int(mask_or_count.item())
-        raise ValueError("guard(): tensor argument must be a bool mask or a scalar count")
+        raise B3dgsError("guard(): tensor argument must be a bool mask or a scalar count")
     if isinstance(mask_or_count, bool):
         return int(mask_or_count)
     n = int(mask_or_count)
     if n < 0:
-        raise ValueError(f"guard(): negative count {n}")
+        raise B3dgsError(f"guard(): negative count {n}")
     return n
 
 

@@ -12,6 +12,7 @@ from typing import Callable, Optional
 import torch
 from torch import Tensor, nn
 
+from b3dgs.errors import B3dgsError
 from b3dgs.numerics import guard
 from b3dgs.render.projection import quat_to_rotmat
 
@@ -29,7 +30,7 @@ def _reindex_keys(state: dict, keys, index: Tensor, n_old: int, owner: str) -> d
             continue  # not created yet
         if not isinstance(v, Tensor) or v.dim() < 1 or v.shape[0] != n_old:
             shape = tuple(v.shape) if isinstance(v, Tensor) else type(v).__name__
-            raise ValueError(f"{owner}: state[{k!r}] is declared per-Gaussian (per_gaussian_state) but is {shape}, "
+            raise B3dgsError(f"{owner}: state[{k!r}] is declared per-Gaussian (per_gaussian_state) but is {shape}, "
                              f"not ({n_old}, ...) (fix: make it one row per Gaussian, or drop {k!r} from "
                              "per_gaussian_state)")
         out[k] = v[index]
@@ -87,7 +88,7 @@ class TopologyOps:
         n_old = self.num
         index = index.long()
         if index.dim() != 1 or fresh.shape != index.shape:
-            raise ValueError("gather: index and fresh must be 1-D and of equal length")
+            raise B3dgsError("gather: index and fresh must be 1-D and of equal length")
         overrides = overrides or {}
         for name in list(self.splats.keys()):
             old = self.splats[name]
@@ -171,7 +172,7 @@ class TopologyOps:
         """Remove the Gaussians in ``mask``; at least one Gaussian is always kept."""
         n = self.num
         if mask.shape != (n,):
-            raise ValueError(f"prune: mask must have shape ({n},), got {tuple(mask.shape)}")
+            raise B3dgsError(f"prune: mask must have shape ({n},), got {tuple(mask.shape)}")
         mask = mask.clone()
         if bool(mask.all()):
             # keep the most opaque Gaussian so the model never becomes empty (a floor: counted)

@@ -48,8 +48,9 @@ class Plugin:
     #: ``None`` (plugins written before the declaration): every tensor of the state whose first dimension is N.
     per_gaussian_state: ClassVar[Optional[tuple[str, ...]]] = None
 
-    def check_sanity(self, **kwargs: Any) -> None:
-        """Validate configuration values; raise ValueError naming the bad field and the fix."""
+    def validate(self, **kwargs: Any) -> None:
+        """Check this plugin's own field values (``kwargs``: ``max_steps``, the run's step budget); raise
+        :class:`~b3dgs.errors.B3dgsError` naming the bad field and the fix. The one validation method of every kind."""
 
     def initialize_state(self, *, splats, scene, info: dict) -> dict:
         return {}
@@ -123,7 +124,8 @@ class PosteriorBlock(Plugin):
     def view_pass(self, *, state) -> Optional[dict]:
         """What this block needs from one pass over the training views before its posterior is used (None:
         nothing): ``{"fisher_probes": M}`` asks :meth:`b3dgs.module.SplatModule.view_sums` for the weight sums and,
-        with M > 0, the centres' Fisher information; the result goes to :meth:`absorb_view_sums`."""
+        with M > 0, the centres' Fisher information; ``{"sh_information": True}`` the SH coefficients' information and
+        the residual; the result goes to :meth:`absorb_view_sums`."""
         return None
 
     def absorb_view_sums(self, *, splats, state, sums: dict) -> None:

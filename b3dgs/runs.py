@@ -9,6 +9,7 @@ from typing import Optional
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from b3dgs.errors import B3dgsError
 from b3dgs.types import Scene
 
 log = logging.getLogger(__name__)
@@ -61,14 +62,14 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
 
         cfg = OmegaConf.create(upgrade_targets(OmegaConf.to_container(OmegaConf.load(cfg_path), resolve=False)))
         if not isinstance(cfg, DictConfig) or "data" not in cfg or "model" not in cfg:
-            raise ValueError("no data / model node")
+            raise B3dgsError("no data / model node")
     except Exception as e:  # noqa: BLE001 - damaged or foreign file: say which and how to go on
-        raise ValueError(f"{cfg_path} is damaged or not a b3dgs run config ({' '.join(str(e).split())[:120]}) (fix: "
+        raise B3dgsError(f"{cfg_path} is damaged or not a b3dgs run config ({' '.join(str(e).split())[:120]}) (fix: "
                          f"train the run again with `b3dgs-train ... hydra.run.dir={run_dir} overwrite=true`)") from None
     data_path = cfg.data.get("path")
     if data_path and not Path(str(data_path)).is_absolute() and not Path(str(data_path)).exists():
         # runs trained before data.path was stored absolute: relative to the folder training ran in
-        raise ValueError(f"{cfg_path} has data.path={data_path}, relative to the folder the run was trained in, and "
+        raise B3dgsError(f"{cfg_path} has data.path={data_path}, relative to the folder the run was trained in, and "
                          f"it is not below {Path.cwd()} (fix: run from that folder, or write the absolute scene path "
                          f"as data.path in {cfg_path})")
     if scene is None:
@@ -79,13 +80,13 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
     try:
         ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
     except Exception as e:  # corrupt or truncated file
-        raise ValueError(f"Cannot read checkpoint {ckpt_path}: {e}") from e
+        raise B3dgsError(f"Cannot read checkpoint {ckpt_path}: {e}") from e
     metrics = None
     if (run_dir / "metrics.json").exists():
         try:
             metrics = json.loads((run_dir / "metrics.json").read_text())
         except ValueError as e:
-            raise ValueError(f"{run_dir / 'metrics.json'} is damaged ({e}) (fix: finish the run again with "
+            raise B3dgsError(f"{run_dir / 'metrics.json'} is damaged ({e}) (fix: finish the run again with "
                              f"`b3dgs-train ... hydra.run.dir={run_dir} resume=auto`)") from None
     if checkpoint is None:  # the run's own last.ckpt must be the model its metrics.json describes
         check_run_checkpoint(run_dir, ck, metrics)
@@ -108,12 +109,12 @@ def check_run_checkpoint(run_dir: Path, ck: dict, metrics: Optional[dict]) -> No
 
     ckpt_path = run_dir / "checkpoints" / "last.ckpt"
     if metrics is None:
-        raise ValueError(f"{run_dir} holds an unfinished run: no metrics.json (fix: finish it with "
+        raise B3dgsError(f"{run_dir} holds an unfinished run: no metrics.json (fix: finish it with "
                          f"`b3dgs-train ... hydra.run.dir={run_dir} resume=auto`, or pass its checkpoint explicitly)")
     have = checkpoint_record(ck)
     want = metrics.get("checkpoint") or {"global_step": metrics.get("steps"), "num_gaussians": metrics.get("num_gaussians")}
     for key in ("global_step", "num_gaussians", "params_sha256"):
         if want.get(key) is not None and want[key] != have[key]:
-            raise ValueError(f"{ckpt_path} is not the model of {run_dir / 'metrics.json'}: {key} {have[key]} in the "
+            raise B3dgsError(f"{ckpt_path} is not the model of {run_dir / 'metrics.json'}: {key} {have[key]} in the "
                              f"checkpoint, {want[key]} in metrics.json (fix: train the run again with `b3dgs-train ... "
                              f"hydra.run.dir={run_dir} overwrite=true`, or remove the stray checkpoint)")

@@ -23,6 +23,7 @@ from typing import Any, ClassVar, Optional, Sequence
 import torch
 from torch import Tensor
 
+from b3dgs.errors import B3dgsError
 from b3dgs.types import Camera
 
 __all__ = ["ConstantSchedule", "DashSchedule", "TrainingSchedule", "band_energy", "make_schedule"]
@@ -34,8 +35,8 @@ class TrainingSchedule:
 
     name: ClassVar[str] = "constant"
 
-    def check_sanity(self, **kwargs: Any) -> None:
-        """Validate configuration values; raise ValueError naming the bad field and the fix."""
+    def validate(self, **kwargs: Any) -> None:
+        """Check the schedule's own field values; raise :class:`~b3dgs.errors.B3dgsError` naming the field and the fix."""
 
     def initialize(self, train: Sequence[Camera], max_steps: int) -> None:
         """Derive the schedule from the training views (called once when the Gaussians are created)."""
@@ -148,25 +149,25 @@ class DashSchedule(TrainingSchedule):
         self._cache: dict = {}
         self._cache_level = -1
 
-    def check_sanity(self, **kwargs: Any) -> None:
+    def validate(self, **kwargs: Any) -> None:
         if not 0.0 <= float(self.full_res_at) <= 1.0:
-            raise ValueError(f"schedule.full_res_at must be in [0, 1], got {self.full_res_at} (fix: e.g. schedule.full_res_at=0.5)")
+            raise B3dgsError(f"schedule.full_res_at must be in [0, 1], got {self.full_res_at} (fix: e.g. schedule.full_res_at=0.5)")
         if not float(self.max_scale) >= 1.0:
-            raise ValueError(f"schedule.max_scale must be >= 1, got {self.max_scale} (fix: e.g. schedule.max_scale=8)")
+            raise B3dgsError(f"schedule.max_scale must be >= 1, got {self.max_scale} (fix: e.g. schedule.max_scale=8)")
         if not float(self.start_energy_factor) > 1.0:
-            raise ValueError(f"schedule.start_energy_factor must be > 1, got {self.start_energy_factor} "
+            raise B3dgsError(f"schedule.start_energy_factor must be > 1, got {self.start_energy_factor} "
                              "(fix: e.g. schedule.start_energy_factor=4)")
         if not 0.0 < float(self.keep) <= 1.0:
-            raise ValueError(f"schedule.keep must be in (0, 1], got {self.keep} (fix: e.g. schedule.keep=1.0)")
+            raise B3dgsError(f"schedule.keep must be in (0, 1], got {self.keep} (fix: e.g. schedule.keep=1.0)")
         if int(self.levels) < 2:
-            raise ValueError(f"schedule.levels must be >= 2, got {self.levels} (fix: e.g. schedule.levels=12)")
+            raise B3dgsError(f"schedule.levels must be >= 2, got {self.levels} (fix: e.g. schedule.levels=12)")
         if int(self.min_side) < 11:
-            raise ValueError(f"schedule.min_side must be >= 11 (the SSIM loss's window), got {self.min_side} "
+            raise B3dgsError(f"schedule.min_side must be >= 11 (the SSIM loss's window), got {self.min_side} "
                              "(fix: e.g. schedule.min_side=16)")
 
     # ------------------------------------------------------------------ set-up
     def initialize(self, train: Sequence[Camera], max_steps: int) -> None:
-        self.check_sanity()
+        self.validate()
         self._cache, self._cache_level = {}, -1
         self._full_steps = int(round(float(self.full_res_at) * int(max_steps)))
         imgs = [c.image for c in train if c.image is not None]

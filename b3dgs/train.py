@@ -24,6 +24,7 @@ from b3dgs.io import write_json
 log = logging.getLogger(__name__)
 
 from b3dgs import conf_dir
+from b3dgs.errors import B3dgsError
 from b3dgs.labels import method_label, register_resolver
 
 CONF_DIR = conf_dir()
@@ -100,7 +101,7 @@ def resolve_accelerator(requested: Optional[str], renderer) -> str:
     if req == "auto":
         return want
     if {"gpu": "cuda"}.get(req, req) != want:
-        raise ValueError(f"trainer.accelerator={req} does not match renderer={renderer.name}, which runs on {want} "
+        raise B3dgsError(f"trainer.accelerator={req} does not match renderer={renderer.name}, which runs on {want} "
                          f"(fix: trainer.accelerator=auto, or pick a renderer for {req})")
     return req
 
@@ -221,12 +222,12 @@ def prepare_run_dir(cfg: DictConfig, run_dir: Path) -> tuple[Optional[str], bool
 
     overwrite = cfg.get("overwrite", False)
     if not isinstance(overwrite, bool):
-        raise ValueError(f"overwrite={overwrite} is invalid: it must be true or false "
+        raise B3dgsError(f"overwrite={overwrite} is invalid: it must be true or false "
                          "(fix: pass overwrite=true to replace the run in the run dir, or leave it out)")
     resume = cfg.get("resume")
     resuming = resume not in (None, False, "null", "")
     if overwrite and resuming:
-        raise ValueError(f"resume={resume} and overwrite=true contradict each other (fix: pass resume=auto to "
+        raise B3dgsError(f"resume={resume} and overwrite=true contradict each other (fix: pass resume=auto to "
                          "continue the run in the run dir, or overwrite=true to replace it, not both)")
     kind = run_dir_kind(run_dir)
     if kind == "foreign":
@@ -243,13 +244,13 @@ def prepare_run_dir(cfg: DictConfig, run_dir: Path) -> tuple[Optional[str], bool
         if finished_metrics(run_dir) is not None:
             return ckpt, False  # finished: the caller checks its identity, says so and rewrites nothing
         if ckpt is None and (run_dir / "metrics.json").exists():
-            raise ValueError(f"{run_dir} holds a finished run but no checkpoints/last.ckpt to resume from "
+            raise B3dgsError(f"{run_dir} holds a finished run but no checkpoints/last.ckpt to resume from "
                              "(fix: pass overwrite=true to train it again, or another hydra.run.dir)")
         return ckpt, False
     own = (run_dir / "checkpoints").resolve()
     if ckpt is not None and Path(ckpt).resolve().parent == own:
         return ckpt, False
-    raise ValueError(f"{run_dir} already holds a run ({', '.join(held)}) (fix: pass resume=auto to continue it, "
+    raise B3dgsError(f"{run_dir} already holds a run ({', '.join(held)}) (fix: pass resume=auto to continue it, "
                      "overwrite=true to replace it, or another hydra.run.dir)")
 
 
@@ -295,7 +296,7 @@ def check_resume(module, ckpt_path: str) -> None:
     try:
         ck = torch.load(ckpt_path, map_location="cpu", weights_only=False, mmap=True)
     except Exception as e:  # noqa: BLE001 - damaged file: say which and how to go on
-        raise ValueError(f"cannot read the checkpoint {ckpt_path} ({type(e).__name__}) (fix: pass resume=PATH to an "
+        raise B3dgsError(f"cannot read the checkpoint {ckpt_path} ({type(e).__name__}) (fix: pass resume=PATH to an "
                          "intact .ckpt, or overwrite=true to start afresh)") from None
     module.check_checkpoint_identity(
         ck, f"resume: the checkpoint {ckpt_path}",
@@ -307,7 +308,7 @@ def _checkpoint_every_s(tcfg) -> Optional[float]:
     if v is None:
         return None
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:
-        raise ValueError(f"trainer.checkpoint_every_s={v} is invalid: it must be a number of seconds >= 0 or null "
+        raise B3dgsError(f"trainer.checkpoint_every_s={v} is invalid: it must be a number of seconds >= 0 or null "
                          "(fix: pass trainer.checkpoint_every_s=300, or 0 / null for step-based checkpoints only)")
     return float(v)
 
@@ -338,6 +339,29 @@ def check_devices(cfg: DictConfig) -> None:
         raise B3dgsError(f"trainer.devices={_show_value(devices)} asks for several training processes on the CPU, "
                          "which b3dgs does not run (they would share one run dir)",
                          "pass trainer.devices=1; threads=N sets how many CPU threads the one process uses")
+
+
+#: a run the renderer's stated speed puts above this many seconds gets a warning before it starts
+SLOW_RUN_S = 600.0
+
+
+def warn_slow_renderer(cfg: DictConfig) -> Optional[str]:
+    """A warning (logged and returned) when the renderer states a CPU cost per step (``cpu_seconds_per_step``, e.g.
+    the pure-PyTorch reference's ~1 s) that puts ``trainer.max_steps`` above :data:`SLOW_RUN_S` on the CPU."""
+    from b3dgs.schema import locate, value
+
+    node = cfg.get("renderer")
+    target = locate(str(node["_target_"])) if isinstance(node, DictConfig) and "_target_" in node else None
+    per_step, steps = getattr(target, "cpu_seconds_per_step", None), value(cfg.trainer, "max_steps", "trainer.max_steps")
+    device = str(node.get("device_name", "cpu")) if target else ""
+    on_cpu = device == "cpu" or (device == "auto" and not torch.cuda.is_available())
+    if not (per_step and on_cpu and isinstance(steps, int) and steps > 0 and steps * per_step > SLOW_RUN_S):
+        return None
+    msg = (f"renderer={getattr(target, 'name', node['_target_'])} trains at about "
+           f"{per_step:g} s per step on the CPU: trainer.max_steps={steps} will take about {steps * per_step / 60:.0f} "
+           f"min (fix: renderer=cpu, the C++ backend, is ~40x faster; or fewer trainer.max_steps)")
+    log.warning(msg)
+    return msg
 
 
 def _show_value(v: Any) -> str:
@@ -396,6 +420,7 @@ def train(cfg: DictConfig) -> dict:
     try:
         validate_config(cfg, app="train")
         check_devices(cfg)
+        warn_slow_renderer(cfg)
     except Exception:
         _rmdir_if_empty(run_dir)  # Hydra made it; a refused run leaves nothing
         raise

@@ -14,6 +14,8 @@ from typing import Optional
 import torch
 from torch import Tensor
 
+from b3dgs.errors import B3dgsError
+
 
 @dataclass
 class Camera:
@@ -28,18 +30,18 @@ class Camera:
 
     def __post_init__(self) -> None:
         if tuple(self.K.shape) != (3, 3):
-            raise ValueError(f"Camera {self.name!r}: K must be (3, 3), got {tuple(self.K.shape)}")
+            raise B3dgsError(f"Camera {self.name!r}: K must be (3, 3), got {tuple(self.K.shape)}")
         if tuple(self.viewmat.shape) != (4, 4):
-            raise ValueError(f"Camera {self.name!r}: viewmat must be (4, 4), got {tuple(self.viewmat.shape)}")
+            raise B3dgsError(f"Camera {self.name!r}: viewmat must be (4, 4), got {tuple(self.viewmat.shape)}")
         if self.width <= 0 or self.height <= 0:
-            raise ValueError(f"Camera {self.name!r}: width/height must be positive, got {self.width}x{self.height}")
+            raise B3dgsError(f"Camera {self.name!r}: width/height must be positive, got {self.width}x{self.height}")
         if self.image is not None and tuple(self.image.shape) != (self.height, self.width, 3):
-            raise ValueError(
+            raise B3dgsError(
                 f"Camera {self.name!r}: image must be (H, W, 3) = ({self.height}, {self.width}, 3), "
                 f"got {tuple(self.image.shape)}"
             )
         if not torch.isfinite(self.K).all() or not torch.isfinite(self.viewmat).all():
-            raise ValueError(f"Camera {self.name!r}: K or viewmat contains NaN/Inf")
+            raise B3dgsError(f"Camera {self.name!r}: K or viewmat contains NaN/Inf")
 
     @property
     def camtoworld(self) -> Tensor:
@@ -92,7 +94,7 @@ def fit_size(width: float, height: float, max_side: Optional[int], *, upscale: b
     rendered frames, the viewer's frames). ``max_side=None``, or an image already that small without ``upscale``,
     keeps the size; ``max_side <= 0`` is a ValueError."""
     if max_side is not None and max_side <= 0:
-        raise ValueError(f"max_side must be positive, got {max_side}")
+        raise B3dgsError(f"max_side must be positive, got {max_side}")
     if max_side is None or (not upscale and max(width, height) <= max_side):
         return int(width), int(height)
     s = max_side / max(width, height)

@@ -31,7 +31,7 @@ def _batch(name, **kw):
         b = load_batch(name)
     for k, v in kw.items():
         setattr(b, k, v)
-    b.check()
+    b.validate()
     return b
 
 

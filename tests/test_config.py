@@ -37,9 +37,9 @@ def test_every_option_composes_and_builds(group, option, tmp_path):
     cfg = compose_cfg(overrides)
     OmegaConf.resolve(cfg.hydra)  # interpolations in run dirs resolve
     strategy, blocks = build_plugins(cfg)
-    strategy.check_sanity()
+    strategy.validate()
     for blk in blocks.values():
-        blk.check_sanity(max_steps=int(cfg.trainer.max_steps))
+        blk.validate(max_steps=int(cfg.trainer.max_steps))
     if group == "data":
         dm = instantiate(cfg.data)
         assert dm.kind == {"blender": "transforms"}.get(option, option)  # blender: transforms, on white
@@ -68,7 +68,7 @@ def test_bad_values_fail_clearly():
     cfg = compose_cfg(["strategy.refine_every=0"])
     strategy, _ = build_plugins(cfg)
     with pytest.raises(ValueError, match="refine_every"):
-        strategy.check_sanity()
+        strategy.validate()
     cfg = compose_cfg(["model.lambda_dssim=2"])
     from b3dgs.train import build_module
 

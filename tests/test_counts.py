@@ -64,8 +64,9 @@ def test_fisher_count_gives_the_laplace_precision_under_eq_2_3():
     assert torch.allclose(prec[pos], trP[pos] / 3, rtol=1e-6)
 
 
-def _one_gaussian_module(directions):
-    """One small isotropic Gaussian at the origin seen by cameras looking at it along ``directions``."""
+def _one_gaussian_module(directions, blocks=None, sh_degree=3):
+    """One small isotropic Gaussian at the origin seen by cameras looking at it along ``directions``; posterior
+    ``blocks`` (default: NIW with the fisher3 count), prepared on those views."""
     from b3dgs.module import SplatModule
     from b3dgs.types import Scene
     from b3dgs_plugins.strategy.default import AdaptiveDensityControl
@@ -88,17 +89,20 @@ def _one_gaussian_module(directions):
     K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
     cams = [Camera(f"c{i}", K, look(d), 32, 32, torch.zeros(32, 32, 3)) for i, d in enumerate(directions)]
     sc = Scene("one", cams, cams[:1], points=torch.zeros(1, 3), point_colors=torch.full((1, 3), 0.8))
-    m = SplatModule(strategy=AdaptiveDensityControl(), posterior={"niw": NIWBlock(count="fisher3")}, renderer="cpu",
-                    max_steps=10, init_num_random=0)
+    blocks = {"niw": NIWBlock(count="fisher3")} if blocks is None else blocks
+    m = SplatModule(strategy=AdaptiveDensityControl(), posterior=blocks, renderer="cpu", max_steps=10,
+                    init_num_random=0, sh_degree=sh_degree, sh_increase_every=1)
     m.init_from_scene(sc)
     with torch.no_grad():
         m.splats["scales"].fill_(math.log(0.05))
         m.splats["opacities"].fill_(2.0)
         m.splats["quats"].copy_(torch.tensor([[1.0, 0, 0, 0]]))
         m.splats["means"].zero_()
-    m.states["niw"] = m.posterior["niw"].initialize_state(splats=m.splats, scene=sc, info={})
-    m.states["niw"]["mse"] = torch.tensor(1e-3, dtype=torch.float64)
-    m.states["niw"]["mse_n"] = torch.tensor(1.0, dtype=torch.float64)
+    for name, blk in m.posterior.items():
+        m.states[name] = blk.initialize_state(splats=m.splats, scene=sc, info={})
+    if "niw" in m.states:
+        m.states["niw"]["mse"] = torch.tensor(1e-3, dtype=torch.float64)
+        m.states["niw"]["mse_n"] = torch.tensor(1.0, dtype=torch.float64)
     m._loaded_step = 10
     m.prepare_posterior(cams)
     return m
@@ -123,9 +127,9 @@ def test_counts_validate_and_degrade_gracefully(scene):
     from b3dgs.numerics import guard_counts, reset_guards
 
     with pytest.raises(ValueError, match=r"posterior.niw.count=fishr is not a count.*did you mean fisher"):
-        NIWBlock(count="fishr").check_sanity()
+        NIWBlock(count="fishr").validate()
     with pytest.raises(ValueError, match=r"fisher_probes must be an integer >= 1"):
-        NIWBlock(fisher_probes=0).check_sanity()
+        NIWBlock(fisher_probes=0).validate()
     assert COUNTS == ("paper", "weight", "fisher", "fisher3")
     reset_guards()
     m = module_with_blocks(scene, {"niw": NIWBlock(count="fisher3")})

@@ -181,6 +181,6 @@ def test_acquisition_family_is_any_model_option():
     from b3dgs_plugins.acquisition.uniform import UniformPolicy
 
     for family in ("standard", "niw", "dpmm", "mcmc"):
-        UniformPolicy(family=family).check()
+        UniformPolicy(family=family).validate()
     with pytest.raises(B3dgsError, match="family='nope' is not a model option"):
-        UniformPolicy(family="nope").check()
+        UniformPolicy(family="nope").validate()

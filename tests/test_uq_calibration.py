@@ -98,7 +98,7 @@ def test_count_scale_widens_native_spread(scene):
         u.append(float(reg.predict(scene.test[0], torch.Generator().manual_seed(0)).epistemic.mean()))
     assert u[0] < u[1] < u[2], u
     with pytest.raises(ValueError, match="count_scale"):
-        NIWBlock(count_scale=0.0).check_sanity()
+        NIWBlock(count_scale=0.0).validate()
 
 
 # ------------------------------------------------------------------------------- calibration split

@@ -63,9 +63,9 @@ def _train_cfg(*overrides):
 
 
 def test_torch_renderer_warns_before_a_long_cpu_run(caplog):
-    from b3dgs.validation import warn_slow_renderer
+    from b3dgs.train import warn_slow_renderer
 
-    with caplog.at_level(logging.WARNING, logger="b3dgs.validation"):
+    with caplog.at_level(logging.WARNING, logger="b3dgs.train"):
         msg = warn_slow_renderer(_train_cfg("renderer=torch", "renderer.device_name=cpu"))
     assert msg and "renderer=torch trains at about 1 s per step" in msg and "about 50 min" in msg
     assert "renderer=cpu" in msg and msg in caplog.text

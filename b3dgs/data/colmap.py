@@ -180,7 +180,7 @@ def _intrinsics(cam: Any, image_name: str) -> np.ndarray:
         fx, cx, cy = p[:3]
         fy = fx
     else:
-        raise ValueError(
+        raise B3dgsError(
             f"COLMAP camera {cam.camera_id} (used by image {image_name!r}) has the distorted model "
             f"{model}; only {' / '.join(PINHOLE_MODELS)} are supported. Undistort the images first, e.g. "
             f"`colmap image_undistorter --image_path images --input_path sparse/0 --output_path undistorted` "
@@ -208,7 +208,7 @@ def read_colmap(
     try:
         rec = pycolmap.Reconstruction(str(model_dir))
     except Exception as e:  # pycolmap raises plain RuntimeError/ValueError on bad files
-        raise ValueError(f"Cannot read COLMAP model in {model_dir}: {e}") from e
+        raise B3dgsError(f"Cannot read COLMAP model in {model_dir}: {e}") from e
 
     frames = []
     skipped = []
@@ -224,7 +224,7 @@ def read_colmap(
     if skipped:
         log.warning("COLMAP: %d unregistered images skipped (%s...)", len(skipped), ", ".join(skipped[:3]))
     if not frames:
-        raise ValueError(f"COLMAP model in {model_dir} has no registered images")
+        raise B3dgsError(f"COLMAP model in {model_dir} has no registered images")
     frames.sort(key=lambda f: f.name)
 
     points = colors = None

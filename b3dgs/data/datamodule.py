@@ -8,6 +8,7 @@ import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
 from b3dgs.data.scene import NEAR_PLANE, load_scene
+from b3dgs.errors import B3dgsError
 from b3dgs.types import Camera, Scene
 
 __all__ = ["CameraDataset", "ResumableDataLoader", "ResumableRandomSampler", "SceneDataModule", "camera_collate"]
@@ -29,7 +30,7 @@ class CameraDataset(Dataset):
 def camera_collate(batch: list[Camera]) -> Camera:
     """Batches hold exactly one camera; return the Camera itself."""
     if len(batch) != 1:
-        raise ValueError(f"camera batches must have size 1, got {len(batch)}")
+        raise B3dgsError(f"camera batches must have size 1, got {len(batch)}")
     return batch[0]
 
 
@@ -93,7 +94,7 @@ class ResumableRandomSampler(Sampler[int]):
             self.perm, self.epoch, self._yielded, self._consumed = None, int(state["epoch"]), 0, None
             return
         if int(state["n"]) != self.n:
-            raise ValueError(f"the checkpoint's view sampler has {state['n']} train views, this scene {self.n} "
+            raise B3dgsError(f"the checkpoint's view sampler has {state['n']} train views, this scene {self.n} "
                              "(fix: resume with the data settings of the checkpoint's run)")
         self.generator.set_state(state["generator"])
         self.perm = None if state["perm"] is None else [int(i) for i in state["perm"]]

@@ -46,26 +46,26 @@ def read_llff(
     try:
         pb = np.load(pb_path, allow_pickle=False)
     except (OSError, ValueError) as e:
-        raise ValueError(f"Cannot read {pb_path}: {e}") from e
+        raise B3dgsError(f"Cannot read {pb_path}: {e}") from e
     if pb.ndim != 2 or pb.shape[1] != 17:
-        raise ValueError(f"{pb_path} must be (N, 17), got {pb.shape}")
+        raise B3dgsError(f"{pb_path} must be (N, 17), got {pb.shape}")
     pb = pb.astype(np.float64)
     if not np.isfinite(pb).all():
         bad = np.where(~np.isfinite(pb).all(axis=1))[0].tolist()
-        raise ValueError(f"{pb_path}: non-finite values in rows {bad}")
+        raise B3dgsError(f"{pb_path}: non-finite values in rows {bad}")
     bad = np.where(~((pb[:, 15] > 0) & (pb[:, 16] > pb[:, 15])))[0].tolist()
     if bad:
         raise B3dgsError(f"{pb_path}: rows {bad[:5]} have near/far bounds that are not 0 < near < far",
                          "regenerate poses_bounds.npy (LLFF's imgs2poses) or load the scene's COLMAP model (data=colmap)")
     files = list_images(root / images_dir)
     if len(files) != len(pb):
-        raise ValueError(f"{pb_path} has {len(pb)} poses but {root / images_dir} has {len(files)} images")
+        raise B3dgsError(f"{pb_path} has {len(pb)} poses but {root / images_dir} has {len(files)} images")
     frames = []
     for f, row in zip(files, pb):
         m = row[:15].reshape(3, 5)
         H, W, focal = m[:, 4]
         if not (H > 0 and W > 0 and focal > 0):
-            raise ValueError(f"{pb_path}: invalid hwf {m[:, 4].tolist()} for {f.name}")
+            raise B3dgsError(f"{pb_path}: invalid hwf {m[:, 4].tolist()} for {f.name}")
         c2w = np.eye(4)
         c2w[:3, 0] = m[:, 1]  # right
         c2w[:3, 1] = m[:, 0]  # down
@@ -74,13 +74,13 @@ def read_llff(
         try:
             viewmat = np.linalg.inv(c2w)
         except np.linalg.LinAlgError as e:
-            raise ValueError(f"{pb_path}: singular pose for {f.name}") from e
+            raise B3dgsError(f"{pb_path}: singular pose for {f.name}") from e
         W0, H0 = int(round(W)), int(round(H))
         w, h = image_size(f)
         if (w, h) != (W0, H0):
             s = w / W0
             if abs(H0 * s - h) > 1.0 or s > 1.0:
-                raise ValueError(
+                raise B3dgsError(
                     f"Image {f} is {w}x{h} but poses_bounds.npy says {W0}x{H0} (w x h), "
                     f"which is not a uniform downscale"
                 )

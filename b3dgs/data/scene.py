@@ -155,7 +155,7 @@ def select_evenly(n: int, max_images: Optional[int]) -> list[int]:
     if max_images is None or max_images >= n:
         return list(range(n))
     if max_images <= 0:
-        raise ValueError(f"max_images must be positive, got {max_images}")
+        raise B3dgsError(f"max_images must be positive, got {max_images}")
     return sorted(set(np.linspace(0, n - 1, max_images).round().astype(int).tolist()))
 
 
@@ -163,14 +163,14 @@ def check_pose(name: str, viewmat: np.ndarray, tol: float = 1e-2) -> np.ndarray:
     """Validate a 4x4 world-to-camera matrix; return it with an exactly orthonormal rotation."""
     v = np.asarray(viewmat, dtype=np.float64)
     if v.shape != (4, 4):
-        raise ValueError(f"Pose of {name!r} must be 4x4, got {v.shape}")
+        raise B3dgsError(f"Pose of {name!r} must be 4x4, got {v.shape}")
     if not np.isfinite(v).all():
-        raise ValueError(f"Pose of {name!r} contains NaN/Inf")
+        raise B3dgsError(f"Pose of {name!r} contains NaN/Inf")
     R = v[:3, :3]
     err = np.abs(R.T @ R - np.eye(3)).max()
     det = np.linalg.det(R)
     if err > tol or det <= 0:
-        raise ValueError(
+        raise B3dgsError(
             f"Pose of {name!r} is not a rigid transform (|R^T R - I|max = {err:.3g}, det(R) = {det:.3g})"
         )
     u, _, vt = np.linalg.svd(R)
@@ -357,7 +357,7 @@ def compute_bounds(
 def split_indices(n: int, test_every: int) -> tuple[list[int], list[int]]:
     """(train, test) indices into a name-sorted list: ``i % test_every == 0`` is test; 0 means no test."""
     if test_every < 0:
-        raise ValueError(f"test_every must be >= 0, got {test_every}")
+        raise B3dgsError(f"test_every must be >= 0, got {test_every}")
     if test_every == 0:
         return list(range(n)), []
     test = [i for i in range(n) if i % test_every == 0]
@@ -397,15 +397,15 @@ def preprocess(
     views (see :func:`filter_points_to_train`)."""
     cams = sorted(raw.cameras, key=lambda c: c.name)
     if not cams:
-        raise ValueError(f"Scene {raw.name!r} has no cameras")
+        raise B3dgsError(f"Scene {raw.name!r} has no cameras")
     names = [c.name for c in cams]
     if len(set(names)) != len(names):
-        raise ValueError(f"Scene {raw.name!r} has duplicate image names")
+        raise B3dgsError(f"Scene {raw.name!r} has duplicate image names")
     viewmats = np.stack([c.viewmat.double().numpy() for c in cams])
     points = None if raw.points is None else np.asarray(raw.points, dtype=np.float64).reshape(-1, 3)
     colors = None if raw.point_colors is None else np.asarray(raw.point_colors, dtype=np.float32).reshape(-1, 3)
     if points is not None and colors is not None and len(points) != len(colors):
-        raise ValueError(f"{len(points)} points but {len(colors)} point colours")
+        raise B3dgsError(f"{len(points)} points but {len(colors)} point colours")
     if points is not None and len(points) == 0:
         points, colors = None, None
     if points is not None and not np.isfinite(points).all():
@@ -435,9 +435,9 @@ def preprocess(
         sel = [int(i) for i in train_indices]
         bad = [i for i in sel if not 0 <= i < len(train)]
         if bad:
-            raise IndexError(f"train_indices {bad} out of range for {len(train)} train views")
+            raise B3dgsError(f"train_indices {bad} out of range for {len(train)} train views")
         if len(set(sel)) != len(sel):
-            raise ValueError(f"train_indices contains duplicates: {sel}")
+            raise B3dgsError(f"train_indices contains duplicates: {sel}")
         pool, train = train, [train[i] for i in sel]
         candidates = [c for i, c in enumerate(pool) if i not in set(sel)]
     else:
@@ -446,7 +446,7 @@ def preprocess(
     if init_points_from_train_only and points is not None:
         points, colors, point_filter = filter_points_to_train(raw, points, colors, train)
     if not train:
-        raise ValueError(f"Scene {raw.name!r}: no train views (n={len(cams)}, test_every={test_every})")
+        raise B3dgsError(f"Scene {raw.name!r}: no train views (n={len(cams)}, test_every={test_every})")
 
     lo, hi = compute_bounds(viewmats, points, fallback_depth=focus)
     check_near_plane(raw.name, viewmats, lo, hi, normalize, near_plane)
@@ -654,7 +654,7 @@ def load_scene(
     reads_files = loader_reads_files(loader)
     if reads_files:
         if path is None or str(path) == "":
-            raise ValueError(f"load_scene(kind={kind!r}) needs a path")
+            raise B3dgsError(f"load_scene(kind={kind!r}) needs a path")
         if not Path(path).exists():
             raise FileNotFoundError(f"Scene path not found: {path}")
         if kind_kwargs.get("sparse_dir") is None:  # a custom model folder is the loader's to find

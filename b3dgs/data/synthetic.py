@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from b3dgs.data.scene import RawScene, select_evenly
+from b3dgs.errors import B3dgsError
 from b3dgs.types import Camera
 
 __all__ = ["Ellipsoid", "SyntheticWorld", "load_synthetic", "make_cameras", "make_world"]
@@ -263,7 +264,7 @@ def make_cameras(
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """``n_views`` (K, viewmat) pairs on a hemisphere spiral (square images of side ``resolution``)."""
     if n_views <= 0:
-        raise ValueError(f"n_views must be positive, got {n_views}")
+        raise B3dgsError(f"n_views must be positive, got {n_views}")
     rng = np.random.default_rng(seed + 7919)
     az0 = rng.uniform(0, 2 * math.pi)
     f = 0.5 * resolution / math.tan(math.radians(fov_deg) / 2)
@@ -297,7 +298,7 @@ def load_synthetic(
     normalises it like any other scene. ``extras["world"]`` holds the :class:`SyntheticWorld`.
     """
     if resolution <= 0:
-        raise ValueError(f"resolution must be positive, got {resolution}")
+        raise B3dgsError(f"resolution must be positive, got {resolution}")
     res = min(resolution, max_side) if max_side else resolution
     world = make_world(seed, n_objects)
     rigs = make_cameras(n_views, res, seed)

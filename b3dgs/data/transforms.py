@@ -52,15 +52,15 @@ def _check_numbers(jf: Path, meta: dict) -> None:
     """Refuse a non-numeric camera value of ``transforms.json``, naming the file, frame and key."""
     for where, d in [("", meta)] + [(f"frame {i} ", fr) for i, fr in enumerate(meta["frames"])]:
         if not isinstance(d, dict):
-            raise ValueError(f"{jf}: {where or 'the top level '}is not a JSON object (fix: correct that file)")
+            raise B3dgsError(f"{jf}: {where or 'the top level '}is not a JSON object (fix: correct that file)")
         for k in NUMBER_KEYS:
             if d.get(k) is not None and not _is_number(d[k]):
-                raise ValueError(f"{jf}: {where}{k}={d[k]!r} is not a number (fix: write a number for {k} "
+                raise B3dgsError(f"{jf}: {where}{k}={d[k]!r} is not a number (fix: write a number for {k} "
                                  "in that file)")
         m = d.get("transform_matrix")
         if m is not None and not (isinstance(m, list) and all(isinstance(r, list) and all(_is_number(x) for x in r)
                                                              for r in m)):
-            raise ValueError(f"{jf}: {where}transform_matrix holds a value that is not a number (fix: write "
+            raise B3dgsError(f"{jf}: {where}transform_matrix holds a value that is not a number (fix: write "
                              "a 4x4 (or 3x4) list of numbers in that file)")
 
 
@@ -107,7 +107,7 @@ def _read_ply(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
     try:
         v = PlyData.read(str(path))["vertex"]
     except Exception as e:
-        raise ValueError(f"Cannot read point cloud {path}: {e}") from e
+        raise B3dgsError(f"Cannot read point cloud {path}: {e}") from e
     names = v.data.dtype.names
     xyz = np.stack([np.asarray(v[k], dtype=np.float64) for k in ("x", "y", "z")], axis=1)
     rgb = None
@@ -156,20 +156,20 @@ def read_transforms(
         try:
             meta = json.loads(jf.read_text())
         except (OSError, json.JSONDecodeError) as e:
-            raise ValueError(f"Cannot parse {jf}: {e}") from e
+            raise B3dgsError(f"Cannot parse {jf}: {e}") from e
         root = jf.parent
         if "frames" not in meta or not meta["frames"]:
-            raise ValueError(f"{jf} has no frames")
+            raise B3dgsError(f"{jf} has no frames")
         first = len(frames)
         unsized: list[int] = []  # frames with top-level pixel intrinsics but no w/h
         _check_numbers(jf, meta)
         for i, fr in enumerate(meta["frames"]):
             g = {**meta, **fr}  # per-frame keys override global ones
             if "file_path" not in fr or "transform_matrix" not in fr:
-                raise ValueError(f"{jf}: frame {i} lacks file_path or transform_matrix")
+                raise B3dgsError(f"{jf}: frame {i} lacks file_path or transform_matrix")
             model = str(g.get("camera_model", "OPENCV")).upper()
             if model in _UNSUPPORTED_MODELS:
-                raise ValueError(f"{jf}: camera_model {model} is not a pinhole model; undistort the images first")
+                raise B3dgsError(f"{jf}: camera_model {model} is not a pinhole model; undistort the images first")
             img_path = _resolve_image(root, fr["file_path"])
             name = Path(os.path.relpath(img_path, path if path.is_dir() else root)).as_posix()
             for k in DISTORTION_KEYS:
@@ -189,7 +189,7 @@ def read_transforms(
                 fx = 0.5 * w / math.tan(0.5 * float(g["camera_angle_x"]))
                 fy = 0.5 * h / math.tan(0.5 * float(g["camera_angle_y"])) if "camera_angle_y" in g else fx
             else:
-                raise ValueError(f"{jf}: frame {fr['file_path']!r} has no focal length (fl_x/fl_y or camera_angle_x)")
+                raise B3dgsError(f"{jf}: frame {fr['file_path']!r} has no focal length (fl_x/fl_y or camera_angle_x)")
             cx = float(g.get("cx", w / 2.0))
             cy = float(g.get("cy", h / 2.0))
             K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -197,14 +197,14 @@ def read_transforms(
             if c2w.shape == (3, 4):
                 c2w = np.vstack([c2w, [0, 0, 0, 1]])
             if c2w.shape != (4, 4):
-                raise ValueError(f"{jf}: transform_matrix of {fr['file_path']!r} has shape {c2w.shape}")
+                raise B3dgsError(f"{jf}: transform_matrix of {fr['file_path']!r} has shape {c2w.shape}")
             if not np.isfinite(c2w).all():
-                raise ValueError(f"{jf}: transform_matrix of {fr['file_path']!r} contains NaN/Inf")
+                raise B3dgsError(f"{jf}: transform_matrix of {fr['file_path']!r} contains NaN/Inf")
             c2w_cv = c2w @ GL_TO_CV
             try:
                 viewmat = np.linalg.inv(c2w_cv)
             except np.linalg.LinAlgError as e:
-                raise ValueError(f"{jf}: transform_matrix of {fr['file_path']!r} is singular") from e
+                raise B3dgsError(f"{jf}: transform_matrix of {fr['file_path']!r} is singular") from e
             frames.append(FrameSpec(name, img_path, K, viewmat, w, h))
         _rescale_shared_intrinsics(jf, meta, frames[first:], unsized)
         if meta.get("ply_file_path") and points is None:

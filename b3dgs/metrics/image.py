@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 # the renderers' SSIM losses live with the renderers (metrics import render, never the reverse)
+from b3dgs.errors import B3dgsError
 from b3dgs.render.ssim import SSIM_SIGMA, SSIM_WINDOW, ssim_fused, ssim_separable  # noqa: F401
 
 __all__ = ["PSNR_CAP_DB", "SSIM_WINDOW", "SSIM_SIGMA", "psnr", "ssim", "ssim_separable", "ssim_fused", "check_images"]
@@ -38,11 +39,11 @@ def check_images(pred: Tensor, gt: Tensor, name: str = "metric") -> tuple[Tensor
     if not isinstance(pred, Tensor) or not isinstance(gt, Tensor):
         raise TypeError(f"{name}: pred and gt must be torch tensors, got {type(pred).__name__}, {type(gt).__name__}")
     if pred.shape != gt.shape:
-        raise ValueError(f"{name}: pred and gt shapes differ: {tuple(pred.shape)} vs {tuple(gt.shape)}")
+        raise B3dgsError(f"{name}: pred and gt shapes differ: {tuple(pred.shape)} vs {tuple(gt.shape)}")
     if pred.dim() not in (3, 4) or pred.shape[-1] != 3:
-        raise ValueError(f"{name}: expected images of shape (H, W, 3) or (B, H, W, 3), got {tuple(pred.shape)}")
+        raise B3dgsError(f"{name}: expected images of shape (H, W, 3) or (B, H, W, 3), got {tuple(pred.shape)}")
     if pred.numel() == 0:
-        raise ValueError(f"{name}: empty images of shape {tuple(pred.shape)}")
+        raise B3dgsError(f"{name}: empty images of shape {tuple(pred.shape)}")
     if not pred.is_floating_point() or not gt.is_floating_point():
         raise TypeError(f"{name}: images must be floating point in [0, 1], got {pred.dtype} and {gt.dtype}")
     gt = gt.to(device=pred.device)
@@ -50,7 +51,7 @@ def check_images(pred: Tensor, gt: Tensor, name: str = "metric") -> tuple[Tensor
     if not batched:
         pred, gt = pred.unsqueeze(0), gt.unsqueeze(0)
     if not bool(torch.isfinite(pred).all()) or not bool(torch.isfinite(gt).all()):
-        raise ValueError(f"{name}: images contain NaN or Inf")
+        raise B3dgsError(f"{name}: images contain NaN or Inf")
     return pred, gt, batched
 
 
@@ -84,7 +85,7 @@ def ssim(pred: Tensor, gt: Tensor) -> Tensor:
     p, g, batched = check_images(pred, gt, "ssim")
     h, w = p.shape[1:3]
     if h < SSIM_WINDOW or w < SSIM_WINDOW:
-        raise ValueError(f"ssim: images must be at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {h}x{w}")
+        raise B3dgsError(f"ssim: images must be at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {h}x{w}")
     dtype = torch.promote_types(p.dtype, g.dtype)
     a = p.to(dtype).permute(0, 3, 1, 2)
     b = g.to(dtype).permute(0, 3, 1, 2)

@@ -8,6 +8,7 @@ from typing import Optional, Sequence
 import torch
 
 from b3dgs.device import timed_clock
+from b3dgs.errors import B3dgsError
 from b3dgs.metrics.image import SSIM_WINDOW, psnr, ssim
 from b3dgs.metrics.lpips import _MIN_SIZE as LPIPS_MIN_SIDE
 from b3dgs.types import Camera
@@ -31,7 +32,7 @@ def evaluate_views(
     render_s = 0.0
     for cam in cameras:
         if cam.image is None:
-            raise ValueError(f"evaluate: camera {cam.name!r} has no ground-truth image")
+            raise B3dgsError(f"evaluate: camera {cam.name!r} has no ground-truth image")
         t0 = timed_clock(module.device)
         pred = module.render_eval(cam)
         render_s += timed_clock(module.device) - t0

@@ -39,6 +39,7 @@ from typing import Mapping, Optional
 import torch
 from torch import Tensor
 
+from b3dgs.errors import B3dgsError
 from b3dgs.render.preprocess import effective_sh_degree, expand_samples, guarded_params
 from b3dgs.render.render import RenderOutput, check_render_params
 from b3dgs.types import Camera
@@ -58,7 +59,7 @@ def weight_sums(gauss_ids: Tensor, pixel_ids: Tensor, image_ids: Tensor, means2d
     """
     I, N = opacities.shape
     if means2d.shape != (I, N, 2) or conics.shape != (I, N, 3):
-        raise ValueError(f"weight_sums: means2d {tuple(means2d.shape)} / conics {tuple(conics.shape)} do not "
+        raise B3dgsError(f"weight_sums: means2d {tuple(means2d.shape)} / conics {tuple(conics.shape)} do not "
                          f"match opacities (I, N) = ({I}, {N})")
     dev = opacities.device
     wsum = torch.zeros(I * N, dtype=torch.float64, device=dev)
@@ -131,7 +132,7 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
     means = expand_samples(params["means"], S, 1)
     dev, dtype = means.device, means.dtype
     if (dev.type != "cuda" and not _emulated(dev)) or dtype != torch.float32:
-        raise ValueError(f"renderer=gsplat needs float32 CUDA tensors, got {dtype} on {dev} "
+        raise B3dgsError(f"renderer=gsplat needs float32 CUDA tensors, got {dtype} on {dev} "
                          "(fix: let the trainer move the model, or use renderer=torch on this device)")
     deg = effective_sh_degree(sh_degree, params.get("shN"))
     sh = expand_samples(params["sh0"], S, 2)

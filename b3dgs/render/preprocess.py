@@ -13,6 +13,7 @@ from typing import Mapping, Optional
 import torch
 from torch import Tensor
 
+from b3dgs.errors import B3dgsError
 from b3dgs.render.projection import covariance_3d, eval_sh, project
 from b3dgs.types import Camera
 
@@ -231,7 +232,7 @@ def preprocess(params: Mapping[str, Tensor], camera: Camera, S: int, sh_degree: 
     """
     fn = _BACKENDS.get(backend)
     if fn is None:
-        raise ValueError(f"preprocess: backend must be one of {sorted(_BACKENDS)}, got {backend!r}")
+        raise B3dgsError(f"preprocess: backend must be one of {sorted(_BACKENDS)}, got {backend!r}")
     deg = effective_sh_degree(sh_degree, params.get("shN"))
     if backend == "cpu":
         pre, (quat_zero, quat_extreme, scale_over) = _preprocess_cpu(params, camera, S, deg, near)

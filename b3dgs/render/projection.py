@@ -12,6 +12,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from b3dgs.errors import B3dgsError
+
 SH_C0 = 0.28209479177387814
 SH_C1 = 0.4886025119029199
 SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
@@ -58,7 +60,7 @@ def covariance_3d(quats: Tensor, log_scales: Tensor) -> Tensor:
 def sh_basis(degree: int, dirs: Tensor) -> Tensor:
     """Real SH basis values of degree 0..3 at unit directions (…, 3) -> (…, (degree+1)²)."""
     if degree < 0 or degree > 3:
-        raise ValueError(f"SH degree must be in 0..3, got {degree}")
+        raise B3dgsError(f"SH degree must be in 0..3, got {degree}")
     x, y, z = dirs[..., 0], dirs[..., 1], dirs[..., 2]
     out = [torch.full_like(x, SH_C0)]
     if degree >= 1:
@@ -79,7 +81,7 @@ def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
     """Evaluate real SH of degree 0..3. coeffs (…, B, 3) with B >= (degree+1)², dirs (…, 3) unit."""
     nb = (degree + 1) ** 2
     if coeffs.shape[-2] < nb:
-        raise ValueError(f"eval_sh: degree {degree} needs {nb} coefficients, got {coeffs.shape[-2]}")
+        raise B3dgsError(f"eval_sh: degree {degree} needs {nb} coefficients, got {coeffs.shape[-2]}")
     if degree == 0:
         return SH_C0 * coeffs[..., 0, :]
     basis = sh_basis(degree, dirs.detach() if not dirs.requires_grad else dirs)

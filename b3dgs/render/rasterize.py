@@ -24,6 +24,8 @@ import torch
 from torch import Tensor
 from torch.utils.checkpoint import checkpoint
 
+from b3dgs.errors import B3dgsError
+
 MIN_ALPHA = 1.0 / 255.0
 MAX_ALPHA = 0.99
 MIN_T = 1e-4
@@ -84,23 +86,23 @@ def bin_gaussians(
     C++ (a stable counting sort by tile over the depth order).
     """
     if means2d.dim() != 3 or means2d.shape[-1] != 2:
-        raise ValueError(f"bin_gaussians: means2d must be (S, N, 2), got {_shape_str(means2d)}")
+        raise B3dgsError(f"bin_gaussians: means2d must be (S, N, 2), got {_shape_str(means2d)}")
     S, N = means2d.shape[:2]
     if tuple(radii.shape) != (S, N):
-        raise ValueError(f"bin_gaussians: radii must be (S, N) = ({S}, {N}), got {_shape_str(radii)}")
+        raise B3dgsError(f"bin_gaussians: radii must be (S, N) = ({S}, {N}), got {_shape_str(radii)}")
     if tuple(depths.shape) != (S, N):
-        raise ValueError(f"bin_gaussians: depths must be (S, N) = ({S}, {N}), got {_shape_str(depths)}")
+        raise B3dgsError(f"bin_gaussians: depths must be (S, N) = ({S}, {N}), got {_shape_str(depths)}")
     if width <= 0 or height <= 0 or tile_size <= 0:
-        raise ValueError(f"bin_gaussians: bad width/height/tile_size {width}/{height}/{tile_size}")
+        raise B3dgsError(f"bin_gaussians: bad width/height/tile_size {width}/{height}/{tile_size}")
     if extent is None:
         extent = radii.detach()[..., None].expand(S, N, 2)
     elif tuple(extent.shape) != (S, N, 2):
-        raise ValueError(f"bin_gaussians: extent must be (S, N, 2) = ({S}, {N}, 2), got {_shape_str(extent)}")
+        raise B3dgsError(f"bin_gaussians: extent must be (S, N, 2) = ({S}, {N}, 2), got {_shape_str(extent)}")
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     fn = _BIN_BACKENDS.get(backend)
     if fn is None:
-        raise ValueError(f"bin_gaussians: backend must be one of {BACKENDS}, got {backend!r}")
+        raise B3dgsError(f"bin_gaussians: backend must be one of {BACKENDS}, got {backend!r}")
     return fn(means2d, radii, depths, extent, width, height, tile_size, tiles_x, tiles_y)
 
 
@@ -177,50 +179,50 @@ _BIN_BACKENDS = {"cpu": _bin_cpu, "torch": _bin_torch}
 # --------------------------------------------------------------------------------------------
 def _check_inputs(means2d, conics, colors, opacities, depths, bins, width, height, background, backend):
     if backend not in BACKENDS:
-        raise ValueError(f"rasterize: backend must be one of {BACKENDS}, got {backend!r}")
+        raise B3dgsError(f"rasterize: backend must be one of {BACKENDS}, got {backend!r}")
     if not isinstance(means2d, Tensor) or means2d.dim() != 3 or means2d.shape[-1] != 2:
-        raise ValueError(f"rasterize: means2d must be a (S, N, 2) tensor, got {_shape_str(means2d) if isinstance(means2d, Tensor) else type(means2d)}")
+        raise B3dgsError(f"rasterize: means2d must be a (S, N, 2) tensor, got {_shape_str(means2d) if isinstance(means2d, Tensor) else type(means2d)}")
     S, N = means2d.shape[:2]
     dtype = means2d.dtype
     if dtype not in (torch.float32, torch.float64):
-        raise ValueError(f"rasterize: means2d must be float32 or float64, got {dtype}")
+        raise B3dgsError(f"rasterize: means2d must be float32 or float64, got {dtype}")
     expected = {"conics": (conics, (S, N, 3)), "colors": (colors, (S, N, 3)),
                 "opacities": (opacities, (S, N)), "depths": (depths, (S, N))}
     for name, (t, shape) in expected.items():
         if not isinstance(t, Tensor):
-            raise ValueError(f"rasterize: {name} must be a tensor, got {type(t)}")
+            raise B3dgsError(f"rasterize: {name} must be a tensor, got {type(t)}")
         if tuple(t.shape) != shape:
-            raise ValueError(f"rasterize: {name} must have shape {shape}, got {_shape_str(t)}")
+            raise B3dgsError(f"rasterize: {name} must have shape {shape}, got {_shape_str(t)}")
         if t.dtype != dtype:
-            raise ValueError(f"rasterize: {name} has dtype {t.dtype}, expected {dtype} (same as means2d)")
+            raise B3dgsError(f"rasterize: {name} has dtype {t.dtype}, expected {dtype} (same as means2d)")
     if not isinstance(background, Tensor) or tuple(background.shape) != (3,):
-        raise ValueError(f"rasterize: background must be a (3,) tensor, got "
+        raise B3dgsError(f"rasterize: background must be a (3,) tensor, got "
                          f"{_shape_str(background) if isinstance(background, Tensor) else type(background)}")
     for name, t in (("means2d", means2d), ("conics", conics), ("colors", colors),
                     ("opacities", opacities), ("depths", depths), ("background", background)):
         need = _BACKEND_DEVICE_TYPE[backend] or means2d.device.type
         if t.device != means2d.device or t.device.type != need:
-            raise ValueError(f"rasterize: {name} is on {t.device}; the {backend} backend needs every input on "
+            raise B3dgsError(f"rasterize: {name} is on {t.device}; the {backend} backend needs every input on "
                              f"one {need} device")
     # the C++ backend checks finiteness and Gaussian ids inside its own passes (_raise_bad_inputs)
     if backend != "cpu":
         _check_finite(means2d=means2d, conics=conics, colors=colors, opacities=opacities, depths=depths)
     _check_finite(background=background)
     if width <= 0 or height <= 0:
-        raise ValueError(f"rasterize: width/height must be positive, got {width}x{height}")
+        raise B3dgsError(f"rasterize: width/height must be positive, got {width}x{height}")
     ts = bins.tile_size
     if bins.tiles_x != (width + ts - 1) // ts or bins.tiles_y != (height + ts - 1) // ts:
-        raise ValueError(f"rasterize: bins ({bins.tiles_x}x{bins.tiles_y} tiles of {ts}) do not match "
+        raise B3dgsError(f"rasterize: bins ({bins.tiles_x}x{bins.tiles_y} tiles of {ts}) do not match "
                          f"the image size {width}x{height}")
     if bins.tile_offsets.dtype != torch.int64 or tuple(bins.tile_offsets.shape) != (bins.num_tiles + 1,):
-        raise ValueError(f"rasterize: bins.tile_offsets must be int64 ({bins.num_tiles + 1},), got "
+        raise B3dgsError(f"rasterize: bins.tile_offsets must be int64 ({bins.num_tiles + 1},), got "
                          f"{bins.tile_offsets.dtype} {_shape_str(bins.tile_offsets)}")
     if bins.flat_ids.dtype != torch.int64 or bins.flat_ids.dim() != 1:
-        raise ValueError(f"rasterize: bins.flat_ids must be int64 (P,), got {bins.flat_ids.dtype} "
+        raise B3dgsError(f"rasterize: bins.flat_ids must be int64 (P,), got {bins.flat_ids.dtype} "
                          f"{_shape_str(bins.flat_ids)}")
     P = bins.num_pairs
     if int(bins.tile_offsets[0]) != 0 or int(bins.tile_offsets[-1]) != P:
-        raise ValueError("rasterize: bins.tile_offsets must start at 0 and end at len(flat_ids)")
+        raise B3dgsError("rasterize: bins.tile_offsets must start at 0 and end at len(flat_ids)")
     if backend != "cpu" and P > 0 and (int(bins.flat_ids.min()) < 0 or int(bins.flat_ids.max()) >= N):
         _raise_stale_bins(N)
 
@@ -228,11 +230,11 @@ def _check_inputs(means2d, conics, colors, opacities, depths, bins, width, heigh
 def _check_finite(**tensors: Tensor) -> None:
     for name, t in tensors.items():
         if not bool(torch.isfinite(t.detach()).all()):
-            raise ValueError(f"rasterize: {name} contains NaN or Inf")
+            raise B3dgsError(f"rasterize: {name} contains NaN or Inf")
 
 
 def _raise_stale_bins(n: int) -> None:
-    raise ValueError(f"rasterize: bins.flat_ids out of range for N={n} Gaussians (stale bins?)")
+    raise B3dgsError(f"rasterize: bins.flat_ids out of range for N={n} Gaussians (stale bins?)")
 
 
 def _raise_bad_inputs(flags: Tensor, n: int, **tensors: Tensor) -> None:
@@ -242,7 +244,7 @@ def _raise_bad_inputs(flags: Tensor, n: int, **tensors: Tensor) -> None:
         _raise_stale_bins(n)
     if nonfinite:
         _check_finite(**tensors)  # names the first tensor holding a NaN / Inf
-        raise ValueError("rasterize: an input contains NaN or Inf")
+        raise B3dgsError("rasterize: an input contains NaN or Inf")
 
 
 # --------------------------------------------------------------------------------------------

@@ -13,6 +13,7 @@ from typing import Mapping, Optional
 import torch
 from torch import Tensor
 
+from b3dgs.errors import B3dgsError
 from b3dgs.render.preprocess import preprocess
 from b3dgs.render.rasterize import TileBins, bin_gaussians, rasterize
 from b3dgs.types import Camera
@@ -50,7 +51,7 @@ def check_render_params(params: Mapping[str, Tensor]) -> tuple[int, int, bool]:
     required = ("means", "opacities", "sh0") + (() if "covars" in params else ("quats", "scales"))
     missing = [k for k in required if k not in params]
     if missing:
-        raise ValueError(f"render: missing Gaussian parameters {missing}")
+        raise B3dgsError(f"render: missing Gaussian parameters {missing}")
     means = params["means"]
     n = means.shape[-2]
     s, batched = 1, False
@@ -66,10 +67,10 @@ def check_render_params(params: Mapping[str, Tensor]) -> tuple[int, int, bool]:
             tail_dims = len(tail)
             ok = t.dim() in (1 + tail_dims, 2 + tail_dims) and tuple(t.shape[t.dim() - tail_dims:]) == tail
         if not ok or t.shape[t.dim() - tail_dims - 1] != n:
-            raise ValueError(f"render: parameter {name!r} has shape {tuple(t.shape)}; expected ([S,] {n}, ...)")
+            raise B3dgsError(f"render: parameter {name!r} has shape {tuple(t.shape)}; expected ([S,] {n}, ...)")
         if t.dim() == 2 + tail_dims:
             if s != 1 and t.shape[0] not in (1, s):
-                raise ValueError(f"render: inconsistent sample dimension for {name!r}: {t.shape[0]} vs {s}")
+                raise B3dgsError(f"render: inconsistent sample dimension for {name!r}: {t.shape[0]} vs {s}")
             s, batched = max(s, t.shape[0]), True
     return s, n, batched
 

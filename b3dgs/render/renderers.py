@@ -24,6 +24,7 @@ from typing import Any, ClassVar, Mapping, Optional
 import torch
 from torch import Tensor
 
+from b3dgs.errors import B3dgsError
 from b3dgs.render._ext import first_compiler_error
 from b3dgs.render.gsplat_backend import gsplat_emulated
 from b3dgs.render.render import RenderOutput, render
@@ -32,8 +33,8 @@ from b3dgs.types import Camera
 log = logging.getLogger(__name__)
 
 
-class RendererUnavailable(RuntimeError):
-    """The configured renderer cannot run on this machine (the message names the fix)."""
+class RendererUnavailable(B3dgsError, RuntimeError):
+    """The configured renderer cannot run on this machine (the message names the fix); a ``RuntimeError`` too."""
 
 
 @dataclass
@@ -51,7 +52,7 @@ class Renderer:
 
     def __post_init__(self) -> None:
         if not (self.near > 0 and self.near < float("inf")):
-            raise ValueError(f"renderer.near must be a positive number, got {self.near} (fix: e.g. renderer.near=0.01)")
+            raise B3dgsError(f"renderer.near must be a positive number, got {self.near} (fix: e.g. renderer.near=0.01)")
 
     @property
     def device(self) -> torch.device:
@@ -221,5 +222,5 @@ def make_renderer(spec: "str | Renderer") -> Renderer:
     if isinstance(spec, Renderer):
         return spec
     if spec not in RENDERERS:
-        raise ValueError(f"unknown renderer {spec!r} (fix: renderer= one of {sorted(RENDERERS)})")
+        raise B3dgsError(f"unknown renderer {spec!r} (fix: renderer= one of {sorted(RENDERERS)})")
     return RENDERERS[spec]()

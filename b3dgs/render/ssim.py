@@ -6,6 +6,8 @@ import kornia
 import torch
 from torch import Tensor
 
+from b3dgs.errors import B3dgsError
+
 __all__ = ["SSIM_WINDOW", "SSIM_SIGMA", "ssim_separable", "ssim_fused"]
 
 #: SSIM Gaussian window (Wang et al. 2004): 11x11 taps, sigma 1.5; constants K1=0.01, K2=0.03, L=1.
@@ -17,7 +19,7 @@ def ssim_separable(pred: Tensor, gt: Tensor) -> Tensor:
     """The same SSIM as :func:`b3dgs.metrics.image.ssim` for one (H, W, 3) pair, with the 11x11 Gaussian window applied as
     two 1-D passes (kornia's Gaussian kernel): about 5x cheaper, for the training loss. Differentiable."""
     if pred.shape != gt.shape or pred.dim() != 3 or pred.shape[-1] != 3:
-        raise ValueError(f"ssim_separable: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
+        raise B3dgsError(f"ssim_separable: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
     k = kornia.filters.get_gaussian_kernel1d(SSIM_WINDOW, SSIM_SIGMA, device=pred.device, dtype=pred.dtype).reshape(-1)
     kx = k.view(1, 1, 1, -1).repeat(15, 1, 1, 1)
     ky = k.view(1, 1, -1, 1).repeat(15, 1, 1, 1)
@@ -53,5 +55,5 @@ def ssim_fused(pred: Tensor, gt: Tensor) -> Tensor:
     """:func:`ssim_separable` computed by the C++ extension together with its gradient (one pass over
     the image instead of ~20 autograd ops; the training loss of ``renderer=cpu``). gt gets no gradient."""
     if pred.shape != gt.shape or pred.dim() != 3 or pred.shape[-1] != 3:
-        raise ValueError(f"ssim_fused: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
+        raise B3dgsError(f"ssim_fused: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
     return _SSIMFused.apply(pred, gt.to(pred.dtype).detach())

@@ -25,6 +25,7 @@ from typing import Any, Optional, Sequence
 
 from omegaconf import OmegaConf
 
+from b3dgs.errors import B3dgsError
 from b3dgs.checkpoint import upgrade_targets
 from b3dgs.protocol import describe_diff, differing_keys, flatten, run_protocol
 from b3dgs.labels import method_label
@@ -36,7 +37,7 @@ __all__ = ["ReportError", "Run", "find_runs", "load_runs", "group", "METHOD_ORDE
 METHOD_ORDER = ["standard", "niw", "dpmm", "mcmc"]
 
 
-class ReportError(ValueError):
+class ReportError(B3dgsError):
     """Bad input to the report (the CLI prints it as one line)."""
 
 

@@ -89,7 +89,7 @@ def load_policy(name: str, settings: Optional[DictConfig] = None):
         with open_dict(node):
             node.family = family
     policy = instantiate(node, _convert_="all")
-    policy.check()
+    policy.validate()
     label = base if not family else f"{base}@{family}"
     return label, policy
 
@@ -112,7 +112,7 @@ def load_batch(name: str, settings: Optional[DictConfig] = None):
     except Exception as e:  # noqa: BLE001 - a misspelt setting: one line naming it
         raise B3dgsError(f"acquisition batch {name}: bad settings ({' '.join(str(e.__cause__ or e).split())[:200]})",
                          f"pass only the fields of conf/acquisition/batch/{name}.yaml") from None
-    batch.check()
+    batch.validate()
     return batch
 
 

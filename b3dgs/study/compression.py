@@ -29,6 +29,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
 from b3dgs.compression import keep_top
+from b3dgs.errors import B3dgsError
 from b3dgs.io import atomic_path, save_figure, write_json
 from b3dgs.labels import method_label
 from b3dgs.protocol import check_stored_protocol, flatten
@@ -50,14 +51,14 @@ def load_pruning(name: str, settings: Optional[DictConfig] = None):
                        "pass strategies=[...] of conf/pruning/<name>.yaml (random, opacity, gradient, dp_mass, "
                        "posterior_importance, pup) or a package's")
     score = instantiate(node, _convert_="all")
-    score.check_sanity()
+    score.validate()
     return score
 
 
 def round_targets(n_base: int, keep: float, rounds: int) -> list[int]:
     """Gaussian counts after each round: keep^(i/r) × N_base, the last exactly round(keep × N_base) (>= 1)."""
     if not 0 < keep <= 1:
-        raise ValueError(f"keep ratios must be in (0, 1], got {keep}")
+        raise B3dgsError(f"keep ratios must be in (0, 1], got {keep}")
     out = [max(1, int(round(n_base * keep ** ((i + 1) / rounds)))) for i in range(rounds)]
     out[-1] = max(1, int(round(n_base * keep)))
     return out
@@ -312,9 +313,9 @@ def keep_ply(row_dir: Path, module, scene) -> Path:
 
 def _check_score(name: str, s: torch.Tensor, n: int) -> None:
     if s.shape != (n,):
-        raise ValueError(f"pruning score {name!r} returned shape {tuple(s.shape)}, expected ({n},)")
+        raise B3dgsError(f"pruning score {name!r} returned shape {tuple(s.shape)}, expected ({n},)")
     if torch.isnan(s).any():
-        raise ValueError(f"pruning score {name!r} returned NaN for {int(torch.isnan(s).sum())} Gaussians")
+        raise B3dgsError(f"pruning score {name!r} returned NaN for {int(torch.isnan(s).sum())} Gaussians")
 
 
 def _plain(state: dict) -> dict:

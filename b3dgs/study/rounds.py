@@ -19,6 +19,7 @@ from typing import Optional
 import torch
 from omegaconf import DictConfig
 
+from b3dgs.errors import B3dgsError
 from b3dgs.types import Scene
 
 log = logging.getLogger(__name__)
@@ -42,7 +43,7 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
 
     total = int(cfg.trainer.max_steps)
     if not 0 < int(stop_step) <= total:
-        raise ValueError(f"a round must stop within the total budget: stop_step={stop_step}, trainer.max_steps={total}")
+        raise B3dgsError(f"a round must stop within the total budget: stop_step={stop_step}, trainer.max_steps={total}")
     os.environ.pop("PL_GLOBAL_SEED", None)
     L.seed_everything(int(cfg.seed), workers=True, verbose=False)
     if ckpt_path is None:

@@ -18,6 +18,8 @@ from typing import Any, Iterable, Optional, Sequence
 
 import numpy as np
 
+from b3dgs.errors import B3dgsError
+
 __all__ = ["calibration_views", "conformal_scale", "fit_scale_and_level", "gaussian_nll_scalars", "training_mse"]
 
 
@@ -40,12 +42,12 @@ def training_mse(module: Any, cameras: Sequence[Any]) -> float:
     import torch
 
     if not cameras:
-        raise ValueError("training_mse needs at least one camera with an image")
+        raise B3dgsError("training_mse needs at least one camera with an image")
     total, count = 0.0, 0
     with torch.no_grad():
         for cam in cameras:
             if cam.image is None:
-                raise ValueError(f"camera {cam.name!r} has no image")
+                raise B3dgsError(f"camera {cam.name!r} has no image")
             img = module.render_eval(cam).detach().double().cpu()
             total += float((img - cam.image.double()).square().sum())
             count += img.numel()
@@ -81,12 +83,12 @@ def fit_scale_and_level(u: Iterable[float], r2: Iterable[float], channels: int =
     u = np.asarray(list(u) if not isinstance(u, np.ndarray) else u, np.float64).reshape(-1)
     r2 = np.asarray(list(r2) if not isinstance(r2, np.ndarray) else r2, np.float64).reshape(-1)
     if u.shape != r2.shape or u.size == 0:
-        raise ValueError(f"u and r2 must be non-empty and equally long ({u.size} vs {r2.size})")
+        raise B3dgsError(f"u and r2 must be non-empty and equally long ({u.size} vs {r2.size})")
     if not (np.all(np.isfinite(u)) and np.all(np.isfinite(r2))) or np.any(u < 0) or np.any(r2 < 0):
-        raise ValueError("u and r2 must be finite and >= 0")
+        raise B3dgsError("u and r2 must be finite and >= 0")
     mse = float(r2.mean() / channels)
     if not mse > 0:
-        raise ValueError("the calibration residuals are all zero: no aleatoric level can be fitted")
+        raise B3dgsError("the calibration residuals are all zero: no aleatoric level can be fitted")
     mean_u = float(u.mean())
     out = {"mse": mse, "mean_u": mean_u, "n_pixels": int(u.size), "channels": int(channels)}
     if not fit_scale or not mean_u > 0:
@@ -132,9 +134,9 @@ def conformal_scale(scores: Iterable[float], level: float = 0.95, z: Optional[fl
 
     t = np.sort(np.asarray(list(scores) if not isinstance(scores, np.ndarray) else scores, np.float64).reshape(-1))
     if t.size == 0 or not np.all(t >= 0) or np.any(np.isnan(t)):
-        raise ValueError("conformal scores must be a non-empty array of values >= 0")
+        raise B3dgsError("conformal scores must be a non-empty array of values >= 0")
     if not 0 < level < 1:
-        raise ValueError(f"level must be in (0, 1), got {level}")
+        raise B3dgsError(f"level must be in (0, 1), got {level}")
     n = int(t.size)
     rank = int(math.ceil((n + 1) * level))
     q = float(t[rank - 1]) if rank <= n else float("inf")

@@ -77,6 +77,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
+from b3dgs.errors import B3dgsError
 from b3dgs.io import to_jsonable  # noqa: F401 - re-exported: the one JSON converter lives in b3dgs.io
 
 __all__ = [
@@ -118,7 +119,7 @@ AGGREGATION_NOTE = ("All scalars (AUSE and ECE included) are computed per view a
 # ------------------------------------------------------------------------------------ validation
 def _to_numpy(x: Any, name: str) -> np.ndarray:
     if x is None:
-        raise ValueError(f"{name} is None")
+        raise B3dgsError(f"{name} is None")
     try:
         import torch
 
@@ -140,27 +141,27 @@ def _validate(mean: Any, var: Any, gt: Any, mask: Any = None
         if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
             raise TypeError(f"{name} must be a real numeric array, got dtype {a.dtype}")
     if mean.ndim != 3 or mean.shape[-1] != 3:
-        raise ValueError(f"mean must have shape (H, W, 3), got {tuple(mean.shape)}")
+        raise B3dgsError(f"mean must have shape (H, W, 3), got {tuple(mean.shape)}")
     if gt.shape != mean.shape:
-        raise ValueError(f"gt shape {tuple(gt.shape)} does not match mean shape {tuple(mean.shape)}")
+        raise B3dgsError(f"gt shape {tuple(gt.shape)} does not match mean shape {tuple(mean.shape)}")
     if var.ndim == 3 and var.shape[-1] == 1:
         var = var[..., 0]
     if var.shape != mean.shape[:2]:
-        raise ValueError(f"var must have shape (H, W) = {tuple(mean.shape[:2])} "
+        raise B3dgsError(f"var must have shape (H, W) = {tuple(mean.shape[:2])} "
                          f"(one variance per pixel, shared by RGB), got {tuple(var.shape)}")
     if mean.shape[0] * mean.shape[1] == 0:
-        raise ValueError("empty image")
+        raise B3dgsError("empty image")
     mean = mean.astype(np.float64, copy=False)
     gt = gt.astype(np.float64, copy=False)
     var = var.astype(np.float64, copy=False)
     if not np.all(np.isfinite(mean)):
-        raise ValueError("mean contains NaN or Inf")
+        raise B3dgsError("mean contains NaN or Inf")
     if not np.all(np.isfinite(gt)):
-        raise ValueError("gt contains NaN or Inf")
+        raise B3dgsError("gt contains NaN or Inf")
     if not np.all(np.isfinite(var)):
-        raise ValueError("var contains NaN or Inf")
+        raise B3dgsError("var contains NaN or Inf")
     if np.any(var < 0):
-        raise ValueError(f"var must be >= 0 (min is {float(var.min())})")
+        raise B3dgsError(f"var must be >= 0 (min is {float(var.min())})")
     hw = tuple(int(d) for d in mean.shape[:2])
     mean = mean.reshape(-1, 3)
     gt = gt.reshape(-1, 3)
@@ -172,31 +173,31 @@ def _validate(mean: Any, var: Any, gt: Any, mask: Any = None
         if mask.ndim == 3 and mask.shape[-1] == 1:
             mask = mask[..., 0]
         if mask.shape != hw:
-            raise ValueError(f"mask must have shape (H, W) = {hw}, got {tuple(mask.shape)}")
+            raise B3dgsError(f"mask must have shape (H, W) = {hw}, got {tuple(mask.shape)}")
         mask = mask.reshape(-1)
         mean, gt, var = mean[mask], gt[mask], var[mask]
         if var.size == 0:
-            raise ValueError("mask selects no pixels")
+            raise B3dgsError("mask selects no pixels")
     return mean, var, gt
 
 
 def _check_fractions(fractions: Iterable[float] | None) -> np.ndarray:
     f = DEFAULT_FRACTIONS.copy() if fractions is None else np.asarray(list(fractions), dtype=np.float64)
     if f.ndim != 1 or f.size < 2:
-        raise ValueError("fractions must be a 1-D grid with at least two points")
+        raise B3dgsError("fractions must be a 1-D grid with at least two points")
     if not np.all(np.isfinite(f)) or f.min() < 0 or f.max() >= 1:
-        raise ValueError("fractions must lie in [0, 1)")
+        raise B3dgsError("fractions must lie in [0, 1)")
     if np.any(np.diff(f) <= 0):
-        raise ValueError("fractions must be strictly increasing")
+        raise B3dgsError("fractions must be strictly increasing")
     return f
 
 
 def _check_levels(levels: Iterable[float] | None) -> np.ndarray:
     p = DEFAULT_LEVELS.copy() if levels is None else np.asarray(list(levels), dtype=np.float64)
     if p.ndim != 1 or p.size < 1:
-        raise ValueError("levels must be a non-empty 1-D grid")
+        raise B3dgsError("levels must be a non-empty 1-D grid")
     if not np.all(np.isfinite(p)) or p.min() <= 0 or p.max() >= 1:
-        raise ValueError("levels must lie in (0, 1)")
+        raise B3dgsError("levels must lie in (0, 1)")
     return p
 
 
@@ -234,15 +235,15 @@ def sparsification(uncertainty: Any, error: Any, metric: str = "rmse",
     "ause_normalization", "metric"}``.
     """
     if metric not in ("rmse", "mae"):
-        raise ValueError(f"metric must be 'rmse' or 'mae', got {metric!r}")
+        raise B3dgsError(f"metric must be 'rmse' or 'mae', got {metric!r}")
     u = np.asarray(_to_numpy(uncertainty, "uncertainty"), dtype=np.float64).reshape(-1)
     e = np.asarray(_to_numpy(error, "error"), dtype=np.float64).reshape(-1)
     if u.shape != e.shape or u.size == 0:
-        raise ValueError(f"uncertainty and error must be non-empty and equally long ({u.size} vs {e.size})")
+        raise B3dgsError(f"uncertainty and error must be non-empty and equally long ({u.size} vs {e.size})")
     if not (np.all(np.isfinite(u)) and np.all(np.isfinite(e))):
-        raise ValueError("uncertainty/error contain NaN or Inf")
+        raise B3dgsError("uncertainty/error contain NaN or Inf")
     if np.any(e < 0):
-        raise ValueError("per-pixel error must be >= 0")
+        raise B3dgsError("per-pixel error must be >= 0")
     f = _check_fractions(fractions)
     removed = _removed_counts(u.size, f)
     # descending, stable: negate and use a stable ascending sort (ties keep the row-major order)
@@ -326,7 +327,7 @@ def gaussian_nll(mean: Any, var: Any, gt: Any, mask: Any = None,
 
 def _nll(m: np.ndarray, v: np.ndarray, g: np.ndarray, var_floor: float) -> dict:
     if not (var_floor > 0 and math.isfinite(var_floor)):
-        raise ValueError("var_floor must be a positive finite number")
+        raise B3dgsError("var_floor must be a positive finite number")
     n_floored = int(np.count_nonzero(v < var_floor))
     vf = np.maximum(v, var_floor)[:, None]
     r2 = (g - m) ** 2
@@ -346,13 +347,13 @@ def spearman_rho(x: Any, y: Any, max_pixels: int | None = DEFAULT_MAX_SPEARMAN_P
     a = np.asarray(_to_numpy(x, "x"), dtype=np.float64).reshape(-1)
     b = np.asarray(_to_numpy(y, "y"), dtype=np.float64).reshape(-1)
     if a.shape != b.shape:
-        raise ValueError(f"x and y must have the same length ({a.size} vs {b.size})")
+        raise B3dgsError(f"x and y must have the same length ({a.size} vs {b.size})")
     if a.size < 2:
-        raise ValueError("need at least two samples")
+        raise B3dgsError("need at least two samples")
     if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
-        raise ValueError("x/y contain NaN or Inf")
+        raise B3dgsError("x/y contain NaN or Inf")
     if max_pixels is not None and max_pixels < 2:
-        raise ValueError("max_pixels must be >= 2")
+        raise B3dgsError("max_pixels must be >= 2")
     return _spearmanr(a, b, max_pixels, seed)
 
 
@@ -502,10 +503,10 @@ def summarize(per_view: Sequence[dict], keep_curves: bool = False) -> dict:
     """
     per_view = list(per_view)
     if not per_view:
-        raise ValueError("summarize needs at least one per-view result")
+        raise B3dgsError("summarize needs at least one per-view result")
     norms = {d.get("ause_normalization") for d in per_view}
     if len(norms) > 1:
-        raise ValueError(f"per-view results mix AUSE normalisations: {sorted(map(str, norms))}")
+        raise B3dgsError(f"per-view results mix AUSE normalisations: {sorted(map(str, norms))}")
     keys = [k for k, x in per_view[0].items() if _is_scalar(x)]
     keys = [k for k in keys if all(_is_scalar(d.get(k)) for d in per_view)]
     out: dict[str, Any] = {"n_views": len(per_view)}

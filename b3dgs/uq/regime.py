@@ -12,6 +12,7 @@ from typing import ClassVar, Optional, Sequence
 import torch
 from torch import Tensor
 
+from b3dgs.errors import B3dgsError
 from b3dgs.types import Camera, Scene
 
 
@@ -42,16 +43,16 @@ class UQRegime:
     samples: int = 50
     chunk: int = 10  # samples rendered per batched call (bounds memory)
 
-    def check(self) -> None:
+    def validate(self, **kwargs) -> None:
         if self.samples < 1:
-            raise ValueError(f"{type(self).__name__}.samples must be >= 1, got {self.samples}")
+            raise B3dgsError(f"{type(self).__name__}.samples must be >= 1, got {self.samples}")
         if self.chunk < 1:
-            raise ValueError(f"{type(self).__name__}.chunk must be >= 1")
+            raise B3dgsError(f"{type(self).__name__}.chunk must be >= 1")
 
     def fit(self, models: Sequence, scene: Scene) -> None:
-        self.check()
+        self.validate()
         if not models:
-            raise ValueError(f"{type(self).__name__} needs at least one trained model")
+            raise B3dgsError(f"{type(self).__name__} needs at least one trained model")
         self.models = list(models)
         self.scene = scene
         self.fit_info: dict = {}

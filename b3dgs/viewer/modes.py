@@ -26,6 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from b3dgs.errors import B3dgsError
 from b3dgs.types import Camera, Scene
 
 __all__ = ["MIN_ALPHA", "MODES", "Frame", "ModeRenderer", "ModeSpec", "colorize", "colormap_lut", "robust_max"]
@@ -144,11 +145,11 @@ class ModeRenderer:
     def __init__(self, module, scene: Scene, samples: int = 16, jitter: float = 0.002, sigma_max: float = 0.03,
                  depth_max: Optional[float] = None, seed: int = 0, count_scale: Optional[float] = 0.1) -> None:
         if samples < 2:
-            raise ValueError(f"viewer samples must be >= 2 (a spread needs two draws), got {samples}")
+            raise B3dgsError(f"viewer samples must be >= 2 (a spread needs two draws), got {samples}")
         if not sigma_max > 0:
-            raise ValueError(f"viewer sigma_max must be > 0, got {sigma_max}")
+            raise B3dgsError(f"viewer sigma_max must be > 0, got {sigma_max}")
         if count_scale is not None and not (0 < float(count_scale) < float("inf")):
-            raise ValueError(f"viewer count_scale must be a finite number > 0 or None, got {count_scale}")
+            raise B3dgsError(f"viewer count_scale must be a finite number > 0 or None, got {count_scale}")
         # native σ draws with N̂ <- count_scale·N̂, the default of uq=native (conf/uq/native.yaml), so the viewer shows
         # what b3dgs-eval scores; None: the model's own posterior
         self.count_scale = None if count_scale is None else float(count_scale)
@@ -193,10 +194,10 @@ class ModeRenderer:
                generator: Optional[torch.Generator] = None) -> Frame:
         """Render ``mode`` from ``camera`` (any size and intrinsics); ``samples`` overrides the σ modes' S."""
         if mode not in self.specs:
-            raise ValueError(f"unknown viewer mode {mode!r} (modes: {', '.join(self.specs)})")
+            raise B3dgsError(f"unknown viewer mode {mode!r} (modes: {', '.join(self.specs)})")
         why = self.unavailable().get(mode)
         if why is not None:
-            raise ValueError(f"mode {mode} is not available for this run: {why}")
+            raise B3dgsError(f"mode {mode} is not available for this run: {why}")
         spec = self.specs[mode]
         t0 = time.perf_counter()
         m = self.module
@@ -254,7 +255,7 @@ class ModeRenderer:
             return self.extras["dp_e_a"].float()
         if mode == "pos_std":
             return self.extras["niw_pos_var"].clamp_min(0).sqrt().float() / self.extent
-        raise ValueError(f"{mode} is not a per-Gaussian mode")
+        raise B3dgsError(f"{mode} is not a per-Gaussian mode")
 
     def _overlay(self, mode: str) -> dict[str, Tensor]:
         """The Gaussians with their normalised value as a grey SH-0 colour (cached per mode)."""

@@ -24,6 +24,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from b3dgs.errors import B3dgsError
 from b3dgs.viewer.cameras import camera_pose, fov_y, render_size, view_camera
 from b3dgs.viewer.modes import (MIN_ALPHA, MODES, Frame, ModeRenderer, ModeSpec, colorize, colormap_lut, normalise,
                                 robust_max)
@@ -83,7 +84,7 @@ class ViewerApp:
         self.ranged: set[str] = set()
         if settings.mode not in self.modes.available():
             why = self.modes.unavailable().get(settings.mode, f"modes: {', '.join(self.modes.specs)}")
-            raise ValueError(f"viewer mode {settings.mode} is not available for this run: {why}")
+            raise B3dgsError(f"viewer mode {settings.mode} is not available for this run: {why}")
         self.cap = int(settings.max_side or 4096)
         self.cost: dict[str, float] = {}  # seconds per pixel, per mode (EMA)
         self.clients: dict[int, _ClientState] = {}

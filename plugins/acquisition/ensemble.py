@@ -7,6 +7,7 @@ from typing import ClassVar
 import torch
 
 from b3dgs.acquisition import AcquisitionPolicy
+from b3dgs.errors import B3dgsError
 
 
 @dataclass
@@ -18,10 +19,10 @@ class EnsemblePolicy(AcquisitionPolicy):
     no_conditioning: ClassVar[str] = ("the members disagree less where a view is acquired only once they are "
                                       "retrained on its image; without the image nothing they render changes")
 
-    def check(self):
-        super().check()
+    def validate(self, **kwargs):
+        super().validate(**kwargs)
         if int(self.members) < 2:
-            raise ValueError(f"acquisition ensemble needs members >= 2, got {self.members}")
+            raise B3dgsError(f"acquisition ensemble needs members >= 2, got {self.members}")
 
     @torch.no_grad()
     def score(self, ctx, candidates):

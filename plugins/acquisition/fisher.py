@@ -8,6 +8,7 @@ from typing import ClassVar
 import torch
 
 from b3dgs.acquisition import AcquisitionPolicy, Selection
+from b3dgs.errors import B3dgsError
 from b3dgs.fisher import pixel_set_grads
 
 PARAMS = ("means", "sh0", "shN", "scales", "opacities")  # scales are log-scales, opacities logits
@@ -29,13 +30,13 @@ class FisherPolicy(AcquisitionPolicy):
     lam: float = 1.0e-6
     params: list = field(default_factory=lambda: list(PARAMS))
 
-    def check(self):
-        super().check()
+    def validate(self, **kwargs):
+        super().validate(**kwargs)
         if int(self.pixel_stride) < 1:
-            raise ValueError(f"acquisition fisher.pixel_stride must be >= 1, got {self.pixel_stride}")
+            raise B3dgsError(f"acquisition fisher.pixel_stride must be >= 1, got {self.pixel_stride}")
         bad = [p for p in self.params if p not in PARAMS + ("quats",)]
         if bad:
-            raise ValueError(f"acquisition fisher.params: unknown parameters {bad}")
+            raise B3dgsError(f"acquisition fisher.params: unknown parameters {bad}")
 
     def view_fisher(self, ctx, camera) -> torch.Tensor:
         """(P,) diagonal Fisher of one view over ``params`` (flattened in that order), float64 on the CPU."""

@@ -7,6 +7,7 @@ from typing import ClassVar, Optional
 import torch
 
 from b3dgs.device import randn
+from b3dgs.errors import B3dgsError
 from b3dgs.plugin import PosteriorBlock
 from b3dgs_plugins.posterior import appearance as app
 from b3dgs.render.projection import SH_C0
@@ -30,9 +31,9 @@ class ColorBlock(PosteriorBlock):
     needs_weights: ClassVar[bool] = True
     needs_residuals: ClassVar[bool] = True  # reads info["sq_err_sum"]
 
-    def check_sanity(self, max_steps: int = 0, **kw) -> None:
+    def validate(self, max_steps: int = 0, **kw) -> None:
         if self.prior_precision <= 0:
-            raise ValueError("posterior.color.prior_precision must be > 0")
+            raise B3dgsError("posterior.color.prior_precision must be > 0")
 
     def initialize_state(self, *, splats, scene, info):
         n, dev = splats["means"].shape[0], splats["means"].device

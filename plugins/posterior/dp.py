@@ -21,6 +21,7 @@ from typing import ClassVar, Dict, Optional, Tuple, Union
 import torch
 
 from b3dgs.device import bernoulli
+from b3dgs.errors import B3dgsError
 from b3dgs.numerics import guard
 from b3dgs.plugin import PosteriorBlock
 
@@ -33,16 +34,16 @@ _MAX_LOGIT = 80.0
 
 def _vec(name: str, x: torch.Tensor) -> torch.Tensor:
     if not isinstance(x, torch.Tensor) or x.ndim != 1:
-        raise ValueError(f"{name}: expected a 1-D (K,) tensor, got {getattr(x, 'shape', type(x).__name__)}")
+        raise B3dgsError(f"{name}: expected a 1-D (K,) tensor, got {getattr(x, 'shape', type(x).__name__)}")
     if x.numel() == 0:
-        raise ValueError(f"{name}: K must be >= 1")
+        raise B3dgsError(f"{name}: K must be >= 1")
     return x.to(_F64)
 
 
 def _check_alpha(alpha: Union[float, torch.Tensor]) -> float:
     a = float(alpha)
     if not (math.isfinite(a) and a > 0):
-        raise ValueError(f"alpha must be finite and > 0, got {alpha}")
+        raise B3dgsError(f"alpha must be finite and > 0, got {alpha}")
     return a
 
 
@@ -71,9 +72,9 @@ def cavi_stick_update(counts: torch.Tensor, alpha: Union[float, torch.Tensor]) -
 def _check_gammas(gamma1: torch.Tensor, gamma2: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     g1, g2 = _vec("gamma1", gamma1), _vec("gamma2", gamma2)
     if g1.shape != g2.shape:
-        raise ValueError(f"gamma1 {tuple(g1.shape)} and gamma2 {tuple(g2.shape)} differ")
+        raise B3dgsError(f"gamma1 {tuple(g1.shape)} and gamma2 {tuple(g2.shape)} differ")
     if not bool((torch.isfinite(g1) & (g1 > 0) & torch.isfinite(g2) & (g2 > 0)).all()):
-        raise ValueError("Beta parameters gamma1, gamma2 must be finite and > 0")
+        raise B3dgsError("Beta parameters gamma1, gamma2 must be finite and > 0")
     return g1, g2
 
 
@@ -150,7 +151,7 @@ def prune_threshold(K: int, base: float = 0.01) -> float:
     scaling with 1/K keeps the rule "prune components carrying < base x their fair share".
     """
     if int(K) < 1 or not (base > 0):
-        raise ValueError(f"need K >= 1 and base > 0, got K={K}, base={base}")
+        raise B3dgsError(f"need K >= 1 and base > 0, got K={K}, base={base}")
     return float(base) / int(K)
 
 
@@ -180,16 +181,16 @@ def activity_posterior(
     u = _vec("usage", usage)
     K = elp.numel()
     if u.numel() != K:
-        raise ValueError(f"usage has {u.numel()} entries, expected_log_pi has {K}")
+        raise B3dgsError(f"usage has {u.numel()} entries, expected_log_pi has {K}")
     if not (temperature > 0):
-        raise ValueError(f"temperature must be > 0, got {temperature}")
+        raise B3dgsError(f"temperature must be > 0, got {temperature}")
     if not (0.0 <= evidence_weight <= 1.0):
-        raise ValueError(f"evidence_weight must be in [0, 1], got {evidence_weight}")
+        raise B3dgsError(f"evidence_weight must be in [0, 1], got {evidence_weight}")
     if not (eps > 0):
-        raise ValueError("eps must be > 0")
+        raise B3dgsError("eps must be > 0")
     tau = prune_threshold(K) if threshold is None else float(threshold)
     if not (tau > 0):
-        raise ValueError(f"threshold must be > 0, got {threshold}")
+        raise B3dgsError(f"threshold must be > 0, got {threshold}")
     bad = ~torch.isfinite(u) | (u < 0)
     if guard("activity_posterior.invalid_usage", bad):
         u = torch.where(bad, torch.zeros_like(u), u)
@@ -236,15 +237,15 @@ class DPBlock(PosteriorBlock):
     prune: bool = True
     needs_weights: ClassVar[bool] = True
 
-    def check_sanity(self, max_steps: int = 0, **kw) -> None:
+    def validate(self, max_steps: int = 0, **kw) -> None:
         if self.alpha <= 0:
-            raise ValueError("posterior.dp.alpha must be > 0")
+            raise B3dgsError("posterior.dp.alpha must be > 0")
         if self.cavi_every < 1:
-            raise ValueError("posterior.dp.cavi_every must be >= 1")
+            raise B3dgsError("posterior.dp.cavi_every must be >= 1")
         if not 0 <= self.ema < 1:
-            raise ValueError("posterior.dp.ema must be in [0, 1)")
+            raise B3dgsError("posterior.dp.ema must be in [0, 1)")
         if not 0 < self.prior_active < 1:
-            raise ValueError("posterior.dp.prior_active must be in (0, 1)")
+            raise B3dgsError("posterior.dp.prior_active must be in (0, 1)")
 
     def initialize_state(self, *, splats, scene, info):
         n, dev = splats["means"].shape[0], splats["means"].device

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from b3dgs.device import randn
+from b3dgs.errors import B3dgsError
 from b3dgs.numerics import guard
 from b3dgs.plugin import PosteriorBlock
 from b3dgs.render.projection import covariance_3d
@@ -41,7 +42,7 @@ _F64 = torch.float64
 def _kd(name: str, x: torch.Tensor) -> Tuple[int, int]:
     if not isinstance(x, torch.Tensor) or x.ndim != 2:
         shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
-        raise ValueError(f"{name}: expected a (K, D) tensor, got {shape}")
+        raise B3dgsError(f"{name}: expected a (K, D) tensor, got {shape}")
     return int(x.shape[0]), int(x.shape[1])
 
 
@@ -55,21 +56,21 @@ def _vec(name: str, x: Scalar, K: int, device: torch.device) -> torch.Tensor:
     if t.ndim == 0:
         return t.expand(K)
     if tuple(t.shape) != (K,):
-        raise ValueError(f"{name}: expected shape ({K},) or a scalar, got {tuple(t.shape)}")
+        raise B3dgsError(f"{name}: expected shape ({K},) or a scalar, got {tuple(t.shape)}")
     return t
 
 
 def _vecD(name: str, x: torch.Tensor, K: int, D: int) -> torch.Tensor:
     if not isinstance(x, torch.Tensor) or tuple(x.shape) != (K, D):
         shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
-        raise ValueError(f"{name}: expected shape ({K}, {D}), got {shape}")
+        raise B3dgsError(f"{name}: expected shape ({K}, {D}), got {shape}")
     return x.to(_F64)
 
 
 def _mat(name: str, x: torch.Tensor, K: int, D: int) -> torch.Tensor:
     if not isinstance(x, torch.Tensor) or tuple(x.shape) != (K, D, D):
         shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
-        raise ValueError(f"{name}: expected shape ({K}, {D}, {D}), got {shape}")
+        raise B3dgsError(f"{name}: expected shape ({K}, {D}, {D}), got {shape}")
     return x.to(_F64)
 
 
@@ -79,7 +80,7 @@ def _sym(A: torch.Tensor) -> torch.Tensor:
 
 def _require_finite(name: str, x: torch.Tensor) -> None:
     if not bool(torch.isfinite(x).all()):
-        raise ValueError(f"{name}: contains NaN/Inf")
+        raise B3dgsError(f"{name}: contains NaN/Inf")
 
 
 # ----------------------------------------------------------------------------- conjugate update
@@ -112,9 +113,9 @@ def niw_update(
     _require_finite("m0", m0_)
     _require_finite("S0", S0_)
     if not bool(((k0 > 0) & torch.isfinite(k0)).all()):
-        raise ValueError("kappa0 must be finite and > 0")
+        raise B3dgsError("kappa0 must be finite and > 0")
     if not bool(((n0 > D - 1) & torch.isfinite(n0)).all()):
-        raise ValueError(f"nu0 must be finite and > D-1 = {D - 1} for a proper inverse-Wishart")
+        raise B3dgsError(f"nu0 must be finite and > D-1 = {D - 1} for a proper inverse-Wishart")
     bad = ~torch.isfinite(N_) | (N_ < 0)
     if guard("niw_update.invalid_count", bad):
         N_ = torch.where(bad, torch.zeros_like(N_), N_)
@@ -145,7 +146,7 @@ def niw_batch_stats(
     (0 where N == 0), C = sum_i w_i (x_i - xbar)(x_i - xbar)^T (two-pass, centred).
     """
     if not isinstance(x, torch.Tensor) or x.ndim != 3:
-        raise ValueError(f"x: expected a (K, n, D) tensor, got {getattr(x, 'shape', type(x).__name__)}")
+        raise B3dgsError(f"x: expected a (K, n, D) tensor, got {getattr(x, 'shape', type(x).__name__)}")
     K, n, D = x.shape
     dtype = _out_dtype(x)
     x_ = x.to(_F64)
@@ -154,10 +155,10 @@ def niw_batch_stats(
         w_ = torch.ones(K, n, dtype=_F64, device=x.device)
     else:
         if not isinstance(w, torch.Tensor) or tuple(w.shape) != (K, n):
-            raise ValueError(f"w: expected shape ({K}, {n}), got {getattr(w, 'shape', type(w).__name__)}")
+            raise B3dgsError(f"w: expected shape ({K}, {n}), got {getattr(w, 'shape', type(w).__name__)}")
         w_ = w.to(_F64)
         if not bool((torch.isfinite(w_) & (w_ >= 0)).all()):
-            raise ValueError("w: weights must be finite and >= 0")
+            raise B3dgsError("w: weights must be finite and >= 0")
     N = w_.sum(1)
     has = N > 0
     Nsafe = torch.where(has, N, torch.ones_like(N))
@@ -174,11 +175,11 @@ def niw_batch_stats(
 def prior_scale_for_expected_cov(Sigma: torch.Tensor, nu0: Scalar) -> torch.Tensor:
     """S0 = Sigma * (nu0 - D - 1), so that E[Sigma] under the NIW prior (Eq. 1) equals Sigma."""
     if not isinstance(Sigma, torch.Tensor) or Sigma.ndim != 3 or Sigma.shape[-1] != Sigma.shape[-2]:
-        raise ValueError(f"Sigma: expected (K, D, D), got {getattr(Sigma, 'shape', type(Sigma).__name__)}")
+        raise B3dgsError(f"Sigma: expected (K, D, D), got {getattr(Sigma, 'shape', type(Sigma).__name__)}")
     K, D = int(Sigma.shape[0]), int(Sigma.shape[-1])
     nu = _vec("nu0", nu0, K, Sigma.device)
     if not bool((nu > D + 1).all()):
-        raise ValueError(f"nu0 must be > D+1 = {D + 1} for E[Sigma] to exist")
+        raise B3dgsError(f"nu0 must be > D+1 = {D + 1} for E[Sigma] to exist")
     S0 = _sym(Sigma.to(_F64)) * (nu - D - 1)[:, None, None]
     return S0.to(_out_dtype(Sigma))
 
@@ -189,7 +190,7 @@ def expected_cov(S_n: torch.Tensor, nu_n: Scalar, eps: float = EXPECTED_COV_DENO
     The denominator is floored at ``eps`` (guard ``niw.expected_cov_denom_floor``).
     """
     if not isinstance(S_n, torch.Tensor) or S_n.ndim != 3 or S_n.shape[-1] != S_n.shape[-2]:
-        raise ValueError(f"S_n: expected (K, D, D), got {getattr(S_n, 'shape', type(S_n).__name__)}")
+        raise B3dgsError(f"S_n: expected (K, D, D), got {getattr(S_n, 'shape', type(S_n).__name__)}")
     K, D = int(S_n.shape[0]), int(S_n.shape[-1])
     denom = _vec("nu_n", nu_n, K, S_n.device) - D - 1
     small = ~(denom >= eps)
@@ -237,7 +238,7 @@ def safe_cholesky(A: torch.Tensor, jitters: Sequence[float] = CHOLESKY_JITTERS) 
     non-finite matrices are replaced by the identity (``cholesky.nonfinite``).
     """
     if not isinstance(A, torch.Tensor) or A.ndim < 2 or A.shape[-1] != A.shape[-2]:
-        raise ValueError(f"A: expected (..., D, D), got {getattr(A, 'shape', type(A).__name__)}")
+        raise B3dgsError(f"A: expected (..., D, D), got {getattr(A, 'shape', type(A).__name__)}")
     dtype = _out_dtype(A)
     shape = A.shape
     D = int(shape[-1])
@@ -327,7 +328,7 @@ def niw_sampler(m_n: torch.Tensor, kappa_n: Scalar, nu_n: Scalar, S_n: torch.Ten
     nu = _vec("nu_n", nu_n, K, dev)
     kap = _vec("kappa_n", kappa_n, K, dev)
     if not bool(((nu > D - 1) & torch.isfinite(nu)).all()):
-        raise ValueError(f"nu_n must be finite and > D-1 = {D - 1}")
+        raise B3dgsError(f"nu_n must be finite and > D-1 = {D - 1}")
     small = ~(kap >= KAPPA_FLOOR)
     if guard("niw.kappa_floor", small):
         kap = torch.where(small, torch.full_like(kap, KAPPA_FLOOR), kap)
@@ -344,7 +345,7 @@ def draw_niw(sampler: NIWSampler, n_samples: int, generator: Optional[torch.Gene
     (nu - D - 1) (A A^T)^{-1}, a function of A alone.
     """
     if not isinstance(n_samples, int) or n_samples < 1:
-        raise ValueError(f"n_samples must be a positive int, got {n_samples!r}")
+        raise B3dgsError(f"n_samples must be a positive int, got {n_samples!r}")
     K, D = sampler.m.shape
     A = bartlett_factor(sampler.nu, n_samples, D, generator)
     X = tril_solve(A, sampler.L.transpose(-1, -2).unsqueeze(0))
@@ -486,28 +487,28 @@ class NIWBlock(PosteriorBlock):
     count: str = "paper"  # paper | weight | fisher | fisher3 (see the class docstring)
     fisher_probes: int = 4  # Rademacher probes per training view for the Fisher counts
 
-    def check_sanity(self, max_steps: int = 0, **kw) -> None:
+    def validate(self, max_steps: int = 0, **kw) -> None:
         if self.kappa0 <= 0:
-            raise ValueError("posterior.niw.kappa0 must be > 0")
+            raise B3dgsError("posterior.niw.kappa0 must be > 0")
         if self.nu0 <= D + 1:
-            raise ValueError(f"posterior.niw.nu0 must be > D + 1 = {D + 1} for a proper prior with finite E[Σ]")
+            raise B3dgsError(f"posterior.niw.nu0 must be > D + 1 = {D + 1} for a proper prior with finite E[Σ]")
         if not 0 <= self.ema < 1:
-            raise ValueError("posterior.niw.ema must be in [0, 1)")
+            raise B3dgsError("posterior.niw.ema must be in [0, 1)")
         if self.update_every < 1:
-            raise ValueError("posterior.niw.update_every must be >= 1")
+            raise B3dgsError("posterior.niw.update_every must be >= 1")
         if self.cov_mode not in ("relative", "absolute", "none"):
-            raise ValueError("posterior.niw.cov_mode must be relative | absolute | none")
+            raise B3dgsError("posterior.niw.cov_mode must be relative | absolute | none")
         if self.sampler_backend not in ("auto", "cpu", "torch"):
-            raise ValueError("posterior.niw.sampler_backend must be auto | cpu | torch")
+            raise B3dgsError("posterior.niw.sampler_backend must be auto | cpu | torch")
         if not (isinstance(self.count_scale, (int, float)) and 0 < float(self.count_scale) < float("inf")):
-            raise ValueError(f"posterior.niw.count_scale must be a finite number > 0, got {self.count_scale}")
+            raise B3dgsError(f"posterior.niw.count_scale must be a finite number > 0, got {self.count_scale}")
         if self.count not in COUNTS:
             from b3dgs.errors import did_you_mean
 
-            raise ValueError(f"posterior.niw.count={self.count} is not a count{did_you_mean(str(self.count), COUNTS)} "
+            raise B3dgsError(f"posterior.niw.count={self.count} is not a count{did_you_mean(str(self.count), COUNTS)} "
                              f"(fix: pass posterior.niw.count={'|'.join(COUNTS)})")
         if isinstance(self.fisher_probes, bool) or not isinstance(self.fisher_probes, int) or self.fisher_probes < 1:
-            raise ValueError(f"posterior.niw.fisher_probes must be an integer >= 1, got {self.fisher_probes}")
+            raise B3dgsError(f"posterior.niw.fisher_probes must be an integer >= 1, got {self.fisher_probes}")
 
     # ------------------------------------------------------------------ state
     def _prior_for(self, splats, rows: Optional[Tensor] = None):
@@ -608,7 +609,7 @@ class NIWBlock(PosteriorBlock):
         else:
             F = sums["fisher"].double()
             if tuple(F.shape) != (n, D, D):
-                raise ValueError(f"posterior.niw: the view pass gave a Fisher of shape {tuple(F.shape)}, expected ({n}, 3, 3)")
+                raise B3dgsError(f"posterior.niw: the view pass gave a Fisher of shape {tuple(F.shape)}, expected ({n}, 3, 3)")
             s2 = float(state["mse"] / state["mse_n"]) if float(state["mse_n"]) > 0 else None  # plug-in σ̂²
             low = s2 is None or not s2 >= SIGMA2_FLOOR
             if guard("niw.sigma2_floor", int(low)):

@@ -17,6 +17,7 @@ from typing import ClassVar, Optional, Tuple, Union
 
 import torch
 
+from b3dgs.errors import B3dgsError
 from b3dgs.numerics import guard
 from b3dgs.plugin import PosteriorBlock
 
@@ -38,18 +39,18 @@ def _t(x: Num) -> torch.Tensor:
 
 def _check_ab(a: torch.Tensor, b: torch.Tensor) -> None:
     if not bool((torch.isfinite(a) & (a > 0)).all()) or not bool((torch.isfinite(b) & (b > 0)).all()):
-        raise ValueError("inverse-gamma parameters a, b must be finite and > 0")
+        raise B3dgsError("inverse-gamma parameters a, b must be finite and > 0")
     try:
         torch.broadcast_shapes(a.shape, b.shape)
     except RuntimeError as e:
-        raise ValueError(f"a {tuple(a.shape)} and b {tuple(b.shape)} do not broadcast") from e
+        raise B3dgsError(f"a {tuple(a.shape)} and b {tuple(b.shape)} do not broadcast") from e
 
 
 def _check_evidence(ss: torch.Tensor, n: torch.Tensor, where: str) -> torch.Tensor:
     if not bool((torch.isfinite(n) & (n >= 0)).all()):
-        raise ValueError(f"{where}: n_obs must be finite and >= 0")
+        raise B3dgsError(f"{where}: n_obs must be finite and >= 0")
     if not bool(torch.isfinite(ss).all()):
-        raise ValueError(f"{where}: sum_sq_residual must be finite")
+        raise B3dgsError(f"{where}: sum_sq_residual must be finite")
     neg = ss < 0
     if guard(f"{where}.negative_ss", neg):  # tiny negative values from cancellation upstream
         ss = torch.where(neg, torch.zeros_like(ss), ss)
@@ -85,13 +86,13 @@ def ig_update_ema(
     decay=1 is the plain conjugate update.
     """
     if not (0.0 <= float(decay) <= 1.0):
-        raise ValueError(f"decay must be in [0, 1], got {decay}")
+        raise B3dgsError(f"decay must be in [0, 1], got {decay}")
     a_, b_ = _t(a), _t(b)
     _check_ab(a_, b_)
     n = _t(n_obs)
     ss = _check_evidence(_t(sum_sq_residual), n, "ig_update_ema")
     if (a0 is None) != (b0 is None):
-        raise ValueError("pass both a0 and b0 (or neither)")
+        raise B3dgsError("pass both a0 and b0 (or neither)")
     if a0 is None:
         return decay * a_ + 0.5 * n, decay * b_ + 0.5 * ss
     pa, pb = _t(a0), _t(b0)
@@ -132,7 +133,7 @@ def ig_var(a: Num, b: Num, eps: float = IG_MEAN_DENOM_EPS) -> torch.Tensor:
 def ig_sample(a: Num, b: Num, n_samples: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
     """Draw sigma^2 ~ IG(a, b) as b / Gamma(a, 1); returns (n_samples, *broadcast(a, b).shape)."""
     if not isinstance(n_samples, int) or n_samples < 1:
-        raise ValueError(f"n_samples must be a positive int, got {n_samples!r}")
+        raise B3dgsError(f"n_samples must be a positive int, got {n_samples!r}")
     a_, b_ = _t(a), _t(b)
     _check_ab(a_, b_)
     shape = torch.broadcast_shapes(a_.shape, b_.shape)
@@ -168,11 +169,11 @@ class NoiseBlock(PosteriorBlock):
     decay: float = 0.99
     t_noise: Optional[int] = None
 
-    def check_sanity(self, max_steps: int = 0, **kw) -> None:
+    def validate(self, max_steps: int = 0, **kw) -> None:
         if self.a0 <= 0 or self.b0 <= 0:
-            raise ValueError("posterior.noise.a0 and b0 must be > 0")
+            raise B3dgsError("posterior.noise.a0 and b0 must be > 0")
         if not 0 <= self.decay < 1:
-            raise ValueError("posterior.noise.decay must be in [0, 1)")
+            raise B3dgsError("posterior.noise.decay must be in [0, 1)")
 
     def initialize_state(self, *, splats, scene, info):
         dev = splats["means"].device

@@ -7,6 +7,7 @@ from typing import ClassVar, Optional
 import torch
 
 from b3dgs.device import randn
+from b3dgs.errors import B3dgsError
 from b3dgs.plugin import PosteriorBlock
 from b3dgs_plugins.posterior import appearance as app
 
@@ -30,11 +31,11 @@ class OpacityBlock(PosteriorBlock):
     ema: float = 0.99
     t_post: Optional[int] = None
 
-    def check_sanity(self, max_steps: int = 0, **kw) -> None:
+    def validate(self, max_steps: int = 0, **kw) -> None:
         if self.prior_precision <= 0:
-            raise ValueError("posterior.opacity.prior_precision must be > 0")
+            raise B3dgsError("posterior.opacity.prior_precision must be > 0")
         if not 0 <= self.ema < 1:
-            raise ValueError("posterior.opacity.ema must be in [0, 1)")
+            raise B3dgsError("posterior.opacity.ema must be in [0, 1)")
 
     def initialize_state(self, *, splats, scene, info):
         n, dev = splats["means"].shape[0], splats["means"].device

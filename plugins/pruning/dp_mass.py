@@ -17,9 +17,9 @@ class DPMassPruning(PruningScore):
     prune_pi: float = 0.05
     gate_temperature: float = 1.0
 
-    def check_sanity(self, **kwargs) -> None:
-        super().check_sanity(**kwargs)
-        self.dp_block().check_sanity()
+    def validate(self, **kwargs) -> None:
+        super().validate(**kwargs)
+        self.dp_block().validate()
 
     def dp_block(self):
         from b3dgs_plugins.posterior.dp import DPBlock

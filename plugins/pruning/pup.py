@@ -6,6 +6,7 @@ from dataclasses import dataclass
 import torch
 
 from b3dgs.compression import PruningScore, spatial_fisher
+from b3dgs.errors import B3dgsError
 
 
 @dataclass
@@ -21,12 +22,12 @@ class PUPPruning(PruningScore):
     per_channel: bool = True
     eig_floor: float = 1.0e-30
 
-    def check_sanity(self, **kwargs) -> None:
-        super().check_sanity(**kwargs)
+    def validate(self, **kwargs) -> None:
+        super().validate(**kwargs)
         if int(self.pixel_stride) < 1:
-            raise ValueError(f"pruning pup.pixel_stride must be >= 1, got {self.pixel_stride}")
+            raise B3dgsError(f"pruning pup.pixel_stride must be >= 1, got {self.pixel_stride}")
         if not self.eig_floor > 0:
-            raise ValueError(f"pruning pup.eig_floor must be > 0, got {self.eig_floor}")
+            raise B3dgsError(f"pruning pup.eig_floor must be > 0, got {self.eig_floor}")
 
     def score(self, *, splats, optimizers, state, step, info):
         F = spatial_fisher(info, int(self.pixel_stride), bool(self.per_channel))

@@ -6,6 +6,7 @@ from typing import ClassVar, Optional
 
 import torch
 
+from b3dgs.errors import B3dgsError
 from b3dgs.plugin import Plugin
 
 
@@ -37,19 +38,22 @@ class AdaptiveDensityControl(Plugin):
     max_gaussians: Optional[int] = 1_000_000
     prune_big_after: Optional[int] = None  # step after which huge Gaussians are pruned (None: reset_every, as 3DGS)
 
-    def check_sanity(self, **kwargs) -> None:
+    def validate(self, **kwargs) -> None:
         if self.refine_every <= 0:
-            raise ValueError("strategy.refine_every must be > 0")
+            raise B3dgsError("strategy.refine_every must be > 0")
         if self.refine_start < 0 or self.refine_stop < self.refine_start:
-            raise ValueError("strategy.refine_start must be >= 0 and <= strategy.refine_stop")
+            raise B3dgsError("strategy.refine_start must be >= 0 and <= strategy.refine_stop")
         if self.grad_threshold <= 0:
-            raise ValueError("strategy.grad_threshold must be > 0")
+            raise B3dgsError("strategy.grad_threshold must be > 0")
+        if not 0 < self.percent_dense <= 1:
+            raise B3dgsError(f"strategy.percent_dense={self.percent_dense} is invalid: it must be a fraction of the scene "
+                             "extent in (0, 1]", "pass strategy.percent_dense=0.01")
         if not 0 < self.prune_opacity < 1:
-            raise ValueError("strategy.prune_opacity must be in (0, 1)")
+            raise B3dgsError("strategy.prune_opacity must be in (0, 1)")
         if self.max_gaussians is not None and self.max_gaussians < 1:
-            raise ValueError("strategy.max_gaussians must be >= 1 or null")
+            raise B3dgsError("strategy.max_gaussians must be >= 1 or null")
         if self.prune_big_after is not None and self.prune_big_after < 0:
-            raise ValueError("strategy.prune_big_after must be >= 0 or null (null: after the first opacity reset)")
+            raise B3dgsError("strategy.prune_big_after must be >= 0 or null (null: after the first opacity reset)")
 
     def initialize_state(self, *, splats, scene, info):
         n, dev = splats["means"].shape[0], splats["means"].device

@@ -9,6 +9,7 @@ from typing import ClassVar, Optional
 import torch
 from torch import Tensor
 
+from b3dgs.errors import B3dgsError
 from b3dgs.plugin import Plugin
 from b3dgs.render.projection import quat_to_rotmat
 
@@ -22,7 +23,7 @@ def relocation(opacity: Tensor, scale: Tensor, copies: Tensor) -> tuple[Tensor, 
     Plain torch in float64 (the alternating sum cancels); CPU and CUDA alike.
     """
     if opacity.dim() != 1 or scale.shape != (opacity.shape[0], 3) or copies.shape != opacity.shape:
-        raise ValueError(f"relocation: opacity (M,), scale (M, 3), copies (M,); got {tuple(opacity.shape)}, "
+        raise B3dgsError(f"relocation: opacity (M,), scale (M, 3), copies (M,); got {tuple(opacity.shape)}, "
                          f"{tuple(scale.shape)}, {tuple(copies.shape)}")
     o = opacity.double().clamp(1e-12, 1 - 1e-12)
     n = copies.double().clamp_min(1)
@@ -64,15 +65,15 @@ class MCMCStrategy(Plugin):
     opacity_reg: float = 0.01
     scale_reg: float = 0.01
 
-    def check_sanity(self, **kwargs) -> None:
+    def validate(self, **kwargs) -> None:
         if self.cap_max < 1:
-            raise ValueError(f"strategy.cap_max must be >= 1, got {self.cap_max}")
+            raise B3dgsError(f"strategy.cap_max must be >= 1, got {self.cap_max}")
         if self.refine_every <= 0 or self.refine_start < 0 or self.refine_stop < self.refine_start:
-            raise ValueError("strategy.refine_every must be > 0 and 0 <= strategy.refine_start <= strategy.refine_stop")
+            raise B3dgsError("strategy.refine_every must be > 0 and 0 <= strategy.refine_start <= strategy.refine_stop")
         if not 0 < self.min_opacity < 1:
-            raise ValueError(f"strategy.min_opacity must be in (0, 1), got {self.min_opacity}")
+            raise B3dgsError(f"strategy.min_opacity must be in (0, 1), got {self.min_opacity}")
         if self.grow_rate < 0 or self.noise_lr < 0 or self.opacity_reg < 0 or self.scale_reg < 0:
-            raise ValueError("strategy.grow_rate, noise_lr, opacity_reg and scale_reg must be >= 0")
+            raise B3dgsError("strategy.grow_rate, noise_lr, opacity_reg and scale_reg must be >= 0")
 
     def initialize_state(self, *, splats, scene, info):
         dev = splats["means"].device

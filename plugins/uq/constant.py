@@ -6,6 +6,7 @@ from typing import ClassVar, Optional
 
 import torch
 
+from b3dgs.errors import B3dgsError
 from b3dgs.uq.calibration import training_mse
 from b3dgs.uq.regime import Predictive, UQRegime
 
@@ -25,9 +26,9 @@ class ConstantUQ(UQRegime):
     samples: int = 0  # no Monte-Carlo draws
     max_train_views: Optional[int] = None
 
-    def check(self):
+    def validate(self, **kwargs):
         if self.max_train_views is not None and self.max_train_views < 1:
-            raise ValueError(f"uq.constant.max_train_views must be >= 1 or null, got {self.max_train_views}")
+            raise B3dgsError(f"uq.constant.max_train_views must be >= 1 or null, got {self.max_train_views}")
 
     def fit(self, models, scene):
         super().fit(models, scene)

@@ -5,6 +5,7 @@ from dataclasses import dataclass
 
 import torch
 
+from b3dgs.errors import B3dgsError
 from b3dgs.uq.regime import Predictive, UQRegime
 
 
@@ -19,7 +20,7 @@ class EnsembleUQ(UQRegime):
     def fit(self, models, scene):
         super().fit(models, scene)
         if len(self.models) < self.min_members:
-            raise ValueError(f"uq=ensemble needs >= {self.min_members} run dirs (got {len(self.models)}); "
+            raise B3dgsError(f"uq=ensemble needs >= {self.min_members} run dirs (got {len(self.models)}); "
                              "pass run=[dir1,dir2,dir3]")
 
     @torch.no_grad()

@@ -6,6 +6,8 @@ from typing import Optional
 
 import torch
 
+from b3dgs.errors import B3dgsError
+from b3dgs.plugin import PosteriorBlock
 from b3dgs.uq.regime import Predictive, UQRegime, render_params, sample_spread
 
 
@@ -19,10 +21,16 @@ class NativeUQ(UQRegime):
 
     ``count_scale`` (None: the model's own) draws from the posterior with N̂ ← c·N̂ (Eq. 2-3) in every
     block that has that setting, on a copy of the block and of its state: the trained model and its
-    training are untouched (``bench/uq_count_scale.py`` measures what c does)."""
+    training are untouched (``bench/uq_count_scale.py`` measures what c does).
+
+    ``add``: posterior blocks drawn after the model's own, built for this evaluation from one pass over the training
+    views (blocks whose posterior is a function of the trained Gaussians, e.g. ``posterior.sh``'s directional SH
+    posterior); with ``add``, a standard model (no posterior blocks) has a native posterior too. σ̂² comes from the
+    model's blocks, else from the added ones."""
 
     count_scale: Optional[float] = None
     count: Optional[str] = None
+    add: Optional[dict] = None  # {name: PosteriorBlock} (instantiated by Hydra from conf/uq/native_sh.yaml)
 
     def _blocks(self, m):
         """(name, block, state) to draw from: the model's own, or copies with ``count_scale`` / ``count`` applied
@@ -35,15 +43,24 @@ class NativeUQ(UQRegime):
                 blk, st = replace(blk, count_scale=float(self.count_scale)), dict(st)
             if self.count is not None and "count" in names and blk.count != self.count:
                 blk, st = replace(blk, count=str(self.count)), dict(st)
-                blk.check_sanity()
+                blk.validate()
             out.append((name, blk, st))
+        for name, blk in (self.add or {}).items():
+            if not isinstance(blk, PosteriorBlock):
+                raise B3dgsError(f"uq.{name}: add.{name} must be a posterior block (a _target_ to a PosteriorBlock "
+                                 f"class such as b3dgs_plugins.posterior.sh.SHPosteriorBlock), got {type(blk).__name__}")
+            if name in m.posterior:
+                raise B3dgsError(f"uq: add.{name} names a block the model already has (fix: leave it out of add)")
+            blk.validate()
+            out.append((name, blk, blk.initialize_state(splats=m.splats, scene=None, info={})))
         return out
 
     def fit(self, models, scene):
         super().fit(models, scene)
         m = self.models[0]
-        if not m.posterior:
-            raise ValueError("uq=native needs a model trained with posterior blocks (model=niw or model=dpmm); "
+        if not m.posterior and not self.add:
+            raise B3dgsError("uq=native needs a model trained with posterior blocks (model=niw or model=dpmm) or blocks "
+                             "added at evaluation (uq=[native_sh]); "
                              "use uq=proxy for a standard model")
         self.sigma2 = 0.0
         # one prepared draw function per block: posterior set-up once, not per chunk or view
@@ -52,10 +69,16 @@ class NativeUQ(UQRegime):
         self._fitted = [(blk, st) for _, blk, st in blocks]
         self.reset_conditioning()
         self.base = render_params(m)
+        own = None
         for name, blk in m.posterior.items():
             v = blk.aleatoric_variance(state=m.states[name])
             if v is not None:
-                self.sigma2 = float(v)
+                own = float(v)
+        if own is None:  # a standard model with added blocks: their σ̂²
+            for blk, st in self._fitted[len(m.posterior):]:
+                v = blk.aleatoric_variance(state=st)
+                own = float(v) if v is not None else own
+        self.sigma2 = own if own is not None else 0.0
 
         self.fit_info["sigma2_plugin"] = self.sigma2
 

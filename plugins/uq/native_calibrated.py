@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from b3dgs.errors import B3dgsError
 from b3dgs.uq.calibration import calibration_views, conformal_scale, fit_scale_and_level
 from b3dgs.uq.regime import Predictive
 from b3dgs_plugins.uq.native import NativeUQ
@@ -76,10 +77,10 @@ class NativeConformalUQ(_CalibratedNative):
     regime_name = "native_conformal"
     level: float = 0.95
 
-    def check(self):
-        super().check()
+    def validate(self, **kwargs):
+        super().validate(**kwargs)
         if not 0 < self.level < 1:
-            raise ValueError(f"uq.native_conformal.level must be in (0, 1), got {self.level}")
+            raise B3dgsError(f"uq.native_conformal.level must be in (0, 1), got {self.level}")
 
     def fit(self, models, scene):
         super().fit(models, scene)
@@ -90,7 +91,7 @@ class NativeConformalUQ(_CalibratedNative):
         scores = np.where(sd > 0, ar / np.where(sd > 0, sd, 1.0), np.where(ar > 0, np.inf, 0.0)).reshape(-1)
         conf = conformal_scale(scores, self.level)
         if not np.isfinite(conf["q"]):
-            raise ValueError(f"uq=native_conformal: the {conf['rank']}-th smallest of the {conf['n']} calibration "
+            raise B3dgsError(f"uq=native_conformal: the {conf['rank']}-th smallest of the {conf['n']} calibration "
                              "scores is infinite (residuals where u_p + σ̂² = 0: a run without the plug-in σ̂², "
                              "posterior.niw.plugin_noise=false, or too few calibration pixels)")
         self.k = float(conf["multiplier"])

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 import torch
 
 from b3dgs.device import randn
+from b3dgs.errors import B3dgsError
 from b3dgs.uq.regime import Predictive, UQRegime, render_params, sample_spread
 
 
@@ -18,10 +19,10 @@ class ProxyUQ(UQRegime):
 
     jitter: float = 0.002
 
-    def check(self):
-        super().check()
+    def validate(self, **kwargs):
+        super().validate(**kwargs)
         if not self.jitter > 0:
-            raise ValueError(f"uq.proxy.jitter must be > 0, got {self.jitter}")
+            raise B3dgsError(f"uq.proxy.jitter must be > 0, got {self.jitter}")
 
     @torch.no_grad()
     def predict(self, camera, generator=None):

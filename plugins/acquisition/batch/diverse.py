@@ -25,7 +25,7 @@ class Diverse(BatchSelector):
 
     radius: float = 1.0
 
-    def check(self):
+    def validate(self, **kwargs):
         check_radius(self.radius, "diverse")
 
     def select(self, policy, ctx, candidates, budget):

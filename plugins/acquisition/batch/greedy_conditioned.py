@@ -31,7 +31,7 @@ class GreedyConditioned(BatchSelector):
     max_rescore: int = 4
     radius: float = 1.0  # the diverse fallback's radius
 
-    def check(self):
+    def validate(self, **kwargs):
         m = self.max_rescore
         if isinstance(m, bool) or not isinstance(m, int) or m < 1:
             raise B3dgsError(f"acquisition batch greedy_conditioned: max_rescore={m!r} must be an integer >= 1",

@@ -1,0 +1,201 @@
+"""Typed config nodes: the keys and value types of every ``_target_`` node are checked by OmegaConf.
+
+The schema of a node is a structured config made from its target's fields: a dataclass's (plugins, renderers,
+schedules, UQ regimes, acquisition policies) or, for a target that is no dataclass, its keyword parameters with
+their annotations (the model's ``SplatModule``, ``lightning.Trainer``, a logger, a callback; the data module gets its
+format loader's keywords too). :func:`check_node` sets the user's values into that schema one key at a time, so
+OmegaConf refuses an unknown key and a value of the wrong type; each refusal becomes one :class:`B3dgsError` line
+with the closest known key or the expected type and its default. Ranges: a plugin checks its own in ``validate``;
+those of the core's own values (data, model, trainer, top-level keys) are :data:`RULES`; the rules across fields are
+:mod:`b3dgs.validation`'s.
+"""
+from __future__ import annotations
+
+import dataclasses
+import inspect
+import math
+import types
+import typing
+from collections.abc import Sequence
+from fnmatch import fnmatch
+from typing import Any, Callable, Dict, List, Optional
+
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
+from omegaconf.errors import ConfigAttributeError, ConfigKeyError, MissingMandatoryValue, ValidationError
+
+from b3dgs.errors import B3dgsError, did_you_mean
+
+__all__ = ["RULES", "UNRESOLVED", "apply_rules", "check_node", "locate", "show", "value"]
+
+UNRESOLVED = object()  # a value that only a running Hydra app can resolve (${hydra:...})
+_WHAT = {bool: "true or false", int: "an integer", float: "a finite number", str: "a string", list: "a list"}
+
+
+def value(node: DictConfig, key: str, path: str) -> Any:
+    """A value of ``node``, resolved (containers as plain lists and dicts); :data:`UNRESOLVED` for ``${hydra:...}``."""
+    if OmegaConf.is_missing(node, key):
+        raise B3dgsError(f"{path} is not set", f"pass {path}=VALUE on the command line")
+    try:
+        v = node[key]
+    except MissingMandatoryValue as e:
+        key = getattr(e, "full_key", None)
+        raise B3dgsError(f"{path} needs {key or 'a value'}, which is not set",
+                         f"pass {key or 'it'}=VALUE on the command line") from None
+    except Exception as e:  # noqa: BLE001 - unresolvable interpolations (${hydra:...} outside an app)
+        if "hydra" in str(e).lower():
+            return UNRESOLVED
+        raise B3dgsError(f"{path} cannot be resolved ({' '.join(str(e).split())[:160]})",
+                         f"correct the interpolation in {path}") from None
+    return OmegaConf.to_container(v, resolve=True) if isinstance(v, (DictConfig, ListConfig)) else v
+
+
+def show(v: Any) -> str:
+    """A value as it is written on the command line."""
+    if isinstance(v, (list, tuple)):
+        return "[" + ",".join(show(x) for x in v) + "]"
+    return "null" if v is None else str(v)
+
+
+def locate(target: str) -> Callable:
+    from hydra.utils import get_object
+
+    try:
+        return get_object(target)
+    except Exception as e:  # noqa: BLE001
+        raise B3dgsError(f"_target_ {target} cannot be imported ({type(e).__name__})",
+                         "install the package that provides it, or correct _target_") from None
+
+
+def _type(hint: Any, default: Any) -> Any:
+    """The OmegaConf type of a field: bool, int, float, str or a list (Optional where None is allowed), else Any;
+    an unannotated field is typed by its default."""
+    if hint is Any and default is not MISSING and default is not None:
+        hint = type(default)
+    optional = default is None
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        rest = [a for a in typing.get_args(hint) if a is not type(None)]
+        optional, hint = optional or len(rest) < len(typing.get_args(hint)), rest[0] if len(rest) == 1 else Any
+    base = typing.get_origin(hint) or hint
+    if base in (bool, int, float, str):
+        t = base
+    elif isinstance(base, type) and issubclass(base, (list, tuple, Sequence)) and base is not str:
+        t = List[Any]
+    else:
+        return Any
+    return Optional[t] if optional else t
+
+
+def _fields(target: Callable) -> tuple[Dict[str, tuple[Any, Any]], bool]:
+    """(name -> (annotation, default or MISSING) of what ``target`` accepts, whether it takes ``**kwargs``)."""
+    try:
+        hints = typing.get_type_hints(target if dataclasses.is_dataclass(target) or not isinstance(target, type)
+                                      else target.__init__)
+    except Exception:  # noqa: BLE001 - an annotation that does not evaluate here is not checked
+        hints = {}
+    params = inspect.signature(target).parameters.values()
+    fields = {p.name: (hints.get(p.name, Any), MISSING if p.default is p.empty else p.default) for p in params
+              if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
+    return fields, any(p.kind == p.VAR_KEYWORD for p in params)
+
+
+def _unknown(path: str, key: str, known) -> B3dgsError:
+    known = sorted(k for k in known if not k.startswith("_"))
+    return B3dgsError(f"unknown config key {path}.{key}{did_you_mean(key, known)}",
+                      f"remove it or correct its spelling (keys of {path}: {', '.join(known)})")
+
+
+def check_node(node: DictConfig, path: str, also: Optional[Callable] = None, extra: Optional[dict] = None,
+               shown: Optional[dict] = None) -> Dict[str, Any]:
+    """Keys and types of the ``_target_`` node ``node`` (at dotted ``path``) against its target's schema; returns
+    its resolved values. ``also``: a function whose keywords the target forwards through ``**kwargs`` (the data
+    module's format loader); ``extra``: further keys -> example values (b3dgs's own trainer settings); ``shown``:
+    the defaults to name in a fix where they are not the target's (the chosen trainer option's values)."""
+    fields, var_kw = _fields(locate(str(node["_target_"])))
+    if also is not None or extra is not None:  # what the target forwards through **kwargs, and nothing else
+        fields.update({k: f for k, f in (_fields(also)[0] if also else {}).items() if k not in fields})
+        fields.update({k: (Any, v) for k, v in (extra or {}).items() if k not in fields})
+        var_kw = False
+    types_ = {k: _type(h, d) for k, (h, d) in fields.items()}
+    schema = OmegaConf.structured(dataclasses.make_dataclass(
+        "Schema", [(k, t, dataclasses.field(default=MISSING)) for k, t in types_.items()]))
+    OmegaConf.set_struct(schema, not var_kw)
+    values = {}
+    for key in map(str, node.keys()):
+        if key.startswith("_"):
+            continue
+        values[key] = v = value(node, key, f"{path}.{key}")
+        try:
+            schema[key] = MISSING if v is UNRESOLVED else v
+        except (ConfigKeyError, ConfigAttributeError):
+            raise _unknown(path, key, fields) from None
+        except ValidationError:
+            t = types_[key]
+            t = typing.get_args(t)[0] if typing.get_origin(t) is typing.Union else t
+            base = list if typing.get_origin(t) is list else t
+            default = (shown or {}).get(key, fields[key][1])
+            example = f", like its default {show(default)}" if default not in (MISSING, None) else ""
+            raise B3dgsError(f"{path}.{key}={show(v)} is invalid: it must be {_WHAT[base]}",
+                             f"pass {path}.{key}=<{base.__name__}>{example}") from None
+    return values
+
+
+# ---------------------------------------------------------------------------------------------- core ranges
+
+
+def _int(v: Any, lo: int, hi: float = math.inf) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and lo <= v < hi
+
+
+def _num(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def _positive(name: str, fix: str):
+    return lambda v: _num(v) and v > 0, f"a positive number{name}", fix
+
+
+_MODEL = "see conf/model/standard.yaml for the defaults"
+_TRAINER = "see conf/trainer/default.yaml for the defaults"
+_RGB = (lambda v: isinstance(v, list) and len(v) == 3 and all(_num(x) and 0 <= x <= 1 for x in v), "3 numbers in [0, 1] (RGB)")
+#: the ranges of the core's own values, in the order they are checked: a dotted key (a pattern) -> (test, what the value
+#: must be, fix); a key ending in ``?`` also takes null. Keys a config does not hold are skipped.
+RULES = {
+    "seed": (lambda v: _int(v, 0, 2**32), "an integer in [0, 2^32)", "pass seed=0"),
+    "threads?": (lambda v: _int(v, 1), "an integer >= 1 or null", "pass threads=2 or threads=null (torch's default)"),
+    "renderer.near": _positive("", "pass renderer.near=0.01, and data.normalize=true so that the scene's extent is 1"),
+    "data.max_side?": (lambda v: _int(v, 1), "an integer >= 1 or null",
+                       "pass data.max_side=256 (longest image side in pixels) or null for full resolution"),
+    "data.test_every": (lambda v: _int(v, 0), "an integer >= 0", "pass data.test_every=8 (every 8th view held out) or 0"),
+    "data.max_images?": (lambda v: _int(v, 1), "an integer >= 1 or null", "pass data.max_images=N or null for all views"),
+    "data.train_indices?": (lambda v: isinstance(v, list) and all(_int(i, 0) for i in v) and len(set(v)) == len(v),
+                            "null or a list of distinct indices >= 0", "pass data.train_indices=[0,3,5] or null"),
+    "data.background": (*_RGB, "pass data.background=[0,0,0] (black) or data.background=[1,1,1] (white)"),
+    "data.near_plane": _positive(" (the renderer's near plane)", "pass data.near_plane=0.01"),
+    **{f"data.{k}": (lambda v: _int(v, 1), "an integer >= 1", f"pass a positive data.{k}")
+       for k in ("n_views", "resolution", "supersample", "n_objects")},
+    "model.sh_degree": (lambda v: _int(v, 0, 4), "0, 1, 2 or 3", _MODEL),
+    "model.sh_increase_every": (lambda v: _int(v, 1), "an integer >= 1", _MODEL),
+    "model.lambda_dssim": (lambda v: _num(v) and 0 <= v <= 1, "in [0, 1]", "pass model.lambda_dssim=0.2"),
+    "model.lr_*": (lambda v: _num(v) and v >= 0, "a finite number >= 0", _MODEL),
+    "model.background": (*_RGB, "pass model.background=[0,0,0] (black) or model.background=[1,1,1] (white)"),
+    "model.init_opacity": (lambda v: _num(v) and 0 < v < 1, "strictly between 0 and 1 (its logit must be finite)",
+                           "pass model.init_opacity=0.1"),
+    "model.init_scale": _positive(" (it multiplies the initial Gaussian sizes; their log must be finite)",
+                                  "pass model.init_scale=1.0"),
+    "model.init_max_points?": (lambda v: _int(v, 1), "an integer >= 1 or null", _MODEL),
+    "model.init_num_random": (lambda v: _int(v, 0), "an integer >= 0", _MODEL),
+    **{f"trainer.{k}": (lambda v: _int(v, 1), "an integer >= 1", _TRAINER)
+       for k in ("max_steps", "eval_every", "checkpoint_every", "log_every_n_steps")},
+    "trainer.curve_max_views?": (lambda v: _int(v, 1), "an integer >= 1 or null", _TRAINER),
+    "max_views?": (lambda v: _int(v, 1), "an integer >= 1 or null", "pass max_views=N or null for all test views"),
+    "panels": (lambda v: _int(v, 0), "an integer >= 0", "pass panels=3"),
+    "uq.*samples": (lambda v: _int(v, 2), "an integer >= 2 (one sample has no spread: zero variance)", "pass uq.samples=50"),
+}
+
+def apply_rules(values: Dict[str, Any]) -> None:
+    """Refuse the first value of ``values`` (dotted key -> resolved value) that breaks a rule of :data:`RULES`."""
+    for pattern, (ok, what, fix) in RULES.items():
+        for key, v in values.items():
+            if fnmatch(key, pattern.rstrip("?")) and v is not UNRESOLVED and not (v is None and pattern.endswith("?")) \
+                    and not ok(v):
+                raise B3dgsError(f"{key}={show(v)} is invalid: it must be {what}", fix)
