@@ -17,7 +17,7 @@ import torch
 
 from b3dgs.errors import B3dgsError
 
-__all__ = ["guard", "guard_counts", "guard_calls", "reset_guards", "LOG_EVERY"]
+__all__ = ["guard", "guard_counts", "guard_calls", "reset_guards", "LOG_EVERY", "float_dtype", "scalar_or_vector"]
 
 log = logging.getLogger(__name__)
 
@@ -76,3 +76,18 @@ def reset_guards() -> None:
     with _lock:
         _counts.clear()
         _fired_calls.clear()
+
+
+def float_dtype(x: torch.Tensor) -> torch.dtype:
+    """The dtype of a result computed from ``x``: its own if floating point, else torch's default."""
+    return x.dtype if x.is_floating_point() else torch.get_default_dtype()
+
+
+def scalar_or_vector(name: str, x, K: int, device) -> torch.Tensor:
+    """(K,) float64 from a (K,) tensor or a scalar (broadcast); ``name`` is the value's name in the error."""
+    t = torch.as_tensor(x, dtype=torch.float64, device=device)
+    if t.ndim == 0:
+        return t.expand(K)
+    if tuple(t.shape) != (K,):
+        raise B3dgsError(f"{name}: expected shape ({K},) or a scalar, got {tuple(t.shape)}")
+    return t

@@ -16,7 +16,9 @@ import numpy as np
 import torch
 
 from b3dgs.errors import B3dgsError
+from b3dgs.numerics import float_dtype as _dtype
 from b3dgs.numerics import guard
+from b3dgs.numerics import scalar_or_vector as _scalar_or_vec
 
 __all__ = [
     "SH_C0",
@@ -52,19 +54,6 @@ def _vec(name: str, x: torch.Tensor) -> torch.Tensor:
     if not isinstance(x, torch.Tensor) or x.ndim != 1:
         raise B3dgsError(f"{name}: expected a 1-D (K,) tensor, got {getattr(x, 'shape', type(x).__name__)}")
     return x.to(_F64)
-
-
-def _dtype(x: torch.Tensor) -> torch.dtype:
-    return x.dtype if x.is_floating_point() else torch.get_default_dtype()
-
-
-def _scalar_or_vec(name: str, x: Num, K: int, device) -> torch.Tensor:
-    t = torch.as_tensor(x, dtype=_F64, device=device)
-    if t.ndim == 0:
-        return t.expand(K)
-    if tuple(t.shape) != (K,):
-        raise B3dgsError(f"{name}: expected a scalar or shape ({K},), got {tuple(t.shape)}")
-    return t
 
 
 def _clean_nonneg(name: str, x: torch.Tensor, where: str) -> torch.Tensor:

@@ -16,7 +16,9 @@ from torch import Tensor
 
 from b3dgs.device import randn
 from b3dgs.errors import B3dgsError
+from b3dgs.numerics import float_dtype as _out_dtype
 from b3dgs.numerics import guard
+from b3dgs.numerics import scalar_or_vector as _vec
 from b3dgs.plugin import PosteriorBlock
 from b3dgs.render.projection import covariance_3d
 
@@ -44,20 +46,6 @@ def _kd(name: str, x: torch.Tensor) -> Tuple[int, int]:
         shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
         raise B3dgsError(f"{name}: expected a (K, D) tensor, got {shape}")
     return int(x.shape[0]), int(x.shape[1])
-
-
-def _out_dtype(x: torch.Tensor) -> torch.dtype:
-    return x.dtype if x.is_floating_point() else torch.get_default_dtype()
-
-
-def _vec(name: str, x: Scalar, K: int, device: torch.device) -> torch.Tensor:
-    """(K,) float64 from a (K,) tensor or a scalar (broadcast)."""
-    t = torch.as_tensor(x, dtype=_F64, device=device)
-    if t.ndim == 0:
-        return t.expand(K)
-    if tuple(t.shape) != (K,):
-        raise B3dgsError(f"{name}: expected shape ({K},) or a scalar, got {tuple(t.shape)}")
-    return t
 
 
 def _vecD(name: str, x: torch.Tensor, K: int, D: int) -> torch.Tensor:
