@@ -1,5 +1,6 @@
-"""The NIW counts on the canonical grid: ``posterior.niw.count=weight|fisher|fisher3`` against the paper's
-count, the deep ensemble and the constant baseline, over the seven scenes x seeds 0 1 2.
+"""The NIW counts on the canonical grid: ``posterior.niw.count=weight|fisher|fisher3`` and the directional SH
+posterior (``uq=[native_sh]``: the canonical native plus ``posterior.sh``) against the paper's count, the deep ensemble
+and the constant baseline, over the seven scenes x seeds 0 1 2.
 
     python bench/counts.py --jobs 2 --threads 1           # retrain what is missing, score, merge, tabulate
     python bench/counts.py --table-only                   # tables from the archive only
@@ -33,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import QUICK, RESULTS, scene_overrides, train_run  # noqa: E402
 
 SEVEN = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
-COUNTS = ["weight", "fisher", "fisher3"]
+COUNTS = ["weight", "fisher", "fisher3", "sh"]  # scored as the uq regimes native_<name>
 #: (uq.json key, higher is better) of the calibration columns
 COLUMNS = [("ause_rmse", False), ("cov95_err", False), ("nll", False), ("epi_spearman_sq", True)]
 
@@ -149,7 +150,8 @@ def write(args, res: dict, problems: list[str]) -> None:
              "epi_spearman_sq": "ρ(u, err²) ↑"}
     lines = ["# NIW counts on the canonical grid", "",
              f"{', '.join(args.scenes)} x seeds {' '.join(map(str, args.seeds))}; quick protocol; native regimes with "
-             f"{args.samples} posterior samples at c = 1 (the canonical `native` is the paper's count); ensemble: the "
+             f"{args.samples} posterior samples at c = 1 (the canonical `native` is the paper's count; `native_sh` is "
+             "`native` plus the directional SH posterior, plugins/posterior/sh.py); ensemble: the "
              "3-member deep ensemble of the standard runs; OOD: support-deficit AUROC of the per-view mean variance "
              "(ID = best-supported third of the test views, OOD = worst third). Macro means over scenes of seed means.",
              "", "| regime | " + " | ".join(names[k] for k in names) + " | scenes |", "|---|" + "---|" * (len(names) + 1)]
@@ -186,7 +188,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=SEVEN)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    ap.add_argument("--counts", nargs="+", default=COUNTS, choices=COUNTS)
+    ap.add_argument("--counts", nargs="+", default=COUNTS, choices=COUNTS,
+                    help="variants to score, as uq=[native_<name>] (sh: the directional SH posterior added to native)")
     ap.add_argument("--samples", type=int, default=50)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--threads", type=int, default=1)
