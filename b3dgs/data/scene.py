@@ -139,6 +139,10 @@ class SceneTransform:
         return self.scale * np.asarray(points, np.float64) @ R.T + np.asarray(self.translation, np.float64)
 
 
+class IndicesOutOfRange(B3dgsError, IndexError):
+    """``data.train_indices`` names a view the scene does not have (an ``IndexError`` too)."""
+
+
 def scene_transform(scene: Scene) -> SceneTransform:
     """The normalisation ``load_scene`` applied to ``scene`` (the identity for a scene built another way)."""
     t = getattr(scene, "transform", None)
@@ -435,7 +439,7 @@ def preprocess(
         sel = [int(i) for i in train_indices]
         bad = [i for i in sel if not 0 <= i < len(train)]
         if bad:
-            raise B3dgsError(f"train_indices {bad} out of range for {len(train)} train views")
+            raise IndicesOutOfRange(f"train_indices {bad} out of range for {len(train)} train views")
         if len(set(sel)) != len(sel):
             raise B3dgsError(f"train_indices contains duplicates: {sel}")
         pool, train = train, [train[i] for i in sel]
