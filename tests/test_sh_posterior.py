@@ -105,10 +105,20 @@ def test_a_colour_seen_from_one_side_is_uncertain_from_the_other():
 def test_native_sh_on_a_standard_model_and_bad_input(scene):
     from b3dgs_plugins.uq.native import NativeUQ
 
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from b3dgs.train import CONF_DIR
+
     m = module_with_blocks(scene, {})
     m._loaded_step = 10 ** 6
-    uq = NativeUQ(samples=4, chunk=2, add={"sh": SHPosteriorBlock()})
+    cfg = OmegaConf.load(f"{CONF_DIR}/uq/native_sh.yaml").native_sh
+    cfg.samples = 4
+    uq = instantiate(cfg)  # as b3dgs-eval builds it: Hydra keeps the nested block as a structured node
     uq.fit([m], scene)
+    assert isinstance(uq._fitted[0][0], SHPosteriorBlock)
+    pol = instantiate(OmegaConf.load(f"{CONF_DIR}/acquisition/native_sh.yaml"))
+    assert pol._native().add is not None
     pred = uq.predict(scene.test[0])
     assert float(pred.epistemic.mean()) > 0 and uq.sigma2 > 0  # the added block's σ̂² on a standard model
     assert tuple(pred.var.shape) == tuple(pred.mean.shape[:-1])

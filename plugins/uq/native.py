@@ -5,6 +5,7 @@ from dataclasses import dataclass, fields, replace
 from typing import Optional
 
 import torch
+from omegaconf import DictConfig, OmegaConf
 
 from b3dgs.errors import B3dgsError
 from b3dgs.plugin import PosteriorBlock
@@ -46,6 +47,9 @@ class NativeUQ(UQRegime):
                 blk.validate()
             out.append((name, blk, st))
         for name, blk in (self.add or {}).items():
+            if isinstance(blk, DictConfig) and isinstance(OmegaConf.get_type(blk), type) \
+                    and issubclass(OmegaConf.get_type(blk), PosteriorBlock):
+                blk = OmegaConf.to_object(blk)  # Hydra stores a dataclass built inside a dict node as a structured node
             if not isinstance(blk, PosteriorBlock):
                 raise B3dgsError(f"uq.{name}: add.{name} must be a posterior block (a _target_ to a PosteriorBlock "
                                  f"class such as b3dgs_plugins.posterior.sh.SHPosteriorBlock), got {type(blk).__name__}")
