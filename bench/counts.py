@@ -35,13 +35,19 @@ from common import QUICK, RESULTS, scene_overrides, train_run  # noqa: E402
 
 SEVEN = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
 COUNTS = ["weight", "fisher", "fisher3", "sh"]  # scored as the uq regimes native_<name>
+ALONE = ["sh"]  # --alone: uq regimes scored under their own name (sh: the SH posterior without the NIW geometry)
 #: (uq.json key, higher is better) of the calibration columns
 COLUMNS = [("ause_rmse", False), ("cov95_err", False), ("nll", False), ("epi_spearman_sq", True)]
 
 
-def new_regimes(archive_dir: Path, counts: list[str]) -> list[str]:
+def regime_names(args) -> list[str]:
+    """The uq regimes this run scores: ``native_<count>`` for every ``--counts``, then every ``--alone``."""
+    return [f"native_{c}" for c in args.counts] + list(args.alone)
+
+
+def new_regimes(archive_dir: Path, names: list[str]) -> list[str]:
     have = json.loads((archive_dir / "uq.json").read_text()) if (archive_dir / "uq.json").is_file() else {}
-    return [f"native_{c}" for c in counts if f"native_{c}" not in have]
+    return [n for n in names if n not in have]
 
 
 def regimes(names: list[str], samples: int, seed: int) -> dict:
@@ -75,7 +81,7 @@ def score_one(run_dir: Path, archive_dir: Path, names: list[str], samples: int) 
 
 def run_row(args, scene: str, seed: int) -> Optional[str]:
     archive_dir = Path(args.archive) / scene / "niw" / f"s{seed}"
-    names = new_regimes(archive_dir, args.counts)
+    names = new_regimes(archive_dir, regime_names(args))
     if not names:
         return None
     run_dir = Path(args.out) / scene / "niw" / f"s{seed}"
@@ -107,7 +113,7 @@ def table(args) -> dict:
             and r.study == "canonical"]
     niw = [r for r in runs if r.method == "niw"]
     ens = [r for r in runs if r.method == "standard" and "ensemble" in r.uq]
-    regs = ["native"] + [f"native_{c}" for c in args.counts] + ["proxy", "constant", "ppu"]
+    regs = ["native"] + regime_names(args) + ["proxy", "constant", "ppu"]
     ood = ood_study(niw + ens, regimes=regs + ["ensemble"])
     per = {}  # regime -> scene -> {metric: seed mean}
     for row in ood["runs"]:
@@ -130,8 +136,7 @@ def table(args) -> dict:
     macro = {reg: {k: (float(np.mean([d[k] for d in by.values() if k in d])) if any(k in d for d in by.values())
                        else None) for k, _ in metrics} | {"n_scenes": len(by)} for reg, by in means.items()}
     paired = []
-    for c in args.counts:
-        a = f"native_{c}"
+    for a in regime_names(args):
         for b in ("native", "ensemble", "constant"):
             for k, hi in metrics:
                 common = sorted(s for s in means.get(a, {}) if k in means[a][s] and k in means.get(b, {}).get(s, {}))
@@ -190,6 +195,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--counts", nargs="+", default=COUNTS, choices=COUNTS,
                     help="variants to score, as uq=[native_<name>] (sh: the directional SH posterior added to native)")
+    ap.add_argument("--alone", nargs="*", default=ALONE, choices=ALONE,
+                    help="uq regimes scored under their own name (sh: the SH posterior without the NIW geometry)")
     ap.add_argument("--samples", type=int, default=50)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--threads", type=int, default=1)

@@ -132,3 +132,18 @@ def test_native_sh_on_a_standard_model_and_bad_input(scene):
     m2.splats["means"] = m2.splats["means"][:-3]
     with pytest.raises(B3dgsError, match="prepare_posterior"):
         blk.sample(splats=m2.splats, state=st, n=1, generator=None, params=dict(m2.params()), info={})
+
+
+def test_sh_alone_leaves_out_the_model_blocks(scene):
+    """uq=[sh] (model_blocks=false) on a NIW model draws the SH posterior only, with the pass's σ̂²."""
+    from b3dgs_plugins.posterior.niw import NIWBlock
+    from b3dgs_plugins.uq.native import NativeUQ
+
+    m = module_with_blocks(scene, {"niw": NIWBlock()})
+    m._loaded_step = 10 ** 6
+    uq = NativeUQ(samples=2, chunk=2, model_blocks=False, add={"sh": SHPosteriorBlock()})
+    uq.fit([m], scene)
+    assert [type(b).__name__ for b, _ in uq._fitted] == ["SHPosteriorBlock"]
+    assert uq.sigma2 == pytest.approx(float(uq._fitted[0][1]["sigma2"]))
+    with pytest.raises(B3dgsError, match="posterior blocks"):
+        NativeUQ(samples=2, model_blocks=False).fit([m], scene)

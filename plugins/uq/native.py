@@ -32,12 +32,13 @@ class NativeUQ(UQRegime):
     count_scale: Optional[float] = None
     count: Optional[str] = None
     add: Optional[dict] = None  # {name: PosteriorBlock} (instantiated by Hydra from conf/uq/native_sh.yaml)
+    model_blocks: bool = True  # draw from the model's own blocks (false: only from ``add``)
 
     def _blocks(self, m):
         """(name, block, state) to draw from: the model's own, or copies with ``count_scale`` / ``count`` applied
         (``count``: ``posterior.niw.count``, e.g. ``weight``, re-evaluated on the trained model without retraining)."""
         out = []
-        for name, blk in m.posterior.items():
+        for name, blk in (m.posterior.items() if self.model_blocks else ()):
             st = m.states[name]
             names = {f.name for f in fields(blk)}
             if self.count_scale is not None and "count_scale" in names:
@@ -53,7 +54,7 @@ class NativeUQ(UQRegime):
             if not isinstance(blk, PosteriorBlock):
                 raise B3dgsError(f"uq.{name}: add.{name} must be a posterior block (a _target_ to a PosteriorBlock "
                                  f"class such as b3dgs_plugins.posterior.sh.SHPosteriorBlock), got {type(blk).__name__}")
-            if name in m.posterior:
+            if self.model_blocks and name in m.posterior:
                 raise B3dgsError(f"uq: add.{name} names a block the model already has (fix: leave it out of add)")
             blk.validate()
             out.append((name, blk, blk.initialize_state(splats=m.splats, scene=None, info={})))
@@ -62,7 +63,7 @@ class NativeUQ(UQRegime):
     def fit(self, models, scene):
         super().fit(models, scene)
         m = self.models[0]
-        if not m.posterior and not self.add:
+        if not self.add and (not m.posterior or not self.model_blocks):
             raise B3dgsError("uq=native needs a model trained with posterior blocks (model=niw or model=dpmm) or blocks "
                              "added at evaluation (uq=[native_sh]); "
                              "use uq=proxy for a standard model")
@@ -73,13 +74,13 @@ class NativeUQ(UQRegime):
         self._fitted = [(blk, st) for _, blk, st in blocks]
         self.reset_conditioning()
         self.base = render_params(m)
-        own = None
-        for name, blk in m.posterior.items():
+        own, n_own = None, len(m.posterior) if self.model_blocks else 0
+        for name, blk in (m.posterior.items() if self.model_blocks else ()):
             v = blk.aleatoric_variance(state=m.states[name])
             if v is not None:
                 own = float(v)
-        if own is None:  # a standard model with added blocks: their σ̂²
-            for blk, st in self._fitted[len(m.posterior):]:
+        if own is None:  # only added blocks (a standard model, or model_blocks=false): their σ̂²
+            for blk, st in self._fitted[n_own:]:
                 v = blk.aleatoric_variance(state=st)
                 own = float(v) if v is not None else own
         self.sigma2 = own if own is not None else 0.0
