@@ -223,10 +223,18 @@ CLAIMS: list[tuple[str, str, str, str, int, str, Callable[[Results], dict[str, f
     for c in ("paper", "weight", "fisher", "fisher3")
     for name, key, label in (("cov95", "cov95_err", "|Cov@95 - 0.95|"), ("ause", "ause_rmse", "AUSE"),
                              ("nll", "nll", "NLL"))
+] + [  # beyond the paper: the directional SH posterior (plugins/posterior/sh.py), with and without the NIW geometry
+    (f"{tag}_ood_vs_{b}", "beyond the paper", f"Support-deficit OOD AUROC: {label} - {bl} (hypothesis: {hyp})",
+     "not in the paper", +1, "",
+     lambda R, reg=reg, bm=bm, breg=breg: diff(R.ood_auroc("niw", reg), R.ood_auroc(bm, breg)))
+    for tag, reg, label in (("sh_native", "native_sh", "NIW native + the SH posterior"),
+                            ("sh_alone", "sh", "the SH posterior alone"))
+    for b, bm, breg, bl, hyp in (("ensemble", "standard", "ensemble", "the deep ensemble's", ">= 0"),
+                                 ("paper", "niw", "native", "the paper's native", "> 0"))
 ] + [
     (f"active_{p}_vs_{b.replace('+', '_')}", "beyond the paper", f"Active view: {p} - {b} final PSNR "
      "(hypothesis: > 0)", "not in the paper", +1, "dB", lambda R, key=f"{p}-{b}": R.active_paired(key))
-    for p in ("native_fisher3", "native_fisher3+diverse")
+    for p in ("native_fisher3", "native_fisher3+diverse", "native_sh")
     for b in ("ensemble", "fisher", "farthest", "native")
 ]
 
