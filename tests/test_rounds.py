@@ -139,3 +139,15 @@ def test_blocks_that_promise_not_to_change_training_train_bit_for_bit_like_stand
     assert a.num_gaussians == b.num_gaussians
     for k in pa:
         assert torch.equal(pa[k], pb[k]), k
+
+
+def test_study_family_config_resolves_a_named_scene(tmp_path, monkeypatch):
+    """A named scene's data.path is ${data_root}/<name>; the study's per-family training config (which the training
+    signature resolves to compare rows) must resolve it, as b3dgs-train does."""
+    from omegaconf import OmegaConf
+
+    from b3dgs.study.active import compose_config, family_config
+
+    monkeypatch.setenv("B3DGS_DATA", str(tmp_path))
+    fam = family_config(compose_config("study", ["scene=fox"]), "niw", 0)
+    assert OmegaConf.to_container(fam.data, resolve=True)["path"] == str(tmp_path / "fox")

@@ -59,6 +59,8 @@ def family_config(cfg: DictConfig, family: str, seed: int) -> DictConfig:
                             "callbacks": cfg.get("callbacks") or {}})
     if cfg.get("schedule") is not None:  # +schedule=dash: every round follows that training schedule
         out.schedule = cfg.schedule
+    if "data_root" in cfg:  # a named scene's data.path is ${data_root}/<name>: the node must resolve here too
+        out.data_root = cfg.data_root
     return out
 
 
