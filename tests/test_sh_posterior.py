@@ -118,7 +118,8 @@ def test_native_sh_on_a_standard_model_and_bad_input(scene):
     uq.fit([m], scene)
     assert isinstance(uq._fitted[0][0], SHPosteriorBlock)
     pol = instantiate(OmegaConf.load(f"{CONF_DIR}/acquisition/native_sh.yaml"))
-    assert pol._native().add is not None
+    assert pol._native().add is not None and pol._native().model_blocks
+    assert not instantiate(OmegaConf.load(f"{CONF_DIR}/acquisition/sh.yaml"))._native().model_blocks
     pred = uq.predict(scene.test[0])
     assert float(pred.epistemic.mean()) > 0 and uq.sigma2 > 0  # the added block's σ̂² on a standard model
     assert tuple(pred.var.shape) == tuple(pred.mean.shape[:-1])

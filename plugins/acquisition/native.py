@@ -21,7 +21,8 @@ class NativePolicy(AcquisitionPolicy):
     posterior-mean render; ``null`` scores with the model's own setting (the paper's). ``count`` scores with another
     NIW count (``posterior.niw.count``; the trained model is the same, the count comes from one pass over the
     current training views: ``acquisition=native_fisher3`` and friends). ``add`` draws further posterior blocks
-    built from that pass (``acquisition=native_sh``: the directional SH posterior, plugins/posterior/sh.py).
+    built from that pass (``acquisition=native_sh``: the directional SH posterior, plugins/posterior/sh.py;
+    ``acquisition=sh``: that posterior alone, ``model_blocks: false``).
 
     ``condition(ctx, camera)`` (batch=greedy_conditioned): one point-estimate render of ``camera`` at the
     scoring resolution gives each Gaussian's compositing weight sum w_k = Σ_p w_kp, scaled by the pixel-count
@@ -35,11 +36,12 @@ class NativePolicy(AcquisitionPolicy):
     count_scale: Optional[float] = 0.1
     count: Optional[str] = None  # posterior.niw.count to score with (None: the model's own; e.g. fisher3)
     add: Optional[dict] = None  # {name: PosteriorBlock} drawn after the model's own (NativeUQ.add)
+    model_blocks: bool = True  # false: draw only the added blocks (acquisition=sh)
 
     def _native(self) -> NativeUQ:
         regime = getattr(self, "_regime", None) or NativeUQ(samples=self.samples, chunk=self.chunk,
                                                              count_scale=self.count_scale, count=self.count,
-                                                             add=self.add)
+                                                             add=self.add, model_blocks=self.model_blocks)
         self._regime = regime
         return regime
 
