@@ -1,0 +1,143 @@
+"""New active-view rows against the committed campaign's, paired by scene-seed.
+
+    python -m bench.active_view_extra --new /work/av_out --policies sh native_sh --name active_view_sh
+
+A study run later with a few new policies only (``bench.active_view --extra "policies=[sh,native_sh]"
+family_baselines=false --study-out DIR --archive DIR/archive``) trains its own phase-1 models; the default build
+trains them bit for bit like the campaign's, which this script checks on the phase-1 oracle errors (every candidate's
+error must match the committed ``oracle.json``; a scene-seed whose phase 1 differs is reported and left out). Then, per
+budget ladder (16 -> 32 and 8 -> 16 are never pooled), each new policy's final PSNR minus each committed policy's
+(paired over scenes, each scene's seed mean one unit: bootstrap CI, exact sign-flip p) and each row's Spearman ρ
+of its candidate scores with the phase-1 model's error on the candidate (how informative the score is).
+Writes bench/results/<name>.{json,md}.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from bench.common import RESULTS
+
+AGAINST = ["native", "ensemble", "farthest", "uniform", "fisher", "proxy", "ppu"]
+
+
+def _read(p: Path) -> Optional[dict]:
+    return json.loads(p.read_text()) if p.is_file() else None
+
+
+def _rho(row: dict, oracle: Optional[dict]) -> Optional[float]:
+    from b3dgs.uq.metrics import spearman_rho
+
+    if not row.get("scores") or not oracle:
+        return None
+    names = sorted(set(row["scores"]) & set(oracle))
+    if len(names) < 3:
+        return None
+    return float(spearman_rho([row["scores"][n] for n in names], [oracle[n] for n in names], max_pixels=None)[0])
+
+
+def collect(new: Path, archive: Path, policies: list[str], against: list[str]) -> dict:
+    rows, problems = [], []
+    for scene_dir in sorted(p for p in new.iterdir() if (p / "meta.json").is_file()):
+        scene = scene_dir.name
+        meta = json.loads((scene_dir / "meta.json").read_text())
+        ladder = f"{len(meta.get('initial_views', []))}->{len(meta.get('initial_views', [])) + int(meta.get('acquire', 0))}"
+        for res in sorted(scene_dir.glob("*_s*/result.json")):
+            label, seed = res.parent.name.rsplit("_s", 1)
+            if label not in policies:
+                continue
+            r = json.loads(res.read_text())
+            fam = r["family"]
+            o_new = _read(scene_dir / "phase1" / f"{fam}_s{seed}" / "oracle.json")
+            o_old = _read(archive / scene / "phase1" / f"{fam}_s{seed}" / "oracle.json")
+            if o_new is None or o_old is None or set(o_new) != set(o_old) or any(
+                    abs(o_new[k] - o_old[k]) > 1e-9 * max(1.0, abs(o_old[k])) for k in o_old):
+                problems.append(f"{scene} s{seed}: phase 1 ({fam}) differs from the committed campaign's (or no "
+                                "oracle.json): left out")
+                continue
+            row = {"scene": scene, "seed": int(seed), "ladder": ladder, "policy": label, "psnr": r["psnr"],
+                   "rho": _rho(r, o_new), "scoring_time_s": r.get("scoring_time_s")}
+            for b in against:
+                old = _read(archive / scene / f"{b}_s{seed}" / "result.json")
+                if old is not None:
+                    o_b = _read(archive / scene / "phase1" / f"{old['family']}_s{seed}" / "oracle.json")
+                    row[f"psnr_{b}"], row[f"rho_{b}"] = old["psnr"], _rho(old, o_b)
+            rows.append(row)
+    return {"rows": rows, "problems": problems}
+
+
+def pair(rows: list[dict], policies: list[str], against: list[str]) -> list[dict]:
+    from b3dgs.report.stats import paired_stats
+
+    out = []
+    for ladder in sorted({r["ladder"] for r in rows}):
+        for p in policies:
+            mine = [r for r in rows if r["policy"] == p and r["ladder"] == ladder]
+            for b in against:
+                per = {}
+                for sc in sorted({r["scene"] for r in mine}):
+                    d = [r["psnr"] - r[f"psnr_{b}"] for r in mine if r["scene"] == sc and f"psnr_{b}" in r]
+                    if d:
+                        per[sc] = float(np.mean(d))
+                if not per:
+                    continue
+                st = paired_stats(list(per.values()), higher_is_better=True) if len(per) >= 2 else {}
+                out.append({"ladder": ladder, "a": p, "b": b, "per_scene": per, **st})
+    return out
+
+
+def write(res: dict, name: str, policies: list[str], against: list[str]) -> None:
+    from b3dgs.io import atomic_path, write_json
+
+    lines = [f"# Active view: {', '.join(policies)} against the committed campaign", "",
+             "New rows trained later from the same phase-1 models (checked: identical oracle errors), quick protocol, "
+             "topk batches; paired over scenes (each scene's seed mean one unit). ρ: Spearman of the candidate scores "
+             "with the phase-1 model's error on each candidate.", "",
+             "## Rows", "", "| scene | ladder | seed | policy | PSNR | ρ | " + " | ".join(f"{b} PSNR / ρ" for b in against)
+             + " |", "|---" * (5 + 1 + len(against)) + "|"]
+    f = lambda v, nd=3: "—" if v is None else f"{v:.{nd}f}"  # noqa: E731
+    for r in res["rows"]:
+        cells = [f"{f(r.get(f'psnr_{b}'))} / {f(r.get(f'rho_{b}'), 2)}" for b in against]
+        lines.append(f"| {r['scene']} | {r['ladder']} | {r['seed']} | {r['policy']} | {f(r['psnr'])} | {f(r['rho'], 2)} | "
+                     + " | ".join(cells) + " |")
+    lines += ["", "## Paired final PSNR (a − b, dB)", "", "| ladder | a | b | mean Δ | 95 % CI | p | a better / worse | per scene |",
+              "|---|---|---|---|---|---|---|---|"]
+    for p in res["paired"]:
+        ci = p.get("ci") or {}
+        cis = "—" if ci.get("low") is None else f"[{ci['low']:+.3f}, {ci['high']:+.3f}]"
+        pv = "—" if p.get("p_two_sided") is None else f"{p['p_two_sided']:.3g}"
+        mean = float(np.mean(list(p["per_scene"].values())))
+        signs = " ".join(f"{s[:8]}{v:+.2f}" for s, v in p["per_scene"].items())
+        lines.append(f"| {p['ladder']} | {p['a']} | {p['b']} | {mean:+.3f} | {cis} | {pv} | {p.get('wins', '—')} / "
+                     f"{p.get('losses', '—')} | {signs} |")
+    if res["problems"]:
+        lines += ["", "## Left out", ""] + [f"- {x}" for x in res["problems"]]
+    write_json(RESULTS / f"{name}.json", res)
+    with atomic_path(RESULTS / f"{name}.md") as tmp:
+        tmp.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--new", required=True, help="the study dir (or its archive) with the new rows")
+    ap.add_argument("--archive", default=str(RESULTS / "active_view_runs"), help="the committed campaign's rows")
+    ap.add_argument("--policies", nargs="+", required=True)
+    ap.add_argument("--against", nargs="+", default=AGAINST)
+    ap.add_argument("--name", default="active_view_extra", help="bench/results/<name>.{json,md}")
+    args = ap.parse_args()
+    new, archive = Path(args.new), Path(args.archive)
+    for p, what in ((new, "--new"), (archive, "--archive")):
+        if not p.is_dir():
+            raise SystemExit(f"bench.active_view_extra: {what} {p} is not a folder (fix: pass the study dir)")
+    res = collect(new, archive, args.policies, args.against)
+    res["paired"] = pair(res["rows"], args.policies, args.against)
+    write(res, args.name, args.policies, args.against)
+
+
+if __name__ == "__main__":
+    main()
