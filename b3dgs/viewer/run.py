@@ -92,9 +92,11 @@ def open_run(run_dir, acquired: Optional[str] = None, renderer=None) -> ViewedRu
     if not isinstance(metrics, dict) or "checkpoint" not in metrics:
         raise B3dgsError(f"{run_dir} was written by another b3dgs version: its metrics.json has no checkpoint record",
                          f"train it again with this version (`{again}`)")
+    from b3dgs.render.renderers import RendererUnavailable
+
     try:
         loaded = load_run(run_dir, renderer=renderer)
-    except B3dgsError:
+    except RendererUnavailable:  # about this machine, not the run: its own line
         raise
     except (FileNotFoundError, ValueError) as e:  # load_run's own one-line reasons (identity, digest, config)
         msg = " ".join(str(e).split())
