@@ -30,14 +30,9 @@ def _read(p: Path) -> Optional[dict]:
 
 
 def _rho(row: dict, oracle: Optional[dict]) -> Optional[float]:
-    from b3dgs.uq.metrics import spearman_rho
+    from b3dgs.study.active_tables import oracle_rho
 
-    if not row.get("scores") or not oracle:
-        return None
-    names = sorted(set(row["scores"]) & set(oracle))
-    if len(names) < 3:
-        return None
-    return float(spearman_rho([row["scores"][n] for n in names], [oracle[n] for n in names], max_pixels=None)[0])
+    return oracle_rho(row.get("scores"), oracle)
 
 
 def collect(new: Path, archive: Path, policies: list[str], against: list[str]) -> dict:

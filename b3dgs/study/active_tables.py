@@ -38,9 +38,20 @@ def oracle_for(out: Path, family: str, seed: int) -> Optional[dict]:
     return json.loads(p.read_text()) if p.exists() else None
 
 
-def summarize(out: Path) -> dict:
+def oracle_rho(scores: Optional[dict], oracle: Optional[dict]) -> Optional[float]:
+    """Spearman ρ of a row's candidate scores with the phase-1 model's error on each candidate (the oracle's
+    scores), over the candidates both name; None with fewer than 3."""
     from b3dgs.uq.metrics import spearman_rho
 
+    if not scores or not oracle:
+        return None
+    names = sorted(set(scores) & set(oracle))
+    if len(names) < 3:
+        return None
+    return spearman_rho([scores[n] for n in names], [oracle[n] for n in names], max_pixels=None)[0]
+
+
+def summarize(out: Path) -> dict:
     rows = load_rows(out)
     meta = json.loads((out / "meta.json").read_text()) if (out / "meta.json").exists() else {}
     policies = [p for p in meta.get("policies", [])] or sorted({r["policy"] for r in rows})
@@ -58,14 +69,8 @@ def summarize(out: Path) -> dict:
         ent["training_shared_with"] = twins or None
         hh = [r.get("hole_hits") for r in rs if r.get("hole_hits") is not None]
         ent["hole_hits"] = float(np.mean(hh)) if hh else None
-        rhos = []
-        for r in rs:
-            orc = oracle_for(out, r["family"], int(r["seed"]))
-            if r.get("scores") and orc:
-                names = sorted(set(r["scores"]) & set(orc))
-                if len(names) >= 3:
-                    rho, _ = spearman_rho([r["scores"][n] for n in names], [orc[n] for n in names], max_pixels=None)
-                    rhos.append(rho)
+        rhos = [rho for r in rs if (rho := oracle_rho(r.get("scores"), oracle_for(out, r["family"], int(r["seed"]))))
+                is not None]
         ent["spearman_vs_oracle"], ent["spearman_vs_oracle_sem"] = mean_sem(rhos)
         table[pol] = ent
     jac = {}

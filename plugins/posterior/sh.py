@@ -125,14 +125,17 @@ class SHPosteriorBlock(PosteriorBlock):
         s2 = float(state["sigma2"])
         return s2 if math.isfinite(s2) else None
 
+    @staticmethod
+    def _trace(state) -> torch.Tensor:
+        """(N,) tr Λ_k⁻¹ = ‖U_k‖²_F."""
+        return state["u"].square().sum((-1, -2))
+
     def export(self, *, splats=None, state):
-        if "u" not in state:
-            return {}
-        return {"sh_var_trace": state["u"].square().sum((-1, -2)).float()}  # tr Λ_k⁻¹
+        return {"sh_var_trace": self._trace(state).float()} if "u" in state else {}
 
     def summary(self, *, state):
         if "u" not in state:
             return {"computed": False}
-        tr = state["u"].square().sum((-1, -2))
+        tr = self._trace(state)
         return {"computed": True, "sigma2": float(state["sigma2"]), "bases": int(state["u"].shape[-1]),
                 "trace_median": float(tr.median()), "trace_max": float(tr.max())}
