@@ -427,7 +427,7 @@ def markdown(res: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def plots(res: dict) -> None:
+def plots(res: dict, d: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -435,7 +435,6 @@ def plots(res: dict) -> None:
 
     t = res["table"]
     names = [p for p in row_order(t) if t[p]["psnr"] is not None]
-    d = RESULTS / NAME
     d.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(1.2 + 0.85 * len(names), 3.4))
     m = [t[p]["psnr"] for p in names]
@@ -474,6 +473,16 @@ SMOKE = ["trainer.max_steps=300", "initial_views=8", "acquire=6", "strategy.refi
 ARCHIVED = ("walls.json", "*/protocol.json", "*/meta.json", "*/layout.json", "*/*_s*/*.json", "*/phase1/*/*.json")
 
 
+def refuse_committed(archive: Path, extra: list[str]) -> None:
+    """``--extra`` changes the study (policies, protocol), so its rows would rewrite the committed archive's
+    meta.json/layout.json and tables: such runs go to their own ``--study-out`` and are paired with the committed
+    campaign by bench/active_view_extra.py."""
+    if extra and archive.resolve() == (RESULTS / "active_view_runs").resolve():
+        raise SystemExit(f"bench/active_view.py: --extra {' '.join(extra)} would rewrite the committed archive "
+                         f"{archive}; pass --study-out DIR (rows archived to DIR/archive) and pair them with "
+                         "python -m bench.active_view_extra --new DIR")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=list(STUDY_SCENES), choices=scene_names(),
@@ -498,6 +507,7 @@ def main() -> None:
     if args.archive is None:  # smoke runs and other study dirs never write into the committed archive
         args.archive = str(out / "archive") if (args.study_out or args.smoke) else str(RESULTS / "active_view_runs")
     archive = Path(args.archive)
+    refuse_committed(archive, args.extra)
     restored = sync_results(archive, out, ARCHIVED, only_missing=True) if archive.is_dir() else 0
     if restored:
         print(f"restored {restored} files of finished rows from {archive}", flush=True)
@@ -539,20 +549,21 @@ def main() -> None:
         print(text)
         return
     results = {}
+    tables = out / "tables" if args.extra else None  # rows with --extra are another study: tables stay with it
     for lad in LADDERS:  # one table per ladder: 16 -> 32 scenes are never pooled with 8 -> 16 ones in a table
         group = [sc for sc in scenes if ladders.get(sc) == lad]
         if group:
-            results[lad] = aggregate(group, out, walls)
+            results[lad] = aggregate(group, out, walls, results=tables / NAME if tables else None)
             results[lad]["ladder"] = lad
     pooled = pooled_pairs(list(results.values())) if len(results) > 1 else None
     for lad, res in results.items():
         text = markdown(res)
         if lad == "16to32":
-            plots(res)
+            plots(res, (tables or RESULTS) / NAME)
             if pooled:  # the paired answers over every scene sit with the main table
                 res["paired_all_ladders"] = pooled
                 text += pooled_markdown(pooled, {sc: lad2 for sc, lad2 in ladders.items() if sc in scenes})
-        write_results(NAME if lad == "16to32" else f"{NAME}_{lad}", res, text)
+        write_results(NAME if lad == "16to32" else f"{NAME}_{lad}", res, text, root=tables or RESULTS)
 
 
 if __name__ == "__main__":

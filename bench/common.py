@@ -52,13 +52,14 @@ def table(rows: Sequence[dict], cols: Sequence[str]) -> str:
     return "\n".join(markdown_table(cols, [[fmt(r.get(c, "")) for c in cols] for r in rows]))
 
 
-def write_results(name: str, payload: dict, text: str) -> Path:
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    write_json(RESULTS / f"{name}.json", payload)
-    with atomic_path(RESULTS / f"{name}.md") as tmp:
+def write_results(name: str, payload: dict, text: str, root: Path = RESULTS) -> Path:
+    """``<root>/<name>.json`` and ``.md``, written atomically (default root: bench/results)."""
+    root.mkdir(parents=True, exist_ok=True)
+    write_json(root / f"{name}.json", payload)
+    with atomic_path(root / f"{name}.md") as tmp:
         tmp.write_text(text + "\n")
     print(text)
-    return RESULTS / f"{name}.json"
+    return root / f"{name}.json"
 
 
 # The benchmark scenes are b3dgs's named scenes, conf/scene/<name>.yaml (loader + folder under the data root, see

@@ -115,3 +115,14 @@ def test_each_scene_seed_is_one_job_and_walls_add_up(monkeypatch, tmp_path):
     assert sorted(calls) == [("ethiopian_head", (1,)), ("ethiopian_head", (2,)), ("fox", (1,)), ("fox", (2,))]
     walls = json.loads((out / "walls.json").read_text())
     assert walls["fox/s1"] == 6.0 and walls["ethiopian_head/s2"] == 1.0
+
+
+def test_extra_overrides_never_reach_the_committed_archive(tmp_path):
+    """bench/active_view.py --extra (other policies, protocol) is another study: it is refused on the committed
+    archive, whose meta.json and layout.json it would rewrite, and allowed on a study dir's own archive."""
+    from bench.common import RESULTS
+
+    with pytest.raises(SystemExit, match="would rewrite the committed archive"):
+        active_view.refuse_committed(RESULTS / "active_view_runs", ["policies=[sh]"])
+    active_view.refuse_committed(RESULTS / "active_view_runs", [])  # the campaign itself
+    active_view.refuse_committed(tmp_path / "archive", ["policies=[sh]"])
