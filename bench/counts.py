@@ -115,36 +115,40 @@ def table(args) -> dict:
     ens = [r for r in runs if r.method == "standard" and "ensemble" in r.uq]
     regs = ["native"] + regime_names(args) + ["proxy", "constant", "ppu"]
     ood = ood_study(niw + ens, regimes=regs + ["ensemble"])
-    per = {}  # regime -> scene -> {metric: seed mean}
+    per = {}  # regime -> scene -> metric -> {seed: value}
     for row in ood["runs"]:
-        reg = "ensemble" if row["regime"] == "ensemble" else row["regime"]
-        per.setdefault(reg, {}).setdefault(row["scene"], {}).setdefault("auroc", []).append(row["auroc"])
-    for r in niw:
-        for reg in regs:
+        per.setdefault(row["regime"], {}).setdefault(row["scene"], {}).setdefault("auroc", {})[row["seed"]] = row["auroc"]
+    for r, scored in [(r, regs) for r in niw] + [(r, ["ensemble"]) for r in ens]:
+        for reg in scored:
             if reg in r.uq:
                 for key, _ in COLUMNS:
                     v = r.value(key, reg)
                     if v is not None:
-                        per.setdefault(reg, {}).setdefault(r.scene, {}).setdefault(key, []).append(v)
-    for r in ens:
-        for key, _ in COLUMNS:
-            v = r.value(key, "ensemble")
-            if v is not None:
-                per.setdefault("ensemble", {}).setdefault(r.scene, {}).setdefault(key, []).append(v)
-    means = {reg: {sc: {k: float(np.mean(v)) for k, v in d.items()} for sc, d in by.items()} for reg, by in per.items()}
+                        per.setdefault(reg, {}).setdefault(r.scene, {}).setdefault(key, {})[r.seed] = v
+    means = {reg: {sc: {k: float(np.mean(list(v.values()))) for k, v in d.items()} for sc, d in by.items()}
+             for reg, by in per.items()}
     metrics = [("auroc", True)] + COLUMNS
     macro = {reg: {k: (float(np.mean([d[k] for d in by.values() if k in d])) if any(k in d for d in by.values())
-                       else None) for k, _ in metrics} | {"n_scenes": len(by)} for reg, by in means.items()}
+                       else None) for k, _ in metrics}
+             | {"n_scenes": len(by), "n_runs": sum(max(len(v) for v in d.values()) for d in per[reg].values())}
+             for reg, by in means.items()}
     paired = []
     for a in regime_names(args):
         for b in ("native", "ensemble", "constant"):
             for k, hi in metrics:
-                common = sorted(s for s in means.get(a, {}) if k in means[a][s] and k in means.get(b, {}).get(s, {}))
-                if len(common) < 2:
+                # each scene is one unit: the mean over the seeds both regimes have (a count scored on seed 0 only is
+                # paired with the other regime's seed 0, never with its 3-seed mean)
+                d, n_seeds = {}, {}
+                for sc in sorted(per.get(a, {})):
+                    va, vb = per[a][sc].get(k, {}), per.get(b, {}).get(sc, {}).get(k, {})
+                    both = sorted(set(va) & set(vb))
+                    if both:
+                        d[sc] = float(np.mean([va[x] - vb[x] for x in both]))
+                        n_seeds[sc] = len(both)
+                if len(d) < 2:
                     continue
-                d = [means[a][s][k] - means[b][s][k] for s in common]
-                st = paired_stats(d, higher_is_better=hi)
-                paired.append({"a": a, "b": b, "metric": k, "per_scene": dict(zip(common, d)), **st})
+                st = paired_stats(list(d.values()), higher_is_better=hi)
+                paired.append({"a": a, "b": b, "metric": k, "per_scene": d, "n_seeds": n_seeds, **st})
     return {"macro": macro, "per_scene": means, "paired": paired, "ood_skipped": ood["skipped"]}
 
 
@@ -159,19 +163,22 @@ def write(args, res: dict, problems: list[str]) -> None:
              "`native` plus the directional SH posterior, plugins/posterior/sh.py); ensemble: the "
              "3-member deep ensemble of the standard runs; OOD: support-deficit AUROC of the per-view mean variance "
              "(ID = best-supported third of the test views, OOD = worst third). Macro means over scenes of seed means.",
-             "", "| regime | " + " | ".join(names[k] for k in names) + " | scenes |", "|---|" + "---|" * (len(names) + 1)]
+             "", "| regime | " + " | ".join(names[k] for k in names) + " | scenes | runs |", "|---|" + "---|" * (len(names) + 2)]
     for reg, row in res["macro"].items():
         cells = ["—" if row.get(k) is None else f"{row[k]:.4g}" for k in names]
-        lines.append(f"| {reg} | " + " | ".join(cells) + f" | {row['n_scenes']} |")
-    lines += ["", "## Paired differences over scenes (a − b; each scene's seed mean one unit)", "",
-              "| a | b | metric | mean Δ | 95 % CI | p (two-sided) | a better / worse | per scene |", "|---|---|---|---|---|---|---|---|"]
+        lines.append(f"| {reg} | " + " | ".join(cells) + f" | {row['n_scenes']} | {row['n_runs']} |")
+    lines += ["", "## Paired differences over scenes (a − b; each scene one unit: the mean over the seeds both have)", "",
+              "| a | b | metric | mean Δ | 95 % CI | p (two-sided) | a better / worse | seeds | per scene |",
+              "|---|---|---|---|---|---|---|---|---|"]
     for p in res["paired"]:
         ci = p["ci"]
         cis = "—" if ci.get("low") is None else f"[{ci['low']:+.3g}, {ci['high']:+.3g}]"
         pp = "—" if p["p_two_sided"] is None else f"{p['p_two_sided']:.3g}"
         signs = " ".join(f"{s[:6]}{'+' if v > 0 else '−' if v < 0 else '0'}" for s, v in p["per_scene"].items())
+        ns = sorted(set(p["n_seeds"].values()))
+        seeds = f"{ns[0]}" if len(ns) == 1 else f"{ns[0]}–{ns[-1]}"
         lines.append(f"| {p['a']} | {p['b']} | {names.get(p['metric'], p['metric'])} | {p['mean']:+.4g} | {cis} | {pp} | "
-                     f"{p['wins']} / {p['losses']} | {signs} |")
+                     f"{p['wins']} / {p['losses']} | {seeds} | {signs} |")
     if problems:
         lines += ["", "## Rows not merged", ""] + [f"- {x}" for x in problems]
     RESULTS.mkdir(parents=True, exist_ok=True)
