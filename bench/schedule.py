@@ -27,7 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from common import QUICK, RESULTS, machine, scene_overrides, sync_results, train_run  # noqa: E402
 
 SEVEN = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
-ARCHIVED = ["*/*/*/s*/config.yaml", "*/*/*/s*/metrics.json", "*/*/*/s*/curve.json"]
+#: load.json: the --jobs/--threads a row was trained under (its time is paired only with rows of the same scene-seed)
+ARCHIVED = ["*/*/*/s*/config.yaml", "*/*/*/s*/metrics.json", "*/*/*/s*/curve.json", "*/*/*/s*/load.json"]
 METRICS = [("psnr", True), ("ssim", True), ("lpips", False), ("num_gaussians", False), ("train_time_s", False)]
 
 
@@ -115,6 +116,17 @@ def plot(curves: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def load_text(rows: list[dict]) -> str:
+    """How many concurrent jobs the rows ran under, from their load.json (rows from before it was kept: not recorded)."""
+    from collections import Counter
+
+    c = Counter(r.get("jobs") for r in rows)
+    parts = [f"{n} rows at {j} concurrent job(s)" for j, n in sorted((j, n) for j, n in c.items() if j is not None)]
+    if c.get(None):
+        parts.append(f"{c[None]} rows with the load not recorded")
+    return "; ".join(parts) or "no rows"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=SEVEN)
@@ -129,6 +141,8 @@ def main() -> None:
     ap.add_argument("--name", default="schedule", help="result files bench/results/<name>.{json,md,png}")
     ap.add_argument("--extra", nargs="*", default=[], help="overrides for every run")
     args = ap.parse_args()
+    from b3dgs.io import atomic_path, write_json
+
     variants = parse_variants(args.variant or ["constant=schedule=constant", "dash=schedule=dash"])
     ref = next(iter(variants))
     out, archive = Path(args.out), Path(args.archive)
@@ -142,10 +156,13 @@ def main() -> None:
         over = scene_overrides(scene) + QUICK + [f"model={model}", f"seed={seed}", f"threads={args.threads}",
                                                  *variants[name], *args.extra]
         try:
+            fresh = not (run_dir / "metrics.json").is_file()
             m = train_run(run_dir, over, timeout_s=4 * 3600)
         except Exception as e:  # noqa: BLE001 - one failed run must not stop the grid; it is reported
             print(f"FAILED {job}: {str(e)[-400:]}", flush=True)
             return None
+        if fresh:
+            write_json(run_dir / "load.json", {"jobs": args.jobs, "threads": args.threads})
         sync_results(out, archive, ARCHIVED)
         print(f"{scene} {model} {name} s{seed}: PSNR {m['psnr']:.3f}, {m['num_gaussians']} Gaussians, "
               f"{m['train_time_s']:.1f} s", flush=True)
@@ -163,7 +180,9 @@ def main() -> None:
         pts = json.loads((d / "curve.json").read_text())["points"] if (d / "curve.json").is_file() else []
         curves[(scene, model, name, seed)] = pts
         bt = m.get("block_time_s") or {}
+        load = json.loads((d / "load.json").read_text()) if (d / "load.json").is_file() else {}
         rows.append({"scene": scene, "model": model, "variant": name, "seed": seed, "psnr": m["psnr"],
+                     "jobs": load.get("jobs"),
                      "ssim": m["ssim"], "lpips": m["lpips"], "num_gaussians": m["num_gaussians"],
                      "train_time_s": m["train_time_s"],
                      "block_pct": round(100 * sum(bt.values()) / m["train_time_s"], 2) if bt else 0.0})
@@ -190,7 +209,7 @@ def main() -> None:
                 "paired": {k: paired(rows, name, ref, k, hi, model) for k, hi in METRICS + [("block_pct", False)]},
             })
     lines = [f"# Training schedules side by side ({', '.join(variants)}; reference: {ref})", "",
-             f"Quick protocol (256 px, 3000 steps), {args.jobs} jobs x {args.threads} thread(s) on one machine, variants "
+             f"Quick protocol (256 px, 3000 steps), {load_text(rows)}, {args.threads} thread(s) per run, variants "
              "of a scene-seed interleaved. Paired differences (variant − reference): each scene's seed mean is one unit; "
              "bootstrap CI (BCa with >= 6 scenes) and exact sign-flip p.", ""]
     for s in summary:
@@ -215,8 +234,6 @@ def main() -> None:
         lp = "—" if r["lpips"] is None else f"{r['lpips']:.4f}"
         lines.append(f"| {r['scene']} | {r['model']} | {r['variant']} | {r['seed']} | {r['psnr']:.3f} | {r['ssim']:.4f} | "
                      f"{lp} | {r['num_gaussians']} | {r['train_time_s']:.1f} | {t95} | {r['block_pct']} |")
-    from b3dgs.io import atomic_path, write_json
-
     RESULTS.mkdir(parents=True, exist_ok=True)
     write_json(RESULTS / f"{args.name}.json", {"machine": machine(), "variants": variants, "reference": ref,
                                                "jobs": args.jobs, "threads": args.threads, "rows": rows,
