@@ -116,7 +116,8 @@ class DashSchedule(TrainingSchedule):
     (``budget_fraction`` in the hooks' info; DashGaussian's primitive scheduler), so the Gaussian count grows
     with the number of pixels it has to explain instead of densifying freely at low resolution.
 
-    Trim (beyond DashGaussian): with ``keep`` < 1, from full resolution on the hooks' info holds ``keep_fraction``;
+    Trim (beyond DashGaussian): with ``keep`` < 1, from full resolution (or from the first level whose factor is
+    <= ``keep_below``) on the hooks' info holds ``keep_fraction``;
     the strategy then keeps that share of its Gaussians once, the ones that explain the most training pixels (Σ of
     their compositing weights over the training views), and never grows past that count again, so the
     full-resolution steps, the costly ones, draw fewer Gaussians.
@@ -138,6 +139,7 @@ class DashSchedule(TrainingSchedule):
     min_side: int = 16              # never train below this many pixels on the SHORT side (>= 11: the SSIM window)
     budget: bool = False            # grow the densification budget with the resolution (DashGaussian's)
     keep: float = 0.45              # < 1: at full resolution keep this share of the Gaussians, the most used
+    keep_below: float = 1.0         # trim once the downscale factor is <= this (1: at full resolution)
     delay_lr_decay: bool = True     # start the means' lr decay when the factor drops below 2
 
     def __post_init__(self) -> None:
@@ -157,6 +159,9 @@ class DashSchedule(TrainingSchedule):
         if not float(self.start_energy_factor) > 1.0:
             raise B3dgsError(f"schedule.start_energy_factor must be > 1, got {self.start_energy_factor} "
                              "(fix: e.g. schedule.start_energy_factor=4)")
+        if not float(self.keep_below) >= 1.0:
+            raise B3dgsError(f"schedule.keep_below must be >= 1 (a downscale factor), got {self.keep_below} "
+                             "(fix: e.g. schedule.keep_below=1.0, the trim at full resolution)")
         if not 0.0 < float(self.keep) <= 1.0:
             raise B3dgsError(f"schedule.keep must be in (0, 1], got {self.keep} (fix: e.g. schedule.keep=1.0)")
         if int(self.levels) < 2:
@@ -237,7 +242,7 @@ class DashSchedule(TrainingSchedule):
     def step_info(self, step: int) -> dict:
         s = self.scale(step)
         out = {"resolution_scale": 1.0 / s}
-        if step >= self._full_steps or s <= 1.0:
+        if step >= self._full_steps or s <= max(1.0, float(self.keep_below)):
             if float(self.keep) < 1.0:
                 out["keep_fraction"] = float(self.keep)
         elif self.budget:

@@ -82,6 +82,11 @@ def test_budget_fraction_and_scheduled_cap():
     assert "budget_fraction" not in DashSchedule(budget=False).step_info(0)
     assert "keep_fraction" not in d.step_info(999) and DashSchedule(keep=0.5).step_info(0)["keep_fraction"] == 0.5
     assert DashSchedule().keep == 0.45 and not DashSchedule().budget  # the defaults of conf/schedule/dash.yaml
+    early = DashSchedule(full_res_at=0.5, levels=6, min_side=11, keep=0.5, keep_below=2.0)
+    early.initialize(sc.train, max_steps=1000)
+    first = min(t for t in range(1000) if "keep_fraction" in early.step_info(t))
+    assert 0 < first < 500 and early.scale(first) <= 2.0 < early.scale(first - 1)  # from the first level at <= 2
+    assert DashSchedule(keep=0.5).keep_below == 1.0  # the default trims at full resolution, as before
 
 
 def test_density_statistics_are_resolution_consistent():
