@@ -55,6 +55,10 @@ class Results:
         self.root = root
         self.active = _read(root / "active_view.json")  # 16 -> 32 scenes
         self.active_small = _read(root / "active_view_8to16.json")  # 8 -> 16 scenes (fewer than 40 train views)
+        # later policies paired with the campaign by bench/active_view_extra.py (e.g. active_view_sh.json): their
+        # "paired" is a list of {a, b, ladder, per_scene}
+        self.active_extra = [d for f in sorted(root.glob("active_view_*.json"))
+                             if isinstance((d := _read(f)).get("paired"), list)]
         self.uq = _read(root / "uq.json")
         self.compression = _read(root / "compression.json")
         self.report = _read(root / "report" / "report.json")
@@ -96,7 +100,14 @@ class Results:
         except ModuleNotFoundError:  # python bench/claims.py
             from active_view import pooled_per_scene
 
-        return pooled_per_scene([self.active, self.active_small], key)
+        per = pooled_per_scene([self.active, self.active_small], key)
+        if not per:  # a policy the campaign did not run: its rows paired by bench/active_view_extra.py
+            a, _, b = key.partition("-")
+            for d in self.active_extra:
+                for p in d["paired"]:
+                    if p.get("a") == a and p.get("b") == b:
+                        per.update(p.get("per_scene", {}))
+        return per
 
     def ood_auroc(self, method: str, regime: str) -> dict[str, dict[int, float]]:
         """scene -> {seed: support-deficit OOD AUROC} of ``method (regime)`` from the report's per-run OOD rows
@@ -234,7 +245,7 @@ CLAIMS: list[tuple[str, str, str, str, int, str, Callable[[Results], dict[str, f
 ] + [
     (f"active_{p}_vs_{b.replace('+', '_')}", "beyond the paper", f"Active view: {p} - {b} final PSNR "
      "(hypothesis: > 0)", "not in the paper", +1, "dB", lambda R, key=f"{p}-{b}": R.active_paired(key))
-    for p in ("native_fisher3", "native_fisher3+diverse", "native_sh")
+    for p in ("native_fisher3", "native_fisher3+diverse", "native_sh", "sh")
     for b in ("ensemble", "fisher", "farthest", "native")
 ]
 

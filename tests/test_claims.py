@@ -141,3 +141,19 @@ def test_active_rows_pool_both_ladders(tmp_path):
     r = _row(rows, "active_native_vs_ensemble")
     assert r["n_scenes"] == 7 and r["verdict"] == "holds"
     assert r["ours"] == pytest.approx(sum({**big, **small}.values()) / 7)
+
+
+def test_active_rows_of_later_policies_read_the_extra_pairs(tmp_path):
+    """A policy the campaign did not run (e.g. sh) is read from bench/active_view_extra.py's file (a list of
+    {a, b, ladder, per_scene}), both ladders pooled; without that file its rows are pending."""
+    _archive(tmp_path, 3)
+    rows, _ = claims.build(tmp_path)
+    assert _row(rows, "active_sh_vs_native")["verdict"] == "pending"
+    paired = [{"a": "sh", "b": "native", "ladder": "16->32", "per_scene": {"big0": 0.4, "big1": -0.1}},
+              {"a": "sh", "b": "native", "ladder": "8->16", "per_scene": {"small0": 0.2}},
+              {"a": "sh", "b": "ensemble", "ladder": "16->32", "per_scene": {"big0": -9.0, "big1": -9.0}}]
+    (tmp_path / "active_view_sh.json").write_text(json.dumps({"rows": [], "paired": paired}))
+    rows, _ = claims.build(tmp_path)
+    r = _row(rows, "active_sh_vs_native")
+    assert r["n_scenes"] == 3 and r["ours"] == pytest.approx(0.5 / 3)
+    assert _row(rows, "active_sh_vs_ensemble")["ours"] == pytest.approx(-9.0)
