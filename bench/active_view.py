@@ -175,19 +175,36 @@ def pick_spacing(initial: list[str], picks: list[str], centres: dict, extent: fl
     return float(np.mean(d[:, 1]) / extent)
 
 
+def support_deficit(initial: list[str], candidates: list[str], centres: dict) -> dict[str, float]:
+    """{candidate: distance from its camera centre to the nearest initial training camera centre}: how far a
+    candidate is from where the cameras were (the farthest policy's score before any pick)."""
+    from scipy.spatial import cKDTree
+
+    if not initial or not candidates:
+        return {}
+    d, _ = cKDTree(np.stack([centres[n] for n in initial])).query(np.stack([centres[n] for n in candidates]))
+    return {n: float(x) for n, x in zip(candidates, d)}
+
+
 def add_support(per_scene: dict, scene_args: dict | None = None) -> dict:
-    """Each row's test support distance after acquisition, and per scene the Spearman correlation over the
-    rows of one seed between PSNR and that distance (mean over seeds): does coverage explain the ranking?"""
+    """Each row's test support distance after acquisition and the Spearman ρ of its candidate scores with the
+    candidates' support deficit (:func:`support_deficit`: does the score know where the cameras were?), and per
+    scene the Spearman correlation over the rows of one seed between PSNR and the support distance (mean over
+    seeds): does coverage explain the ranking?"""
     from scipy.stats import spearmanr
+
+    from b3dgs.study.active_tables import oracle_rho
 
     out = {}
     for scene, s in per_scene.items():
         meta = s["meta"]
         centres, extent = camera_geometry(scene, (scene_args or {}).get(scene))
         init = list(meta["initial_views"])
+        deficit = support_deficit(init, list(meta.get("candidates") or []), centres)
         for r in s["runs"]:
             r["support_distance"] = support_distance(init + list(r["selected"]), meta["test_views"], centres, extent)
             r["pick_spacing"] = pick_spacing(init, list(r["selected"]), centres, extent)
+            r["spearman_vs_support"] = oracle_rho(r.get("scores"), deficit)
         rhos = []
         for sd in s["seeds"]:
             rows = [r for r in s["runs"] if int(r["seed"]) == sd and r.get("psnr") is not None]
@@ -240,6 +257,10 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict, scene_args: dict 
         for k in ("psnr", "ssim", "lpips", "train_time_s", "scoring_time_s", "spearman_vs_oracle"):
             vals = [x[k] for x in ents if x.get(k) is not None]
             e[k] = float(np.mean(vals)) if vals else None
+        rs = [float(np.mean(v)) for s in per_scene.values()
+              if (v := [r["spearman_vs_support"] for r in s["runs"] if r["policy"] == p
+                        and r.get("spearman_vs_support") is not None])]
+        e["spearman_vs_support"] = float(np.mean(rs)) if rs else None  # macro over scenes of seed means
         sup = [float(np.mean([r["support_distance"] for r in s["runs"] if r["policy"] == p]))
                for s in per_scene.values() if any(r["policy"] == p for r in s["runs"])]
         e["support_distance"] = float(np.mean(sup)) if sup else None
@@ -376,17 +397,20 @@ def markdown(res: dict) -> str:
             name += f" (selected as {', '.join(e['batch_fallback'])}: cannot condition)"
         sem = e.get("psnr_sem_seeds")
         rows.append([e["family"], name, _f(e["psnr"]) + ("" if sem is None else f" ± {sem:.3f}"), _f(e["ssim"], 4),
-                     _f(e["lpips"], 4), _f(e["spearman_vs_oracle"], 2), _f(e.get("support_distance"), 3),
+                     _f(e["lpips"], 4), _f(e["spearman_vs_oracle"], 2), _f(e.get("spearman_vs_support"), 2),
+                     _f(e.get("support_distance"), 3),
                      _f(e.get("pick_spacing"), 3), _f(e["train_time_s"], 0), _f(e["scoring_time_s"], 1),
                      _f(e.get("batch_time_s"), 1), _f(e.get("rescored_per_pick"), 1), _f(e.get("cost_s"), 0),
                      *([f"{pp[0]:.3f}", f"{pp[1]:.4f}", f"{pp[2]:.4f}", f"{pp[3]:.1f}"] if pp and "+" not in p
                        else ["—"] * 4)])
     lines += markdown_table(["family", "policy", "PSNR ↑", "SSIM ↑", "LPIPS ↓", "ρ score vs oracle error",
-                             "test support dist. ↓", "pick spacing", "train s", "scoring s", "batch s",
+                             "ρ score vs support deficit", "test support dist. ↓", "pick spacing", "train s", "scoring s", "batch s",
                              "re-scores / pick", "cost s", "paper PSNR", "paper SSIM", "paper LPIPS", "paper time s"],
                             rows)
     lines += ["", "ρ: Spearman correlation, over the candidates, of the policy's score with the phase-1 model's current "
-              "render error on each candidate (the oracle's score): how informative the score is. "
+              "render error on each candidate (the oracle's score): how informative the score is. ρ vs support "
+              "deficit: the same with each candidate's distance to the nearest initial training camera centre (the "
+              "farthest policy's score): whether the score knows where the cameras were. "
               "'Same run as X': identical acquired views and a bit-identical training run (NIW only observes training). "
               "Cost: every phase-1 model the row scored with (the ensemble's 3), its second round and scoring "
               "(the paper's time column counts the ensemble's members too). Test support distance: mean over test views of the distance to the nearest final training camera "

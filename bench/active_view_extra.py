@@ -8,8 +8,9 @@ trains them bit for bit like the campaign's, which this script checks on the pha
 error must match the committed ``oracle.json``; a scene-seed whose phase 1 differs is reported and left out). Then, per
 budget ladder (16 -> 32 and 8 -> 16 are never pooled), each new policy's final PSNR minus each committed policy's
 (paired over scenes, each scene's seed mean one unit: bootstrap CI, exact sign-flip p) and each row's Spearman ρ
-of its candidate scores with the phase-1 model's error on the candidate (how informative the score is).
-Writes bench/results/<name>.{json,md}.
+of its candidate scores with the phase-1 model's error on the candidate (how informative the score is) and with the
+candidate's support deficit (distance to the nearest initial training camera: does the score know where the cameras
+were?), both ρ paired over every scene of both ladders. Writes bench/results/<name>.{json,md}.
 """
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ import numpy as np
 
 from bench.common import RESULTS
 
-AGAINST = ["native", "ensemble", "farthest", "uniform", "fisher", "proxy", "ppu"]
+AGAINST = ["native", "ensemble", "farthest", "uniform", "fisher", "proxy", "ppu", "oracle"]  # oracle: analysis only (its ρₛ is the error's own ρ with the support deficit)
 
 
 def _read(p: Path) -> Optional[dict]:
@@ -35,11 +36,22 @@ def _rho(row: dict, oracle: Optional[dict]) -> Optional[float]:
     return oracle_rho(row.get("scores"), oracle)
 
 
-def collect(new: Path, archive: Path, policies: list[str], against: list[str]) -> dict:
+def _deficits(scene: str, meta: dict) -> dict:
+    """{candidate: distance to the nearest initial training camera centre} (bench.active_view.support_deficit)."""
+    from bench.active_view import camera_geometry, support_deficit
+
+    centres, _ = camera_geometry(scene)
+    return support_deficit(list(meta.get("initial_views") or []), list(meta.get("candidates") or []), centres)
+
+
+def collect(new: Path, archive: Path, policies: list[str], against: list[str], support: bool = True) -> dict:
+    from b3dgs.study.active_tables import oracle_rho
+
     rows, problems = [], []
     for scene_dir in sorted(p for p in new.iterdir() if (p / "meta.json").is_file()):
         scene = scene_dir.name
         meta = json.loads((scene_dir / "meta.json").read_text())
+        deficit = _deficits(scene, meta) if support else {}
         ladder = f"{len(meta.get('initial_views', []))}->{len(meta.get('initial_views', [])) + int(meta.get('acquire', 0))}"
         for res in sorted(scene_dir.glob("*_s*/result.json")):
             label, seed = res.parent.name.rsplit("_s", 1)
@@ -55,12 +67,14 @@ def collect(new: Path, archive: Path, policies: list[str], against: list[str]) -
                                 "oracle.json): left out")
                 continue
             row = {"scene": scene, "seed": int(seed), "ladder": ladder, "policy": label, "psnr": r["psnr"],
-                   "rho": _rho(r, o_new), "scoring_time_s": r.get("scoring_time_s")}
+                   "rho": _rho(r, o_new), "rho_support": oracle_rho(r.get("scores"), deficit),
+                   "scoring_time_s": r.get("scoring_time_s")}
             for b in against:
                 old = _read(archive / scene / f"{b}_s{seed}" / "result.json")
                 if old is not None:
                     o_b = _read(archive / scene / "phase1" / f"{old['family']}_s{seed}" / "oracle.json")
                     row[f"psnr_{b}"], row[f"rho_{b}"] = old["psnr"], _rho(old, o_b)
+                    row[f"rho_support_{b}"] = oracle_rho(old.get("scores"), deficit)
             rows.append(row)
     return {"rows": rows, "problems": problems}
 
@@ -85,6 +99,28 @@ def pair(rows: list[dict], policies: list[str], against: list[str]) -> list[dict
     return out
 
 
+def pair_rho(rows: list[dict], policies: list[str], against: list[str]) -> list[dict]:
+    """Each ρ (``rho``: with the oracle error; ``rho_support``: with the support deficit) of a new policy minus a
+    committed one's, paired over every scene of both ladders (a scene's seed mean one unit; ρ has no budget unit)."""
+    from b3dgs.report.stats import paired_stats
+
+    out = []
+    for key in ("rho", "rho_support"):
+        for p in policies:
+            mine = [r for r in rows if r["policy"] == p]
+            for b in against:
+                per = {}
+                for sc in sorted({r["scene"] for r in mine}):
+                    d = [r[key] - r[f"{key}_{b}"] for r in mine if r["scene"] == sc and r.get(key) is not None
+                         and r.get(f"{key}_{b}") is not None]
+                    if d:
+                        per[sc] = float(np.mean(d))
+                if len(per) >= 2:
+                    out.append({"rho": key, "a": p, "b": b, "per_scene": per,
+                                **paired_stats(list(per.values()), higher_is_better=True)})
+    return out
+
+
 def write(res: dict, name: str, policies: list[str], against: list[str]) -> None:
     from b3dgs.io import atomic_path, write_json
 
@@ -92,13 +128,16 @@ def write(res: dict, name: str, policies: list[str], against: list[str]) -> None
              "New rows trained later from the same phase-1 models (checked: identical oracle errors), quick protocol, "
              "topk batches; paired over scenes (each scene's seed mean one unit). ρ: Spearman of the candidate scores "
              "with the phase-1 model's error on each candidate.", "",
-             "## Rows", "", "| scene | ladder | seed | policy | PSNR | ρ | " + " | ".join(f"{b} PSNR / ρ" for b in against)
+             "## Rows", "", "ρ / ρₛ: Spearman of the candidate scores with the phase-1 model's error on each candidate / "
+             "with each candidate's distance to the nearest initial training camera (its support deficit).", "",
+             "| scene | ladder | seed | policy | PSNR | ρ / ρₛ | " + " | ".join(f"{b} PSNR / ρ / ρₛ" for b in against)
              + " |", "|---" * (5 + 1 + len(against)) + "|"]
     f = lambda v, nd=3: "—" if v is None else f"{v:.{nd}f}"  # noqa: E731
     for r in res["rows"]:
-        cells = [f"{f(r.get(f'psnr_{b}'))} / {f(r.get(f'rho_{b}'), 2)}" for b in against]
-        lines.append(f"| {r['scene']} | {r['ladder']} | {r['seed']} | {r['policy']} | {f(r['psnr'])} | {f(r['rho'], 2)} | "
-                     + " | ".join(cells) + " |")
+        cells = [f"{f(r.get(f'psnr_{b}'))} / {f(r.get(f'rho_{b}'), 2)} / {f(r.get(f'rho_support_{b}'), 2)}"
+                 for b in against]
+        lines.append(f"| {r['scene']} | {r['ladder']} | {r['seed']} | {r['policy']} | {f(r['psnr'])} | "
+                     f"{f(r['rho'], 2)} / {f(r.get('rho_support'), 2)} | " + " | ".join(cells) + " |")
     lines += ["", "## Paired final PSNR (a − b, dB)", "", "| ladder | a | b | mean Δ | 95 % CI | p | a better / worse | per scene |",
               "|---|---|---|---|---|---|---|---|"]
     for p in res["paired"]:
@@ -106,9 +145,20 @@ def write(res: dict, name: str, policies: list[str], against: list[str]) -> None
         cis = "—" if ci.get("low") is None else f"[{ci['low']:+.3f}, {ci['high']:+.3f}]"
         pv = "—" if p.get("p_two_sided") is None else f"{p['p_two_sided']:.3g}"
         mean = float(np.mean(list(p["per_scene"].values())))
-        signs = " ".join(f"{s[:8]}{v:+.2f}" for s, v in p["per_scene"].items())
+        signs = " ".join(f"{s[:10]}{v:+.2f}" for s, v in p["per_scene"].items())
         lines.append(f"| {p['ladder']} | {p['a']} | {p['b']} | {mean:+.3f} | {cis} | {pv} | {p.get('wins', '—')} / "
                      f"{p.get('losses', '—')} | {signs} |")
+    lines += ["", "## Paired ρ (a − b), every scene of both ladders", "",
+              "farthest's score is the support deficit itself (its ρₛ is 1): its rows give the ceiling.", "",
+              "| ρ with | a | b | mean Δρ | 95 % CI | p | a higher / lower | per scene |", "|---|---|---|---|---|---|---|---|"]
+    for p in res.get("paired_rho", []):
+        ci = p.get("ci") or {}
+        cis = "—" if ci.get("low") is None else f"[{ci['low']:+.2f}, {ci['high']:+.2f}]"
+        pv = "—" if p.get("p_two_sided") is None else f"{p['p_two_sided']:.3g}"
+        what = "oracle error" if p["rho"] == "rho" else "support deficit"
+        signs = " ".join(f"{s[:10]}{v:+.2f}" for s, v in p["per_scene"].items())
+        lines.append(f"| {what} | {p['a']} | {p['b']} | {p['mean']:+.3f} | {cis} | {pv} | {p['wins']} / {p['losses']} | "
+                     f"{signs} |")
     if res["problems"]:
         lines += ["", "## Left out", ""] + [f"- {x}" for x in res["problems"]]
     write_json(RESULTS / f"{name}.json", res)
@@ -131,6 +181,7 @@ def main() -> None:
             raise SystemExit(f"bench.active_view_extra: {what} {p} is not a folder (fix: pass the study dir)")
     res = collect(new, archive, args.policies, args.against)
     res["paired"] = pair(res["rows"], args.policies, args.against)
+    res["paired_rho"] = pair_rho(res["rows"], args.policies, args.against)
     write(res, args.name, args.policies, args.against)
 
 

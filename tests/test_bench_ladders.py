@@ -126,3 +126,19 @@ def test_extra_overrides_never_reach_the_committed_archive(tmp_path):
         active_view.refuse_committed(RESULTS / "active_view_runs", ["policies=[sh]"])
     active_view.refuse_committed(RESULTS / "active_view_runs", [])  # the campaign itself
     active_view.refuse_committed(tmp_path / "archive", ["policies=[sh]"])
+
+
+def test_support_deficit_is_the_distance_to_the_nearest_initial_camera():
+    """bench/active_view.support_deficit: each candidate's distance to the nearest initial camera centre; a score
+    equal to it has ρ = 1 with it (the farthest policy's), a score ranking the other way ρ = -1."""
+    import numpy as np
+
+    from b3dgs.study.active_tables import oracle_rho
+
+    centres = {"a": np.zeros(3), "b": np.array([10.0, 0, 0]), "c": np.array([1.0, 0, 0]),
+               "d": np.array([4.0, 0, 0]), "e": np.array([0, 0, 3.0])}
+    d = active_view.support_deficit(["a", "b"], ["c", "d", "e"], centres)
+    assert d == pytest.approx({"c": 1.0, "d": 4.0, "e": 3.0})
+    assert oracle_rho(d, d) == pytest.approx(1.0)
+    assert oracle_rho({k: -v for k, v in d.items()}, d) == pytest.approx(-1.0)
+    assert active_view.support_deficit([], ["c"], centres) == {}
