@@ -109,6 +109,17 @@ class Results:
                         per.update(p.get("per_scene", {}))
         return per
 
+    def active_rho(self, which: str, a: str, b: str) -> dict[str, float]:
+        """Per scene, policy a's Spearman ρ minus policy b's (``which``: 'rho', with the phase-1 model's error on
+        each candidate; 'rho_support', with the candidate's distance to the nearest initial camera), from
+        bench/active_view_extra.py's paired ρ over both ladders."""
+        per: dict[str, float] = {}
+        for d in self.active_extra:
+            for p in d.get("paired_rho", []):
+                if p.get("rho") == which and p.get("a") == a and p.get("b") == b:
+                    per.update(p.get("per_scene", {}))
+        return per
+
     def ood_auroc(self, method: str, regime: str) -> dict[str, dict[int, float]]:
         """scene -> {seed: support-deficit OOD AUROC} of ``method (regime)`` from the report's per-run OOD rows
         (``report/report.json``, built from the archive)."""
@@ -247,6 +258,13 @@ CLAIMS: list[tuple[str, str, str, str, int, str, Callable[[Results], dict[str, f
      "(hypothesis: > 0)", "not in the paper", +1, "dB", lambda R, key=f"{p}-{b}": R.active_paired(key))
     for p in ("native_fisher3", "native_fisher3+diverse", "native_sh", "sh")
     for b in ("ensemble", "fisher", "farthest", "native")
+] + [
+    (f"active_{p}_{which}_vs_{b}", "beyond the paper", f"Active view: Spearman ρ of the {p} score with {what}, "
+     f"minus the {b} score's (hypothesis: > 0)", "not in the paper", +1, "", lambda R, which=which, p=p, b=b: R.active_rho(which, p, b))
+    for which, what in (("rho", "the phase-1 model's error on the candidate"),
+                        ("rho_support", "the candidate's distance to the nearest training camera"))
+    for p in ("native_sh", "sh")
+    for b in ("ensemble", "native")
 ]
 
 # Spearman diagnostics (Sec. 4.3): per-scene mean native pixel variance against -PSNR.

@@ -157,3 +157,17 @@ def test_active_rows_of_later_policies_read_the_extra_pairs(tmp_path):
     r = _row(rows, "active_sh_vs_native")
     assert r["n_scenes"] == 3 and r["ours"] == pytest.approx(0.5 / 3)
     assert _row(rows, "active_sh_vs_ensemble")["ours"] == pytest.approx(-9.0)
+
+
+def test_active_rho_rows_read_the_paired_rho(tmp_path):
+    """The ρ rows (score against the oracle error, against the support deficit) come from active_view_extra's
+    paired_rho, one scene one unit; a 7/0 positive support ρ reaches 'holds'."""
+    _archive(tmp_path, 3)
+    per = {f"s{i}": 0.1 + 0.1 * i for i in range(7)}
+    (tmp_path / "active_view_sh.json").write_text(json.dumps({"rows": [], "paired": [], "paired_rho": [
+        {"rho": "rho_support", "a": "sh", "b": "native", "per_scene": per},
+        {"rho": "rho", "a": "sh", "b": "native", "per_scene": {k: -v for k, v in per.items()}}]}))
+    rows, _ = claims.build(tmp_path)
+    assert _row(rows, "active_sh_rho_support_vs_native")["verdict"] == "holds"
+    assert _row(rows, "active_sh_rho_vs_native")["verdict"] == "fails"
+    assert _row(rows, "active_sh_rho_vs_ensemble")["verdict"] == "pending"
