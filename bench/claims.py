@@ -120,13 +120,16 @@ class Results:
                     per.update(p.get("per_scene", {}))
         return per
 
-    def ood_auroc(self, method: str, regime: str) -> dict[str, dict[int, float]]:
+    def ood_auroc(self, method: str, regime: str) -> dict:
         """scene -> {seed: support-deficit OOD AUROC} of ``method (regime)`` from the report's per-run OOD rows
-        (``report/report.json``, built from the archive)."""
+        (``report/report.json``, built from the archive); the deep ensemble, one per scene (its members are the
+        standard runs of every seed): scene -> AUROC."""
         out: dict[str, dict[int, float]] = {}
         for r in self.report.get("ood", {}).get("runs", []):
             if r.get("method") == method and r.get("regime") == regime and r.get("auroc") is not None:
                 out.setdefault(r["scene"], {})[int(r["seed"])] = float(r["auroc"])
+        if regime == "ensemble":
+            return {sc: statistics.fmean(v.values()) for sc, v in out.items()}
         return out
 
     def uq_scene(self, row: str, metric: str) -> dict[str, float]:
@@ -149,10 +152,15 @@ def seed_mean(v: dict[str, dict[int, float]]) -> dict[str, float]:
 
 def diff(a: dict, b: dict, rel: bool = False) -> dict[str, float]:
     """Per-scene a - b (or a / b - 1) over the scenes both have. Values per seed ({scene: {seed: x}}) are paired by
-    seed first (a seed finished for one method only is left out), then averaged over the seeds of the scene."""
+    seed first (a seed finished for one method only is left out), then averaged over the seeds of the scene; values
+    per seed against one value per scene ({scene: x}, the deep ensemble) use the mean over every seed."""
     out = {}
     for s in sorted(set(a) & set(b)):
-        if isinstance(a[s], dict):
+        if isinstance(a[s], dict) != isinstance(b[s], dict):  # per seed against one per scene (the ensemble)
+            va = statistics.fmean(a[s].values()) if isinstance(a[s], dict) else a[s]
+            vb = statistics.fmean(b[s].values()) if isinstance(b[s], dict) else b[s]
+            out[s] = va / vb - 1.0 if rel else va - vb
+        elif isinstance(a[s], dict):
             seeds = sorted(set(a[s]) & set(b[s]))
             if not seeds:
                 continue

@@ -36,6 +36,8 @@ from common import QUICK, RESULTS, scene_overrides, train_run  # noqa: E402
 SEVEN = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
 COUNTS = ["weight", "fisher", "fisher3", "sh"]  # scored as the uq regimes native_<name>
 ALONE = ["sh"]  # --alone: uq regimes scored under their own name (sh: the SH posterior without the NIW geometry)
+#: regimes with one value per scene, not per seed: the deep ensemble (3 members: the standard runs of seeds 0 1 2)
+SCENE_LEVEL = {"ensemble"}
 #: (uq.json key, higher is better) of the calibration columns
 COLUMNS = [("ause_rmse", False), ("cov95_err", False), ("nll", False), ("epi_spearman_sq", True)]
 
@@ -137,10 +139,15 @@ def table(args) -> dict:
         for b in ("native", "ensemble", "constant"):
             for k, hi in metrics:
                 # each scene is one unit: the mean over the seeds both regimes have (a count scored on seed 0 only is
-                # paired with the other regime's seed 0, never with its 3-seed mean)
+                # paired with the other regime's seed 0, never with its 3-seed mean); the deep ensemble is one per
+                # scene (its members are the standard runs of every seed), so it faces a's mean over all a's seeds
                 d, n_seeds = {}, {}
                 for sc in sorted(per.get(a, {})):
                     va, vb = per[a][sc].get(k, {}), per.get(b, {}).get(sc, {}).get(k, {})
+                    if b in SCENE_LEVEL and va and vb:
+                        d[sc] = float(np.mean(list(va.values())) - np.mean(list(vb.values())))
+                        n_seeds[sc] = len(va)
+                        continue
                     both = sorted(set(va) & set(vb))
                     if both:
                         d[sc] = float(np.mean([va[x] - vb[x] for x in both]))

@@ -171,3 +171,12 @@ def test_active_rho_rows_read_the_paired_rho(tmp_path):
     assert _row(rows, "active_sh_rho_support_vs_native")["verdict"] == "holds"
     assert _row(rows, "active_sh_rho_vs_native")["verdict"] == "fails"
     assert _row(rows, "active_sh_rho_vs_ensemble")["verdict"] == "pending"
+
+
+def test_per_seed_values_face_a_per_scene_ensemble_with_their_seed_mean():
+    """diff(): a regime scored per seed against the deep ensemble (one value per scene) uses its mean over every
+    seed, not only the seed the ensemble's row happens to carry."""
+    a = {"s": {0: 0.9, 1: 0.7, 2: 0.8}, "t": {0: 0.5}}
+    assert claims.diff(a, {"s": 0.6, "t": 0.5}) == pytest.approx({"s": 0.2, "t": 0.0})
+    assert claims.diff({"s": 0.6}, a) == pytest.approx({"s": -0.2})
+    assert claims.diff(a, {"s": {0: 0.5, 1: 0.5}}) == pytest.approx({"s": 0.3})  # per seed: paired seeds 0 1
