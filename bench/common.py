@@ -142,8 +142,14 @@ def sync_results(src: Path, dst: Path, patterns: Sequence[str], only_missing: bo
     import shutil
     import tempfile
 
+    try:  # an archive inside the study dir (the default <study-out>/archive) is never copied into itself
+        inner = Path(dst).resolve().relative_to(Path(src).resolve()).parts
+    except ValueError:
+        inner = None
     n = 0
     for rel in archived_files(src, patterns):
+        if inner and rel.parts[:len(inner)] == inner:
+            continue
         target = dst / rel
         if target.exists() and (only_missing or target.read_bytes() == (src / rel).read_bytes()):
             continue

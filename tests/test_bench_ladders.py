@@ -142,3 +142,20 @@ def test_support_deficit_is_the_distance_to_the_nearest_initial_camera():
     assert oracle_rho(d, d) == pytest.approx(1.0)
     assert oracle_rho({k: -v for k, v in d.items()}, d) == pytest.approx(-1.0)
     assert active_view.support_deficit([], ["c"], centres) == {}
+
+
+def test_an_archive_inside_the_study_dir_is_not_copied_into_itself(tmp_path):
+    """bench/common.sync_results: with the archive at <study-out>/archive, the archive's own files (dtu_scan24/...
+    matches the row pattern */*_s*/*.json) are not synced into archive/archive/."""
+    from bench.common import sync_results
+
+    out = tmp_path / "study"
+    (out / "dtu_scan24").mkdir(parents=True)
+    (out / "dtu_scan24" / "meta.json").write_text("{}")
+    (out / "dtu_scan24" / "sh_s0").mkdir()
+    (out / "dtu_scan24" / "sh_s0" / "result.json").write_text('{"psnr": 1}')
+    patterns = ("*/meta.json", "*/*_s*/*.json")
+    assert sync_results(out, out / "archive", patterns) == 2
+    assert sync_results(out, out / "archive", patterns) == 0
+    assert not (out / "archive" / "archive").exists()
+    assert sync_results(out / "archive", tmp_path / "fresh", patterns, only_missing=True) == 2
