@@ -77,7 +77,10 @@ def score_one(run_dir: Path, archive_dir: Path, names: list[str], samples: int) 
     if views_old is not None and views_new is not None and views_old != views_new:
         raise RuntimeError(f"{run_dir}: the new regimes score other views than {archive_dir / 'uq.json'}")
     have = json.loads((archive_dir / "uq.json").read_text())  # re-read: another job may have merged meanwhile
-    have.update({k: v for k, v in res.items() if k in names})
+    # the regimes belong to the archived run (same parameters): its training time, not the retraining's
+    train_s = json.loads((archive_dir / "metrics.json").read_text()).get("train_time_s")
+    have.update({k: {**v, "train_time_s": train_s} if isinstance(v, dict) and "train_time_s" in v else v
+                 for k, v in res.items() if k in names})
     write_json(archive_dir / "uq.json", have)
 
 
@@ -156,7 +159,13 @@ def table(args) -> dict:
                     continue
                 st = paired_stats(list(d.values()), higher_is_better=hi)
                 paired.append({"a": a, "b": b, "metric": k, "per_scene": d, "n_seeds": n_seeds, **st})
-    return {"macro": macro, "per_scene": means, "paired": paired, "ood_skipped": ood["skipped"]}
+    # the grid's (scene, seed) units a regime has no score for (e.g. a run whose retraining did not reproduce)
+    missing = {reg: [f"{sc} s{sd}" for sd in args.seeds for sc in args.scenes
+                     if sd not in per.get(reg, {}).get(sc, {}).get("auroc", {})
+                     and any(sd in per.get(reg, {}).get(x, {}).get("auroc", {}) for x in args.scenes)]
+               for reg in regime_names(args)}
+    return {"macro": macro, "per_scene": means, "paired": paired, "ood_skipped": ood["skipped"],
+            "missing": {k: v for k, v in missing.items() if v}}
 
 
 def write(args, res: dict, problems: list[str]) -> None:
@@ -186,6 +195,9 @@ def write(args, res: dict, problems: list[str]) -> None:
         seeds = f"{ns[0]}" if len(ns) == 1 else f"{ns[0]}–{ns[-1]}"
         lines.append(f"| {p['a']} | {p['b']} | {names.get(p['metric'], p['metric'])} | {p['mean']:+.4g} | {cis} | {pp} | "
                      f"{p['wins']} / {p['losses']} | {seeds} | {signs} |")
+    if res.get("missing"):
+        lines += ["", "## Runs without a score (in a seed the regime was scored on)", ""]
+        lines += [f"- {reg}: {', '.join(v)}" for reg, v in res["missing"].items()]
     if problems:
         lines += ["", "## Rows not merged", ""] + [f"- {x}" for x in problems]
     RESULTS.mkdir(parents=True, exist_ok=True)
