@@ -61,10 +61,12 @@ def collect(new: Path, archive: Path, policies: list[str], against: list[str], s
             fam = r["family"]
             o_new = _read(scene_dir / "phase1" / f"{fam}_s{seed}" / "oracle.json")
             o_old = _read(archive / scene / "phase1" / f"{fam}_s{seed}" / "oracle.json")
-            if o_new is None or o_old is None or set(o_new) != set(o_old) or any(
-                    abs(o_new[k] - o_old[k]) > 1e-9 * max(1.0, abs(o_old[k])) for k in o_old):
-                problems.append(f"{scene} s{seed}: phase 1 ({fam}) differs from the committed campaign's (or no "
-                                "oracle.json): left out")
+            if o_new is None or o_old is None:
+                problems.append(f"{scene} s{seed}: no phase-1 ({fam}) oracle.json in "
+                                f"{'the new rows' if o_new is None else 'the committed campaign'}: left out")
+                continue
+            if set(o_new) != set(o_old) or any(abs(o_new[k] - o_old[k]) > 1e-9 * max(1.0, abs(o_old[k])) for k in o_old):
+                problems.append(f"{scene} s{seed}: phase 1 ({fam}) differs from the committed campaign's: left out")
                 continue
             row = {"scene": scene, "seed": int(seed), "ladder": ladder, "policy": label, "psnr": r["psnr"],
                    "rho": _rho(r, o_new), "rho_support": oracle_rho(r.get("scores"), deficit),

@@ -190,7 +190,7 @@ def write(args, res: dict, problems: list[str]) -> None:
         ci = p["ci"]
         cis = "—" if ci.get("low") is None else f"[{ci['low']:+.3g}, {ci['high']:+.3g}]"
         pp = "—" if p["p_two_sided"] is None else f"{p['p_two_sided']:.3g}"
-        signs = " ".join(f"{s[:6]}{'+' if v > 0 else '−' if v < 0 else '0'}" for s, v in p["per_scene"].items())
+        signs = " ".join(f"{s[:10]}{'+' if v > 0 else '−' if v < 0 else '0'}" for s, v in p["per_scene"].items())
         ns = sorted(set(p["n_seeds"].values()))
         seeds = f"{ns[0]}" if len(ns) == 1 else f"{ns[0]}–{ns[-1]}"
         lines.append(f"| {p['a']} | {p['b']} | {names.get(p['metric'], p['metric'])} | {p['mean']:+.4g} | {cis} | {pp} | "
