@@ -178,11 +178,11 @@ def pick_spacing(initial: list[str], picks: list[str], centres: dict, extent: fl
 def support_deficit(initial: list[str], candidates: list[str], centres: dict) -> dict[str, float]:
     """{candidate: distance from its camera centre to the nearest initial training camera centre}: how far a
     candidate is from where the cameras were (the farthest policy's score before any pick)."""
-    from scipy.spatial import cKDTree
+    from b3dgs.neighbours import nearest_distances
 
     if not initial or not candidates:
         return {}
-    d, _ = cKDTree(np.stack([centres[n] for n in initial])).query(np.stack([centres[n] for n in candidates]))
+    d = nearest_distances(np.stack([centres[n] for n in candidates]), np.stack([centres[n] for n in initial]))
     return {n: float(x) for n, x in zip(candidates, d)}
 
 

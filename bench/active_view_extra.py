@@ -81,6 +81,17 @@ def collect(new: Path, archive: Path, policies: list[str], against: list[str], s
     return {"rows": rows, "problems": problems}
 
 
+def scene_deltas(mine: list[dict], key: str, b: str) -> dict[str, float]:
+    """Per scene, the mean over its seeds of ``row[key] - row[key_b]`` (rows where both are known)."""
+    per = {}
+    for sc in sorted({r["scene"] for r in mine}):
+        d = [r[key] - r[f"{key}_{b}"] for r in mine
+             if r["scene"] == sc and r.get(key) is not None and r.get(f"{key}_{b}") is not None]
+        if d:
+            per[sc] = float(np.mean(d))
+    return per
+
+
 def pair(rows: list[dict], policies: list[str], against: list[str]) -> list[dict]:
     from b3dgs.report.stats import paired_stats
 
@@ -89,11 +100,7 @@ def pair(rows: list[dict], policies: list[str], against: list[str]) -> list[dict
         for p in policies:
             mine = [r for r in rows if r["policy"] == p and r["ladder"] == ladder]
             for b in against:
-                per = {}
-                for sc in sorted({r["scene"] for r in mine}):
-                    d = [r["psnr"] - r[f"psnr_{b}"] for r in mine if r["scene"] == sc and f"psnr_{b}" in r]
-                    if d:
-                        per[sc] = float(np.mean(d))
+                per = scene_deltas(mine, "psnr", b)
                 if not per:
                     continue
                 st = paired_stats(list(per.values()), higher_is_better=True) if len(per) >= 2 else {}
@@ -111,12 +118,7 @@ def pair_rho(rows: list[dict], policies: list[str], against: list[str]) -> list[
         for p in policies:
             mine = [r for r in rows if r["policy"] == p]
             for b in against:
-                per = {}
-                for sc in sorted({r["scene"] for r in mine}):
-                    d = [r[key] - r[f"{key}_{b}"] for r in mine if r["scene"] == sc and r.get(key) is not None
-                         and r.get(f"{key}_{b}") is not None]
-                    if d:
-                        per[sc] = float(np.mean(d))
+                per = scene_deltas(mine, key, b)
                 if len(per) >= 2:
                     out.append({"rho": key, "a": p, "b": b, "per_scene": per,
                                 **paired_stats(list(per.values()), higher_is_better=True)})

@@ -103,20 +103,22 @@ class Results:
         per = pooled_per_scene([self.active, self.active_small], key)
         if not per:  # a policy the campaign did not run: its rows paired by bench/active_view_extra.py
             a, _, b = key.partition("-")
-            for d in self.active_extra:
-                for p in d["paired"]:
-                    if p.get("a") == a and p.get("b") == b:
-                        per.update(p.get("per_scene", {}))
+            per = self._extra("paired", a=a, b=b)
         return per
 
     def active_rho(self, which: str, a: str, b: str) -> dict[str, float]:
         """Per scene, policy a's Spearman ρ minus policy b's (``which``: 'rho', with the phase-1 model's error on
         each candidate; 'rho_support', with the candidate's distance to the nearest initial camera), from
         bench/active_view_extra.py's paired ρ over both ladders."""
+        return self._extra("paired_rho", rho=which, a=a, b=b)
+
+    def _extra(self, field: str, **match) -> dict[str, float]:
+        """The per-scene differences of the bench/active_view_extra.py entries in ``field`` matching ``match``,
+        both ladders pooled."""
         per: dict[str, float] = {}
         for d in self.active_extra:
-            for p in d.get("paired_rho", []):
-                if p.get("rho") == which and p.get("a") == a and p.get("b") == b:
+            for p in d.get(field, []):
+                if all(p.get(k) == v for k, v in match.items()):
                     per.update(p.get("per_scene", {}))
         return per
 
