@@ -11,6 +11,16 @@ hours later). A finished run dir is reused and its small files are archived to `
 grid resumes across sessions. Output: ``bench/results/schedule.json`` and ``schedule.md`` (per-run rows, paired
 differences over scenes with bootstrap CIs and exact sign-flip p, the time ratio, time to 95 % of the reference's
 final PSNR gain along the curves) and ``schedule.png`` (PSNR against training time per scene).
+
+Rows trained elsewhere join a table with ``--import NAME=PATTERN`` (``{scene}``, ``{model}``, ``{seed}`` in the run-dir
+pattern): they pair on the deterministic metrics (PSNR, SSIM, LPIPS, #Gaussians, block share), never on time, which
+is paired only between rows of one source. ``--base-model`` adds model − base tables per variant, e.g. the posterior
+models under dash against the standard model's dash rows of the grid, and against their archived constant runs:
+
+    python bench/schedule.py --table-only --models standard niw dpmm --seeds 0 --variant dash=schedule=dash \
+        --out /tmp/m --archive bench/results/schedule_models_runs --name schedule_models --base-model standard \
+        --import "dash=bench/results/schedule_runs/{scene}/{model}/dash/s{seed}" \
+        --import "constant=bench/results/runs/{scene}/{model}/s{seed}" --reference constant
 """
 from __future__ import annotations
 
@@ -56,19 +66,53 @@ def time_to_target(points: list[dict], target: float) -> Optional[float]:
     return None
 
 
-def paired(rows: list[dict], a: str, b: str, key: str, higher: bool, model: str) -> dict:
-    """Scene-level paired difference a − b of ``key`` (each scene's seed mean over seeds both have)."""
+#: metrics that depend on the machine's load: paired only between rows of the same source (one table's interleaved runs)
+TIMED = ("train_time_s", "t95_ref")
+
+
+def parse_imports(items: list[str]) -> dict[str, str]:
+    """``NAME=PATTERN`` strings -> {name: run-dir pattern with {scene}, {model}, {seed}}."""
+    out: dict[str, str] = {}
+    for it in items:
+        name, _, pattern = it.partition("=")
+        if not name or "{scene}" not in pattern or "{seed}" not in pattern:
+            raise SystemExit(f"bench/schedule.py: --import {it!r} is not NAME=PATTERN with {{scene}} and {{seed}} "
+                             "(fix: e.g. constant=bench/results/runs/{scene}/{model}/s{seed})")
+        out[name] = pattern
+    return out
+
+
+def read_row(d: Path, scene: str, model: str, variant: str, seed: int, source: str) -> Optional[tuple[dict, list]]:
+    """One finished run dir as a table row and its test curve; None if it has no metrics.json."""
+    if not (d / "metrics.json").is_file():
+        return None
+    m = json.loads((d / "metrics.json").read_text())
+    pts = json.loads((d / "curve.json").read_text())["points"] if (d / "curve.json").is_file() else []
+    bt = m.get("block_time_s") or {}
+    load = json.loads((d / "load.json").read_text()) if (d / "load.json").is_file() else {}
+    return ({"scene": scene, "model": model, "variant": variant, "seed": seed, "source": source, "psnr": m["psnr"],
+             "jobs": load.get("jobs"), "ssim": m["ssim"], "lpips": m["lpips"], "num_gaussians": m["num_gaussians"],
+             "train_time_s": m["train_time_s"],
+             "block_pct": round(100 * sum(bt.values()) / m["train_time_s"], 2) if bt else 0.0}, pts)
+
+
+def paired(rows: list[dict], a: str, b: str, key: str, higher: bool, model: str, model_b: Optional[str] = None) -> dict:
+    """Scene-level paired difference a − b of ``key`` (each scene's seed mean over seeds both have); side b is
+    (variant b, ``model_b`` or ``model``). Timed keys pair only rows of the same source."""
     from b3dgs.report.stats import paired_stats
 
+    model_b = model_b or model
     per_scene = {}
     for scene in sorted({r["scene"] for r in rows}):
-        va = {r["seed"]: r[key] for r in rows if r["scene"] == scene and r["variant"] == a and r["model"] == model}
-        vb = {r["seed"]: r[key] for r in rows if r["scene"] == scene and r["variant"] == b and r["model"] == model}
-        d = [va[s] - vb[s] for s in sorted(va.keys() & vb.keys()) if va[s] is not None and vb[s] is not None]
+        va = {r["seed"]: r for r in rows if r["scene"] == scene and r["variant"] == a and r["model"] == model}
+        vb = {r["seed"]: r for r in rows if r["scene"] == scene and r["variant"] == b and r["model"] == model_b}
+        d = [va[s][key] - vb[s][key] for s in sorted(va.keys() & vb.keys())
+             if va[s].get(key) is not None and vb[s].get(key) is not None
+             and (key not in TIMED or va[s].get("source") == vb[s].get("source"))]
         if d:
             per_scene[scene] = float(np.mean(d))
     st = paired_stats(list(per_scene.values()), higher_is_better=higher)
-    return {"a": a, "b": b, "model": model, "metric": key, "per_scene": per_scene, **st}
+    return {"a": a, "b": b, "model": model, "model_b": model_b, "metric": key, "per_scene": per_scene, **st}
 
 
 def macro(rows: list[dict], variant: str, key: str, model: str) -> Optional[float]:
@@ -127,6 +171,83 @@ def load_text(rows: list[dict]) -> str:
     return "; ".join(parts) or "no rows"
 
 
+def summarize(rows: list[dict], curves: dict, names: list[str], ref: str, models: list[str],
+              base_model: Optional[str] = None) -> list[dict]:
+    """Variant − reference tables per model (time ratios from rows of one source only), then, with ``base_model``,
+    model − base tables per variant. Adds each row's time to 95 % of the reference's final PSNR gain (``t95_ref``)."""
+    for r in rows:
+        refpts = curves.get((r["scene"], r["model"], ref, r["seed"]))
+        pts = curves.get((r["scene"], r["model"], r["variant"], r["seed"]))
+        if refpts and pts:
+            target = refpts[0]["psnr"] + 0.95 * (refpts[-1]["psnr"] - refpts[0]["psnr"])
+            r["t95_ref"] = time_to_target(pts, target)
+    metrics = METRICS + [("block_pct", False)]
+
+    def one_source(model: str, variants: tuple[str, ...]) -> bool:
+        return len({r.get("source") for r in rows if r["model"] == model and r["variant"] in variants}) == 1
+
+    summary = []
+    for model in models:
+        for name in names:
+            if name == ref or not any(r["model"] == model and r["variant"] == name for r in rows):
+                continue
+            timed = one_source(model, (name, ref))
+            t_ref, t95_ref = macro(rows, ref, "train_time_s", model), macro(rows, ref, "t95_ref", model)
+            t, t95 = macro(rows, name, "train_time_s", model), macro(rows, name, "t95_ref", model)
+            summary.append({
+                "model": model, "variant": name, "reference": ref,
+                "time_ratio": (t / t_ref) if timed and t and t_ref else None,
+                "t95_ratio": (t95 / t95_ref) if timed and t95 and t95_ref else None,
+                "paired": {k: paired(rows, name, ref, k, hi, model) for k, hi in metrics},
+            })
+    if base_model:
+        for name in names:
+            for model in models:
+                if model == base_model or not any(r["model"] == model and r["variant"] == name for r in rows):
+                    continue
+                summary.append({"model": model, "base_model": base_model, "variant": name, "reference": name,
+                                "time_ratio": None, "t95_ratio": None,
+                                "paired": {k: paired(rows, name, name, k, hi, model, base_model) for k, hi in metrics}})
+    return summary
+
+
+def markdown(rows: list[dict], summary: list[dict], names: list[str], ref: str, threads: int,
+             imports: dict[str, str]) -> list[str]:
+    lines = [f"# Training schedules side by side ({', '.join(names)}; reference: {ref})", "",
+             f"Quick protocol (256 px, 3000 steps), {load_text(rows)}, {threads} thread(s) per run, variants "
+             "of a scene-seed interleaved. Paired differences (variant − reference): each scene's seed mean is one unit; "
+             "bootstrap CI (BCa with >= 6 scenes) and exact sign-flip p.", ""]
+    if imports:
+        lines += ["Imported rows (trained elsewhere; paired on PSNR, SSIM, LPIPS, #Gaussians and block share, never on "
+                  "time): " + "; ".join(f"`{n}` from `{p}`" for n, p in imports.items()), ""]
+    for s in summary:
+        title = (f"## {s['variant']}: {s['model']} − {s['base_model']}" if s.get("base_model")
+                 else f"## {s['model']}: {s['variant']} − {s['reference']}")
+        lines += [title, ""]
+        if not s.get("base_model"):
+            lines += [f"- training time ratio (macro mean over scenes of seed means): **{s['time_ratio']:.3f}**"
+                      if s["time_ratio"] else "- training time ratio: n/a (no rows of one source)",
+                      f"- time to 95 % of the reference's final PSNR gain, ratio: **{s['t95_ratio']:.3f}**"
+                      if s["t95_ratio"] else "- time-to-target ratio: n/a", ""]
+        lines += ["| metric | mean Δ | 95 % CI | p (two-sided) | better / worse | scenes |", "|---|---|---|---|---|---|"]
+        for k, p in s["paired"].items():
+            if p["mean"] is None:
+                continue
+            ci = p["ci"]
+            cis = f"[{ci['low']:+.4g}, {ci['high']:+.4g}]" if ci.get("low") is not None else "—"
+            pp = "—" if p["p_two_sided"] is None else f"{p['p_two_sided']:.3g}"
+            lines.append(f"| {k} | {p['mean']:+.4g} | {cis} | {pp} | {p['wins']} / {p['losses']} | {p['n']} |")
+        lines.append("")
+    lines += ["## Runs", "", "| scene | model | variant | seed | PSNR | SSIM | LPIPS | #Gaussians | train s | t95 s | block % |",
+              "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in sorted(rows, key=lambda r: (r["model"], r["scene"], r["seed"], r["variant"])):
+        t95 = "—" if r.get("t95_ref") is None else f"{r['t95_ref']:.1f}"
+        lp = "—" if r["lpips"] is None else f"{r['lpips']:.4f}"
+        lines.append(f"| {r['scene']} | {r['model']} | {r['variant']} | {r['seed']} | {r['psnr']:.3f} | {r['ssim']:.4f} | "
+                     f"{lp} | {r['num_gaussians']} | {r['train_time_s']:.1f} | {t95} | {r['block_pct']} |")
+    return lines
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=SEVEN)
@@ -134,6 +255,11 @@ def main() -> None:
     ap.add_argument("--models", nargs="+", default=["standard"])
     ap.add_argument("--variant", action="append", default=None,
                     help="NAME=OVERRIDES (repeatable; the first is the reference; default constant and dash)")
+    ap.add_argument("--import", dest="imports", action="append", default=[],
+                    help="NAME=PATTERN: rows trained elsewhere, run dirs with {scene}, {model}, {seed} (repeatable)")
+    ap.add_argument("--reference", default=None, help="the variant the others are paired against (default: the first)")
+    ap.add_argument("--base-model", default=None, help="also pair every model against this one, per variant")
+    ap.add_argument("--table-only", action="store_true", help="train nothing; tables of the finished rows")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default="outputs/bench_schedule")
@@ -144,7 +270,14 @@ def main() -> None:
     from b3dgs.io import atomic_path, write_json
 
     variants = parse_variants(args.variant or ["constant=schedule=constant", "dash=schedule=dash"])
-    ref = next(iter(variants))
+    imports = parse_imports(args.imports)
+    names = list(variants) + [n for n in imports if n not in variants]
+    ref = args.reference or next(iter(variants))
+    if ref not in names:
+        raise SystemExit(f"bench/schedule.py: --reference {ref!r} is neither a --variant nor an --import "
+                         f"(fix: one of {', '.join(names)})")
+    if args.base_model and args.base_model not in args.models:
+        raise SystemExit(f"bench/schedule.py: --base-model {args.base_model!r} is not in --models (fix: add it)")
     out, archive = Path(args.out), Path(args.archive)
     sync_results(archive, out, ARCHIVED, only_missing=True)  # rows finished in earlier sessions count as finished
     jobs = [(scene, model, name, seed) for seed in args.seeds for scene in args.scenes for model in args.models
@@ -168,76 +301,29 @@ def main() -> None:
               f"{m['train_time_s']:.1f} s", flush=True)
         return job
 
-    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
-        list(ex.map(run, jobs))
+    if not args.table_only:
+        with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
+            list(ex.map(run, jobs))
 
     rows, curves = [], {}
-    for scene, model, name, seed in jobs:
-        d = out / scene / model / name / f"s{seed}"
-        if not (d / "metrics.json").is_file():
-            continue
-        m = json.loads((d / "metrics.json").read_text())
-        pts = json.loads((d / "curve.json").read_text())["points"] if (d / "curve.json").is_file() else []
-        curves[(scene, model, name, seed)] = pts
-        bt = m.get("block_time_s") or {}
-        load = json.loads((d / "load.json").read_text()) if (d / "load.json").is_file() else {}
-        rows.append({"scene": scene, "model": model, "variant": name, "seed": seed, "psnr": m["psnr"],
-                     "jobs": load.get("jobs"),
-                     "ssim": m["ssim"], "lpips": m["lpips"], "num_gaussians": m["num_gaussians"],
-                     "train_time_s": m["train_time_s"],
-                     "block_pct": round(100 * sum(bt.values()) / m["train_time_s"], 2) if bt else 0.0})
-    # time to 95 % of the reference's final PSNR gain (its first logged point to its end), on every variant's curve
-    for r in rows:
-        refpts = curves.get((r["scene"], r["model"], ref, r["seed"]))
-        pts = curves.get((r["scene"], r["model"], r["variant"], r["seed"]))
-        if refpts and pts:
-            target = refpts[0]["psnr"] + 0.95 * (refpts[-1]["psnr"] - refpts[0]["psnr"])
-            r["t95_ref"] = time_to_target(pts, target)
-    summary = []
-    for model in args.models:
-        t_ref = macro(rows, ref, "train_time_s", model)
-        t95_ref = macro(rows, ref, "t95_ref", model)
-        for name in variants:
-            if name == ref:
-                continue
-            t = macro(rows, name, "train_time_s", model)
-            t95 = macro(rows, name, "t95_ref", model)
-            summary.append({
-                "model": model, "variant": name, "reference": ref,
-                "time_ratio": (t / t_ref) if t and t_ref else None,
-                "t95_ratio": (t95 / t95_ref) if t95 and t95_ref else None,
-                "paired": {k: paired(rows, name, ref, k, hi, model) for k, hi in METRICS + [("block_pct", False)]},
-            })
-    lines = [f"# Training schedules side by side ({', '.join(variants)}; reference: {ref})", "",
-             f"Quick protocol (256 px, 3000 steps), {load_text(rows)}, {args.threads} thread(s) per run, variants "
-             "of a scene-seed interleaved. Paired differences (variant − reference): each scene's seed mean is one unit; "
-             "bootstrap CI (BCa with >= 6 scenes) and exact sign-flip p.", ""]
-    for s in summary:
-        lines += [f"## {s['model']}: {s['variant']} − {s['reference']}", "",
-                  f"- training time ratio (macro mean over scenes of seed means): **{s['time_ratio']:.3f}**"
-                  if s["time_ratio"] else "- training time ratio: n/a",
-                  f"- time to 95 % of the reference's final PSNR gain, ratio: **{s['t95_ratio']:.3f}**"
-                  if s["t95_ratio"] else "- time-to-target ratio: n/a", "",
-                  "| metric | mean Δ | 95 % CI | p (two-sided) | better / worse | scenes |", "|---|---|---|---|---|---|"]
-        for k, p in s["paired"].items():
-            if p["mean"] is None:
-                continue
-            ci = p["ci"]
-            cis = f"[{ci['low']:+.4g}, {ci['high']:+.4g}]" if ci.get("low") is not None else "—"
-            pp = "—" if p["p_two_sided"] is None else f"{p['p_two_sided']:.3g}"
-            lines.append(f"| {k} | {p['mean']:+.4g} | {cis} | {pp} | {p['wins']} / {p['losses']} | {p['n']} |")
-        lines.append("")
-    lines += ["## Runs", "", "| scene | model | variant | seed | PSNR | SSIM | LPIPS | #Gaussians | train s | t95 s | block % |",
-              "|---|---|---|---|---|---|---|---|---|---|---|"]
-    for r in sorted(rows, key=lambda r: (r["model"], r["scene"], r["seed"], r["variant"])):
-        t95 = "—" if r.get("t95_ref") is None else f"{r['t95_ref']:.1f}"
-        lp = "—" if r["lpips"] is None else f"{r['lpips']:.4f}"
-        lines.append(f"| {r['scene']} | {r['model']} | {r['variant']} | {r['seed']} | {r['psnr']:.3f} | {r['ssim']:.4f} | "
-                     f"{lp} | {r['num_gaussians']} | {r['train_time_s']:.1f} | {t95} | {r['block_pct']} |")
+    for seed in args.seeds:
+        for scene in args.scenes:
+            for model in args.models:
+                for name in names:  # a row of this table's own runs wins over an imported one
+                    got = (read_row(out / scene / model / name / f"s{seed}", scene, model, name, seed, "run")
+                           if name in variants else None)
+                    if got is None and name in imports:
+                        d = Path(imports[name].format(scene=scene, model=model, seed=seed))
+                        got = read_row(d, scene, model, name, seed, name)
+                    if got is not None:
+                        rows.append(got[0])
+                        curves[(scene, model, name, seed)] = got[1]
+    summary = summarize(rows, curves, names, ref, args.models, args.base_model)
+    lines = markdown(rows, summary, names, ref, args.threads, imports)
     RESULTS.mkdir(parents=True, exist_ok=True)
-    write_json(RESULTS / f"{args.name}.json", {"machine": machine(), "variants": variants, "reference": ref,
-                                               "jobs": args.jobs, "threads": args.threads, "rows": rows,
-                                               "summary": summary})
+    write_json(RESULTS / f"{args.name}.json", {"machine": machine(), "variants": variants, "imports": imports,
+                                               "reference": ref, "jobs": args.jobs, "threads": args.threads,
+                                               "rows": rows, "summary": summary})
     with atomic_path(RESULTS / f"{args.name}.md") as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     if curves:
