@@ -151,3 +151,16 @@ def test_study_family_config_resolves_a_named_scene(tmp_path, monkeypatch):
     monkeypatch.setenv("B3DGS_DATA", str(tmp_path))
     fam = family_config(compose_config("study", ["scene=fox"]), "niw", 0)
     assert OmegaConf.to_container(fam.data, resolve=True)["path"] == str(tmp_path / "fox")
+
+
+def test_study_rounds_follow_the_study_schedule():
+    """``+schedule=dash`` on the study reaches every round's training config (phase 1 and round 2); without it the
+    rounds carry no schedule node, so they train as b3dgs-train's default (constant)."""
+    from b3dgs.study.active import compose_config, family_config
+
+    dash = family_config(compose_config("study", ["+schedule=dash", "schedule.keep=0.5"]), "standard", 1)
+    assert dash.schedule._target_.endswith("DashSchedule") and dash.schedule.keep == 0.5 and dash.seed == 1
+    from b3dgs.schedule import ConstantSchedule, make_schedule
+
+    plain = family_config(compose_config("study", []), "niw", 0)
+    assert plain.get("schedule") is None and isinstance(make_schedule(plain.get("schedule")), ConstantSchedule)
