@@ -313,3 +313,28 @@ def test_study_md_states_the_scoring_resolution_and_point_filter_in_words():
     pf = {"method": "sfm_tracks", "total": 4767, "kept": 1265, "train_views": 16}
     head = markdown({**base, "meta": {"score_max_side": 64, "point_filter": pf}}).splitlines()[2]
     assert "scoring at 64 px" in head and "1265 of 4767 kept" in head
+
+
+def test_study_extended_by_a_subset_keeps_every_row(tmp_path):
+    """A scene folder extended with fewer (or other) policies than it first ran keeps every finished row in its
+    per-scene table, and its meta.json keeps listing the earlier policies first."""
+    import json
+
+    from b3dgs.study.active import merged_policies
+    from b3dgs.study.active_tables import summarize
+
+    meta = tmp_path / "meta.json"
+    assert merged_policies(meta, ["uniform", "native"]) == ["uniform", "native"]  # a fresh folder
+    meta.write_text(json.dumps({"policies": ["uniform", "ppu", "native"]}))
+    assert merged_policies(meta, ["native", "sh"]) == ["uniform", "ppu", "native", "sh"]
+    meta.write_text(json.dumps({"policies": ["native"]}))  # written by a subset invocation (older code)
+    for pol, seed, psnr in [("uniform", 0, 20.0), ("ppu", 0, 18.0), ("native", 0, 21.0), ("native", 1, 23.0)]:
+        d = tmp_path / f"{pol}_s{seed}"
+        d.mkdir()
+        (d / "result.json").write_text(json.dumps({"policy": pol, "seed": seed, "family": "standard", "psnr": psnr,
+                                                   "ssim": 0.9, "lpips": 0.1, "train_time_s": 1.0,
+                                                   "scoring_time_s": 0.0, "selected": ["a", "b"]}))
+    table = summarize(tmp_path)["table"]
+    assert list(table) == ["native", "ppu", "uniform"]
+    assert table["native"]["psnr"] == pytest.approx(22.0) and table["native"]["n_seeds"] == 2
+    assert table["ppu"]["psnr"] == pytest.approx(18.0)

@@ -208,6 +208,13 @@ STUDY_IGNORED = ("policies", "family_baselines", "share_training", "oracle", "se
                  "acquisition.batch")  # batch settings (acquisition.batch_settings) do change rows
 
 
+def merged_policies(meta_path: Path, policies: list[str]) -> list[str]:
+    """The policies a scene folder's ``meta.json`` lists after this invocation: the earlier ones first, then this
+    invocation's new ones. A study extended by a subset of its policies (or by new ones) keeps its rows listed."""
+    earlier = (json.loads(meta_path.read_text()).get("policies") or []) if meta_path.exists() else []
+    return [*earlier, *[p for p in policies if p not in earlier]]
+
+
 def study_protocol(cfg: DictConfig) -> dict:
     """The flattened study settings that change its rows and caches (``out_dir/<scene>/protocol.json``)."""
     from b3dgs.protocol import RUN_IGNORED, run_protocol
@@ -486,6 +493,7 @@ class ActiveStudy:
                 "acquire": int(self.cfg.acquire), "score_max_side": self.cfg.acquisition.get("score_max_side"),
                 "point_filter": self.store.point_filter, "policies": [l for l, _ in self.labels_policies],
                 "pool_train_views": [c.name for c in self.pool_train]}
+        meta["policies"] = merged_policies(self.out / "meta.json", meta["policies"])
         write_json(self.out / "meta.json", meta)
         xy = pca_xy(self.pool_train)
         write_json(self.out / "layout.json", {"xy": {c.name: [float(a), float(b)] for c, (a, b) in zip(self.pool_train, xy)},

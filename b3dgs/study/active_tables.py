@@ -54,7 +54,10 @@ def oracle_rho(scores: Optional[dict], oracle: Optional[dict]) -> Optional[float
 def summarize(out: Path) -> dict:
     rows = load_rows(out)
     meta = json.loads((out / "meta.json").read_text()) if (out / "meta.json").exists() else {}
-    policies = [p for p in meta.get("policies", [])] or sorted({r["policy"] for r in rows})
+    # meta's order first (the last invocation's policies), then rows of earlier invocations with other policies:
+    # a study extended by a subset of its policies (or by new ones) keeps every finished row in its tables
+    policies = list(meta.get("policies", []))
+    policies += sorted({r["policy"] for r in rows} - set(policies))
     by = {(r["policy"], int(r["seed"])): r for r in rows}
     seeds = sorted({int(r["seed"]) for r in rows})
     table = {}
