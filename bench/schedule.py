@@ -14,12 +14,14 @@ final PSNR gain along the curves) and ``schedule.png`` (PSNR against training ti
 
 Rows trained elsewhere join a table with ``--import NAME=PATTERN`` (``{scene}``, ``{model}``, ``{seed}`` in the run-dir
 pattern): they pair on the deterministic metrics (PSNR, SSIM, LPIPS, #Gaussians, block share), never on time, which
-is paired only between rows of one source. ``--base-model`` adds model − base tables per variant, e.g. the posterior
+is paired only between rows of one source (this table's runs, or one archive). A name imported twice reads the first
+pattern with a run dir. ``--base-model`` adds model − base tables per variant, e.g. the posterior
 models under dash against the standard model's dash rows of the grid, and against their archived constant runs:
 
-    python bench/schedule.py --table-only --models standard niw dpmm --seeds 0 --variant dash=schedule=dash \
-        --out /tmp/m --archive bench/results/schedule_models_runs --name schedule_models --base-model standard \
-        --import "dash=bench/results/schedule_runs/{scene}/{model}/dash/s{seed}" \
+    python bench/schedule.py --table-only --models standard niw dpmm --seeds 0 --variant dash=schedule=dash \\
+        --out /tmp/m --archive bench/results/schedule_models_runs --name schedule_models --base-model standard \\
+        --import "dash=bench/results/schedule_runs/{scene}/{model}/dash/s{seed}" \\
+        --import "constant=bench/results/schedule_runs/{scene}/{model}/constant/s{seed}" \\
         --import "constant=bench/results/runs/{scene}/{model}/s{seed}" --reference constant
 """
 from __future__ import annotations
@@ -70,16 +72,23 @@ def time_to_target(points: list[dict], target: float) -> Optional[float]:
 TIMED = ("train_time_s", "t95_ref")
 
 
-def parse_imports(items: list[str]) -> dict[str, str]:
-    """``NAME=PATTERN`` strings -> {name: run-dir pattern with {scene}, {model}, {seed}}."""
-    out: dict[str, str] = {}
+def parse_imports(items: list[str]) -> dict[str, list[str]]:
+    """``NAME=PATTERN`` strings -> {name: [run-dir pattern with {scene}, {model}, {seed}, ...]}; a name given twice
+    reads the first pattern whose run dir exists (e.g. the grid's standard rows, else the canonical archive's)."""
+    out: dict[str, list[str]] = {}
     for it in items:
         name, _, pattern = it.partition("=")
         if not name or "{scene}" not in pattern or "{seed}" not in pattern:
             raise SystemExit(f"bench/schedule.py: --import {it!r} is not NAME=PATTERN with {{scene}} and {{seed}} "
                              "(fix: e.g. constant=bench/results/runs/{scene}/{model}/s{seed})")
-        out[name] = pattern
+        out.setdefault(name, []).append(pattern)
     return out
+
+
+def import_source(pattern: str) -> str:
+    """The archive an imported row comes from (the pattern's fixed prefix): rows of one archive were trained side
+    by side, so their times pair."""
+    return pattern.split("{", 1)[0]
 
 
 def read_row(d: Path, scene: str, model: str, variant: str, seed: int, source: str) -> Optional[tuple[dict, list]]:
@@ -212,14 +221,14 @@ def summarize(rows: list[dict], curves: dict, names: list[str], ref: str, models
 
 
 def markdown(rows: list[dict], summary: list[dict], names: list[str], ref: str, threads: int,
-             imports: dict[str, str]) -> list[str]:
+             imports: dict[str, list[str]]) -> list[str]:
     lines = [f"# Training schedules side by side ({', '.join(names)}; reference: {ref})", "",
              f"Quick protocol (256 px, 3000 steps), {load_text(rows)}, {threads} thread(s) per run, variants "
              "of a scene-seed interleaved. Paired differences (variant − reference): each scene's seed mean is one unit; "
              "bootstrap CI (BCa with >= 6 scenes) and exact sign-flip p.", ""]
     if imports:
-        lines += ["Imported rows (trained elsewhere; paired on PSNR, SSIM, LPIPS, #Gaussians and block share, never on "
-                  "time): " + "; ".join(f"`{n}` from `{p}`" for n, p in imports.items()), ""]
+        lines += ["Imported rows (trained elsewhere: they pair on PSNR, SSIM, LPIPS, #Gaussians and block share; on "
+                  "time only with rows of the same archive): " + "; ".join(f"`{n}` from " + ", else ".join(f"`{p}`" for p in ps) for n, ps in imports.items()), ""]
     for s in summary:
         title = (f"## {s['variant']}: {s['model']} − {s['base_model']}" if s.get("base_model")
                  else f"## {s['model']}: {s['variant']} − {s['reference']}")
@@ -312,9 +321,10 @@ def main() -> None:
                 for name in names:  # a row of this table's own runs wins over an imported one
                     got = (read_row(out / scene / model / name / f"s{seed}", scene, model, name, seed, "run")
                            if name in variants else None)
-                    if got is None and name in imports:
-                        d = Path(imports[name].format(scene=scene, model=model, seed=seed))
-                        got = read_row(d, scene, model, name, seed, name)
+                    for pattern in imports.get(name, []) if got is None else []:
+                        d = Path(pattern.format(scene=scene, model=model, seed=seed))
+                        if (got := read_row(d, scene, model, name, seed, import_source(pattern))) is not None:
+                            break
                     if got is not None:
                         rows.append(got[0])
                         curves[(scene, model, name, seed)] = got[1]

@@ -60,4 +60,6 @@ def test_parse_imports_rejects(bad):
 
 
 def test_parse_imports():
-    assert schedule.parse_imports(["c=r/{scene}/{model}/s{seed}"]) == {"c": "r/{scene}/{model}/s{seed}"}
+    got = schedule.parse_imports(["c=r/{scene}/{model}/s{seed}", "c=q/{scene}/{model}/c/s{seed}"])
+    assert got == {"c": ["r/{scene}/{model}/s{seed}", "q/{scene}/{model}/c/s{seed}"]}
+    assert schedule.import_source(got["c"][1]) == "q/"
