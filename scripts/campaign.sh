@@ -10,6 +10,8 @@
 #   JOBS       parallel jobs, one thread each (default 2: the two cores)
 #   SEEDS      seeds of the canonical grid (default "0 1 2"); compression uses seed 0
 #   ACTIVE_SEEDS / ACTIVE_SCENES  seeds and scenes of the active-view study (default "0" and all seven)
+#   ACTIVE_POLICIES  only these rows (e.g. "uniform,farthest,ensemble,fisher,native,ensemble+diverse,native+diverse",
+#              the rows that decide issue 29, with --batches topk and no uniform@niw); default: every row
 #   CAMPAIGN_COMMIT  the code commit to run; default: the one pinned in the step's archive (<archive>/CODE_COMMIT,
 #              written at the step's first run), else HEAD. A pinned step keeps its code when this checkout's code
 #              changes (e.g. kernels that change results bitwise), so every row of a study comes from the same code.
@@ -70,10 +72,16 @@ if [ "$what" = compression ] || [ "$what" = all ]; then
 fi
 if [ "$what" = active ] || [ "$what" = all ]; then
   use_code "$R/active_view_runs"
+  rows=()
+  [ -z "${ACTIVE_POLICIES:-}" ] || rows=(--batches topk --extra "policies=[$ACTIVE_POLICIES]" "family_baselines=[]")
   # shellcheck disable=SC2086
   nice -n 19 python bench/active_view.py --scenes $ACTIVE_SCENES --seeds $ACTIVE_SEEDS --jobs "$JOBS" \
-    --study-out "$CAMPAIGN/study" \
+    --study-out "$CAMPAIGN/study" ${rows[@]+"${rows[@]}"} \
     --archive "$R/active_view_runs" 2>&1 | tee -a "$log"
+  # an archived file is final: a later seed's run rewrites meta.json/layout.json (the pinned code lists only its own
+  # policies there) and the phase-1 models it retrained (their times); the committed versions are put back
+  git -C "$ROOT" diff --name-only -- bench/results/active_view_runs | grep -v 'walls.json$' | \
+    while read -r f; do git -C "$ROOT" checkout -- "$f"; cp "$ROOT/$f" "$CAMPAIGN/study/${f#bench/results/active_view_runs/}"; done
   # the tables of every scene and seed archived so far, by this checkout's code (not only the scenes just run)
   # shellcheck disable=SC2086
   (cd "$ROOT" && PYTHONPATH="$ROOT" python bench/active_view.py --aggregate-only --scenes $SCENES \
