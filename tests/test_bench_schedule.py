@@ -63,3 +63,18 @@ def test_parse_imports():
     got = schedule.parse_imports(["c=r/{scene}/{model}/s{seed}", "c=q/{scene}/{model}/c/s{seed}"])
     assert got == {"c": ["r/{scene}/{model}/s{seed}", "q/{scene}/{model}/c/s{seed}"]}
     assert schedule.import_source(got["c"][1]) == "q/"
+
+
+def test_active_view_schedule_compare():
+    """bench/active_view_schedule.py: ranks and compute ratios of two studies' tables."""
+    avs = pytest.importorskip("bench.active_view_schedule")
+    t = lambda ps, total: {"scenes": ["fox"], "table": {p: {"psnr": v, "lpips": 0.1} for p, v in ps.items()},  # noqa: E731
+                           "compute": {"fox/s0": {"phase1_s": total / 4, "round2_s": total / 2, "scoring_s": 0.0,
+                                                  "total_s": total}}}
+    res = avs.compare(t({"uniform": 21.0, "native": 22.0}, 100.0), t({"uniform": 22.5, "native": 22.0, "sh": 1.0}, 60.0),
+                      "constant", "dash")
+    assert [r["policy"] for r in res["rows"]] == ["uniform", "native"]
+    assert res["rows"][0]["rank_constant"] == 2 and res["rows"][0]["rank_dash"] == 1
+    assert res["compute"]["fox/s0"]["total_s"]["ratio"] == pytest.approx(0.6)
+    assert res["compute"]["fox/s0"]["scoring_s"]["ratio"] is None
+    assert "| uniform | 21.000 | 22.500 | +1.500 |" in avs.markdown(res)
