@@ -13,8 +13,8 @@ differences over scenes with bootstrap CIs and exact sign-flip p, the time ratio
 final PSNR gain along the curves) and ``schedule.png`` (PSNR against training time per scene).
 
 Rows trained elsewhere join a table with ``--import NAME=PATTERN`` (``{scene}``, ``{model}``, ``{seed}`` in the run-dir
-pattern): they pair on the deterministic metrics (PSNR, SSIM, LPIPS, #Gaussians, block share), never on time, which
-is paired only between rows of one source (this table's runs, or one archive). A name imported twice reads the first
+pattern): they pair on the deterministic metrics (PSNR, SSIM, LPIPS, #Gaussians, block share); time pairs only rows
+of one source (this table's runs, or one archive, whose rows ran side by side). A name imported twice reads the first
 pattern with a run dir. ``--base-model`` adds model − base tables per variant, e.g. the posterior
 models under dash against the standard model's dash rows of the grid, and against their archived constant runs:
 

@@ -80,7 +80,8 @@ if [ "$what" = active ] || [ "$what" = all ]; then
     --archive "$R/active_view_runs" 2>&1 | tee -a "$log"
   # an archived file is final: a later seed's run rewrites meta.json/layout.json (the pinned code lists only its own
   # policies there) and the phase-1 models it retrained (their times); the committed versions are put back
-  git -C "$ROOT" diff --name-only -- bench/results/active_view_runs | grep -v 'walls.json$' | \
+  # (walls.json accumulates and stays; a pathspec, not grep -v, which fails the pipeline when nothing was rewritten)
+  git -C "$ROOT" diff --name-only -- bench/results/active_view_runs ':!bench/results/active_view_runs/walls.json' | \
     while read -r f; do git -C "$ROOT" checkout -- "$f"; cp "$ROOT/$f" "$CAMPAIGN/study/${f#bench/results/active_view_runs/}"; done
   # the tables of every scene and seed archived so far, by this checkout's code (not only the scenes just run)
   # shellcheck disable=SC2086
