@@ -23,7 +23,10 @@ import numpy as np
 
 from bench.common import RESULTS
 
-AGAINST = ["native", "ensemble", "farthest", "uniform", "fisher", "proxy", "ppu", "oracle"]  # oracle: analysis only (its ρₛ is the error's own ρ with the support deficit)
+# oracle: analysis only (its ρₛ is the error's own ρ with the support deficit); the diverse rows pair a new policy's
+# diverse batch with the committed scores' diverse batches
+AGAINST = ["native", "ensemble", "farthest", "uniform", "fisher", "proxy", "ppu", "oracle", "native+diverse",
+           "ensemble+diverse"]
 
 
 def _read(p: Path) -> Optional[dict]:
@@ -92,6 +95,11 @@ def scene_deltas(mine: list[dict], key: str, b: str) -> dict[str, float]:
     return per
 
 
+def applies(policy: str, against: str) -> bool:
+    """A committed batch row (``ensemble+diverse``) is paired only with a new row of a batch option."""
+    return "+" in policy or "+" not in against
+
+
 def pair(rows: list[dict], policies: list[str], against: list[str]) -> list[dict]:
     from b3dgs.report.stats import paired_stats
 
@@ -100,7 +108,7 @@ def pair(rows: list[dict], policies: list[str], against: list[str]) -> list[dict
         for p in policies:
             mine = [r for r in rows if r["policy"] == p and r["ladder"] == ladder]
             for b in against:
-                per = scene_deltas(mine, "psnr", b)
+                per = scene_deltas(mine, "psnr", b) if applies(p, b) else {}
                 if not per:
                     continue
                 st = paired_stats(list(per.values()), higher_is_better=True) if len(per) >= 2 else {}
@@ -118,7 +126,7 @@ def pair_rho(rows: list[dict], policies: list[str], against: list[str]) -> list[
         for p in policies:
             mine = [r for r in rows if r["policy"] == p]
             for b in against:
-                per = scene_deltas(mine, key, b)
+                per = scene_deltas(mine, key, b) if applies(p, b) else {}
                 if len(per) >= 2:
                     out.append({"rho": key, "a": p, "b": b, "per_scene": per,
                                 **paired_stats(list(per.values()), higher_is_better=True)})

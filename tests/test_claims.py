@@ -180,3 +180,14 @@ def test_per_seed_values_face_a_per_scene_ensemble_with_their_seed_mean():
     assert claims.diff(a, {"s": 0.6, "t": 0.5}) == pytest.approx({"s": 0.2, "t": 0.0})
     assert claims.diff({"s": 0.6}, a) == pytest.approx({"s": -0.2})
     assert claims.diff(a, {"s": {0: 0.5, 1: 0.5}}) == pytest.approx({"s": 0.3})  # per seed: paired seeds 0 1
+
+
+def test_diverse_rows_of_a_later_policy_pair_with_the_campaigns_diverse_rows(tmp_path):
+    """sh+diverse is read against ensemble+diverse (a key with a '+' on both sides); plain sh has no such row."""
+    _archive(tmp_path, 3)
+    paired = [{"a": "sh+diverse", "b": "ensemble+diverse", "ladder": "16->32", "per_scene": {"big0": 0.3, "big1": 0.1}}]
+    (tmp_path / "active_view_sh.json").write_text(json.dumps({"rows": [], "paired": paired}))
+    rows, _ = claims.build(tmp_path)
+    assert _row(rows, "active_sh+diverse_vs_ensemble_diverse")["ours"] == pytest.approx(0.2)
+    assert _row(rows, "active_sh+diverse_vs_native")["verdict"] == "pending"
+    assert not [r for r in rows if r["id"] == "active_sh_vs_ensemble_diverse"]

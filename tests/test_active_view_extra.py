@@ -1,0 +1,28 @@
+"""bench/active_view_extra.py: pairing later active-view rows with the committed campaign's."""
+import pytest
+
+from bench.active_view_extra import applies, pair, pair_rho
+
+
+def _row(scene, seed, policy, psnr, **against):
+    r = {"scene": scene, "seed": seed, "ladder": "16->32", "policy": policy, "psnr": psnr, "rho": 0.5,
+         "rho_support": 0.5}
+    for b, v in against.items():
+        r[f"psnr_{b}"], r[f"rho_{b}"], r[f"rho_support_{b}"] = v, 0.1, 0.2
+    return r
+
+
+def test_batch_rows_pair_only_with_batch_rows():
+    """sh+diverse pairs with farthest and with ensemble+diverse; plain sh never with a diverse batch."""
+    assert applies("sh+diverse", "farthest") and applies("sh+diverse", "ensemble+diverse")
+    assert applies("sh", "ensemble") and not applies("sh", "ensemble+diverse")
+    d = {"ensemble+diverse": 20.0, "farthest": 21.0}
+    rows = [_row("a", 0, "sh", 22.0, **d), _row("a", 1, "sh", 23.0, **d), _row("b", 0, "sh", 20.0, **d),
+            _row("a", 0, "sh+diverse", 22.5, **d), _row("b", 0, "sh+diverse", 19.0, **d)]
+    against = ["farthest", "ensemble+diverse"]
+    got = {(p["a"], p["b"]): p for p in pair(rows, ["sh", "sh+diverse"], against)}
+    assert set(got) == {("sh", "farthest"), ("sh+diverse", "farthest"), ("sh+diverse", "ensemble+diverse")}
+    assert got[("sh", "farthest")]["per_scene"] == pytest.approx({"a": 1.5, "b": -1.0})  # a: seed mean
+    assert got[("sh+diverse", "ensemble+diverse")]["per_scene"] == pytest.approx({"a": 2.5, "b": -1.0})
+    rho = {(p["rho"], p["a"], p["b"]) for p in pair_rho(rows, ["sh", "sh+diverse"], against)}
+    assert ("rho", "sh", "ensemble+diverse") not in rho and ("rho_support", "sh+diverse", "ensemble+diverse") in rho
