@@ -454,22 +454,24 @@ class SplatModule(L.LightningModule):
                     out["n_values"] += diff.numel()
         return out
 
-    def prepare_posterior(self, cameras: Optional[Sequence[Camera]] = None, blocks=None) -> None:
+    def prepare_posterior(self, cameras: Optional[Sequence[Camera]] = None, blocks=None) -> bool:
         """Give every posterior block that asks for one (:meth:`b3dgs.plugin.PosteriorBlock.view_pass`) the sums of
         one pass over ``cameras`` (default: the training views); called before the posterior is used (the end of
         training, ``uq=native``, acquisition). ``blocks``: (name, block, state) triples to prepare instead of the
-        model's own (e.g. copies with another count). Deterministic: the Fisher probes are seeded with the run's seed."""
+        model's own (e.g. copies with another count). Deterministic: the Fisher probes are seeded with the run's seed.
+        Returns whether a pass ran (False: no block asked for one)."""
         triples = blocks if blocks is not None else [(n, b, self.states[n]) for n, b in self.posterior.items()]
         reqs = [(b, st, b.view_pass(state=st)) for _, b, st in triples]
         reqs = [r for r in reqs if r[2] is not None]
         if not reqs:
-            return
+            return False
         probes = max(int(r[2].get("fisher_probes", 0)) for r in reqs)
         sh_info = any(bool(r[2].get("sh_information", False)) for r in reqs)
         sums = self.view_sums(cameras, weights=True, fisher_probes=probes, seed=int(self.hparams.seed),
                               sh_information=sh_info)
         for blk, st, _ in reqs:
             blk.absorb_view_sums(splats=self.splats, state=st, sums=sums)
+        return True
 
     # ------------------------------------------------------------------ evaluation
     @torch.no_grad()

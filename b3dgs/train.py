@@ -512,7 +512,9 @@ def _finish(cfg: DictConfig, run_dir: Path, module, scene, renderer, trainer, cu
     # ------------------------------------------------------------ final evaluation and outputs
     # written in this order, each atomically: renders, PLY, curve, then metrics.json (the done marker)
     final = checkpoint_record(torch.load(ckpt.last_path, map_location="cpu", weights_only=False, mmap=True))
-    module.prepare_posterior(scene.train)  # counts from a view pass (posterior.niw.count other than paper)
+    t_pass = time.perf_counter()
+    passed = module.prepare_posterior(scene.train)  # counts from a view pass (posterior.niw.count other than paper)
+    posterior_pass_s = time.perf_counter() - t_pass if passed else 0.0
     lpips_model, lpips_reason = get_lpips(cfg.get("lpips_weights"))
     ev = evaluate_views(module, scene.test, lpips_model=lpips_model,
                         render_dir=run_dir / "renders" if tcfg.get("save_renders", True) else None)
@@ -534,6 +536,7 @@ def _finish(cfg: DictConfig, run_dir: Path, module, scene, renderer, trainer, cu
         "removed": dict(module.ops.removed) if module.ops else {},
         "added": dict(module.ops.added) if module.ops else {},
         "block_time_s": {k: round(v, 4) for k, v in module.block_time_s.items()},
+        "posterior_pass_s": round(posterior_pass_s, 4),  # the blocks' pass over the training views after training
         "schedule": module.schedule.summary(),
         "posterior": {name: blk.summary(state=module.states[name]) for name, blk in module.posterior.items()},
         "numerical_guards": guard_counts(),  # how often each clamp / jitter / floor fired (never silent)

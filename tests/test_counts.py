@@ -145,3 +145,21 @@ def test_counts_validate_and_degrade_gracefully(scene):
     mw.prepare_posterior()
     n = mw.states["niw"]["N"]
     assert bool(torch.isfinite(n).all()) and float(n.min()) >= 0 and float(n.sum()) > 0
+
+
+@pytest.mark.parametrize("count", ["paper", "fisher3"])
+def test_the_count_pass_is_timed_into_the_blocks_share(tmp_path, count):
+    """A count from a view pass (not the paper's EMA) is computed once after training: metrics.json records the
+    pass's seconds (posterior_pass_s, 0 for the paper count) and the report's block share includes them."""
+    from pathlib import Path
+
+    from b3dgs.report.collect import Run
+    from test_train import QUICK, run_train
+
+    m = run_train(tmp_path, QUICK + ["model=niw", f"posterior.niw.count={count}", "trainer.max_steps=30",
+                                     "trainer.eval_every=30", "strategy.refine_start=10", "strategy.refine_stop=25",
+                                     "strategy.refine_every=10"])
+    assert (m["posterior_pass_s"] > 0) == (count != "paper")
+    share = Run(Path(tmp_path), {}, m).value("block_time_pct")
+    blocks = sum(m["block_time_s"].values())
+    assert share == pytest.approx(100 * (blocks + m["posterior_pass_s"]) / (m["train_time_s"] + m["posterior_pass_s"]))

@@ -162,6 +162,9 @@ def test_block_time_share_is_derived_from_the_run_itself():
     assert Run(Path("x"), {}, {"train_time_s": 100.0, "block_time_s": {}}).value("block_time_pct") == 0.0
     assert Run(Path("x"), {}, {"train_time_s": 0.0, "block_time_s": {}}).value("block_time_pct") is None
     assert Run(Path("x"), {}, {"train_time_s": 5.0}).value("block_time_pct") is None
+    # a count's pass over the training views after training counts as block time (of a longer run)
+    r = Run(Path("x"), {}, {"train_time_s": 200.0, "block_time_s": {"niw": 2.0}, "posterior_pass_s": 8.0})
+    assert r.value("block_time_pct") == pytest.approx(100 * 10 / 208)
 
 
 def test_duplicate_keys_error_or_newest(tmp_path):

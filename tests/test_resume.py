@@ -31,7 +31,7 @@ BASE = ["data.max_side=32", "+data.n_views=16", f"trainer.max_steps={STEPS}", "t
         "logger=none", "strategy.refine_start=10", "strategy.refine_every=10", "strategy.refine_stop=50",
         "model.sh_increase_every=20", "seed=3", "threads=1"]
 #: wall-clock fields, the only ones allowed to differ
-TIMING = {"train_time_s", "render_fps", "block_time_s"}
+TIMING = {"train_time_s", "render_fps", "block_time_s", "posterior_pass_s"}
 
 
 def _train(run_dir: Path, extra: list[str], kill_at: int | str | None = None, sig: str = "KILL"

@@ -60,13 +60,16 @@ class Run:
 
     def value(self, name: str, regime: Optional[str] = None) -> Optional[float]:
         """A scalar of metrics.json, or of uq.json's ``regime`` when given (None if absent).
-        ``block_time_pct``: the posterior blocks' share of the training time in %, Σ ``block_time_s`` /
-        ``train_time_s`` (measured inside the run, so it holds under any machine load; 0 without blocks)."""
+        ``block_time_pct``: the posterior blocks' share of the training time in %, (Σ ``block_time_s`` + the
+        blocks' pass over the training views after training, ``posterior_pass_s``) / (``train_time_s`` + that pass)
+        (measured inside the run, so it holds under any machine load; 0 without blocks)."""
         if name == "block_time_pct" and regime is None:
             t, bt = self.metrics.get("train_time_s"), self.metrics.get("block_time_s")
             if not isinstance(t, (int, float)) or t <= 0 or not isinstance(bt, dict):
                 return None
-            return 100.0 * float(sum(float(v) for v in bt.values())) / float(t)
+            ps = self.metrics.get("posterior_pass_s")
+            ps = float(ps) if isinstance(ps, (int, float)) and ps > 0 else 0.0  # runs from before it was recorded: 0
+            return 100.0 * (float(sum(float(v) for v in bt.values())) + ps) / (float(t) + ps)
         src = self.metrics if regime is None else self.uq.get(regime, {})
         v = src.get(name)
         return float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else None
