@@ -11,10 +11,10 @@ here, on the trained model (1 thread), for each count in turn. New runs record t
 (``posterior_pass_s``) and the report's block share includes it. Resumable: a finished (run, count) is skipped.
 
 The run's training time was measured when it trained and the pass now, so that ratio ("clock") is only as fair as the
-two machine loads are alike. The verdict uses a ratio measured side by side instead: right before the passes, the
-same process times a render's forward and backward through every parameter on the run's training views (a training
-step does that and more: loss, SSIM, Adam, densification), so (the paper block's in-run share) + pass / (pass + steps ×
-that time) bounds the share from above under any load ("side by side").
+two machine loads are alike. The verdict uses a ratio measured side by side instead: the same process times a render's
+forward and backward through every parameter on the run's training views right before and right after each pass (a
+training step does that and more: loss, SSIM, Adam, densification), so (the paper block's in-run share) + pass /
+(pass + steps × that time) bounds the share from above under any steady load ("side by side").
 
 Output: bench/results/count_cost.{json,md}.
 """
@@ -82,13 +82,14 @@ def measure(run_dir: Path, counts: list[str], done: dict) -> dict:
     m, metrics = run.module, run.metrics or {}
     train_s, block_s = float(metrics["train_time_s"]), float(sum(metrics.get("block_time_s", {}).values()))
     steps = int(metrics["steps"])
-    step_s = render_step_s(m, run.scene.train)
     out = dict(done)
     for c in todo:
         blocks = _blocks(m, c)
+        before = render_step_s(m, run.scene.train)
         t0 = time.perf_counter()
         ran = m.prepare_posterior(run.scene.train, blocks=blocks)
         pass_s = round(time.perf_counter() - t0, 3)
+        step_s = round((before + render_step_s(m, run.scene.train)) / 2, 5)  # timed right before and right after
         if not ran:
             raise SystemExit(f"bench/count_cost.py: count {c} asked for no pass on {run_dir} (fix: a NIW run)")
         out[c] = {"pass_s": pass_s, "train_time_s": train_s, "block_s": block_s,
