@@ -287,20 +287,43 @@ def plot_curve(points: list[dict], path: Path, title: str = "Test PSNR and #Gaus
     save_figure(fig, path)
 
 
+class _Sink:
+    """A file that drops what tqdm writes (the bar is printed as lines instead)."""
+
+    def write(self, _s: str) -> int:
+        return 0
+
+    def flush(self) -> None:
+        pass
+
+
 class StepProgressBar(TQDMProgressBar):
     """Lightning's tqdm bar over global steps instead of epochs: ``train 12%|██ | 360/3000 steps [01:02<07:40 ETA,
     5.7 steps/s, gaussians=12,345, loss=0.0831, test PSNR=24.12 dB]``. A resumed run starts the bar at its step
-    (the rate and ETA count only the steps of this process); the test PSNR is :class:`CurveCallback`'s last point."""
+    (the rate and ETA count only the steps of this process); the test PSNR is :class:`CurveCallback`'s last point.
+
+    When stdout is not a terminal (a cluster's log file, a pipe), the bar is printed as whole lines instead of being
+    redrawn every step: the first step, then every ``line_every_s`` seconds (default 30), and the last step, so a long
+    run's log stays readable and small."""
 
     BAR_FORMAT = "{desc} {percentage:3.0f}%|{bar:16}| {n_fmt}/{total_fmt} steps [{elapsed}<{remaining} ETA, {rate_fmt}{postfix}]"
+
+    def __init__(self, *args, line_every_s: float = 30.0, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.line_every_s = float(line_every_s)
+        self._lines = False
+        self._last_line: Optional[float] = None
 
     def init_train_tqdm(self):
         from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm
 
         step = int(self.trainer.global_step)
+        isatty = getattr(sys.stdout, "isatty", None)
+        self._lines, self._last_line = not (callable(isatty) and isatty()), None
         return Tqdm(desc="train", total=int(self.trainer.max_steps), initial=step, position=2 * self.process_position,
-                    disable=self.is_disabled, leave=True, dynamic_ncols=True, file=sys.stdout, smoothing=0.05,
-                    unit=" steps", bar_format=self.BAR_FORMAT)
+                    disable=self.is_disabled, leave=True, dynamic_ncols=not self._lines,
+                    file=_Sink() if self._lines else sys.stdout, smoothing=0.05, unit=" steps",
+                    bar_format=self.BAR_FORMAT)
 
     def on_train_start(self, trainer, *_: Any) -> None:
         self.train_progress_bar = self.init_train_tqdm()
@@ -316,7 +339,13 @@ class StepProgressBar(TQDMProgressBar):
         if bar is not None and self._should_update(n, bar.total):
             bar.n = n
             bar.set_postfix(self.get_metrics(trainer, pl_module), refresh=False)
-            bar.refresh()
+            if not self._lines:
+                bar.refresh()
+                return
+            now = time.monotonic()
+            if self._last_line is None or n >= bar.total or now - self._last_line >= self.line_every_s:
+                self._last_line = now
+                print(str(bar), file=sys.stdout, flush=True)
 
     def get_metrics(self, trainer, pl_module) -> dict:
         shown = super().get_metrics(trainer, pl_module)

@@ -67,3 +67,16 @@ def test_sweep_shows_steps_eta_and_ends_with_a_summary_table(tmp_path):
     assert "| 3 (0, 1, 2) |" in (tmp_path / "summary.md").read_text()
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert [g["key"]["method"] for g in summary["groups"]] == ["standard", "standard+niw+dp"]
+
+
+def test_a_log_file_gets_whole_bar_lines_not_a_redraw_per_step(tmp_path):
+    """stdout is a pipe here, as in a cluster's log file: the bar is printed as newline-ended lines (the first step,
+    every line_every_s seconds, the last), never as one carriage-return redraw per step."""
+    cmd = [sys.executable, "-m", "b3dgs.train", "data.max_side=32", "+data.n_views=16", "trainer.max_steps=40",
+           "trainer.eval_every=20", "logger=none", "trainer.save_renders=false", f"hydra.run.dir={tmp_path}"]
+    res = subprocess.run(cmd, capture_output=True, text=True, timeout=900, cwd=ROOT, env=ENV)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "\r" not in res.stdout
+    bars = [ln for ln in res.stdout.splitlines() if ln.startswith("train ")]
+    assert 2 <= len(bars) <= 4, bars  # 40 steps take seconds, not 30 s per extra line
+    assert " 1/40 steps [" in bars[0] and re.search(r" 40/40 steps \[.*test PSNR=\d+\.\d\d dB\]$", bars[-1]), bars
