@@ -61,7 +61,7 @@ if [ "$what" = canonical ] || [ "$what" = all ]; then
   # shellcheck disable=SC2086
   nice -n 19 python bench/studies.py --studies canonical --uq --seeds $SEEDS --jobs "$JOBS" --threads 1 \
     --out "$CAMPAIGN/out" --archive "$R/runs" --report "$R/report" 2>&1 | tee -a "$log"
-  (cd "$ROOT" && python bench/claims.py > /dev/null)
+  (cd "$ROOT" && PYTHONPATH="$ROOT" python bench/claims.py > /dev/null)
 fi
 if [ "$what" = compression ] || [ "$what" = all ]; then
   use_code "$R/compression_runs"
@@ -88,7 +88,7 @@ if [ "$what" = active ] || [ "$what" = all ]; then
   (cd "$ROOT" && PYTHONPATH="$ROOT" python bench/active_view.py --aggregate-only --scenes $SCENES \
     --study-out "$CAMPAIGN/study" --archive "$R/active_view_runs" 2>&1 | tee -a "$log")
 fi
-(cd "$ROOT" && python bench/claims.py > /dev/null)
+(cd "$ROOT" && PYTHONPATH="$ROOT" python bench/claims.py > /dev/null)
 echo "=== $(date -u +%FT%TZ) campaign $what done; commit bench/results/ in $ROOT" | tee -a "$log"
 exit 0
 }

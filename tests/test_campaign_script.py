@@ -26,3 +26,12 @@ def test_campaign_script_is_parsed_whole_before_it_runs():
     lines = [ln for ln in SCRIPT.read_text().splitlines() if ln.strip()]
     body = lines[lines.index("{"):]
     assert body[-2:] == ["exit 0", "}"]
+
+
+def test_checkout_steps_import_the_checkouts_code():
+    """PYTHONPATH is exported as the frozen worktree's: a step that runs this checkout's scripts (tables, claims) must
+    set it back, or it imports the pinned code (the campaign of 2026-11-26 failed at claims.py that way)."""
+    text = SCRIPT.read_text()
+    assert 'export PYTHONPATH="$CODE"' in text
+    steps = [ln for ln in text.splitlines() if 'cd "$ROOT" &&' in ln and "python" in ln]
+    assert len(steps) >= 3 and all('PYTHONPATH="$ROOT" python' in ln for ln in steps), steps
