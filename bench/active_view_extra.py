@@ -126,7 +126,9 @@ def pair_rho(rows: list[dict], policies: list[str], against: list[str]) -> list[
         for p in policies:
             mine = [r for r in rows if r["policy"] == p]
             for b in against:
-                per = scene_deltas(mine, key, b) if applies(p, b) else {}
+                # a batch option changes which views are picked, not the scores: ρ against a batch row repeats
+                # ρ against its policy's top-k row
+                per = scene_deltas(mine, key, b) if "+" not in b else {}
                 if len(per) >= 2:
                     out.append({"rho": key, "a": p, "b": b, "per_scene": per,
                                 **paired_stats(list(per.values()), higher_is_better=True)})

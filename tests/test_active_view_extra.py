@@ -25,4 +25,5 @@ def test_batch_rows_pair_only_with_batch_rows():
     assert got[("sh", "farthest")]["per_scene"] == pytest.approx({"a": 1.5, "b": -1.0})  # a: seed mean
     assert got[("sh+diverse", "ensemble+diverse")]["per_scene"] == pytest.approx({"a": 2.5, "b": -1.0})
     rho = {(p["rho"], p["a"], p["b"]) for p in pair_rho(rows, ["sh", "sh+diverse"], against)}
-    assert ("rho", "sh", "ensemble+diverse") not in rho and ("rho_support", "sh+diverse", "ensemble+diverse") in rho
+    # ρ is the score's, not the batch's: never against a batch row, which would repeat its top-k row's
+    assert not [r for r in rho if "+" in r[2]] and ("rho_support", "sh+diverse", "farthest") in rho
