@@ -36,6 +36,8 @@ from common import QUICK, RESULTS, scene_overrides, train_run  # noqa: E402
 SEVEN = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
 COUNTS = ["weight", "fisher", "fisher3", "sh"]  # scored as the uq regimes native_<name>
 ALONE = ["sh"]  # --alone: uq regimes scored under their own name (sh: the SH posterior without the NIW geometry)
+#: every regime --alone accepts (native_plus_sh: uq=native's c = 0.1 plus the SH posterior)
+ALONE_CHOICES = ["sh", "native_plus_sh"]
 #: regimes with one value per scene, not per seed: the deep ensemble (3 members: the standard runs of seeds 0 1 2)
 SCENE_LEVEL = {"ensemble"}
 #: (uq.json key, higher is better) of the calibration columns
@@ -176,7 +178,8 @@ def write(args, res: dict, problems: list[str]) -> None:
     lines = ["# NIW counts on the canonical grid", "",
              f"{', '.join(args.scenes)} x seeds {' '.join(map(str, args.seeds))}; quick protocol; native regimes with "
              f"{args.samples} posterior samples at c = 1 (the canonical `native` is the paper's count; `native_sh` is "
-             "`native` plus the directional SH posterior, plugins/posterior/sh.py); ensemble: the "
+             "`native` plus the directional SH posterior, plugins/posterior/sh.py; `native_plus_sh`, where scored, is "
+             "today's `uq=native` at c = 0.1 plus that posterior); ensemble: the "
              "3-member deep ensemble of the standard runs; OOD: support-deficit AUROC of the per-view mean variance "
              "(ID = best-supported third of the test views, OOD = worst third). Macro means over scenes of seed means.",
              "", "| regime | " + " | ".join(names[k] for k in names) + " | scenes | runs |", "|---|" + "---|" * (len(names) + 2)]
@@ -221,7 +224,7 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--counts", nargs="+", default=COUNTS, choices=COUNTS,
                     help="variants to score, as uq=[native_<name>] (sh: the directional SH posterior added to native)")
-    ap.add_argument("--alone", nargs="*", default=ALONE, choices=ALONE,
+    ap.add_argument("--alone", nargs="*", default=ALONE, choices=ALONE_CHOICES,
                     help="uq regimes scored under their own name (sh: the SH posterior without the NIW geometry)")
     ap.add_argument("--samples", type=int, default=50)
     ap.add_argument("--jobs", type=int, default=2)
