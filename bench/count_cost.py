@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, machine  # noqa: E402
+from common import RESULTS, machine, median_ms  # noqa: E402
 
 COUNTS = ["weight", "fisher", "fisher3", "sh"]
 BOUND = 5.0  # issue 29: the NIW block's share of the training time stays <= 5 %
@@ -43,29 +43,27 @@ def _blocks(module, count: str) -> list:
     from b3dgs_plugins.uq.native import NativeUQ
 
     if count == "sh":  # posterior=[niw,sh] with the paper count: only the SH block asks for a pass
-        return [t for t in NativeUQ(add={"sh": SHPosteriorBlock()})._blocks(module) if t[0] == "sh"]
+        return NativeUQ(add={"sh": SHPosteriorBlock()}, model_blocks=False)._blocks(module)
     return NativeUQ(count=count)._blocks(module)
 
 
 def render_step_s(module, cameras, views: int = 6) -> float:
-    """Median seconds of one render's forward and backward through every parameter, over up to ``views`` training
-    views (after one warm-up): the renderer's part of a training step, timed beside the passes."""
-    import statistics
+    """Median seconds of one render's forward and backward through every parameter, cycling over up to ``views``
+    training views (after one warm-up): the renderer's part of a training step, timed beside the passes."""
+    import itertools
 
     import torch
 
     sp = module.params()
-    cams = list(cameras)[:views]
-    times = []
-    for i, cam in enumerate([cams[0], *cams]):
+    cams = itertools.cycle(list(cameras)[:views])
+
+    def step() -> None:
         params = {k: v.detach().requires_grad_(True) for k, v in sp.items()}
-        t0 = time.perf_counter()
         with torch.enable_grad():
-            ro = module.render_camera(cam, params=params, sh_degree=module.active_sh_degree())
+            ro = module.render_camera(next(cams), params=params, sh_degree=module.active_sh_degree())
             torch.autograd.grad(ro.rgb.sum(), list(params.values()), allow_unused=True)
-        if i:
-            times.append(time.perf_counter() - t0)
-    return round(statistics.median(times), 5)
+
+    return round(median_ms(step, repeats=views, warmup=1) / 1000, 5)
 
 
 def measure(run_dir: Path, counts: list[str], done: dict) -> dict:

@@ -225,7 +225,8 @@ def main() -> None:
     ap.add_argument("--counts", nargs="+", default=COUNTS, choices=COUNTS,
                     help="variants to score, as uq=[native_<name>] (sh: the directional SH posterior added to native)")
     ap.add_argument("--alone", nargs="*", default=ALONE, choices=ALONE_CHOICES,
-                    help="uq regimes scored under their own name (sh: the SH posterior without the NIW geometry)")
+                    help="uq regimes scored under their own name (sh: the SH posterior without the NIW geometry; "
+                         "native_plus_sh: uq=native at c = 0.1 plus the SH posterior)")
     ap.add_argument("--samples", type=int, default=50)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--threads", type=int, default=1)
