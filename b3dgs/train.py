@@ -313,6 +313,17 @@ def _checkpoint_every_s(tcfg) -> Optional[float]:
     return float(v)
 
 
+def fit_on_renderer_device(trainer, module, **fit_kwargs) -> None:
+    """``trainer.fit(module, ...)``, then the module back on its renderer's device. Lightning's teardown moves a
+    model trained on a GPU to the CPU, and all that follows training (the final evaluation, the posterior pass,
+    a study's scoring, exports) renders with the run's renderer: gsplat refuses CPU tensors. On the CPU it is a
+    no-op."""
+    trainer.fit(module, **fit_kwargs)
+    device = module.renderer.device
+    if module.device.type != device.type:
+        module.to(device)
+
+
 def _device_count(v: Any) -> int:
     """How many devices ``trainer.devices`` asks for (-1: all of them, as Lightning reads it)."""
     if isinstance(v, (list, tuple)) or OmegaConf.is_list(v):
@@ -490,7 +501,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
         warnings.filterwarnings("ignore", message=".*`training_step` returns.*")
         try:
             # our own checkpoints hold plugin states and config values, not only tensors
-            trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
+            fit_on_renderer_device(trainer, module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
         except Interrupted as e:  # a signal outside the steps (e.g. once training is done): the step it is at
             if e.step is None and trainer.global_step:
                 e.step = int(trainer.global_step)

@@ -1,26 +1,66 @@
 #!/usr/bin/env bash
-# On the GPU machine (Python 3.12, torch+CUDA, lightning, nvcc, ninja; no registry): install the carried
-# wheels, then run the CUDA tests and the GPU benchmarks, writing everything under $OUT as it finishes
-# (a command is cut at 10 minutes). Usage: bash scripts/device_check.sh [tests|render|train|all]
+# On the GPU machine (Python 3.12, torch+CUDA, lightning, nvcc, ninja; no registry): install what
+# scripts/device_wheels.sh carried in .device/, then run the CUDA tests and the GPU benchmarks, writing each
+# stage's log under $OUT as it finishes. Each stage has its own time limit (seconds, env STAGE_LIMIT_<name>),
+# so one slow stage cannot eat the call. Usage: bash scripts/device_check.sh [tests|render|train|all]
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-outputs/device}
 mkdir -p "$OUT"
-export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
-pip install -q --no-deps --no-index --no-build-isolation .device/wheels/* >/dev/null 2>&1 || true
-pip install -q --no-deps -e . >/dev/null 2>&1
+export PYTHONUNBUFFERED=1 TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
+export MAX_JOBS=${MAX_JOBS:-$(nproc)}
+PY=$(command -v python3 || command -v python)
 what=${1:-all}
-if [[ $what == tests || $what == all ]]; then
-  python -m pytest -q -rs -m cuda 2>&1 | tee "$OUT/pytest_cuda.txt"
-  # gsplat on the GPU against the same tests on its CPU emulation (tests/gsplat_cpu.py); the real kernels
-  # use fast math, so test_gsplat_matches_torch[cuda] allows 1e-4 where the emulation holds 1e-5
-  python -m pytest -q -rs -k gsplat 2>&1 | tee "$OUT/pytest_gsplat.txt"
+DEADLINE=${DEADLINE:-540}  # seconds for the whole check (the device tool cuts a command at 600)
+t0=$(date +%s)
+stage() {  # stage NAME LIMIT_S CMD...: run CMD under a time limit, its output to $OUT/NAME.txt and here
+  local name=$1 limit=$2; shift 2
+  local var="STAGE_LIMIT_${name}"; limit=${!var:-$limit}
+  local left=$(( DEADLINE - ($(date +%s) - t0) ))  # never past the whole check's deadline
+  (( left < limit )) && limit=$left
+  if (( limit < 10 )); then echo "== $name skipped: under 10 s left of its limit or of the ${DEADLINE}s deadline" | tee "$OUT/$name.txt"; return; fi
+  echo "== $name (limit ${limit}s, at +$(( $(date +%s) - t0 ))s)"
+  timeout --kill-after=10 "$limit" "$@" > >(tee "$OUT/$name.txt") 2>&1
+  local rc=$?
+  echo "== $name rc=$rc after +$(( $(date +%s) - t0 ))s" | tee -a "$OUT/$name.txt"
+}
+{
+  nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
+  nvcc --version | tail -2
+  "$PY" -c "import torch, sys; print(sys.version.split()[0], torch.__version__, torch.version.cuda, torch.cuda.is_available())"
+  # the carried wheels (antlr4's sdist builds with the image's setuptools), then b3dgs itself, without a registry
+  if [[ -d .device/wheels ]]; then
+    "$PY" -m pip install -q --no-deps --no-index --no-build-isolation .device/wheels/* 2>&1 | grep -v "root' user"
+  fi
+  "$PY" -m pip install -q --no-deps --no-index --no-build-isolation -e . 2>&1 | grep -v "root' user" \
+    || echo "editable install failed; using PYTHONPATH"
+  "$PY" -m pip list 2>/dev/null | grep -i -E "^(torch|lightning|gsplat|hydra-core|omegaconf|kornia|filelock) "
+} 2>&1 | tee "$OUT/setup.txt"
+export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+if [[ -d .device/shared/data ]]; then  # the carried bench scene and LPIPS weights
+  export B3DGS_SHARED="$PWD/.device/shared" B3DGS_LPIPS_WEIGHTS="$PWD/.device/shared/lpips/lpips_alex.pth"
 fi
-if [[ $what == render || $what == all ]]; then
-  python bench/render.py --renderers cpu gsplat torch --sizes 10000 100000 2>&1 | tee "$OUT/render.txt"
-  cp bench/results/render.* "$OUT/" 2>/dev/null
+# gsplat's JIT build (minutes) starts now, beside the C++ CPU extension's build that the first test triggers
+stage gsplat_build "${STAGE_LIMIT_gsplat_build:-300}" "$PY" -c \
+  "import time; t=time.time(); from gsplat.cuda._backend import _C; print('gsplat _C', _C is not None, round(time.time()-t, 1), 's')" &
+build_pid=$!
+"$PY" -c "import time; t=time.time(); from b3dgs.render._ext import load_extension; load_extension(); print('b3dgs C++ ext', round(time.time()-t,1), 's')" \
+  2>&1 | tee -a "$OUT/setup.txt" || true
+wait $build_pid
+if [[ $what == tests || $what == all ]]; then
+  # the CUDA-marked tests, then gsplat's on its CPU emulation (tests/gsplat_cpu.py); the real kernels use fast
+  # math, so test_gsplat_matches_torch[cuda] allows 1e-4 where the emulation holds 1e-5
+  stage pytest_cuda 240 "$PY" -m pytest -q -rs --durations=8 -p no:cacheprovider -m cuda
 fi
 if [[ $what == train || $what == all ]]; then
-  python bench/train.py --device cuda --scenes fox --models standard niw dpmm 2>&1 | tee "$OUT/train_cuda.txt"
-  cp bench/results/train_cuda.* "$OUT/" 2>/dev/null
+  stage train_cuda 240 "$PY" bench/train.py --device cuda --scenes fox --models standard niw dpmm
+  cp bench/results/train_cuda.json "$OUT/" 2>/dev/null
 fi
+if [[ $what == render || $what == all ]]; then
+  stage render 120 "$PY" bench/render.py --renderers cpu gsplat torch --sizes 10000 100000
+  cp bench/results/render.json "$OUT/" 2>/dev/null
+fi
+if [[ $what == tests || $what == all ]]; then  # last: it needs no GPU, only this machine's torch
+  stage pytest_gsplat 120 "$PY" -m pytest -q -rs -p no:cacheprovider -k gsplat -m "not cuda"
+fi
+echo "device_check done after +$(( $(date +%s) - t0 ))s"

@@ -1,11 +1,18 @@
 #!/usr/bin/env bash
-# Download, on this machine, the wheels the GPU machine lacks (it reaches no registry) into .device/wheels
-# (git-ignored; name it in the device tool's `carry`). Then, on the GPU machine: bash scripts/device_check.sh
+# Prepare, on this machine, what the GPU machine lacks (it reaches no registry) in .device/ (git-ignored; name
+# `.device` in the device tool's `carry`): the wheels its image does not hold, and the bench scene (fox) with the
+# LPIPS weights from the shared folder ($B3DGS_SHARED, else ../shared). Then, there: bash scripts/device_check.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
 mkdir -p .device/wheels
+# pure-Python wheels (antlr4-python3-runtime is an sdist; device_check.sh builds it with --no-build-isolation)
 python -m pip download -q --no-deps -d .device/wheels gsplat==1.5.3 hydra-core==1.3.2 omegaconf==2.3.0 \
-  antlr4-python3-runtime==4.9.3 kornia
-python -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --platform manylinux_2_17_x86_64 \
-  -d .device/wheels kornia-rs
+  antlr4-python3-runtime==4.9.3 kornia plyfile "filelock>=3.30"
+python -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+  --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d .device/wheels kornia-rs
+shared=${B3DGS_SHARED:-../shared}
+mkdir -p .device/shared/data .device/shared/lpips
+cp -r "$shared/data/fox" .device/shared/data/
+cp "$shared/lpips/lpips_alex.pth" .device/shared/lpips/
+du -sh .device/wheels .device/shared
 ls -la .device/wheels

@@ -7,6 +7,7 @@ import warnings
 
 import pytest
 import torch
+from pathlib import Path
 
 from b3dgs.render import _ext
 from b3dgs.render.gsplat_backend import weight_sums
@@ -265,3 +266,37 @@ def test_short_training_on_cuda(tmp_path, model):
 
     m = run_train(tmp_path / model, [f"model={model}", "trainer.max_steps=200", "renderer=auto"])
     assert m["renderer"]["device"].startswith("cuda") and m["psnr"] > 15
+
+
+def test_a_model_trained_on_a_gpu_comes_back_to_the_renderers_device():
+    """Lightning's teardown moves a model trained on CUDA to the CPU; the final evaluation then called gsplat with
+    CPU tensors (seen on an H100: "renderer=gsplat needs float32 CUDA tensors, got torch.float32 on cpu"). The
+    fit helper moves it back, and every fit in the package goes through it."""
+    import re
+    from types import SimpleNamespace
+
+    from b3dgs.train import fit_on_renderer_device
+
+    class Model:  # a module that Lightning's teardown left on the CPU, its renderer on another device
+        def __init__(self):
+            self.device, self.moved = torch.device("cpu"), []
+            self.renderer = SimpleNamespace(device=torch.device("cuda"))
+
+        def to(self, device):
+            self.moved.append(device)
+            self.device = torch.device(device)
+
+    fits = []
+    trainer = SimpleNamespace(fit=lambda module, **kw: fits.append(kw))
+    m = Model()
+    fit_on_renderer_device(trainer, m, datamodule="dm")
+    assert fits == [{"datamodule": "dm"}] and m.moved == [torch.device("cuda")]
+    m = Model()
+    m.renderer.device = torch.device("cpu")
+    fit_on_renderer_device(trainer, m)
+    assert m.moved == []  # the CPU path moves nothing
+    root = Path(__file__).resolve().parents[1]
+    direct = [str(p.relative_to(root)) for sub in ("b3dgs", "plugins", "bench") for p in (root / sub).rglob("*.py")
+              if re.search(r"\btrainer\.fit\(", p.read_text()) and p.name != "train.py"]
+    assert direct == [], f"trainer.fit outside fit_on_renderer_device: {direct}"
+    assert (root / "b3dgs" / "train.py").read_text().count("trainer.fit(") == 2  # the helper and its docstring

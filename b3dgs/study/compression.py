@@ -114,7 +114,7 @@ class CompressionStudy:
         import lightning as L
 
         from b3dgs.data.datamodule import SceneDataModule
-        from b3dgs.train import build_run, build_trainer
+        from b3dgs.train import build_run, build_trainer, fit_on_renderer_device
 
         os.environ.pop("PL_GLOBAL_SEED", None)
         L.seed_everything(int(seed), workers=True, verbose=False)
@@ -127,7 +127,7 @@ class CompressionStudy:
         with warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*does not have many workers.*")
             warnings.filterwarnings("ignore", message=".*`training_step` returns.*")
-            trainer.fit(module, datamodule=SceneDataModule(scene=scene))
+            fit_on_renderer_device(trainer, module, datamodule=SceneDataModule(scene=scene))
         module.eval()
         return module
 

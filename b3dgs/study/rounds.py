@@ -39,7 +39,7 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
     from b3dgs.callbacks import ResumeState, RunCheckpoint
     from b3dgs.data.datamodule import SceneDataModule
     from b3dgs.numerics import reset_guards
-    from b3dgs.train import _checkpoint_every_s, build_callbacks, build_run, build_trainer
+    from b3dgs.train import _checkpoint_every_s, build_callbacks, build_run, build_trainer, fit_on_renderer_device
 
     total = int(cfg.trainer.max_steps)
     if not 0 < int(stop_step) <= total:
@@ -64,7 +64,7 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*does not have many workers.*")
         warnings.filterwarnings("ignore", message=".*`training_step` returns.*")
-        trainer.fit(module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
+        fit_on_renderer_device(trainer, module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
     module.allow_new_views = False
     module.last_checkpoint = str(ckpt.last_path)
     return module
