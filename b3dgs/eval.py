@@ -18,9 +18,9 @@ from typing import Optional
 import hydra
 import torch
 from omegaconf import DictConfig, ListConfig, OmegaConf
-from tqdm.auto import tqdm
 
 from b3dgs.errors import B3dgsError
+from b3dgs.progress import progress
 from b3dgs.train import CONF_DIR
 
 log = logging.getLogger(__name__)
@@ -140,7 +140,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
             regime.fit([r.module for r in members], scene)
             gen = torch.Generator().manual_seed(int(seed))
             per_view, panel_files = [], []
-            for i, cam in enumerate(tqdm(cams, desc=f"uq {name}", leave=False)):
+            for i, cam in enumerate(progress(cams, desc=f"uq {name}", leave=False)):
                 pred = regime.predict(cam, generator=gen).cpu()
                 row = evaluate_view(pred.mean, pred.var, cam.image)
                 row["name"] = cam.name

@@ -92,7 +92,7 @@ def render_path(run, cams: Sequence[Camera], panel: Optional[str] = None, panel_
     """The frames (uint8 (H, W', 3)) of ``run`` (a :class:`b3dgs.viewer.run.ViewedRun`) along ``cams``: the RGB,
     with the ``panel`` mode beside it on one colour scale for the path (and its colour bar under it). Returns the
     frames and the panel's scale top (None without a panel)."""
-    from tqdm.auto import tqdm
+    from b3dgs.progress import progress
 
     from b3dgs.viewer.modes import MODES, ModeRenderer, colorize, normalise, robust_max
 
@@ -106,7 +106,7 @@ def render_path(run, cams: Sequence[Camera], panel: Optional[str] = None, panel_
         if why is not None:
             raise B3dgsError(f"panel={panel} is not available for this run: {why}", "pass panel=proxy_sigma, or null")
     rgbs, values = [], []
-    for cam in tqdm(cams, desc="render", unit=" frames", file=sys.stdout, disable=len(cams) < 2):
+    for cam in progress(cams, desc="render", unit=" frames", file=sys.stdout, disable=len(cams) < 2):
         rgbs.append((run.module.render_eval(cam).cpu().numpy() * 255.0 + 0.5).astype(np.uint8))
         if modes is not None:
             fr = modes.render(panel, cam)

@@ -80,3 +80,35 @@ def test_a_log_file_gets_whole_bar_lines_not_a_redraw_per_step(tmp_path):
     bars = [ln for ln in res.stdout.splitlines() if ln.startswith("train ")]
     assert 2 <= len(bars) <= 4, bars  # 40 steps take seconds, not 30 s per extra line
     assert " 1/40 steps [" in bars[0] and re.search(r" 40/40 steps \[.*test PSNR=\d+\.\d\d dB\]$", bars[-1]), bars
+
+
+def test_study_and_eval_bars_print_whole_lines_in_a_log_file():
+    """b3dgs.progress: the eval / render / compression bars print whole lines when their stream is not a terminal
+    (a cluster log): no carriage-return redraws, the last state once, and nothing for a cleared (leave=False) bar
+    beyond its lines. On a terminal it is tqdm's own bar."""
+    import io
+
+    from tqdm.std import tqdm as std_tqdm
+
+    from b3dgs.progress import progress
+
+    buf = io.StringIO()
+    for _ in progress(range(5), desc="uq native", file=buf, line_every_s=0.0):
+        pass
+    lines = buf.getvalue().splitlines()
+    assert "\r" not in buf.getvalue() and buf.getvalue().endswith("\n")
+    assert lines[0].startswith("uq native:   0%") and lines[-1].startswith("uq native: 100%")
+    assert sum(ln.startswith("uq native: 100%") for ln in lines) == 1 and len(lines) == 6
+    buf = io.StringIO()
+    for _ in progress(range(1000), desc="render", file=buf, leave=False):  # 30 s apart: only the first line
+        pass
+    assert buf.getvalue().splitlines() == [ln for ln in buf.getvalue().splitlines() if ln.startswith("render:   0%")]
+    assert len(buf.getvalue().splitlines()) == 1
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    bar = progress(range(3), file=Tty())
+    assert type(bar) is std_tqdm
+    bar.close()

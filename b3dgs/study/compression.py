@@ -258,14 +258,14 @@ class CompressionStudy:
 
     # ------------------------------------------------------------------ all
     def run(self) -> dict:
-        from tqdm.auto import tqdm
+        from b3dgs.progress import progress
 
         from b3dgs.metrics.lpips import get_lpips
         from b3dgs.runs import load_run
 
         lp, _ = get_lpips()
         scenes: dict[str, Any] = {}
-        bar = tqdm(total=len(self.base_runs) * len(self.strategies) * len(self.keeps), desc="compression rows", disable=not self.cfg.get("progress_bar", True))
+        bar = progress(total=len(self.base_runs) * len(self.strategies) * len(self.keeps), desc="compression rows", disable=not self.cfg.get("progress_bar", True))
         seen: dict[tuple, Path] = {}
         for run in self.base_runs:
             cfg = OmegaConf.load(run / "config.yaml")
