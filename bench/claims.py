@@ -260,20 +260,21 @@ CLAIMS: list[tuple[str, str, str, str, int, str, Callable[[Results], dict[str, f
      "not in the paper", +1, "",
      lambda R, reg=reg, bm=bm, breg=breg: diff(R.ood_auroc("niw", reg), R.ood_auroc(bm, breg)))
     for tag, reg, label in (("sh_native", "native_sh", "NIW native + the SH posterior"),
-                            ("sh_alone", "sh", "the SH posterior alone"))
+                            ("sh_alone", "sh", "the SH posterior alone"),
+                            ("sh_plus_native", "native_plus_sh", "NIW native at count_scale 0.1 + the SH posterior"))
     for b, bm, breg, bl, hyp in (("ensemble", "standard", "ensemble", "the deep ensemble's", ">= 0"),
                                  ("paper", "niw", "native", "the paper's native", "> 0"))
 ] + [
     (f"active_{p}_vs_{b.replace('+', '_')}", "beyond the paper", f"Active view: {p} - {b} final PSNR "
      "(hypothesis: > 0)", "not in the paper", +1, "dB", lambda R, key=f"{p}-{b}": R.active_paired(key))
-    for p in ("native_fisher3", "native_fisher3+diverse", "native_sh", "sh", "sh+diverse")
+    for p in ("native_fisher3", "native_fisher3+diverse", "native_sh", "sh", "sh+diverse", "native_plus_sh")
     for b in ("ensemble", "fisher", "farthest", "native") + (("ensemble+diverse", "native+diverse") if "+" in p else ())
 ] + [
     (f"active_{p}_{which}_vs_{b}", "beyond the paper", f"Active view: Spearman ρ of the {p} score with {what}, "
      f"minus the {b} score's (hypothesis: > 0)", "not in the paper", +1, "", lambda R, which=which, p=p, b=b: R.active_rho(which, p, b))
     for which, what in (("rho", "the phase-1 model's error on the candidate"),
                         ("rho_support", "the candidate's distance to the nearest training camera"))
-    for p in ("native_sh", "sh")
+    for p in ("native_sh", "sh", "native_plus_sh")
     for b in ("ensemble", "native")
 ]
 
