@@ -2,7 +2,8 @@
 # On the GPU machine (Python 3.12, torch+CUDA, lightning, nvcc, ninja; no registry): install what
 # scripts/device_wheels.sh carried in .device/, then run the CUDA tests and the GPU benchmarks, writing each
 # stage's log under $OUT as it finishes. Each stage has its own time limit (seconds, env STAGE_LIMIT_<name>),
-# so one slow stage cannot eat the call. Usage: bash scripts/device_check.sh [tests|render|train|all]
+# so one slow stage cannot eat the call, and all end by DEADLINE (seconds, default 540).
+# Usage: [DEADLINE=S] [STAGE_LIMIT_<name>=S] bash scripts/device_check.sh [tests|render|train|all]
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-outputs/device}
@@ -41,7 +42,7 @@ if [[ -d .device/shared/data ]]; then  # the carried bench scene and LPIPS weigh
   export B3DGS_SHARED="$PWD/.device/shared" B3DGS_LPIPS_WEIGHTS="$PWD/.device/shared/lpips/lpips_alex.pth"
 fi
 # gsplat's JIT build (minutes) starts now, beside the C++ CPU extension's build that the first test triggers
-stage gsplat_build "${STAGE_LIMIT_gsplat_build:-300}" "$PY" -c \
+stage gsplat_build 300 "$PY" -c \
   "import time; t=time.time(); from gsplat.cuda._backend import _C; print('gsplat _C', _C is not None, round(time.time()-t, 1), 's')" &
 build_pid=$!
 "$PY" -c "import time; t=time.time(); from b3dgs.render._ext import load_extension; load_extension(); print('b3dgs C++ ext', round(time.time()-t,1), 's')" \

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import math
 import warnings
+from pathlib import Path
 
 import pytest
 import torch
-from pathlib import Path
 
 from b3dgs.render import _ext
 from b3dgs.render.gsplat_backend import weight_sums
