@@ -131,6 +131,10 @@ class PosteriorBlock(Plugin):
     def absorb_view_sums(self, *, splats, state, sums: dict) -> None:
         """Update ``state`` from a view pass (``sums``: the dict of ``SplatModule.view_sums``)."""
 
+    #: True: :meth:`aleatoric_variance` is a fallback, used only when no other block of the model gives σ̂² (the SH
+    #: posterior's pass residual: NIW's plug-in σ̂² or the noise block's posterior comes first)
+    aleatoric_fallback: ClassVar[bool] = False
+
     def aleatoric_variance(self, *, state) -> Optional[float]:
         """Per-pixel aleatoric variance this block provides (noise posterior), or None."""
         return None

@@ -148,3 +148,32 @@ def test_sh_alone_leaves_out_the_model_blocks(scene):
     assert uq.sigma2 == pytest.approx(float(uq._fitted[0][1]["sigma2"]))
     with pytest.raises(B3dgsError, match="posterior blocks"):
         NativeUQ(samples=2, model_blocks=False).fit([m], scene)
+
+
+def test_a_model_carrying_the_sh_block_keeps_niws_sigma2(scene):
+    """posterior=[niw,sh] with uq=native (c = 0.1) is uq=[native_plus_sh] on posterior=[niw], the combination the
+    counts and active-view tables measured: NIW's plug-in σ̂² comes first (the SH pass residual is only a fallback,
+    ``aleatoric_fallback``), and the draws are the same."""
+    from b3dgs_plugins.posterior.niw import NIWBlock
+    from b3dgs_plugins.uq.native import NativeUQ
+
+    def model(blocks):
+        torch.manual_seed(0)
+        m = module_with_blocks(scene, blocks)
+        m._loaded_step = 10 ** 6
+        with torch.no_grad():
+            m.splats["shN"].normal_(0.0, 0.02, generator=torch.Generator().manual_seed(0))
+        m.states["niw"]["mse"] = torch.as_tensor(0.0123, dtype=torch.float64)
+        m.states["niw"]["mse_n"] = torch.as_tensor(1.0, dtype=torch.float64)
+        return m
+
+    carried = NativeUQ(samples=4, chunk=2, count_scale=0.1)
+    carried.fit([model({"niw": NIWBlock(), "sh": SHPosteriorBlock()})], scene)
+    added = NativeUQ(samples=4, chunk=2, count_scale=0.1, add={"sh": SHPosteriorBlock()})
+    added.fit([model({"niw": NIWBlock()})], scene)
+    assert carried.sigma2 == pytest.approx(0.0123) and added.sigma2 == pytest.approx(0.0123)
+    assert float(carried._fitted[1][1]["sigma2"]) != pytest.approx(0.0123)  # the SH pass's own residual
+    pc = carried.predict(scene.test[0], generator=torch.Generator().manual_seed(1))
+    pa = added.predict(scene.test[0], generator=torch.Generator().manual_seed(1))
+    assert torch.allclose(pc.mean, pa.mean) and torch.allclose(pc.var, pa.var)
+    assert float(pc.epistemic.mean()) > 0

@@ -120,6 +120,8 @@ class SHPosteriorBlock(PosteriorBlock):
             out["shN"] = torch.cat([shN[..., : B - 1, :] + delta[:, :, 1:], pad], dim=-2)
         return out
 
+    aleatoric_fallback: ClassVar[bool] = True  # NIW's or the noise block's σ̂² first, when the model has one
+
     def aleatoric_variance(self, *, state) -> Optional[float]:
         """The pass's residual MSE σ̂² (None before the pass)."""
         s2 = float(state["sigma2"])

@@ -12,6 +12,22 @@ from b3dgs.plugin import PosteriorBlock
 from b3dgs.uq.regime import Predictive, UQRegime, render_params, sample_spread
 
 
+
+def _sigma2(blocks) -> Optional[float]:
+    """σ̂² of ``[(block, state)]``: the last block that gives one; a block whose σ̂² is a fallback
+    (``aleatoric_fallback``, the SH pass residual) only when no other does, so ``posterior=[niw,sh]`` keeps NIW's
+    plug-in σ̂² as ``uq=[native_plus_sh]`` (the SH block added at evaluation) does."""
+    main = fallback = None
+    for blk, st in blocks:
+        v = blk.aleatoric_variance(state=st)
+        if v is None:
+            continue
+        if blk.aleatoric_fallback:
+            fallback = float(v)
+        else:
+            main = float(v)
+    return main if main is not None else fallback
+
 @dataclass
 class NativeUQ(UQRegime):
     """Draws S parameter sets from the trained posterior blocks (each block replaces the attributes it
@@ -74,15 +90,10 @@ class NativeUQ(UQRegime):
         self._fitted = [(blk, st) for _, blk, st in blocks]
         self.reset_conditioning()
         self.base = render_params(m)
-        own, n_own = None, len(m.posterior) if self.model_blocks else 0
-        for name, blk in (m.posterior.items() if self.model_blocks else ()):
-            v = blk.aleatoric_variance(state=m.states[name])
-            if v is not None:
-                own = float(v)
+        n_own = len(m.posterior) if self.model_blocks else 0
+        own = _sigma2([(blk, m.states[name]) for name, blk in (m.posterior.items() if self.model_blocks else ())])
         if own is None:  # only added blocks (a standard model, or model_blocks=false): their σ̂²
-            for blk, st in self._fitted[n_own:]:
-                v = blk.aleatoric_variance(state=st)
-                own = float(v) if v is not None else own
+            own = _sigma2(self._fitted[n_own:])
         self.sigma2 = own if own is not None else 0.0
 
         self.fit_info["sigma2_plugin"] = self.sigma2
