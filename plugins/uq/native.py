@@ -12,7 +12,6 @@ from b3dgs.plugin import PosteriorBlock
 from b3dgs.uq.regime import Predictive, UQRegime, render_params, sample_spread
 
 
-
 def _sigma2(blocks) -> Optional[float]:
     """σ̂² of ``[(block, state)]``: the last block that gives one; a block whose σ̂² is a fallback
     (``aleatoric_fallback``, the SH pass residual) only when no other does, so ``posterior=[niw,sh]`` keeps NIW's
@@ -27,6 +26,7 @@ def _sigma2(blocks) -> Optional[float]:
         else:
             main = float(v)
     return main if main is not None else fallback
+
 
 @dataclass
 class NativeUQ(UQRegime):
