@@ -35,6 +35,7 @@ from lightning.pytorch.plugins.io import TorchCheckpointIO
 
 from b3dgs.device import timed_clock
 from b3dgs.io import atomic_path, save_figure, write_json
+from b3dgs.progress import LINE_EVERY_S, is_terminal
 
 log = logging.getLogger(__name__)
 
@@ -308,7 +309,7 @@ class StepProgressBar(TQDMProgressBar):
 
     BAR_FORMAT = "{desc} {percentage:3.0f}%|{bar:16}| {n_fmt}/{total_fmt} steps [{elapsed}<{remaining} ETA, {rate_fmt}{postfix}]"
 
-    def __init__(self, *args, line_every_s: float = 30.0, **kwargs):
+    def __init__(self, *args, line_every_s: float = LINE_EVERY_S, **kwargs):
         super().__init__(*args, **kwargs)
         self.line_every_s = float(line_every_s)
         self._lines = False
@@ -318,8 +319,7 @@ class StepProgressBar(TQDMProgressBar):
         from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm
 
         step = int(self.trainer.global_step)
-        isatty = getattr(sys.stdout, "isatty", None)
-        self._lines, self._last_line = not (callable(isatty) and isatty()), None
+        self._lines, self._last_line = not is_terminal(sys.stdout), None
         return Tqdm(desc="train", total=int(self.trainer.max_steps), initial=step, position=2 * self.process_position,
                     disable=self.is_disabled, leave=True, dynamic_ncols=not self._lines,
                     file=_Sink() if self._lines else sys.stdout, smoothing=0.05, unit=" steps",
