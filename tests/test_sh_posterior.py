@@ -177,3 +177,38 @@ def test_a_model_carrying_the_sh_block_keeps_niws_sigma2(scene):
     pa = added.predict(scene.test[0], generator=torch.Generator().manual_seed(1))
     assert torch.allclose(pc.mean, pa.mean) and torch.allclose(pc.var, pa.var)
     assert float(pc.epistemic.mean()) > 0
+
+
+def test_native_plus_sh_on_a_model_that_carries_the_sh_block(scene):
+    """uq=[native_plus_sh] and acquisition=native_plus_sh as configured (Hydra) on a posterior=[niw,sh] model: the
+    added SH block is the model's own, so the draws are uq=native's there; an added block with other settings than
+    the model's is a one-line error naming the setting."""
+    from hydra.utils import instantiate
+    from omegaconf import OmegaConf
+
+    from b3dgs.train import CONF_DIR
+    from b3dgs_plugins.posterior.niw import NIWBlock
+    from b3dgs_plugins.uq.native import NativeUQ
+
+    torch.manual_seed(0)
+    m = module_with_blocks(scene, {"niw": NIWBlock(), "sh": SHPosteriorBlock()})
+    m._loaded_step = 10 ** 6
+    with torch.no_grad():
+        m.splats["shN"].normal_(0.0, 0.02, generator=torch.Generator().manual_seed(0))
+    cfg = OmegaConf.load(f"{CONF_DIR}/uq/native_plus_sh.yaml").native_plus_sh
+    cfg.samples, cfg.chunk = 4, 2
+    plus = instantiate(cfg)
+    plus.fit([m], scene)
+    assert plus.fit_info["add_carried"] == ["sh"]
+    assert [type(b).__name__ for b, _ in plus._fitted] == ["NIWBlock", "SHPosteriorBlock"]
+    own = NativeUQ(samples=4, chunk=2, count_scale=0.1)
+    own.fit([m], scene)
+    assert "add_carried" not in own.fit_info
+    pp = plus.predict(scene.test[0], generator=torch.Generator().manual_seed(1))
+    po = own.predict(scene.test[0], generator=torch.Generator().manual_seed(1))
+    assert torch.equal(pp.var, po.var) and torch.equal(pp.mean, po.mean)
+    pol = instantiate(OmegaConf.load(f"{CONF_DIR}/acquisition/native_plus_sh.yaml"))
+    pol._native().fit([m], scene)  # the acquisition's regime on the same model: accepted
+    assert len(pol._native()._fitted) == 2
+    with pytest.raises(B3dgsError, match=r"add\.sh differs from the model's own sh block \(prior_precision 1\.0 vs 4\.0\)"):
+        NativeUQ(samples=2, add={"sh": SHPosteriorBlock(prior_precision=4.0)}).fit([m], scene)

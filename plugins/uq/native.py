@@ -43,7 +43,8 @@ class NativeUQ(UQRegime):
     ``add``: posterior blocks drawn after the model's own, built for this evaluation from one pass over the training
     views (blocks whose posterior is a function of the trained Gaussians, e.g. ``posterior.sh``'s directional SH
     posterior); with ``add``, a standard model (no posterior blocks) has a native posterior too. σ̂² comes from the
-    model's blocks, else from the added ones."""
+    model's blocks, else from the added ones. A block the model already carries with the same settings is the model's
+    own (``posterior=[niw,sh]`` under ``uq=[native_plus_sh]`` is ``uq=native``); with other settings it is an error."""
 
     count_scale: Optional[float] = None
     count: Optional[str] = None
@@ -53,7 +54,7 @@ class NativeUQ(UQRegime):
     def _blocks(self, m):
         """(name, block, state) to draw from: the model's own, or copies with ``count_scale`` / ``count`` applied
         (``count``: ``posterior.niw.count``, e.g. ``weight``, re-evaluated on the trained model without retraining)."""
-        out = []
+        out, carried = [], []
         for name, blk in (m.posterior.items() if self.model_blocks else ()):
             st = m.states[name]
             names = {f.name for f in fields(blk)}
@@ -71,9 +72,19 @@ class NativeUQ(UQRegime):
                 raise B3dgsError(f"uq.{name}: add.{name} must be a posterior block (a _target_ to a PosteriorBlock "
                                  f"class such as b3dgs_plugins.posterior.sh.SHPosteriorBlock), got {type(blk).__name__}")
             if self.model_blocks and name in m.posterior:
-                raise B3dgsError(f"uq: add.{name} names a block the model already has (fix: leave it out of add)")
+                own = m.posterior[name]
+                if own == blk:  # posterior=[niw,sh] under uq=[native_plus_sh]: the model's own block is the same one
+                    carried.append(name)
+                    continue
+                diff = ", ".join(f"{f.name} {getattr(own, f.name)!r} vs {getattr(blk, f.name)!r}" for f in fields(own)
+                                 if type(own) is type(blk) and getattr(own, f.name) != getattr(blk, f.name))
+                raise B3dgsError(f"uq: add.{name} differs from the model's own {name} block ("
+                                 f"{diff or f'{type(own).__name__} vs {type(blk).__name__}'}); fix: score the model's "
+                                 f"own with uq=native, or give add.{name} the same settings")
             blk.validate()
             out.append((name, blk, blk.initialize_state(splats=m.splats, scene=None, info={})))
+        if carried:  # added blocks the model already carries with the same settings (no key otherwise: archived uq.json)
+            self.fit_info["add_carried"] = carried
         return out
 
     def fit(self, models, scene):
