@@ -43,11 +43,11 @@ from b3dgs.report.document import markdown_table
 from b3dgs.report.stats import mean_sem, p_floor, sign_flip_p
 
 try:  # python -m bench.active_view
-    from bench.common import (RESULTS, PeriodicSync, compose, machine, n_train_views, scene_names, scene_overrides,
-                              sync_results, write_results)
+    from bench.common import (ARCHIVED_FAMILY_POSTERIOR, RESULTS, compose, machine, n_train_views, PeriodicSync,
+                              scene_names, scene_overrides, sync_results, write_results)
 except ModuleNotFoundError:  # python bench/active_view.py
-    from common import (RESULTS, PeriodicSync, compose, machine, n_train_views, scene_names, scene_overrides,
-                        sync_results, write_results)
+    from common import (ARCHIVED_FAMILY_POSTERIOR, RESULTS, compose, machine, n_train_views, PeriodicSync, scene_names,
+                        scene_overrides, sync_results, write_results)
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY_SCENES = list(OmegaConf.load(ROOT / "conf" / "report.yaml").studies.scenes)
@@ -109,7 +109,7 @@ def run_scene(scene: str, seeds: list[int], study_out: Path, extra: list[str], s
     for seed in seeds:
         cmd = [sys.executable, "-m", "b3dgs.study.active", "active",
                *(scene_args or scene_overrides(scene)), "renderer=cpu", f"seeds=[{seed}]",
-               f"out_dir={study_out}", "threads=1", f"acquisition.score_max_side={score_side}", *extra]
+               f"out_dir={study_out}", "threads=1", f"acquisition.score_max_side={score_side}", ARCHIVED_FAMILY_POSTERIOR, *extra]
         t0 = time.perf_counter()
         with open(logs / f"{scene}_s{seed}.log", "a") as log:
             r = subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)

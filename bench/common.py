@@ -66,6 +66,17 @@ def write_results(name: str, payload: dict, text: str, root: Path = RESULTS) -> 
 # b3dgs.data_root), plus those of installed packages (b3dgs.conf entry points): a scene is added with one YAML file.
 # The study protocol is conf/experiment/study.yaml (256 px, 3000 steps, no logger, progress bar or renders).
 QUICK = ["experiment=study"]
+# The posterior blocks each model had when the committed benchmarks and studies ran: the scripts that extend them pass
+# these explicitly (model_overrides), so a later change of a model's default blocks (conf/model/<name>.yaml) cannot
+# change what an archived row means. The active-view study pins its families the same way (ARCHIVED_FAMILY_POSTERIOR).
+ARCHIVED_POSTERIOR = {"standard": [], "niw": ["niw"], "dpmm": ["niw", "dp", "noise", "opacity", "color"]}
+ARCHIVED_FAMILY_POSTERIOR = "family_posterior={standard:[],niw:[niw]}"
+
+
+def model_overrides(model: str) -> list[str]:
+    """``model=<model>`` with its archived posterior blocks pinned (``posterior=[...]``) where it has them."""
+    blocks = ARCHIVED_POSTERIOR.get(model)
+    return [f"model={model}"] + ([] if blocks is None else [f"posterior=[{','.join(blocks)}]"])
 
 
 def scene_names() -> list[str]:

@@ -31,7 +31,7 @@ from typing import Optional
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import QUICK, RESULTS, scene_overrides, train_run  # noqa: E402
+from common import QUICK, RESULTS, model_overrides, scene_overrides, train_run  # noqa: E402
 
 SEVEN = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
 COUNTS = ["weight", "fisher", "fisher3", "sh"]  # scored as the uq regimes native_<name>
@@ -92,7 +92,7 @@ def run_row(args, scene: str, seed: int) -> Optional[str]:
     if not names:
         return None
     run_dir = Path(args.out) / scene / "niw" / f"s{seed}"
-    over = scene_overrides(scene) + QUICK + ["model=niw", f"seed={seed}", f"threads={args.threads}"]
+    over = scene_overrides(scene) + QUICK + [*model_overrides("niw"), f"seed={seed}", f"threads={args.threads}"]
     m = train_run(run_dir, over, timeout_s=4 * 3600)
     want = json.loads((archive_dir / "metrics.json").read_text())["checkpoint"]["params_sha256"]
     got = m["checkpoint"]["params_sha256"]

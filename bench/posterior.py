@@ -15,9 +15,10 @@ import sys
 from pathlib import Path
 
 try:  # python -m bench.posterior
-    from bench.common import QUICK, ensure_lpips, machine, scene_overrides, table, train_run, write_results
+    from bench.common import (QUICK, ensure_lpips, machine, model_overrides, scene_overrides, table, train_run,
+                              write_results)
 except ModuleNotFoundError:  # python bench/posterior.py
-    from common import QUICK, ensure_lpips, machine, scene_overrides, table, train_run, write_results
+    from common import QUICK, ensure_lpips, machine, model_overrides, scene_overrides, table, train_run, write_results
 
 METHODS = ["standard", "niw", "dpmm"]
 
@@ -35,7 +36,7 @@ def main() -> None:
         for scene in args.scenes:
             for method in args.methods:
                 run_dir = Path(args.out) / scene / method / f"s{seed}"
-                m = train_run(run_dir, scene_overrides(scene) + QUICK + [f"model={method}", f"seed={seed}", *args.extra])
+                m = train_run(run_dir, scene_overrides(scene) + QUICK + [*model_overrides(method), f"seed={seed}", *args.extra])
                 m = ensure_lpips(run_dir, m)
                 rows.append({"scene": scene, "seed": seed, "method": method, "psnr": m["psnr"], "ssim": m["ssim"],
                              "lpips": m["lpips"], "num_gaussians": m["num_gaussians"], "fps": m["render_fps"],

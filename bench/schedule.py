@@ -36,7 +36,8 @@ from typing import Optional
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import QUICK, RESULTS, machine, scene_overrides, sync_results, train_run  # noqa: E402
+from common import (QUICK, RESULTS, machine, model_overrides, scene_overrides, sync_results,  # noqa: E402
+                    train_run)
 
 SEVEN = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
 #: load.json: the --jobs/--threads a row was trained under (its time is paired only with rows of the same scene-seed)
@@ -295,7 +296,7 @@ def main() -> None:
     def run(job):
         scene, model, name, seed = job
         run_dir = out / scene / model / name / f"s{seed}"
-        over = scene_overrides(scene) + QUICK + [f"model={model}", f"seed={seed}", f"threads={args.threads}",
+        over = scene_overrides(scene) + QUICK + [*model_overrides(model), f"seed={seed}", f"threads={args.threads}",
                                                  *variants[name], *args.extra]
         try:
             fresh = not (run_dir / "metrics.json").is_file()

@@ -24,9 +24,9 @@ import tempfile
 from pathlib import Path
 
 try:  # python -m bench.step_profile
-    from bench.common import QUICK, RESULTS, machine, scene_overrides, table, write_results
+    from bench.common import QUICK, RESULTS, machine, model_overrides, scene_overrides, table, write_results
 except ModuleNotFoundError:  # python bench/step_profile.py
-    from common import QUICK, RESULTS, machine, scene_overrides, table, write_results
+    from common import QUICK, RESULTS, machine, model_overrides, scene_overrides, table, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 PHASES = ("projection_fwd", "projection_bwd", "binning", "raster_fwd", "raster_bwd", "ssim_fwd", "ssim_bwd",
@@ -111,7 +111,7 @@ print("STEP_PROFILE " + json.dumps(out), flush=True)
 
 def run_case(code: Path, scene: str, model: str, steps: int, threads: int | None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
-        overrides = scene_overrides(scene) + QUICK + [f"model={model}", f"trainer.max_steps={steps}", "renderer=cpu",
+        overrides = scene_overrides(scene) + QUICK + [*model_overrides(model), f"trainer.max_steps={steps}", "renderer=cpu",
                                                       f"trainer.default_root_dir={tmp}/run", "trainer.eval_every=100000"]
         if threads:
             overrides.append(f"threads={threads}")

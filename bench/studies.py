@@ -42,9 +42,10 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 try:  # python -m bench.studies
-    from bench.common import QUICK, RESULTS, compose, n_train_views, scene_names, scene_overrides, train_run
+    from bench.common import (QUICK, RESULTS, compose, model_overrides, n_train_views, scene_names, scene_overrides,
+                              train_run)
 except ModuleNotFoundError:  # python bench/studies.py
-    from common import QUICK, RESULTS, compose, n_train_views, scene_names, scene_overrides, train_run
+    from common import QUICK, RESULTS, compose, model_overrides, n_train_views, scene_names, scene_overrides, train_run
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDIES = OmegaConf.load(ROOT / "conf" / "report.yaml").studies
@@ -65,7 +66,7 @@ def plan(args) -> list[tuple[Path, list[str], str]]:
             common = base + [f"seed={seed}"]
             if "canonical" in args.studies or ("sparse" in args.studies and "all" in args.budgets):
                 for m in args.methods:
-                    jobs.append((out / scene / m / f"s{seed}", common + [f"model={m}"], "canonical"))
+                    jobs.append((out / scene / m / f"s{seed}", common + model_overrides(m), "canonical"))
             budgets = [b for b in args.budgets if b != "all"] if "sparse" in args.studies else []
             if seed == args.seeds[0] and any(int(b) >= n_train for b in budgets):
                 print(f"{scene}: {n_train} train views; sparse budgets "
@@ -74,12 +75,12 @@ def plan(args) -> list[tuple[Path, list[str], str]]:
                 idx = select_evenly(n_train, int(b))
                 for m in STUDIES.sparse.methods:
                     jobs.append((out / "sparse" / f"b{b}" / scene / m / f"s{seed}",
-                                 common + [f"model={m}", f"data.train_indices=[{','.join(map(str, idx))}]"],
+                                 common + [*model_overrides(m), f"data.train_indices=[{','.join(map(str, idx))}]"],
                                  "sparse"))
             if "initcap" in args.studies:
                 for m in STUDIES.initcap.methods:
                     jobs.append((out / "initcap" / f"c{args.cap}" / scene / m / f"s{seed}",
-                                 common + [f"model={m}", f"model.init_max_points={args.cap}"],
+                                 common + [*model_overrides(m), f"model.init_max_points={args.cap}"],
                                  "initcap"))
     seen, unique = set(), []
     for j in jobs:

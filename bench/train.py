@@ -15,9 +15,11 @@ import sys
 from pathlib import Path
 
 try:  # python -m bench.train
-    from bench.common import QUICK, ensure_lpips, RESULTS, machine, scene_overrides, table, train_run, write_results
+    from bench.common import (QUICK, RESULTS, ensure_lpips, machine, model_overrides, scene_overrides, table, train_run,
+                              write_results)
 except ModuleNotFoundError:  # python bench/train.py
-    from common import QUICK, ensure_lpips, RESULTS, machine, scene_overrides, table, train_run, write_results
+    from common import (QUICK, RESULTS, ensure_lpips, machine, model_overrides, scene_overrides, table, train_run,
+                        write_results)
 
 
 def main() -> None:
@@ -37,7 +39,7 @@ def main() -> None:
         for scene in args.scenes:
             for model in args.models:
                 run_dir = Path(args.out) / scene / f"{model}{suffix}" / f"s{seed}"
-                m = train_run(run_dir, scene_overrides(scene) + QUICK + [f"model={model}", f"seed={seed}",
+                m = train_run(run_dir, scene_overrides(scene) + QUICK + [*model_overrides(model), f"seed={seed}",
                                                                           f"renderer={renderer}", *args.extra])
                 m = ensure_lpips(run_dir, m)
                 rend = m.get("renderer")

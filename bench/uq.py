@@ -35,9 +35,9 @@ import time
 from pathlib import Path
 
 try:  # python -m bench.uq
-    from bench.common import QUICK, machine, scene_overrides, table, train_run, write_results
+    from bench.common import QUICK, machine, model_overrides, scene_overrides, table, train_run, write_results
 except ModuleNotFoundError:  # python bench/uq.py
-    from common import QUICK, machine, scene_overrides, table, train_run, write_results
+    from common import QUICK, machine, model_overrides, scene_overrides, table, train_run, write_results
 
 VERSION = 2  # bump when what an evaluation measures changes: cached uq.json files are then recomputed
 PAPER = {  # Table 3 of the paper (13 scenes, 30k steps, GPU): for side-by-side reading
@@ -164,7 +164,7 @@ def main() -> None:
         method, extra, _ = GROUPS[group]
         run_dir = Path(args.out) / scene / group / f"s{seed}"
         steps = [f"trainer.max_steps={args.max_steps}"] if args.max_steps is not None else []
-        over = merge_overrides(scene_overrides(scene), QUICK, [f"model={method}", f"seed={seed}"],
+        over = merge_overrides(scene_overrides(scene), QUICK, [*model_overrides(method), f"seed={seed}"],
                                [o.format(calib_every=args.calib_every) for o in extra], steps, args.train_overrides)
         if not (run_dir / "metrics.json").exists():
             print(f"  training {run_dir} ({' '.join(over)}) ...", flush=True)

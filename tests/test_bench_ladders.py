@@ -159,3 +159,37 @@ def test_an_archive_inside_the_study_dir_is_not_copied_into_itself(tmp_path):
     assert sync_results(out, out / "archive", patterns) == 0
     assert not (out / "archive" / "archive").exists()
     assert sync_results(out / "archive", tmp_path / "fresh", patterns, only_missing=True) == 2
+
+
+@pytest.mark.parametrize("model", ["standard", "niw", "dpmm"])
+def test_bench_pins_the_archived_runs_posterior_blocks(model):
+    """bench/common.model_overrides gives each model the posterior blocks of the committed canonical runs (their
+    config.yaml), so a later change of conf/model/<name>.yaml's default blocks cannot reach the archived studies."""
+    from omegaconf import OmegaConf
+
+    from bench.common import ARCHIVED_POSTERIOR, RESULTS, compose, model_overrides
+
+    archived = OmegaConf.load(RESULTS / "runs" / "fox" / model / "s0" / "config.yaml")
+    blocks = list(archived.get("posterior") or {})
+    assert blocks == ARCHIVED_POSTERIOR[model]
+    over = model_overrides(model)
+    assert over == [f"model={model}", f"posterior=[{','.join(blocks)}]"]
+    assert list(compose("train", ["scene=fox", *over]).get("posterior") or {}) == blocks
+
+
+def test_bench_active_view_pins_the_archived_study_protocol(monkeypatch, tmp_path):
+    """The study bench/active_view.py starts (its pinned family_posterior included) has the protocol of the committed
+    campaign folder: the pin records nothing there, so the archive's rows stay continuable."""
+    import json
+
+    from b3dgs.protocol import differing_keys
+    from b3dgs.study.active import compose_config, family_config, study_protocol
+    from bench.common import ARCHIVED_FAMILY_POSTERIOR, RESULTS
+
+    monkeypatch.setenv("B3DGS_DATA", str(tmp_path))
+    cfg = compose_config("study", ["scene=fox", "renderer=cpu", "seeds=[0]", f"out_dir={tmp_path}", "threads=1",
+                                   "acquisition.score_max_side=64", ARCHIVED_FAMILY_POSTERIOR])
+    cfg.trainer.default_root_dir = str(tmp_path)
+    posteriors = {f: list(family_config(cfg, f, 0).get("posterior") or {}) for f in ("standard", "niw")}
+    stored = json.loads((RESULTS / "active_view_runs" / "fox" / "protocol.json").read_text())["settings"]
+    assert differing_keys(stored, json.loads(json.dumps(study_protocol(cfg, posteriors), default=str))) == []

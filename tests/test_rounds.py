@@ -164,3 +164,35 @@ def test_study_rounds_follow_the_study_schedule():
 
     plain = family_config(compose_config("study", []), "niw", 0)
     assert plain.get("schedule") is None and isinstance(make_schedule(plain.get("schedule")), ConstantSchedule)
+
+
+def test_study_family_posterior_pins_blocks_and_the_protocol_records_other_ones(tmp_path, monkeypatch):
+    """``family_posterior`` pins a family's posterior blocks; protocol.json records a family's blocks only where they
+    differ from the ones every earlier folder was run with ({standard: [], niw: [niw]}), so pinning those keeps the
+    protocol (and archived folders valid), and a folder of [niw] refuses rows of a [niw,sh] NIW family."""
+    from b3dgs.errors import B3dgsError
+    from b3dgs.protocol import check_stored_protocol
+    from b3dgs.study.active import compose_config, family_config, study_protocol
+
+    def posteriors(cfg):
+        return {f: list(family_config(cfg, f, 0).get("posterior") or {}) for f in ("standard", "niw")}
+
+    monkeypatch.setenv("B3DGS_DATA", str(tmp_path / "data"))
+    plain = compose_config("study", ["scene=fox"])
+    pinned = compose_config("study", ["scene=fox", "family_posterior={standard:[],niw:[niw]}"])
+    sh = compose_config("study", ["scene=fox", "family_posterior={niw:[niw,sh]}"])
+    for c in (plain, pinned, sh):  # resolved outside a Hydra job: the run dir is a literal
+        c.trainer.default_root_dir = str(tmp_path)
+    assert posteriors(plain) == posteriors(pinned) == {"standard": [], "niw": ["niw"]}
+    assert posteriors(sh) == {"standard": [], "niw": ["niw", "sh"]}
+    assert study_protocol(plain, posteriors(plain)) == study_protocol(pinned, posteriors(pinned))
+    assert not any(k.startswith("family_posterior") for k in study_protocol(plain, posteriors(plain)))
+    assert study_protocol(sh, posteriors(sh))["family_posterior.niw"] == ["niw", "sh"]
+    check_stored_protocol(tmp_path, study_protocol(plain, posteriors(plain)), fix="f")
+    check_stored_protocol(tmp_path, study_protocol(pinned, posteriors(pinned)), fix="f")  # the same folder
+    with pytest.raises(B3dgsError, match=r"family_posterior\.niw: unset there, \[\"niw\", \"sh\"\] here"):
+        check_stored_protocol(tmp_path, study_protocol(sh, posteriors(sh)), fix="f")
+    with pytest.raises(B3dgsError, match="family_posterior.niw: unknown posterior block 'nope'.*fix: use blocks"):
+        family_config(compose_config("study", ["family_posterior={niw:[nope]}"]), "niw", 0)
+    with pytest.raises(B3dgsError, match="must be a list of posterior block names"):
+        family_config(compose_config("study", ["family_posterior={niw:niw}"]), "niw", 0)

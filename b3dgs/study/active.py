@@ -49,10 +49,40 @@ def compose_config(config_name: str, overrides: list[str]) -> DictConfig:
         return compose(config_name=config_name, overrides=overrides)
 
 
+#: the posterior blocks each family's model had in every study folder written before ``family_posterior`` (which
+#: did not record them): left out of protocol.json at these values, so those folders stay valid, and a folder of
+#: one posterior refuses rows of another (e.g. after a change of conf/model/niw.yaml's default blocks)
+FAMILY_POSTERIOR_UNRECORDED = {"standard": [], "niw": ["niw"]}
+
+
+def family_posterior_override(cfg: DictConfig, family: str) -> list[str]:
+    """``[posterior=[...]]`` when the study pins ``family_posterior.<family>``, else ``[]`` (the model's own blocks,
+    conf/model/<family>.yaml); an unknown block or a non-list is a one-line error."""
+    from b3dgs.confs import option_names
+    from b3dgs.errors import B3dgsError
+
+    pins = cfg.get("family_posterior") or {}
+    if not isinstance(pins, (dict, DictConfig)):
+        raise B3dgsError(f"family_posterior must map a family to its posterior blocks, got {pins!r}",
+                         "pass e.g. family_posterior={niw:[niw]}")
+    blocks = pins.get(family)
+    if blocks is None:
+        return []
+    if isinstance(blocks, str) or not all(isinstance(b, str) for b in blocks):
+        raise B3dgsError(f"family_posterior.{family} must be a list of posterior block names, got {blocks!r}",
+                         f"pass e.g. family_posterior.{family}=[niw]")
+    unknown = [b for b in blocks if b not in option_names("posterior")]
+    if unknown:
+        raise B3dgsError(f"family_posterior.{family}: unknown posterior block {unknown[0]!r}",
+                         f"use blocks of conf/posterior/: {', '.join(option_names('posterior'))}")
+    return [f"posterior=[{','.join(blocks)}]"]
+
+
 def family_config(cfg: DictConfig, family: str, seed: int) -> DictConfig:
     """A ``b3dgs-train``-shaped config: the study's data, renderer, strategy, trainer (and ``schedule`` when the study
-    sets one, ``+schedule=dash``) with ``model=family``."""
-    fam = compose_config("train", [f"model={family}", *[str(o) for o in (cfg.get("model_overrides") or [])]])
+    sets one, ``+schedule=dash``) with ``model=family`` (its posterior blocks pinned by ``family_posterior``)."""
+    fam = compose_config("train", [f"model={family}", *family_posterior_override(cfg, family),
+                                   *[str(o) for o in (cfg.get("model_overrides") or [])]])
     out = OmegaConf.create({"data": cfg.data, "renderer": cfg.renderer, "strategy": cfg.strategy,
                             "trainer": cfg.trainer, "model": fam.model, "posterior": fam.get("posterior") or {},
                             "seed": int(seed), "threads": cfg.get("threads"),
@@ -205,7 +235,8 @@ def initial_views(cfg: DictConfig, train) -> tuple[list[int], list[str]]:
 # ---------------------------------------------------------------------------------------------- study
 #: study keys that decide which rows exist or where they go, not what a row holds
 STUDY_IGNORED = ("policies", "family_baselines", "share_training", "oracle", "seeds", "seed", "out_dir", "plots",
-                 "acquisition.batch")  # batch settings (acquisition.batch_settings) do change rows
+                 "acquisition.batch",  # batch settings (acquisition.batch_settings) do change rows
+                 "family_posterior")  # recorded as the families' resolved blocks instead (study_protocol)
 
 
 def merged_policies(meta_path: Path, policies: list[str]) -> list[str]:
@@ -215,13 +246,18 @@ def merged_policies(meta_path: Path, policies: list[str]) -> list[str]:
     return [*earlier, *[p for p in policies if p not in earlier]]
 
 
-def study_protocol(cfg: DictConfig) -> dict:
-    """The flattened study settings that change its rows and caches (``out_dir/<scene>/protocol.json``)."""
+def study_protocol(cfg: DictConfig, family_posteriors: Optional[dict] = None) -> dict:
+    """The flattened study settings that change its rows and caches (``out_dir/<scene>/protocol.json``), with
+    ``family_posterior.<family>``: the posterior blocks of each family's model as composed (``family_posteriors``),
+    where they differ from :data:`FAMILY_POSTERIOR_UNRECORDED`."""
     from b3dgs.protocol import RUN_IGNORED, run_protocol
 
     out = run_protocol(OmegaConf.to_container(cfg, resolve=True), ignore=RUN_IGNORED + STUDY_IGNORED)
     if out.get("acquisition.batch_settings") == {}:  # the default: folders from before batch options stay valid
         del out["acquisition.batch_settings"]
+    for fam, blocks in sorted((family_posteriors or {}).items()):
+        if list(blocks) != FAMILY_POSTERIOR_UNRECORDED.get(fam):
+            out[f"family_posterior.{fam}"] = list(blocks)
     return out
 
 
@@ -279,13 +315,15 @@ class ActiveStudy:
         # the candidates' images: read by this driver only (acquisition, oracle, contact sheet)
         self.store = take_candidate_store(self.scene)
         self.out = Path(str(cfg.out_dir)) / self.scene.name
-        self.protocol = check_stored_protocol(
-            self.out, study_protocol(cfg), legacy=legacy_protocol(self.out),
-            fix="pass another out_dir, or the settings of the rows there (their protocol.json) to continue them")
         self._family_cfgs: dict[str, DictConfig] = {}
         self.labels_policies = self._policies()
-        for fam in sorted({p.family for _, p in self.labels_policies}):
-            self.family_cfg(fam, 0)  # composed now, at start
+        # composed now, at start; the core families always, so that protocol.json does not depend on the policies run
+        families = sorted({p.family for _, p in self.labels_policies} | set(FAMILY_POSTERIOR_UNRECORDED))
+        posteriors = {fam: list(self.family_cfg(fam, 0).get("posterior") or {}) for fam in families}
+        self.protocol = check_stored_protocol(
+            self.out, study_protocol(cfg, posteriors), legacy=legacy_protocol(self.out),
+            fix="pass another out_dir, or the settings of the rows there (their protocol.json) to continue them "
+                "(family_posterior={niw:[niw]} pins the NIW family's blocks)")
         self._phase1_meta: dict[str, dict] = {}
 
     def family_cfg(self, family: str, seed: int) -> DictConfig:
