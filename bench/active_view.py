@@ -109,7 +109,8 @@ def run_scene(scene: str, seeds: list[int], study_out: Path, extra: list[str], s
     for seed in seeds:
         cmd = [sys.executable, "-m", "b3dgs.study.active", "active",
                *(scene_args or scene_overrides(scene)), "renderer=cpu", f"seeds=[{seed}]",
-               f"out_dir={study_out}", "threads=1", f"acquisition.score_max_side={score_side}", ARCHIVED_FAMILY_POSTERIOR, *extra]
+               f"out_dir={study_out}", "threads=1", f"acquisition.score_max_side={score_side}",
+               ARCHIVED_FAMILY_POSTERIOR, *extra]
         t0 = time.perf_counter()
         with open(logs / f"{scene}_s{seed}.log", "a") as log:
             r = subprocess.run(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT)

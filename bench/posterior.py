@@ -36,7 +36,8 @@ def main() -> None:
         for scene in args.scenes:
             for method in args.methods:
                 run_dir = Path(args.out) / scene / method / f"s{seed}"
-                m = train_run(run_dir, scene_overrides(scene) + QUICK + [*model_overrides(method), f"seed={seed}", *args.extra])
+                m = train_run(run_dir, scene_overrides(scene) + QUICK
+                              + [*model_overrides(method), f"seed={seed}", *args.extra])
                 m = ensure_lpips(run_dir, m)
                 rows.append({"scene": scene, "seed": seed, "method": method, "psnr": m["psnr"], "ssim": m["ssim"],
                              "lpips": m["lpips"], "num_gaussians": m["num_gaussians"], "fps": m["render_fps"],

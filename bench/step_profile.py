@@ -111,8 +111,9 @@ print("STEP_PROFILE " + json.dumps(out), flush=True)
 
 def run_case(code: Path, scene: str, model: str, steps: int, threads: int | None) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
-        overrides = scene_overrides(scene) + QUICK + [*model_overrides(model), f"trainer.max_steps={steps}", "renderer=cpu",
-                                                      f"trainer.default_root_dir={tmp}/run", "trainer.eval_every=100000"]
+        overrides = scene_overrides(scene) + QUICK + [*model_overrides(model), f"trainer.max_steps={steps}",
+                                                      "renderer=cpu", f"trainer.default_root_dir={tmp}/run",
+                                                      "trainer.eval_every=100000"]
         if threads:
             overrides.append(f"threads={threads}")
         env = dict(os.environ, PYTHONPATH=str(code))

@@ -175,7 +175,7 @@ def test_study_family_posterior_pins_blocks_and_the_protocol_records_other_ones(
     from b3dgs.study.active import compose_config, family_config, study_protocol
 
     def posteriors(cfg):
-        return {f: list(family_config(cfg, f, 0).get("posterior") or {}) for f in ("standard", "niw")}
+        return {f: list(family_config(cfg, f, 0).get("posterior") or {}) for f in ("standard", "niw", "dpmm")}
 
     monkeypatch.setenv("B3DGS_DATA", str(tmp_path / "data"))
     plain = compose_config("study", ["scene=fox"])
@@ -183,8 +183,9 @@ def test_study_family_posterior_pins_blocks_and_the_protocol_records_other_ones(
     sh = compose_config("study", ["scene=fox", "family_posterior={niw:[niw,sh]}"])
     for c in (plain, pinned, sh):  # resolved outside a Hydra job: the run dir is a literal
         c.trainer.default_root_dir = str(tmp_path)
-    assert posteriors(plain) == posteriors(pinned) == {"standard": [], "niw": ["niw"]}
-    assert posteriors(sh) == {"standard": [], "niw": ["niw", "sh"]}
+    dpmm = ["niw", "dp", "noise", "opacity", "color"]
+    assert posteriors(plain) == posteriors(pinned) == {"standard": [], "niw": ["niw"], "dpmm": dpmm}
+    assert posteriors(sh) == {"standard": [], "niw": ["niw", "sh"], "dpmm": dpmm}
     assert study_protocol(plain, posteriors(plain)) == study_protocol(pinned, posteriors(pinned))
     assert not any(k.startswith("family_posterior") for k in study_protocol(plain, posteriors(plain)))
     assert study_protocol(sh, posteriors(sh))["family_posterior.niw"] == ["niw", "sh"]
@@ -194,5 +195,8 @@ def test_study_family_posterior_pins_blocks_and_the_protocol_records_other_ones(
         check_stored_protocol(tmp_path, study_protocol(sh, posteriors(sh)), fix="f")
     with pytest.raises(B3dgsError, match="family_posterior.niw: unknown posterior block 'nope'.*fix: use blocks"):
         family_config(compose_config("study", ["family_posterior={niw:[nope]}"]), "niw", 0)
-    with pytest.raises(B3dgsError, match="must be a list of posterior block names"):
-        family_config(compose_config("study", ["family_posterior={niw:niw}"]), "niw", 0)
+    for bad in ("niw", "3"):
+        with pytest.raises(B3dgsError, match="must be a list of posterior block names"):
+            family_config(compose_config("study", [f"family_posterior={{niw:{bad}}}"]), "niw", 0)
+    # a family outside the table is recorded only when pinned (its folders from before the setting stay valid)
+    assert study_protocol(sh, {"mcmc": []})["family_posterior.mcmc"] == []

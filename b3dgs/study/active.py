@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 import numpy as np
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from b3dgs.io import write_json
 from b3dgs.protocol import check_stored_protocol
@@ -52,7 +52,7 @@ def compose_config(config_name: str, overrides: list[str]) -> DictConfig:
 #: the posterior blocks each family's model had in every study folder written before ``family_posterior`` (which
 #: did not record them): left out of protocol.json at these values, so those folders stay valid, and a folder of
 #: one posterior refuses rows of another (e.g. after a change of conf/model/niw.yaml's default blocks)
-FAMILY_POSTERIOR_UNRECORDED = {"standard": [], "niw": ["niw"]}
+FAMILY_POSTERIOR_UNRECORDED = {"standard": [], "niw": ["niw"], "dpmm": ["niw", "dp", "noise", "opacity", "color"]}
 
 
 def family_posterior_override(cfg: DictConfig, family: str) -> list[str]:
@@ -68,7 +68,7 @@ def family_posterior_override(cfg: DictConfig, family: str) -> list[str]:
     blocks = pins.get(family)
     if blocks is None:
         return []
-    if isinstance(blocks, str) or not all(isinstance(b, str) for b in blocks):
+    if not isinstance(blocks, (list, tuple, ListConfig)) or not all(isinstance(b, str) for b in blocks):
         raise B3dgsError(f"family_posterior.{family} must be a list of posterior block names, got {blocks!r}",
                          f"pass e.g. family_posterior.{family}=[niw]")
     unknown = [b for b in blocks if b not in option_names("posterior")]
@@ -248,8 +248,8 @@ def merged_policies(meta_path: Path, policies: list[str]) -> list[str]:
 
 def study_protocol(cfg: DictConfig, family_posteriors: Optional[dict] = None) -> dict:
     """The flattened study settings that change its rows and caches (``out_dir/<scene>/protocol.json``), with
-    ``family_posterior.<family>``: the posterior blocks of each family's model as composed (``family_posteriors``),
-    where they differ from :data:`FAMILY_POSTERIOR_UNRECORDED`."""
+    ``family_posterior.<family>``: the posterior blocks of each family's model as composed (``family_posteriors``:
+    the families of :data:`FAMILY_POSTERIOR_UNRECORDED` and the pinned ones), where they differ from that table."""
     from b3dgs.protocol import RUN_IGNORED, run_protocol
 
     out = run_protocol(OmegaConf.to_container(cfg, resolve=True), ignore=RUN_IGNORED + STUDY_IGNORED)
@@ -317,8 +317,11 @@ class ActiveStudy:
         self.out = Path(str(cfg.out_dir)) / self.scene.name
         self._family_cfgs: dict[str, DictConfig] = {}
         self.labels_policies = self._policies()
-        # composed now, at start; the core families always, so that protocol.json does not depend on the policies run
-        families = sorted({p.family for _, p in self.labels_policies} | set(FAMILY_POSTERIOR_UNRECORDED))
+        for fam in sorted({p.family for _, p in self.labels_policies}):
+            self.family_cfg(fam, 0)  # composed now, at start
+        # the blocks of the core families and of the pinned ones (not of the families in use: protocol.json must not
+        # depend on the policies run; another family's folders from before family_posterior stay valid)
+        families = sorted(set(FAMILY_POSTERIOR_UNRECORDED) | set(cfg.get("family_posterior") or {}))
         posteriors = {fam: list(self.family_cfg(fam, 0).get("posterior") or {}) for fam in families}
         self.protocol = check_stored_protocol(
             self.out, study_protocol(cfg, posteriors), legacy=legacy_protocol(self.out),

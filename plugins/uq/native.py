@@ -79,8 +79,8 @@ class NativeUQ(UQRegime):
                 diff = ", ".join(f"{f.name} {getattr(own, f.name)!r} vs {getattr(blk, f.name)!r}" for f in fields(own)
                                  if type(own) is type(blk) and getattr(own, f.name) != getattr(blk, f.name))
                 raise B3dgsError(f"uq: add.{name} differs from the model's own {name} block ("
-                                 f"{diff or f'{type(own).__name__} vs {type(blk).__name__}'}); fix: score the model's "
-                                 f"own with uq=native, or give add.{name} the same settings")
+                                 f"{diff or f'{type(own).__name__} vs {type(blk).__name__}'})",
+                                 f"score the model's own with uq=native, or give add.{name} the same settings")
             blk.validate()
             out.append((name, blk, blk.initialize_state(splats=m.splats, scene=None, info={})))
         if carried:  # added blocks the model already carries with the same settings (no key otherwise: archived uq.json)
