@@ -326,7 +326,7 @@ class ActiveStudy:
         self.protocol = check_stored_protocol(
             self.out, study_protocol(cfg, posteriors), legacy=legacy_protocol(self.out),
             fix="pass another out_dir, or the settings of the rows there (their protocol.json) to continue them "
-                "(family_posterior={niw:[niw]} pins the NIW family's blocks)")
+                "(a family's posterior blocks: family_posterior={niw:[...]})")
         self._phase1_meta: dict[str, dict] = {}
 
     def family_cfg(self, family: str, seed: int) -> DictConfig:
