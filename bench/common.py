@@ -15,6 +15,7 @@ from typing import Callable, Sequence
 import torch
 
 from b3dgs.io import atomic_path, write_json
+from b3dgs.study.active import FAMILY_POSTERIOR_UNRECORDED
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -66,11 +67,13 @@ def write_results(name: str, payload: dict, text: str, root: Path = RESULTS) -> 
 # b3dgs.data_root), plus those of installed packages (b3dgs.conf entry points): a scene is added with one YAML file.
 # The study protocol is conf/experiment/study.yaml (256 px, 3000 steps, no logger, progress bar or renders).
 QUICK = ["experiment=study"]
-# The posterior blocks each model had when the committed benchmarks and studies ran: the scripts that extend them pass
-# these explicitly (model_overrides), so a later change of a model's default blocks (conf/model/<name>.yaml) cannot
-# change what an archived row means. The active-view study pins its families the same way (ARCHIVED_FAMILY_POSTERIOR).
-ARCHIVED_POSTERIOR = {"standard": [], "niw": ["niw"], "dpmm": ["niw", "dp", "noise", "opacity", "color"]}
-ARCHIVED_FAMILY_POSTERIOR = "family_posterior={standard:[],niw:[niw]}"
+# The posterior blocks each model had when the committed benchmarks and studies ran (the study's table of them): the
+# scripts that extend them pass these explicitly (model_overrides), so a later change of a model's default blocks
+# (conf/model/<name>.yaml) cannot change what an archived row means. The active-view study pins its families the same
+# way (ARCHIVED_FAMILY_POSTERIOR).
+ARCHIVED_POSTERIOR = FAMILY_POSTERIOR_UNRECORDED
+ARCHIVED_FAMILY_POSTERIOR = "family_posterior={" + ",".join(
+    f"{fam}:[{','.join(blocks)}]" for fam, blocks in ARCHIVED_POSTERIOR.items()) + "}"
 
 
 def model_overrides(model: str) -> list[str]:
