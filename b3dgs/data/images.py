@@ -9,6 +9,11 @@ at import time, and every b3dgs module that touches pycolmap imports this module
 imports ``pycolmap`` lazily, inside the function that needs it (see :func:`import_pycolmap`).
 ``tests/test_data.py::test_import_order_save_png`` writes and reads a PNG through PIL after either
 import order (matplotlib, too, saves its PNGs through PIL in the same processes).
+
+That ordering cannot help a user who imports pycolmap first: pycolmap 4.1.x and 4.2.x export their own
+static zlib, and when ``libz.so.1`` is loaded after them (a fresh venv: nothing imported ``zlib`` before)
+its internal calls bind to pycolmap's copy, so every deflate user aborts, Python's own
+``zlib.compress`` included. pycolmap 4.0.x does not, so ``pyproject.toml`` pins ``pycolmap<4.1``.
 """
 from __future__ import annotations
 
