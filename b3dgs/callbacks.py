@@ -80,6 +80,7 @@ def _set_guard_counts(counts: dict[str, int], calls: dict[str, int]) -> None:
     from b3dgs import numerics as guards
 
     with guards._lock:  # noqa: SLF001 - the counters are module state; restore them as saved
+        guards._pending.clear()
         guards._counts.clear()
         guards._counts.update({str(k): int(v) for k, v in counts.items()})
         guards._fired_calls.clear()
@@ -334,18 +335,23 @@ class StepProgressBar(TQDMProgressBar):
     def on_train_epoch_end(self, trainer, pl_module) -> None:
         pass
 
+    #: a terminal bar's postfix (which reads the loss back from the device) is redrawn at most this often
+    REDRAW_EVERY_S = 0.25
+
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         bar, n = self.train_progress_bar, int(trainer.global_step)
         if bar is not None and self._should_update(n, bar.total):
             bar.n = n
+            now = time.monotonic()
+            every = self.line_every_s if self._lines else self.REDRAW_EVERY_S
+            if not (self._last_line is None or n >= bar.total or now - self._last_line >= every):
+                return  # the metrics are read (a host sync on a GPU) only when they are shown
+            self._last_line = now
             bar.set_postfix(self.get_metrics(trainer, pl_module), refresh=False)
             if not self._lines:
                 bar.refresh()
                 return
-            now = time.monotonic()
-            if self._last_line is None or n >= bar.total or now - self._last_line >= self.line_every_s:
-                self._last_line = now
-                print(str(bar), file=sys.stdout, flush=True)
+            print(str(bar), file=sys.stdout, flush=True)
 
     def get_metrics(self, trainer, pl_module) -> dict:
         shown = super().get_metrics(trainer, pl_module)

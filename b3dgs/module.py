@@ -14,7 +14,9 @@ from torch import Tensor, nn
 
 from b3dgs.device import move_tree
 from b3dgs.errors import B3dgsError
+from b3dgs.host_sync import scope
 from b3dgs.init import init_gaussians
+from b3dgs.numerics import on_device_path
 from b3dgs.ops import TopologyOps
 from b3dgs.plugin import Plugin, PosteriorBlock
 from b3dgs.render.render import RenderOutput
@@ -25,6 +27,7 @@ from b3dgs.types import Camera, Scene
 log = logging.getLogger(__name__)
 
 PARAM_ORDER = ("means", "scales", "quats", "opacities", "sh0", "shN")
+_DIVERGED_FIX = "lower the learning rates, e.g. model.lr_means, or check the data"
 
 
 class SplatModule(L.LightningModule):
@@ -229,6 +232,10 @@ class SplatModule(L.LightningModule):
 
     # ------------------------------------------------------------------ training
     def training_step(self, batch: Camera, batch_idx: int):
+        with scope("core"):  # host-sync attribution (b3dgs.host_sync); a no-op context unless a counter is installed
+            return self._training_step(batch, batch_idx)
+
+    def _training_step(self, batch: Camera, batch_idx: int):
         cam = batch[0] if isinstance(batch, (list, tuple)) else batch
         step = int(self.global_step)
         opt = self.optimizers()
@@ -241,22 +248,25 @@ class SplatModule(L.LightningModule):
         need_weights = any(b.needs_weights for b in self.posterior.values())
         cam = self.schedule.camera(self.device_camera(cam), step)  # the step's resolution (schedule=dash)
         try:
-            out = self.render_camera(cam, retain_means2d_grad=True, return_weights=need_weights)
+            with scope("render"):
+                out = self.render_camera(cam, retain_means2d_grad=True, return_weights=need_weights)
         except ValueError as e:
             if "NaN or Inf" not in str(e):
                 raise
             raise B3dgsError(f"step {step}, camera {cam.name}: the optimisation diverged (NaN/Inf Gaussian attributes "
-                             f"reached the renderer: {e})",
-                             "lower the learning rates, e.g. model.lr_means, or check the data") from e
+                             f"reached the renderer: {e})", _DIVERGED_FIX) from e
         cam = self.device_camera(cam)
         gt = cam.image
         l1 = (out.rgb - gt).abs().mean()
         ssim = self.renderer.ssim(out.rgb, gt)
         lam = self.hparams.lambda_dssim
         loss = (1 - lam) * l1 + lam * (1 - ssim)
-        if not torch.isfinite(loss):
-            raise B3dgsError(f"non-finite loss at step {step} (camera {cam.name})",
-                             "lower the learning rates, e.g. model.lr_means, or check the data")
+        if on_device_path(loss):  # no host read per step: the first non-finite step is kept on the device
+            self._note_nonfinite(loss, step)
+            if step % max(self.trainer.log_every_n_steps, 1) == 0:
+                self.check_finite()
+        elif not torch.isfinite(loss):
+            raise B3dgsError(f"non-finite loss at step {step} (camera {cam.name})", _DIVERGED_FIX)
         ops.per_gaussian = {}
         info = {
             **self._static_info(), "ops": ops, "camera": cam, "render": out, "per_gaussian": ops.per_gaussian,
@@ -296,12 +306,32 @@ class SplatModule(L.LightningModule):
             self.log("loss", loss.detach(), prog_bar=True, logger=False, batch_size=1)
         return loss.detach()
 
+    def _note_nonfinite(self, loss: Tensor, step: int) -> None:
+        first = getattr(self, "_first_nonfinite", None)
+        if first is None or first.device != loss.device:
+            first = torch.full((), -1, dtype=torch.long, device=loss.device)
+        bad = ~torch.isfinite(loss) & (first < 0)
+        self._first_nonfinite = torch.where(bad, torch.full_like(first, step), first)
+
+    def check_finite(self) -> None:
+        """Raise if a training step's loss was not finite (the device path checks once per logging interval and at
+        the end of training, reading one value; the CPU path checks every step)."""
+        first = getattr(self, "_first_nonfinite", None)
+        if first is not None and int(first) >= 0:
+            raise B3dgsError(f"non-finite loss at step {int(first)} (found at step {int(self.global_step)})",
+                             _DIVERGED_FIX)
+
+    def on_train_end(self) -> None:
+        self.check_finite()
+
     def _call_hooks(self, hook: str, optimizers, step: int, info: dict) -> None:
         # the strategy runs after the posterior blocks so that blocks see the pre-densification set
         for name in list(self.posterior.keys()) + ["strategy"]:
             plugin = self.plugins[name]
             t0 = time.perf_counter()
-            getattr(plugin, hook)(splats=self.splats, optimizers=optimizers, state=self.states[name], step=step, info=info)
+            with scope(name):
+                getattr(plugin, hook)(splats=self.splats, optimizers=optimizers, state=self.states[name], step=step,
+                                      info=info)
             if name in self.block_time_s:
                 self.block_time_s[name] += time.perf_counter() - t0
 

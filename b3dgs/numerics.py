@@ -9,15 +9,17 @@ firing calls.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
-from typing import Union
+from typing import Iterator, Union
 
 import torch
 
 from b3dgs.errors import B3dgsError
 
-__all__ = ["guard", "guard_counts", "guard_calls", "reset_guards", "LOG_EVERY", "float_dtype", "scalar_or_vector"]
+__all__ = ["guard", "guard_counts", "guard_calls", "reset_guards", "LOG_EVERY", "float_dtype", "scalar_or_vector",
+           "on_device_path", "forced_device_path", "guard_deferred", "guard_where"]
 
 log = logging.getLogger(__name__)
 
@@ -27,6 +29,75 @@ LOG_EVERY = 1000
 _lock = threading.Lock()
 _counts: dict[str, int] = {}
 _fired_calls: dict[str, int] = {}
+# device-side guard counts not read yet: name -> (entries, firing calls), 0-d int64 tensors on the mask's device
+_pending: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
+_FORCE_DEVICE_PATH = False
+
+
+def on_device_path(x: Union[torch.Tensor, torch.device]) -> bool:
+    """Whether per-step code keeps its values on the device, with no host read: for tensors off the CPU, or any
+    tensor inside :func:`forced_device_path` (tests). On the CPU path, code reads values on the host as it always
+    did, so CPU runs keep their bits; the device path computes the same quantities without a host sync."""
+    dev = x.device if isinstance(x, torch.Tensor) else torch.device(x)
+    return _FORCE_DEVICE_PATH or dev.type != "cpu"
+
+
+@contextlib.contextmanager
+def forced_device_path() -> Iterator[None]:
+    """Run the device path (:func:`on_device_path`) on CPU tensors: how the tests check it without a GPU."""
+    global _FORCE_DEVICE_PATH
+    old, _FORCE_DEVICE_PATH = _FORCE_DEVICE_PATH, True
+    try:
+        yield
+    finally:
+        _FORCE_DEVICE_PATH = old
+
+
+def guard_deferred(name: str, mask: torch.Tensor) -> None:
+    """:func:`guard` without a host sync on the device path: the count is added on the device and read when the
+    counts are (:func:`guard_counts`, once per checkpoint or at the end of a run); on the CPU path, :func:`guard`."""
+    if not on_device_path(mask):
+        guard(name, mask)
+        return
+    n = mask.sum() if mask.dtype == torch.bool else mask.reshape(()).long()
+    with _lock:
+        cnt, calls = _pending.get(name, (None, None))
+        if cnt is None or cnt.device != n.device:
+            if cnt is not None:
+                _flush_locked()
+            cnt = torch.zeros((), dtype=torch.long, device=n.device)
+            calls = torch.zeros((), dtype=torch.long, device=n.device)
+        _pending[name] = (cnt.add_(n), calls.add_(n > 0))
+
+
+def guard_where(name: str, mask: torch.Tensor, fixed, value: torch.Tensor) -> torch.Tensor:
+    """``torch.where(mask, fixed, value)``, counted as guard ``name`` (``fixed``: a tensor, a scalar, or a callable
+    that makes it, called only when needed). On the CPU path ``value`` itself comes back where the guard did not fire
+    (as before); on the device path the ``where`` always runs and the count is deferred (:func:`guard_deferred`),
+    so there is no host sync."""
+    if not on_device_path(mask):
+        if guard(name, mask):
+            return torch.where(mask, fixed() if callable(fixed) else fixed, value)
+        return value
+    guard_deferred(name, mask)
+    return torch.where(mask, fixed() if callable(fixed) else fixed, value)
+
+
+def _flush_locked() -> None:
+    """Move the deferred device counts into the host counters (one read per guard name); holds ``_lock``."""
+    if not _pending:
+        return
+    items = list(_pending.items())
+    _pending.clear()
+    for name, (cnt, calls) in items:
+        n, k = int(cnt), int(calls)
+        if n == 0:
+            continue
+        first = name not in _counts
+        _counts[name] = _counts.get(name, 0) + n
+        _fired_calls[name] = _fired_calls.get(name, 0) + k
+        if first:
+            log.warning("numerical guard '%s' fired on %d entries in %d calls (counted on the device)", name, n, k)
 
 
 def _to_count(mask_or_count: Union[torch.Tensor, int, bool, float]) -> int:
@@ -60,20 +131,23 @@ def guard(name: str, mask_or_count: Union[torch.Tensor, int, bool]) -> int:
 
 
 def guard_counts() -> dict[str, int]:
-    """Snapshot of the number of guarded entries per guard name."""
+    """Snapshot of the number of guarded entries per guard name (deferred device counts read first)."""
     with _lock:
+        _flush_locked()
         return dict(_counts)
 
 
 def guard_calls() -> dict[str, int]:
     """Snapshot of the number of calls in which each guard fired (at least one entry)."""
     with _lock:
+        _flush_locked()
         return dict(_fired_calls)
 
 
 def reset_guards() -> None:
     """Clear all guard counters."""
     with _lock:
+        _pending.clear()
         _counts.clear()
         _fired_calls.clear()
 

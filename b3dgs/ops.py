@@ -13,6 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from b3dgs.errors import B3dgsError
+from b3dgs.host_sync import scope
 from b3dgs.numerics import guard
 from b3dgs.render.projection import quat_to_rotmat
 
@@ -129,7 +130,9 @@ class TopologyOps:
             core["next_id"] = torch.tensor(start + n_fresh, device=core["ids"].device)
         info = {"op": op, "index": index, "fresh": fresh, "parent_ids": parent_src, "n_old": n_old}
         for name, plugin in self.plugins.items():
-            plugin.on_topology(splats=self.splats, optimizers=self.optimizers, state=self.states[name], step=self.step, info=info)
+            with scope(name):
+                plugin.on_topology(splats=self.splats, optimizers=self.optimizers, state=self.states[name], step=self.step,
+                                   info=info)
         if self.on_change is not None:
             self.on_change()
 

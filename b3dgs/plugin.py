@@ -55,6 +55,12 @@ class Plugin:
     def initialize_state(self, *, splats, scene, info: dict) -> dict:
         return {}
 
+    def periodic(self, step: int, info: dict) -> tuple[str, ...]:
+        """The names of the periodic work this plugin does at ``step`` (e.g. ``("refresh",)``), decided from the step
+        counter alone; ``()`` on an ordinary step. ``info``: the run's static info (``max_steps``, ...). Read by
+        :class:`b3dgs.host_sync.HostSyncCallback` to tell ordinary steps, which must not synchronise, from the rest."""
+        return ()
+
     def step_pre_backward(self, *, splats, optimizers, state, step, info) -> None:
         pass
 

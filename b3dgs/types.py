@@ -43,6 +43,15 @@ class Camera:
         if not torch.isfinite(self.K).all() or not torch.isfinite(self.viewmat).all():
             raise B3dgsError(f"Camera {self.name!r}: K or viewmat contains NaN/Inf")
 
+    def focal_max(self) -> float:
+        """max(fx, fy) as a Python float, read once per camera object (a device copy made by :meth:`to` inherits the
+        host camera's value, so renders on a GPU need no device read for it)."""
+        v = self.__dict__.get("_focal_max")
+        if v is None:
+            v = float(max(self.K[0, 0], self.K[1, 1]))
+            self.__dict__["_focal_max"] = v
+        return v
+
     @property
     def camtoworld(self) -> Tensor:
         """Inverse of the rigid ``viewmat``: [Rᵀ | -Rᵀt] (no general matrix inverse)."""
@@ -81,6 +90,7 @@ class Camera:
         device = torch.device(device)
         if self.viewmat.device == device:
             return self
+        self.focal_max()  # read here, on the host; the copy keeps it (no device read per render)
         moved = copy.copy(self)  # already validated: no second pass over the image on the new device
         moved.K, moved.viewmat = self.K.to(device), self.viewmat.to(device)
         moved.image = None if self.image is None else self.image.to(device, non_blocking=True)

@@ -3,7 +3,11 @@
 # scripts/device_wheels.sh carried in .device/, then run the CUDA tests and the GPU benchmarks, writing each
 # stage's log under $OUT as it finishes. Each stage has its own time limit (seconds, env STAGE_LIMIT_<name>),
 # so one slow stage cannot eat the call, and all end by DEADLINE (seconds, default 540).
-# Usage: [DEADLINE=S] [STAGE_LIMIT_<name>=S] bash scripts/device_check.sh [tests|render|train|all]
+# Usage: [DEADLINE=S] [STAGE_LIMIT_<name>=S] bash scripts/device_check.sh [tests|render|train|all|profile]
+# profile (issue 43, GPU parity): host syncs per step (CUDA's own count), torch.profiler of a DPMM step, and standard /
+# NIW / DPMM on fox and ethiopian_head, seeds 0-1, quick protocol, on gsplat; then bench/results/device_<card>.{md,json}.
+# It resumes: run it again on the same (warm) machine and finished runs are kept. Its logs go to one file, log.txt, and
+# its results to $OUT (the device tool returns at most 8 files).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 OUT=${OUT:-outputs/device}
@@ -14,16 +18,19 @@ PY=$(command -v python3 || command -v python)
 what=${1:-all}
 DEADLINE=${DEADLINE:-540}  # seconds for the whole check (the device tool cuts a command at 600)
 t0=$(date +%s)
-stage() {  # stage NAME LIMIT_S CMD...: run CMD under a time limit, its output to $OUT/NAME.txt and here
+LOGNAME_ALL=""  # profile: every stage's output in $OUT/log.txt
+[[ $what == profile ]] && LOGNAME_ALL=log.txt
+stage() {  # stage NAME LIMIT_S CMD...: run CMD under a time limit, its output to $OUT/NAME.txt (or log.txt) and here
   local name=$1 limit=$2; shift 2
+  local logf="$OUT/${LOGNAME_ALL:-$name.txt}"
   local var="STAGE_LIMIT_${name}"; limit=${!var:-$limit}
   local left=$(( DEADLINE - ($(date +%s) - t0) ))  # never past the whole check's deadline
   (( left < limit )) && limit=$left
-  if (( limit < 10 )); then echo "== $name skipped: under 10 s left of its limit or of the ${DEADLINE}s deadline" | tee "$OUT/$name.txt"; return; fi
-  echo "== $name (limit ${limit}s, at +$(( $(date +%s) - t0 ))s)"
-  timeout --kill-after=10 "$limit" "$@" > >(tee "$OUT/$name.txt") 2>&1
+  if (( limit < 10 )); then echo "== $name skipped: under 10 s left of its limit or of the ${DEADLINE}s deadline" | tee -a "$logf"; return; fi
+  echo "== $name (limit ${limit}s, at +$(( $(date +%s) - t0 ))s)" | tee -a "$logf"
+  timeout --kill-after=10 "$limit" "$@" > >(tee -a "$logf") 2>&1
   local rc=$?
-  echo "== $name rc=$rc after +$(( $(date +%s) - t0 ))s" | tee -a "$OUT/$name.txt"
+  echo "== $name rc=$rc after +$(( $(date +%s) - t0 ))s" | tee -a "$logf"
 }
 {
   nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
@@ -36,17 +43,18 @@ stage() {  # stage NAME LIMIT_S CMD...: run CMD under a time limit, its output t
   "$PY" -m pip install -q --no-deps --no-index --no-build-isolation -e . 2>&1 | grep -v "root' user" \
     || echo "editable install failed; using PYTHONPATH"
   "$PY" -m pip list 2>/dev/null | grep -i -E "^(torch|lightning|gsplat|hydra-core|omegaconf|kornia|filelock) "
-} 2>&1 | tee "$OUT/setup.txt"
+} 2>&1 | tee -a "$OUT/${LOGNAME_ALL:-setup.txt}"
 export PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 if [[ -d .device/shared/data ]]; then  # the carried bench scene and LPIPS weights
-  export B3DGS_SHARED="$PWD/.device/shared" B3DGS_LPIPS_WEIGHTS="$PWD/.device/shared/lpips/lpips_alex.pth"
+  export B3DGS_SHARED="$PWD/.device/shared"
+  [[ -f .device/shared/lpips/lpips_alex.pth ]] && export B3DGS_LPIPS_WEIGHTS="$PWD/.device/shared/lpips/lpips_alex.pth"
 fi
 # gsplat's JIT build (minutes) starts now, beside the C++ CPU extension's build that the first test triggers
 stage gsplat_build 300 "$PY" -c \
   "import time; t=time.time(); from gsplat.cuda._backend import _C; print('gsplat _C', _C is not None, round(time.time()-t, 1), 's')" &
 build_pid=$!
 "$PY" -c "import time; t=time.time(); from b3dgs.render._ext import load_extension; load_extension(); print('b3dgs C++ ext', round(time.time()-t,1), 's')" \
-  2>&1 | tee -a "$OUT/setup.txt" || true
+  2>&1 | tee -a "$OUT/${LOGNAME_ALL:-setup.txt}" || true
 wait $build_pid
 if [[ $what == tests || $what == all ]]; then
   # the CUDA-marked tests, then gsplat's on its CPU emulation (tests/gsplat_cpu.py); the real kernels use fast
@@ -63,5 +71,18 @@ if [[ $what == render || $what == all ]]; then
 fi
 if [[ $what == tests || $what == all ]]; then  # last: it needs no GPU, only this machine's torch
   stage pytest_gsplat 120 "$PY" -m pytest -q -rs -p no:cacheprovider -k gsplat -m "not cuda"
+fi
+if [[ $what == profile ]]; then
+  R=outputs/device/results  # ignored: kept on a warm machine between calls, so a second call resumes
+  mkdir -p "$R"
+  card=$("$PY" -c "import torch; n=torch.cuda.get_device_name(0).lower(); print(next((c for c in ('h200','h100','a100','l40s','l4') if c in n), 'gpu'))")
+  # first the two short stages (what a step costs and why), then the trainings that decide (12 runs, resumable)
+  [[ -f $R/step_profile_cuda.json ]] || stage step_profile 60 "$PY" -m bench.device_profile profile --device cuda \
+    --models dpmm --results "$R"
+  stage host_syncs 90 "$PY" -m bench.host_syncs --device cuda --steps 300 --models niw dpmm --results "$R"
+  stage train_cuda 900 "$PY" bench/train.py --device cuda --scenes fox ethiopian_head --models standard niw dpmm \
+    --seeds 0 1 --results "$R"
+  STAGE_LIMIT_report=30 DEADLINE=$(( DEADLINE + 30 )) stage report 30 "$PY" -m bench.device_profile report --card "$card" --results "$R"
+  cp "$R"/device_*.md "$R"/device_*.json "$R"/train_cuda.json "$R"/host_syncs_cuda.md "$R"/step_profile_cuda.json "$OUT"/ 2>/dev/null
 fi
 echo "device_check done after +$(( $(date +%s) - t0 ))s"

@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Prepare, on this machine, what the GPU machine lacks (it reaches no registry) in .device/ (git-ignored; name
-# `.device` in the device tool's `carry`): the wheels its image does not hold, and the bench scene (fox) with the
-# LPIPS weights from the shared folder ($B3DGS_SHARED, else ../shared). Then, there: bash scripts/device_check.sh
+# `.device` in the device tool's `carry`): the wheels its image does not hold, and the bench scenes (DEVICE_SCENES,
+# default fox and ethiopian_head) with the LPIPS weights (DEVICE_LPIPS=0: without) from the shared folder
+# ($B3DGS_SHARED, else ../shared). Then, there: bash scripts/device_check.sh
 set -euo pipefail
 cd "$(dirname "$0")/.."
 mkdir -p .device/wheels
@@ -11,8 +12,13 @@ python -m pip download -q --no-deps -d .device/wheels gsplat==1.5.3 hydra-core==
 python -m pip download -q --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
   --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d .device/wheels kornia-rs
 shared=${B3DGS_SHARED:-../shared}
+# the scenes the device stages train (DEVICE_SCENES) and, unless DEVICE_LPIPS=0, the LPIPS weights: the whole working
+# tree travels, at most 64 MiB, and the repository alone is ~35 MB
 mkdir -p .device/shared/data .device/shared/lpips
-cp -r "$shared/data/fox" .device/shared/data/
-cp "$shared/lpips/lpips_alex.pth" .device/shared/lpips/
+for scene in ${DEVICE_SCENES:-fox ethiopian_head}; do
+  rm -rf ".device/shared/data/$scene"; cp -r "$shared/data/$scene" .device/shared/data/
+done
+if [[ ${DEVICE_LPIPS:-1} != 0 ]]; then cp "$shared/lpips/lpips_alex.pth" .device/shared/lpips/; fi
 du -sh .device/wheels .device/shared
+echo "travels: $(( ( $(git ls-files -z | xargs -0 du -cb 2>/dev/null | tail -1 | cut -f1) + $(du -sb .device | cut -f1) ) / 1048576 )) MiB of 64"
 ls -la .device/wheels

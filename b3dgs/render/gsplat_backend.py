@@ -33,6 +33,7 @@ Left as gsplat has them (documented in docs/design.md, "Renderers"; sizes measur
 """
 from __future__ import annotations
 
+import functools
 import sys
 from typing import Mapping, Optional
 
@@ -52,8 +53,8 @@ def weight_sums(gauss_ids: Tensor, pixel_ids: Tensor, image_ids: Tensor, means2d
                 opacities: Tensor, width: int, height: int, max_alpha: float = GSPLAT_MAX_ALPHA) -> tuple[Tensor, Tensor]:
     """Σ_p w_kp and Σ_p w_kp² per image and Gaussian, from the composited (Gaussian, pixel) pairs.
 
-    gauss_ids, pixel_ids (row-major in the image), image_ids: (M,) pairs, front to back within each
-    pixel; means2d (I, N, 2), conics (I, N, 3), opacities (I, N). w = α·T with α = min(max_alpha,
+    gauss_ids, pixel_ids (row-major in the image), image_ids: (M,) pairs grouped by pixel (as gsplat lists them),
+    front to back within each pixel; means2d (I, N, 2), conics (I, N, 3), opacities (I, N). w = α·T with α = min(max_alpha,
     o·exp(-q/2)) at the pixel centre and T the product of (1 - α) of the pixel's earlier pairs
     (a segmented product, taken in log space in float64). Returns two (I, N) float64 tensors.
     """
@@ -67,11 +68,12 @@ def weight_sums(gauss_ids: Tensor, pixel_ids: Tensor, image_ids: Tensor, means2d
     M = int(gauss_ids.numel())
     if M == 0:
         return wsum.view(I, N), wsq.view(I, N)
+    # gsplat's kernel writes each pixel's pairs contiguously, front to back, at the pixel's running offset in
+    # (image, pixel) order (rasterize_to_indices_3dgs: ``chunk_starts[pix_id] + cnt``), and so does the test suite's
+    # emulation: the pairs are already grouped by pixel, so no sort is needed, only the group starts
     pix_key = image_ids.long() * (width * height) + pixel_ids.long()
-    order = torch.sort(pix_key, stable=True).indices  # keeps the front-to-back order within a pixel
-    pix_key = pix_key[order]
-    flat = image_ids.long()[order] * N + gauss_ids.long()[order]
-    pid = pixel_ids.long()[order]
+    flat = image_ids.long() * N + gauss_ids.long()
+    pid = pixel_ids.long()
     m = means2d.detach().reshape(-1, 2).double()[flat]
     c = conics.detach().reshape(-1, 3).double()[flat]
     o = opacities.detach().reshape(-1).double()[flat]
@@ -92,6 +94,7 @@ def weight_sums(gauss_ids: Tensor, pixel_ids: Tensor, image_ids: Tensor, means2d
     return wsum.view(I, N), wsq.view(I, N)
 
 
+@functools.lru_cache(maxsize=64)
 def _near_plane(near: float) -> float:
     """gsplat culls ``z < near_plane``, our backends ``z <= near`` (in float32): the next float32 above ``near``
     makes gsplat cull exactly what ours cull."""

@@ -67,23 +67,21 @@ def _guarded_quats(quats: Tensor) -> Tensor:
     """Quaternions whose norm the kernels can take: rescale rows of extreme norm (exact, counted as
     ``render.quat_rescale``); zero rows keep the kernels' floor max(|q|, 1e-12), i.e. the identity
     rotation, counted as ``render.quat_zero``."""
-    from b3dgs.numerics import guard
+    from b3dgs.numerics import guard_deferred, guard_where
 
     with torch.no_grad():
         amax = quats.detach().abs().amax(-1, keepdim=True)
         zero = amax == 0
         extreme = ~zero & ((amax < _QUAT_LO) | (amax > _QUAT_HI))
-    guard("render.quat_zero", zero)
-    if guard("render.quat_rescale", extreme):
-        # normalize(q / m) = normalize(q) for any m > 0, so a detached m keeps the gradient exact
-        quats = torch.where(extreme, quats / torch.where(extreme, amax, torch.ones_like(amax)), quats)
-    return quats
+    guard_deferred("render.quat_zero", zero)
+    # normalize(q / m) = normalize(q) for any m > 0, so a detached m keeps the gradient exact
+    return guard_where("render.quat_rescale", extreme,
+                       lambda: quats / torch.where(extreme, amax, torch.ones_like(amax)), quats)
 
 
 def scale_log_cap(camera: Camera, dtype: torch.dtype) -> float:
     """log_cap of :func:`_guarded_log_scales`: a log-scale above log(z) + log_cap is clamped there."""
-    K = camera.K
-    f = float(max(K[0, 0], K[1, 1]))
+    f = camera.focal_max()
     big = math.sqrt(torch.finfo(dtype).max) / 4.0
     return math.log(math.sqrt(big / 3.0) / (f + 1.3 * max(camera.width, camera.height)))
 
@@ -96,7 +94,7 @@ def _guarded_log_scales(params: Mapping[str, Tensor], camera: Camera, near: floa
     the 2-D covariance below A and their determinant finite. Only Gaussians tens of orders of magnitude
     larger than their distance to the camera are touched; ordinary inputs pass unchanged.
     """
-    from b3dgs.numerics import guard
+    from b3dgs.numerics import guard_where
 
     log_scales, means = params["scales"], params["means"]
     with torch.no_grad():
@@ -106,9 +104,7 @@ def _guarded_log_scales(params: Mapping[str, Tensor], camera: Camera, near: floa
             z = z.amin(0)  # per-sample means, shared scales: the nearest sample bounds
         cap = (torch.log(z) + scale_log_cap(camera, log_scales.dtype)).unsqueeze(-1).to(log_scales.dtype)
         over = log_scales.detach() > cap
-    if guard("render.scale_clamp", over):
-        log_scales = torch.where(over, cap, log_scales)
-    return log_scales
+    return guard_where("render.scale_clamp", over, cap, log_scales)
 
 
 def guarded_params(params: Mapping[str, Tensor], camera: Camera, near: float) -> Mapping[str, Tensor]:

@@ -8,6 +8,7 @@ import torch
 
 from b3dgs.device import randn
 from b3dgs.errors import B3dgsError
+from b3dgs.numerics import on_device_path
 from b3dgs.plugin import PosteriorBlock
 from b3dgs_plugins.posterior import appearance as app
 from b3dgs.render.projection import SH_C0
@@ -45,7 +46,9 @@ class ColorBlock(PosteriorBlock):
     def step_post_backward(self, *, splats, optimizers, state, step, info):
         s2 = info.get("sigma2")
         if s2 is None:
-            s2 = float(info["sq_err_sum"]) / max(int(info["num_values"]), 1)
+            ss = info["sq_err_sum"]
+            # a 0-d tensor on the device path (no host read per step); the CPU path keeps its Python float
+            s2 = (ss.double() if on_device_path(ss) else float(ss)) / max(int(info["num_values"]), 1)
         state["sigma2"] = self.ema * state["sigma2"] + (1 - self.ema) * s2
         if step < self.stage_start(self.t_post, info, 2):
             return

@@ -267,7 +267,7 @@ class DPBlock(PosteriorBlock):
             if rs != 1.0:  # a downsampled step (schedule=dash): the weights in full-resolution pixels
                 w = w / (rs * rs)
             state["usage"].mul_(self.ema).add_((1 - self.ema) * w * self.train_views(state, info))
-        if step < self.stage_start(self.t_dp, info, 6) or step % self.cavi_every != 0:
+        if "cavi" not in self.periodic(step, info):
             return
         self.cavi(state)
         if self.prune:
@@ -275,6 +275,12 @@ class DPBlock(PosteriorBlock):
             mask = (state["e_pi"] < prune_threshold(k, self.prune_pi)) | (state["e_a"] < self.prune_activity)
             state["last_pruned"] = mask.sum()
             info["ops"].prune(mask, reason="dp")
+
+    def periodic(self, step: int, info: dict) -> tuple[str, ...]:
+        """``cavi`` (and activity pruning) every ``cavi_every`` steps from ``t_dp``."""
+        if step >= self.stage_start(self.t_dp, info, 6) and step % self.cavi_every == 0:
+            return ("cavi",)
+        return ()
 
     @torch.no_grad()
     def cavi(self, state) -> None:

@@ -545,8 +545,14 @@ class NIWBlock(PosteriorBlock):
         target = raw * torch.where(ok, eff_pixels * self.train_views(state, info) / torch.where(ok, total, 1.0), 0.0)
         keep = torch.where(vis.any(), self.ema, 1.0)  # no visible Gaussian: the counts stay as they are
         state["N"].mul_(keep).add_((1 - keep) * target)
-        if step % self.update_every == 0:
+        if "refresh" in self.periodic(step, info):
             self._refresh(state, splats)
+
+    def periodic(self, step: int, info: dict) -> tuple[str, ...]:
+        """``refresh`` (Eq. 2-3 from the running counts) every ``update_every`` steps from ``t_niw`` (paper count)."""
+        if self.count == "paper" and step >= self._t_niw(info) and step % self.update_every == 0:
+            return ("refresh",)
+        return ()
 
     @torch.no_grad()
     def _refresh(self, state, splats) -> None:

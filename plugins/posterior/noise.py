@@ -18,7 +18,7 @@ from typing import ClassVar, Optional, Tuple, Union
 import torch
 
 from b3dgs.errors import B3dgsError
-from b3dgs.numerics import guard
+from b3dgs.numerics import guard, guard_where, on_device_path
 from b3dgs.plugin import PosteriorBlock
 
 
@@ -38,6 +38,8 @@ def _t(x: Num) -> torch.Tensor:
 
 
 def _check_ab(a: torch.Tensor, b: torch.Tensor) -> None:
+    if on_device_path(a):  # the training step's own state (no host read per step); the CPU path checks
+        return
     if not bool((torch.isfinite(a) & (a > 0)).all()) or not bool((torch.isfinite(b) & (b > 0)).all()):
         raise B3dgsError("inverse-gamma parameters a, b must be finite and > 0")
     try:
@@ -47,6 +49,8 @@ def _check_ab(a: torch.Tensor, b: torch.Tensor) -> None:
 
 
 def _check_evidence(ss: torch.Tensor, n: torch.Tensor, where: str) -> torch.Tensor:
+    if on_device_path(ss):  # the step's residual, finite whenever the loss is (checked by the core)
+        return guard_where(f"{where}.negative_ss", ss < 0, torch.zeros_like(ss), ss)
     if not bool((torch.isfinite(n) & (n >= 0)).all()):
         raise B3dgsError(f"{where}: n_obs must be finite and >= 0")
     if not bool(torch.isfinite(ss).all()):
@@ -105,9 +109,7 @@ def ig_mean(a: Num, b: Num, eps: float = IG_MEAN_DENOM_EPS) -> torch.Tensor:
     a_, b_ = _t(a), _t(b)
     _check_ab(a_, b_)
     den = a_ - 1.0
-    small = den < eps
-    if guard("ig_mean.a_le_1", small):
-        den = torch.where(small, torch.full_like(den, eps), den)
+    den = guard_where("ig_mean.a_le_1", den < eps, torch.full_like(den, eps), den)
     return b_ / den
 
 
@@ -187,7 +189,8 @@ class NoiseBlock(PosteriorBlock):
         a, b = ig_update_ema(state["a"], state["b"], info["sq_err_sum"].double(), float(info["num_values"]),
                                 self.decay, a0=self.a0, b0=self.b0)
         state["a"], state["b"] = a, b
-        info["sigma2"] = float(ig_mean(a, b))
+        s2 = ig_mean(a, b)
+        info["sigma2"] = s2 if on_device_path(s2) else float(s2)  # a 0-d tensor on the device: no host read
 
     def aleatoric_variance(self, *, state):
         return float(ig_mean(state["a"], state["b"]))

@@ -8,6 +8,7 @@ import torch
 
 from b3dgs.device import randn
 from b3dgs.errors import B3dgsError
+from b3dgs.numerics import on_device_path
 from b3dgs.plugin import PosteriorBlock
 from b3dgs_plugins.posterior import appearance as app
 
@@ -53,9 +54,15 @@ class OpacityBlock(PosteriorBlock):
         # NLL, Σ_p ||r_p||² / (2σ²), whose gradient is M / (2σ²) times that of the pixel-mean L2 loss
         # (M values per view). This is an approximation: the L1/SSIM gradient stands in for the L2 one.
         s2 = info.get("sigma2")
-        if s2 is None:
-            s2 = float(info["sq_err_sum"]) / max(int(info["num_values"]), 1)
-        scale = float(info["num_values"]) / (2.0 * max(float(s2), 1e-8))
+        if on_device_path(g):  # the same scale as a 0-d tensor: no host read per step
+            if s2 is None:
+                s2 = info["sq_err_sum"].double() / max(int(info["num_values"]), 1)
+            scale = float(info["num_values"]) / (2.0 * torch.as_tensor(s2, dtype=torch.float64, device=g.device)
+                                                 .clamp_min(1e-8))
+        else:
+            if s2 is None:
+                s2 = float(info["sq_err_sum"]) / max(int(info["num_values"]), 1)
+            scale = float(info["num_values"]) / (2.0 * max(float(s2), 1e-8))
         state["fisher"].mul_(self.ema).add_((1 - self.ema) * (g.double() * scale).square() * self.train_views(state, info))
 
     def logit_var(self, state):

@@ -83,12 +83,23 @@ class AdaptiveDensityControl(Plugin):
         state["max_radii"].copy_(torch.where(vis, torch.maximum(state["max_radii"], radii / float(max(width, height))),
                                              state["max_radii"]))
 
-        if step > self.refine_start and step % self.refine_every == 0:
+        work = self.periodic(step, info)
+        if "densify" in work:
             self._refine(splats, state, step, info)
             for k in ("grad2d", "count", "max_radii"):
                 state[k].zero_()
-        if step > 0 and step % self.reset_every == 0 and step < self.refine_stop:
+        if "opacity_reset" in work:
             info["ops"].reset_opacity(2.0 * self.prune_opacity)
+
+    def periodic(self, step: int, info: dict) -> tuple[str, ...]:
+        """``densify`` every ``refine_every`` steps in (refine_start, refine_stop), ``opacity_reset`` every
+        ``reset_every`` steps before refine_stop."""
+        if step >= self.refine_stop:
+            return ()
+        work = ("densify",) if step > self.refine_start and step % self.refine_every == 0 else ()
+        if step > 0 and step % self.reset_every == 0:
+            work += ("opacity_reset",)
+        return work
 
     @torch.no_grad()
     def _trim(self, splats, state, info) -> None:

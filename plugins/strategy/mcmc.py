@@ -89,9 +89,15 @@ class MCMCStrategy(Plugin):
             terms.append(self.scale_reg * torch.exp(splats["scales"]).mean())
 
     def step_post_backward(self, *, splats, optimizers, state, step, info):
-        if self.refine_start <= step < self.refine_stop and step % self.refine_every == 0 and step > 0:
+        if "relocate" in self.periodic(step, info):
             self._relocate_and_grow(splats, state, info["ops"], info)
         self._inject_noise(splats, optimizers)
+
+    def periodic(self, step: int, info: dict) -> tuple[str, ...]:
+        """``relocate`` (dead Gaussians moved, the set grown) every ``refine_every`` steps in [refine_start, refine_stop)."""
+        if self.refine_start <= step < self.refine_stop and step % self.refine_every == 0 and step > 0:
+            return ("relocate",)
+        return ()
 
     # ------------------------------------------------------------------ ops
     @torch.no_grad()
