@@ -100,13 +100,13 @@ class _Counting:
         self.sites: dict[str, Counter] = defaultdict(Counter)  # scope -> Counter["file:line fn (kind)"]
         self.keep_stacks = keep_stacks
 
-    def record(self, kind: str) -> None:
+    def record(self, kind: str, site: Optional[str] = None) -> None:
         where = _STACK[-1] if _STACK else "outside"
         key = -1 if self.step is None else self.step
         self.counts[key][where] += 1
         self.kinds[where][kind] += 1
         if self.keep_stacks:
-            self.sites[where][f"{_site()} ({kind})"] += 1
+            self.sites[where][f"{site or _site()} ({kind})"] += 1
 
     def per_step(self) -> dict[int, dict[str, int]]:
         return {s: dict(c) for s, c in sorted(self.counts.items())}
@@ -208,7 +208,8 @@ class CudaSyncCounter(_Counting):
 
         def show(message, category, filename, lineno, file=None, line=None):
             if "synchronizing" in str(message):  # c10's "called a synchronizing CUDA operation"
-                self.record("cuda_sync")
+                # the warning's own location: the Python line that asked for the sync (not this handler's frame)
+                self.record("cuda_sync", f"{'/'.join(Path(filename).parts[-2:])}:{lineno}")
             else:
                 orig(message, category, filename, lineno, file, line)
 

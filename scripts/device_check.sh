@@ -76,12 +76,21 @@ if [[ $what == profile ]]; then
   R=outputs/device/results  # ignored: kept on a warm machine between calls, so a second call resumes
   mkdir -p "$R"
   card=$("$PY" -c "import torch; n=torch.cuda.get_device_name(0).lower(); print(next((c for c in ('h200','h100','a100','l40s','l4') if c in n), 'gpu'))")
-  # first the two short stages (what a step costs and why), then the trainings that decide (12 runs, resumable)
-  [[ -f $R/step_profile_cuda.json ]] || stage step_profile 60 "$PY" -m bench.device_profile profile --device cuda \
-    --models dpmm --results "$R"
-  stage host_syncs 90 "$PY" -m bench.host_syncs --device cuda --steps 300 --models niw dpmm --results "$R"
-  stage train_cuda 900 "$PY" bench/train.py --device cuda --scenes fox ethiopian_head --models standard niw dpmm \
-    --seeds 0 1 --results "$R"
+  # PROFILE_SCENES / PROFILE_SEEDS: the trainings (default: fox and ethiopian_head, seeds 0 1; a COLMAP scene needs
+  # pycolmap there); PROFILE_QUICK=1: the trainings first, then the syncs of DPMM alone, no torch.profiler stage
+  scenes=${PROFILE_SCENES:-fox ethiopian_head}; seeds=${PROFILE_SEEDS:-0 1}
+  if [[ ${PROFILE_QUICK:-0} == 1 ]]; then
+    stage train_cuda 900 "$PY" bench/train.py --device cuda --scenes $scenes --models standard niw dpmm --seeds $seeds \
+      --results "$R"
+    stage host_syncs 90 "$PY" -m bench.host_syncs --device cuda --steps 300 --models dpmm --results "$R"
+  else
+    # first the two short stages (what a step costs and why), then the trainings that decide (12 runs, resumable)
+    [[ -f $R/step_profile_cuda.json ]] || stage step_profile 60 "$PY" -m bench.device_profile profile --device cuda \
+      --models dpmm --results "$R"
+    stage host_syncs 90 "$PY" -m bench.host_syncs --device cuda --steps 300 --models niw dpmm --results "$R"
+    stage train_cuda 900 "$PY" bench/train.py --device cuda --scenes $scenes --models standard niw dpmm \
+      --seeds $seeds --results "$R"
+  fi
   STAGE_LIMIT_report=30 DEADLINE=$(( DEADLINE + 30 )) stage report 30 "$PY" -m bench.device_profile report --card "$card" --results "$R"
   cp "$R"/device_*.md "$R"/device_*.json "$R"/train_cuda.json "$R"/host_syncs_cuda.md "$R"/step_profile_cuda.json "$OUT"/ 2>/dev/null
 fi

@@ -15,14 +15,25 @@ SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5  # fixed inside kornia.metrics.ssim
 
 
+_WINDOWS: dict = {}
+
+
+def _separable_window(device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """kornia's 1-D Gaussian window as the two depthwise kernels, made once per device and dtype (kornia builds it
+    from a Python sigma, a host-to-device copy that synchronises a GPU at every step)."""
+    key = (device, dtype)
+    if key not in _WINDOWS:
+        k = kornia.filters.get_gaussian_kernel1d(SSIM_WINDOW, SSIM_SIGMA, device=device, dtype=dtype).reshape(-1)
+        _WINDOWS[key] = (k.view(1, 1, 1, -1).repeat(15, 1, 1, 1), k.view(1, 1, -1, 1).repeat(15, 1, 1, 1))
+    return _WINDOWS[key]
+
+
 def ssim_separable(pred: Tensor, gt: Tensor) -> Tensor:
     """The same SSIM as :func:`b3dgs.metrics.image.ssim` for one (H, W, 3) pair, with the 11x11 Gaussian window applied as
     two 1-D passes (kornia's Gaussian kernel): about 5x cheaper, for the training loss. Differentiable."""
     if pred.shape != gt.shape or pred.dim() != 3 or pred.shape[-1] != 3:
         raise B3dgsError(f"ssim_separable: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
-    k = kornia.filters.get_gaussian_kernel1d(SSIM_WINDOW, SSIM_SIGMA, device=pred.device, dtype=pred.dtype).reshape(-1)
-    kx = k.view(1, 1, 1, -1).repeat(15, 1, 1, 1)
-    ky = k.view(1, 1, -1, 1).repeat(15, 1, 1, 1)
+    kx, ky = _separable_window(pred.device, pred.dtype)
     a = pred.permute(2, 0, 1).unsqueeze(0)
     b = gt.to(pred.dtype).permute(2, 0, 1).unsqueeze(0)
     x = torch.cat([a, b, a * a, b * b, a * b], dim=1)  # (1, 15, H, W)

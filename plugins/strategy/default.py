@@ -74,8 +74,9 @@ class AdaptiveDensityControl(Plugin):
             return
         width, height = info["width"], info["height"]
         g = pg["means2d_grad"][0].detach()
-        # NDC-unit gradient norm of the visible Gaussians, accumulated with masks (no host sync)
-        ndc = g.new_tensor([0.5 * width, 0.5 * height])
+        # NDC-unit gradient norm of the visible Gaussians, accumulated with masks (no host sync; the pixel-to-NDC
+        # factors are made once per image size and device: a new tensor from a list is a synchronising copy on a GPU)
+        ndc = self._ndc_scale(width, height, g)
         radii = pg["radii"][0]
         vis = radii > 0
         state["grad2d"].add_(torch.where(vis, (g * ndc).norm(dim=-1), 0.0))
@@ -100,6 +101,13 @@ class AdaptiveDensityControl(Plugin):
         if step > 0 and step % self.reset_every == 0:
             work += ("opacity_reset",)
         return work
+
+    def _ndc_scale(self, width: int, height: int, like: torch.Tensor) -> torch.Tensor:
+        cache = self.__dict__.setdefault("_ndc_cache", {})
+        key = (width, height, like.device, like.dtype)
+        if key not in cache:
+            cache[key] = like.new_tensor([0.5 * width, 0.5 * height])
+        return cache[key]
 
     @torch.no_grad()
     def _trim(self, splats, state, info) -> None:
