@@ -216,6 +216,10 @@ class ScoringContext:
     def generator(self, salt: int = 0) -> torch.Generator:
         return torch.Generator(device="cpu").manual_seed(self.seed * 1000003 + salt)
 
+    def sh_degree(self, member: int = 0) -> int:
+        """The SH degree the phase-1 model renders with (its active degree)."""
+        return int(self._models[member].active_sh_degree())
+
     def params(self, member: int = 0, requires_grad: bool = False) -> dict[str, Tensor]:
         """Copies of the point-estimate parameters (leaf tensors, own dtype and device)."""
         return {k: v.detach().clone().requires_grad_(requires_grad) for k, v in self._models[member].params().items()}
