@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The seven-scene evidence campaign (issue 21), resumable across sessions and machines:
 #   bash scripts/campaign.sh [canonical|compression|active|all]     (default: all, in that order)
+#   bash scripts/campaign.sh active_ig      issue 42's rows (info_gain, cover) against the archived campaign, own archive
 #
 # Runs from a frozen copy of the current commit (a git worktree under $CAMPAIGN/code), so editing this checkout
 # while it runs changes nothing in flight. Every finished unit is archived into THIS checkout's bench/results/
@@ -10,6 +11,9 @@
 #   JOBS       parallel jobs, one thread each (default 2: the two cores)
 #   SEEDS      seeds of the canonical grid (default "0 1 2"); compression uses seed 0
 #   ACTIVE_SEEDS / ACTIVE_SCENES  seeds and scenes of the active-view study (default "0" and all seven)
+#   IG_POLICIES  active_ig's rows (default: info_gain top-k, +greedy_conditioned, +diverse, info_gain_params
+#              +greedy_conditioned, info_gain@standard, cover); archived in bench/results/active_view_ig_runs, paired with
+#              the campaign's rows in bench/results/active_view_ig.md (bench.active_view_extra)
 #   ACTIVE_POLICIES  only these rows (e.g. "uniform,farthest,ensemble,fisher,native,ensemble+diverse,native+diverse",
 #              the rows that decide issue 29, with --batches topk and no uniform@niw); default: every row
 #   CAMPAIGN_COMMIT  the code commit to run; default: the one pinned in the step's archive (<archive>/CODE_COMMIT,
@@ -26,8 +30,8 @@ JOBS="${JOBS:-2}"
 SEEDS="${SEEDS:-0 1 2}"
 SCENES="ethiopian_head fox lego fern flower dtu_scan24 dtu_scan65"
 what="${1:-all}"
-case "$what" in canonical|compression|active|all) ;; *)
-  echo "scripts/campaign.sh: unknown step '$what' (fix: one of canonical, compression, active, all)" >&2; exit 2;;
+case "$what" in canonical|compression|active|active_ig|all) ;; *)
+  echo "scripts/campaign.sh: unknown step '$what' (fix: one of canonical, compression, active, active_ig, all)" >&2; exit 2;;
 esac
 mkdir -p "$CAMPAIGN"
 CODE="$CAMPAIGN/code"
@@ -87,6 +91,19 @@ if [ "$what" = active ] || [ "$what" = all ]; then
   # shellcheck disable=SC2086
   (cd "$ROOT" && PYTHONPATH="$ROOT" python bench/active_view.py --aggregate-only --scenes $SCENES \
     --study-out "$CAMPAIGN/study" --archive "$R/active_view_runs" 2>&1 | tee -a "$log")
+fi
+if [ "$what" = active_ig ]; then
+  # the new policies' rows only (their phase-1 models are retrained bit for bit like the campaign's, which
+  # bench.active_view_extra checks on the oracle errors), then their paired table against the archived campaign
+  use_code "$R/active_view_ig_runs"
+  IG_POLICIES="${IG_POLICIES:-info_gain+greedy_conditioned,cover,info_gain,info_gain+diverse,info_gain_params+greedy_conditioned,info_gain@standard}"
+  # shellcheck disable=SC2086
+  nice -n 19 python bench/active_view.py --scenes $ACTIVE_SCENES --seeds $ACTIVE_SEEDS --jobs "$JOBS" \
+    --study-out "$CAMPAIGN/study_ig" --batches topk --extra "policies=[$IG_POLICIES]" "family_baselines=[]" \
+    --archive "$R/active_view_ig_runs" 2>&1 | tee -a "$log"
+  # shellcheck disable=SC2046
+  (cd "$ROOT" && PYTHONPATH="$ROOT" python -m bench.active_view_extra --new "$R/active_view_ig_runs" \
+    --policies $(echo "$IG_POLICIES" | tr , ' ') --name active_view_ig 2>&1 | tee -a "$log")
 fi
 (cd "$ROOT" && PYTHONPATH="$ROOT" python bench/claims.py > /dev/null)
 echo "=== $(date -u +%FT%TZ) campaign $what done; commit bench/results/ in $ROOT" | tee -a "$log"
