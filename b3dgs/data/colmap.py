@@ -60,6 +60,8 @@ def _camera_param_counts() -> dict[int, int]:
     pycolmap = import_pycolmap()
     out = {}
     for name, mid in pycolmap.CameraModelId.__members__.items():
+        if name == "INVALID" or int(mid) < 0:  # pycolmap 4.0 logs a failed check for it on stderr
+            continue
         try:
             out[int(mid)] = len(pycolmap.Camera.create_from_model_name(1, name, 1.0, 2, 2).params)
         except Exception:  # INVALID and models pycolmap cannot build
