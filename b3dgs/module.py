@@ -82,7 +82,7 @@ class SplatModule(L.LightningModule):
         self.posterior: "OrderedDict[str, PosteriorBlock]" = OrderedDict(posterior or {})
         self.strategy.validate()
         for blk in self.posterior.values():
-            blk.validate(max_steps=max_steps)
+            blk.validate(max_steps=max_steps, sh_degree=sh_degree)
         self.splats = nn.ParameterDict()
         self.states: dict[str, dict] = {}
         self.scene: Optional[Scene] = None

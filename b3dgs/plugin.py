@@ -49,7 +49,8 @@ class Plugin:
     per_gaussian_state: ClassVar[Optional[tuple[str, ...]]] = None
 
     def validate(self, **kwargs: Any) -> None:
-        """Check this plugin's own field values (``kwargs``: ``max_steps``, the run's step budget); raise
+        """Check this plugin's own field values (``kwargs``: ``max_steps``, the run's step budget, and ``sh_degree``, the
+        model's SH degree, for posterior blocks; accept ``**kwargs`` for what later versions pass); raise
         :class:`~b3dgs.errors.B3dgsError` naming the bad field and the fix. The one validation method of every kind."""
 
     def initialize_state(self, *, splats, scene, info: dict) -> dict:

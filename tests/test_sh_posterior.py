@@ -212,3 +212,21 @@ def test_native_plus_sh_on_a_model_that_carries_the_sh_block(scene):
     assert len(pol._native()._fitted) == 2
     with pytest.raises(B3dgsError, match=r"add\.sh differs from the model's own sh block \(prior_precision 1\.0 vs 4\.0\)"):
         NativeUQ(samples=2, add={"sh": SHPosteriorBlock(prior_precision=4.0)}).fit([m], scene)
+
+
+def test_sh_degree_0_is_refused_with_the_fix(scene):
+    """A model without directional colour (SH degree 0) has nothing for the SH posterior to add: a run that would
+    carry it is refused before training, and an evaluation that would add it is refused at its pass (issue 46 §5)."""
+    from b3dgs.module import SplatModule
+    from b3dgs_plugins.strategy.default import AdaptiveDensityControl
+    from b3dgs_plugins.uq.native import NativeUQ
+
+    with pytest.raises(B3dgsError, match="SH degree 0.*fix"):
+        SplatModule(strategy=AdaptiveDensityControl(), posterior={"sh": SHPosteriorBlock()}, sh_degree=0,
+                    renderer="cpu", max_steps=100)
+    m = module_with_blocks(scene, {})  # at step 0 the model renders degree 0
+    assert m.active_sh_degree() == 0
+    with pytest.raises(B3dgsError, match="SH degree 0.*fix"):
+        NativeUQ(samples=2, add={"sh": SHPosteriorBlock()}, model_blocks=False).fit([m], scene)
+    m._loaded_step = 10 ** 6  # degree 3: accepted
+    NativeUQ(samples=2, add={"sh": SHPosteriorBlock()}, model_blocks=False).fit([m], scene)

@@ -34,6 +34,9 @@ from b3dgs.numerics import guard
 from b3dgs.plugin import PosteriorBlock
 from b3dgs_plugins.posterior.niw import safe_cholesky
 
+_DEGREE0 = ("posterior.sh: the model renders SH degree 0, so its colour has no direction and the directional "
+            "posterior has nothing to add to a constant colour")
+_DEGREE0_FIX = "train with model.sh_degree >= 1 (the default 3) for more than model.sh_increase_every steps"
 #: σ̂² below this (a perfectly fitted or empty pass) is raised to it (guard ``sh.sigma2_floor``)
 SIGMA2_FLOOR = 1e-6
 
@@ -51,6 +54,8 @@ class SHPosteriorBlock(PosteriorBlock):
         if not (self.prior_precision > 0 and math.isfinite(self.prior_precision)):
             raise B3dgsError(f"posterior.sh.prior_precision={self.prior_precision} must be a finite number > 0 "
                              "(the precision of an unconstrained SH coefficient; 1.0 is the default)")
+        if kw.get("sh_degree") == 0:
+            raise B3dgsError(_DEGREE0, _DEGREE0_FIX)
 
     def initialize_state(self, *, splats, scene, info):
         dev = splats["means"].device
@@ -74,6 +79,8 @@ class SHPosteriorBlock(PosteriorBlock):
         if guard("sh.sigma2_floor", int(not s2 >= SIGMA2_FLOOR)):
             s2 = SIGMA2_FLOOR if not math.isfinite(s2) else max(s2, SIGMA2_FLOOR)
         B = info.shape[-1]
+        if B == 1:  # SH degree 0: a view-independent colour, nothing directional to be uncertain about
+            raise B3dgsError(_DEGREE0, _DEGREE0_FIX)
         lam = info.double() / s2 + self.prior_precision * torch.eye(B, dtype=torch.float64, device=info.device)
         L = safe_cholesky(lam)
         eye = torch.eye(B, dtype=torch.float64, device=info.device).expand_as(L)
