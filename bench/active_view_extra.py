@@ -47,7 +47,8 @@ def _deficits(scene: str, meta: dict) -> dict:
     return support_deficit(list(meta.get("initial_views") or []), list(meta.get("candidates") or []), centres)
 
 
-def collect(new: Path, archive: Path, policies: list[str], against: list[str], support: bool = True) -> dict:
+def collect(new: Path, archive: Path, policies: list[str], against: list[str], support: bool = True,
+            within: tuple[str, ...] = ()) -> dict:
     from b3dgs.study.active_tables import oracle_rho
 
     rows, problems = [], []
@@ -74,6 +75,12 @@ def collect(new: Path, archive: Path, policies: list[str], against: list[str], s
             row = {"scene": scene, "seed": int(seed), "ladder": ladder, "policy": label, "psnr": r["psnr"],
                    "rho": _rho(r, o_new), "rho_support": oracle_rho(r.get("scores"), deficit),
                    "scoring_time_s": r.get("scoring_time_s")}
+            for b in within:  # new rows paired with each other (same phase-1 models, same new study)
+                other = _read(scene_dir / f"{b}_s{seed}" / "result.json") if b != label else None
+                if other is not None:
+                    o_b = _read(scene_dir / "phase1" / f"{other['family']}_s{seed}" / "oracle.json")
+                    row[f"psnr_{b}"], row[f"rho_{b}"] = other["psnr"], _rho(other, o_b)
+                    row[f"rho_support_{b}"] = oracle_rho(other.get("scores"), deficit)
             for b in against:
                 old = _read(archive / scene / f"{b}_s{seed}" / "result.json")
                 if old is not None:
@@ -187,16 +194,18 @@ def main() -> None:
     ap.add_argument("--archive", default=str(RESULTS / "active_view_runs"), help="the committed campaign's rows")
     ap.add_argument("--policies", nargs="+", required=True)
     ap.add_argument("--against", nargs="+", default=AGAINST)
+    ap.add_argument("--within", nargs="*", default=[], help="new policies every new policy is also paired with")
     ap.add_argument("--name", default="active_view_extra", help="bench/results/<name>.{json,md}")
     args = ap.parse_args()
     new, archive = Path(args.new), Path(args.archive)
     for p, what in ((new, "--new"), (archive, "--archive")):
         if not p.is_dir():
             raise SystemExit(f"bench.active_view_extra: {what} {p} is not a folder (fix: pass the study dir)")
-    res = collect(new, archive, args.policies, args.against)
-    res["paired"] = pair(res["rows"], args.policies, args.against)
-    res["paired_rho"] = pair_rho(res["rows"], args.policies, args.against)
-    write(res, args.name, args.policies, args.against)
+    res = collect(new, archive, args.policies, args.against, within=tuple(args.within))
+    against = args.against + [w for w in args.within if w not in args.against]
+    res["paired"] = pair(res["rows"], args.policies, against)
+    res["paired_rho"] = pair_rho(res["rows"], args.policies, against)
+    write(res, args.name, args.policies, against)
 
 
 if __name__ == "__main__":

@@ -270,12 +270,20 @@ CLAIMS: list[tuple[str, str, str, str, int, str, Callable[[Results], dict[str, f
     # native_fisher3 at top-k only (seed 0): the count failed step 5's OOD test, so its diverse row decides nothing
     for p in ("native_fisher3", "native_sh", "sh", "sh+diverse", "native_plus_sh")
     for b in ("ensemble", "fisher", "farthest", "native") + (("ensemble+diverse", "native+diverse") if "+" in p else ())
+] + [  # issue 42: closed-form information (info_gain) and COVER against coverage and the ensemble
+    (f"active_{p.replace('+', '_').replace('@', '_at_')}_vs_{b.replace('+', '_')}", "issue 42",
+     f"Active view: {p} - {b} final PSNR (hypothesis: > 0)", "not in the paper", +1, "dB",
+     lambda R, key=f"{p}-{b}": R.active_paired(key))
+    for p in ("info_gain+greedy_conditioned", "info_gain", "info_gain+diverse", "info_gain_params+greedy_conditioned",
+              "info_gain@standard", "cover")
+    for b in ("farthest", "cover", "ensemble", "native") + (("ensemble+diverse",) if "+" in p else ())
+    if b != p
 ] + [
     (f"active_{p}_{which}_vs_{b}", "beyond the paper", f"Active view: Spearman ρ of the {p} score with {what}, "
      f"minus the {b} score's (hypothesis: > 0)", "not in the paper", +1, "", lambda R, which=which, p=p, b=b: R.active_rho(which, p, b))
     for which, what in (("rho", "the phase-1 model's error on the candidate"),
                         ("rho_support", "the candidate's distance to the nearest training camera"))
-    for p in ("native_sh", "sh", "native_plus_sh")
+    for p in ("native_sh", "sh", "native_plus_sh", "info_gain", "info_gain_params", "cover")
     for b in ("ensemble", "native")
 ]
 

@@ -103,7 +103,7 @@ if [ "$what" = active_ig ]; then
     --archive "$R/active_view_ig_runs" 2>&1 | tee -a "$log"
   # shellcheck disable=SC2046
   (cd "$ROOT" && PYTHONPATH="$ROOT" python -m bench.active_view_extra --new "$R/active_view_ig_runs" \
-    --policies $(echo "$IG_POLICIES" | tr , ' ') --name active_view_ig 2>&1 | tee -a "$log")
+    --policies $(echo "$IG_POLICIES" | tr , ' ') --within cover --name active_view_ig 2>&1 | tee -a "$log")
 fi
 (cd "$ROOT" && PYTHONPATH="$ROOT" python bench/claims.py > /dev/null)
 echo "=== $(date -u +%FT%TZ) campaign $what done; commit bench/results/ in $ROOT" | tee -a "$log"
