@@ -75,6 +75,17 @@ def _key_suggestion(key: str) -> str:
         return ""
 
 
+def _parse_fix(override: Optional[str]) -> str:
+    """The fix for an override Hydra cannot parse: quoting, when its value holds characters Hydra's grammar reads
+    as syntax or does not read at all (spaces, non-ASCII letters, brackets, quotes); else the override forms."""
+    text = str(override or "")
+    key, eq, value = text.partition("=")
+    if eq and key and value and not all(c.isascii() and (c.isalnum() or c in "_./:-+~@*") for c in value):
+        inner = value.replace("'", "\\'")
+        return f"quote the value: \"{key}='{inner}'\" (the outer quotes for the shell, the inner ones for Hydra)"
+    return "write overrides as key=value, group=option or +key=value"
+
+
 def _hydra_error(exc: BaseException) -> Optional[B3dgsError]:
     """A one-line form of Hydra's composition errors (bad override, unknown option or key)."""
     try:
@@ -82,8 +93,7 @@ def _hydra_error(exc: BaseException) -> Optional[B3dgsError]:
     except ImportError:  # pragma: no cover
         return None
     if isinstance(exc, OverrideParseException):
-        return B3dgsError(f"cannot parse the override {_one_line(exc)}",
-                          "write overrides as key=value, group=option or +key=value")
+        return B3dgsError(f"cannot parse the override {_one_line(exc)}", _parse_fix(getattr(exc, "override", None)))
     if not isinstance(exc, HydraException):
         return None
     lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip()]

@@ -51,6 +51,19 @@ def test_misspelt_option_and_nested_key_in_one_line(tmp_path):
         assert res.returncode == 2 and len(lines) == 1 and want in lines[0], res.stderr[-2000:]
 
 
+def test_an_override_with_a_space_or_non_ascii_letters_is_told_to_quote_it(tmp_path):
+    """Hydra's grammar cannot read ``data.path=/data/café shots``: the fix shows the quoted form (issue 46 §10)."""
+    res = subprocess.run([sys.executable, "-m", "b3dgs.train", "data.path=/data/café shots"], capture_output=True,
+                         text=True, timeout=120, cwd=tmp_path, env=ENV)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1, res.stderr[-2000:]
+    want = "(fix: quote the value: \"data.path='/data/café shots'\""
+    assert want in lines[0], lines[0]
+    from b3dgs.errors import _parse_fix
+
+    assert _parse_fix("trainer.max_steps=1x") == "write overrides as key=value, group=option or +key=value"
+
+
 def _train_cfg(*overrides):
     from hydra import compose, initialize_config_dir
     from hydra.core.global_hydra import GlobalHydra
