@@ -87,6 +87,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     from b3dgs.uq.metrics import epistemic_summary, epistemic_view, evaluate_view, summarize, to_jsonable
     from b3dgs.uq.plots import plot_uncertainty_panel
     from b3dgs.uq.store import check_members, merge_into, read_uq, remove_staging, run_digest
+    from b3dgs.rundir import remove_stale_staging, staging_prefix
 
     if loaded:
         runs = list(loaded)
@@ -135,7 +136,9 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
             dest = dests[name]
             if dest not in staging:
                 dest.mkdir(parents=True, exist_ok=True)
-                staging[dest] = Path(tempfile.mkdtemp(prefix=".uq-staging.", dir=dest))
+                for p in remove_stale_staging(dest):
+                    log.info("removed %s, the staging folder of an interrupted b3dgs-eval", p.name)
+                staging[dest] = Path(tempfile.mkdtemp(prefix=staging_prefix(), dir=dest))
             t0 = time.perf_counter()
             regime.fit([r.module for r in members], scene)
             gen = torch.Generator().manual_seed(int(seed))

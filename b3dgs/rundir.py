@@ -78,6 +78,50 @@ def remove_stale_tmp(run_dir: Path) -> list[Path]:
     return gone
 
 
+#: b3dgs-eval stages its panels in ``<folder>/.uq-staging.<host>.<pid>.<random>`` until it publishes them
+STAGING_PREFIX = ".uq-staging."
+
+
+def staging_prefix() -> str:
+    """The staging-folder prefix of this process (host and pid, so a later process can tell a killed eval's folder)."""
+    import socket
+
+    return f"{STAGING_PREFIX}{socket.gethostname()}.{os.getpid()}."
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_staging(folder: Path, owned: bool = False) -> list[Path]:
+    """Remove the staging folders a killed b3dgs-eval left in ``folder``: those of this host whose process is gone.
+    ``owned`` (the caller holds the run dir, e.g. ``overwrite=true``): also those with no host and pid in their name
+    (written before the name carried them). Folders of live evals and of other hosts stay."""
+    import shutil
+    import socket
+
+    gone = []
+    host = socket.gethostname()
+    for p in Path(folder).glob(f"{STAGING_PREFIX}*"):
+        if not p.is_dir() or p.is_symlink():
+            continue
+        parts = p.name[len(STAGING_PREFIX):].rsplit(".", 2)
+        if len(parts) == 3 and parts[1].isdigit():
+            stale = parts[0] == host and not _pid_alive(int(parts[1]))
+        else:
+            stale = owned
+        if stale:
+            shutil.rmtree(p, ignore_errors=True)
+            gone.append(p)
+    return gone
+
+
 def run_dir_busy(run_dir: Path) -> Optional[str]:
     """The pid of the live process that holds ``run_dir``'s lock (a training in progress), else ``None``."""
     return lock_holder(Path(run_dir) / LOCK_NAME)

@@ -445,7 +445,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
 
     from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint
     from b3dgs.numerics import reset_guards
-    from b3dgs.rundir import Interrupted, arm_run_log, remove_stale_tmp, write_hydra_files
+    from b3dgs.rundir import Interrupted, arm_run_log, remove_stale_staging, remove_stale_tmp, write_hydra_files
 
     tcfg = cfg.trainer
     every_s = _checkpoint_every_s(tcfg)
@@ -490,6 +490,8 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
         _remove_outputs(run_dir, ("metrics.json",))  # a damaged done marker comes back when this run finishes
     for p in remove_stale_tmp(run_dir):
         log.info("removed %s, a temp file left by an interrupted run", p.relative_to(run_dir))
+    for p in remove_stale_staging(run_dir, owned=clear):
+        log.info("removed %s, the staging folder of an interrupted b3dgs-eval", p.name)
     write_hydra_files(run_dir, cfg)
     save_config(cfg, run_dir / "config.yaml")
     log.info("Scene %s: %d train / %d test views, %d initial Gaussians, extent %.3f; renderer %s on %s",

@@ -149,3 +149,33 @@ def test_multirun_with_one_bad_value_runs_the_others(tmp_path):
         in p.stderr.splitlines(), p.stderr[-3000:]
     assert [d.name for d in tmp_path.iterdir() if d.is_dir()] == ["1_synthetic_standard_s1"]  # job 0 left nothing
     assert (tmp_path / "1_synthetic_standard_s1" / "metrics.json").exists()
+
+
+def test_a_killed_evals_staging_folder_is_removed_and_a_live_ones_kept(tmp_path):
+    """b3dgs-eval stages panels in ``.uq-staging.<host>.<pid>.*``: a later eval removes the folder of a process that
+    is gone, never a live one's or another host's; ``overwrite=true`` also removes the unnamed ones of older versions
+    (issue 46 §9)."""
+    import socket
+
+    from b3dgs.rundir import remove_stale_staging, staging_prefix
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    host = socket.gethostname()
+    d = tmp_path / "run"
+    p = _train([f"hydra.run.dir={d}"])
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 0, err[-2000:]
+    names = {"dead": f".uq-staging.{host}.{dead.pid}.k1", "live": staging_prefix() + "k2",
+             "other_host": f".uq-staging.elsewhere.{dead.pid}.k3", "legacy": ".uq-staging.q1w2e3r4"}
+    for n in names.values():
+        (d / n).mkdir(parents=True)
+        (d / n / "panel.png").write_bytes(b"x")
+    assert [p.name for p in remove_stale_staging(d)] == [names["dead"]]
+    assert sorted(p.name for p in d.glob(".uq-staging.*")) == sorted(n for k, n in names.items() if k != "dead")
+    # a training that overwrites the folder owns it: the legacy folder goes too, live and other hosts' stay
+    p = _train([f"hydra.run.dir={d}", "overwrite=true"])
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 0, err[-2000:]
+    assert not (d / names["legacy"]).exists()
+    assert (d / names["live"]).is_dir() and (d / names["other_host"]).is_dir()
