@@ -87,7 +87,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     from b3dgs.uq.metrics import epistemic_summary, epistemic_view, evaluate_view, summarize, to_jsonable
     from b3dgs.uq.plots import plot_uncertainty_panel
     from b3dgs.uq.store import check_members, merge_into, read_uq, remove_staging, run_digest
-    from b3dgs.rundir import remove_stale_staging, staging_prefix
+    from b3dgs.rundir import read_manifest, remove_stale_staging, staging_prefix
 
     if loaded:
         runs = list(loaded)
@@ -108,6 +108,8 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     made = [d for d in dict.fromkeys(dests.values()) if not d.exists()]
     for d in dict.fromkeys(dests.values()):
         read_uq(d)  # a damaged uq.json is refused before any work, not after
+        # so is a damaged run manifest (the results join it): before anything is written, not after
+        read_manifest(d, fix="pass out=DIR to write the results into another folder")
     lpips_model, lpips_reason = get_lpips(lpips_weights)
     train_times = [float((r.metrics or {}).get("train_time_s") or 0.0) for r in runs]
     writers: dict = {}

@@ -191,9 +191,13 @@ def render(cfg: DictConfig) -> dict:
         renderer.check_available()
     run = open_run(Path(str(cfg.run)), renderer=renderer)
     path = str(cfg.path)
+    out = Path(str(cfg.out)) if cfg.get("out") else run.path / "render" / path
+    if out.resolve().is_relative_to(run.path.resolve()):  # the frames join the run's manifest: check it first
+        from b3dgs.rundir import read_manifest
+
+        read_manifest(run.path, fix="pass out=DIR to write the frames into another folder")
     cams = [c.fit(max_side, upscale=True, min_side=8) for c in camera_path(run.scene, path, cfg.get("frames"))]
     frames, top = render_path(run, cams, cfg.get("panel"), panel_max, int(cfg.samples), cfg.get("count_scale"))
-    out = Path(str(cfg.out)) if cfg.get("out") else run.path / "render" / path
     out.mkdir(parents=True, exist_ok=True)
     for old in out.glob("frame_*.png"):  # a shorter path must not leave the frames of a longer one
         old.unlink()

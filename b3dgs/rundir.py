@@ -165,16 +165,17 @@ def _read_json(path: Path) -> Optional[dict]:
     return d if isinstance(d, dict) else None
 
 
-def read_manifest(run_dir: Path) -> Optional[dict]:
-    """The run manifest of ``run_dir``, ``None`` without one; a damaged one is refused in one line."""
+def read_manifest(run_dir: Path, fix: Optional[str] = None) -> Optional[dict]:
+    """The run manifest of ``run_dir``, ``None`` without one; a damaged one is refused in one line (``fix``: what the
+    calling command's user can do instead; default: a training's)."""
     path = Path(run_dir) / MANIFEST_NAME
     if not path.exists() and not path.is_symlink():
         return None
     m = _read_json(path)
     if m is None or not isinstance(m.get("writes"), list):
         raise B3dgsError(f"the run manifest {path} is damaged",
-                         "pass another hydra.run.dir, or remove the run dir yourself (b3dgs removes only the files "
-                         "its manifest lists)")
+                         fix or "pass another hydra.run.dir, or remove the run dir yourself (b3dgs removes only the "
+                                "files its manifest lists)")
     return m
 
 

@@ -336,3 +336,22 @@ def test_run_files_match_whole_path_components(tmp_path):
     left = sorted(str(p.relative_to(tmp_path)) for p in tmp_path.rglob("*") if p.is_file())
     assert left == [MANIFEST_NAME, "checkpoints/step1/x.ckpt", "notes/config.yaml", "renders/figure.png",
                     "uq/proxy_mine.png"]
+
+
+def test_a_damaged_manifest_is_refused_before_eval_or_render_write_anything(two_runs, tmp_path):
+    """A truncated .b3dgs-run.json: b3dgs-eval and b3dgs-render exit 2 with one line, and nothing new is in the run
+    dir (before, they wrote uq.json, panels and frames, then failed on the manifest; issue 46 §7)."""
+    import shutil
+
+    a = tmp_path / "A"
+    shutil.copytree(two_runs[0], a, ignore=shutil.ignore_patterns("uq*", "tb_uq", ".uq*", "render"))
+    (a / ".b3dgs-run.json").write_text('{"b3dgs_run": 1, "wri')
+    before = snapshot(a)
+    for module, args in (("b3dgs.eval", [f"run={a}", "uq=[constant]", "max_views=1"]),
+                         ("b3dgs.render_cli", [f"run={a}", "path=test", "frames=2"])):
+        res = _cli(module, args)
+        lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+        assert res.returncode == 2 and len(lines) == 1 and "run manifest" in lines[0] and "damaged" in lines[0], \
+            res.stderr[-2000:]
+        assert "fix: pass out=DIR" in lines[0], lines[0]
+        assert snapshot(a) == before, module
