@@ -33,6 +33,20 @@ def _load(f: Path) -> tuple[dict, bool]:
 
 
 @lru_cache(maxsize=None)
+def global_groups() -> frozenset:
+    """The config groups all of whose option files (in b3dgs's conf dir and every package's) are ``@package _global_``
+    files that set keys all over the config and never a node named after the group (``scene``, ``experiment``)."""
+    files: dict[str, list[bool]] = {}
+    for root in conf_roots():
+        for d in (d for d in root.iterdir() if d.is_dir() and d.name != "hydra"):
+            for f in d.glob("*.yaml"):
+                data, is_global = _load(f)
+                # a global file that fills a node named after its group (model/*.yaml: model: {...}) gives it one
+                files.setdefault(d.name, []).append(is_global and d.name not in data)
+    return frozenset(g for g, flags in files.items() if flags and all(flags))
+
+
+@lru_cache(maxsize=None)
 def load_option(group: str, name: str):
     """The contents of option ``name`` of config ``group`` (the first root that has it), None if none has."""
     for root in conf_roots():

@@ -15,7 +15,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from b3dgs.checkpoint import check_checkpoint
-from b3dgs.confs import known_keys, load_option, option_names
+from b3dgs.confs import global_groups, known_keys, load_option, option_names
 from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.schema import UNRESOLVED, apply_rules, check_node, show, value
 
@@ -64,9 +64,27 @@ def _validate_plugins(nodes: list, max_steps: int) -> None:
                              f"correct that value (the defaults are in conf/{path.split('.')[0]}/)") from None
 
 
+def _hydra_choice(group: str):
+    """The option of ``group`` the running Hydra app composed (None outside one)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        return HydraConfig.get().runtime.choices.get(group) if HydraConfig.initialized() else None
+    except Exception:  # noqa: BLE001 - only a nicer message depends on it
+        return None
+
+
 def _check_top(cfg: DictConfig, app: str, values: dict) -> None:
     known = set(known_keys("", app)) | {"hydra", "b3dgs"}
     for key in map(str, cfg.keys()):
+        node = cfg.get(key)
+        if key in global_groups() and isinstance(node, DictConfig) and len(node):
+            # an option file of a global group without the header: its keys went under <key>.*, where nothing reads
+            choice = OmegaConf.select(cfg, f"hydra.runtime.choices.{key}", default=None) or _hydra_choice(key)
+            name = f"{key}/{choice}.yaml" if choice else f"the {key} option"
+            raise B3dgsError(f"{name} is not a global config file: its keys landed under {key}."
+                             f"{{{', '.join(map(str, node.keys()))}}}, where nothing reads them",
+                             f"start that file with the line '# @package _global_' (as every b3dgs {key} file does)")
         if key not in known:
             raise B3dgsError(f"unknown config key {key}{did_you_mean(key, known)}",
                              f"remove it or correct its spelling (top-level keys: {', '.join(sorted(known))})")

@@ -94,3 +94,17 @@ def test_auto_renderer_is_announced_once_per_process(caplog, monkeypatch):
         for _ in range(3):
             renderers.auto_renderer()
     assert sum("renderer=auto ->" in r.getMessage() for r in caplog.records) == 1
+
+
+def test_a_scene_file_without_the_global_header_is_refused_not_ignored(tmp_path):
+    """conf/scene/mine.yaml without '# @package _global_': its keys land under scene.*, where nothing reads them;
+    b3dgs-train used to train the synthetic scene and exit 0 (issue 46 §3). Now one line naming the file and the fix."""
+    (tmp_path / "conf" / "scene").mkdir(parents=True)
+    (tmp_path / "conf" / "scene" / "mine.yaml").write_text("data:\n  path: /nope\n  max_side: 64\n")
+    res = subprocess.run([sys.executable, "-m", "b3dgs.train", "scene=mine",
+                          f"hydra.searchpath=[file://{tmp_path / 'conf'}]", f"hydra.run.dir={tmp_path / 'run'}"],
+                         capture_output=True, text=True, timeout=120, cwd=tmp_path, env=ENV)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1, res.stderr[-2000:]
+    assert "scene/mine.yaml is not a global config file" in lines[0] and "@package _global_" in lines[0], lines[0]
+    assert not (tmp_path / "run").exists()
