@@ -33,6 +33,7 @@ from collections import Counter, defaultdict
 from pathlib import Path
 from typing import Any, Iterator, Optional
 
+import lightning as L
 import torch
 from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
@@ -233,13 +234,7 @@ class CudaSyncCounter(_Counting):
         self.remove()
 
 
-def _lightning_callback_base():
-    import lightning as L
-
-    return L.Callback
-
-
-class HostSyncCallback(_lightning_callback_base()):
+class HostSyncCallback(L.Callback):
     """Count host syncs over a training run and write them to ``out`` (JSON): per step, the count of each scope and the
     periodic work the plugins declared. ``backend``: ``auto`` (CUDA's own count on a CUDA model, else the op-level
     counter), ``ops`` or ``cuda``. ``keep_stacks``: also record the file:line of each sync (slower). ``device_path``:
