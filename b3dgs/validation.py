@@ -81,10 +81,14 @@ def _check_top(cfg: DictConfig, app: str, values: dict) -> None:
         if key in global_groups() and isinstance(node, DictConfig) and len(node):
             # an option file of a global group without the header: its keys went under <key>.*, where nothing reads
             choice = OmegaConf.select(cfg, f"hydra.runtime.choices.{key}", default=None) or _hydra_choice(key)
-            name = f"{key}/{choice}.yaml" if choice else f"the {key} option"
-            raise B3dgsError(f"{name} is not a global config file: its keys landed under {key}."
-                             f"{{{', '.join(map(str, node.keys()))}}}, where nothing reads them",
-                             f"start that file with the line '# @package _global_' (as every b3dgs {key} file does)")
+            keys = ", ".join(map(str, node.keys()))
+            if choice:
+                raise B3dgsError(f"{key}/{choice}.yaml is not a global config file: its keys landed under {key}.{{{keys}}}, "
+                                 "where nothing reads them",
+                                 f"start that file with the line '# @package _global_' (as every b3dgs {key} file does)")
+            first = next(iter(node.keys()))
+            raise B3dgsError(f"{key}.{{{keys}}} reaches nothing: {key} options set top-level keys",
+                             f"pass {first}... without the '{key}.' prefix")
         if key not in known:
             raise B3dgsError(f"unknown config key {key}{did_you_mean(key, known)}",
                              f"remove it or correct its spelling (top-level keys: {', '.join(sorted(known))})")

@@ -108,3 +108,9 @@ def test_a_scene_file_without_the_global_header_is_refused_not_ignored(tmp_path)
     assert res.returncode == 2 and len(lines) == 1, res.stderr[-2000:]
     assert "scene/mine.yaml is not a global config file" in lines[0] and "@package _global_" in lines[0], lines[0]
     assert not (tmp_path / "run").exists()
+    # the same keys given as a +scene.* override: refused too (it trained the synthetic scene; issue 46 §4)
+    res = subprocess.run([sys.executable, "-m", "b3dgs.train", "+scene.data.path=/nope",
+                          f"hydra.run.dir={tmp_path / 'run'}"], capture_output=True, text=True, timeout=120,
+                         cwd=tmp_path, env=ENV)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1 and "scene.{data} reaches nothing" in lines[0], res.stderr[-2000:]
