@@ -21,6 +21,15 @@ def _cli(module, args):
                           cwd=ROOT, env=ENV)
 
 
+def _export(**kw):
+    """b3dgs.export.export in this process (the CLI is run once, in the first test)."""
+    from omegaconf import OmegaConf
+
+    from b3dgs.export import export
+
+    return export(OmegaConf.create({"format": "ply", "checkpoint": None, "out": None, **kw}))
+
+
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     d = tmp_path_factory.mktemp("exp") / "run"
@@ -54,11 +63,10 @@ def test_an_earlier_checkpoint_exports_its_own_step(run, tmp_path):
 
     ckpts = sorted((run / "checkpoints").glob("step*.ckpt"))
     assert ckpts, list((run / "checkpoints").iterdir())
-    res = _cli("b3dgs.export", [f"run={run}", "format=3dgs", f"checkpoint={ckpts[0]}", f"out={tmp_path / 'm'}"])
-    assert res.returncode == 0, res.stderr[-2000:]
+    w = _export(run=str(run), format="3dgs", checkpoint=str(ckpts[0]), out=str(tmp_path / "m"))
     step = int(ckpts[0].stem.replace("step", ""))
     ply = tmp_path / "m" / "point_cloud" / f"iteration_{step}" / "point_cloud.ply"
-    assert ply.is_file() and "(step 3)" in res.stdout
+    assert ply.is_file() and w["step"] == step == 3
     assert not read_ply(ply)["extra"]  # the official layout alone: SIBR reads a fixed record
     cams = json.loads((tmp_path / "m" / "cameras.json").read_text())
     metrics = json.loads((run / "metrics.json").read_text())
@@ -75,8 +83,7 @@ def test_splat_records_decode_to_the_gaussians(run, tmp_path):
     from b3dgs.ply import read_ply
 
     out = tmp_path / "s.splat"
-    res = _cli("b3dgs.export", [f"run={run}", "format=splat", f"out={out}"])
-    assert res.returncode == 0, res.stderr[-2000:]
+    _export(run=str(run), format="splat", out=str(out))
     ply = read_ply(run / "point_cloud.ply")
     ply_pos = ply["means"].double().numpy()
     n = len(ply_pos)
@@ -100,9 +107,14 @@ def test_splat_records_decode_to_the_gaussians(run, tmp_path):
 
 
 def test_bad_input_is_one_line(run, tmp_path):
-    for args, want in (([f"run={run}", "format=spz"], "format=spz is not an export format"),
-                       ([f"run={run}", f"checkpoint={tmp_path / 'no.ckpt'}"], "no such file"),
-                       ([f"run={run}", "format=splat", f"out={tmp_path}"], "is a folder")):
-        res = _cli("b3dgs.export", args)
-        lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-        assert res.returncode == 2 and len(lines) == 1 and want in lines[0] and "fix:" in lines[0], res.stderr[-2000:]
+    from b3dgs.errors import B3dgsError
+
+    res = _cli("b3dgs.export", [f"run={run}", "format=spz"])
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1 and "format=spz is not an export format" in lines[0] \
+        and "fix:" in lines[0], res.stderr[-2000:]
+    for kw, want in (({"checkpoint": str(tmp_path / "no.ckpt")}, "no such file"),
+                     ({"format": "splat", "out": str(tmp_path)}, "is a folder")):
+        with pytest.raises(B3dgsError, match=want) as e:
+            _export(run=str(run), **kw)
+        assert e.value.fix
