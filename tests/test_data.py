@@ -690,3 +690,33 @@ def test_initial_scale_knn_matches_brute_force():
     assert float(knn_mean_dist(pts)[10]) > 0
     assert torch.equal(knn_mean_dist(pts[:2]), torch.full((2,), float((pts[0] - pts[1]).double().norm())))
     assert knn_mean_dist(pts[:1]).tolist() == [1.0]
+
+
+def test_sector_split_holds_out_one_contiguous_side(tmp_path):
+    """data.test_split=sector (issue 42's OOD split): the test views are the cameras farthest along one principal
+    direction, a contiguous arc of a ring that no training camera sees from; the default split is unchanged."""
+    import math
+
+    from b3dgs.data import load_scene
+    from b3dgs.data.scene import sector_split
+    from b3dgs.errors import B3dgsError
+
+    ang = [2 * math.pi * i / 24 for i in range(24)]
+    ring = np.array([[3 * math.cos(a), 2 * math.sin(a), 0.1 * math.cos(3 * a)] for a in ang])  # longest along x
+    train, test = sector_split(ring, 0.125)
+    assert len(test) == 3 and sorted(train + test) == list(range(24))
+    assert test == [0, 1, 23]  # the arc around +x, contiguous on the ring
+    assert min(ring[test, 0]) > max(ring[train, 0])
+    with pytest.raises(B3dgsError, match="test_fraction"):
+        sector_split(ring, 1.0)
+    a = load_scene("synthetic", None, max_side=16, n_views=16)
+    b = load_scene("synthetic", None, max_side=16, n_views=16, test_split="sector", test_fraction=0.25)
+    names = sorted(c.name for c in a.train + a.test)
+    assert [c.name for c in a.test] == [names[0], names[8]]  # the default: every 8th view in name order
+    assert len(b.test) == 4 and not {c.name for c in b.test} & {c.name for c in b.train}
+    cent = lambda cams: np.stack([c.center.double().numpy() for c in cams])  # noqa: E731
+    u = np.linalg.svd(cent(b.train + b.test) - cent(b.train + b.test).mean(0))[2][0]
+    u = u if u[np.argmax(np.abs(u))] > 0 else -u
+    assert (cent(b.test) @ u).min() > (cent(b.train) @ u).max()
+    with pytest.raises(B3dgsError, match="test_split='diagonal'"):
+        load_scene("synthetic", None, max_side=16, n_views=16, test_split="diagonal")

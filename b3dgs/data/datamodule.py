@@ -156,6 +156,9 @@ class SceneDataModule(L.LightningDataModule):
         scene: Optional[Scene] = None,
         near_plane: float = NEAR_PLANE,
         calib_every: Optional[int] = None,
+        test_split: str = "interleaved",
+        test_fraction: float = 0.125,
+        sector_axis: int = 0,
         **kind_kwargs: Any,
     ):
         super().__init__()
@@ -171,6 +174,8 @@ class SceneDataModule(L.LightningDataModule):
         self.name = name
         self.near_plane = float(near_plane)
         self.calib_every = None if calib_every is None else int(calib_every)  # calibration hold-out (scene.calib)
+        # the held-out split: interleaved (every test_every-th view) or a contiguous sector (b3dgs.data.scene.sector_split)
+        self.test_split, self.test_fraction, self.sector_axis = str(test_split), float(test_fraction), int(sector_axis)
         self.kind_kwargs = {k: _plain(v) for k, v in kind_kwargs.items()}
         self._scene: Optional[Scene] = scene
         self.train_sampler: Optional[ResumableRandomSampler] = None  # made by train_dataloader()
@@ -197,6 +202,9 @@ class SceneDataModule(L.LightningDataModule):
             max_images=self.max_images,
             near_plane=self.near_plane,
             calib_every=self.calib_every,
+            test_split=self.test_split,
+            test_fraction=self.test_fraction,
+            sector_axis=self.sector_axis,
             **self.kind_kwargs,
         )
         if self.name:

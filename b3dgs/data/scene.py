@@ -30,6 +30,7 @@ point inside the image) in :func:`materialize`.
 from __future__ import annotations
 
 import logging
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -383,6 +384,30 @@ def split_calibration(train: Sequence[Camera], calib_every: Optional[int]) -> tu
     return [c for j, c in enumerate(train) if (j + 1) % calib_every != 0], calib
 
 
+TEST_SPLITS = ("interleaved", "sector")
+
+
+def sector_split(centres: np.ndarray, fraction: float, axis: int = 0) -> tuple[list[int], list[int]]:
+    """(train, test) indices: the test views are the ``ceil(fraction · n)`` cameras farthest along one direction, the
+    ``axis``-th principal direction of the camera centres (sign: its largest component positive), so they form one
+    contiguous sector that no training camera sees from (an arc of a 360° capture, one edge of a forward-facing one).
+    Ties go to the earlier index."""
+    c = np.asarray(centres, np.float64).reshape(-1, 3)
+    n = len(c)
+    if not 0.0 < float(fraction) < 1.0:
+        raise B3dgsError(f"test_fraction={fraction} must be in (0, 1)", "pass data.test_fraction=0.125")
+    if not 0 <= int(axis) <= 2:
+        raise B3dgsError(f"sector_axis={axis} must be 0, 1 or 2 (a principal direction of the camera centres)",
+                         "pass data.sector_axis=0")
+    u = np.linalg.svd(c - c.mean(0), full_matrices=False)[2][int(axis)]
+    u = u if u[np.argmax(np.abs(u))] > 0 else -u
+    proj = (c - c.mean(0)) @ u
+    k = min(max(1, math.ceil(float(fraction) * n)), n - 1)
+    order = sorted(range(n), key=lambda i: (-proj[i], i))
+    test = sorted(order[:k])
+    return [i for i in range(n) if i not in set(test)], test
+
+
 def preprocess(
     raw: RawScene,
     test_every: int = 8,
@@ -392,8 +417,13 @@ def preprocess(
     near_plane: float = NEAR_PLANE,
     calib_every: Optional[int] = None,
     init_points_from_train_only: bool = False,
+    test_split: str = "interleaved",
+    test_fraction: float = 0.125,
+    sector_axis: int = 0,
 ) -> Scene:
-    """Normalise, split and bound a :class:`RawScene` (see the module docstring).
+    """Normalise, split and bound a :class:`RawScene` (see the module docstring). ``test_split``: ``interleaved``
+    (every ``test_every``-th view in name order) or ``sector`` (:func:`sector_split`: a contiguous ``test_fraction``
+    of the cameras, held out along ``sector_axis``).
 
     With ``train_indices``, the other train views become ``scene.candidates``: cameras without images,
     whose images go to a :class:`CandidateStore` that :func:`take_candidate_store` hands to the study
@@ -431,7 +461,14 @@ def preprocess(
     else:
         _, extent = camera_extent(viewmats)
 
-    train_idx, test_idx = split_indices(len(cams), test_every)
+    if test_split not in TEST_SPLITS:
+        raise B3dgsError(f"test_split={test_split!r} is not one of {'|'.join(TEST_SPLITS)}",
+                         "pass data.test_split=interleaved (every test_every-th view) or sector")
+    if test_split == "sector":
+        centres = np.stack([-v[:3, :3].T @ v[:3, 3] for v in viewmats])
+        train_idx, test_idx = sector_split(centres, test_fraction, sector_axis)
+    else:
+        train_idx, test_idx = split_indices(len(cams), test_every)
     train = [cams[i] for i in train_idx]
     test = [cams[i] for i in test_idx]
     train, calib = split_calibration(train, calib_every)
@@ -623,6 +660,9 @@ def load_scene(
     near_plane: float = NEAR_PLANE,
     calib_every: Optional[int] = None,
     init_points_from_train_only: bool = False,
+    test_split: str = "interleaved",
+    test_fraction: float = 0.125,
+    sector_axis: int = 0,
     **kind_kwargs: Any,
 ) -> Scene:
     """Load a scene of ``kind`` (``colmap``, ``transforms``, ``llff``, ``synthetic`` or a loader function
@@ -634,6 +674,7 @@ def load_scene(
             files ("synthetic").
         max_side: downscale images so the longest side is ``<= max_side`` (K scaled to match).
         test_every: every ``test_every``-th view in sorted name order is held out; 0 = none.
+        test_split, test_fraction, sector_axis: ``sector`` holds out a contiguous sector instead (:func:`sector_split`).
         train_indices: indices into the sorted train list to keep (sparse/active-view studies).
         normalize: centre on the mean camera centre and scale the camera extent to 1.
         background: RGB in [0, 1]; transparent pixels are composited over it, and it is stored
@@ -669,7 +710,8 @@ def load_scene(
     raw = loader(path, **common, **kind_kwargs) if reads_files else loader(**common, **kind_kwargs)
     scene = preprocess(raw, test_every=test_every, train_indices=train_indices, normalize=normalize,
                        background=background, near_plane=near_plane, calib_every=calib_every,
-                       init_points_from_train_only=init_points_from_train_only)
+                       init_points_from_train_only=init_points_from_train_only, test_split=test_split,
+                       test_fraction=test_fraction, sector_axis=sector_axis)
     log.info(
         "Loaded %s scene %r: %d train / %d test%s views, %s points, extent %.4g",
         kind, scene.name, len(scene.train), len(scene.test),
