@@ -81,8 +81,8 @@ class InfoGainPolicy(AcquisitionPolicy):
                              "pass acquisition.prior_precision=1.0")
 
     # ---------------------------------------------------------------- the posterior of the current training views
-    def _view(self, ctx, camera, means: Tensor, deg: int, sigma2: float) -> _View:
-        ro = ctx.render(camera, return_weights=True)
+    def _view(self, ctx, camera, means: Tensor, deg: int, sigma2: float, ro=None) -> _View:
+        ro = ctx.render(camera, return_weights=True) if ro is None else ro
         if ro.weight_sq_sum is None:
             raise B3dgsError("acquisition info_gain: the renderer returned no weight sums",
                              "use a renderer that gives them (cpu, torch or gsplat)")
@@ -95,12 +95,14 @@ class InfoGainPolicy(AcquisitionPolicy):
         d = torch.nn.functional.normalize(means[idx] - camera.center.to(means), dim=-1)
         return _View(idx, wsq[idx] / sigma2, sh_basis(deg, d))
 
-    def _sigma2(self, ctx) -> float:
+    @staticmethod
+    def _sigma2(ctx, renders) -> float:
+        """The training views' residual MSE at the scoring resolution (views without an image left out)."""
         sq, n = 0.0, 0
-        for cam in ctx.train:
+        for cam, ro in zip(ctx.train, renders):
             if cam.image is None:
                 continue
-            rgb = ctx.render(cam).rgb.detach().double()
+            rgb = ro.rgb.detach().double()
             sq += float((rgb - cam.image.to(rgb)).square().sum())
             n += rgb.numel()
         s2 = sq / n if n else float("nan")
@@ -130,10 +132,11 @@ class InfoGainPolicy(AcquisitionPolicy):
                              "steps")
         means = ctx.params()["means"].detach().double()
         N, B = means.shape[0], (deg + 1) ** 2
-        s2 = self._sigma2(ctx)
+        renders = [ctx.render(c, return_weights=True) for c in ctx.train]  # one render per training view
+        s2 = self._sigma2(ctx, renders)
         eye = torch.eye(B, dtype=torch.float64, device=means.device)
         lam = self.prior_precision * eye.expand(N, B, B).clone()
-        train = [self._view(ctx, c, means, deg, s2) for c in ctx.train]
+        train = [self._view(ctx, c, means, deg, s2, ro) for c, ro in zip(ctx.train, renders)]
         for v in train:
             self._add(lam, v)
         P = torch.cholesky_inverse(safe_cholesky(lam))
