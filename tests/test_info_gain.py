@@ -1,6 +1,5 @@
 """acquisition=info_gain (issue 42): both objectives against a float64 brute force, the predictive score against the
 variance of rendered colours under posterior draws, exact conditioning, a known geometric answer, and bad input."""
-import math
 
 import pytest
 import torch
@@ -39,6 +38,15 @@ def _tiny(sh_degree=1, sh0=None):
     return m, [f64(c) for c in scene.train]
 
 
+def _information(m, cam, sigma2):
+    """(N, B, B) explicit s·y yᵀ of one view: Σ_p w² / σ² times the SH basis toward the view, per Gaussian."""
+    deg = m.active_sh_degree()
+    means = m.splats["means"].detach().double()
+    wsq = m.render_camera(cam, return_weights=True).weight_sq_sum.reshape(-1).double()
+    y = sh_basis(deg, torch.nn.functional.normalize(means - cam.center.double(), dim=-1))
+    return (wsq / sigma2)[:, None, None] * (y[:, :, None] * y[:, None, :])
+
+
 def _brute(m, train, cands, targets, tau, sigma2, objective):
     """Every score from explicit B x B matrices and inverses (float64)."""
     deg = m.active_sh_degree()
@@ -46,9 +54,7 @@ def _brute(m, train, cands, targets, tau, sigma2, objective):
     N, B = means.shape[0], (deg + 1) ** 2
 
     def J(cam):
-        wsq = m.render_camera(cam, return_weights=True).weight_sq_sum.reshape(-1).double()
-        y = sh_basis(deg, torch.nn.functional.normalize(means - cam.center.double(), dim=-1))
-        return (wsq / sigma2)[:, None, None] * (y[:, :, None] * y[:, None, :])
+        return _information(m, cam, sigma2)
 
     lam = tau * torch.eye(B, dtype=torch.float64).expand(N, B, B) + sum(J(c) for c in train)
     P = torch.linalg.inv(lam)
@@ -92,9 +98,7 @@ def test_predictive_score_is_the_drop_of_rendered_colour_variance_under_posterio
     N, B = means.shape[0], (deg + 1) ** 2
 
     def J(cam):
-        wsq = m.render_camera(cam, return_weights=True).weight_sq_sum.reshape(-1).double()
-        y = sh_basis(deg, torch.nn.functional.normalize(means - cam.center.double(), dim=-1))
-        return (wsq / s2)[:, None, None] * (y[:, :, None] * y[:, None, :])
+        return _information(m, cam, s2)
 
     lam = tau * torch.eye(B, dtype=torch.float64).expand(N, B, B) + sum(J(c) for c in train)
     S = 4000
