@@ -10,7 +10,7 @@ def test_count_cost_times_each_pass_and_resumes(tmp_path, monkeypatch):
     import bench.count_cost as cc
 
     run = tmp_path / "toy" / "niw" / "s0"
-    m = run_train(run, QUICK + ["model=niw", "trainer.max_steps=30", "trainer.eval_every=30", "strategy.refine_start=10",
+    m = run_train(run, QUICK + ["model=niw", "trainer.max_steps=30", "model.sh_increase_every=10", "trainer.eval_every=30", "strategy.refine_start=10",
                                 "strategy.refine_stop=25", "strategy.refine_every=10"])
     got = cc.measure(run, ["weight", "sh"], {})
     assert set(got) == {"weight", "sh"}
