@@ -18,7 +18,7 @@ from b3dgs.host_sync import scope
 from b3dgs.init import init_gaussians
 from b3dgs.numerics import on_device_path
 from b3dgs.ops import TopologyOps
-from b3dgs.plugin import Plugin, PosteriorBlock
+from b3dgs.plugin import Plugin, PosteriorBlock, ViewAccumulator
 from b3dgs.render.render import RenderOutput
 from b3dgs.render.renderers import Renderer, make_renderer
 from b3dgs.schedule import ConstantSchedule, TrainingSchedule
@@ -417,88 +417,65 @@ class SplatModule(L.LightningModule):
             ops.added.update(added)
 
     # ------------------------------------------------------------------ view passes
-    def view_sums(self, cameras: Optional[Sequence[Camera]] = None, *, weights: bool = True, fisher_probes: int = 0,
-                  seed: int = 0, sh_information: bool = False) -> dict[str, Tensor]:
-        """Per-Gaussian sums over ``cameras`` (default: the training views), one render each, in float64 on the
-        splats' device, in the pixels of the cameras given:
-
-        * ``weight_sum`` (N,): Σ_views Σ_p w_kp, the compositing weight T·α Gaussian k contributes (how many pixels it
-          explains); ``visible_views`` (N,): in how many of the views it is drawn;
-        * with ``fisher_probes`` = M > 0, ``fisher`` (N, 3, 3): Σ_views Σ_p Σ_c ∇_μk C_pc ∇_μk C_pcᵀ, the Fisher
-          information of the centre under a unit-variance pixel likelihood (FisherRF's quantity; divide by σ² for
-          the Laplace precision). Estimated with M Rademacher probes per view, E_z[(Σ_p z_p ∇C_p)(Σ_p z_p ∇C_p)ᵀ] =
-          Σ_p ∇C_p ∇C_pᵀ for independent ±1 z_p (Hutchinson's estimator): one backward pass of the renderer per
-          probe instead of one per pixel, on every backend (the CUDA path differentiates through gsplat), unbiased;
-          relative error ~ √(2 / (M · views seeing k)). ``b3dgs.fisher.pixel_set_grads`` is the exact reference;
-        * with ``sh_information``, ``sh_information`` (N, B, B): Σ_views Σ_p w_kp² y(d_kv) y(d_kv)ᵀ, the information of
-          Gaussian k's SH coefficients under a unit-variance pixel likelihood (y: the real SH basis at the active
-          degree, B = (deg+1)², d_kv the unit direction from view v's centre to μ_k), and ``sq_err`` / ``n_values``:
-          the summed squared residual of the renders against the views' images and the number of values summed.
-        """
+    def view_sums(self, cameras: Optional[Sequence[Camera]] = None, accumulators: Sequence[ViewAccumulator] = (), *,
+                  seed: int = 0) -> dict[str, Tensor]:
+        """Per-Gaussian sums over ``cameras`` (default: the training views), one render each at the active SH
+        degree, in float64 on the splats' device, in the pixels of the cameras given: ``weight_sum`` (N,):
+        Σ_views Σ_p w_kp, the compositing weight T·α Gaussian k contributes (how many pixels it explains);
+        ``visible_views`` (N,): in how many of the views it is drawn; and every entry of each accumulator's
+        ``result()`` (:class:`b3dgs.plugin.ViewAccumulator`, started with ``seed``)."""
         cams = list(self.scene.train if cameras is None else cameras)
         sp = self.params()
         dev = sp["means"].device
         n = sp["means"].shape[0]
         out = {"weight_sum": torch.zeros(n, dtype=torch.float64, device=dev),
                "visible_views": torch.zeros(n, dtype=torch.float64, device=dev)}
-        probes = int(fisher_probes)
-        if probes > 0:
-            out["fisher"] = torch.zeros(n, 3, 3, dtype=torch.float64, device=dev)
-            g = torch.Generator(device="cpu").manual_seed(int(seed))
-        sh = self.active_sh_degree()
-        if sh_information:
-            from b3dgs.render.projection import sh_basis
-
-            nb = (sh + 1) ** 2
-            out["sh_information"] = torch.zeros(n, nb, nb, dtype=torch.float64, device=dev)
-            out["sq_err"] = torch.zeros((), dtype=torch.float64, device=dev)
-            out["n_values"] = torch.zeros((), dtype=torch.float64, device=dev)
-            weights = True
+        degree = self.active_sh_degree()
+        accs = list(accumulators)
+        detached = {k: v.detach() for k, v in sp.items()}
+        for acc in accs:
+            acc.start(params=detached, sh_degree=degree, seed=int(seed))
+        grad = any(acc.needs_means_grad for acc in accs)
         for cam in cams:
-            if probes > 0:
-                means = sp["means"].detach().requires_grad_(True)
-                params = {**{k: v.detach() for k, v in sp.items()}, "means": means}
+            if grad:
+                params = {**detached, "means": sp["means"].detach().requires_grad_(True)}
                 with torch.enable_grad():
-                    ro = self.render_camera(cam, params=params, sh_degree=sh, return_weights=weights)
-                    for m in range(probes):
-                        z = (torch.randint(0, 2, ro.rgb.shape, generator=g) * 2 - 1).to(ro.rgb.dtype).to(dev)
-                        (gm,) = torch.autograd.grad(ro.rgb, means, grad_outputs=z, retain_graph=m < probes - 1)
-                        gm = gm.double()
-                        out["fisher"] += (gm.unsqueeze(-1) * gm.unsqueeze(-2)) / probes
+                    ro = self.render_camera(cam, params=params, sh_degree=degree, return_weights=True)
+                    for acc in accs:
+                        acc.add(camera=cam, render=ro, params=params, sh_degree=degree)
             else:
                 with torch.no_grad():
-                    ro = self.render_camera(cam, sh_degree=sh, return_weights=weights)
-            if weights and ro.weight_sum is not None:
+                    ro = self.render_camera(cam, sh_degree=degree, return_weights=True)
+                    for acc in accs:
+                        acc.add(camera=cam, render=ro, params=detached, sh_degree=degree)
+            if ro.weight_sum is not None:
                 out["weight_sum"] += ro.weight_sum.detach().reshape(-1).double()
             out["visible_views"] += (ro.radii.detach().reshape(-1) > 0).double()
-            if sh_information:
-                wsq = ro.weight_sq_sum.detach().reshape(-1).double()
-                seen = torch.nonzero(wsq > 0).squeeze(-1)
-                d = torch.nn.functional.normalize(sp["means"].detach()[seen].double()
-                                                  - cam.center.to(dev, torch.float64), dim=-1)
-                y = sh_basis(sh, d)
-                out["sh_information"].index_add_(0, seen, wsq[seen, None, None] * (y[:, :, None] * y[:, None, :]))
-                if cam.image is not None:
-                    diff = ro.rgb.detach().double().reshape(-1) - cam.image.to(dev).double().reshape(-1)
-                    out["sq_err"] += diff.square().sum()
-                    out["n_values"] += diff.numel()
+        for acc in accs:
+            for k, v in acc.result().items():
+                if k in out:
+                    raise B3dgsError(f"view pass: two sums are named {k!r} ({type(acc).__name__} and another "
+                                     "accumulator or the core)", "give the accumulator's result a name of its own")
+                out[k] = v
         return out
 
     def prepare_posterior(self, cameras: Optional[Sequence[Camera]] = None, blocks=None) -> bool:
         """Give every posterior block that asks for one (:meth:`b3dgs.plugin.PosteriorBlock.view_pass`) the sums of
-        one pass over ``cameras`` (default: the training views); called before the posterior is used (the end of
-        training, ``uq=native``, acquisition). ``blocks``: (name, block, state) triples to prepare instead of the
-        model's own (e.g. copies with another count). Deterministic: the Fisher probes are seeded with the run's seed.
-        Returns whether a pass ran (False: no block asked for one)."""
+        one pass over ``cameras`` (default: the training views), which feeds every block's accumulators (equal keys
+        merged, run once); called before the posterior is used (the end of training, ``uq=native``, acquisition).
+        ``blocks``: (name, block, state) triples to prepare instead of the model's own (e.g. copies with another
+        count). Deterministic: accumulators are started with the run's seed. Returns whether a pass ran (False: no
+        block asked for one)."""
         triples = blocks if blocks is not None else [(n, b, self.states[n]) for n, b in self.posterior.items()]
         reqs = [(b, st, b.view_pass(state=st)) for _, b, st in triples]
         reqs = [r for r in reqs if r[2] is not None]
         if not reqs:
             return False
-        probes = max(int(r[2].get("fisher_probes", 0)) for r in reqs)
-        sh_info = any(bool(r[2].get("sh_information", False)) for r in reqs)
-        sums = self.view_sums(cameras, weights=True, fisher_probes=probes, seed=int(self.hparams.seed),
-                              sh_information=sh_info)
+        accs: dict[str, ViewAccumulator] = {}
+        for _, _, wanted in reqs:
+            for acc in wanted:
+                accs[acc.key] = accs[acc.key].merge(acc) if acc.key in accs else acc
+        sums = self.view_sums(cameras, list(accs.values()), seed=int(self.hparams.seed))
         for blk, st, _ in reqs:
             blk.absorb_view_sums(splats=self.splats, state=st, sums=sums)
         return True

@@ -128,15 +128,16 @@ class PosteriorBlock(Plugin):
         modified. None (default): this block's posterior does not change with such pseudo-observations."""
         return None
 
-    def view_pass(self, *, state) -> Optional[dict]:
-        """What this block needs from one pass over the training views before its posterior is used (None:
-        nothing): ``{"fisher_probes": M}`` asks :meth:`b3dgs.module.SplatModule.view_sums` for the weight sums and,
-        with M > 0, the centres' Fisher information; ``{"sh_information": True}`` the SH coefficients' information and
-        the residual; the result goes to :meth:`absorb_view_sums`."""
+    def view_pass(self, *, state) -> Optional[list["ViewAccumulator"]]:
+        """What this block sums over one pass of the training views before its posterior is used. None: no pass;
+        a list (possibly empty) of :class:`ViewAccumulator`: a pass that feeds them, besides the renderer's own
+        per-Gaussian sums (``weight_sum``, ``visible_views``). The core renders each view once for every accumulator
+        of every block; the sums go to :meth:`absorb_view_sums`."""
         return None
 
     def absorb_view_sums(self, *, splats, state, sums: dict) -> None:
-        """Update ``state`` from a view pass (``sums``: the dict of ``SplatModule.view_sums``)."""
+        """Update ``state`` from a view pass (``sums``: ``weight_sum``, ``visible_views`` and the ``result()`` of
+        every accumulator of the pass)."""
 
     #: True: :meth:`aleatoric_variance` is a fallback, used only when no other block of the model gives σ̂² (the SH
     #: posterior's pass residual: NIW's plug-in σ̂² or the noise block's posterior comes first)
@@ -153,3 +154,32 @@ class PosteriorBlock(Plugin):
     def summary(self, *, state) -> dict[str, Any]:
         """Scalar diagnostics for metrics.json."""
         return {}
+
+
+class ViewAccumulator:
+    """A per-Gaussian sum over one pass of views that a posterior block declares (:meth:`PosteriorBlock.view_pass`)
+    and the core feeds (:meth:`b3dgs.module.SplatModule.view_sums`): ``start`` once, ``add`` per rendered view,
+    ``result`` at the end. The core knows nothing of what is summed.
+
+    ``key``: accumulators of one pass with equal keys run once, as ``a.merge(b)`` (e.g. the larger probe count);
+    ``needs_means_grad``: the view is rendered with ``params["means"]`` requiring grad, so ``add`` may
+    differentiate the render with respect to the centres (the render is then not under ``no_grad``)."""
+
+    key: ClassVar[str] = ""
+    needs_means_grad: ClassVar[bool] = False
+
+    def start(self, *, params: dict, sh_degree: int, seed: int) -> None:
+        """Allocate the sums for ``params`` (the Gaussians of the pass, detached) on their device."""
+
+    def add(self, *, camera, render, params: dict, sh_degree: int) -> None:
+        """Add one view: ``render`` is the renderer's output for ``camera`` (``rgb``, ``radii``, ``weight_sum``,
+        ``weight_sq_sum``), rendered from ``params``."""
+        raise NotImplementedError
+
+    def result(self) -> dict[str, Tensor]:
+        """The sums, by name (names must not clash with another accumulator's or the core's)."""
+        raise NotImplementedError
+
+    def merge(self, other: "ViewAccumulator") -> "ViewAccumulator":
+        """The accumulator to run when two blocks ask for the same ``key`` (default: the first)."""
+        return self

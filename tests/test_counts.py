@@ -8,7 +8,7 @@ import torch
 from b3dgs.data import load_scene
 from b3dgs.fisher import pixel_set_grads
 from b3dgs.types import Camera
-from b3dgs_plugins.posterior.niw import (COUNTS, NIWBlock, fisher_count, mean_variance, niw_update,
+from b3dgs_plugins.posterior.niw import (COUNTS, FisherAccumulator, NIWBlock, fisher_count, mean_variance, niw_update,
                                         prior_scale_for_expected_cov)
 from test_posterior_blocks import module_with_blocks
 
@@ -23,7 +23,7 @@ def test_view_pass_fisher_matches_the_exact_per_pixel_sum(scene):
     gradients (pixel_set_grads with a stride of the image side: one pixel per backward pass), float64."""
     m = module_with_blocks(scene, {"niw": NIWBlock(count="fisher")})
     cams = [scene.train[0].resized(10, 10)]
-    est = m.view_sums(cams, fisher_probes=300, seed=3)["fisher"]
+    est = m.view_sums(cams, [FisherAccumulator(300)], seed=3)["fisher"]
     sp = m.params()
     means = sp["means"].detach().clone().requires_grad_(True)
     params = {**{k: v.detach() for k, v in sp.items()}, "means": means}

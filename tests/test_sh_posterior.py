@@ -9,7 +9,7 @@ from b3dgs.data import load_scene
 from b3dgs.errors import B3dgsError
 from b3dgs.fisher import pixel_set_grads
 from b3dgs.render.projection import sh_basis
-from b3dgs_plugins.posterior.sh import SHPosteriorBlock
+from b3dgs_plugins.posterior.sh import SHInformation, SHPosteriorBlock
 from test_counts import _one_gaussian_module
 from test_posterior_blocks import module_with_blocks
 
@@ -31,7 +31,7 @@ def test_view_pass_sh_information_matches_per_pixel_gradients(scene):
     """Σ_p w_kp² y yᵀ of the pass equals Σ_p ∇_A C_pc ∇_A C_pcᵀ (per channel) from autograd, one pixel at a time."""
     m = _sh_module(scene)
     cam = scene.train[0].resized(8, 8)
-    sums = m.view_sums([cam], sh_information=True)
+    sums = m.view_sums([cam], [SHInformation()])
     info = sums["sh_information"]
     B = (m.active_sh_degree() + 1) ** 2
     assert tuple(info.shape) == (m.num_gaussians, B, B) and B == 16
@@ -62,7 +62,7 @@ def test_draws_have_the_posterior_covariance(scene):
     m = _sh_module(scene)
     m.prepare_posterior()
     blk, st = m.posterior["sh"], m.states["sh"]
-    sums = m.view_sums(sh_information=True)
+    sums = m.view_sums(accumulators=[SHInformation()])
     s2 = float(sums["sq_err"] / sums["n_values"])
     assert float(st["sigma2"]) == pytest.approx(s2)
     B = sums["sh_information"].shape[-1]

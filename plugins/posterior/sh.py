@@ -31,7 +31,7 @@ import torch
 from b3dgs.device import randn
 from b3dgs.errors import B3dgsError
 from b3dgs.numerics import guard
-from b3dgs.plugin import PosteriorBlock
+from b3dgs.plugin import PosteriorBlock, ViewAccumulator
 from b3dgs_plugins.posterior.niw import safe_cholesky
 
 _DEGREE0 = ("posterior.sh: the model renders SH degree 0, so its colour has no direction and the directional "
@@ -39,6 +39,43 @@ _DEGREE0 = ("posterior.sh: the model renders SH degree 0, so its colour has no d
 _DEGREE0_FIX = "train with model.sh_degree >= 1 (the default 3) for more than model.sh_increase_every steps"
 #: σ̂² below this (a perfectly fitted or empty pass) is raised to it (guard ``sh.sigma2_floor``)
 SIGMA2_FLOOR = 1e-6
+
+
+class SHInformation(ViewAccumulator):
+    """Σ_views Σ_p w_kp² y(d_kv) y(d_kv)ᵀ (``sh_information``, (N, B, B)): the information of Gaussian k's SH
+    coefficients under a unit-variance pixel likelihood (y: the real SH basis at the active degree, B = (deg+1)²,
+    d_kv the unit direction from view v's centre to μ_k); ``sq_err`` / ``n_values``: the summed squared residual of
+    the renders against the views' images and the number of values summed (σ̂² of the module docstring)."""
+
+    key = "sh_information"
+
+    def start(self, *, params, sh_degree, seed):
+        n, dev = params["means"].shape[0], params["means"].device
+        nb = (sh_degree + 1) ** 2
+        self.sums = {"sh_information": torch.zeros(n, nb, nb, dtype=torch.float64, device=dev),
+                     "sq_err": torch.zeros((), dtype=torch.float64, device=dev),
+                     "n_values": torch.zeros((), dtype=torch.float64, device=dev)}
+
+    def add(self, *, camera, render, params, sh_degree):
+        from b3dgs.render.projection import sh_basis
+
+        means = params["means"].detach()
+        dev = means.device
+        if render.weight_sq_sum is None:
+            raise B3dgsError("posterior.sh: the renderer gave no per-Gaussian Σ w² (weight_sq_sum)",
+                             "use a renderer that returns weights (cpu, torch or gsplat)")
+        wsq = render.weight_sq_sum.detach().reshape(-1).double()
+        seen = torch.nonzero(wsq > 0).squeeze(-1)
+        d = torch.nn.functional.normalize(means[seen].double() - camera.center.to(dev, torch.float64), dim=-1)
+        y = sh_basis(sh_degree, d)
+        self.sums["sh_information"].index_add_(0, seen, wsq[seen, None, None] * (y[:, :, None] * y[:, None, :]))
+        if camera.image is not None:
+            diff = render.rgb.detach().double().reshape(-1) - camera.image.to(dev).double().reshape(-1)
+            self.sums["sq_err"] += diff.square().sum()
+            self.sums["n_values"] += diff.numel()
+
+    def result(self):
+        return self.sums
 
 
 @dataclass
@@ -62,8 +99,8 @@ class SHPosteriorBlock(PosteriorBlock):
         return {"n": torch.tensor(-1, dtype=torch.int64, device=dev),
                 "sigma2": torch.tensor(float("nan"), dtype=torch.float64, device=dev)}
 
-    def view_pass(self, *, state) -> Optional[dict]:
-        return {"sh_information": True}
+    def view_pass(self, *, state) -> Optional[list[ViewAccumulator]]:
+        return [SHInformation()]
 
     @torch.no_grad()
     def absorb_view_sums(self, *, splats, state, sums: dict) -> None:
@@ -91,8 +128,8 @@ class SHPosteriorBlock(PosteriorBlock):
     def _u(self, splats, state) -> torch.Tensor:
         n = splats["means"].shape[0]
         if "u" not in state or int(state["n"]) != n:
-            raise B3dgsError(f"posterior.sh: the posterior was computed for {int(state['n'])} Gaussians, the model has "
-                             f"{n} (fix: call SplatModule.prepare_posterior() after the last topology change)")
+            raise B3dgsError(f"posterior.sh: the posterior was computed for {int(state['n'])} Gaussians, the model has {n}",
+                             "call SplatModule.prepare_posterior() after the last topology change")
         return state["u"]
 
     def colour_variance(self, *, splats, state, dirs: torch.Tensor) -> torch.Tensor:
