@@ -166,8 +166,10 @@ RULES = {
     "data.max_side?": (lambda v: _int(v, 1), "an integer >= 1 or null",
                        "pass data.max_side=256 (longest image side in pixels) or null for full resolution"),
     "data.test_every": (lambda v: _int(v, 0), "an integer >= 0", "pass data.test_every=8 (every 8th view held out) or 0"),
-    "data.test_split": (lambda v: v in ("interleaved", "sector"), "interleaved or sector",
-                        "pass data.test_split=interleaved (every test_every-th view) or sector (a contiguous sector)"),
+    "data.test_split": (lambda v: v in ("interleaved", "sector", "sector+interleaved"),
+                        "interleaved, sector or sector+interleaved",
+                        "pass data.test_split=interleaved (every test_every-th view), sector (a contiguous sector) or "
+                        "sector+interleaved (both)"),
     "data.test_fraction": (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < 1,
                            "a fraction in (0, 1)", "pass data.test_fraction=0.125"),
     "data.sector_axis": (lambda v: v in (0, 1, 2) and not isinstance(v, bool), "0, 1 or 2",

@@ -206,6 +206,22 @@ def shared_dir() -> Path:
     return Path(os.environ.get("B3DGS_SHARED", Path(__file__).resolve().parents[1].parent / "shared"))
 
 
+def archive_files(run_dir: Path, dest: Path, names: Sequence[str]) -> None:
+    """Copies the files ``names`` of ``run_dir`` that exist into ``dest``, atomically: a temporary folder beside it,
+    renamed into place (an earlier ``dest`` is replaced), so an archive never holds half a run."""
+    import shutil
+    import tempfile
+
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
+    for name in names:
+        if (run_dir / name).is_file():
+            shutil.copy2(run_dir / name, tmp / name)
+    if dest.exists():
+        shutil.rmtree(dest)
+    tmp.rename(dest)
+
+
 def train_run(run_dir: Path, overrides: list[str], timeout_s: int = 3600, force: bool = False) -> dict:
     """Train one configuration in a subprocess (isolated, killable) unless ``run_dir`` already holds
     a finished run; returns its metrics.json. Benchmarks are therefore resumable."""

@@ -42,10 +42,11 @@ from pathlib import Path
 from omegaconf import OmegaConf
 
 try:  # python -m bench.studies
-    from bench.common import (QUICK, RESULTS, compose, model_overrides, n_train_views, scene_names, scene_overrides,
-                              train_run)
+    from bench.common import (QUICK, RESULTS, archive_files, compose, model_overrides, n_train_views, scene_names,
+                              scene_overrides, train_run)
 except ModuleNotFoundError:  # python bench/studies.py
-    from common import QUICK, RESULTS, compose, model_overrides, n_train_views, scene_names, scene_overrides, train_run
+    from common import (QUICK, RESULTS, archive_files, compose, model_overrides, n_train_views, scene_names,
+                        scene_overrides, train_run)
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDIES = OmegaConf.load(ROOT / "conf" / "report.yaml").studies
@@ -237,19 +238,8 @@ def archived(args, run_dir: Path, study: str) -> bool:
 
 
 def archive(args, run_dir: Path) -> None:
-    """Copies run_dir's small files into the archive atomically (a temporary dir renamed into place)."""
-    import shutil
-    import tempfile
-
-    dest = archive_dir(args, run_dir)
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
-    for name in ARCHIVED:
-        if (run_dir / name).is_file():
-            shutil.copy2(run_dir / name, tmp / name)
-    if dest.exists():
-        shutil.rmtree(dest)
-    tmp.rename(dest)
+    """Copies run_dir's small files into the archive atomically (:func:`bench.common.archive_files`)."""
+    archive_files(run_dir, archive_dir(args, run_dir), ARCHIVED)
 
 
 def uq_subprocess(run_dir: Path, method: str, samples: int, seed: int, threads: int | None) -> None:

@@ -2,6 +2,7 @@
 # The seven-scene evidence campaign (issue 21), resumable across sessions and machines:
 #   bash scripts/campaign.sh [canonical|compression|active|all]     (default: all, in that order)
 #   bash scripts/campaign.sh active_ig      issue 42's rows (info_gain, cover) against the archived campaign, own archive
+#   bash scripts/campaign.sh ood_sector     issue 42's OOD split (bench.ood_sector: sector against interleaved views)
 #
 # Runs from a frozen copy of the current commit (a git worktree under $CAMPAIGN/code), so editing this checkout
 # while it runs changes nothing in flight. Every finished unit is archived into THIS checkout's bench/results/
@@ -31,8 +32,9 @@ JOBS="${JOBS:-2}"
 SEEDS="${SEEDS:-0 1 2}"
 SCENES="ethiopian_head fox lego fern flower dtu_scan24 dtu_scan65"
 what="${1:-all}"
-case "$what" in canonical|compression|active|active_ig|all) ;; *)
-  echo "scripts/campaign.sh: unknown step '$what' (fix: one of canonical, compression, active, active_ig, all)" >&2; exit 2;;
+case "$what" in canonical|compression|active|active_ig|ood_sector|all) ;; *)
+  echo "scripts/campaign.sh: unknown step '$what' (fix: one of canonical, compression, active, active_ig, ood_sector, all)" >&2
+  exit 2;;
 esac
 mkdir -p "$CAMPAIGN"
 CODE="$CAMPAIGN/code"
@@ -105,6 +107,12 @@ if [ "$what" = active_ig ]; then
   # shellcheck disable=SC2046
   (cd "$ROOT" && PYTHONPATH="$ROOT" python -m bench.active_view_extra --new "$R/active_view_ig_runs" \
     --policies $(echo "$IG_POLICIES" | tr , ' ' | sed 's/+topk//g') --within cover --name active_view_ig 2>&1 | tee -a "$log")
+fi
+if [ "$what" = ood_sector ]; then
+  # seed 0 on the seven scenes: NIW (uq.json of every regime, held-out view scores) and the standard ensemble
+  use_code "$R/ood_sector_runs"
+  nice -n 19 python -m bench.ood_sector --jobs "$JOBS" --threads 1 --out "$CAMPAIGN/ood_sector" \
+    --archive "$R/ood_sector_runs" --results-root "$R" 2>&1 | tee -a "$log"
 fi
 (cd "$ROOT" && PYTHONPATH="$ROOT" python bench/claims.py > /dev/null)
 echo "=== $(date -u +%FT%TZ) campaign $what done; commit bench/results/ in $ROOT" | tee -a "$log"

@@ -720,3 +720,11 @@ def test_sector_split_holds_out_one_contiguous_side(tmp_path):
     assert (cent(b.test) @ u).min() > (cent(b.train) @ u).max()
     with pytest.raises(B3dgsError, match="test_split='diagonal'"):
         load_scene("synthetic", None, max_side=16, n_views=16, test_split="diagonal")
+    assert a.test_groups is None and b.test_groups is None
+    # sector+interleaved: the sector and every 8th view of the rest, held out from one model, each kind named
+    c = load_scene("synthetic", None, max_side=16, n_views=16, test_split="sector+interleaved", test_fraction=0.25)
+    g = c.test_groups
+    assert set(g["sector"]) == {x.name for x in b.test}
+    assert set(g["interleaved"]) == {names[0], names[8]} - set(g["sector"]) and g["interleaved"]
+    assert {x.name for x in c.test} == set(g["sector"]) | set(g["interleaved"])
+    assert not {x.name for x in c.test} & {x.name for x in c.train} and len(c.train) + len(c.test) == 16

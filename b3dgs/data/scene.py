@@ -384,7 +384,7 @@ def split_calibration(train: Sequence[Camera], calib_every: Optional[int]) -> tu
     return [c for j, c in enumerate(train) if (j + 1) % calib_every != 0], calib
 
 
-TEST_SPLITS = ("interleaved", "sector")
+TEST_SPLITS = ("interleaved", "sector", "sector+interleaved")
 
 
 def sector_split(centres: np.ndarray, fraction: float, axis: int = 0) -> tuple[list[int], list[int]]:
@@ -422,8 +422,10 @@ def preprocess(
     sector_axis: int = 0,
 ) -> Scene:
     """Normalise, split and bound a :class:`RawScene` (see the module docstring). ``test_split``: ``interleaved``
-    (every ``test_every``-th view in name order) or ``sector`` (:func:`sector_split`: a contiguous ``test_fraction``
-    of the cameras, held out along ``sector_axis``).
+    (every ``test_every``-th view in name order), ``sector`` (:func:`sector_split`: a contiguous ``test_fraction``
+    of the cameras, held out along ``sector_axis``) or ``sector+interleaved`` (both held out from one model, the names
+    of each kind in ``scene.test_groups``: OOD views with a real support deficit beside ID views between training
+    views).
 
     With ``train_indices``, the other train views become ``scene.candidates``: cameras without images,
     whose images go to a :class:`CandidateStore` that :func:`take_candidate_store` hands to the study
@@ -463,10 +465,18 @@ def preprocess(
 
     if test_split not in TEST_SPLITS:
         raise B3dgsError(f"test_split={test_split!r} is not one of {'|'.join(TEST_SPLITS)}",
-                         "pass data.test_split=interleaved (every test_every-th view) or sector")
-    if test_split == "sector":
+                         "pass data.test_split=interleaved (every test_every-th view), sector or sector+interleaved")
+    test_groups = None
+    if test_split.startswith("sector"):
         centres = np.stack([-v[:3, :3].T @ v[:3, 3] for v in viewmats])
         train_idx, test_idx = sector_split(centres, test_fraction, sector_axis)
+        if test_split == "sector+interleaved":  # both kinds held out from one model: OOD (sector) against ID views
+            sector = set(test_idx)
+            between = [i for i in split_indices(len(cams), test_every)[1] if i not in sector]
+            test_idx = sorted(sector | set(between))
+            train_idx = [i for i in range(len(cams)) if i not in set(test_idx)]
+            test_groups = {"sector": [cams[i].name for i in sorted(sector)],
+                           "interleaved": [cams[i].name for i in between]}
     else:
         train_idx, test_idx = split_indices(len(cams), test_every)
     train = [cams[i] for i in train_idx]
@@ -506,6 +516,7 @@ def preprocess(
     )
     scene.calib = list(calib)  # calibration views (data.calib_every); [] when off
     scene.transform = transform  # normalised frame <- the format's own (exports go back through its inverse)
+    scene.test_groups = test_groups  # sector+interleaved: the test view names of each kind; else None
     if candidates:  # active-view pool: cameras only; the images go to the driver's store
         scene.candidates = [c.with_image(None) for c in candidates]
         scene._candidate_store = CandidateStore({c.name: c.image for c in candidates})
