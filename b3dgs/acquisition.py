@@ -27,6 +27,7 @@ truth. It never gets the LightningModule, the data module or the store of candid
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Callable, ClassVar, Optional, Sequence
 
@@ -38,7 +39,7 @@ from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.neighbours import nearest_distances, nearest_other_distances
 from b3dgs.types import Camera, resize_image
 
-__all__ = ["AcquisitionPolicy", "BatchSelector", "ScoringContext", "Selection", "diverse_picks",
+__all__ = ["AcquisitionPolicy", "BatchSelector", "RegimePolicy", "ScoringContext", "Selection", "diverse_picks",
            "epistemic_scores", "top_k"]
 
 
@@ -111,6 +112,43 @@ class AcquisitionPolicy:
 
     def reset_conditioning(self, ctx: "ScoringContext") -> None:
         """Undo every :meth:`condition` (the selector calls it when its batch is done)."""
+
+
+@dataclass
+class RegimePolicy(AcquisitionPolicy):
+    """A score policy that is a UQ regime plus a reduction: a candidate's score is the mean over its pixels of the
+    regime's epistemic variance (:func:`epistemic_scores`). ``regime`` is the regime of ``conf/uq/<name>.yaml``,
+    composed by Hydra (``defaults: [/uq@regime: <name>]``; settings by name: ``regime: {<name>: {samples: 16}}``),
+    so a policy and ``uq=[<name>]`` are one configuration. A keyed conf/uq file gives a one-entry mapping, which
+    :meth:`uq` unwraps."""
+
+    regime: Any = None
+
+    def validate(self, **kwargs) -> None:
+        super().validate(**kwargs)
+        self.uq()
+
+    def uq(self):
+        """The UQ regime this policy scores with (one instance for the policy's life: its fit is cached per
+        scoring context)."""
+        r = self.regime
+        if isinstance(r, Mapping):
+            if len(r) != 1:
+                raise B3dgsError(f"{type(self).__name__}: regime holds {len(r)} entries ({', '.join(map(str, r))}), "
+                                 "expected one UQ regime", "compose it with defaults: [/uq@regime: <name>]")
+            r = next(iter(r.values()))
+        if not (callable(getattr(r, "fit", None)) and callable(getattr(r, "predict", None))):
+            raise B3dgsError(f"{type(self).__name__}: regime is {type(r).__name__}, not a UQ regime",
+                             "compose it with defaults: [/uq@regime: <name>] (a conf/uq option)")
+        self.regime = r
+        return r
+
+    def score(self, ctx: "ScoringContext", candidates: Sequence[Camera]) -> Tensor:
+        return self.score_at(ctx, candidates, range(len(candidates)))
+
+    def score_at(self, ctx: "ScoringContext", candidates: Sequence[Camera], positions: Sequence[int]) -> Tensor:
+        with torch.no_grad():
+            return epistemic_scores(ctx, self.uq(), candidates, positions)
 
 
 @dataclass

@@ -490,7 +490,7 @@ def plots(res: dict, d: Path) -> None:
 SMOKE_SCENE = ["data=synthetic", "data.max_side=48", "+data.n_views=40"]
 SMOKE = ["trainer.max_steps=300", "initial_views=8", "acquire=6", "strategy.refine_start=50", "strategy.refine_every=50",
          "strategy.refine_stop=250", "trainer.checkpoint_every_s=0",
-         "+policy_settings.ppu.steps=50", "+policy_settings.fisher.pixel_stride=4"]
+         "+policy_settings.ppu.regime.ppu.steps=50", "+policy_settings.fisher.pixel_stride=4"]
 
 
 #: what the archive keeps of a study dir: the per-scene protocol, meta and layout, each row's and each phase-1 model's

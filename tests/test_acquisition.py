@@ -22,12 +22,17 @@ ALL = ["uniform", "farthest", "ensemble", "ppu", "fisher", "proxy", "native", "o
 
 
 def _policy(name, **kw):
+    """The study's policy ``name`` with settings ``kw`` by name, as ``policy_settings`` passes them (a policy over a
+    UQ regime takes them in its regime's node)."""
+    from omegaconf import OmegaConf
+
     from b3dgs.study.active import load_policy
 
+    defaults = OmegaConf.to_container(OmegaConf.load(Path(CONF_DIR) / "acquisition" / f"{name}.yaml")).get("defaults") or []
+    regime = next((d["/uq@regime"] for d in defaults if isinstance(d, dict) and "/uq@regime" in d), None)
+    settings = {name: {"regime": {regime: kw}} if regime else kw}
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        label, p = load_policy(name)
-    for k, v in kw.items():
-        setattr(p, k, v)
+        label, p = load_policy(name, OmegaConf.create(settings))
     return p
 
 
@@ -200,7 +205,7 @@ def test_external_package_adds_an_acquisition_policy(tmp_path, monkeypatch):
 STUDY = ["active", "data=synthetic", "data.max_side=32", "+data.n_views=40", "renderer=cpu", "trainer.max_steps=60",
          "trainer.checkpoint_every=10", "trainer.checkpoint_every_s=0", "strategy.refine_start=10",
          "strategy.refine_every=10", "strategy.refine_stop=50", "initial_views=8", "acquire=4", "seeds=[0]",
-         "policies=[farthest,native]", "family_baselines=[]", "+policy_settings.native.samples=4",
+         "policies=[farthest,native]", "family_baselines=[]", "+policy_settings.native.regime.native.samples=4",
          "acquisition.score_max_side=16", "threads=1", "plots=false", "variant=support_hole"]
 
 
@@ -338,3 +343,29 @@ def test_study_extended_by_a_subset_keeps_every_row(tmp_path):
     assert list(table) == ["native", "ppu", "uniform"]
     assert table["native"]["psnr"] == pytest.approx(22.0) and table["native"]["n_seeds"] == 2
     assert table["ppu"]["psnr"] == pytest.approx(18.0)
+
+
+def test_regime_policies_are_their_uq_regime():
+    """A score policy over a UQ regime composes conf/uq/<name>.yaml (issue 45: one policy over one regime): the
+    regime's own settings except the draws, overridden by name; two regimes or none is a one-line error."""
+    from omegaconf import OmegaConf
+
+    from b3dgs.acquisition import RegimePolicy
+    from b3dgs.errors import B3dgsError
+    from b3dgs.study.active import load_policy
+    from b3dgs_plugins.uq.native import NativeUQ
+    from b3dgs_plugins.uq.proxy import ProxyUQ
+
+    _, nat = load_policy("native")
+    assert isinstance(nat, RegimePolicy) and isinstance(nat.uq(), NativeUQ)
+    assert (nat.uq().samples, nat.uq().chunk, nat.uq().count_scale) == (16, 8, 0.1)  # count_scale: conf/uq/native's
+    _, sh = load_policy("sh")
+    assert sh.uq().model_blocks is False and "sh" in sh.uq().add
+    _, px = load_policy("proxy", OmegaConf.create({"proxy": {"regime": {"proxy": {"jitter": 0.01}}}}))
+    assert isinstance(px.uq(), ProxyUQ) and px.uq().jitter == 0.01 and px.uq().samples == 16
+    with pytest.raises(B3dgsError, match=r"no setting 'samples' .*policy_settings\.native\.regime\.native\.samples"):
+        load_policy("native", OmegaConf.create({"native": {"samples": 4}}))  # the field moved into the regime
+    with pytest.raises(B3dgsError, match="holds 2 entries"):
+        RegimePolicy(regime={"a": ProxyUQ(), "b": ProxyUQ()}).uq()
+    with pytest.raises(B3dgsError, match="not a UQ regime"):
+        RegimePolicy(regime={"a": 3}).uq()

@@ -120,7 +120,21 @@ def load_policy(name: str, settings: Optional[DictConfig] = None):
     if family:
         with open_dict(node):
             node.family = family
-    policy = instantiate(node, _convert_="all")
+    try:
+        policy = instantiate(node, _convert_="all")
+    except Exception as e:  # noqa: BLE001 - a setting the policy does not have: one line naming where it lives
+        import re
+
+        from b3dgs.errors import B3dgsError
+
+        bad = re.search(r"unexpected keyword argument '(\w+)'", str(e))
+        if bad is None:
+            raise
+        regime = node.get("regime")
+        where = (f" (the policy scores with a UQ regime: pass policy_settings.{base}.regime.{next(iter(regime))}."
+                 f"{bad.group(1)}=...)") if isinstance(regime, DictConfig) and len(regime) == 1 else ""
+        raise B3dgsError(f"acquisition {base}: no setting {bad.group(1)!r}{where}",
+                         f"pass only the fields of conf/acquisition/{base}.yaml") from None
     policy.validate()
     label = base if not family else f"{base}@{family}"
     return label, policy

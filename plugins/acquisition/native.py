@@ -6,23 +6,20 @@ from typing import Optional
 
 import torch
 
-from b3dgs.acquisition import AcquisitionPolicy, epistemic_scores
-from b3dgs_plugins.uq.native import NativeUQ
+from b3dgs.acquisition import RegimePolicy
 
 
 @dataclass
-class NativePolicy(AcquisitionPolicy):
-    """Score = mean over pixels of the spread u_p of S posterior re-renders (batched ``chunk`` per call).
-    The aleatoric σ̂² is left out: it is the same for every view, so it cannot change the ranking.
+class NativePolicy(RegimePolicy):
+    """Score = mean over pixels of the spread u_p of S posterior re-renders of the ``regime``, a
+    :class:`b3dgs_plugins.uq.native.NativeUQ` composed from conf/uq (``native``, ``native_sh``, ``sh``,
+    ``native_fisher3``, ...; the acquisition files set fewer samples). The aleatoric σ̂² is left out: it is the same
+    for every view, so it cannot change the ranking.
 
-    ``count_scale`` = 0.1 by default: the posterior is drawn with N̂ ← 0.1·N̂. In ``bench/uq_count_scale.py``
-    (seed 0, both shared scenes) that setting gave the epistemic part its best pixel-level ranking (Spearman ρ
-    with the squared error 0.51 / 0.42 against 0.41 / 0.41 at the paper's c = 1) without moving the
-    posterior-mean render; ``null`` scores with the model's own setting (the paper's). ``count`` scores with another
-    NIW count (``posterior.niw.count``; the trained model is the same, the count comes from one pass over the
-    current training views: ``acquisition=native_fisher3`` and friends). ``add`` draws further posterior blocks
-    built from that pass (``acquisition=native_sh``: the directional SH posterior, plugins/posterior/sh.py;
-    ``acquisition=sh``: that posterior alone, ``model_blocks: false``).
+    ``count_scale`` = 0.1 (uq=native's default): the posterior is drawn with N̂ ← 0.1·N̂. In
+    ``bench/uq_count_scale.py`` (seed 0, both shared scenes) that setting gave the epistemic part its best pixel-level
+    ranking (Spearman ρ with the squared error 0.51 / 0.42 against 0.41 / 0.41 at the paper's c = 1) without moving
+    the posterior-mean render.
 
     ``condition(ctx, camera)`` (batch=greedy_conditioned): one point-estimate render of ``camera`` at the
     scoring resolution gives each Gaussian's compositing weight sum w_k = Σ_p w_kp, scaled by the pixel-count
@@ -31,31 +28,10 @@ class NativePolicy(AcquisitionPolicy):
     i.e. N̂ ← N̂ + w), on copies: the model is untouched."""
 
     family: str = "niw"
-    samples: int = 16
-    chunk: int = 8
-    count_scale: Optional[float] = 0.1
-    count: Optional[str] = None  # posterior.niw.count to score with (None: the model's own; e.g. fisher3)
-    add: Optional[dict] = None  # {name: PosteriorBlock} drawn after the model's own (NativeUQ.add)
-    model_blocks: bool = True  # false: draw only the added blocks (acquisition=sh)
-
-    def _native(self) -> NativeUQ:
-        regime = getattr(self, "_regime", None) or NativeUQ(samples=self.samples, chunk=self.chunk,
-                                                             count_scale=self.count_scale, count=self.count,
-                                                             add=self.add, model_blocks=self.model_blocks)
-        self._regime = regime
-        return regime
-
-    @torch.no_grad()
-    def score(self, ctx, candidates):
-        return self.score_at(ctx, candidates, range(len(candidates)))
-
-    @torch.no_grad()
-    def score_at(self, ctx, candidates, positions):
-        return epistemic_scores(ctx, self._native(), candidates, positions)
 
     @torch.no_grad()
     def condition(self, ctx, camera):
-        regime = ctx.fit_regime(self._native())
+        regime = ctx.fit_regime(self.uq())
         if getattr(self, "_cond", None) is None:  # before the first conditioning: the reference spread
             self._cond = {"g0": regime.gaussian_spread(seed=ctx.seed), "w": {}}
         return regime.condition(self._weights(ctx, camera))
@@ -74,7 +50,7 @@ class NativePolicy(AcquisitionPolicy):
         cond = getattr(self, "_cond", None)
         if cond is None:
             return None
-        g = ctx.fit_regime(self._native()).gaussian_spread(seed=ctx.seed)
+        g = ctx.fit_regime(self.uq()).gaussian_spread(seed=ctx.seed)
         out = []
         for i in positions:
             if i not in cond["w"]:
@@ -86,4 +62,4 @@ class NativePolicy(AcquisitionPolicy):
 
     def reset_conditioning(self, ctx):
         self._cond = None
-        ctx.fit_regime(self._native()).reset_conditioning()
+        ctx.fit_regime(self.uq()).reset_conditioning()
