@@ -157,21 +157,19 @@ def format_error(exc: BaseException) -> Optional[str]:
     if isinstance(exc, B3dgsError):
         msg = _one_line(exc)
         return msg if "(fix:" in msg else f"{msg} (fix: correct the input named above)"
-    h = _hydra_error(exc)
-    if h is not None:
-        return _one_line(h)
     try:
         from hydra.errors import InstantiationException
         from omegaconf.errors import MissingMandatoryValue
     except ImportError:  # pragma: no cover
         InstantiationException = MissingMandatoryValue = ()  # type: ignore
+    if isinstance(exc, InstantiationException):  # a component refused its values when Hydra built it (its validate)
+        return None if exc.__cause__ is None else format_error(exc.__cause__)  # anything else is a bug
+    h = _hydra_error(exc)
+    if h is not None:
+        return _one_line(h)
     if isinstance(exc, MissingMandatoryValue):
         key = getattr(exc, "full_key", None) or "a value"
         return f"{key} is not set (fix: pass {key}=VALUE on the command line)"
-    if isinstance(exc, InstantiationException) and exc.__cause__ is not None:
-        inner = format_error(exc.__cause__)
-        if inner is not None:
-            return inner
     if isinstance(exc, FileNotFoundError):
         return f"{_one_line(exc)} (fix: check the path)"
     io = _io_error(exc)

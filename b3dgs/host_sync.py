@@ -159,6 +159,14 @@ class _FunctionCounter(TorchFunctionMode):
         return func(*args, **(kwargs or {}))
 
 
+def _already_installed() -> None:
+    from b3dgs.errors import B3dgsError
+
+    raise B3dgsError("a host-sync counter is already installed: one counts at a time",
+                     "add one HostSyncCallback (+callbacks.host_sync._target_=b3dgs.host_sync.HostSyncCallback), or "
+                     "remove the counter installed first")
+
+
 class HostSyncCounter(_Counting):
     """Counts host syncs at torch's hooks (see the module docstring); use as a context manager or ``install``/``remove``."""
 
@@ -169,7 +177,7 @@ class HostSyncCounter(_Counting):
     def install(self) -> "HostSyncCounter":
         global _COUNTER
         if _COUNTER is not None:
-            raise RuntimeError("a host-sync counter is already installed")
+            _already_installed()
         self._modes = [_FunctionCounter(self), _DispatchCounter(self)]
         for m in self._modes:
             m.__enter__()
@@ -201,7 +209,7 @@ class CudaSyncCounter(_Counting):
     def install(self) -> "CudaSyncCounter":
         global _COUNTER
         if _COUNTER is not None:
-            raise RuntimeError("a host-sync counter is already installed")
+            _already_installed()
         self._catch = warnings.catch_warnings()
         self._catch.__enter__()
         warnings.simplefilter("always")
@@ -246,7 +254,8 @@ class HostSyncCallback(L.Callback):
         if backend not in ("auto", "ops", "cuda"):
             from b3dgs.errors import B3dgsError
 
-            raise B3dgsError(f"host_sync backend={backend} is not one of auto|ops|cuda")
+            raise B3dgsError(f"host_sync backend={backend} is not one of auto|ops|cuda",
+                             "pass +callbacks.host_sync.backend=auto (CUDA's own count on a CUDA model), ops or cuda")
         self.out, self.backend, self.keep_stacks, self.max_steps = out, backend, keep_stacks, max_steps
         self.device_path = device_path
         self._forced = None

@@ -32,8 +32,7 @@ def _reindex_keys(state: dict, keys, index: Tensor, n_old: int, owner: str) -> d
         if not isinstance(v, Tensor) or v.dim() < 1 or v.shape[0] != n_old:
             shape = tuple(v.shape) if isinstance(v, Tensor) else type(v).__name__
             raise B3dgsError(f"{owner}: state[{k!r}] is declared per-Gaussian (per_gaussian_state) but is {shape}, "
-                             f"not ({n_old}, ...) (fix: make it one row per Gaussian, or drop {k!r} from "
-                             "per_gaussian_state)")
+                             f"not ({n_old}, ...)", f"make it one row per Gaussian, or drop {k!r} from per_gaussian_state")
         out[k] = v[index]
     return out
 

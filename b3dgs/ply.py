@@ -142,15 +142,14 @@ def read_ply(path: str | os.PathLike) -> dict:
 
     Returns ``{"means", "scales_log", "quats", "opacity_logit", "sh0", "shN", "extra"}`` with float32
     tensors shaped as :func:`write_ply` takes them (``shN`` is (N, K, 3), K = 0 when there are no
-    ``f_rest_*``) and ``extra`` a dict name -> (N,) or (N, d). Raises ``FileNotFoundError`` for a
-    missing file and ``ValueError`` naming the problem for a malformed, truncated or incomplete file or
-    non-finite values.
+    ``f_rest_*``) and ``extra`` a dict name -> (N,) or (N, d). Raises :class:`B3dgsError` (a ``ValueError``)
+    naming the problem for a missing, malformed, truncated or incomplete file or non-finite values.
     """
     from plyfile import PlyData, PlyParseError
 
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"PLY file {path} not found")
+        raise B3dgsError(f"PLY file {path} does not exist", "pass the path of an existing .ply file (a run's point_cloud.ply)")
     try:
         with open(path, "rb") as f:
             ply = PlyData.read(f, mmap=False)

@@ -153,22 +153,22 @@ class DashSchedule(TrainingSchedule):
 
     def validate(self, **kwargs: Any) -> None:
         if not 0.0 <= float(self.full_res_at) <= 1.0:
-            raise B3dgsError(f"schedule.full_res_at must be in [0, 1], got {self.full_res_at} (fix: e.g. schedule.full_res_at=0.5)")
+            raise B3dgsError(f"schedule.full_res_at must be in [0, 1], got {self.full_res_at}", "pass e.g. schedule.full_res_at=0.5")
         if not float(self.max_scale) >= 1.0:
-            raise B3dgsError(f"schedule.max_scale must be >= 1, got {self.max_scale} (fix: e.g. schedule.max_scale=8)")
+            raise B3dgsError(f"schedule.max_scale must be >= 1, got {self.max_scale}", "pass e.g. schedule.max_scale=8")
         if not float(self.start_energy_factor) > 1.0:
-            raise B3dgsError(f"schedule.start_energy_factor must be > 1, got {self.start_energy_factor} "
-                             "(fix: e.g. schedule.start_energy_factor=4)")
+            raise B3dgsError(f"schedule.start_energy_factor must be > 1, got {self.start_energy_factor}",
+                             "pass e.g. schedule.start_energy_factor=4")
         if not float(self.keep_below) >= 1.0:
-            raise B3dgsError(f"schedule.keep_below must be >= 1 (a downscale factor), got {self.keep_below} "
-                             "(fix: e.g. schedule.keep_below=1.0, the trim at full resolution)")
+            raise B3dgsError(f"schedule.keep_below must be >= 1 (a downscale factor), got {self.keep_below}",
+                             "pass e.g. schedule.keep_below=1.0, the trim at full resolution")
         if not 0.0 < float(self.keep) <= 1.0:
-            raise B3dgsError(f"schedule.keep must be in (0, 1], got {self.keep} (fix: e.g. schedule.keep=1.0)")
+            raise B3dgsError(f"schedule.keep must be in (0, 1], got {self.keep}", "pass e.g. schedule.keep=1.0")
         if int(self.levels) < 2:
-            raise B3dgsError(f"schedule.levels must be >= 2, got {self.levels} (fix: e.g. schedule.levels=12)")
+            raise B3dgsError(f"schedule.levels must be >= 2, got {self.levels}", "pass e.g. schedule.levels=12")
         if int(self.min_side) < 11:
-            raise B3dgsError(f"schedule.min_side must be >= 11 (the SSIM loss's window), got {self.min_side} "
-                             "(fix: e.g. schedule.min_side=16)")
+            raise B3dgsError(f"schedule.min_side must be >= 11 (the SSIM loss's window), got {self.min_side}",
+                             "pass e.g. schedule.min_side=16")
 
     # ------------------------------------------------------------------ set-up
     def initialize(self, train: Sequence[Camera], max_steps: int) -> None:
@@ -271,5 +271,7 @@ def make_schedule(node: Any) -> TrainingSchedule:
 
     sched = instantiate(node)
     if not isinstance(sched, TrainingSchedule):
-        raise TypeError(f"schedule._target_ must build a b3dgs.schedule.TrainingSchedule, got {type(sched).__name__}")
+        raise B3dgsError(f"schedule._target_={node.get('_target_')} builds a {type(sched).__name__}, not a "
+                         "b3dgs.schedule.TrainingSchedule", "pick a schedule= option (constant, dash), or name a "
+                         "TrainingSchedule subclass as schedule._target_")
     return sched

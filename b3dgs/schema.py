@@ -5,9 +5,9 @@ schedules, UQ regimes, acquisition policies) or, for a target that is no datacla
 their annotations (the model's ``SplatModule``, ``lightning.Trainer``, a logger, a callback; the data module gets its
 format loader's keywords too). :func:`check_node` sets the user's values into that schema one key at a time, so
 OmegaConf refuses an unknown key and a value of the wrong type; each refusal becomes one :class:`B3dgsError` line
-with the closest known key or the expected type and its default. Ranges: a plugin checks its own in ``validate``;
-those of the core's own values (data, model, trainer, top-level keys) are :data:`RULES`; the rules across fields are
-:mod:`b3dgs.validation`'s.
+with the closest known key or the expected type and its default. Ranges: a component (plugin, renderer, data module)
+checks its own in ``validate``; those of the core's own values (model, trainer, top-level keys) are :data:`RULES`; the
+rules across fields are :mod:`b3dgs.validation`'s.
 """
 from __future__ import annotations
 
@@ -25,7 +25,8 @@ from omegaconf.errors import ConfigAttributeError, ConfigKeyError, MissingMandat
 
 from b3dgs.errors import B3dgsError, did_you_mean
 
-__all__ = ["RULES", "UNRESOLVED", "apply_rules", "check_node", "locate", "show", "value"]
+__all__ = ["RGB_RULE", "RULES", "UNRESOLVED", "apply_rules", "check_node", "is_int", "is_number", "locate",
+           "positive_rule", "show", "value"]
 
 UNRESOLVED = object()  # a value that only a running Hydra app can resolve (${hydra:...})
 _WHAT = {bool: "true or false", int: "an integer", float: "a finite number", str: "a string", list: "a list"}
@@ -139,70 +140,57 @@ def check_node(node: DictConfig, path: str, also: Optional[Callable] = None, ext
     return values
 
 
-# ---------------------------------------------------------------------------------------------- core ranges
+# ---------------------------------------------------------------------------------------------- ranges
 
 
-def _int(v: Any, lo: int, hi: float = math.inf) -> bool:
+def is_int(v: Any, lo: int, hi: float = math.inf) -> bool:
+    """``v`` is an integer (not a bool) in ``[lo, hi)``."""
     return isinstance(v, int) and not isinstance(v, bool) and lo <= v < hi
 
 
-def _num(v: Any) -> bool:
+def is_number(v: Any) -> bool:
+    """``v`` is a finite int or float (not a bool)."""
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
-def _positive(name: str, fix: str):
-    return lambda v: _num(v) and v > 0, f"a positive number{name}", fix
+def positive_rule(name: str, fix: str):
+    """A rule (test, what, fix) for a positive finite number; ``name`` is appended to "a positive number"."""
+    return lambda v: is_number(v) and v > 0, f"a positive number{name}", fix
 
 
 _MODEL = "see conf/model/standard.yaml for the defaults"
 _TRAINER = "see conf/trainer/default.yaml for the defaults"
-_RGB = (lambda v: isinstance(v, list) and len(v) == 3 and all(_num(x) and 0 <= x <= 1 for x in v), "3 numbers in [0, 1] (RGB)")
-#: the ranges of the core's own values, in the order they are checked: a dotted key (a pattern) -> (test, what the value
-#: must be, fix); a key ending in ``?`` also takes null. Keys a config does not hold are skipped.
+RGB_RULE = (lambda v: isinstance(v, list) and len(v) == 3 and all(is_number(x) and 0 <= x <= 1 for x in v), "3 numbers in [0, 1] (RGB)")
+#: the ranges of the core's own values (the top-level keys, model, trainer, uq), in the order they are checked: a dotted
+#: key (a pattern) -> (test, what the value must be, fix); a key ending in ``?`` also takes null. Keys a config does not
+#: hold are skipped. The renderer and the data module check their own values in their ``validate`` (the data module's
+#: table is :data:`b3dgs.data.scene.DATA_RULES`), as every plugin does.
 RULES = {
-    "seed": (lambda v: _int(v, 0, 2**32), "an integer in [0, 2^32)", "pass seed=0"),
-    "threads?": (lambda v: _int(v, 1), "an integer >= 1 or null", "pass threads=2 or threads=null (torch's default)"),
-    "renderer.near": _positive("", "pass renderer.near=0.01, and data.normalize=true so that the scene's extent is 1"),
-    "data.max_side?": (lambda v: _int(v, 1), "an integer >= 1 or null",
-                       "pass data.max_side=256 (longest image side in pixels) or null for full resolution"),
-    "data.test_every": (lambda v: _int(v, 0), "an integer >= 0", "pass data.test_every=8 (every 8th view held out) or 0"),
-    "data.test_split": (lambda v: v in ("interleaved", "sector", "sector+interleaved"),
-                        "interleaved, sector or sector+interleaved",
-                        "pass data.test_split=interleaved (every test_every-th view), sector (a contiguous sector) or "
-                        "sector+interleaved (both)"),
-    "data.test_fraction": (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < 1,
-                           "a fraction in (0, 1)", "pass data.test_fraction=0.125"),
-    "data.sector_axis": (lambda v: v in (0, 1, 2) and not isinstance(v, bool), "0, 1 or 2",
-                         "pass data.sector_axis=0 (the camera centres' first principal direction)"),
-    "data.max_images?": (lambda v: _int(v, 1), "an integer >= 1 or null", "pass data.max_images=N or null for all views"),
-    "data.train_indices?": (lambda v: isinstance(v, list) and all(_int(i, 0) for i in v) and len(set(v)) == len(v),
-                            "null or a list of distinct indices >= 0", "pass data.train_indices=[0,3,5] or null"),
-    "data.background": (*_RGB, "pass data.background=[0,0,0] (black) or data.background=[1,1,1] (white)"),
-    "data.near_plane": _positive(" (the renderer's near plane)", "pass data.near_plane=0.01"),
-    **{f"data.{k}": (lambda v: _int(v, 1), "an integer >= 1", f"pass a positive data.{k}")
-       for k in ("n_views", "resolution", "supersample", "n_objects")},
-    "model.sh_degree": (lambda v: _int(v, 0, 4), "0, 1, 2 or 3", _MODEL),
-    "model.sh_increase_every": (lambda v: _int(v, 1), "an integer >= 1", _MODEL),
-    "model.lambda_dssim": (lambda v: _num(v) and 0 <= v <= 1, "in [0, 1]", "pass model.lambda_dssim=0.2"),
-    "model.lr_*": (lambda v: _num(v) and v >= 0, "a finite number >= 0", _MODEL),
-    "model.background": (*_RGB, "pass model.background=[0,0,0] (black) or model.background=[1,1,1] (white)"),
-    "model.init_opacity": (lambda v: _num(v) and 0 < v < 1, "strictly between 0 and 1 (its logit must be finite)",
+    "seed": (lambda v: is_int(v, 0, 2**32), "an integer in [0, 2^32)", "pass seed=0"),
+    "threads?": (lambda v: is_int(v, 1), "an integer >= 1 or null", "pass threads=2 or threads=null (torch's default)"),
+    "model.sh_degree": (lambda v: is_int(v, 0, 4), "0, 1, 2 or 3", _MODEL),
+    "model.sh_increase_every": (lambda v: is_int(v, 1), "an integer >= 1", _MODEL),
+    "model.lambda_dssim": (lambda v: is_number(v) and 0 <= v <= 1, "in [0, 1]", "pass model.lambda_dssim=0.2"),
+    "model.lr_*": (lambda v: is_number(v) and v >= 0, "a finite number >= 0", _MODEL),
+    "model.background": (*RGB_RULE, "pass model.background=[0,0,0] (black) or model.background=[1,1,1] (white)"),
+    "model.init_opacity": (lambda v: is_number(v) and 0 < v < 1, "strictly between 0 and 1 (its logit must be finite)",
                            "pass model.init_opacity=0.1"),
-    "model.init_scale": _positive(" (it multiplies the initial Gaussian sizes; their log must be finite)",
-                                  "pass model.init_scale=1.0"),
-    "model.init_max_points?": (lambda v: _int(v, 1), "an integer >= 1 or null", _MODEL),
-    "model.init_num_random": (lambda v: _int(v, 0), "an integer >= 0", _MODEL),
-    **{f"trainer.{k}": (lambda v: _int(v, 1), "an integer >= 1", _TRAINER)
+    "model.init_scale": positive_rule(" (it multiplies the initial Gaussian sizes; their log must be finite)",
+                                      "pass model.init_scale=1.0"),
+    "model.init_max_points?": (lambda v: is_int(v, 1), "an integer >= 1 or null", _MODEL),
+    "model.init_num_random": (lambda v: is_int(v, 0), "an integer >= 0", _MODEL),
+    **{f"trainer.{k}": (lambda v: is_int(v, 1), "an integer >= 1", _TRAINER)
        for k in ("max_steps", "eval_every", "checkpoint_every", "log_every_n_steps")},
-    "trainer.curve_max_views?": (lambda v: _int(v, 1), "an integer >= 1 or null", _TRAINER),
-    "max_views?": (lambda v: _int(v, 1), "an integer >= 1 or null", "pass max_views=N or null for all test views"),
-    "panels": (lambda v: _int(v, 0), "an integer >= 0", "pass panels=3"),
-    "uq.*samples": (lambda v: _int(v, 2), "an integer >= 2 (one sample has no spread: zero variance)", "pass uq.samples=50"),
+    "trainer.curve_max_views?": (lambda v: is_int(v, 1), "an integer >= 1 or null", _TRAINER),
+    "max_views?": (lambda v: is_int(v, 1), "an integer >= 1 or null", "pass max_views=N or null for all test views"),
+    "panels": (lambda v: is_int(v, 0), "an integer >= 0", "pass panels=3"),
+    "uq.*samples": (lambda v: is_int(v, 2), "an integer >= 2 (one sample has no spread: zero variance)", "pass uq.samples=50"),
 }
 
-def apply_rules(values: Dict[str, Any]) -> None:
-    """Refuse the first value of ``values`` (dotted key -> resolved value) that breaks a rule of :data:`RULES`."""
-    for pattern, (ok, what, fix) in RULES.items():
+def apply_rules(values: Dict[str, Any], rules: Optional[Dict[str, tuple]] = None) -> None:
+    """Refuse the first value of ``values`` (dotted key -> resolved value) that breaks a rule of ``rules`` (default
+    :data:`RULES`), as one :class:`B3dgsError` ``"<key>=<value> is invalid: it must be <what>"`` with the rule's fix."""
+    for pattern, (ok, what, fix) in (RULES if rules is None else rules).items():
         for key, v in values.items():
             if fnmatch(key, pattern.rstrip("?")) and v is not UNRESOLVED and not (v is None and pattern.endswith("?")) \
                     and not ok(v):

@@ -3,9 +3,11 @@
 :func:`validate_config` checks a composed ``b3dgs-train`` or ``b3dgs-eval`` config and raises
 :class:`~b3dgs.errors.B3dgsError` ``(problem, fix)`` for the first bad value. The keys and types of every ``_target_``
 node come from its target's schema (:mod:`b3dgs.schema`, checked by OmegaConf); each plugin (strategy, schedule,
-posterior block, UQ regime) is built and checks its own values in ``validate``. What is left is here: the top-level
-keys, the ranges of the core's own values (:data:`RULES`), values that must agree across nodes, a posterior block
-listed twice, and files that must exist (``data.path``, a ``resume`` checkpoint, ``b3dgs-eval``'s run dirs).
+posterior block, UQ regime) is built and checks its own values in ``validate``. The renderer and the data module check
+theirs (``renderer.*``, ``data.*`` with ``data.path``) in their ``validate`` when the run builds them. What is left is
+here: the top-level keys, the ranges of the core's own values (:data:`RULES`), values that must agree across nodes, a
+``data.path`` that is not set, a posterior block listed twice, and files that must exist (a ``resume`` checkpoint,
+``b3dgs-eval``'s run dirs, ``lpips_weights``).
 """
 from __future__ import annotations
 
@@ -131,10 +133,9 @@ def _check_train(cfg: DictConfig, values: dict) -> None:
     plugins = [(g, cfg[g]) for g in ("strategy", "schedule") if isinstance(cfg.get(g), DictConfig)]
     plugins += _blocks(cfg, "posterior", "a posterior block", values)
     _blocks(cfg, "callbacks", "a callback", values)
+    if isinstance(cfg.get("model"), DictConfig) and OmegaConf.is_interpolation(cfg.model, "background"):
+        values.pop("model.background", None)  # ${data.background}: the data module checks that value, by its name
     apply_rules(values)
-    path = values.get("data.path")
-    if loader_reads_files(loader) and (path in (None, "") or not Path(str(path)).exists()):
-        raise B3dgsError(f"data.path={show(path)} does not exist", "pass data.path=PATH to an existing scene folder")
     bg, data_bg = values.get("model.background"), values.get("data.background")
     if None not in (bg, data_bg) and [float(x) for x in bg] != [float(x) for x in data_bg]:
         raise B3dgsError(f"model.background={show(bg)} differs from data.background={show(data_bg)}: the model renders "

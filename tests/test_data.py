@@ -18,6 +18,7 @@ from b3dgs.data.images import encode_png, load_image, save_png
 from b3dgs.data.llff import write_llff
 from b3dgs.data.scene import compute_bounds, look_at_point, split_indices
 from b3dgs.data.synthetic import load_synthetic
+from b3dgs.errors import B3dgsError
 from b3dgs.types import Camera
 
 REPO = Path(__file__).resolve().parents[1]
@@ -337,7 +338,7 @@ def test_split_and_train_indices():
     assert [c.name for c in s.test] == ["view_000", "view_008"]
     with pytest.raises(IndexError):
         load_scene("synthetic", None, n_views=10, resolution=8, train_indices=[8])
-    with pytest.raises(IndexError):
+    with pytest.raises(B3dgsError, match=r"data.train_indices=\[-1\] is invalid"):  # refused before the scene loads
         load_scene("synthetic", None, n_views=10, resolution=8, train_indices=[-1])
 
 
@@ -384,11 +385,11 @@ def test_look_at_fallback_forward_facing():
 
 @pytest.mark.parametrize("kind", ["colmap", "transforms", "llff"])
 def test_missing_path(tmp_path, kind):
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(B3dgsError, match=r"data.path=.*nope does not exist \(fix: pass data.path="):
         load_scene(kind, str(tmp_path / "nope"))
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(B3dgsError, match=r"(does not exist|has no) .*\(fix: "):
         load_scene(kind, str(tmp_path))  # exists but empty
-    with pytest.raises(ValueError, match="needs a path"):
+    with pytest.raises(B3dgsError, match=rf"data={kind} reads a scene folder, and data.path is not set"):
         load_scene(kind, None)
 
 
@@ -411,7 +412,7 @@ def test_corrupt_image(tmp_path):
 def test_missing_image_file(tmp_path):
     _blender_scene(tmp_path)
     (tmp_path / "train" / "r_1.png").unlink()
-    with pytest.raises(FileNotFoundError, match="r_1"):
+    with pytest.raises(B3dgsError, match=r"r_1.*does not exist.*\(fix: restore the image"):
         load_scene("transforms", str(tmp_path))
 
 
@@ -707,8 +708,8 @@ def test_sector_split_holds_out_one_contiguous_side(tmp_path):
     assert len(test) == 3 and sorted(train + test) == list(range(24))
     assert test == [0, 1, 23]  # the arc around +x, contiguous on the ring
     assert min(ring[test, 0]) > max(ring[train, 0])
-    with pytest.raises(B3dgsError, match="test_fraction"):
-        sector_split(ring, 1.0)
+    with pytest.raises(B3dgsError, match=r"data.test_fraction=1.0 is invalid: it must be a fraction in \(0, 1\)"):
+        load_scene("synthetic", None, max_side=16, n_views=16, test_split="sector", test_fraction=1.0)
     a = load_scene("synthetic", None, max_side=16, n_views=16)
     b = load_scene("synthetic", None, max_side=16, n_views=16, test_split="sector", test_fraction=0.25)
     names = sorted(c.name for c in a.train + a.test)
@@ -718,7 +719,7 @@ def test_sector_split_holds_out_one_contiguous_side(tmp_path):
     u = np.linalg.svd(cent(b.train + b.test) - cent(b.train + b.test).mean(0))[2][0]
     u = u if u[np.argmax(np.abs(u))] > 0 else -u
     assert (cent(b.test) @ u).min() > (cent(b.train) @ u).max()
-    with pytest.raises(B3dgsError, match="test_split='diagonal'"):
+    with pytest.raises(B3dgsError, match="data.test_split=diagonal is invalid"):
         load_scene("synthetic", None, max_side=16, n_views=16, test_split="diagonal")
     assert a.test_groups is None and b.test_groups is None
     # sector+interleaved: the sector and every 8th view of the rest, held out from one model, each kind named

@@ -11,6 +11,7 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import open_dict
 
+from b3dgs.errors import format_error
 from b3dgs.train import CONF_DIR, build_plugins, build_renderer, train
 from b3dgs.validation import validate_config
 from tests.fake_package import install_conf_package
@@ -159,10 +160,17 @@ def test_outside_package_adds_a_renderer(package, tmp_path):
 def test_outside_package_adds_a_data_loader(package, tmp_path):
     package("b3dgs_ext_data", "data", "loaders", '''
         from b3dgs.data.synthetic import load_synthetic
+        from b3dgs.errors import B3dgsError
 
         def load_small(*, n_views=8, max_side=None, background=(0.0, 0.0, 0.0), max_images=None):
             return load_synthetic(n_views=n_views, resolution=16, max_side=max_side, background=background,
                                   max_images=max_images)
+
+        def check_small(*, n_views=8, **_):
+            if not (isinstance(n_views, int) and n_views >= 2):
+                raise B3dgsError(f"data.n_views={n_views} is invalid: it must be an integer >= 2", "pass data.n_views=8")
+
+        load_small.validate = check_small   # called with the extra data.* keys when the data module is built
     ''', {"small": "defaults:\n  - synthetic\n  - _self_\nname: small\nkind: b3dgs_ext_data.loaders:load_small\n"})
     cfg = _compose("train", ["data=small", "+data.n_views=5", "data.test_every=0", f"trainer.default_root_dir={tmp_path}"])
     validate_config(cfg)
@@ -174,6 +182,11 @@ def test_outside_package_adds_a_data_loader(package, tmp_path):
     bad = _compose("train", ["data=small", "+data.n_view=5", f"trainer.default_root_dir={tmp_path}"])
     with pytest.raises(ValueError, match="unknown config key data.n_view; did you mean n_views"):
         validate_config(bad)
+    one = _compose("train", ["data=small", "+data.n_views=1", f"trainer.default_root_dir={tmp_path}"])
+    validate_config(one)  # keys and types are right; the loader's own validate refuses the value when the data is built
+    with pytest.raises(Exception) as ei:
+        instantiate(one.data)
+    assert format_error(ei.value) == "data.n_views=1 is invalid: it must be an integer >= 2 (fix: pass data.n_views=8)"
 
 
 def test_acquisition_family_is_any_model_option():

@@ -114,7 +114,7 @@ def test_truncated_and_corrupt_files(tmp_path):
     (tmp_path / "junk.ply").write_bytes(b"\x00\x01garbage" * 20)
     with pytest.raises(ValueError, match="not a readable PLY file"):
         read_ply(tmp_path / "junk.ply")
-    with pytest.raises(FileNotFoundError):
+    with pytest.raises(ValueError, match=r"missing.ply does not exist \(fix: "):  # a B3dgsError
         read_ply(tmp_path / "missing.ply")
 
 

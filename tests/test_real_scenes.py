@@ -147,8 +147,9 @@ def test_wrong_format_names_the_right_one(tmp_path):
     (tmp_path / "poses_bounds.npy").write_bytes(b"")
     with pytest.raises(B3dgsError, match=r"data=colmap: .* holds a llff scene \(fix: pass data=llff\)"):
         load_scene("colmap", str(tmp_path))
-    with pytest.raises(FileNotFoundError):  # a folder of no known format: the loader names the missing file
-        load_scene("llff", str(tmp_path / "empty"))
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(B3dgsError, match=r"has no poses_bounds.npy"):  # a folder of no known format: the loader names
+        load_scene("llff", str(tmp_path / "empty"))                    # the missing file
 
 
 def test_llff_bounds_must_be_ordered(tmp_path):

@@ -40,14 +40,8 @@ BAD = [  # (overrides, text the one-line message must contain)
     (["+model.lr_mean=1"], "model.lr_mean"),
     (["+foo=1"], "unknown config key foo"),
     (["posterior=[niw,niw]"], "niw more than once"),
-    (["data.max_side=0"], "data.max_side=0"),
-    (["data.max_side=-3"], "data.max_side=-3"),
-    (["data.background=[2,-1,0.5]"], "data.background"),
     (["model.background=[0,0]"], "model.background"),
-    (["data.test_every=-1"], "data.test_every"),
-    (["data.train_indices=[1,1]"], "data.train_indices"),
     (["data=colmap"], "data.path is not set"),
-    (["data=transforms", "data.path=/nonexistent/scene"], "does not exist"),
     (["model.init_opacity=1.0"], "model.init_opacity"),
     (["model.sh_degree=4"], "model.sh_degree"),
     (["model.lambda_dssim=2"], "model.lambda_dssim"),
@@ -58,7 +52,6 @@ BAD = [  # (overrides, text the one-line message must contain)
     (["strategy.refine_every=0"], "strategy.refine_every"),
     (["model=niw", "posterior.niw.kappa0=-1"], "posterior.niw.kappa0"),
     (["+posterior.bogus.x=1"], "posterior.bogus"),
-    (["renderer.near=0"], "renderer.near"),
     (["seed=abc"], "seed"),
     (["seed=-1"], "seed=-1 is invalid: it must be an integer in [0, 2^32)"),
     ([f"seed={2**32}"], "seed=4294967296 is invalid"),
@@ -77,6 +70,53 @@ def test_bad_values_refused_with_a_fix(over, text):
     msg = str(ei.value)
     assert text in msg
     assert "(fix: " in msg and "\n" not in msg
+
+
+BUILT = [  # (overrides, node, text): values the renderer or the data module refuses itself (its validate) when built
+    (["data.max_side=0"], "data", "data.max_side=0 is invalid: it must be an integer >= 1 or null"),
+    (["data.max_side=-3"], "data", "data.max_side=-3 is invalid"),
+    (["data.background=[2,-1,0.5]"], "data", "data.background=[2,-1,0.5] is invalid"),
+    (["data.test_every=-1"], "data", "data.test_every=-1 is invalid"),
+    (["data.train_indices=[1,1]"], "data", "data.train_indices=[1,1] is invalid"),
+    (["data.calib_every=1"], "data", "data.calib_every=1 is invalid"),
+    (["data=transforms", "data.path=/nonexistent/scene"], "data", "data.path=/nonexistent/scene does not exist"),
+    (["+data.n_views=0"], "data", "data.n_views=0 is invalid: it must be an integer >= 1"),  # the loader's own
+    (["+data.resolution=-2"], "data", "data.resolution=-2 is invalid"),
+    (["renderer.near=0"], "renderer", "renderer.near=0 is invalid: it must be a positive number"),
+    (["renderer.near=0"], "data", "data.near_plane=0 is invalid"),  # ${renderer.near}: its fix names renderer.near
+    (["renderer=torch", "renderer.device_name=tpu"], "renderer", "renderer.device_name=tpu is not a device"),
+    (["renderer=gsplat", "renderer.tile_size=0"], "renderer", "renderer.tile_size=0 is invalid"),
+    (["renderer=gsplat", "renderer.eps2d=-1"], "renderer", "renderer.eps2d=-1 is invalid"),
+]
+
+
+@pytest.mark.parametrize("over,node,text", BUILT, ids=[f"{' '.join(o)} {n}" for o, n, _ in BUILT])
+def test_renderer_and_data_refuse_their_own_bad_values_when_built(over, node, text):
+    """Keys and types pass validate_config; the component's validate refuses the value when Hydra builds it, with
+    the line b3dgs-train prints (Hydra's InstantiationException wraps it; format_error reads through)."""
+    from hydra.utils import instantiate
+
+    cfg = cfg_of(over)
+    validate_config(cfg)
+    with pytest.raises(Exception) as ei:
+        instantiate(cfg[node])
+    msg = format_error(ei.value)
+    assert msg is not None and text in msg and "(fix: " in msg and "\n" not in msg, msg
+    if node == "data" and "near_plane" in text:
+        assert "renderer.near" in msg
+
+
+@pytest.mark.parametrize("over,text", [(["+data.n_views=0"], "data.n_views=0 is invalid"),
+                                       (["renderer=torch", "renderer.device_name=tpu"],
+                                        "renderer.device_name=tpu is not a device")])
+def test_cli_refuses_a_bad_renderer_or_data_value_in_one_line(tmp_path, over, text):
+    res = _cli(*over, "+data.n_views=4", "data.max_side=16", "trainer.max_steps=2", "logger=none",
+               f"hydra.run.dir={tmp_path}/run") if "n_views=0" not in over[0] else \
+        _cli(*over, "data.max_side=16", "trainer.max_steps=2", "logger=none", f"hydra.run.dir={tmp_path}/run")
+    assert res.returncode == 2, res.stderr[-2000:]
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert lines == [lines[0]] and lines[0].startswith(f"b3dgs-train: error: {text}") and "(fix: " in lines[0], lines
+    assert not (tmp_path / "run").exists()  # a refused run leaves nothing
 
 
 def test_eval_checks(tmp_path):

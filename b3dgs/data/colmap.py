@@ -49,10 +49,10 @@ def find_sparse_dir(root: Path, sparse_dir: Optional[str] = None) -> Path:
     for d in cand:
         if d.is_dir() and _has_model(d):
             return d
-    raise FileNotFoundError(
-        f"No COLMAP model (cameras/images/points3D .bin or .txt) found in "
-        f"{', '.join(str(c) for c in cand)}"
-    )
+    raise B3dgsError(f"no COLMAP model (cameras/images/points3D .bin or .txt) found in "
+                     f"{', '.join(str(c) for c in cand)}",
+                     "pass data.path=PATH to the scene folder that holds sparse/0 (or data.sparse_dir=FOLDER of the "
+                     "model inside it)")
 
 
 def _camera_param_counts() -> dict[int, int]:
@@ -200,10 +200,11 @@ def read_colmap(
     """Parse a COLMAP model: (frames sorted by image name, points xyz (M, 3), colours (M, 3) in [0, 1])."""
     root = Path(path)
     if not root.is_dir():
-        raise FileNotFoundError(f"COLMAP scene folder not found: {root}")
+        raise B3dgsError(f"COLMAP scene folder {root} does not exist", "pass data.path=PATH to an existing scene folder")
     img_root = root / images_dir
     if not img_root.is_dir():
-        raise FileNotFoundError(f"COLMAP image folder not found: {img_root}")
+        raise B3dgsError(f"COLMAP image folder {img_root} does not exist",
+                         f"pass data.images_dir=FOLDER, the folder of {root} that holds the images")
     model_dir = find_sparse_dir(root, sparse_dir)
     check_colmap_binary(model_dir)
     pycolmap = import_pycolmap()

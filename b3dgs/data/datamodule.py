@@ -7,7 +7,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from b3dgs.data.scene import NEAR_PLANE, load_scene
+from b3dgs.data.scene import NEAR_PLANE, check_scene_settings, read_scene
 from b3dgs.errors import B3dgsError
 from b3dgs.types import Camera, Scene
 
@@ -94,8 +94,8 @@ class ResumableRandomSampler(Sampler[int]):
             self.perm, self.epoch, self._yielded, self._consumed = None, int(state["epoch"]), 0, None
             return
         if int(state["n"]) != self.n:
-            raise B3dgsError(f"the checkpoint's view sampler has {state['n']} train views, this scene {self.n} "
-                             "(fix: resume with the data settings of the checkpoint's run)")
+            raise B3dgsError(f"the checkpoint's view sampler has {state['n']} train views, this scene {self.n}",
+                             "resume with the data settings of the checkpoint's run")
         self.generator.set_state(state["generator"])
         self.perm = None if state["perm"] is None else [int(i) for i in state["perm"]]
         self.epoch = int(state["epoch"])
@@ -139,7 +139,9 @@ class SceneDataModule(L.LightningDataModule):
     Arguments mirror :func:`b3dgs.data.load_scene` (``near_plane``: the renderer's, for the near-plane
     guard; ``calib_every``: calibration views held out of training, ``scene.calib``); ``name`` (optional) overrides the scene name;
     extra keyword arguments go to the format loader (e.g. ``n_views``, ``resolution``, ``seed``).
-    A prebuilt ``scene`` may be passed instead (then nothing is loaded).
+    A prebuilt ``scene`` may be passed instead (then nothing is loaded, and nothing is checked).
+
+    The settings are checked when the data module is built (:meth:`validate`), before any scene is read.
     """
 
     def __init__(
@@ -164,22 +166,37 @@ class SceneDataModule(L.LightningDataModule):
         super().__init__()
         self.kind = str(kind)
         self.path = None if path is None else str(path)
-        self.max_side = None if max_side is None else int(max_side)
-        self.test_every = int(test_every)
-        ti = _plain(train_indices)
-        self.train_indices = None if ti is None else [int(i) for i in ti]
-        self.normalize = bool(normalize)
-        self.background = tuple(float(x) for x in _plain(background))
-        self.max_images = None if max_images is None else int(max_images)
         self.name = name
-        self.near_plane = float(near_plane)
-        self.calib_every = None if calib_every is None else int(calib_every)  # calibration hold-out (scene.calib)
-        # the held-out split: interleaved (every test_every-th view) or a contiguous sector (b3dgs.data.scene.sector_split)
-        self.test_split, self.test_fraction, self.sector_axis = str(test_split), float(test_fraction), int(sector_axis)
+        # a setting of load_scene's that the active-view study passes as an extra key, not the format loader's
+        self.init_points_from_train_only = bool(kind_kwargs.pop("init_points_from_train_only", False))
         self.kind_kwargs = {k: _plain(v) for k, v in kind_kwargs.items()}
         self._scene: Optional[Scene] = scene
+        self._format_loader = None  # the format loader, once validate has checked the settings
         self.train_sampler: Optional[ResumableRandomSampler] = None  # made by train_dataloader()
         self.allow_new_views = False  # a new training round: the sampler may resume from fewer train views
+        self.max_side, self.test_every, self.max_images = max_side, test_every, max_images
+        self.train_indices, self.normalize, self.background = _plain(train_indices), normalize, _plain(background)
+        self.near_plane = near_plane
+        self.calib_every = calib_every  # calibration hold-out (scene.calib)
+        # the held-out split: interleaved (every test_every-th view) or a contiguous sector (b3dgs.data.scene.sector_split)
+        self.test_split, self.test_fraction, self.sector_axis = test_split, test_fraction, sector_axis
+        self.validate()
+        self.background = tuple(float(x) for x in self.background)
+        self.near_plane, self.test_fraction = float(self.near_plane), float(self.test_fraction)
+
+    def _settings(self) -> dict[str, Any]:
+        return dict(max_side=self.max_side, test_every=self.test_every, train_indices=self.train_indices,
+                    normalize=self.normalize, background=self.background, max_images=self.max_images,
+                    near_plane=self.near_plane, calib_every=self.calib_every, test_split=self.test_split,
+                    test_fraction=self.test_fraction, sector_axis=self.sector_axis,
+                    init_points_from_train_only=self.init_points_from_train_only)
+
+    def validate(self, **kwargs: Any) -> None:
+        """Check the data settings, the scene folder and the format loader's own keywords
+        (:func:`b3dgs.data.scene.check_scene_settings`); raise :class:`B3dgsError` naming the ``data.*`` key and the
+        fix. Called when the data module is built; a prebuilt ``scene`` is not checked. ``kwargs``: nothing yet."""
+        if self._scene is None:
+            self._format_loader = check_scene_settings(self.kind, self.path, self._settings(), self.kind_kwargs)
 
     @property
     def scene(self) -> Scene:
@@ -191,22 +208,7 @@ class SceneDataModule(L.LightningDataModule):
     def setup(self, stage: Optional[str] = None) -> None:
         if self._scene is not None:
             return
-        scene = load_scene(
-            self.kind,
-            self.path,
-            max_side=self.max_side,
-            test_every=self.test_every,
-            train_indices=self.train_indices,
-            normalize=self.normalize,
-            background=self.background,
-            max_images=self.max_images,
-            near_plane=self.near_plane,
-            calib_every=self.calib_every,
-            test_split=self.test_split,
-            test_fraction=self.test_fraction,
-            sector_axis=self.sector_axis,
-            **self.kind_kwargs,
-        )
+        scene = read_scene(self._format_loader, self.kind, self.path, self._settings(), self.kind_kwargs)
         if self.name:
             scene.name = str(self.name)
         self._scene = scene

@@ -34,6 +34,7 @@ from b3dgs.io import atomic_path
 from b3dgs.types import fit_size
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".bmp", ".tif", ".tiff", ".webp")
+_MISSING_IMAGE_FIX = "restore the image, or correct the scene files that name it"
 
 __all__ = [
     "IMAGE_EXTENSIONS",
@@ -54,7 +55,7 @@ def import_pycolmap() -> Any:
     try:
         import pycolmap
     except ImportError as e:  # pragma: no cover - pycolmap is a hard dependency
-        raise ImportError("Reading COLMAP scenes needs pycolmap (`pip install pycolmap`).") from e
+        raise B3dgsError("reading a COLMAP scene needs pycolmap, which is not installed", "pip install pycolmap") from e
     return pycolmap
 
 
@@ -62,7 +63,8 @@ def list_images(folder: str | os.PathLike) -> list[Path]:
     """Image files directly inside ``folder``, sorted by name (hidden files skipped)."""
     folder = Path(folder)
     if not folder.is_dir():
-        raise FileNotFoundError(f"Image folder not found: {folder}")
+        raise B3dgsError(f"image folder {folder} does not exist", "pass the scene folder that holds it as data.path, "
+                         "or name the image folder with data.images_dir")
     return sorted(
         p for p in folder.iterdir() if p.is_file() and not p.name.startswith(".") and p.suffix in IMAGE_EXTENSIONS
     )
@@ -72,7 +74,7 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
     """(width, height) of an image file, reading only its header."""
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"Image file not found: {path}")
+        raise B3dgsError(f"image file {path} does not exist", _MISSING_IMAGE_FIX)
     try:
         with Image.open(path) as im:
             return int(im.width), int(im.height)
@@ -124,17 +126,16 @@ def load_image(
         path: image file.
         max_side: downscale (area filter) so the longest side is ``<= max_side``; never upscales.
         size: explicit output size (w, h), overrides ``max_side``.
-        expected_size: if given, the file's native (w, h) must equal it (else ``ValueError``).
+        expected_size: if given, the file's native (w, h) must equal it (else :class:`B3dgsError`).
         background: RGB in [0, 1] that transparent pixels (RGBA, LA, P+transparency) are composited over.
 
     Raises:
-        FileNotFoundError: the file does not exist.
-        ValueError: unreadable/corrupt file, or native size differing from ``expected_size``
-            (the message names the file).
+        B3dgsError: the file does not exist, is unreadable/corrupt, or its native size differs from
+            ``expected_size`` (the message names the file).
     """
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"Image file not found: {path}")
+        raise B3dgsError(f"image file {path} does not exist", _MISSING_IMAGE_FIX)
     try:
         with Image.open(path) as im:
             native = (int(im.width), int(im.height))

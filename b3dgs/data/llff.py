@@ -39,10 +39,11 @@ def read_llff(
     """Parse ``poses_bounds.npy``: (frames sorted by image name, bounds (N, 2) near/far)."""
     root = Path(path)
     if not root.is_dir():
-        raise FileNotFoundError(f"LLFF scene folder not found: {root}")
+        raise B3dgsError(f"LLFF scene folder {root} does not exist", "pass data.path=PATH to an existing scene folder")
     pb_path = root / "poses_bounds.npy"
     if not pb_path.is_file():
-        raise FileNotFoundError(f"LLFF poses file not found: {pb_path}")
+        raise B3dgsError(f"{root} has no poses_bounds.npy, so it is not an LLFF scene",
+                         "pass data.path=PATH to the folder that holds poses_bounds.npy (and images/)")
     try:
         pb = np.load(pb_path, allow_pickle=False)
     except (OSError, ValueError) as e:

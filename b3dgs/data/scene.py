@@ -24,11 +24,14 @@ the steps common to all formats:
    whose content lies that close (e.g. a raw scene of extent 4e-4 with ``normalize=False``) is refused,
    and one within ``NEAR_WARN`` x ``NEAR_PLANE`` gets a warning (see :func:`check_near_plane`).
 
+Before anything is read, :func:`check_scene_settings` checks the settings (:data:`DATA_RULES`), the scene folder and
+the format loader's own keywords (its ``validate``); the data module calls it when it is built.
 Every loader's intrinsics pass :func:`check_intrinsics` (positive finite focal lengths, principal
 point inside the image) in :func:`materialize`.
 """
 from __future__ import annotations
 
+import inspect
 import logging
 import math
 import os
@@ -41,6 +44,7 @@ import torch
 
 from b3dgs.data.images import load_image
 from b3dgs.errors import B3dgsError, did_you_mean
+from b3dgs.schema import RGB_RULE, apply_rules, is_int, positive_rule
 from b3dgs.types import Camera, Scene, fit_size
 
 log = logging.getLogger(__name__)
@@ -64,9 +68,11 @@ __all__ = [
     "FrameSpec",
     "RawScene",
     "SceneTransform",
+    "DATA_RULES",
     "check_intrinsics",
     "check_layout",
     "check_near_plane",
+    "check_scene_settings",
     "compute_bounds",
     "get_loader",
     "guess_kinds",
@@ -75,6 +81,7 @@ __all__ = [
     "materialize",
     "normalize_scene",
     "preprocess",
+    "read_scene",
     "scene_transform",
     "select_evenly",
     "split_calibration",
@@ -360,9 +367,8 @@ def compute_bounds(
 
 
 def split_indices(n: int, test_every: int) -> tuple[list[int], list[int]]:
-    """(train, test) indices into a name-sorted list: ``i % test_every == 0`` is test; 0 means no test."""
-    if test_every < 0:
-        raise B3dgsError(f"test_every must be >= 0, got {test_every}")
+    """(train, test) indices into a name-sorted list: ``i % test_every == 0`` is test; 0 means no test
+    (``test_every >= 0``: :data:`DATA_RULES`)."""
     if test_every == 0:
         return list(range(n)), []
     test = [i for i in range(n) if i % test_every == 0]
@@ -372,14 +378,10 @@ def split_indices(n: int, test_every: int) -> tuple[list[int], list[int]]:
 
 def split_calibration(train: Sequence[Camera], calib_every: Optional[int]) -> tuple[list[Camera], list[Camera]]:
     """(train, calib): every ``calib_every``-th view of the sorted train list (positions ``j`` with
-    ``(j + 1) % calib_every == 0``) is a calibration view; ``None`` or 0 holds none out. Only train views
-    are ever taken, so a calibration view is never a test view."""
+    ``(j + 1) % calib_every == 0``) is a calibration view; ``None`` or 0 holds none out (else ``calib_every >= 2``:
+    :data:`DATA_RULES`). Only train views are ever taken, so a calibration view is never a test view."""
     if not calib_every:
         return list(train), []
-    if isinstance(calib_every, bool) or not isinstance(calib_every, int) or calib_every < 2:
-        raise B3dgsError(f"data.calib_every={calib_every} is not a hold-out period: it must be an integer >= 2 "
-                         "(every n-th training view becomes a calibration view)",
-                         "pass data.calib_every=16, or null for no calibration views")
     calib = [c for j, c in enumerate(train) if (j + 1) % calib_every == 0]
     return [c for j, c in enumerate(train) if (j + 1) % calib_every != 0], calib
 
@@ -391,14 +393,9 @@ def sector_split(centres: np.ndarray, fraction: float, axis: int = 0) -> tuple[l
     """(train, test) indices: the test views are the ``ceil(fraction · n)`` cameras farthest along one direction, the
     ``axis``-th principal direction of the camera centres (sign: its largest component positive), so they form one
     contiguous sector that no training camera sees from (an arc of a 360° capture, one edge of a forward-facing one).
-    Ties go to the earlier index."""
+    Ties go to the earlier index. ``0 < fraction < 1`` and ``axis`` in 0, 1, 2: :data:`DATA_RULES`."""
     c = np.asarray(centres, np.float64).reshape(-1, 3)
     n = len(c)
-    if not 0.0 < float(fraction) < 1.0:
-        raise B3dgsError(f"test_fraction={fraction} must be in (0, 1)", "pass data.test_fraction=0.125")
-    if not 0 <= int(axis) <= 2:
-        raise B3dgsError(f"sector_axis={axis} must be 0, 1 or 2 (a principal direction of the camera centres)",
-                         "pass data.sector_axis=0")
     u = np.linalg.svd(c - c.mean(0), full_matrices=False)[2][int(axis)]
     u = u if u[np.argmax(np.abs(u))] > 0 else -u
     proj = (c - c.mean(0)) @ u
@@ -430,7 +427,8 @@ def preprocess(
     With ``train_indices``, the other train views become ``scene.candidates``: cameras without images,
     whose images go to a :class:`CandidateStore` that :func:`take_candidate_store` hands to the study
     driver. ``init_points_from_train_only`` keeps only the initial points seen by >= 2 of the selected train
-    views (see :func:`filter_points_to_train`)."""
+    views (see :func:`filter_points_to_train`). The settings' ranges are :func:`check_scene_settings`'s (called by
+    :func:`load_scene` and the data module before the scene is read), not checked again here."""
     cams = sorted(raw.cameras, key=lambda c: c.name)
     if not cams:
         raise B3dgsError(f"Scene {raw.name!r} has no cameras")
@@ -463,9 +461,6 @@ def preprocess(
     else:
         _, extent = camera_extent(viewmats)
 
-    if test_split not in TEST_SPLITS:
-        raise B3dgsError(f"test_split={test_split!r} is not one of {'|'.join(TEST_SPLITS)}",
-                         "pass data.test_split=interleaved (every test_every-th view), sector or sector+interleaved")
     test_groups = None
     if test_split.startswith("sector"):
         centres = np.stack([-v[:3, :3].T @ v[:3, 3] for v in viewmats])
@@ -486,9 +481,8 @@ def preprocess(
         sel = [int(i) for i in train_indices]
         bad = [i for i in sel if not 0 <= i < len(train)]
         if bad:
-            raise IndicesOutOfRange(f"train_indices {bad} out of range for {len(train)} train views")
-        if len(set(sel)) != len(sel):
-            raise B3dgsError(f"train_indices contains duplicates: {sel}")
+            raise IndicesOutOfRange(f"train_indices {bad} out of range for {len(train)} train views",
+                                    f"pass data.train_indices with indices below {len(train)}")
         pool, train = train, [train[i] for i in sel]
         candidates = [c for i, c in enumerate(pool) if i not in set(sel)]
     else:
@@ -613,7 +607,7 @@ def guess_kinds(path: str | os.PathLike) -> list[str]:
 
 def check_layout(kind: str, path: str | os.PathLike) -> None:
     """Refuse a scene folder without the files of ``kind`` that holds another format's, naming that format
-    (a folder holding no known format is left to the loader, whose ``FileNotFoundError`` names the missing file)."""
+    (a folder holding no known format is left to the loader, whose :class:`B3dgsError` names the missing file)."""
     if kind not in _MARKERS or not Path(path).is_dir() or _MARKERS[kind][1](Path(path)):
         return
     others = [k for k in guess_kinds(path) if k != kind]
@@ -648,8 +642,6 @@ def get_loader(kind: str):
 
 def loader_params(loader) -> dict[str, Any]:
     """The keyword parameters of a format loader, name -> default (``inspect.Parameter.empty`` if none)."""
-    import inspect
-
     return {n: p.default for n, p in inspect.signature(loader).parameters.items()
             if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
 
@@ -657,6 +649,83 @@ def loader_params(loader) -> dict[str, Any]:
 def loader_reads_files(loader) -> bool:
     """Whether a format loader takes a scene ``path`` (its first parameter); the procedural scene does not."""
     return next(iter(loader_params(loader)), None) == "path"
+
+
+#: the ranges of the data settings (the data module's and :func:`load_scene`'s keywords), checked by
+#: :func:`check_scene_settings` in this order, in the form of :data:`b3dgs.schema.RULES`; a format loader's own keywords
+#: are its ``validate``'s (e.g. :func:`b3dgs.data.synthetic.validate_synthetic`).
+DATA_RULES = {
+    "data.max_side?": (lambda v: is_int(v, 1), "an integer >= 1 or null",
+                       "pass data.max_side=256 (longest image side in pixels) or null for full resolution"),
+    "data.test_every": (lambda v: is_int(v, 0), "an integer >= 0", "pass data.test_every=8 (every 8th view held out) or 0"),
+    "data.test_split": (lambda v: v in TEST_SPLITS, f"one of {'|'.join(TEST_SPLITS)}",
+                        "pass data.test_split=interleaved (every test_every-th view), sector (a contiguous sector) or "
+                        "sector+interleaved (both, from one model)"),
+    "data.test_fraction": (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < 1,
+                           "a fraction in (0, 1)", "pass data.test_fraction=0.125"),
+    "data.sector_axis": (lambda v: v in (0, 1, 2) and not isinstance(v, bool), "0, 1 or 2",
+                         "pass data.sector_axis=0 (the camera centres' first principal direction)"),
+    "data.max_images?": (lambda v: is_int(v, 1), "an integer >= 1 or null", "pass data.max_images=N or null for all views"),
+    "data.train_indices?": (lambda v: isinstance(v, list) and all(is_int(i, 0) for i in v) and len(set(v)) == len(v),
+                            "null or a list of distinct indices >= 0", "pass data.train_indices=[0,3,5] or null"),
+    "data.background": (*RGB_RULE, "pass data.background=[0,0,0] (black) or data.background=[1,1,1] (white)"),
+    "data.near_plane": positive_rule(" (the renderer's near plane)",
+                                     "pass renderer.near=0.01 (data.near_plane follows it unless set apart), and "
+                                     "data.normalize=true so that the scene's extent is 1"),
+    "data.calib_every?": (lambda v: v == 0 or is_int(v, 2), "null, 0 or an integer >= 2 (every n-th training view "
+                          "becomes a calibration view)", "pass data.calib_every=16, or null for no calibration views"),
+}
+
+
+def _plain(v: Any) -> Any:
+    """A setting as the rules read it: tuples as lists, numpy scalars as Python numbers."""
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return v.item() if isinstance(v, np.generic) else v
+
+
+def check_scene_settings(kind: str, path: str | os.PathLike | None, settings: dict, kind_kwargs: dict):
+    """Check the settings of a scene load before anything is read, and return the format loader of ``kind``.
+
+    ``settings``: the common keywords of :func:`load_scene` (those present are checked against :data:`DATA_RULES`);
+    ``kind_kwargs``: the format loader's own, checked by its ``validate`` when it has one. A loader that reads files
+    needs ``path`` to exist (and to hold its format, :func:`check_layout`). Raises :class:`B3dgsError` naming the
+    ``data.*`` key and the fix; the data module calls it when it is built."""
+    kind = str(kind) if str(kind).lower() not in LOADERS else str(kind).lower()
+    apply_rules({f"data.{k}": _plain(v) for k, v in settings.items()}, DATA_RULES)
+    loader = get_loader(kind)
+    if loader_reads_files(loader):
+        if path is None or str(path) == "":
+            raise B3dgsError(f"data={kind} reads a scene folder, and data.path is not set", "pass data.path=PATH")
+        if not Path(path).exists():
+            raise B3dgsError(f"data.path={path} does not exist", "pass data.path=PATH to an existing scene folder")
+        if kind_kwargs.get("sparse_dir") is None:  # a custom model folder is the loader's to find
+            check_layout(kind, path)
+    check = getattr(loader, "validate", None)
+    if callable(check):
+        check(**kind_kwargs)
+    return loader
+
+
+def read_scene(loader, kind: str, path: str | os.PathLike | None, settings: dict, kind_kwargs: dict) -> Scene:
+    """Read and preprocess a scene with ``loader`` (from :func:`check_scene_settings`, which checked the settings)."""
+    s = {**_SETTINGS, **settings}
+    background = tuple(float(x) for x in s["background"])
+    if s["init_points_from_train_only"] and "point_tracks" in loader_params(loader):
+        kind_kwargs = {**kind_kwargs, "point_tracks": True}  # which images observed each SfM point
+    common = dict(max_side=s["max_side"], background=background, max_images=s["max_images"])
+    raw = loader(path, **common, **kind_kwargs) if loader_reads_files(loader) else loader(**common, **kind_kwargs)
+    scene = preprocess(raw, test_every=s["test_every"], train_indices=s["train_indices"], normalize=s["normalize"],
+                       background=background, near_plane=s["near_plane"], calib_every=s["calib_every"],
+                       init_points_from_train_only=s["init_points_from_train_only"], test_split=s["test_split"],
+                       test_fraction=s["test_fraction"], sector_axis=s["sector_axis"])
+    log.info(
+        "Loaded %s scene %r: %d train / %d test%s views, %s points, extent %.4g",
+        kind, scene.name, len(scene.train), len(scene.test),
+        f" / {len(scene.calib)} calibration" if scene.calib else "",
+        0 if scene.points is None else len(scene.points), scene.extent,
+    )
+    return scene
 
 
 def load_scene(
@@ -677,7 +746,8 @@ def load_scene(
     **kind_kwargs: Any,
 ) -> Scene:
     """Load a scene of ``kind`` (``colmap``, ``transforms``, ``llff``, ``synthetic`` or a loader function
-    ``package.module:function``, see :func:`get_loader`) and preprocess it.
+    ``package.module:function``, see :func:`get_loader`) and preprocess it: :func:`check_scene_settings`, then
+    :func:`read_scene`.
 
     Args:
         kind: scene format.
@@ -698,35 +768,13 @@ def load_scene(
         **kind_kwargs: passed to the format loader (e.g. ``n_views``, ``resolution``, ``seed`` for
             "synthetic"; ``images_dir`` for "colmap"/"llff"; ``sparse_dir`` for "colmap").
     """
-    background = tuple(float(x) for x in background)
-    if len(background) != 3 or not all(0.0 <= b <= 1.0 for b in background):
-        raise B3dgsError(f"background must be 3 floats in [0, 1] (RGB), got {list(background)}",
-                         "pass background=[0,0,0] (black) or [1,1,1] (white)")
-    if max_side is not None and not int(max_side) > 0:
-        raise B3dgsError(f"max_side must be a positive pixel count, got {max_side}",
-                         "pass max_side=256 (longest image side) or null for the full resolution")
-    kind = str(kind) if str(kind).lower() not in LOADERS else str(kind).lower()
-    loader = get_loader(kind)
-    reads_files = loader_reads_files(loader)
-    if reads_files:
-        if path is None or str(path) == "":
-            raise B3dgsError(f"load_scene(kind={kind!r}) needs a path")
-        if not Path(path).exists():
-            raise FileNotFoundError(f"Scene path not found: {path}")
-        if kind_kwargs.get("sparse_dir") is None:  # a custom model folder is the loader's to find
-            check_layout(kind, path)
-    common = dict(max_side=max_side, background=background, max_images=max_images)
-    if init_points_from_train_only and "point_tracks" in loader_params(loader):
-        kind_kwargs = {**kind_kwargs, "point_tracks": True}  # which images observed each SfM point
-    raw = loader(path, **common, **kind_kwargs) if reads_files else loader(**common, **kind_kwargs)
-    scene = preprocess(raw, test_every=test_every, train_indices=train_indices, normalize=normalize,
-                       background=background, near_plane=near_plane, calib_every=calib_every,
-                       init_points_from_train_only=init_points_from_train_only, test_split=test_split,
-                       test_fraction=test_fraction, sector_axis=sector_axis)
-    log.info(
-        "Loaded %s scene %r: %d train / %d test%s views, %s points, extent %.4g",
-        kind, scene.name, len(scene.train), len(scene.test),
-        f" / {len(scene.calib)} calibration" if scene.calib else "",
-        0 if scene.points is None else len(scene.points), scene.extent,
-    )
-    return scene
+    settings = dict(max_side=max_side, test_every=test_every, train_indices=train_indices, normalize=normalize,
+                    background=background, max_images=max_images, near_plane=near_plane, calib_every=calib_every,
+                    init_points_from_train_only=init_points_from_train_only, test_split=test_split,
+                    test_fraction=test_fraction, sector_axis=sector_axis)
+    loader = check_scene_settings(kind, path, settings, kind_kwargs)
+    return read_scene(loader, kind, path, settings, kind_kwargs)
+
+
+#: the defaults of :func:`load_scene`'s common settings (what :func:`read_scene` uses for one not given)
+_SETTINGS = {k: p.default for k, p in inspect.signature(load_scene).parameters.items() if p.default is not p.empty}

@@ -17,18 +17,20 @@ Everything is a deterministic function of ``seed``.
 """
 from __future__ import annotations
 
+import inspect
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import numpy as np
 import torch
 
 from b3dgs.data.scene import RawScene, select_evenly
 from b3dgs.errors import B3dgsError
+from b3dgs.schema import is_int
 from b3dgs.types import Camera
 
-__all__ = ["Ellipsoid", "SyntheticWorld", "load_synthetic", "make_cameras", "make_world"]
+__all__ = ["Ellipsoid", "SyntheticWorld", "load_synthetic", "make_cameras", "make_world", "validate_synthetic"]
 
 DISK_RADIUS = 1.5
 LIGHT_DIR = np.array([0.4, -0.3, 0.87]) / np.linalg.norm([0.4, -0.3, 0.87])
@@ -263,8 +265,6 @@ def make_cameras(
     target: Sequence[float] = (0.0, 0.0, 0.35),
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """``n_views`` (K, viewmat) pairs on a hemisphere spiral (square images of side ``resolution``)."""
-    if n_views <= 0:
-        raise B3dgsError(f"n_views must be positive, got {n_views}")
     rng = np.random.default_rng(seed + 7919)
     az0 = rng.uniform(0, 2 * math.pi)
     f = 0.5 * resolution / math.tan(math.radians(fov_deg) / 2)
@@ -295,10 +295,9 @@ def load_synthetic(
     """Render the procedural scene: ``n_views`` square views of side ``min(resolution, max_side)``.
 
     The world frame is the generator's (z up, disk at z = 0); :func:`b3dgs.data.load_scene` then
-    normalises it like any other scene. ``extras["world"]`` holds the :class:`SyntheticWorld`.
+    normalises it like any other scene. ``extras["world"]`` holds the :class:`SyntheticWorld`. The keywords' ranges
+    are :func:`validate_synthetic`'s (``load_synthetic.validate``, run by ``load_scene`` and the data module).
     """
-    if resolution <= 0:
-        raise B3dgsError(f"resolution must be positive, got {resolution}")
     res = min(resolution, max_side) if max_side else resolution
     world = make_world(seed, n_objects)
     rigs = make_cameras(n_views, res, seed)
@@ -324,3 +323,22 @@ def load_synthetic(
         point_colors=cols.astype(np.float32),
         extras={"world": world},
     )
+
+
+def validate_synthetic(*, n_views: Any = 48, resolution: Any = 128, seed: Any = 0, n_points: Any = 4000,
+                       n_objects: Any = 5, supersample: Any = 2, **_: Any) -> None:
+    """Check the keywords of :func:`load_synthetic` (the ``data.*`` keys of ``data=synthetic``); raise
+    :class:`B3dgsError` naming the key and the fix. ``load_synthetic.validate``: the data module calls it when it is
+    built, :func:`b3dgs.data.load_scene` before it renders anything."""
+    for key, v, lo, what in (("n_views", n_views, 1, "views"), ("resolution", resolution, 1, "the image side in pixels"),
+                             ("supersample", supersample, 1, "rays per pixel side"),
+                             ("n_objects", n_objects, 1, "ellipsoids on the disk"),
+                             ("n_points", n_points, 0, "initial points; 0: random ones"),
+                             ("seed", seed, 0, "the seed of the world and the cameras")):
+        if not is_int(v, lo):
+            raise B3dgsError(f"data.{key}={v} is invalid: it must be an integer >= {lo} ({what})",
+                             f"pass data.{key}={_DEFAULTS[key]}")
+
+
+_DEFAULTS = {k: p.default for k, p in inspect.signature(load_synthetic).parameters.items()}
+load_synthetic.validate = validate_synthetic  # type: ignore[attr-defined]  # the format's own check (b3dgs.data.scene)

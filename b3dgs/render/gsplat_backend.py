@@ -140,8 +140,8 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
     means = expand_samples(params["means"], S, 1)
     dev, dtype = means.device, means.dtype
     if (dev.type != "cuda" and not _emulated(dev)) or dtype != torch.float32:
-        raise B3dgsError(f"renderer=gsplat needs float32 CUDA tensors, got {dtype} on {dev} "
-                         "(fix: let the trainer move the model, or use renderer=torch on this device)")
+        raise B3dgsError(f"renderer=gsplat needs float32 CUDA tensors, got {dtype} on {dev}",
+                         "let the trainer move the model, or use renderer=torch on this device")
     deg = effective_sh_degree(sh_degree, params.get("shN"))
     sh = expand_samples(params["sh0"], S, 2)
     if deg > 0:

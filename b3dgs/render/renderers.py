@@ -28,13 +28,22 @@ from b3dgs.errors import B3dgsError
 from b3dgs.render._ext import first_compiler_error
 from b3dgs.render.gsplat_backend import gsplat_emulated
 from b3dgs.render.render import RenderOutput, render
+from b3dgs.schema import is_int, is_number
 from b3dgs.types import Camera
 
 log = logging.getLogger(__name__)
 
 
 class RendererUnavailable(B3dgsError, RuntimeError):
-    """The configured renderer cannot run on this machine (the message names the fix); a ``RuntimeError`` too."""
+    """The configured renderer cannot run on this machine (with its fix); a ``RuntimeError`` too."""
+
+
+def _check_device(name: Any, options: str) -> None:
+    """Refuse a ``renderer.device_name`` that torch cannot parse as a device."""
+    try:
+        torch.device(str(name))
+    except (RuntimeError, TypeError):
+        raise B3dgsError(f"renderer.device_name={name} is not a device", f"pass renderer.device_name={options}") from None
 
 
 @dataclass
@@ -51,8 +60,15 @@ class Renderer:
     cpu_seconds_per_step: ClassVar[Optional[float]] = None  # stated training cost on the CPU (a long run is warned of)
 
     def __post_init__(self) -> None:
-        if not (self.near > 0 and self.near < float("inf")):
-            raise B3dgsError(f"renderer.near must be a positive number, got {self.near} (fix: e.g. renderer.near=0.01)")
+        self.validate()  # wherever it is built: Hydra's instantiate, make_renderer, auto_renderer, code
+
+    def validate(self, **kwargs: Any) -> None:
+        """Check this renderer's own field values; raise :class:`B3dgsError` naming the key and the fix. Called when
+        the renderer is built (``__post_init__``); a subclass with fields of its own extends it (``super().validate()``
+        first). ``kwargs``: nothing yet (accepted for what later versions pass)."""
+        if not (is_number(self.near) and self.near > 0):
+            raise B3dgsError(f"renderer.near={self.near} is invalid: it must be a positive number",
+                             "pass renderer.near=0.01, and data.normalize=true so that the scene's extent is 1")
 
     @property
     def device(self) -> torch.device:
@@ -93,9 +109,8 @@ class CPURenderer(Renderer):
         try:
             load_extension()
         except RuntimeError as e:
-            raise RendererUnavailable(
-                f"renderer=cpu: the C++ extension did not build ({first_compiler_error(str(e))}) "
-                "(fix: renderer=torch, or install a C++ compiler with OpenMP)") from e
+            raise RendererUnavailable(f"renderer=cpu: the C++ extension did not build ({first_compiler_error(str(e))})",
+                                      "renderer=torch, or install a C++ compiler with OpenMP") from e
 
     def render(self, params, camera, *, sh_degree=3, background=None, return_weights=False,
                retain_means2d_grad=False) -> RenderOutput:
@@ -117,6 +132,11 @@ class TorchRenderer(Renderer):
     name: ClassVar[str] = "torch"
     cpu_seconds_per_step: ClassVar[Optional[float]] = 1.0  # at 256 px on 2 cores (renderer=cpu: ~40x less)
 
+    def validate(self, **kwargs: Any) -> None:
+        super().validate(**kwargs)
+        if self.device_name != "auto":
+            _check_device(self.device_name, "auto, cpu, cuda or cuda:N")
+
     @property
     def device(self) -> torch.device:
         if self.device_name == "auto":
@@ -125,8 +145,8 @@ class TorchRenderer(Renderer):
 
     def check_available(self) -> None:
         if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise RendererUnavailable(f"renderer=torch: device {self.device_name} requested but CUDA is not "
-                                      "available (fix: renderer.device_name=cpu or auto)")
+            raise RendererUnavailable(f"renderer=torch: device {self.device_name} requested but CUDA is not available",
+                                      "renderer.device_name=cpu or auto")
 
     def render(self, params, camera, *, sh_degree=3, background=None, return_weights=False,
                retain_means2d_grad=False) -> RenderOutput:
@@ -158,6 +178,17 @@ class GsplatRenderer(Renderer):
     name: ClassVar[str] = "gsplat"
     max_alpha: ClassVar[float] = 0.999
 
+    def validate(self, **kwargs: Any) -> None:
+        super().validate(**kwargs)
+        _check_device(self.device_name, "cuda or cuda:N")
+        if not is_int(self.tile_size, 1, 33):
+            raise B3dgsError(f"renderer.tile_size={self.tile_size} is invalid: it must be an integer in [1, 32] (gsplat "
+                             "runs one CUDA block of tile_size² threads per tile, at most 1024)",
+                             "pass renderer.tile_size=16, gsplat's default")
+        if not (is_number(self.eps2d) and self.eps2d >= 0):
+            raise B3dgsError(f"renderer.eps2d={self.eps2d} is invalid: it must be a finite number >= 0 (pixels of blur "
+                             "added to every 2-D covariance)", "pass renderer.eps2d=0.3, as our backends use")
+
     @property
     def device(self) -> torch.device:
         return torch.device(self.device_name)
@@ -166,13 +197,13 @@ class GsplatRenderer(Renderer):
         if self.device.type == "cpu":
             if not gsplat_emulated():
                 raise RendererUnavailable("renderer=gsplat renderer.device_name=cpu runs only under the test suite's "
-                                          "CPU emulation of gsplat's kernels (fix: renderer=cpu on the CPU)")
+                                          "CPU emulation of gsplat's kernels", "renderer=cpu on the CPU")
             return
         if not torch.cuda.is_available():
-            raise RendererUnavailable("renderer=gsplat needs a CUDA GPU, and none is visible here "
-                                      "(fix: pass renderer=cpu or renderer=auto, which picks the C++ CPU backend here)")
+            raise RendererUnavailable("renderer=gsplat needs a CUDA GPU, and none is visible here",
+                                      "pass renderer=cpu or renderer=auto, which picks the C++ CPU backend here")
         if importlib.util.find_spec("gsplat") is None:
-            raise RendererUnavailable('renderer=gsplat: gsplat is not installed (fix: pip install -e ".[cuda]")')
+            raise RendererUnavailable("renderer=gsplat: gsplat is not installed", 'pip install -e ".[cuda]"')
 
     def render(self, params, camera, *, sh_degree=3, background=None, return_weights=False,
                retain_means2d_grad=False) -> RenderOutput:
@@ -222,5 +253,5 @@ def make_renderer(spec: "str | Renderer") -> Renderer:
     if isinstance(spec, Renderer):
         return spec
     if spec not in RENDERERS:
-        raise B3dgsError(f"unknown renderer {spec!r} (fix: renderer= one of {sorted(RENDERERS)})")
+        raise B3dgsError(f"unknown renderer {spec!r}", f"renderer= one of {sorted(RENDERERS)}")
     return RENDERERS[spec]()

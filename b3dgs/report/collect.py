@@ -249,8 +249,8 @@ def check_pooling(runs: Sequence[Run], group_by: Sequence[str] = ()) -> None:
                 b = {k: v for k, v in b.items() if k.startswith(pick)}
             keys = differing_keys(a, b)
             if keys:
-                raise ReportError(f"the {name} differ in {describe_diff(a, b, keys, names=(f'in {ref.path}', f'in {r.path}'), limit=2)} "
-                                  f"(fix: {hint.format(keys=','.join(keys[:3]))})")
+                raise ReportError(f"the {name} differ in {describe_diff(a, b, keys, names=(f'in {ref.path}', f'in {r.path}'), limit=2)}",
+                                  hint.format(keys=','.join(keys[:3])))
 
 
 def load_runs(patterns: Sequence[str] | str, on_duplicate: str = "error", group_by: Sequence[str] = ()
