@@ -4,8 +4,8 @@ Adds to ``uq.json`` shaped ``{regime: {cov95, cov95_err, ause_rmse, ause_mae, ec
 time_s, psnr, lpips, ..., runs, run_checkpoints, per_view: [...]}, _meta: {...}}`` regime by regime (the regimes
 already there stay), with sparsification/reliability plots and render | GT | error | uncertainty panels (PNG
 and TensorBoard): in the run dir, for an ensemble in its own folder beside its first member (``out=`` picks
-the folder for both, but never another run's dir: :func:`check_out_dir`). The last line says where it wrote. Known errors print
-``b3dgs-eval: error: <problem> (fix: <what to do>)`` and exit with code 2.
+the folder for both, but never another run's dir: :func:`check_out_dir`). The last line says where it wrote.
+Known errors print ``b3dgs-eval: error: <problem> (fix: <what to do>)`` and exit with code 2.
 """
 from __future__ import annotations
 
@@ -93,8 +93,9 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     Results go to ``out_dir``, or by default an ensemble's into its own folder and the others into the first
     run's dir; each regime is merged into the folder's ``uq.json`` with its panels (:func:`b3dgs.uq.store.merge_into`),
     keeping the regimes already there, and only if neither the folder's run nor a scored run changed since this
-    evaluation started (:func:`b3dgs.uq.store.check_unchanged`). Each entry records its runs (paths, and ``run_checkpoints``: the
-    parameter digests of their final checkpoints, which the report matches), views, seed, panels and mean curves.
+    evaluation started (:func:`b3dgs.uq.store.check_unchanged`). Each entry records its runs (paths, and
+    ``run_checkpoints``: the parameter digests of their final checkpoints, which the report matches), views, seed,
+    panels and mean curves.
     Returns this evaluation's regimes and ``_meta``.
     """
     import tempfile

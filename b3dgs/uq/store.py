@@ -128,8 +128,8 @@ def check_unchanged(folder: Path, new: Mapping[str, dict], expect: Optional[Mapp
     for entry in new.values():
         for run, digest in zip(entry.get("runs") or [], entry.get("run_checkpoints") or []):
             if digest is not None and run_digest(_read_metrics(run)) != digest:
-                raise B3dgsError(f"the run {run} changed while this b3dgs-eval ran (its final checkpoint is not the one "
-                                 f"evaluated): the results were not merged into {folder / UQ_NAME}",
+                raise B3dgsError(f"the run {run} changed while this b3dgs-eval ran (its final checkpoint is not the "
+                                 f"one evaluated): the results were not merged into {folder / UQ_NAME}",
                                  f"run b3dgs-eval run={run} again")
 
 
