@@ -11,6 +11,9 @@
 Signals: while training, SIGINT / SIGTERM (recorded by :func:`b3dgs.rundir.interrupt_handlers`) make
 :class:`RunCheckpoint` save ``last.ckpt`` after the current step and raise :class:`b3dgs.rundir.Interrupted`.
 
+* :class:`RunFiles`: the files the trainer's loggers write into the run dir (TensorBoard's event file and
+  ``hparams.yaml``) join the run manifest (:mod:`b3dgs.rundir`) as they appear; :class:`RunCheckpoint` lists each
+  ``step<N>.ckpt`` before writing it.
 * :class:`StepProgressBar`: one bar over the run's global steps (``step/max_steps``, rate, ETA) with the Gaussian
   count, the loss and the last test PSNR; the trainer uses it whenever ``trainer.enable_progress_bar`` is true.
 
@@ -20,6 +23,7 @@ points are one, ``tests/kill_hooks.py``).
 from __future__ import annotations
 
 import logging
+import os
 import random
 import shutil
 import sys
@@ -153,7 +157,10 @@ class RunCheckpoint(Checkpoint):
         trainer.save_checkpoint(self.last_path, weights_only=False)
         if self.keep and self.every_n_steps and step % self.every_n_steps == 0:
             from b3dgs.io import atomic_path
+            from b3dgs.rundir import record_written
 
+            # listed in the run manifest before it exists (a run dir's ``checkpoints/``; elsewhere nothing to list)
+            record_written(self.dirpath.parent, [f"{self.dirpath.name}/step{step}.ckpt"])
             with atomic_path(self.dirpath / f"step{step}.ckpt") as tmp:
                 shutil.copyfile(self.last_path, tmp)
         self._t_last = time.monotonic()
@@ -200,6 +207,64 @@ class RunCheckpoint(Checkpoint):
         from b3dgs.rundir import PENDING
 
         PENDING.deferred = False
+
+
+class RunFiles(L.Callback):
+    """The files the trainer's loggers write inside ``run_dir`` join its run manifest (:mod:`b3dgs.rundir`), by
+    name: ``hparams.yaml`` before it is written, and the files of a logger's folder that are new or changed since
+    this callback was made, before the trainer started (TensorBoard's ``events.out.tfevents.<time>.<host>.<pid>.<n>``,
+    created when the trainer sets up, is listed right then). A file the run did not write is never listed."""
+
+    def __init__(self, run_dir: Path):
+        self.run_dir = Path(run_dir)
+        self._before = self._stats(self.run_dir)
+
+    @staticmethod
+    def _stats(folder: Path) -> dict[str, tuple[int, int]]:
+        out = {}
+        for d, _, files in os.walk(folder):  # symlinked folders are not followed
+            for name in files:
+                p = Path(d) / name
+                try:
+                    st = p.lstat()
+                except OSError:
+                    continue
+                out[p.relative_to(folder).as_posix()] = (st.st_mtime_ns, st.st_size)
+        return out
+
+    def _record(self, trainer, planned: bool = False) -> None:
+        from b3dgs.rundir import LOCK_NAME, MANIFEST_NAME, record_written
+
+        root = self.run_dir.resolve()
+        names = []
+        for logger in trainer.loggers:
+            d = getattr(logger, "log_dir", None)
+            folder = Path(d).resolve() if d else None
+            if folder is None or not folder.is_relative_to(root):
+                continue
+            rel = folder.relative_to(root)
+            hparams = getattr(logger, "NAME_HPARAMS_FILE", None)
+            if planned and hparams:
+                names.append((rel / hparams).as_posix())
+            for f, st in self._stats(folder).items():
+                name = (rel / f).as_posix()
+                temp = f.rpartition("/")[2].startswith(".") and f.endswith(".tmp")  # an atomic write in flight
+                if name not in (MANIFEST_NAME, LOCK_NAME) and not temp and self._before.get(name) != st:
+                    names.append(name)
+        if names:
+            record_written(self.run_dir, names)
+
+    def setup(self, trainer, pl_module, stage: str) -> None:
+        self._record(trainer, planned=True)
+
+    def on_train_start(self, trainer, pl_module) -> None:
+        self._record(trainer)
+
+    def on_fit_end(self, trainer, pl_module) -> None:
+        self._record(trainer)
+
+    def on_exception(self, trainer, pl_module, exception) -> None:
+        self._record(trainer)
 
 
 class CurveCallback(L.Callback):

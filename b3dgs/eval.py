@@ -4,8 +4,8 @@ Adds to ``uq.json`` shaped ``{regime: {cov95, cov95_err, ause_rmse, ause_mae, ec
 time_s, psnr, lpips, ..., runs, run_checkpoints, per_view: [...]}, _meta: {...}}`` regime by regime (the regimes
 already there stay), with sparsification/reliability plots and render | GT | error | uncertainty panels (PNG
 and TensorBoard): in the run dir, for an ensemble in its own folder beside its first member (``out=`` picks
-the folder for both). The last line says where it wrote. Known errors print
-``b3dgs-eval: error: <problem> (fix: <what to do>)`` and exit with code 2.
+the folder for both, but never another run's dir: :func:`check_out_dir`). The last line says where it wrote.
+Known errors print ``b3dgs-eval: error: <problem> (fix: <what to do>)`` and exit with code 2.
 """
 from __future__ import annotations
 
@@ -62,6 +62,23 @@ def _destinations(regimes: dict, runs: list, out_dir: Optional[Path]) -> dict[st
     return out
 
 
+def check_out_dir(out_dir: Path, first) -> None:
+    """``out=`` may name a new folder, one of the user's, or the run dir of the run evaluated (or a copy of it, by
+    parameter digest); not another run's dir, whose ``uq.json`` holds that run's results only (issue 46 §6)."""
+    from b3dgs.rundir import run_dir_kind, run_identity
+    from b3dgs.uq.store import run_digest
+
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir() or run_dir_kind(out_dir) not in ("run", "legacy"):
+        return
+    mine, theirs = run_digest(first.metrics), run_identity(out_dir)["params_sha256"]
+    if out_dir.resolve() == Path(first.path).resolve() or (mine is not None and mine == theirs):
+        return
+    raise B3dgsError(f"out={out_dir} is the run dir of another run: its uq.json holds that run's results, not those "
+                     f"of {first.path}", f"leave out= out to write into {first.path}, or pass out= a folder that is "
+                     "not a run dir")
+
+
 def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Optional[int] = None,
                 panels: int = 3, out_dir: Optional[Path] = None, loaded: Optional[list] = None,
                 meta: Optional[dict] = None, lpips_weights: Optional[str] = None) -> dict:
@@ -75,8 +92,10 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
 
     Results go to ``out_dir``, or by default an ensemble's into its own folder and the others into the first
     run's dir; each regime is merged into the folder's ``uq.json`` with its panels (:func:`b3dgs.uq.store.merge_into`),
-    keeping the regimes already there. Each entry records its runs (paths, and ``run_checkpoints``: the
-    parameter digests of their final checkpoints, which the report matches), views, seed, panels and mean curves.
+    keeping the regimes already there, and only if neither the folder's run nor a scored run changed since this
+    evaluation started (:func:`b3dgs.uq.store.check_unchanged`). Each entry records its runs (paths, and
+    ``run_checkpoints``: the parameter digests of their final checkpoints, which the report matches), views, seed,
+    panels and mean curves.
     Returns this evaluation's regimes and ``_meta``.
     """
     import tempfile
@@ -87,7 +106,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     from b3dgs.uq.metrics import epistemic_summary, epistemic_view, evaluate_view, summarize, to_jsonable
     from b3dgs.uq.plots import plot_uncertainty_panel
     from b3dgs.uq.store import check_members, merge_into, read_uq, remove_staging, run_digest
-    from b3dgs.rundir import read_manifest, remove_stale_staging, staging_prefix
+    from b3dgs.rundir import read_manifest, remove_stale_staging, run_identity, staging_prefix
 
     if loaded:
         runs = list(loaded)
@@ -110,6 +129,10 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
         read_uq(d)  # a damaged uq.json is refused before any work, not after
         # so is a damaged run manifest (the results join it): before anything is written, not after
         read_manifest(d, fix="pass out=DIR to write the results into another folder")
+    if out_dir is not None:
+        check_out_dir(out_dir, first)
+    # what each folder holds now: the results are merged only into the same run (§8: overwrite=true meanwhile)
+    identity = {d: run_identity(d) for d in dict.fromkeys(dests.values())}
     lpips_model, lpips_reason = get_lpips(lpips_weights)
     train_times = [float((r.metrics or {}).get("train_time_s") or 0.0) for r in runs]
     writers: dict = {}
@@ -120,7 +143,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
             try:
                 from torch.utils.tensorboard import SummaryWriter
 
-                writers[d] = SummaryWriter(str(d / "tb_uq"))
+                writers[d] = SummaryWriter(str(staging[d] / "tb_uq"))  # published with the panels
             except Exception as e:  # tensorboard missing: PNGs only
                 log.warning("TensorBoard unavailable (%s); panels are written as PNG only", e)
                 writers[d] = None
@@ -195,7 +218,8 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
                 w.close()
         meta = to_jsonable(meta)
         for dest in dict.fromkeys(dests.values()):
-            merge_into(dest, {k: v for k, v in result.items() if dests[k] == dest}, meta, staging.get(dest))
+            merge_into(dest, {k: v for k, v in result.items() if dests[k] == dest}, meta, staging.get(dest),
+                       expect=identity[dest])
     finally:
         for d in staging.values():
             remove_staging(d)

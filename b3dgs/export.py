@@ -18,6 +18,7 @@ Every format is in the scene's own frame (COLMAP / transforms.json), as ``point_
 from __future__ import annotations
 
 import logging
+from contextlib import nullcontext
 from pathlib import Path
 
 import hydra
@@ -140,22 +141,25 @@ def export(cfg: DictConfig) -> dict:
         from b3dgs.rundir import read_manifest
 
         read_manifest(run_dir, fix="pass out=PATH outside the run dir")
-    if fmt == "3dgs":
-        if out.exists() and not out.is_dir():
-            raise B3dgsError(f"out={out} is a file; format=3dgs writes a folder", "pass out= a folder path")
-        export_3dgs(run, out, step)
-    else:
-        if out.is_dir():
-            raise B3dgsError(f"out={out} is a folder; format={fmt} writes one file", f"pass out=PATH/NAME.{fmt}")
-        (export_ply if fmt == "ply" else export_splat)(run, out)
-    if inside:
-        from b3dgs.rundir import record_written, run_dir_lock
-
+    if fmt == "3dgs" and out.exists() and not out.is_dir():
+        raise B3dgsError(f"out={out} is a file; format=3dgs writes a folder", "pass out= a folder path")
+    if fmt != "3dgs" and out.is_dir():
+        raise B3dgsError(f"out={out} is a folder; format={fmt} writes one file", f"pass out=PATH/NAME.{fmt}")
+    names = []
+    if inside:  # listed in the run's manifest, under its lock, before it is written
         rel = out.resolve().relative_to(run_dir.resolve()).as_posix()
-        names = [rel] if fmt != "3dgs" else [f"{rel}/cameras.json", f"{rel}/cfg_args",
-                                              f"{rel}/point_cloud/iteration_{step}/point_cloud.ply"]
-        with run_dir_lock(run_dir, prog="b3dgs-export"):
+        pre = "" if rel == "." else f"{rel}/"
+        names = [rel] if fmt != "3dgs" else [f"{pre}cameras.json", f"{pre}cfg_args",
+                                              f"{pre}point_cloud/iteration_{step}/point_cloud.ply"]
+    from b3dgs.rundir import manifest_lock, record_written
+
+    with manifest_lock(run_dir, "b3dgs-export") if inside else nullcontext():
+        if names:
             record_written(run_dir, names)
+        if fmt == "3dgs":
+            export_3dgs(run, out, step)
+        else:
+            (export_ply if fmt == "ply" else export_splat)(run, out)
     n = run.module.num_gaussians
     log.info("%s: %d Gaussians at step %d as %s -> %s", run_dir, n, step, fmt, out)
     return {"format": fmt, "out": str(out), "step": step, "num_gaussians": n}

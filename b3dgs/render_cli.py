@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -152,19 +153,31 @@ def write_video(path: Path, frames: Sequence[np.ndarray], fps: int) -> Path:
     return path
 
 
-def _record(run_dir: Path, files: Sequence[Path]) -> None:
-    """Files written inside the run dir join its manifest (``overwrite=true`` of that run then removes them too)."""
-    from b3dgs.rundir import record_written, run_dir_lock
+@contextmanager
+def _claim(run_dir: Path, out: Path, names: Sequence[str]):
+    """Make room for the frames and video ``names`` in ``out``: in the run dir, under its lock, the frames of an
+    earlier render that its manifest lists in ``out`` go (a shorter path must not leave those of a longer one) and
+    ``names`` join the manifest before they are written; elsewhere (or in a run dir written before manifests), the
+    files of ``out`` named as this command names frames (``frame_<5 digits>.png``). Nothing else in ``out`` is
+    touched: a user's ``frame_final_edit.png`` or ``my_cut.mp4`` stays."""
+    from b3dgs.rundir import (FRAME_NAME, manifest_lock, read_manifest, record_written, remove_listed,
+                              remove_recorded, run_files)
 
-    base, rel = run_dir.resolve(), set()
-    for f in files:
-        q = Path(f).resolve()
-        if q.is_relative_to(base):
-            folder = q.relative_to(base).parent.as_posix()
-            rel.add(f"{folder}/frame_[0-9]*.png" if q.suffix == ".png" else f"{folder}/*.mp4")
-    if rel:
-        with run_dir_lock(run_dir, prog="b3dgs-render"):
-            record_written(run_dir, sorted(rel))
+    base, q = run_dir.resolve(), out.resolve()
+    if q.is_relative_to(base) and read_manifest(run_dir) is not None:
+        folder = q.relative_to(base).as_posix()
+        folder = "" if folder == "." else folder
+        with manifest_lock(run_dir, "b3dgs-render"):
+            old = [f for f in run_files(run_dir)
+                   if f.rpartition("/")[0] == folder and FRAME_NAME.fullmatch(f.rpartition("/")[2])]
+            remove_recorded(run_dir, old)
+            record_written(run_dir, [f"{folder}/{n}".lstrip("/") for n in names])
+            out.mkdir(parents=True, exist_ok=True)
+            yield
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    remove_listed(out, [p.name for p in out.glob("frame_*.png") if FRAME_NAME.fullmatch(p.name)])
+    yield
 
 
 def render(cfg: DictConfig) -> dict:
@@ -198,12 +211,11 @@ def render(cfg: DictConfig) -> dict:
         read_manifest(run.path, fix="pass out=DIR to write the frames into another folder")
     cams = [c.fit(max_side, upscale=True, min_side=8) for c in camera_path(run.scene, path, cfg.get("frames"))]
     frames, top = render_path(run, cams, cfg.get("panel"), panel_max, int(cfg.samples), cfg.get("count_scale"))
-    out.mkdir(parents=True, exist_ok=True)
-    for old in out.glob("frame_*.png"):  # a shorter path must not leave the frames of a longer one
-        old.unlink()
-    pngs = [save_png(out / f"frame_{i:05d}.png", f) for i, f in enumerate(frames)]
-    video = write_video(out / f"{path}.mp4", frames, fps) if cfg.get("video", True) and len(frames) > 1 else None
-    _record(run.path, [*pngs, *([video] if video else [])])
+    with_video = bool(cfg.get("video", True)) and len(frames) > 1
+    names = [f"frame_{i:05d}.png" for i in range(len(frames))] + ([f"{path}.mp4"] if with_video else [])
+    with _claim(run.path, out, names):
+        pngs = [save_png(out / n, f) for n, f in zip(names[:len(frames)], frames)]
+        video = write_video(out / f"{path}.mp4", frames, fps) if with_video else None
     written = {"frames": [str(p) for p in pngs], "video": None if video is None else str(video), "panel_max": top}
     log.info("%s: %d frames of path=%s at %dx%d%s", run.path, len(frames), path, frames[0].shape[1], frames[0].shape[0],
              f", panel {cfg.get('panel')} 0 to {top:.3g}" if top is not None else "")

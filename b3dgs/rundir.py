@@ -12,9 +12,11 @@
 * :class:`Interrupted` / :func:`interrupt_handlers`: SIGINT and SIGTERM become a checkpoint at the next step
   boundary (:class:`b3dgs.callbacks.RunCheckpoint`) and an exit with 128 + the signal number.
 * The run manifest ``<run dir>/.b3dgs-run.json`` (:func:`write_manifest`), written when a run is accepted: what
-  marks a folder as a b3dgs run dir, and the patterns of every file b3dgs writes there (``b3dgs-eval`` adds its
-  own, :func:`record_written`). ``overwrite=true`` removes exactly the files it lists (:func:`run_files`);
-  a non-empty folder without it is someone else's (:func:`run_dir_kind`).
+  marks a folder as a b3dgs run dir, its run's identity (``run_id``, :func:`run_identity`) and every file b3dgs
+  wrote there, by name (each writer lists its files before writing them, :func:`record_written`).
+  ``overwrite=true`` removes exactly the files it lists (:func:`remove_run_files`), a second b3dgs-render the frames
+  it lists (:func:`remove_recorded`); a non-empty folder without it is someone else's (:func:`run_dir_kind`).
+  Manifests of format 1 (patterns) are read by the names our writers give files (:func:`_v1_matches`).
 """
 from __future__ import annotations
 
@@ -22,9 +24,11 @@ import fnmatch
 import json
 import logging
 import os
+import re
 import signal
 import threading
 import time
+import uuid
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Iterable, Iterator, Optional
@@ -129,14 +133,27 @@ def run_dir_busy(run_dir: Path) -> Optional[str]:
 
 # ------------------------------------------------------------------------------------------ run manifest
 MANIFEST_NAME = ".b3dgs-run.json"
-#: what b3dgs-train writes into its run dir (patterns relative to it, one per path component), besides its job log
-#: and ``renders/<view>.png`` for each view in metrics.json's ``per_view``
-TRAIN_WRITES = ("config.yaml", ".hydra/config.yaml", ".hydra/hydra.yaml", ".hydra/overrides.yaml", "metrics.json",
-                "curve.json", "curve.png", "point_cloud.ply", "checkpoints/last.ckpt", "checkpoints/step[0-9]*.ckpt",
-                "tb/events.out.tfevents.*", "tb/hparams.yaml")
-#: what b3dgs-eval writes into a folder besides its panels (``uq/<regime>_<view>.png``, listed one by one)
-EVAL_WRITES = ("uq.json", ".uq.json.lock", "uq/sparsification.png", "uq/reliability.png", "tb_uq/events.out.tfevents.*")
-RENDERS_NOTE = "renders/<view>.png for each view named in metrics.json per_view"
+#: the manifest's format: 2 lists the files by name (``files``); 1 (before issue 46) listed patterns (``writes``)
+MANIFEST_FORMAT = 2
+#: what b3dgs-train writes into its run dir by a fixed name, listed when the run starts (before any is written); the
+#: others join as they are written: its job log, ``renders/<test view>.png``, ``checkpoints/step<N>.ckpt`` and its
+#: logger's files (:class:`b3dgs.callbacks.RunFiles`)
+TRAIN_FILES = ("config.yaml", ".hydra/config.yaml", ".hydra/hydra.yaml", ".hydra/overrides.yaml", "metrics.json",
+               "curve.json", "curve.png", "point_cloud.ply", "checkpoints/last.ckpt")
+#: the patterns a format-1 manifest listed for b3dgs-train and b3dgs-eval (and what a run dir written before
+#: manifests is read with), besides its job log, the renders of metrics.json's views and the panels of uq.json
+V1_PATTERNS = (*TRAIN_FILES, "checkpoints/step[0-9]*.ckpt", "tb/events.out.tfevents.*", "tb/hparams.yaml", "train.log",
+               "uq.json", ".uq.json.lock", "uq/sparsification.png", "uq/reliability.png", "tb_uq/events.out.tfevents.*")
+#: b3dgs-render's camera paths (``b3dgs.render_cli.PATHS``): its video is ``<path>.mp4``
+RENDER_PATHS = ("test", "train", "interpolate")
+#: a format-1 pattern's wildcard component -> the names its writer gives files (a pattern matches nothing else: a
+#: user's ``render/test/my_cut.mp4`` or ``frame_final_edit.png`` is never one of ours); other wildcards match nothing
+_V1_NAMES = {"step[0-9]*.ckpt": r"step\d+\.ckpt", "frame_[0-9]*.png": r"frame_\d{5,}\.png",
+             "events.out.tfevents.*": r"events\.out\.tfevents\.\d{10,}\..+\.\d+\.\d+",
+             "*.mp4": rf"(?:{'|'.join(RENDER_PATHS)})\.mp4"}
+#: the frames b3dgs-render writes: ``frame_<5 digits>.png``
+FRAME_NAME = re.compile(_V1_NAMES["frame_[0-9]*.png"])
+_GLOB = re.compile(r"[*?\[]")
 
 
 def _iter_files(root: Path) -> Iterator[str]:
@@ -148,13 +165,24 @@ def _iter_files(root: Path) -> Iterator[str]:
         yield from ((base / x).as_posix() for x in dirs if (Path(d) / x).is_symlink())
 
 
-def _rel_files(root: Path) -> list[str]:
-    return sorted(_iter_files(root))
-
-
 def _matches(rel: str, pattern: str) -> bool:
     a, b = rel.split("/"), pattern.split("/")
     return len(a) == len(b) and all(fnmatch.fnmatchcase(x, y) for x, y in zip(a, b))
+
+
+def _v1_matches(rel: str, pattern: str) -> bool:
+    """Whether a format-1 ``pattern`` names the file ``rel``: component by component, a literal one equal, a
+    wildcard one only as :data:`_V1_NAMES` says its writer names files."""
+    a, b = rel.split("/"), pattern.split("/")
+    if len(a) != len(b):
+        return False
+    for x, y in zip(a, b):
+        if not _GLOB.search(y):
+            if x != y:
+                return False
+        elif y not in _V1_NAMES or not re.fullmatch(_V1_NAMES[y], x):
+            return False
+    return True
 
 
 def _read_json(path: Path) -> Optional[dict]:
@@ -166,13 +194,14 @@ def _read_json(path: Path) -> Optional[dict]:
 
 
 def read_manifest(run_dir: Path, fix: Optional[str] = None) -> Optional[dict]:
-    """The run manifest of ``run_dir``, ``None`` without one; a damaged one is refused in one line (``fix``: what the
-    calling command's user can do instead; default: a training's)."""
+    """The run manifest of ``run_dir`` (format 2: ``files``; format 1: ``writes``), ``None`` without one; a damaged
+    one is refused in one line (``fix``: what the calling command's user can do instead; default: a training's)."""
     path = Path(run_dir) / MANIFEST_NAME
     if not path.exists() and not path.is_symlink():
         return None
     m = _read_json(path)
-    if m is None or not isinstance(m.get("writes"), list):
+    key = "files" if m is not None and m.get("b3dgs_run") == MANIFEST_FORMAT else "writes"
+    if m is None or not isinstance(m.get(key), list) or not all(isinstance(f, str) for f in m[key]):
         raise B3dgsError(f"the run manifest {path} is damaged",
                          fix or "pass another hydra.run.dir, or remove the run dir yourself (b3dgs removes only the "
                                 "files its manifest lists)")
@@ -234,6 +263,34 @@ def _uq_outputs(folder: Path) -> list[str]:
     return out
 
 
+def _v1_files(run_dir: Path, patterns: Iterable[str]) -> list[str]:
+    """The files of ``run_dir`` that format-1 ``patterns`` name (:func:`_v1_matches`), with the renders of the views
+    in metrics.json and the panels of uq.json (which such a manifest did not list)."""
+    patterns = [str(p) for p in patterns]
+    per_view = (_read_json(run_dir / "metrics.json") or {}).get("per_view") or []
+    exact = {f"renders/{Path(str(v.get('name'))).stem}.png" for v in per_view if isinstance(v, dict) and v.get("name")}
+    exact |= set(_uq_outputs(run_dir))
+    return [f for f in _iter_files(run_dir) if f in exact or any(_v1_matches(f, p) for p in patterns)]
+
+
+def _listed(run_dir: Path, m: Optional[dict]) -> list[str]:
+    """The files a manifest ``m`` lists (a format-1 one: the files its patterns name, :func:`_v1_files`); for a run
+    dir written before manifests (``m`` None), what :data:`V1_PATTERNS` names."""
+    if m is None:
+        return _v1_files(run_dir, V1_PATTERNS) if is_legacy_run(run_dir) else []
+    if m.get("b3dgs_run") == MANIFEST_FORMAT:
+        return list(dict.fromkeys(m["files"]))
+    return _v1_files(run_dir, m["writes"])
+
+
+def manifest_token(m: Optional[dict]) -> Optional[str]:
+    """The identity of the run a manifest belongs to: its ``run_id``, new for every run that starts afresh (a new
+    run dir, ``overwrite=true``) and kept by a resume; for a format-1 manifest, its creation time."""
+    if m is None:
+        return None
+    return m.get("run_id") or f"created {m.get('created')}"
+
+
 def _job_logs(run_dir: Path) -> list[str]:
     """The job log of this process if it lies in ``run_dir`` (Hydra's ``<job name>.log``)."""
     out = []
@@ -246,60 +303,146 @@ def _job_logs(run_dir: Path) -> list[str]:
     return out
 
 
-def write_manifest(run_dir: Path) -> None:
-    """Mark ``run_dir`` as a b3dgs run and list what it writes (kept: the entries of an earlier manifest, or, for a
-    run written before manifests, the outputs :func:`run_files` recognises as its own)."""
+def _write_manifest(run_dir: Path, files: Iterable[str], token: Optional[str], created: Optional[str]) -> None:
     from b3dgs.io import write_json
 
+    write_json(Path(run_dir) / MANIFEST_NAME, {
+        "b3dgs_run": MANIFEST_FORMAT, "run_id": token or uuid.uuid4().hex,
+        "created": created or time.strftime("%Y-%m-%dT%H:%M:%S%z"), "files": list(dict.fromkeys(map(str, files)))})
+
+
+def write_manifest(run_dir: Path) -> None:
+    """Mark ``run_dir`` as a b3dgs run and list what its training writes by a fixed name (:data:`TRAIN_FILES`, its
+    job log). Kept: the files of an earlier manifest (a format-1 one is rewritten with the files its patterns name)
+    and its run's identity (:func:`manifest_token`); for a run written before manifests, the outputs
+    :func:`run_files` recognises as its own."""
     run_dir = Path(run_dir)
     old = read_manifest(run_dir)
-    before = old["writes"] if old else (["train.log", *EVAL_WRITES, *_uq_outputs(run_dir)]
-                                        if is_legacy_run(run_dir) else [])
-    writes = list(dict.fromkeys([*TRAIN_WRITES, *_job_logs(run_dir), *map(str, before)]))
-    write_json(run_dir / MANIFEST_NAME, {
-        "b3dgs_run": 1, "created": (old or {}).get("created") or time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-        "writes": writes, "also": RENDERS_NOTE})
+    _write_manifest(run_dir, [*_listed(run_dir, old), *TRAIN_FILES, *_job_logs(run_dir)], manifest_token(old),
+                    (old or {}).get("created"))
 
 
-def record_written(folder: Path, names: Iterable[str]) -> None:
-    """Add ``names`` (paths relative to ``folder``) to its manifest, if it has one (callers hold a lock)."""
-    from b3dgs.io import write_json
+def _check_names(names: Iterable[str]) -> list[str]:
+    out = []
+    for n in map(str, names):
+        parts = n.split("/")
+        if n.startswith("/") or any(p in ("", ".", "..") for p in parts) or n in (MANIFEST_NAME, LOCK_NAME):
+            raise ValueError(f"not a file name relative to a run dir: {n!r}")
+        out.append(n)
+    return out
 
+
+def record_written(folder: Path, names: Iterable[str], forget: Iterable[str] = ()) -> None:
+    """List the files ``names`` (exact paths relative to ``folder``, recorded before they are written) in its
+    manifest, if it has one, and drop ``forget`` from it (callers hold :func:`manifest_lock`, or the run dir's)."""
+    folder = Path(folder)
     m = read_manifest(folder)
     if m is None:
         return
-    writes = list(dict.fromkeys([*map(str, m["writes"]), *map(str, names)]))
-    if writes != m["writes"]:
-        write_json(Path(folder) / MANIFEST_NAME, {**m, "writes": writes})
+    have, gone = _listed(folder, m), set(map(str, forget))
+    files = [f for f in dict.fromkeys([*have, *_check_names(names)]) if f not in gone]
+    if files != have or m.get("b3dgs_run") != MANIFEST_FORMAT:
+        _write_manifest(folder, files, manifest_token(m), m.get("created"))
+
+
+@contextmanager
+def manifest_lock(folder: Path, prog: str, wait_s: float = 120.0) -> Iterator[None]:
+    """Hold ``folder``'s run dir lock (:func:`run_dir_lock`) for a short change of its manifest and files; another
+    command holding it briefly is waited for (up to ``wait_s``), a training that holds it is refused in one line."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            with process_lock(Path(folder) / LOCK_NAME, wait=False, remove=True):
+                yield
+            return
+        except LockHeld as e:
+            if time.monotonic() >= deadline:
+                raise B3dgsError(f"the run dir {folder} is in use by another process (pid {e.pid}), so {prog} cannot "
+                                 "record its files in the run's manifest",
+                                 "wait for it to finish (a training holds its run dir until it ends), or pass out=DIR "
+                                 "outside the run dir") from None
+            time.sleep(0.05)
 
 
 def run_files(run_dir: Path) -> list[str]:
-    """The files of ``run_dir`` that b3dgs wrote: those matching its manifest (for a run written before manifests,
-    the patterns a manifest lists), the renders of the views in metrics.json and the panels of uq.json."""
+    """The files of ``run_dir`` that b3dgs wrote and that are there: those its manifest lists (a format-1 manifest,
+    or a run written before manifests: the files its patterns name, :func:`_v1_files`), sorted."""
+    run_dir = Path(run_dir)
+    return sorted(f for f in _listed(run_dir, read_manifest(run_dir)) if _safe_target(run_dir, f) is not None)
+
+
+def _safe_target(root: Path, rel: str) -> Optional[Path]:
+    """``root/rel`` if it is a file (or a link) reached through real folders of ``root``: never a path with ``..``,
+    an absolute one, one through a symlinked folder, the manifest or the lock."""
+    parts = str(rel).split("/")
+    if str(rel).startswith("/") or any(p in ("", ".", "..") for p in parts) or rel in (MANIFEST_NAME, LOCK_NAME):
+        return None
+    cur = Path(root)
+    for p in parts[:-1]:
+        cur = cur / p
+        if cur.is_symlink() or not cur.is_dir():
+            return None
+    target = cur / parts[-1]
+    return target if target.is_symlink() or target.is_file() else None
+
+
+def remove_listed(folder: Path, names: Iterable[str]) -> list[str]:
+    """Remove the files ``names`` (paths relative to ``folder``, through its own folders only, :func:`_safe_target`)
+    and the folders below ``folder`` that this leaves empty; returns what went."""
+    folder = Path(folder)
+    gone = []
+    for f in dict.fromkeys(map(str, names)):
+        p = _safe_target(folder, f)
+        if p is not None:
+            p.unlink(missing_ok=True)
+            gone.append(f)
+    for d in sorted({p for f in gone for p in Path(f).parents if p != Path(".")}, key=lambda p: -len(p.parts)):
+        q = folder / d
+        if not q.is_symlink():
+            try:
+                q.rmdir()
+            except OSError:
+                pass  # not empty: someone else's files are in it
+    return gone
+
+
+def remove_recorded(folder: Path, names: Iterable[str]) -> list[str]:
+    """Remove those of ``names`` that ``folder``'s manifest lists (:func:`remove_listed`) and drop them from it;
+    returns what went (callers hold :func:`manifest_lock`)."""
+    listed = set(_listed(Path(folder), read_manifest(Path(folder))))
+    names = [n for n in map(str, names) if n in listed]
+    gone = remove_listed(folder, names)
+    record_written(folder, [], forget=names)
+    return gone
+
+
+def remove_run_files(run_dir: Path, keep: Iterable[str] = ()) -> list[str]:
+    """Replace the run of ``run_dir`` (``overwrite=true``): remove the files its manifest lists (for a format-1
+    manifest or a run written before manifests, :func:`run_files`), but ``keep`` (patterns), and the folders they
+    leave empty; then start the new run's manifest (a new :func:`manifest_token`, the kept files and
+    :data:`TRAIN_FILES`). Nothing else is touched. Returns what went."""
     run_dir = Path(run_dir)
     m = read_manifest(run_dir)
     if m is None and not is_legacy_run(run_dir):
         return []
-    patterns = [str(p) for p in m["writes"]] if m else [*TRAIN_WRITES, "train.log", *EVAL_WRITES]
-    per_view = (_read_json(run_dir / "metrics.json") or {}).get("per_view") or []
-    patterns += [f"renders/{Path(str(v.get('name'))).stem}.png" for v in per_view if isinstance(v, dict) and v.get("name")]
-    patterns += _uq_outputs(run_dir)
-    return [f for f in _rel_files(run_dir) if any(_matches(f, p) for p in patterns)]
-
-
-def remove_run_files(run_dir: Path, keep: Iterable[str] = ()) -> list[str]:
-    """Remove :func:`run_files` (but ``keep`` patterns) and the folders they leave empty; returns what went."""
-    run_dir = Path(run_dir)
     keep = list(keep)
-    gone = [f for f in run_files(run_dir) if not any(_matches(f, k) for k in keep)]
-    for f in gone:
-        (run_dir / f).unlink(missing_ok=True)
-    for d in sorted({p for f in gone for p in Path(f).parents if p != Path(".")}, key=lambda p: -len(p.parts)):
-        try:
-            (run_dir / d).rmdir()
-        except OSError:
-            pass  # not empty: someone else's files are in it
+    listed = _listed(run_dir, m)
+    kept = [f for f in listed if any(_matches(f, k) for k in keep)]
+    gone = remove_listed(run_dir, [f for f in listed if f not in kept])
+    _write_manifest(run_dir, [*kept, *TRAIN_FILES, *_job_logs(run_dir)], None, None)
     return gone
+
+
+def run_identity(folder: Path) -> dict:
+    """What identifies the run in ``folder`` (for b3dgs-eval to tell whether it changed while it ran): its manifest's
+    :func:`manifest_token` and the parameter digest of metrics.json's final checkpoint (``None`` where absent)."""
+    folder = Path(folder)
+    try:
+        token = manifest_token(read_manifest(folder))
+    except B3dgsError:
+        token = "damaged"
+    metrics = _read_json(folder / "metrics.json") or {}
+    return {"run_id": token, "params_sha256": (metrics.get("checkpoint") or {}).get("params_sha256")}
 
 
 # ------------------------------------------------------------------------------ job log and .hydra/

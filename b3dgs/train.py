@@ -443,7 +443,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
     import lightning as L
     from lightning.pytorch.loggers import TensorBoardLogger  # noqa: F401 - logger=tensorboard targets it
 
-    from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint
+    from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint, RunFiles
     from b3dgs.numerics import reset_guards
     from b3dgs.rundir import Interrupted, arm_run_log, remove_stale_staging, remove_stale_tmp, write_hydra_files
 
@@ -479,7 +479,8 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
     ckpt = RunCheckpoint(run_dir / "checkpoints", every_n_steps=int(tcfg.checkpoint_every), every_s=every_s,
                          keep=bool(tcfg.get("keep_checkpoints")))
     logger = instantiate(cfg.logger, save_dir=str(run_dir)) if cfg.get("logger") else False
-    trainer = build_trainer(tcfg, renderer, [curve, ResumeState(), ckpt, *build_callbacks(cfg.get("callbacks"))],
+    trainer = build_trainer(tcfg, renderer, [curve, ResumeState(), ckpt, RunFiles(run_dir),
+                                             *build_callbacks(cfg.get("callbacks"))],
                             logger=logger, default_root_dir=str(run_dir))
     # every check has passed: only now is the run dir changed
     arm_run_log(fresh=clear)
@@ -521,6 +522,7 @@ def _finish(cfg: DictConfig, run_dir: Path, module, scene, renderer, trainer, cu
     from b3dgs.metrics.lpips import get_lpips
     from b3dgs.metrics.views import evaluate_views
     from b3dgs.numerics import guard_counts
+    from b3dgs.rundir import record_written
     tcfg, seed = cfg.trainer, int(cfg.seed)
     # ------------------------------------------------------------ final evaluation and outputs
     # written in this order, each atomically: renders, PLY, curve, then metrics.json (the done marker)
@@ -529,6 +531,8 @@ def _finish(cfg: DictConfig, run_dir: Path, module, scene, renderer, trainer, cu
     passed = module.prepare_posterior(scene.train)  # counts from a view pass (posterior.niw.count other than paper)
     posterior_pass_s = time.perf_counter() - t_pass if passed else 0.0
     lpips_model, lpips_reason = get_lpips(cfg.get("lpips_weights"))
+    if tcfg.get("save_renders", True):  # listed in the run manifest before they are written
+        record_written(run_dir, [f"renders/{Path(c.name).stem}.png" for c in scene.test])
     ev = evaluate_views(module, scene.test, lpips_model=lpips_model,
                         render_dir=run_dir / "renders" if tcfg.get("save_renders", True) else None)
     from b3dgs.data.scene import scene_transform

@@ -54,7 +54,7 @@ def test_ply_of_the_last_checkpoint_is_the_runs_point_cloud(run):
     assert set(a["extra"]) == set(b["extra"]) and any(k.startswith("niw_") for k in a["extra"])
     for k in a["extra"]:
         assert torch.equal(torch.as_tensor(a["extra"][k]), torch.as_tensor(b["extra"][k])), k
-    manifest = json.loads((run / ".b3dgs-run.json").read_text())["writes"]
+    manifest = json.loads((run / ".b3dgs-run.json").read_text())["files"]
     assert "export/point_cloud.ply" in manifest  # overwrite=true removes it with the run
 
 

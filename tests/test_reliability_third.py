@@ -67,7 +67,7 @@ def test_overwrite_removes_only_what_b3dgs_wrote(tmp_path):
 
     run = tmp_path / "run"
     run_train(run, ["trainer.keep_checkpoints=true"])
-    assert json.loads((run / ".b3dgs-run.json").read_text())["b3dgs_run"] == 1
+    assert json.loads((run / ".b3dgs-run.json").read_text())["b3dgs_run"] == 2
     assert sorted(p.name for p in (run / "checkpoints").iterdir()) == ["last.ckpt", "step2.ckpt", "step4.ckpt"]
     mine = {"renders/figure1.png": b"\x89PNG figure", "checkpoints/resnet_epoch90.ckpt": b"\x00weights",
             "notes.txt": b"mine"}
@@ -202,7 +202,7 @@ def test_eval_adds_regime_by_regime_and_ensembles_go_to_their_own_folder(two_run
     # asked with out=: the ensemble goes into A's uq.json too
     evaluate_uq([str(a), str(b)], _regimes("ensemble"), max_views=2, panels=0, out_dir=a)
     assert sorted(json.loads((a / "uq.json").read_text())) == ["_meta", "constant", "ensemble", "proxy"]
-    manifest = json.loads((a / ".b3dgs-run.json").read_text())["writes"]
+    manifest = json.loads((a / ".b3dgs-run.json").read_text())["files"]
     assert "uq/proxy_view_000.png" in manifest and "uq.json" in manifest
 
 

@@ -4,7 +4,7 @@
   (``.uq.json.lock``, :mod:`filelock`), atomically; a regime's panels (``uq/<regime>_<view>.png``, staged while
   it was scored) replace its old ones in the same step, and the sparsification / reliability plots are redrawn
   from every regime the file holds. Regimes of other evaluations stay, so concurrent evaluations of one run
-  keep all their results.
+  keep all their results. A run that changed while the evaluation ran is refused (:func:`check_unchanged`).
 * :func:`ensemble_dir`: an ensemble's own folder, beside its first member and named for the members, so that
   it never lands in a member's ``uq.json`` unless ``out=`` asks for it.
 * :func:`check_members`: the members of an ensemble must differ only in seed (scene, model, protocol and
@@ -16,6 +16,7 @@ import hashlib
 import json
 import os
 import shutil
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Mapping, Optional, Sequence
 
@@ -113,13 +114,35 @@ def _old_panels(name: str, entry: Mapping, meta: Mapping) -> list[str]:
     return [f"uq/{name}_{Path(str(v)).stem}.png" for v in meta.get("views") or []]
 
 
-def merge_into(folder: Path, new: Mapping[str, dict], meta: Mapping, staging: Optional[Path]) -> dict:
-    """Merge the regimes ``new`` (each with its ``panels``, staged in ``staging``) into ``folder/uq.json`` under
-    the folder's uq lock; returns the merged file."""
+def check_unchanged(folder: Path, new: Mapping[str, dict], expect: Optional[Mapping] = None) -> None:
+    """Refuse to merge results into ``folder`` once a run changed under the evaluation: ``folder`` holds another run
+    than ``expect`` (:func:`b3dgs.rundir.run_identity` when the evaluation started: ``overwrite=true`` replaced it, or
+    a training started there), or a run an entry scored has another final checkpoint than the one evaluated."""
+    from b3dgs.rundir import run_identity
+
+    folder = Path(folder)
+    if expect is not None and run_identity(folder) != dict(expect):
+        raise B3dgsError(f"{folder} holds another run than when this b3dgs-eval started (overwrite=true or a training "
+                         f"replaced it meanwhile): its results were not merged into {folder / UQ_NAME}",
+                         f"run b3dgs-eval again on the run {folder} holds now")
+    for entry in new.values():
+        for run, digest in zip(entry.get("runs") or [], entry.get("run_checkpoints") or []):
+            if digest is not None and run_digest(_read_metrics(run)) != digest:
+                raise B3dgsError(f"the run {run} changed while this b3dgs-eval ran (its final checkpoint is not the "
+                                 f"one evaluated): the results were not merged into {folder / UQ_NAME}",
+                                 f"run b3dgs-eval run={run} again")
+
+
+def merge_into(folder: Path, new: Mapping[str, dict], meta: Mapping, staging: Optional[Path],
+               expect: Optional[Mapping] = None) -> dict:
+    """Merge the regimes ``new`` (each with its ``panels``, staged in ``staging`` with its TensorBoard events in
+    ``staging/tb_uq``) into ``folder/uq.json`` under the folder's uq lock and (a run dir) its run dir lock, after
+    :func:`check_unchanged` (``expect``: the folder's run identity when the evaluation started); the files are listed
+    in a run dir's manifest by name before they are written. Returns the merged file."""
     from filelock import FileLock, Timeout
 
     from b3dgs.io import write_json
-    from b3dgs.rundir import EVAL_WRITES, record_written
+    from b3dgs.rundir import manifest_lock, read_manifest, record_written, remove_listed
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -130,32 +153,51 @@ def merge_into(folder: Path, new: Mapping[str, dict], meta: Mapping, staging: Op
         raise B3dgsError(f"another b3dgs-eval has been writing {folder / UQ_NAME} for {LOCK_TIMEOUT_S:.0f} s",
                          f"wait for it, or remove {folder / LOCK_NAME} if no b3dgs-eval runs") from None
     try:
-        have = read_uq(folder)
-        old_meta = have.get("_meta") if isinstance(have.get("_meta"), dict) else {}
-        for name, entry in new.items():
-            old = have.get(name)
-            if isinstance(old, dict):
-                for p in set(_old_panels(name, old, old_meta)) - set(entry.get("panels") or []):
-                    (folder / p).unlink(missing_ok=True)
-            for p in entry.get("panels") or []:
-                dst = folder / p
-                dst.parent.mkdir(parents=True, exist_ok=True)
-                os.replace(Path(staging) / Path(p).name, dst)
-        merged = {**{k: v for k, v in have.items() if k != "_meta"}, **new, "_meta": {**old_meta, **meta}}
-        write_json(folder / UQ_NAME, merged)
-        _plot_all(folder, merged)
-        record_written(folder, [*EVAL_WRITES, *(p for e in new.values() for p in e.get("panels") or [])])
+        with manifest_lock(folder, "b3dgs-eval") if read_manifest(folder) is not None else nullcontext():
+            check_unchanged(folder, new, expect)
+            have = read_uq(folder)
+            old_meta = have.get("_meta") if isinstance(have.get("_meta"), dict) else {}
+            stale = []
+            for name, entry in new.items():
+                old = have.get(name)
+                if isinstance(old, dict):
+                    stale += sorted(set(_old_panels(name, old, old_meta)) - set(entry.get("panels") or []))
+            events = sorted((Path(staging) / "tb_uq").glob("*")) if staging is not None else []
+            merged = {**{k: v for k, v in have.items() if k != "_meta"}, **new, "_meta": {**old_meta, **meta}}
+            record_written(folder, [UQ_NAME, LOCK_NAME, *_plot_names(merged), *(f"tb_uq/{e.name}" for e in events),
+                                    *(p for e in new.values() for p in e.get("panels") or [])], forget=stale)
+            remove_listed(folder, stale)
+            for name, entry in new.items():
+                for p in entry.get("panels") or []:
+                    dst = folder / p
+                    dst.parent.mkdir(parents=True, exist_ok=True)
+                    os.replace(Path(staging) / Path(p).name, dst)
+            if events:
+                (folder / "tb_uq").mkdir(exist_ok=True)
+                for e in events:
+                    os.replace(e, folder / "tb_uq" / e.name)
+            write_json(folder / UQ_NAME, merged)
+            _plot_all(folder, merged)
     finally:
         lock.release()
     return merged
+
+
+def _curves(merged: Mapping) -> dict:
+    return {k: v["curves"] for k, v in merged.items()
+            if not k.startswith("_") and isinstance(v, dict) and isinstance(v.get("curves"), dict)}
+
+
+def _plot_names(merged: Mapping) -> list[str]:
+    """The plots :func:`_plot_all` writes for ``merged``."""
+    return ["uq/sparsification.png", "uq/reliability.png"] if _curves(merged) else []
 
 
 def _plot_all(folder: Path, merged: Mapping) -> None:
     """The sparsification and reliability plots of every regime in ``merged`` that kept its mean curves."""
     from b3dgs.uq.plots import plot_reliability, plot_sparsification
 
-    curves = {k: v["curves"] for k, v in merged.items()
-              if not k.startswith("_") and isinstance(v, dict) and isinstance(v.get("curves"), dict)}
+    curves = _curves(merged)
     if curves:
         plot_sparsification(curves, folder / "uq" / "sparsification.png")
         plot_reliability(curves, folder / "uq" / "reliability.png")
