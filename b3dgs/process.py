@@ -8,11 +8,11 @@ Four stages, all with pycolmap on the CPU, each shown with its count and time:
 1. ``extract``: SIFT features of every photo (``camera_model``, COLMAP's SIMPLE_RADIAL by default; one camera shared
    by all photos when they all have the same size, ``single_camera=``; photos larger than ``sift_max_side`` are seen
    downscaled, as COLMAP does by default);
-2. ``match``: ``matcher=auto`` matches every pair (exhaustive) up to 200 photos, where that is at most 19,900 pairs
-   (about a minute of CPU per thousand pairs at full size), and beyond that each photo with its 10 successors in name
-   order plus those 16, 32, ... apart (COLMAP's sequential matcher with quadratic overlap): a video's frames or a walk
-   around the object photographed in order. A vocabulary tree would need a tree file fetched from the web, which
-   b3dgs does not do; a large unordered collection takes ``matcher=exhaustive`` and the time it needs;
+2. ``match``: ``matcher=auto`` matches every pair (exhaustive) up to 200 photos (at most 19,900 pairs), and beyond
+   that each photo with those 1, 2, 4, ..., 512 places after it in name order (COLMAP's sequential matcher, its
+   default quadratic overlap of 10): about 10 pairs per photo instead of n/2, for a video's frames or a walk around
+   the scene photographed in order. A vocabulary tree would need a tree file fetched from the web, which b3dgs does
+   not do; a large unordered collection takes ``matcher=exhaustive`` and the time it needs;
 3. ``map``: incremental mapping; the model that registers the most photos is kept. When it has fewer than
    ``min_registered`` of the photos (or fewer than 3), mapping is tried again with a smaller initial triangulation
    angle (8°, then 4°, instead of COLMAP's 16°, which a small baseline such as a forward-facing capture cannot meet:
@@ -30,8 +30,8 @@ records itself in ``out/.b3dgs-process.json`` with the options it ran with and t
 size, modification time of every photo). A rerun skips the stages recorded with the same options whose outputs are
 there, and reruns a stage whose options changed and the stages after it (``max_side`` alone reruns only
 ``undistort``). A changed photo folder is refused (``overwrite=true`` starts afresh), and so is an ``out=`` that holds
-anything else. Ctrl-C stops when the running pycolmap call returns; a kill stops at once, and the rerun resumes from
-the last finished stage. Known problems print one line ``b3dgs-process: error: ... (fix: ...)`` and exit with code 2.
+anything else. Ctrl-C, SIGTERM or a kill stop at once (exit codes 130 / 143 with a line saying so), and the rerun
+resumes from the last finished stage. Known problems print one line ``b3dgs-process: error: ... (fix: ...)`` and exit with code 2.
 """
 from __future__ import annotations
 
@@ -56,7 +56,7 @@ from omegaconf import DictConfig
 from b3dgs import conf_dir, data_root
 from b3dgs.errors import B3dgsError
 
-__all__ = ["EXHAUSTIVE_UP_TO", "STAGES", "list_photos", "main", "process", "sequential_pairs"]
+__all__ = ["EXHAUSTIVE_UP_TO", "STAGES", "list_photos", "main", "process"]
 
 STATE = ".b3dgs-process.json"   # the record of finished stages, in out/
 WORK = ".b3dgs-process"         # the stages' own files (databases, the raw model), in out/
@@ -65,7 +65,7 @@ STAGES = ("extract", "match", "map", "undistort")
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 MATCHERS = ("auto", "exhaustive", "sequential")
 EXHAUSTIVE_UP_TO = 200          # matcher=auto: exhaustive up to this many photos, sequential beyond
-SEQUENTIAL_OVERLAP = 10         # COLMAP's default: each photo with its 10 successors (+ quadratic overlap)
+SEQUENTIAL_OVERLAP = 10         # COLMAP's default, quadratic: each photo with those 1, 2, 4, ..., 512 after it
 MIN_PHOTOS = 3
 MAP_RETRIES = (8.0, 4.0)        # init_min_tri_angle (degrees) of the mapping tries after COLMAP's 16°
 FORMAT = 1                      # of the state file
@@ -133,18 +133,6 @@ def _sizes(photos: list[Path]) -> list[tuple[int, int]]:
     return out
 
 
-def sequential_pairs(n: int, overlap: int = SEQUENTIAL_OVERLAP) -> int:
-    """How many pairs COLMAP's sequential matcher (quadratic overlap, no loop detection) matches among ``n`` photos:
-    each photo with the ``overlap`` next ones and those 2^k ahead (k < ``overlap``)."""
-    pairs = set()
-    for i in range(n):
-        for k in range(overlap):
-            for j in (i + k + 1, i + (1 << k)):
-                if j < n:
-                    pairs.add((i, j))
-    return len(pairs)
-
-
 # ----------------------------------------------------------------------------------------------- progress
 
 
@@ -164,24 +152,27 @@ def _advance(bar, n: int) -> None:
         bar.update(n - bar.n)
 
 
-@contextmanager
-def _watch(bar, count: Callable[[], int], period: float = 0.5) -> Iterator[None]:
-    """Advance ``bar`` to ``count()`` every ``period`` seconds from a thread while the block runs (pycolmap releases
-    the GIL while it works), and once more at its end."""
-    stop = threading.Event()
+def _call(fn: Callable[[], Any], poll: Optional[Callable[[], None]] = None, period: float = 0.5) -> Any:
+    """``fn()`` (one pycolmap call) in a worker thread, while this thread calls ``poll()`` every ``period`` seconds and
+    stays responsive to SIGINT / SIGTERM: a signal handler runs only in the main thread and only between Python
+    calls, so a stage run in the main thread would ignore Ctrl-C until it returned."""
+    box: dict[str, Any] = {}
 
-    def loop() -> None:
-        while not stop.wait(period):
-            _advance(bar, count())
+    def target() -> None:
+        try:
+            box["value"] = fn()
+        except BaseException as e:  # noqa: BLE001 - re-raised in the calling thread
+            box["error"] = e
 
-    t = threading.Thread(target=loop, name="b3dgs-process-progress", daemon=True)
+    t = threading.Thread(target=target, name="b3dgs-process-colmap", daemon=True)
     t.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        t.join()
-    _advance(bar, count())
+    while t.is_alive():
+        t.join(period)
+        if poll is not None:
+            poll()
+    if "error" in box:
+        raise box["error"]
+    return box.get("value")
 
 
 def _db_count(db: Path, sql: str) -> int:
@@ -272,9 +263,11 @@ class _Run:
         opts.num_threads = self.threads
         mode = pycolmap.CameraMode.SINGLE if self.single else pycolmap.CameraMode.PER_IMAGE
         bar = _bar("extract", len(self.names), " photos")
-        with _watch(bar, lambda: _db_count(part, "SELECT count(*) FROM keypoints")):
-            pycolmap.extract_features(part, self.images, image_names=self.names, camera_mode=mode,
-                                      reader_options=reader, extraction_options=opts, device=pycolmap.Device.cpu)
+        _call(lambda: pycolmap.extract_features(part, self.images, image_names=self.names, camera_mode=mode,
+                                                reader_options=reader, extraction_options=opts,
+                                                device=pycolmap.Device.cpu),
+              lambda: _advance(bar, _db_count(part, "SELECT count(*) FROM keypoints")))
+        _advance(bar, len(self.names))  # every photo was read, also those that gave no features
         bar.close()
         if not part.is_file():
             raise B3dgsError(f"pycolmap extracted no features from the photos in {self.images}",
@@ -307,23 +300,27 @@ class _Run:
             pairing.overlap = SEQUENTIAL_OVERLAP
             pairing.quadratic_overlap = True
             pairing.loop_detection = False
-            total = sequential_pairs(n)
+            db = pycolmap.Database.open(str(part))
+            try:  # the pairs pycolmap's own generator makes, for the bar's total
+                total = len(pycolmap.SequentialPairGenerator(pairing, db).all_pairs())
+            finally:
+                db.close()
             run = lambda: pycolmap.match_sequential(part, matching_options=opts, pairing_options=pairing,  # noqa: E731
                                                     device=pycolmap.Device.cpu)
         bar = _bar(f"match ({self.matcher})", total, " pairs")
-        with _watch(bar, lambda: _db_count(part, "SELECT count(*) FROM two_view_geometries")):
-            run()
+        # pycolmap writes a row per pair it matched, none for a pair with too few matches: the count may end short
+        _call(run, lambda: _advance(bar, _db_count(part, "SELECT count(*) FROM two_view_geometries")))
+        _advance(bar, total)
         bar.close()
         _settle_db(part)
         con = sqlite3.connect(str(part))
         try:
-            pairs, verified = con.execute("SELECT count(*), count(CASE WHEN rows > 0 THEN 1 END) "
-                                          "FROM two_view_geometries").fetchone()
+            verified = con.execute("SELECT count(*) FROM two_view_geometries WHERE rows > 0").fetchone()[0]
         finally:
             con.close()
         os.replace(part, self.work / "matches.db")
-        return {"pairs": int(pairs), "verified_pairs": int(verified or 0),
-                "note": f"{int(verified or 0):,} of {int(pairs):,} pairs verified"}
+        return {"pairs": total, "verified_pairs": int(verified or 0),
+                "note": f"{int(verified or 0):,} of {total:,} pairs with verified matches"}
 
     def need(self) -> int:
         """The fewest registered photos a model must have (``min_registered`` of them, and at least 3)."""
@@ -355,8 +352,9 @@ class _Run:
             started[1] += 1
             _advance(bar, 2 * started[0] + started[1])
 
-        recs = pycolmap.incremental_mapping(self.work / "matches.db", self.images, part, options=opts,
-                                            initial_image_pair_callback=pair, next_image_callback=image)
+        recs = _call(lambda: pycolmap.incremental_mapping(self.work / "matches.db", self.images, part, options=opts,
+                                                          initial_image_pair_callback=pair,
+                                                          next_image_callback=image))
         bar.close()
         if not recs:
             return 0, None, 0
@@ -409,8 +407,8 @@ class _Run:
         model = pycolmap.Reconstruction(str(self.work / "model"))
         n = sum(1 for im in model.images.values() if im.has_pose)
         bar = _bar("undistort", n, " photos")
-        with _watch(bar, lambda: sum(1 for _ in (stage / "images").iterdir()) if (stage / "images").is_dir() else 0):
-            pycolmap.undistort_images(stage, self.work / "model", self.images, num_threads=self.threads)
+        _call(lambda: pycolmap.undistort_images(stage, self.work / "model", self.images, num_threads=self.threads),
+              lambda: _advance(bar, len(list((stage / "images").iterdir())) if (stage / "images").is_dir() else 0))
         bar.close()
         rec = pycolmap.Reconstruction(str(stage / "sparse"))
         max_side = int(self.cfg.max_side)
@@ -600,6 +598,15 @@ def _registration_check(stats: dict, n: int, run: _Run) -> None:
 def process(cfg: DictConfig) -> dict:
     """Run (or resume) the stages for ``cfg`` (``conf/process.yaml``); returns a summary (``out``, ``name``,
     ``command``, per stage ``{"skipped", "seconds", ...}``)."""
+    from b3dgs.data.images import import_pycolmap
+    from b3dgs.rundir import interrupt_handlers
+
+    import_pycolmap()  # first: importing pycolmap installs glog's handler (a stack trace) for SIGTERM
+    with interrupt_handlers():  # SIGINT / SIGTERM raise b3dgs.rundir.Interrupted, also while a stage runs
+        return _process(cfg)
+
+
+def _process(cfg: DictConfig) -> dict:
     from b3dgs.locks import LockHeld, process_lock
 
     images = Path(str(cfg.images)).expanduser().absolute()
@@ -620,6 +627,8 @@ def process(cfg: DictConfig) -> dict:
 
 
 def _process_locked(cfg, photos, images, out, name, state, pycolmap) -> dict:
+    from b3dgs.rundir import Interrupted
+
     t_start = time.perf_counter()
     listing = _listing(photos)
     fp = _fingerprint(listing)
@@ -666,7 +675,11 @@ def _process_locked(cfg, photos, images, out, name, state, pycolmap) -> dict:
             _write_state(out, state)
             _say(f"{tag}{why}")
             t0 = time.perf_counter()
-            stats = getattr(run, stage)(pycolmap)
+            try:
+                stats = getattr(run, stage)(pycolmap)
+            except Interrupted as e:
+                e.stage = stage
+                raise
             seconds = time.perf_counter() - t0
             state["stages"][stage] = {"key": keys[stage], "seconds": round(seconds, 3), **stats}
             _write_state(out, state)
@@ -706,8 +719,18 @@ def _process_locked(cfg, photos, images, out, name, state, pycolmap) -> dict:
 def hydra_main(cfg: DictConfig) -> None:
     from b3dgs.errors import known_errors
 
+    from b3dgs.rundir import Interrupted
+
     with known_errors("b3dgs-process", cfg):
-        process(cfg)
+        try:
+            process(cfg)
+        except Interrupted as e:
+            during = f" during the {e.stage} stage" if getattr(e, "stage", None) else ""
+            sys.stdout.flush()
+            sys.stderr.write(f"b3dgs-process: {e}{during}; run the same command again to resume (finished stages "
+                             f"are kept)\n")
+            sys.stderr.flush()
+            os._exit(e.exit_code)  # at once: the stage's pycolmap call may still run in its thread
 
 
 def main() -> None:

@@ -213,3 +213,27 @@ def test_too_few_registered_says_how_many_and_what_to_try(tmp_path):
     assert res.returncode == 2 and len(lines) == 1, res.stderr[-2000:]
     assert re.search(r"only [0-2] of 3 photos registered after 3 mapping tries; b3dgs-process needs 3", lines[0])
     assert "more overlap" in lines[0] and "larger photos (these are at most 160 px)" in lines[0]
+
+
+def test_sigterm_stops_at_once_with_one_line_and_the_rerun_resumes(made, tmp_path):
+    """SIGTERM while a stage's pycolmap call runs: exit 143 with one line (not glog's stack trace, which pycolmap
+    installs for SIGTERM), no stage recorded half done; the same command then finishes the scene."""
+    import json
+    import signal
+
+    out = tmp_path / "scene"
+    args = [sys.executable, "-m", "b3dgs.process", f"images={made['photos']}", f"out={out}", f"max_side={MAX_SIDE}"]
+    proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT, env=ENV)
+    for line in proc.stdout:
+        if line.startswith("[1/4] extract"):  # printed just before the call into pycolmap
+            proc.send_signal(signal.SIGTERM)
+            break
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 143, err[-2000:]
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("b3dgs-process: interrupted by SIGTERM during the "), err[-2000:]
+    state = json.loads((out / ".b3dgs-process.json").read_text())
+    assert "undistort" not in state["stages"] and not (out / "images").exists()
+    res = _cli([f"images={made['photos']}", f"out={out}", f"max_side={MAX_SIDE}"])
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert (out / "sparse" / "0" / "images.bin").is_file()
