@@ -232,8 +232,9 @@ def _colmap_log(verbose: bool) -> Iterator[Any]:
 class _Run:
     """One ``b3dgs-process`` invocation: its inputs, options and the paths of its stages."""
 
-    def __init__(self, cfg: DictConfig, photos: list[Path], images: Path, out: Path, single: bool, matcher: str):
-        self.cfg, self.photos, self.images, self.out = cfg, photos, images, out
+    def __init__(self, cfg: DictConfig, photos: list[Path], sizes: list[tuple[int, int]], images: Path, out: Path,
+                 single: bool, matcher: str):
+        self.cfg, self.photos, self.sizes, self.images, self.out = cfg, photos, sizes, images, out
         self.work = out / WORK
         self.single, self.matcher = single, matcher
         self.threads = -1 if cfg.get("threads") is None else int(cfg.threads)
@@ -576,7 +577,7 @@ def _registration_check(stats: dict, n: int, run: _Run) -> None:
     tries = ["photos with more overlap (each part of the scene in 3+ photos, neighbours sharing most of the view)"]
     if run.matcher == "sequential":
         tries.append("matcher=exhaustive (sequential matching pairs photos by name order only)")
-    big = max(max(s) for s in _sizes(run.photos))
+    big = max(max(s) for s in run.sizes)
     if big > int(cfg.sift_max_side):
         tries.append(f"sift_max_side={big} (the photos are up to {big} px; SIFT sees {cfg.sift_max_side})")
     elif big < 1000:
@@ -612,6 +613,7 @@ def _process(cfg: DictConfig) -> dict:
     images = Path(str(cfg.images)).expanduser().absolute()
     out = Path(str(cfg.out)).expanduser().absolute()
     photos = list_photos(images)
+    sizes = _sizes(photos)  # reads every header: an unreadable photo is refused before anything is written
     with _colmap_log(bool(cfg.get("verbose", False))) as pycolmap:
         _check_options(cfg, pycolmap)
         name = _scene_name(cfg, out)
@@ -620,13 +622,13 @@ def _process(cfg: DictConfig) -> dict:
         out.mkdir(parents=True, exist_ok=True)
         try:
             with process_lock(out / LOCK, wait=False, remove=True):
-                return _process_locked(cfg, photos, images, out, name, state, pycolmap)
+                return _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap)
         except LockHeld as e:
             raise B3dgsError(f"out={out} is in use by another b3dgs-process (pid {e.pid})",
                              "wait for it to finish, or pass out= another folder") from None
 
 
-def _process_locked(cfg, photos, images, out, name, state, pycolmap) -> dict:
+def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap) -> dict:
     from b3dgs.rundir import Interrupted
 
     t_start = time.perf_counter()
@@ -639,12 +641,11 @@ def _process_locked(cfg, photos, images, out, name, state, pycolmap) -> dict:
         raise B3dgsError(f"images={images} changed since {out} was processed from it "
                          f"({_diff(state.get('photos', []), listing)})",
                          "pass overwrite=true to process it afresh, or out= a new folder")
-    sizes = _sizes(photos)
     single = bool(cfg.single_camera) if cfg.get("single_camera") is not None else len(set(sizes)) == 1
     matcher = str(cfg.matcher)
     if matcher == "auto":
         matcher = "exhaustive" if len(photos) <= EXHAUSTIVE_UP_TO else "sequential"
-    run = _Run(cfg, photos, images, out, single, matcher)
+    run = _Run(cfg, photos, sizes, images, out, single, matcher)
     if state is None:
         state = {"format": FORMAT, "images": str(images), "fingerprint": fp, "photos": listing, "stages": {}}
     state["images"] = str(images)

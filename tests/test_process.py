@@ -185,10 +185,13 @@ def test_bad_input_is_one_line(tmp_path):
         (dict(images=str(two)), "holds 2 photos; structure from motion needs at least 3"),
     ]
     three = _photos(tmp_path / "three", names[:3], side=64)
+    broken = _photos(tmp_path / "broken", names[:3], side=64)
+    (broken / "zz.jpg").write_text("not a photo")
     (tmp_path / "busy").mkdir()
     (tmp_path / "busy" / "notes.txt").write_text("mine")
     cases += [
         (dict(images=str(three), out=str(tmp_path / "busy")), r"holds what b3dgs-process did not write \(notes.txt\)"),
+        (dict(images=str(broken)), r"cannot read the photo .*zz.jpg"),
         (dict(images=str(three), matcher="exhaustiv"), "matcher=exhaustiv is not a matcher; did you mean exhaustive"),
         (dict(images=str(three), camera_model="OPENCV_FISHEYES"), "did you mean OPENCV_FISHEYE"),
         (dict(images=str(three), out=str(tmp_path)), "is inside out="),
