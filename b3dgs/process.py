@@ -42,7 +42,6 @@ import os
 import re
 import shlex
 import shutil
-import sqlite3
 import sys
 import threading
 import time
@@ -152,9 +151,19 @@ def _advance(bar, n: int) -> None:
         bar.update(n - bar.n)
 
 
+def _stop_if_signalled() -> None:
+    """Raise :class:`b3dgs.rundir.Interrupted` for a SIGINT / SIGTERM recorded since :func:`process` began. The
+    handlers only record (``deferred``): an exception raised wherever the signal lands could be swallowed by a
+    library's ``except Exception`` (tqdm's monitor thread start is one), so it is raised here, at known points."""
+    from b3dgs.rundir import PENDING, Interrupted
+
+    if PENDING.signum is not None:
+        raise Interrupted(PENDING.signum)
+
+
 def _call(fn: Callable[[], Any], poll: Optional[Callable[[], None]] = None, period: float = 0.5) -> Any:
     """``fn()`` (one pycolmap call) in a worker thread, while this thread calls ``poll()`` every ``period`` seconds and
-    stays responsive to SIGINT / SIGTERM: a signal handler runs only in the main thread and only between Python
+    acts on SIGINT / SIGTERM within ``period``: a signal handler runs only in the main thread and only between Python
     calls, so a stage run in the main thread would ignore Ctrl-C until it returned."""
     box: dict[str, Any] = {}
 
@@ -168,38 +177,12 @@ def _call(fn: Callable[[], Any], poll: Optional[Callable[[], None]] = None, peri
     t.start()
     while t.is_alive():
         t.join(period)
+        _stop_if_signalled()
         if poll is not None:
             poll()
     if "error" in box:
         raise box["error"]
     return box.get("value")
-
-
-def _db_count(db: Path, sql: str) -> int:
-    """A count from a COLMAP database that pycolmap is writing (WAL mode: a reader never blocks it); 0 on any error."""
-    if not db.is_file():
-        return 0
-    try:
-        con = sqlite3.connect(f"{db.absolute().as_uri()}?mode=ro", uri=True, timeout=0.05)
-        try:
-            return int(con.execute(sql).fetchone()[0] or 0)
-        finally:
-            con.close()
-    except sqlite3.Error:
-        return 0
-
-
-def _settle_db(db: Path) -> None:
-    """Fold the database's write-ahead log into the file and leave WAL mode, so the one file holds everything before
-    it is renamed (a reader open when pycolmap closed it keeps the log from being folded in)."""
-    con = sqlite3.connect(str(db))
-    try:
-        con.execute("PRAGMA wal_checkpoint(TRUNCATE)")
-        con.execute("PRAGMA journal_mode=DELETE")
-    finally:
-        con.close()
-    for suffix in ("-wal", "-shm"):
-        Path(f"{db}{suffix}").unlink(missing_ok=True)
 
 
 def _remove(path: Path) -> None:
@@ -254,74 +237,111 @@ class _Run:
                 "map": [self.work / "model" / "images.bin"],
                 "undistort": [self.out / "images", self.out / "sparse" / "0" / "images.bin"]}[stage]
 
+    def _chunk(self, n: int, least: int) -> int:
+        """Items per pycolmap call: at least ``least`` (and 4 per thread), at most 50 calls in all. Each call ends
+        with a database the next one reads, so the bar counts real work, and no second SQLite ever reads the
+        database while pycolmap writes it (two SQLite libraries in one process break each other's file locks:
+        polling it that way crashed pycolmap with SIGBUS)."""
+        threads = (os.cpu_count() or 1) if self.threads < 0 else self.threads
+        return max(least, 4 * threads, math.ceil(n / 50))
+
     def extract(self, pycolmap) -> dict:
         part = self.work / "features.db.partial"
         _remove(part)
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = str(self.cfg.camera_model)
         opts = pycolmap.FeatureExtractionOptions()
         opts.max_image_size = int(self.cfg.sift_max_side)
         opts.num_threads = self.threads
         mode = pycolmap.CameraMode.SINGLE if self.single else pycolmap.CameraMode.PER_IMAGE
         bar = _bar("extract", len(self.names), " photos")
-        _call(lambda: pycolmap.extract_features(part, self.images, image_names=self.names, camera_mode=mode,
-                                                reader_options=reader, extraction_options=opts,
-                                                device=pycolmap.Device.cpu),
-              lambda: _advance(bar, _db_count(part, "SELECT count(*) FROM keypoints")))
-        _advance(bar, len(self.names))  # every photo was read, also those that gave no features
+        step, camera = self._chunk(len(self.names), 8), -1
+        for start in range(0, len(self.names), step):
+            names = self.names[start:start + step]
+            reader = pycolmap.ImageReaderOptions()
+            reader.camera_model = str(self.cfg.camera_model)
+            reader.existing_camera_id = camera  # one shared camera: the first call's, for the later calls too
+            _call(lambda: pycolmap.extract_features(part, self.images, image_names=names, camera_mode=mode,
+                                                    reader_options=reader, extraction_options=opts,
+                                                    device=pycolmap.Device.cpu))
+            if self.single and camera < 0 and part.is_file():
+                db = pycolmap.Database.open(str(part))
+                try:
+                    camera = min((c.camera_id for c in db.read_all_cameras()), default=-1)
+                finally:
+                    db.close()
+            bar.update(len(names))
         bar.close()
         if not part.is_file():
             raise B3dgsError(f"pycolmap extracted no features from the photos in {self.images}",
                              "check that the photos open in an image viewer; verbose=true shows COLMAP's log")
-        _settle_db(part)
-        con = sqlite3.connect(str(part))
+        db = pycolmap.Database.open(str(part))
         try:
-            rows = dict(con.execute("SELECT images.name, keypoints.rows FROM images "
-                                    "JOIN keypoints ON images.image_id = keypoints.image_id").fetchall())
+            rows = {im.name: int(db.num_keypoints_for_image(im.image_id)) for im in db.read_all_images()}
         finally:
-            con.close()
+            db.close()
         os.replace(part, self.work / "features.db")
         empty = [n for n in self.names if not rows.get(n)]
-        return {"keypoints": int(sum(rows.values())), "photos_without_features": empty,
+        return {"keypoints": sum(rows.values()), "photos_without_features": empty,
                 "note": f"{sum(rows.values()):,} keypoints"
                         + (f"; {len(empty)} photos without features ({', '.join(empty[:3])})" if empty else "")}
 
+    @staticmethod
+    def _sequential(pycolmap):
+        """COLMAP's sequential pairing with its defaults (quadratic overlap of 10), without loop detection."""
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = SEQUENTIAL_OVERLAP
+        pairing.quadratic_overlap = True
+        pairing.loop_detection = False
+        return pairing
+
+    def _pairs(self, pycolmap, db_path: Path) -> list[tuple[str, str]]:
+        """The pairs to match, by name: every pair in blocks of 50 photos (as COLMAP's exhaustive matcher visits
+        them, so each call loads the features of at most 100 photos), or those of COLMAP's sequential generator."""
+        if self.matcher == "exhaustive":
+            n, b = len(self.names), 50
+            return [(self.names[i], self.names[j]) for s1 in range(0, n, b) for s2 in range(s1, n, b)
+                    for i in range(s1, min(s1 + b, n)) for j in range(max(s2, i + 1), min(s2 + b, n))]
+        db = pycolmap.Database.open(str(db_path))
+        try:
+            names = {im.image_id: im.name for im in db.read_all_images()}
+            gen = pycolmap.SequentialPairGenerator(self._sequential(pycolmap), db)
+            return [(names[a], names[b]) for a, b in gen.all_pairs()]
+        finally:
+            db.close()
+
     def match(self, pycolmap) -> dict:
-        part = self.work / "matches.db.partial"
+        part, listing = self.work / "matches.db.partial", self.work / "pairs.partial.txt"
         _remove(part)
         shutil.copyfile(self.work / "features.db", part)
-        n = len(self.names)
         opts = pycolmap.FeatureMatchingOptions()
         opts.num_threads = self.threads
-        if self.matcher == "exhaustive":
-            total = n * (n - 1) // 2
-            run = lambda: pycolmap.match_exhaustive(part, matching_options=opts, device=pycolmap.Device.cpu)  # noqa: E731
+        pairs = self._pairs(pycolmap, part)
+        bar = _bar(f"match ({self.matcher})", len(pairs), " pairs")
+        if any(c.isspace() for x in self.names for c in x):
+            # COLMAP's pair list is "name1 name2" per line: names with white space take its own matcher in one call
+            run = pycolmap.match_exhaustive if self.matcher == "exhaustive" else pycolmap.match_sequential
+            kw = {} if self.matcher == "exhaustive" else {"pairing_options": self._sequential(pycolmap)}
+            _call(lambda: run(part, matching_options=opts, device=pycolmap.Device.cpu, **kw))
+            bar.update(len(pairs))
         else:
-            pairing = pycolmap.SequentialPairingOptions()
-            pairing.overlap = SEQUENTIAL_OVERLAP
-            pairing.quadratic_overlap = True
-            pairing.loop_detection = False
-            db = pycolmap.Database.open(str(part))
-            try:  # the pairs pycolmap's own generator makes, for the bar's total
-                total = len(pycolmap.SequentialPairGenerator(pairing, db).all_pairs())
-            finally:
-                db.close()
-            run = lambda: pycolmap.match_sequential(part, matching_options=opts, pairing_options=pairing,  # noqa: E731
-                                                    device=pycolmap.Device.cpu)
-        bar = _bar(f"match ({self.matcher})", total, " pairs")
-        # pycolmap writes a row per pair it matched, none for a pair with too few matches: the count may end short
-        _call(run, lambda: _advance(bar, _db_count(part, "SELECT count(*) FROM two_view_geometries")))
-        _advance(bar, total)
+            step = self._chunk(len(pairs), 400)
+            for start in range(0, len(pairs), step):
+                chunk = pairs[start:start + step]
+                listing.write_text("".join(f"{a} {b}\n" for a, b in chunk))
+                pairing = pycolmap.ImportedPairingOptions()
+                pairing.match_list_path = str(listing)
+                _call(lambda: pycolmap.match_image_pairs(part, matching_options=opts, pairing_options=pairing,
+                                                         device=pycolmap.Device.cpu))
+                bar.update(len(chunk))
         bar.close()
-        _settle_db(part)
-        con = sqlite3.connect(str(part))
+        _remove(listing)
+        db = pycolmap.Database.open(str(part))
         try:
-            verified = con.execute("SELECT count(*) FROM two_view_geometries WHERE rows > 0").fetchone()[0]
+            verified = sum(1 for k in db.read_two_view_geometry_num_inliers()[1] if k > 0)
         finally:
-            con.close()
+            db.close()
         os.replace(part, self.work / "matches.db")
-        return {"pairs": total, "verified_pairs": int(verified or 0),
-                "note": f"{int(verified or 0):,} of {total:,} pairs with verified matches"}
+        return {"pairs": len(pairs), "verified_pairs": verified,
+                "note": f"{verified:,} of {len(pairs):,} pairs with verified matches"}
 
     def need(self) -> int:
         """The fewest registered photos a model must have (``min_registered`` of them, and at least 3)."""
@@ -392,10 +412,12 @@ class _Run:
         reg = {im.name for im in rec.images.values() if im.has_pose}
         missing = [x for x in self.names if x not in reg]
         error = float(rec.compute_mean_reprojection_error())
+        error = error if math.isfinite(error) else None  # JSON has no NaN
+        shown = "n/a" if error is None else f"{error:.2f} px"
         return {"registered": len(reg), "models": models, "points": int(rec.num_points3D()),
                 "reprojection_error_px": error, "unregistered": missing, "tries": tries,
                 "note": f"{len(reg)} of {n} photos registered, {rec.num_points3D():,} points, mean reprojection "
-                        f"{error:.2f} px" + (f", {models} models (the largest kept)" if models > 1 else "")
+                        f"{shown}" + (f", {models} models (the largest kept)" if models > 1 else "")
                         + (f", after {len(tries)} tries" if len(tries) > 1 else "")}
 
     def undistort(self, pycolmap) -> dict:
@@ -423,6 +445,7 @@ class _Run:
         images = [im for im in rec.images.values() if im.has_pose]
         bar = _bar(f"resize (long side <= {max_side} px)", len(images), " photos")
         for im in images:
+            _stop_if_signalled()
             sx, sy, w2, h2, resize = scales[im.camera_id]
             if resize:
                 path = stage / "images" / im.name
@@ -603,15 +626,16 @@ def process(cfg: DictConfig) -> dict:
     from b3dgs.rundir import interrupt_handlers
 
     import_pycolmap()  # first: importing pycolmap installs glog's handler (a stack trace) for SIGTERM
-    with interrupt_handlers():  # SIGINT / SIGTERM raise b3dgs.rundir.Interrupted, also while a stage runs
+    with interrupt_handlers() as pending:  # SIGINT / SIGTERM: b3dgs.rundir.Interrupted, also while a stage runs
+        pending.deferred = True  # recorded, and raised by _stop_if_signalled
         return _process(cfg)
 
 
 def _process(cfg: DictConfig) -> dict:
     from b3dgs.locks import LockHeld, process_lock
 
-    images = Path(str(cfg.images)).expanduser().absolute()
-    out = Path(str(cfg.out)).expanduser().absolute()
+    images = Path(os.path.abspath(Path(str(cfg.images)).expanduser()))  # absolute, without ".."
+    out = Path(os.path.abspath(Path(str(cfg.out)).expanduser()))
     photos = list_photos(images)
     sizes = _sizes(photos)  # reads every header: an unreadable photo is refused before anything is written
     with _colmap_log(bool(cfg.get("verbose", False))) as pycolmap:
@@ -656,6 +680,7 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap) -> d
     _say(f"b3dgs-process: {len(photos)} photos in {images} -> {out} ({matcher} matching, {cfg.camera_model}, {cams})")
     report: dict[str, Any] = {}
     for i, stage in enumerate(STAGES):
+        _stop_if_signalled()
         tag = f"[{i + 1}/{len(STAGES)}] {stage}"
         rec = state["stages"].get(stage)
         if rec is not None and rec.get("key") == keys[stage] and all(p.exists() for p in run.outputs(stage)) \
@@ -677,6 +702,7 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap) -> d
             _say(f"{tag}{why}")
             t0 = time.perf_counter()
             try:
+                _stop_if_signalled()
                 stats = getattr(run, stage)(pycolmap)
             except Interrupted as e:
                 e.stage = stage
