@@ -3,7 +3,8 @@
     b3dgs-process images=photos/ out=data/mine                     # then the printed `b3dgs-train scene=mine ...`
     b3dgs-process images=photos/ out=data/mine matcher=sequential max_side=1000
 
-Four stages, all with pycolmap on the CPU, each shown with its count and time:
+Four stages, all with pycolmap on the CPU, each shown with a bar (photos or pairs done of all; pycolmap reports no
+progress inside a call, so extraction and matching run as a series of calls) and its time:
 
 1. ``extract``: SIFT features of every photo (``camera_model``, COLMAP's SIMPLE_RADIAL by default; one camera shared
    by all photos when they all have the same size, ``single_camera=``; photos larger than ``sift_max_side`` are seen
@@ -16,8 +17,8 @@ Four stages, all with pycolmap on the CPU, each shown with its count and time:
 3. ``map``: incremental mapping; the model that registers the most photos is kept. When it has fewer than
    ``min_registered`` of the photos (or fewer than 3), mapping is tried again with a smaller initial triangulation
    angle (8°, then 4°, instead of COLMAP's 16°, which a small baseline such as a forward-facing capture cannot meet:
-   ten of flower's photos at 200 px registered 3 of 9 with 16° and 9 of 9 with 4°, every seed); if no try is enough,
-   the refusal says how many registered and what to try;
+   on nine of flower's photos at 200 px, 16° registered 3 of 9 with five of six seeds, 4° all 9 with every seed); if
+   no try is enough, the refusal says how many registered and what to try;
 4. ``undistort``: the photos undistorted to PINHOLE cameras (``pycolmap.undistort_images``), then downscaled so that
    their long side is at most ``max_side`` (``b3dgs.types.fit_size``, PIL's Lanczos filter; the cameras and the
    model's 2D points scaled by the same per-axis ratio, so image and camera sizes agree exactly).
@@ -30,8 +31,9 @@ records itself in ``out/.b3dgs-process.json`` with the options it ran with and t
 size, modification time of every photo). A rerun skips the stages recorded with the same options whose outputs are
 there, and reruns a stage whose options changed and the stages after it (``max_side`` alone reruns only
 ``undistort``). A changed photo folder is refused (``overwrite=true`` starts afresh), and so is an ``out=`` that holds
-anything else. Ctrl-C, SIGTERM or a kill stop at once (exit codes 130 / 143 with a line saying so), and the rerun
-resumes from the last finished stage. Known problems print one line ``b3dgs-process: error: ... (fix: ...)`` and exit with code 2.
+anything else. Ctrl-C and SIGTERM stop within half a second (exit codes 130 / 143 and a line naming the stage), a
+kill at once, and the rerun resumes from the last finished stage. Known problems print one line
+``b3dgs-process: error: ... (fix: ...)`` and exit with code 2.
 """
 from __future__ import annotations
 
