@@ -1,0 +1,773 @@
+"""``b3dgs-process``: a folder of photos to a COLMAP scene that ``b3dgs-train`` trains (``conf/process.yaml``).
+
+    b3dgs-process images=photos/ out=data/mine                     # then the printed `b3dgs-train scene=mine ...`
+    b3dgs-process images=photos/ out=data/mine matcher=sequential max_side=1000
+
+Four stages, all with pycolmap on the CPU, each shown with a bar (photos or pairs done of all; pycolmap reports no
+progress inside a call, so extraction and matching run as a series of calls) and its time:
+
+1. ``extract``: SIFT features of every photo (``camera_model``, COLMAP's SIMPLE_RADIAL by default; one camera shared
+   by all photos when they all have the same size, ``single_camera=``; photos larger than ``sift_max_side`` are seen
+   downscaled, as COLMAP does by default);
+2. ``match``: ``matcher=auto`` matches every pair (exhaustive) up to 200 photos (at most 19,900 pairs), and beyond
+   that each photo with those 1, 2, 4, ..., 512 places after it in name order (COLMAP's sequential matcher, its
+   default quadratic overlap of 10): about 10 pairs per photo instead of n/2, for a video's frames or a walk around
+   the scene photographed in order. A vocabulary tree would need a tree file fetched from the web, which b3dgs does
+   not do; a large unordered collection takes ``matcher=exhaustive`` and the time it needs;
+3. ``map``: incremental mapping; the model that registers the most photos is kept. When it has fewer than
+   ``min_registered`` of the photos (or fewer than 3), mapping is tried again with a smaller initial triangulation
+   angle (8°, then 4°, instead of COLMAP's 16°, which a small baseline such as a forward-facing capture cannot meet:
+   on nine of flower's photos at 200 px, 16° registered 3 of 9 with five of six seeds, 4° all 9 with every seed); if
+   no try is enough, the refusal says how many registered and what to try;
+4. ``undistort``: the photos undistorted to PINHOLE cameras (``pycolmap.undistort_images``), then downscaled so that
+   their long side is at most ``max_side`` (``b3dgs.types.fit_size``, PIL's Lanczos filter; the cameras and the
+   model's 2D points scaled by the same per-axis ratio, so image and camera sizes agree exactly).
+
+The result is the COLMAP layout that ``data=colmap`` loads: ``out/images/`` and ``out/sparse/0/`` (cameras, images,
+points3D .bin), plus ``out/conf/scene/<name>.yaml``; the last lines print the command that trains it.
+
+Resumable: each stage writes into a ``.partial`` path under ``out/.b3dgs-process/`` and renames it when done, then
+records itself in ``out/.b3dgs-process.json`` with the options it ran with and the photo listing's fingerprint (name,
+size, modification time of every photo). A rerun skips the stages recorded with the same options whose outputs are
+there, and reruns a stage whose options changed and the stages after it (``max_side`` alone reruns only
+``undistort``). A changed photo folder is refused (``overwrite=true`` starts afresh), and so is an ``out=`` that holds
+anything else. Ctrl-C and SIGTERM stop within half a second (exit codes 130 / 143 and a line naming the stage), a
+kill at once, and the rerun resumes from the last finished stage. Known problems print one line
+``b3dgs-process: error: ... (fix: ...)`` and exit with code 2.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import re
+import shlex
+import shutil
+import sys
+import threading
+import time
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any, Callable, Iterator, Optional
+
+import hydra
+from omegaconf import DictConfig
+
+from b3dgs import conf_dir, data_root
+from b3dgs.errors import B3dgsError
+
+__all__ = ["EXHAUSTIVE_UP_TO", "STAGES", "list_photos", "main", "process"]
+
+STATE = ".b3dgs-process.json"   # the record of finished stages, in out/
+WORK = ".b3dgs-process"         # the stages' own files (databases, the raw model), in out/
+LOCK = ".b3dgs-process.lock"
+STAGES = ("extract", "match", "map", "undistort")
+PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
+MATCHERS = ("auto", "exhaustive", "sequential")
+EXHAUSTIVE_UP_TO = 200          # matcher=auto: exhaustive up to this many photos, sequential beyond
+SEQUENTIAL_OVERLAP = 10         # COLMAP's default, quadratic: each photo with those 1, 2, 4, ..., 512 after it
+MIN_PHOTOS = 3
+MAP_RETRIES = (8.0, 4.0)        # init_min_tri_angle (degrees) of the mapping tries after COLMAP's 16°
+FORMAT = 1                      # of the state file
+CONF_DIR = conf_dir()
+NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+
+
+# ----------------------------------------------------------------------------------------------- the photos
+
+
+def list_photos(folder: Path) -> list[Path]:
+    """The photos directly inside ``folder`` (:data:`PHOTO_SUFFIXES`, any case; hidden files skipped), by name.
+    Raises :class:`B3dgsError` for a missing or unreadable folder, unreadable photos and fewer than 3 photos."""
+    fix = "pass images= the folder whose files are the photos"
+    if not folder.exists():
+        raise B3dgsError(f"images={folder}: no such folder", fix)
+    if not folder.is_dir():
+        raise B3dgsError(f"images={folder} is a file, not a folder", fix)
+    try:
+        entries = sorted(folder.iterdir())
+    except OSError as e:
+        raise B3dgsError(f"cannot read the folder images={folder}: {e.strerror or e}",
+                         "make it readable (chmod u+rx), or pass another folder") from e
+    photos = [p for p in entries if not p.name.startswith(".") and p.suffix.lower() in PHOTO_SUFFIXES and p.is_file()]
+    if not photos:
+        subs = [p.name for p in entries if p.is_dir() and not p.name.startswith(".")]
+        hint = f"; it has the subfolders {', '.join(subs[:3])}{', ...' if len(subs) > 3 else ''}" if subs else ""
+        raise B3dgsError(f"images={folder} holds no photos ({' '.join(PHOTO_SUFFIXES)}){hint}",
+                         f"{fix} (subfolders are not read)")
+    unreadable = [p.name for p in photos if not os.access(p, os.R_OK)]
+    if unreadable:
+        raise B3dgsError(f"{len(unreadable)} photos in images={folder} cannot be read ({', '.join(unreadable[:3])})",
+                         "make them readable (chmod u+r), or move them out of the folder")
+    if len(photos) < MIN_PHOTOS:
+        raise B3dgsError(f"images={folder} holds {len(photos)} photo{'s' if len(photos) != 1 else ''}; structure "
+                         f"from motion needs at least {MIN_PHOTOS} views of the scene",
+                         "add photos taken from different positions, each part of the scene in 3 or more of them "
+                         "(20-200 is typical)")
+    return photos
+
+
+def _listing(photos: list[Path]) -> list[list]:
+    out = []
+    for p in photos:
+        st = p.stat()
+        out.append([p.name, int(st.st_size), int(st.st_mtime_ns)])
+    return out
+
+
+def _fingerprint(listing: list[list]) -> str:
+    return hashlib.sha256("".join(f"{n}\t{s}\t{m}\n" for n, s, m in listing).encode()).hexdigest()
+
+
+def _sizes(photos: list[Path]) -> list[tuple[int, int]]:
+    """(width, height) of every photo from its header; an unreadable one is a one-line error."""
+    from b3dgs.data.images import image_size
+
+    out = []
+    for p in photos:
+        try:
+            out.append(image_size(p))
+        except B3dgsError as e:
+            raise B3dgsError(f"cannot read the photo {p}: {e.problem.rpartition(': ')[2]}",
+                             "remove it from images= or replace it with a readable copy") from e
+    return out
+
+
+# ----------------------------------------------------------------------------------------------- progress
+
+
+def _say(text: str) -> None:
+    print(text, flush=True)
+
+
+def _bar(desc: str, total: int, unit: str):
+    from b3dgs.progress import progress
+
+    return progress(total=total, desc=f"  {desc}", unit=unit, file=sys.stdout)
+
+
+def _advance(bar, n: int) -> None:
+    n = min(int(n), int(bar.total)) if bar.total else int(n)
+    if n > bar.n:
+        bar.update(n - bar.n)
+
+
+def _stop_if_signalled() -> None:
+    """Raise :class:`b3dgs.rundir.Interrupted` for a SIGINT / SIGTERM recorded since :func:`process` began. The
+    handlers only record (``deferred``): an exception raised wherever the signal lands could be swallowed by a
+    library's ``except Exception`` (tqdm's monitor thread start is one), so it is raised here, at known points."""
+    from b3dgs.rundir import PENDING, Interrupted
+
+    if PENDING.signum is not None:
+        raise Interrupted(PENDING.signum)
+
+
+def _call(fn: Callable[[], Any], poll: Optional[Callable[[], None]] = None, period: float = 0.5) -> Any:
+    """``fn()`` (one pycolmap call) in a worker thread, while this thread calls ``poll()`` every ``period`` seconds and
+    acts on SIGINT / SIGTERM within ``period``: a signal handler runs only in the main thread and only between Python
+    calls, so a stage run in the main thread would ignore Ctrl-C until it returned."""
+    box: dict[str, Any] = {}
+
+    def target() -> None:
+        try:
+            box["value"] = fn()
+        except BaseException as e:  # noqa: BLE001 - re-raised in the calling thread
+            box["error"] = e
+
+    t = threading.Thread(target=target, name="b3dgs-process-colmap", daemon=True)
+    t.start()
+    while t.is_alive():
+        t.join(period)
+        _stop_if_signalled()
+        if poll is not None:
+            poll()
+    if "error" in box:
+        raise box["error"]
+    return box.get("value")
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif path.exists() or path.is_symlink():
+        path.unlink()
+    for suffix in ("-wal", "-shm", "-journal"):
+        Path(f"{path}{suffix}").unlink(missing_ok=True)
+
+
+@contextmanager
+def _colmap_log(verbose: bool) -> Iterator[Any]:
+    """pycolmap with its log off (its errors too: b3dgs-process reports what failed in its own line; everything with
+    ``verbose``); the old level restored."""
+    from b3dgs.data.images import import_pycolmap
+
+    pycolmap = import_pycolmap()
+    old = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 0 if verbose else 3
+    try:
+        yield pycolmap
+    finally:
+        pycolmap.logging.minloglevel = old
+
+
+# ----------------------------------------------------------------------------------------------- the stages
+
+
+class _Run:
+    """One ``b3dgs-process`` invocation: its inputs, options and the paths of its stages."""
+
+    def __init__(self, cfg: DictConfig, photos: list[Path], sizes: list[tuple[int, int]], images: Path, out: Path,
+                 single: bool, matcher: str):
+        self.cfg, self.photos, self.sizes, self.images, self.out = cfg, photos, sizes, images, out
+        self.work = out / WORK
+        self.single, self.matcher = single, matcher
+        self.threads = -1 if cfg.get("threads") is None else int(cfg.threads)
+        self.names = [p.name for p in photos]
+
+    # the options each stage ran with; each includes the ones before it, so a change reruns every later stage
+    def keys(self) -> dict[str, dict]:
+        c = self.cfg
+        extract = {"camera_model": str(c.camera_model), "single_camera": self.single,
+                   "sift_max_side": int(c.sift_max_side)}
+        match = {**extract, "matcher": self.matcher}
+        mapping = {**match, "seed": int(c.seed)}
+        return {"extract": extract, "match": match, "map": mapping, "undistort": {**mapping, "max_side": int(c.max_side)}}
+
+    def outputs(self, stage: str) -> list[Path]:
+        return {"extract": [self.work / "features.db"], "match": [self.work / "matches.db"],
+                "map": [self.work / "model" / "images.bin"],
+                "undistort": [self.out / "images", self.out / "sparse" / "0" / "images.bin"]}[stage]
+
+    def _chunk(self, n: int, least: int) -> int:
+        """Items per pycolmap call: at least ``least`` (and 4 per thread), at most 50 calls in all. Each call ends
+        with a database the next one reads, so the bar counts real work, and no second SQLite ever reads the
+        database while pycolmap writes it (two SQLite libraries in one process break each other's file locks:
+        polling it that way crashed pycolmap with SIGBUS)."""
+        threads = (os.cpu_count() or 1) if self.threads < 0 else self.threads
+        return max(least, 4 * threads, math.ceil(n / 50))
+
+    def extract(self, pycolmap) -> dict:
+        part = self.work / "features.db.partial"
+        _remove(part)
+        opts = pycolmap.FeatureExtractionOptions()
+        opts.max_image_size = int(self.cfg.sift_max_side)
+        opts.num_threads = self.threads
+        mode = pycolmap.CameraMode.SINGLE if self.single else pycolmap.CameraMode.PER_IMAGE
+        bar = _bar("extract", len(self.names), " photos")
+        step, camera = self._chunk(len(self.names), 8), -1
+        for start in range(0, len(self.names), step):
+            names = self.names[start:start + step]
+            reader = pycolmap.ImageReaderOptions()
+            reader.camera_model = str(self.cfg.camera_model)
+            reader.existing_camera_id = camera  # one shared camera: the first call's, for the later calls too
+            _call(lambda: pycolmap.extract_features(part, self.images, image_names=names, camera_mode=mode,
+                                                    reader_options=reader, extraction_options=opts,
+                                                    device=pycolmap.Device.cpu))
+            if self.single and camera < 0 and part.is_file():
+                db = pycolmap.Database.open(str(part))
+                try:
+                    camera = min((c.camera_id for c in db.read_all_cameras()), default=-1)
+                finally:
+                    db.close()
+            bar.update(len(names))
+        bar.close()
+        if not part.is_file():
+            raise B3dgsError(f"pycolmap extracted no features from the photos in {self.images}",
+                             "check that the photos open in an image viewer; verbose=true shows COLMAP's log")
+        db = pycolmap.Database.open(str(part))
+        try:
+            rows = {im.name: int(db.num_keypoints_for_image(im.image_id)) for im in db.read_all_images()}
+        finally:
+            db.close()
+        os.replace(part, self.work / "features.db")
+        empty = [n for n in self.names if not rows.get(n)]
+        return {"keypoints": sum(rows.values()), "photos_without_features": empty,
+                "note": f"{sum(rows.values()):,} keypoints"
+                        + (f"; {len(empty)} photos without features ({', '.join(empty[:3])})" if empty else "")}
+
+    @staticmethod
+    def _sequential(pycolmap):
+        """COLMAP's sequential pairing with its defaults (quadratic overlap of 10), without loop detection."""
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = SEQUENTIAL_OVERLAP
+        pairing.quadratic_overlap = True
+        pairing.loop_detection = False
+        return pairing
+
+    def _pairs(self, pycolmap, db_path: Path) -> list[tuple[str, str]]:
+        """The pairs to match, by name: every pair in blocks of 50 photos (as COLMAP's exhaustive matcher visits
+        them, so each call loads the features of at most 100 photos), or those of COLMAP's sequential generator."""
+        if self.matcher == "exhaustive":
+            n, b = len(self.names), 50
+            return [(self.names[i], self.names[j]) for s1 in range(0, n, b) for s2 in range(s1, n, b)
+                    for i in range(s1, min(s1 + b, n)) for j in range(max(s2, i + 1), min(s2 + b, n))]
+        db = pycolmap.Database.open(str(db_path))
+        try:
+            names = {im.image_id: im.name for im in db.read_all_images()}
+            gen = pycolmap.SequentialPairGenerator(self._sequential(pycolmap), db)
+            return [(names[a], names[b]) for a, b in gen.all_pairs()]
+        finally:
+            db.close()
+
+    def match(self, pycolmap) -> dict:
+        part, listing = self.work / "matches.db.partial", self.work / "pairs.partial.txt"
+        _remove(part)
+        shutil.copyfile(self.work / "features.db", part)
+        opts = pycolmap.FeatureMatchingOptions()
+        opts.num_threads = self.threads
+        pairs = self._pairs(pycolmap, part)
+        bar = _bar(f"match ({self.matcher})", len(pairs), " pairs")
+        if any(c.isspace() for x in self.names for c in x):
+            # COLMAP's pair list is "name1 name2" per line: names with white space take its own matcher in one call
+            run = pycolmap.match_exhaustive if self.matcher == "exhaustive" else pycolmap.match_sequential
+            kw = {} if self.matcher == "exhaustive" else {"pairing_options": self._sequential(pycolmap)}
+            _call(lambda: run(part, matching_options=opts, device=pycolmap.Device.cpu, **kw))
+            bar.update(len(pairs))
+        else:
+            step = self._chunk(len(pairs), 400)
+            for start in range(0, len(pairs), step):
+                chunk = pairs[start:start + step]
+                listing.write_text("".join(f"{a} {b}\n" for a, b in chunk))
+                pairing = pycolmap.ImportedPairingOptions()
+                pairing.match_list_path = str(listing)
+                _call(lambda: pycolmap.match_image_pairs(part, matching_options=opts, pairing_options=pairing,
+                                                         device=pycolmap.Device.cpu))
+                bar.update(len(chunk))
+        bar.close()
+        _remove(listing)
+        db = pycolmap.Database.open(str(part))
+        try:
+            verified = sum(1 for k in db.read_two_view_geometry_num_inliers()[1] if k > 0)
+        finally:
+            db.close()
+        os.replace(part, self.work / "matches.db")
+        return {"pairs": len(pairs), "verified_pairs": verified,
+                "note": f"{verified:,} of {len(pairs):,} pairs with verified matches"}
+
+    def need(self) -> int:
+        """The fewest registered photos a model must have (``min_registered`` of them, and at least 3)."""
+        return max(MIN_PHOTOS, math.ceil(float(self.cfg.min_registered) * len(self.names) - 1e-9))
+
+    def may_retry(self, rec: dict) -> bool:
+        """Whether a recorded mapping registered fewer than :meth:`need` without making every try (it ran under a
+        lower ``min_registered``): then it is run again."""
+        return int(rec.get("registered", 0)) < self.need() and len(rec.get("tries", [])) <= len(MAP_RETRIES)
+
+    def _map_once(self, pycolmap, part: Path, tri: Optional[float], desc: str) -> tuple[int, Any, int]:
+        """One incremental mapping into ``part``: (registered photos of its largest model, that model, models)."""
+        _remove(part)
+        part.mkdir(parents=True)
+        opts = pycolmap.IncrementalPipelineOptions()
+        opts.random_seed = int(self.cfg.seed)
+        opts.min_model_size = MIN_PHOTOS
+        opts.num_threads = self.threads
+        if tri is not None:
+            opts.mapper.init_min_tri_angle = tri
+        bar = _bar(desc, len(self.names), " photos")
+        started = [0, 0]  # models started (2 photos each), photos added after their first pair
+
+        def pair() -> None:
+            started[0] += 1
+            _advance(bar, 2 * started[0] + started[1])
+
+        def image() -> None:
+            started[1] += 1
+            _advance(bar, 2 * started[0] + started[1])
+
+        recs = _call(lambda: pycolmap.incremental_mapping(self.work / "matches.db", self.images, part, options=opts,
+                                                          initial_image_pair_callback=pair,
+                                                          next_image_callback=image))
+        bar.close()
+        if not recs:
+            return 0, None, 0
+        best = max(recs.items(), key=lambda kv: (kv[1].num_reg_images(), -kv[0]))[1]
+        return int(best.num_reg_images()), best, len(recs)
+
+    def map(self, pycolmap) -> dict:
+        """Incremental mapping with COLMAP's options; when its largest model registers fewer than :meth:`need`,
+        again with a smaller ``init_min_tri_angle`` (:data:`MAP_RETRIES`), keeping the largest model of all tries."""
+        part, model_part, model = self.work / "mapping.partial", self.work / "model.partial", self.work / "model"
+        _remove(model_part)
+        n, best, tries, models = len(self.names), (0, None, 0), [], 0
+        for k, tri in enumerate((None, *MAP_RETRIES)):
+            if k:
+                _say(f"  map: {best[0]} of {n} photos registered, fewer than {self.need()}; again with "
+                     f"init_min_tri_angle={tri:g}° (COLMAP's 16° fails on small baselines, e.g. forward-facing photos)")
+            desc = "map" if tri is None else f"map (init_min_tri_angle={tri:g})"
+            got = self._map_once(pycolmap, part, tri, desc)
+            tries.append({"init_min_tri_angle": tri, "registered": got[0], "models": got[2]})
+            if got[1] is not None and got[0] > best[0]:
+                best = got
+                _remove(model_part)
+                model_part.mkdir(parents=True)
+                got[1].write(model_part)
+            if best[0] >= self.need():
+                break
+        _remove(part)
+        _remove(model)
+        reg_n, rec, models = best
+        if rec is None:
+            return {"registered": 0, "models": 0, "points": 0, "unregistered": self.names, "tries": tries,
+                    "note": "no model: no pair of photos could start one"}
+        os.replace(model_part, model)
+        reg = {im.name for im in rec.images.values() if im.has_pose}
+        missing = [x for x in self.names if x not in reg]
+        error = float(rec.compute_mean_reprojection_error())
+        error = error if math.isfinite(error) else None  # JSON has no NaN
+        shown = "n/a" if error is None else f"{error:.2f} px"
+        return {"registered": len(reg), "models": models, "points": int(rec.num_points3D()),
+                "reprojection_error_px": error, "unregistered": missing, "tries": tries,
+                "note": f"{len(reg)} of {n} photos registered, {rec.num_points3D():,} points, mean reprojection "
+                        f"{shown}" + (f", {models} models (the largest kept)" if models > 1 else "")
+                        + (f", after {len(tries)} tries" if len(tries) > 1 else "")}
+
+    def undistort(self, pycolmap) -> dict:
+        from PIL import Image
+
+        from b3dgs.types import fit_size
+
+        stage = self.work / "undistort.partial"
+        _remove(stage)
+        model = pycolmap.Reconstruction(str(self.work / "model"))
+        n = sum(1 for im in model.images.values() if im.has_pose)
+        bar = _bar("undistort", n, " photos")
+        _call(lambda: pycolmap.undistort_images(stage, self.work / "model", self.images, num_threads=self.threads),
+              lambda: _advance(bar, len(list((stage / "images").iterdir())) if (stage / "images").is_dir() else 0))
+        bar.close()
+        rec = pycolmap.Reconstruction(str(stage / "sparse"))
+        max_side = int(self.cfg.max_side)
+        scales = {}
+        for cam in rec.cameras.values():
+            w, h = int(cam.width), int(cam.height)
+            w2, h2 = fit_size(w, h, max_side)
+            scales[cam.camera_id] = (w2 / w, h2 / h, w2, h2, (w2, h2) != (w, h))
+            if (w2, h2) != (w, h):
+                cam.rescale(w2, h2)
+        images = [im for im in rec.images.values() if im.has_pose]
+        bar = _bar(f"resize (long side <= {max_side} px)", len(images), " photos")
+        for im in images:
+            _stop_if_signalled()
+            sx, sy, w2, h2, resize = scales[im.camera_id]
+            if resize:
+                path = stage / "images" / im.name
+                with Image.open(path) as src:
+                    fmt = src.format
+                    small = src.resize((w2, h2), Image.LANCZOS)
+                small.save(path, format=fmt, **({"quality": 95} if fmt == "JPEG" else {}))
+                for p in im.points2D:
+                    p.xy = [p.xy[0] * sx, p.xy[1] * sy]
+            bar.update(1)
+        bar.close()
+        (stage / "model").mkdir()
+        rec.write(str(stage / "model"))
+        sizes = sorted({(v[2], v[3]) for v in scales.values()})
+        # into place: a kill between these lines leaves the stage unrecorded, and the rerun does it again
+        _remove(self.out / "images")
+        _remove(self.out / "sparse")
+        os.replace(stage / "images", self.out / "images")
+        (self.out / "sparse").mkdir()
+        os.replace(stage / "model", self.out / "sparse" / "0")
+        _remove(stage)
+        size = " / ".join(f"{w}x{h}" for w, h in sizes[:3]) + (" / ..." if len(sizes) > 3 else "")
+        return {"images": len(images), "sizes": [list(s) for s in sizes], "size": size,
+                "note": f"{len(images)} PINHOLE images of {size} px"}
+
+
+# ----------------------------------------------------------------------------------------------- state and checks
+
+
+def _read_state(out: Path) -> Optional[dict]:
+    path = out / STATE
+    if not path.is_file():
+        return None
+    try:
+        state = json.loads(path.read_text())
+        if not isinstance(state, dict) or state.get("format") != FORMAT or not isinstance(state.get("stages"), dict):
+            raise ValueError("not a b3dgs-process record")
+        return state
+    except (OSError, ValueError) as e:
+        raise B3dgsError(f"{path} is damaged ({e})",
+                         f"delete {out} (or that file and {out / WORK}) and run again, or pass out= a new folder") from e
+
+
+def _write_state(out: Path, state: dict) -> None:
+    from b3dgs.io import write_json
+
+    write_json(out / STATE, state)
+
+
+def _check_out(out: Path, images: Path, state: Optional[dict]) -> None:
+    if out.exists() and not out.is_dir():
+        raise B3dgsError(f"out={out} is a file", "pass out= a new or empty folder")
+    try:
+        images.resolve().relative_to(out.resolve())
+        inside = True
+    except ValueError:
+        inside = False
+    if inside:
+        raise B3dgsError(f"images={images} is inside out={out}, where the undistorted images are written",
+                         f"pass out= a folder outside the photos' folder, e.g. out={out.parent / (out.name + '_scene')}")
+    if state is None and out.is_dir():
+        other = sorted(p.name for p in out.iterdir() if p.name != LOCK)
+        if other:
+            raise B3dgsError(f"out={out} holds what b3dgs-process did not write "
+                             f"({', '.join(other[:3])}{f' and {len(other) - 3} more' if len(other) > 3 else ''})",
+                             "pass out= a new or empty folder")
+
+
+def _diff(old: list, new: list) -> str:
+    a, b = {r[0]: r[1:] for r in old}, {r[0]: r[1:] for r in new}
+    added, removed = len(set(b) - set(a)), len(set(a) - set(b))
+    changed = sum(1 for k in set(a) & set(b) if a[k] != b[k])
+    return f"{added} added, {removed} removed, {changed} changed"
+
+
+def _remove_ours(out: Path, state: dict) -> None:
+    """``overwrite=true``: what b3dgs-process wrote into ``out`` (nothing else)."""
+    for name in ("images", "sparse", WORK):
+        _remove(out / name)
+    scene_file = state.get("scene_file")
+    if scene_file:
+        _remove(out / scene_file)
+        for parent in (out / scene_file).parents:
+            if parent == out or not parent.is_dir() or any(parent.iterdir()):
+                break
+            parent.rmdir()
+    _remove(out / STATE)
+
+
+def _check_options(cfg: DictConfig, pycolmap) -> None:
+    from b3dgs.errors import did_you_mean
+
+    matcher = str(cfg.matcher)
+    if matcher not in MATCHERS:
+        raise B3dgsError(f"matcher={matcher} is not a matcher{did_you_mean(matcher, MATCHERS)}",
+                         f"pass matcher={'|'.join(MATCHERS)}")
+    models = [m for m in pycolmap.CameraModelId.__members__ if m != "INVALID"]
+    if str(cfg.camera_model) not in models:
+        raise B3dgsError(f"camera_model={cfg.camera_model} is not a COLMAP camera model"
+                         f"{did_you_mean(str(cfg.camera_model), models)}", f"pass one of {', '.join(models)}")
+    for key in ("max_side", "sift_max_side"):
+        v = cfg.get(key)
+        if isinstance(v, bool) or not isinstance(v, int) or v < 16:
+            raise B3dgsError(f"{key}={v} is not a size in pixels", f"pass {key}= an integer of at least 16")
+    mr = cfg.get("min_registered")
+    if isinstance(mr, bool) or not isinstance(mr, (int, float)) or not 0 <= mr <= 1:
+        raise B3dgsError(f"min_registered={mr} is not a share of the photos", "pass min_registered= a number in [0, 1]")
+    if cfg.get("single_camera") not in (None, True, False):
+        raise B3dgsError(f"single_camera={cfg.single_camera} is not null, true or false",
+                         "pass single_camera=null (one camera when every photo has the same size), true or false")
+    th = cfg.get("threads")
+    if th is not None and (isinstance(th, bool) or not isinstance(th, int) or th < 1):
+        raise B3dgsError(f"threads={th} is not a thread count", "pass threads= a positive integer, or null (all cores)")
+
+
+def _scene_name(cfg: DictConfig, out: Path) -> str:
+    given = cfg.get("name")
+    name = str(given) if given is not None else re.sub(r"[^A-Za-z0-9_.-]", "_", out.name).lstrip("_.-") or "scene"
+    if not NAME_RE.match(name):
+        raise B3dgsError(f"name={name} is not a scene name", "pass name= letters, digits, _ . - (a letter or digit first)")
+    if (Path(CONF_DIR) / "scene" / f"{name}.yaml").is_file():
+        raise B3dgsError(f"name={name} is a scene b3dgs already has (conf/scene/{name}.yaml); scene={name} would load "
+                         "that one", "pass name= another name")
+    return name
+
+
+def _searchpath_override(conf: Path) -> str:
+    value = f"file://{conf}"
+    if not all(c.isascii() and (c.isalnum() or c in "_./:-+~@") for c in value):
+        value = "'" + value.replace("'", "\\'") + "'"
+    return f"hydra.searchpath=[{value}]"
+
+
+def _scene_yaml(name: str, out: Path, images: Path, summary: str, command: str) -> str:
+    root = Path(data_root()).absolute()
+    path = f"${{data_root}}/{out.name}" if out.parent.resolve() == root.resolve() else str(out.resolve())
+    return (f"# @package _global_\n"
+            f"# {name}: written by b3dgs-process from {images} ({summary}).\n"
+            f"# Train it: {command}\n"
+            f"# or copy this file into conf/scene/ (or a package's conf/scene/) and drop the hydra.searchpath.\n"
+            f"defaults:\n"
+            f"  - override /data: colmap\n"
+            f"data:\n"
+            f"  path: {json.dumps(path)}\n")
+
+
+def _registration_check(stats: dict, n: int, run: _Run) -> None:
+    cfg = run.cfg
+    reg, need = int(stats.get("registered", 0)), run.need()
+    if reg >= need:
+        return
+    tries = ["photos with more overlap (each part of the scene in 3+ photos, neighbours sharing most of the view)"]
+    if run.matcher == "sequential":
+        tries.append("matcher=exhaustive (sequential matching pairs photos by name order only)")
+    big = max(max(s) for s in run.sizes)
+    if big > int(cfg.sift_max_side):
+        tries.append(f"sift_max_side={big} (the photos are up to {big} px; SIFT sees {cfg.sift_max_side})")
+    elif big < 1000:
+        tries.append(f"larger photos (these are at most {big} px)")
+    if str(cfg.camera_model) in ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL"):
+        tries.append("camera_model=OPENCV for a wide-angle lens")
+    if reg >= MIN_PHOTOS:
+        tries.append(f"or min_registered={math.floor(100 * reg / n) / 100:g} to keep the {reg} registered")
+    models, attempts = int(stats.get("models", 0)), len(stats.get("tries", []))
+    where = f" (the largest of {models} models)" if models > 1 else ""
+    where += f" after {attempts} mapping tries" if attempts > 1 else ""
+    raise B3dgsError(f"only {reg} of {n} photos registered{where}; b3dgs-process needs {need} "
+                     f"(min_registered={cfg.min_registered:g})", "try " + "; ".join(tries))
+
+
+# ----------------------------------------------------------------------------------------------- the command
+
+
+def process(cfg: DictConfig) -> dict:
+    """Run (or resume) the stages for ``cfg`` (``conf/process.yaml``); returns a summary (``out``, ``name``,
+    ``command``, per stage ``{"skipped", "seconds", ...}``)."""
+    from b3dgs.data.images import import_pycolmap
+    from b3dgs.rundir import interrupt_handlers
+
+    import_pycolmap()  # first: importing pycolmap installs glog's handler (a stack trace) for SIGTERM
+    with interrupt_handlers() as pending:  # SIGINT / SIGTERM: b3dgs.rundir.Interrupted, also while a stage runs
+        pending.deferred = True  # recorded, and raised by _stop_if_signalled
+        return _process(cfg)
+
+
+def _process(cfg: DictConfig) -> dict:
+    from b3dgs.locks import LockHeld, process_lock
+
+    images = Path(os.path.abspath(Path(str(cfg.images)).expanduser()))  # absolute, without ".."
+    out = Path(os.path.abspath(Path(str(cfg.out)).expanduser()))
+    photos = list_photos(images)
+    sizes = _sizes(photos)  # reads every header: an unreadable photo is refused before anything is written
+    with _colmap_log(bool(cfg.get("verbose", False))) as pycolmap:
+        _check_options(cfg, pycolmap)
+        name = _scene_name(cfg, out)
+        state = _read_state(out)
+        _check_out(out, images, state)
+        out.mkdir(parents=True, exist_ok=True)
+        try:
+            with process_lock(out / LOCK, wait=False, remove=True):
+                return _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap)
+        except LockHeld as e:
+            raise B3dgsError(f"out={out} is in use by another b3dgs-process (pid {e.pid})",
+                             "wait for it to finish, or pass out= another folder") from None
+
+
+def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap) -> dict:
+    from b3dgs.rundir import Interrupted
+
+    t_start = time.perf_counter()
+    listing = _listing(photos)
+    fp = _fingerprint(listing)
+    if state is not None and bool(cfg.get("overwrite", False)):
+        _remove_ours(out, state)
+        state = None
+    if state is not None and state.get("fingerprint") != fp:
+        raise B3dgsError(f"images={images} changed since {out} was processed from it "
+                         f"({_diff(state.get('photos', []), listing)})",
+                         "pass overwrite=true to process it afresh, or out= a new folder")
+    single = bool(cfg.single_camera) if cfg.get("single_camera") is not None else len(set(sizes)) == 1
+    matcher = str(cfg.matcher)
+    if matcher == "auto":
+        matcher = "exhaustive" if len(photos) <= EXHAUSTIVE_UP_TO else "sequential"
+    run = _Run(cfg, photos, sizes, images, out, single, matcher)
+    if state is None:
+        state = {"format": FORMAT, "images": str(images), "fingerprint": fp, "photos": listing, "stages": {}}
+    state["images"] = str(images)
+    run.work.mkdir(parents=True, exist_ok=True)
+    _write_state(out, state)
+    keys = run.keys()
+    cams = "one camera" if single else "one camera per photo"
+    _say(f"b3dgs-process: {len(photos)} photos in {images} -> {out} ({matcher} matching, {cfg.camera_model}, {cams})")
+    report: dict[str, Any] = {}
+    for i, stage in enumerate(STAGES):
+        _stop_if_signalled()
+        tag = f"[{i + 1}/{len(STAGES)}] {stage}"
+        rec = state["stages"].get(stage)
+        if rec is not None and rec.get("key") == keys[stage] and all(p.exists() for p in run.outputs(stage)) \
+                and not (stage == "map" and run.may_retry(rec)):
+            _say(f"{tag}: done earlier ({rec['seconds']:.1f} s; {rec.get('note', '')}), skipped")
+            report[stage] = {**rec, "skipped": True}
+        else:
+            why = ""
+            if rec is not None and rec.get("key") != keys[stage]:
+                changed = [f"{k} {rec['key'].get(k)} -> {v}" for k, v in keys[stage].items() if rec["key"].get(k) != v]
+                why = f" (options changed: {', '.join(changed)})"
+            elif rec is not None and stage == "map" and run.may_retry(rec):
+                why = f" (it registered {rec.get('registered', 0)}, fewer than {run.need()}, with tries left)"
+            elif rec is not None:
+                why = " (its output is gone)"
+            for later in STAGES[i:]:  # this stage and every later one are redone
+                state["stages"].pop(later, None)
+            _write_state(out, state)
+            _say(f"{tag}{why}")
+            t0 = time.perf_counter()
+            try:
+                _stop_if_signalled()
+                stats = getattr(run, stage)(pycolmap)
+            except Interrupted as e:
+                e.stage = stage
+                raise
+            seconds = time.perf_counter() - t0
+            state["stages"][stage] = {"key": keys[stage], "seconds": round(seconds, 3), **stats}
+            _write_state(out, state)
+            _say(f"{tag}: {stats['note']} in {seconds:.1f} s")
+            report[stage] = {**state["stages"][stage], "skipped": False}
+        if stage == "map":
+            _registration_check(state["stages"]["map"], len(photos), run)
+    # the scene file: written every run (the name may have changed)
+    conf = out / "conf"
+    command = f"b3dgs-train scene={name} {shlex.quote(_searchpath_override(conf))}"
+    m, u = state["stages"]["map"], state["stages"]["undistort"]
+    summary = f"{m['registered']} of {len(photos)} photos registered; PINHOLE, {u['size']} px (max_side={cfg.max_side})"
+    scene_file = f"conf/scene/{name}.yaml"
+    text = _scene_yaml(name, out, images, summary, command)
+    old = state.get("scene_file")
+    if old and old != scene_file:
+        _remove(out / old)
+    from b3dgs.io import atomic_path
+
+    target = out / scene_file
+    if not target.is_file() or target.read_text() != text:
+        with atomic_path(target) as tmp:
+            tmp.write_text(text)
+    state["scene_file"], state["name"] = scene_file, name
+    _write_state(out, state)
+    total = time.perf_counter() - t_start
+    _say(f"b3dgs-process: {summary}; " + ", ".join(f"{s} {state['stages'][s]['seconds']:.1f} s" for s in STAGES)
+         + f" (this run {total:.1f} s)")
+    _say(f"scene: {out}/images, {out}/sparse/0, {target}")
+    _say(f"train it: {command}")
+    _say(f"      or: b3dgs-train data=colmap {shlex.quote('data.path=' + str(out))}")
+    return {"out": str(out), "name": name, "command": command, "scene_file": str(target), "stages": report,
+            "registered": int(m["registered"]), "photos": len(photos), "seconds": total}
+
+
+@hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="process")
+def hydra_main(cfg: DictConfig) -> None:
+    from b3dgs.errors import known_errors
+
+    from b3dgs.rundir import Interrupted
+
+    with known_errors("b3dgs-process", cfg):
+        try:
+            process(cfg)
+        except Interrupted as e:
+            during = f" during the {e.stage} stage" if getattr(e, "stage", None) else ""
+            sys.stdout.flush()
+            sys.stderr.write(f"b3dgs-process: {e}{during}; run the same command again to resume (finished stages "
+                             f"are kept)\n")
+            sys.stderr.flush()
+            os._exit(e.exit_code)  # at once: the stage's pycolmap call may still run in its thread
+
+
+def main() -> None:
+    """``b3dgs-process``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
+    from b3dgs.errors import run_cli
+
+    run_cli("b3dgs-process", hydra_main, config="process")
+
+
+if __name__ == "__main__":
+    main()
