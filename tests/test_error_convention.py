@@ -50,6 +50,11 @@ ALLOWED = {
     ("b3dgs/data/images.py", "_SizeMismatch", ""): "internal signal, caught in the same function and re-raised as B3dgsError",
     ("b3dgs/rundir.py", "Interrupted", ""): "a signal (SIGINT/SIGTERM) stopping a run, handled by the CLI, not an input error",
     ("b3dgs/callbacks.py", "Interrupted", ""): "a signal (SIGINT/SIGTERM) stopping a run, handled by the CLI, not an input error",
+    ("b3dgs/process.py", "Interrupted", ""): "a signal (SIGINT/SIGTERM) stopping b3dgs-process at a stage boundary, handled by the CLI",
+    ("b3dgs/process.py", "ValueError", "not a b3dgs-process record"):
+        "internal signal, caught in the same function and re-raised as B3dgsError naming the damaged file",
+    ("b3dgs/rundir.py", "ValueError", "not a file name relative to a run dir"):
+        "programming error: a b3dgs writer passed a bad name to the manifest (users never name these files)",
 }
 
 # ------------------------------------------------------------------------------------------------------------------
