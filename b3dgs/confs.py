@@ -9,7 +9,7 @@ from omegaconf import OmegaConf
 
 from b3dgs import conf_dir
 
-__all__ = ["conf_roots", "known_keys", "load_option", "option_names"]
+__all__ = ["added_key_problem", "conf_roots", "known_keys", "load_option", "option_names"]
 
 
 def conf_roots() -> list[Path]:
@@ -99,3 +99,58 @@ def known_keys(path: str, config: Optional[str] = None) -> tuple[str, ...]:
                 data, is_global = _load(f)
                 descend(data, parts if is_global else parts[1:])
     return tuple(sorted(keys))
+
+
+def _nodes_at(path: str, config: str) -> list:
+    """The nodes b3dgs's config files give dotted ``path`` under app ``config`` (its primary config, and every option
+    file of the group the path starts with when the app's defaults list composes that group), as loaded."""
+    parts = [p for p in path.split(".") if p]
+    found = []
+
+    def descend(node, rest):
+        for p in rest:
+            if not isinstance(node, dict) or p not in node:
+                return
+            node = node[p]
+        found.append(node)
+
+    groups = set()
+    for root in conf_roots():
+        f = root / f"{config}.yaml"
+        if f.is_file():
+            data = _load(f)[0]
+            descend(data, parts)
+            groups |= _defaults_groups(data)
+    for root in conf_roots():  # option files of the groups the app composes (a node of the same name is not one)
+        if parts and parts[0] in groups and (root / parts[0]).is_dir():
+            for g in sorted((root / parts[0]).glob("*.yaml")):
+                data, is_global = _load(g)
+                descend(data, parts if is_global else parts[1:])
+    return found
+
+
+def added_key_problem(key: str, config: str, prog: Optional[str] = None) -> Optional[tuple[str, str]]:
+    """(problem, fix) when ``+key=...`` adds a key that nothing of app ``config`` reads, else None. A key is read when a
+    config file of the app gives it, or when it lies under a node that takes any key: an empty mapping there
+    (``policy_settings: {}``, ``callbacks: {}``) or a ``_target_`` node (whose class's fields decide, when it is
+    built). ``hydra.*`` is Hydra's own."""
+    import difflib
+
+    parts = [p for p in str(key).split(".") if p]
+    if not parts or parts[0] == "hydra":
+        return None
+    for i in range(len(parts)):  # the first prefix no file gives; stop early under a node that takes any key
+        nodes = _nodes_at(".".join(parts[:i + 1]), config)
+        if not nodes:
+            break
+        if i + 1 < len(parts) and any(isinstance(n, dict) and (not n or "_target_" in n) for n in nodes):
+            return None
+    else:
+        return None  # the key exists
+    parent, leaf = ".".join(parts[:i]), parts[i]
+    known = [k for k in known_keys(parent, config) if not k.startswith("hydra") and "/" not in k]
+    close = difflib.get_close_matches(leaf, known, n=1, cutoff=0.6)
+    hint = f"; did you mean {(parent + '.' if parent else '') + close[0]}?" if close else ""
+    where = f"{parent}.{leaf}" if parent else leaf
+    return (f"+{key}: {where} reaches nothing {prog or 'b3dgs-' + config} reads{hint}",
+            f"remove it, or set one of {parent + '.' if parent else ''}{{{', '.join(known)}}}")

@@ -243,6 +243,22 @@ def known_errors(prog: str, cfg=None):
         _report(prog, e)
 
 
+#: apps whose task checks every key of its composed config itself (b3dgs.validation.validate_config)
+_VALIDATED_APPS = ("train", "eval")
+
+
+def _refuse_unread_additions(prog: str, argv: list[str], config: str) -> None:
+    """One line and exit 2 for a ``+key=value`` override that nothing of the app reads (:func:`b3dgs.confs.
+    added_key_problem`); b3dgs-train and b3dgs-eval check their composed configs instead."""
+    from b3dgs.confs import added_key_problem
+
+    for arg in argv:
+        if arg.startswith("+") and "=" in arg:
+            problem = added_key_problem(arg.lstrip("+").split("=", 1)[0], config, prog)
+            if problem is not None:
+                _report(prog, B3dgsError(*problem))
+
+
 def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str]] = None,
             config: Optional[str] = None) -> None:
     """Call a ``@hydra.main`` function; print known composition errors (bad override, unknown option)
@@ -260,6 +276,8 @@ def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str
     os.environ[_USER_ENV] = old or ""
     os.environ["HYDRA_FULL_ERROR"] = "1"
     try:
+        if config not in (None, *_VALIDATED_APPS):
+            _refuse_unread_additions(prog, argv, config)
         if debug:
             hydra_main()  # HYDRA_FULL_ERROR=1 or b3dgs.debug=true: Hydra passes the full traceback on
         else:

@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from b3dgs.checkpoint import check_checkpoint
 from b3dgs.confs import global_groups, known_keys, load_option, option_names
 from b3dgs.errors import B3dgsError, did_you_mean
-from b3dgs.schema import UNRESOLVED, apply_rules, check_node, show, value
+from b3dgs.schema import UNRESOLVED, apply_rules, check_node, locate, show, value
 
 __all__ = ["check_checkpoint", "validate_config"]
 
@@ -52,11 +52,28 @@ def _blocks(cfg: DictConfig, group: str, what: str, values: dict) -> list:
     return out
 
 
+#: third-party targets whose ``**kwargs`` go to another callable, whose keywords are then the keys the node may have
+KWARGS_FORWARDED_TO = {"lightning.pytorch.loggers.TensorBoardLogger": "torch.utils.tensorboard.writer.SummaryWriter"}
+
+
+def _nested_targets(node: DictConfig, path: str):
+    """(path, node) of every ``_target_`` node inside ``node`` (e.g. a UQ regime's added posterior blocks)."""
+    for k in map(str, node.keys()):
+        child = node._get_node(k)
+        if isinstance(child, DictConfig):
+            if "_target_" in child:
+                yield f"{path}.{k}", child
+            yield from _nested_targets(child, f"{path}.{k}")
+
+
 def _validate_plugins(nodes: list, max_steps: int) -> None:
-    """Build each plugin and run its own ``validate``."""
+    """Check the keys of the ``_target_`` nodes nested in each plugin's node, then build each plugin and run its
+    own ``validate``."""
     from hydra.utils import instantiate
 
     for path, node in nodes:
+        for sub_path, sub in _nested_targets(node, path):
+            check_node(sub, sub_path)
         try:
             instantiate(node).validate(max_steps=max_steps)
         except B3dgsError as e:
@@ -96,8 +113,11 @@ def _check_top(cfg: DictConfig, app: str, values: dict) -> None:
                              f"remove it or correct its spelling (top-level keys: {', '.join(sorted(known))})")
         if not isinstance(cfg[key], DictConfig) and key not in ("hydra", "run"):
             values[key] = value(cfg, key, key)
-    if set(cfg.get("b3dgs") or {}) - {"debug"} or not isinstance(OmegaConf.select(cfg, "b3dgs.debug", default=False), bool):
-        raise B3dgsError("the b3dgs node holds only b3dgs.debug (true or false)", "pass b3dgs.debug=true for full tracebacks")
+    extra_b3dgs = sorted(map(str, set(cfg.get("b3dgs") or {}) - {"debug"}))
+    if extra_b3dgs or not isinstance(OmegaConf.select(cfg, "b3dgs.debug", default=False), bool):
+        what = f"b3dgs.{extra_b3dgs[0]} is not a setting: " if extra_b3dgs else ""
+        raise B3dgsError(f"{what}the b3dgs node holds only b3dgs.debug (true or false)",
+                         "pass b3dgs.debug=true for full tracebacks")
     lw = values.get("lpips_weights")
     if lw not in (None, "") and not Path(str(lw)).expanduser().is_file():
         raise B3dgsError(f"lpips_weights={lw}: no such file",
@@ -124,6 +144,9 @@ def _check_train(cfg: DictConfig, values: dict) -> None:
         trainer.update({k: v for k, v in _option("trainer", name).items() if not k.startswith("_")})
     chosen = _option("trainer", _hydra(cfg, "runtime.choices.trainer", "default"))
     extra = {"data": {"also": loader}, "trainer": {"extra": trainer, "shown": chosen}}
+    logger_target = OmegaConf.select(cfg, "logger._target_", default=None)
+    if logger_target in KWARGS_FORWARDED_TO:  # the logger's **kwargs go to its writer: check them against the writer's
+        extra["logger"] = {"also": locate(KWARGS_FORWARDED_TO[logger_target])}
     for group in ("renderer", "data", "model", "trainer", "logger", "strategy", "schedule"):
         node = cfg.get(group)
         if isinstance(node, DictConfig) and ("_target_" in node or group != "logger"):

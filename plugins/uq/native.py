@@ -51,6 +51,22 @@ class NativeUQ(UQRegime):
     add: Optional[dict] = None  # {name: PosteriorBlock} (instantiated by Hydra from conf/uq/native_sh.yaml)
     model_blocks: bool = True  # draw from the model's own blocks (false: only from ``add``)
 
+    def validate(self, **kwargs) -> None:
+        super().validate(**kwargs)
+        for name, blk in (self.add or {}).items():
+            if not isinstance(self._block(name, blk), PosteriorBlock):
+                raise B3dgsError(f"add.{name} must be a posterior block (a _target_ to a PosteriorBlock class such as "
+                                 f"b3dgs_plugins.posterior.sh.SHPosteriorBlock), got {type(blk).__name__}",
+                                 f"remove add.{name}, or give it a _target_")
+
+    @staticmethod
+    def _block(name, blk):
+        """An added block as built by Hydra (a dataclass built inside a dict node is stored as a structured node)."""
+        if isinstance(blk, DictConfig) and isinstance(OmegaConf.get_type(blk), type) \
+                and issubclass(OmegaConf.get_type(blk), PosteriorBlock):
+            blk = OmegaConf.to_object(blk)
+        return blk
+
     def _blocks(self, m):
         """(name, block, state) to draw from: the model's own, or copies with ``count_scale`` / ``count`` applied
         (``count``: ``posterior.niw.count``, e.g. ``weight``, re-evaluated on the trained model without retraining)."""
@@ -65,12 +81,11 @@ class NativeUQ(UQRegime):
                 blk.validate()
             out.append((name, blk, st))
         for name, blk in (self.add or {}).items():
-            if isinstance(blk, DictConfig) and isinstance(OmegaConf.get_type(blk), type) \
-                    and issubclass(OmegaConf.get_type(blk), PosteriorBlock):
-                blk = OmegaConf.to_object(blk)  # Hydra stores a dataclass built inside a dict node as a structured node
+            blk = self._block(name, blk)
             if not isinstance(blk, PosteriorBlock):
                 raise B3dgsError(f"uq.{name}: add.{name} must be a posterior block (a _target_ to a PosteriorBlock "
-                                 f"class such as b3dgs_plugins.posterior.sh.SHPosteriorBlock), got {type(blk).__name__}")
+                                 f"class such as b3dgs_plugins.posterior.sh.SHPosteriorBlock), got {type(blk).__name__}",
+                                 f"remove add.{name}, or give it a _target_")
             if self.model_blocks and name in m.posterior:
                 own = m.posterior[name]
                 if own == blk:  # posterior=[niw,sh] under uq=[native_plus_sh]: the model's own block is the same one
