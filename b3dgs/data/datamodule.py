@@ -7,7 +7,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from b3dgs.data.scene import NEAR_PLANE, load_scene
+from b3dgs.data.scene import NEAR_PLANE, load_scene, read_scene
 from b3dgs.errors import B3dgsError
 from b3dgs.types import Camera, Scene
 
@@ -139,7 +139,8 @@ class SceneDataModule(L.LightningDataModule):
     Arguments mirror :func:`b3dgs.data.load_scene` (``near_plane``: the renderer's, for the near-plane
     guard; ``calib_every``: calibration views held out of training, ``scene.calib``); ``name`` (optional) overrides the scene name;
     extra keyword arguments go to the format loader (e.g. ``n_views``, ``resolution``, ``seed``).
-    A prebuilt ``scene`` may be passed instead (then nothing is loaded).
+    A prebuilt ``scene`` may be passed instead (then nothing is loaded). ``keep_raw`` (set before :meth:`setup`):
+    keep what was read, for :meth:`select_train`.
     """
 
     def __init__(
@@ -180,6 +181,8 @@ class SceneDataModule(L.LightningDataModule):
         self._scene: Optional[Scene] = scene
         self.train_sampler: Optional[ResumableRandomSampler] = None  # made by train_dataloader()
         self.allow_new_views = False  # a new training round: the sampler may resume from fewer train views
+        self.keep_raw = False
+        self._raw = None  # the scene as read (keep_raw)
 
     @property
     def scene(self) -> Scene:
@@ -188,28 +191,41 @@ class SceneDataModule(L.LightningDataModule):
         assert self._scene is not None
         return self._scene
 
+    def _scene_args(self) -> dict[str, Any]:
+        """The arguments of :func:`~b3dgs.data.scene.load_scene` (after kind and path) this module loads with."""
+        return dict(max_side=self.max_side, test_every=self.test_every, train_indices=self.train_indices,
+                    normalize=self.normalize, background=self.background, max_images=self.max_images,
+                    near_plane=self.near_plane, calib_every=self.calib_every, test_split=self.test_split,
+                    test_fraction=self.test_fraction, sector_axis=self.sector_axis, **self.kind_kwargs)
+
+    def _load(self, raw=None) -> Scene:
+        scene = load_scene(self.kind, self.path, raw=raw, **self._scene_args())
+        if self.name:
+            scene.name = str(self.name)
+        return scene
+
     def setup(self, stage: Optional[str] = None) -> None:
         if self._scene is not None:
             return
-        scene = load_scene(
-            self.kind,
-            self.path,
-            max_side=self.max_side,
-            test_every=self.test_every,
-            train_indices=self.train_indices,
-            normalize=self.normalize,
-            background=self.background,
-            max_images=self.max_images,
-            near_plane=self.near_plane,
-            calib_every=self.calib_every,
-            test_split=self.test_split,
-            test_fraction=self.test_fraction,
-            sector_axis=self.sector_axis,
-            **self.kind_kwargs,
-        )
-        if self.name:
-            scene.name = str(self.name)
-        self._scene = scene
+        if self.keep_raw:  # with the point tracks a later select_train(init_points_from_train_only=True) needs
+            loader_kwargs = {k: v for k, v in self.kind_kwargs.items() if k != "init_points_from_train_only"}
+            self._raw = read_scene(self.kind, self.path, max_side=self.max_side, background=self.background,
+                                   max_images=self.max_images, point_tracks=True, **loader_kwargs)
+        self._scene = self._load(self._raw)
+
+    def select_train(self, train_indices: Sequence[int], init_points_from_train_only: bool = False) -> "SceneDataModule":
+        """A data module over this one's views whose scene trains on ``train_indices`` of its training views only
+        (the others become the scene's ``candidates``; ``init_points_from_train_only``: the initial points those
+        views saw), made from what this one read (``keep_raw``) without reading the scene again."""
+        self.setup()
+        if self._raw is None:
+            raise B3dgsError("select_train needs the views this data module read, and it did not keep them",
+                             "set keep_raw = True before setup() (b3dgs.lifecycle.data_module(node, keep_raw=True))")
+        args = {**self._scene_args(), "train_indices": [int(i) for i in train_indices],
+                "init_points_from_train_only": bool(init_points_from_train_only)}
+        out = type(self)(self.kind, self.path, name=self.name, **args)
+        out._scene = out._load(self._raw)
+        return out
 
     def _loader(self, cameras: Sequence[Camera], shuffle: bool) -> DataLoader:
         return DataLoader(

@@ -72,6 +72,7 @@ __all__ = [
     "guess_kinds",
     "load_scene",
     "look_at_point",
+    "read_scene",
     "materialize",
     "normalize_scene",
     "preprocess",
@@ -648,6 +649,45 @@ def loader_reads_files(loader) -> bool:
     return next(iter(loader_params(loader)), None) == "path"
 
 
+def _kind(kind) -> str:
+    return str(kind) if str(kind).lower() not in LOADERS else str(kind).lower()
+
+
+def read_scene(
+    kind: str,
+    path: str | os.PathLike | None,
+    max_side: Optional[int] = None,
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+    max_images: Optional[int] = None,
+    point_tracks: bool = False,
+    **kind_kwargs: Any,
+) -> RawScene:
+    """Read a scene of ``kind`` as its format loader gives it, before :func:`preprocess` (arguments as
+    :func:`load_scene`'s). ``point_tracks``: also which images observed each initial point, where the format
+    records it (``init_points_from_train_only``)."""
+    background = tuple(float(x) for x in background)
+    if len(background) != 3 or not all(0.0 <= b <= 1.0 for b in background):
+        raise B3dgsError(f"background must be 3 floats in [0, 1] (RGB), got {list(background)}",
+                         "pass background=[0,0,0] (black) or [1,1,1] (white)")
+    if max_side is not None and not int(max_side) > 0:
+        raise B3dgsError(f"max_side must be a positive pixel count, got {max_side}",
+                         "pass max_side=256 (longest image side) or null for the full resolution")
+    kind = _kind(kind)
+    loader = get_loader(kind)
+    reads_files = loader_reads_files(loader)
+    if reads_files:
+        if path is None or str(path) == "":
+            raise B3dgsError(f"load_scene(kind={kind!r}) needs a path")
+        if not Path(path).exists():
+            raise FileNotFoundError(f"Scene path not found: {path}")
+        if kind_kwargs.get("sparse_dir") is None:  # a custom model folder is the loader's to find
+            check_layout(kind, path)
+    common = dict(max_side=max_side, background=background, max_images=max_images)
+    if point_tracks and "point_tracks" in loader_params(loader):
+        kind_kwargs = {**kind_kwargs, "point_tracks": True}  # which images observed each SfM point
+    return loader(path, **common, **kind_kwargs) if reads_files else loader(**common, **kind_kwargs)
+
+
 def load_scene(
     kind: str,
     path: str | os.PathLike | None,
@@ -663,6 +703,7 @@ def load_scene(
     test_split: str = "interleaved",
     test_fraction: float = 0.125,
     sector_axis: int = 0,
+    raw: Optional[RawScene] = None,
     **kind_kwargs: Any,
 ) -> Scene:
     """Load a scene of ``kind`` (``colmap``, ``transforms``, ``llff``, ``synthetic`` or a loader function
@@ -684,37 +725,21 @@ def load_scene(
         near_plane: the renderer's near plane, for the guard of :func:`check_near_plane`.
         calib_every: hold out every ``calib_every``-th train view as a calibration view
             (``scene.calib``; see :func:`split_calibration`); None or 0: none.
+        raw: the scene as :func:`read_scene` read it with these settings (then nothing is read again; its point
+            tracks are needed for ``init_points_from_train_only``).
         **kind_kwargs: passed to the format loader (e.g. ``n_views``, ``resolution``, ``seed`` for
             "synthetic"; ``images_dir`` for "colmap"/"llff"; ``sparse_dir`` for "colmap").
     """
-    background = tuple(float(x) for x in background)
-    if len(background) != 3 or not all(0.0 <= b <= 1.0 for b in background):
-        raise B3dgsError(f"background must be 3 floats in [0, 1] (RGB), got {list(background)}",
-                         "pass background=[0,0,0] (black) or [1,1,1] (white)")
-    if max_side is not None and not int(max_side) > 0:
-        raise B3dgsError(f"max_side must be a positive pixel count, got {max_side}",
-                         "pass max_side=256 (longest image side) or null for the full resolution")
-    kind = str(kind) if str(kind).lower() not in LOADERS else str(kind).lower()
-    loader = get_loader(kind)
-    reads_files = loader_reads_files(loader)
-    if reads_files:
-        if path is None or str(path) == "":
-            raise B3dgsError(f"load_scene(kind={kind!r}) needs a path")
-        if not Path(path).exists():
-            raise FileNotFoundError(f"Scene path not found: {path}")
-        if kind_kwargs.get("sparse_dir") is None:  # a custom model folder is the loader's to find
-            check_layout(kind, path)
-    common = dict(max_side=max_side, background=background, max_images=max_images)
-    if init_points_from_train_only and "point_tracks" in loader_params(loader):
-        kind_kwargs = {**kind_kwargs, "point_tracks": True}  # which images observed each SfM point
-    raw = loader(path, **common, **kind_kwargs) if reads_files else loader(**common, **kind_kwargs)
+    if raw is None:
+        raw = read_scene(kind, path, max_side=max_side, background=background, max_images=max_images,
+                         point_tracks=init_points_from_train_only, **kind_kwargs)
     scene = preprocess(raw, test_every=test_every, train_indices=train_indices, normalize=normalize,
-                       background=background, near_plane=near_plane, calib_every=calib_every,
-                       init_points_from_train_only=init_points_from_train_only, test_split=test_split,
-                       test_fraction=test_fraction, sector_axis=sector_axis)
+                       background=tuple(float(x) for x in background), near_plane=near_plane,
+                       calib_every=calib_every, init_points_from_train_only=init_points_from_train_only,
+                       test_split=test_split, test_fraction=test_fraction, sector_axis=sector_axis)
     log.info(
         "Loaded %s scene %r: %d train / %d test%s views, %s points, extent %.4g",
-        kind, scene.name, len(scene.train), len(scene.test),
+        _kind(kind), scene.name, len(scene.train), len(scene.test),
         f" / {len(scene.calib)} calibration" if scene.calib else "",
         0 if scene.points is None else len(scene.points), scene.extent,
     )
