@@ -384,7 +384,9 @@ def test_look_at_fallback_forward_facing():
 
 @pytest.mark.parametrize("kind", ["colmap", "transforms", "llff"])
 def test_missing_path(tmp_path, kind):
-    with pytest.raises(FileNotFoundError):
+    from b3dgs.errors import B3dgsError
+
+    with pytest.raises(B3dgsError, match="scene path not found"):
         load_scene(kind, str(tmp_path / "nope"))
     with pytest.raises(FileNotFoundError):
         load_scene(kind, str(tmp_path))  # exists but empty

@@ -147,6 +147,9 @@ def test_wrong_format_names_the_right_one(tmp_path):
     (tmp_path / "poses_bounds.npy").write_bytes(b"")
     with pytest.raises(B3dgsError, match=r"data=colmap: .* holds a llff scene \(fix: pass data=llff\)"):
         load_scene("colmap", str(tmp_path))
+    with pytest.raises(B3dgsError, match="scene path not found"):
+        load_scene("llff", str(tmp_path / "nope"))
+    (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError):  # a folder of no known format: the loader names the missing file
         load_scene("llff", str(tmp_path / "empty"))
 

@@ -677,9 +677,11 @@ def read_scene(
     reads_files = loader_reads_files(loader)
     if reads_files:
         if path is None or str(path) == "":
-            raise B3dgsError(f"load_scene(kind={kind!r}) needs a path")
+            raise B3dgsError(f"load_scene(kind={kind!r}) needs a path",
+                             "pass data.path=PATH to the scene's folder (or its transforms*.json file)")
         if not Path(path).exists():
-            raise FileNotFoundError(f"Scene path not found: {path}")
+            raise B3dgsError(f"scene path not found: {path}",
+                             "pass data.path=PATH to the scene's folder (or its transforms*.json file)")
         if kind_kwargs.get("sparse_dir") is None:  # a custom model folder is the loader's to find
             check_layout(kind, path)
     common = dict(max_side=max_side, background=background, max_images=max_images)
