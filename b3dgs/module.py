@@ -110,7 +110,9 @@ class SplatModule(L.LightningModule):
             return
         dm = self.trainer.datamodule if self._trainer is not None else None
         if dm is None or getattr(dm, "scene", None) is None:
-            raise RuntimeError("SplatModule needs a datamodule exposing `.scene` (set up before the module)")
+            raise B3dgsError("SplatModule needs a datamodule exposing `.scene` (set up before the module)",
+                             "pass the trainer a b3dgs data module (b3dgs.lifecycle.data_module), or call "
+                             "init_from_scene(scene) before fitting")
         self.init_from_scene(dm.scene)
 
     def init_from_scene(self, scene: Scene) -> None:
@@ -354,12 +356,12 @@ class SplatModule(L.LightningModule):
             # a new round: the training set may hold acquired views; the pool (train + candidates + test) must agree
             if extra.get("pool") is not None and extra.get("pool") != self.pool_fingerprint():
                 raise B3dgsError(f"{what} does not match this run: it was trained on another view pool (scene "
-                                 f"name, train + candidate + test cameras) (fix: {fix})")
+                                 "name, train + candidate + test cameras)", fix)
             saved, current = {k: v for k, v in saved.items() if k != "scene"}, {k: v for k, v in current.items() if k != "scene"}
         bad = identity_mismatch(saved, current)
         if bad is not None:
             problem, want = bad
-            raise B3dgsError(f"{what} does not match this run: {problem} (fix: pass {want}, or {fix})")
+            raise B3dgsError(f"{what} does not match this run: {problem}", f"pass {want}, or {fix}")
 
     def pool_fingerprint(self) -> Optional[str]:
         """Fingerprint of the whole view pool (train + candidates, and test): what training rounds share."""

@@ -17,6 +17,10 @@
   ``overwrite=true`` removes exactly the files it lists (:func:`remove_run_files`), a second b3dgs-render the frames
   it lists (:func:`remove_recorded`); a non-empty folder without it is someone else's (:func:`run_dir_kind`).
   Manifests of format 1 (patterns) are read by the names our writers give files (:func:`_v1_matches`).
+* Resume and overwrite: :func:`prepare_run_dir` decides whether a training may use a run dir (continue its run,
+  replace it, or start in an empty one) before anything is written; :func:`claim_run_dir` then takes the dir,
+  the manifest first, so that a kill at any later moment leaves a folder that ``resume=auto`` and
+  ``overwrite=true`` recognise as a b3dgs run dir.
 """
 from __future__ import annotations
 
@@ -31,10 +35,12 @@ import time
 import uuid
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
-from typing import Iterable, Iterator, Optional
+from typing import Callable, Iterable, Iterator, Optional
 
 from b3dgs.errors import B3dgsError
 from b3dgs.locks import LockHeld, lock_holder, process_lock
+
+log = logging.getLogger(__name__)
 
 LOCK_NAME = ".b3dgs.lock"
 
@@ -477,14 +483,13 @@ def arm_run_log(fresh: bool = False) -> None:
 
 
 def write_hydra_files(run_dir: Path, cfg) -> None:
-    """The run manifest (:func:`write_manifest`) and Hydra's ``.hydra/{config,hydra,overrides}.yaml`` for this
-    job, written once the run is accepted."""
+    """Hydra's ``.hydra/{config,hydra,overrides}.yaml`` for this job, written once the run is accepted
+    (:func:`claim_run_dir`)."""
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import OmegaConf, open_dict
 
     from b3dgs.io import atomic_path
 
-    write_manifest(run_dir)
     if not HydraConfig.initialized():
         return
     hc = HydraConfig.instance().cfg
@@ -496,6 +501,135 @@ def write_hydra_files(run_dir: Path, cfg) -> None:
     for name, node in (("config.yaml", task), ("hydra.yaml", hc), ("overrides.yaml", hc.hydra.overrides.task)):
         with atomic_path(out / name) as tmp:
             tmp.write_text(OmegaConf.to_yaml(node))
+
+
+# -------------------------------------------------------------------------- resume, overwrite, the claim
+#: what marks a b3dgs run dir (one with a run manifest) as holding a run
+RUN_MARKERS = ("config.yaml", "checkpoints/last.ckpt", "metrics.json")
+#: what ``overwrite=true`` leaves of the replaced run: the new run rewrites Hydra's ``.hydra/`` and its job log
+RUN_OUTPUTS_KEPT = (".hydra/*", "*.log")
+
+
+def _resuming(resume) -> bool:
+    return resume not in (None, False, "null", "")
+
+
+def resolve_resume(resume, run_dir: Path) -> Optional[str]:
+    """The checkpoint ``resume`` names: the run dir's ``last.ckpt`` for ``auto`` (``None`` without one), else the
+    path given."""
+    if not _resuming(resume):
+        return None
+    if resume in ("auto", True):
+        last = Path(run_dir) / "checkpoints" / "last.ckpt"
+        return str(last) if last.exists() else None
+    p = Path(str(resume))
+    if not p.exists():
+        raise B3dgsError(f"resume={resume}: no such checkpoint", "pass a .ckpt path, resume=auto or resume=null")
+    return str(p)
+
+
+def finished_metrics(run_dir: Path) -> Optional[dict]:
+    """The complete ``metrics.json`` of a finished run in ``run_dir``, else ``None``."""
+    m = _read_json(Path(run_dir) / "metrics.json")
+    return m if m is not None and "checkpoint" in m else None
+
+
+def _foreign_dir_error(run_dir: Path) -> B3dgsError:
+    files = foreign_files(run_dir, limit=5)
+    shown = ", ".join(files[:4]) + (" and more" if len(files) > 4 else "")
+    return B3dgsError(f"{run_dir} is not empty and holds no b3dgs run ({shown})",
+                      "pass hydra.run.dir=PATH to a new or empty folder; b3dgs writes only there or into its own run "
+                      "dirs, and overwrite=true removes only files a b3dgs run wrote")
+
+
+def prepare_run_dir(run_dir: Path, resume=None, overwrite=False,
+                    check_checkpoint: Optional[Callable[[str], None]] = None) -> tuple[Optional[str], bool]:
+    """``(checkpoint to resume from or None, whether to remove the old run's outputs first)`` for a training into
+    ``run_dir`` with ``resume`` and ``overwrite`` (the config's values).
+
+    One that already holds a run (config.yaml, checkpoints/last.ckpt or metrics.json) is refused unless
+    ``resume=auto`` (or ``resume=`` one of its own checkpoints) continues it or ``overwrite=true`` replaces it
+    (removing only what its manifest lists). A non-empty folder without a manifest is someone else's: refused,
+    naming its files, whatever the flags. Run dirs written before manifests (a b3dgs config.yaml with metrics.json
+    or checkpoints/last.ckpt, e.g. the archived ``bench/results/runs/*``) count as runs: ``resume=auto`` continues
+    them, ``overwrite=true`` removes only the outputs a manifest would list (:func:`run_files`), and the run's claim
+    writes their manifest. ``check_checkpoint(path)`` vets the checkpoint to resume from (its renderer: the caller's
+    :func:`b3dgs.lifecycle.check_resume_renderer`). Nothing is written here (:func:`claim_run_dir` does, once every
+    other check has passed).
+    """
+    if not isinstance(overwrite, bool):
+        raise B3dgsError(f"overwrite={overwrite} is invalid: it must be true or false",
+                         "pass overwrite=true to replace the run in the run dir, or leave it out")
+    if overwrite and _resuming(resume):
+        raise B3dgsError(f"resume={resume} and overwrite=true contradict each other",
+                         "pass resume=auto to continue the run in the run dir, or overwrite=true to replace it, not both")
+    run_dir = Path(run_dir)
+    kind = run_dir_kind(run_dir)
+    if kind == "foreign":
+        raise _foreign_dir_error(run_dir)
+    held = [n for n in RUN_MARKERS if (run_dir / n).exists()]
+    if overwrite:
+        return None, kind != "empty"
+    ckpt = resolve_resume(resume, run_dir)
+    if ckpt is not None and check_checkpoint is not None:
+        check_checkpoint(ckpt)
+    if not held:
+        return ckpt, False
+    if resume in ("auto", True):
+        if finished_metrics(run_dir) is not None:
+            return ckpt, False  # finished: the caller checks its identity, says so and rewrites nothing
+        if ckpt is None and (run_dir / "metrics.json").exists():
+            raise B3dgsError(f"{run_dir} holds a finished run but no checkpoints/last.ckpt to resume from",
+                             "pass overwrite=true to train it again, or another hydra.run.dir")
+        return ckpt, False
+    own = (run_dir / "checkpoints").resolve()
+    if ckpt is not None and Path(ckpt).resolve().parent == own:
+        return ckpt, False
+    raise B3dgsError(f"{run_dir} already holds a run ({', '.join(held)})",
+                     "pass resume=auto to continue it, overwrite=true to replace it, or another hydra.run.dir")
+
+
+def save_config(cfg, path: Path) -> None:
+    """The composed config (without Hydra's own node), resolved, ``data.path`` made absolute (``b3dgs-eval``
+    works from any folder), written atomically."""
+    from omegaconf import OmegaConf, open_dict
+
+    from b3dgs.io import atomic_path
+
+    c = cfg.copy()
+    with open_dict(c):
+        c.pop("hydra", None)
+    plain = OmegaConf.to_container(c, resolve=True)
+    data = plain.get("data")
+    if isinstance(data, dict) and data.get("path"):
+        data["path"] = str(Path(str(data["path"])).expanduser().resolve())
+    with atomic_path(path) as tmp:
+        tmp.write_text(OmegaConf.to_yaml(OmegaConf.create(plain)))
+
+
+def claim_run_dir(run_dir: Path, cfg, clear: bool) -> None:
+    """Take ``run_dir`` for an accepted training (its lock held, every check passed), in this order: the run
+    manifest (:func:`write_manifest`, atomically) before anything else goes into the folder, so that a kill at any
+    later moment leaves a b3dgs run dir that ``resume=auto`` and ``overwrite=true`` take over; then the job log
+    (:func:`arm_run_log`); with ``clear`` (``overwrite=true``) the previous run's outputs go first, exactly what its
+    manifest lists (:func:`remove_run_files`, which then writes the new manifest: the folder holds one at every
+    moment), else a done marker to be written again; temp files and staging folders a kill
+    left; ``.hydra/`` and ``config.yaml``."""
+    run_dir = Path(run_dir)
+    if clear:  # the replaced run's files, exactly as its manifest lists them; then a new manifest, atomically
+        log.warning("overwrite=true: removing the previous run's outputs from %s", run_dir)
+        remove_run_files(run_dir, keep=RUN_OUTPUTS_KEPT)
+    else:
+        write_manifest(run_dir)
+    arm_run_log(fresh=clear)
+    if not clear and ((run_dir / "metrics.json").is_file() or (run_dir / "metrics.json").is_symlink()):
+        (run_dir / "metrics.json").unlink()  # a damaged done marker comes back when this run finishes
+    for p in remove_stale_tmp(run_dir):
+        log.info("removed %s, a temp file left by an interrupted run", p.relative_to(run_dir))
+    for p in remove_stale_staging(run_dir, owned=clear):
+        log.info("removed %s, the staging folder of an interrupted b3dgs-eval", p.name)
+    write_hydra_files(run_dir, cfg)
+    save_config(cfg, run_dir / "config.yaml")
 
 
 # ---------------------------------------------------------------------------------------------- signals

@@ -6,7 +6,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-import torch
 from omegaconf import DictConfig, OmegaConf
 
 from b3dgs.errors import B3dgsError
@@ -17,8 +16,8 @@ log = logging.getLogger(__name__)
 
 def _run_renderer(cfg: DictConfig):
     """The run's own renderer when it runs on this machine, else ``renderer=auto`` (said in the log)."""
+    from b3dgs.lifecycle import build_renderer
     from b3dgs.render.renderers import RendererUnavailable, auto_renderer
-    from b3dgs.train import build_renderer
 
     try:
         return build_renderer(cfg.get("renderer"))
@@ -46,59 +45,54 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
     """
     import json
 
-    from hydra.utils import instantiate
-
-    from b3dgs.train import build_run
+    from b3dgs.checkpoint import upgrade_targets
+    from b3dgs.lifecycle import build_run, data_module, load_checkpoint, read_checkpoint
 
     run_dir = Path(run_dir)
     cfg_path = run_dir / "config.yaml"
     if not cfg_path.exists():
-        raise FileNotFoundError(f"{run_dir} is not a b3dgs run dir: no config.yaml (train with b3dgs-train first)")
+        raise B3dgsError(f"{run_dir} is not a b3dgs run dir (no config.yaml)",
+                         "pass the run dir of a b3dgs-train run (train one with b3dgs-train first)")
     ckpt_path = Path(checkpoint) if checkpoint else run_dir / "checkpoints" / "last.ckpt"
     if not ckpt_path.exists():
-        raise FileNotFoundError(f"No checkpoint at {ckpt_path}; the run may not have finished (resume with resume=auto)")
+        raise B3dgsError(f"no checkpoint at {ckpt_path}; the run may not have finished",
+                         f"finish it with `b3dgs-train ... hydra.run.dir={run_dir} resume=auto`")
     try:
-        from b3dgs.checkpoint import upgrade_targets
-
         cfg = OmegaConf.create(upgrade_targets(OmegaConf.to_container(OmegaConf.load(cfg_path), resolve=False)))
-        if not isinstance(cfg, DictConfig) or "data" not in cfg or "model" not in cfg:
-            raise B3dgsError("no data / model node")
+        bad = None if isinstance(cfg, DictConfig) and "data" in cfg and "model" in cfg else "no data / model node"
     except Exception as e:  # noqa: BLE001 - damaged or foreign file: say which and how to go on
-        raise B3dgsError(f"{cfg_path} is damaged or not a b3dgs run config ({' '.join(str(e).split())[:120]}) (fix: "
-                         f"train the run again with `b3dgs-train ... hydra.run.dir={run_dir} overwrite=true`)") from None
+        bad = " ".join(str(e).split())[:120]
+    if bad is not None:
+        raise B3dgsError(f"{cfg_path} is damaged or not a b3dgs run config ({bad})",
+                         f"train the run again with `b3dgs-train ... hydra.run.dir={run_dir} overwrite=true`")
     data_path = cfg.data.get("path")
     if data_path and not Path(str(data_path)).is_absolute() and not Path(str(data_path)).exists():
         # runs trained before data.path was stored absolute: relative to the folder training ran in
         raise B3dgsError(f"{cfg_path} has data.path={data_path}, relative to the folder the run was trained in, and "
-                         f"it is not below {Path.cwd()} (fix: run from that folder, or write the absolute scene path "
-                         f"as data.path in {cfg_path})")
+                         f"it is not below {Path.cwd()}",
+                         f"run from that folder, or write the absolute scene path as data.path in {cfg_path}")
     if scene is None:
-        dm = instantiate(cfg.data)
-        dm.setup("fit")
-        scene = dm.scene
+        scene = data_module(cfg.data).scene
     module = build_run(cfg, scene, renderer=renderer if renderer is not None else _run_renderer, init=False)
     try:
-        ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-    except Exception as e:  # corrupt or truncated file
-        raise B3dgsError(f"Cannot read checkpoint {ckpt_path}: {e}") from e
+        ck = read_checkpoint(ckpt_path)
+    except Exception as e:  # noqa: BLE001 - corrupt or truncated file
+        raise B3dgsError(f"cannot read the checkpoint {ckpt_path} ({' '.join(str(e).split())[:120]})",
+                         f"pass another checkpoint, or train the run again with `b3dgs-train ... "
+                         f"hydra.run.dir={run_dir} overwrite=true`") from e
     metrics = None
     if (run_dir / "metrics.json").exists():
         try:
             metrics = json.loads((run_dir / "metrics.json").read_text())
         except ValueError as e:
-            raise B3dgsError(f"{run_dir / 'metrics.json'} is damaged ({e}) (fix: finish the run again with "
-                             f"`b3dgs-train ... hydra.run.dir={run_dir} resume=auto`)") from None
+            raise B3dgsError(f"{run_dir / 'metrics.json'} is damaged ({e})",
+                             f"finish the run again with `b3dgs-train ... hydra.run.dir={run_dir} resume=auto`") from None
     if checkpoint is None:  # the run's own last.ckpt must be the model its metrics.json describes
         check_run_checkpoint(run_dir, ck, metrics)
     module.check_checkpoint_identity(
         ck, f"{ckpt_path}", f"keep each run dir's config.yaml and checkpoints from one b3dgs-train run "
         f"(train it again with `b3dgs-train ... hydra.run.dir={run_dir} overwrite=true`)")
-    module.on_load_checkpoint(ck)
-    module.load_state_dict(ck["state_dict"])
-    module._loaded_step = int(ck.get("global_step", 0))
-    module.eval()
-    module.to(module.renderer.device)
-    return LoadedRun(run_dir, cfg, module, scene, metrics)
+    return LoadedRun(run_dir, cfg, load_checkpoint(module, ck), scene, metrics)
 
 
 def check_run_checkpoint(run_dir: Path, ck: dict, metrics: Optional[dict]) -> None:
@@ -109,12 +103,14 @@ def check_run_checkpoint(run_dir: Path, ck: dict, metrics: Optional[dict]) -> No
 
     ckpt_path = run_dir / "checkpoints" / "last.ckpt"
     if metrics is None:
-        raise B3dgsError(f"{run_dir} holds an unfinished run: no metrics.json (fix: finish it with "
-                         f"`b3dgs-train ... hydra.run.dir={run_dir} resume=auto`, or pass its checkpoint explicitly)")
+        raise B3dgsError(f"{run_dir} holds an unfinished run: no metrics.json",
+                         f"finish it with `b3dgs-train ... hydra.run.dir={run_dir} resume=auto`, or pass its "
+                         "checkpoint explicitly")
     have = checkpoint_record(ck)
     want = metrics.get("checkpoint") or {"global_step": metrics.get("steps"), "num_gaussians": metrics.get("num_gaussians")}
     for key in ("global_step", "num_gaussians", "params_sha256"):
         if want.get(key) is not None and want[key] != have[key]:
             raise B3dgsError(f"{ckpt_path} is not the model of {run_dir / 'metrics.json'}: {key} {have[key]} in the "
-                             f"checkpoint, {want[key]} in metrics.json (fix: train the run again with `b3dgs-train ... "
-                             f"hydra.run.dir={run_dir} overwrite=true`, or remove the stray checkpoint)")
+                             f"checkpoint, {want[key]} in metrics.json",
+                             f"train the run again with `b3dgs-train ... hydra.run.dir={run_dir} overwrite=true`, or "
+                             "remove the stray checkpoint")

@@ -101,11 +101,9 @@ def compose(config_name: str, overrides: Sequence[str]):
 
 def n_train_views(overrides: Sequence[str]) -> int:
     """Train views of the scene these overrides select (loads the scene once)."""
-    from hydra.utils import instantiate
+    from b3dgs.lifecycle import data_module
 
-    dm = instantiate(compose("train", [o for o in overrides if o.startswith(("data", "scene="))]).data)
-    dm.setup("fit")
-    return len(dm.scene.train)
+    return len(data_module(compose("train", [o for o in overrides if o.startswith(("data", "scene="))]).data).scene.train)
 
 
 def plain_overrides(overrides: Sequence[str]) -> list[str]:

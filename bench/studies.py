@@ -125,7 +125,7 @@ def write_shared(run_dir: Path, overrides: list[str], twin: Path) -> dict:
     import shutil
 
     from b3dgs.io import write_json
-    from b3dgs.train import save_config
+    from b3dgs.rundir import save_config
 
     cfg = _compose_train([*overrides, f"trainer.default_root_dir={run_dir}"])
     run_dir.mkdir(parents=True, exist_ok=True)

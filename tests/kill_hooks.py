@@ -8,7 +8,8 @@ Added to a run through the configurable callbacks, never by b3dgs itself::
 step's checkpoint: Lightning runs checkpoint callbacks last, and b3dgs's ``last.ckpt`` callback acts on a
 SIGTERM / SIGINT recorded here at the same step); ``point="final"`` once training is done, before the final
 evaluation and writes; ``point="write:<file name>"`` once the temp file of ``<file name>`` is written, before
-:func:`b3dgs.io.atomic_path` renames it onto ``<file name>``. ``signal``: KILL (default: no handler, no
+:func:`b3dgs.io.atomic_path` renames it onto ``<file name>``; ``point="log"`` right after the job log file
+(``train.log``) is created. ``signal``: KILL (default: no handler, no
 cleanup), TERM, INT or STOP.
 """
 from __future__ import annotations
@@ -40,6 +41,8 @@ class KillAt(L.Callback):
         self.signum = int(getattr(_signal, "SIG" + str(signal).upper()))
         if point and point.startswith("write:"):
             self._arm_write(point[len("write:"):])
+        if point == "log":
+            self._arm_log()
 
     def _fire(self) -> None:
         os.kill(os.getpid(), self.signum)
@@ -55,6 +58,19 @@ class KillAt(L.Callback):
             return replace(src, dst, *args, **kw)
 
         os.replace = hooked
+
+    def _arm_log(self) -> None:
+        """Fire once a job-log file handler (Hydra's ``train.log``) has created its file."""
+        import logging
+
+        for h in logging.getLogger().handlers:
+            if isinstance(h, logging.FileHandler):
+                def hooked(h=h, opened=h._open):
+                    stream = opened()
+                    self._fire()
+                    return stream
+
+                h._open = hooked
 
     def on_train_batch_end(self, trainer, pl_module, outputs, batch, batch_idx) -> None:
         if self.step is not None and int(trainer.global_step) >= self.step:

@@ -116,7 +116,7 @@ def test_fisher_matches_float64_brute_force():
     from torch import nn
 
     from b3dgs.study.rounds import fit_round  # noqa: F401 - imports the module chain
-    from b3dgs.train import build_module, build_plugins
+    from b3dgs.lifecycle import build_module, build_plugins
     from b3dgs.data.scene import load_scene
 
     cfg = _cfg(["renderer=torch", "model.init_max_points=12", "model.init_num_random=0", "model.sh_degree=1"])

@@ -32,7 +32,7 @@ def _score(name, **kw):
 
 def _tiny_model(double=False, points=12, side=8, views=8):
     from b3dgs.data.scene import load_scene
-    from b3dgs.train import build_module, build_plugins
+    from b3dgs.lifecycle import build_module, build_plugins
 
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         cfg = compose("train", ["renderer=torch", f"model.init_max_points={points}", "model.init_num_random=0",

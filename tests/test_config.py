@@ -7,7 +7,8 @@ from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from b3dgs.train import CONF_DIR, build_plugins
+from b3dgs.lifecycle import build_plugins
+from b3dgs.train import CONF_DIR
 
 EVAL_GROUPS = {"uq"}  # groups of the b3dgs-eval app (conf/eval.yaml)
 STUDY_GROUPS = {"acquisition"}  # groups of the b3dgs-study app (conf/study.yaml; tests/test_acquisition.py builds each)
@@ -44,7 +45,7 @@ def test_every_option_composes_and_builds(group, option, tmp_path):
         dm = instantiate(cfg.data)
         assert dm.kind == {"blender": "transforms"}.get(option, option)  # blender: transforms, on white
     if group == "model":
-        from b3dgs.train import build_module
+        from b3dgs.lifecycle import build_module
 
         module = build_module(cfg, strategy, blocks)
         assert module.hparams.name == cfg.model.name
@@ -70,7 +71,7 @@ def test_bad_values_fail_clearly():
     with pytest.raises(ValueError, match="refine_every"):
         strategy.validate()
     cfg = compose_cfg(["model.lambda_dssim=2"])
-    from b3dgs.train import build_module
+    from b3dgs.lifecycle import build_module
 
     with pytest.raises(ValueError, match="lambda_dssim"):
         build_module(cfg, *build_plugins(cfg))

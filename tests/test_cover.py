@@ -25,7 +25,7 @@ def _apart(a, b):
 def sphere():
     """A module whose Gaussians are 600 small opaque splats on the unit sphere; 24 cameras on a ring of radius 4."""
     from b3dgs.data.scene import load_scene
-    from b3dgs.train import build_module, build_plugins
+    from b3dgs.lifecycle import build_module, build_plugins
     from b3dgs_plugins.acquisition.cover import sphere_directions
 
     cfg = _cfg(["model.sh_degree=0"])

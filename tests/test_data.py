@@ -564,6 +564,35 @@ def test_datamodule():
     assert [c.name for c in dm.test_dataloader()] == [c.name for c in dm.scene.test]
 
 
+@pytest.mark.parametrize("from_train_only", [False, True])
+def test_select_train_is_the_scene_a_second_read_would_give(monkeypatch, from_train_only):
+    """An active-view study reads its scene once (the pool, then its initial views from the same read): the selected
+    scene is the one a data module with ``train_indices`` would load, and nothing is read a second time."""
+    import b3dgs.data.datamodule as dmod
+    from b3dgs.errors import B3dgsError
+    from b3dgs.lifecycle import data_module
+
+    args = dict(kind="synthetic", max_side=16, test_every=4, n_views=16, resolution=16, name="syn")
+    reads = []
+    read_raw = dmod.read_raw  # the read from disk (read_scene then preprocesses what it gave)
+    monkeypatch.setattr(dmod, "read_raw", lambda *a, **k: reads.append(1) or read_raw(*a, **k))
+    full = data_module(dmod.SceneDataModule(**args), keep_raw=True)
+    sel = full.select_train([0, 3, 5], init_points_from_train_only=from_train_only)
+    assert len(reads) == 1
+    ref = dmod.SceneDataModule(**args, train_indices=[0, 3, 5], init_points_from_train_only=from_train_only)
+    ref.setup("fit")
+    a, b = sel.scene, ref.scene
+    assert a.name == b.name == "syn" and a.extent == b.extent
+    for x, y in ((a.train, b.train), (a.test, b.test), (a.candidates, b.candidates)):
+        assert [c.name for c in x] == [c.name for c in y]
+        assert all(torch.equal(c.viewmat, d.viewmat) and torch.equal(c.K, d.K) for c, d in zip(x, y))
+        assert all((c.image is None and d.image is None) or torch.equal(c.image, d.image) for c, d in zip(x, y))
+    assert torch.equal(a.points, b.points) and torch.equal(a.point_colors, b.point_colors)
+    assert sorted(c.name for c in full.scene.train) == sorted(c.name for c in [*a.train, *a.candidates])
+    with pytest.raises(B3dgsError, match="keep_raw"):
+        data_module(dmod.SceneDataModule(**args)).select_train([0])
+
+
 # ------------------------------------------------------------------------------------------------
 # input checks: intrinsics, mixed sizes, near plane, damaged COLMAP files
 # ------------------------------------------------------------------------------------------------

@@ -4,7 +4,8 @@ import sys
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
-from b3dgs.train import CONF_DIR, build_plugins
+from b3dgs.lifecycle import build_plugins
+from b3dgs.train import CONF_DIR
 from tests.fake_package import install_conf_package
 
 

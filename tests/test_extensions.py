@@ -12,7 +12,8 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import open_dict
 
 from b3dgs.errors import format_error
-from b3dgs.train import CONF_DIR, build_plugins, build_renderer, train
+from b3dgs.lifecycle import build_plugins, build_renderer
+from b3dgs.train import CONF_DIR, train
 from b3dgs.validation import validate_config
 from tests.fake_package import install_conf_package
 

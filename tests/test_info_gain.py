@@ -16,7 +16,7 @@ from tests.test_acquisition import _cfg, _policy, hole_setup  # noqa: F401 - the
 def _tiny(sh_degree=1, sh0=None):
     """A float64 model of 12 Gaussians on the synthetic scene, pure-torch renderer (exact weight sums)."""
     from b3dgs.data.scene import load_scene
-    from b3dgs.train import build_module, build_plugins
+    from b3dgs.lifecycle import build_module, build_plugins
 
     cfg = _cfg(["renderer=torch", "model.init_max_points=12", "model.init_num_random=0",
                 f"model.sh_degree={sh_degree}"])

@@ -110,7 +110,7 @@ def test_resume_refuses_another_renderer(tmp_path):
 
 
 def test_check_devices_and_max_gaussians_warning(caplog):
-    from b3dgs.train import check_devices, warn_disabled_options
+    from b3dgs.lifecycle import check_devices, warn_disabled_options
 
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):

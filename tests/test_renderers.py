@@ -226,7 +226,7 @@ def test_first_compiler_error():
 
 
 def test_accelerator_follows_the_renderer():
-    from b3dgs.train import resolve_accelerator
+    from b3dgs.lifecycle import resolve_accelerator
 
     assert resolve_accelerator("auto", CPURenderer()) == "cpu"
     assert resolve_accelerator(None, CPURenderer()) == "cpu"
@@ -275,7 +275,7 @@ def test_a_model_trained_on_a_gpu_comes_back_to_the_renderers_device():
     import re
     from types import SimpleNamespace
 
-    from b3dgs.train import fit_on_renderer_device
+    from b3dgs.lifecycle import fit_on_renderer_device
 
     class Model:  # a module that Lightning's teardown left on the CPU, its renderer on another device
         def __init__(self):
@@ -297,6 +297,6 @@ def test_a_model_trained_on_a_gpu_comes_back_to_the_renderers_device():
     assert m.moved == []  # the CPU path moves nothing
     root = Path(__file__).resolve().parents[1]
     direct = [str(p.relative_to(root)) for sub in ("b3dgs", "plugins", "bench") for p in (root / sub).rglob("*.py")
-              if re.search(r"\btrainer\.fit\(", p.read_text()) and p.name != "train.py"]
+              if re.search(r"\btrainer\.fit\(", p.read_text()) and p != root / "b3dgs" / "lifecycle.py"]
     assert direct == [], f"trainer.fit outside fit_on_renderer_device: {direct}"
-    assert (root / "b3dgs" / "train.py").read_text().count("trainer.fit(") == 2  # the helper and its docstring
+    assert (root / "b3dgs" / "lifecycle.py").read_text().count("trainer.fit(") == 2  # the helper and its docstring

@@ -130,6 +130,28 @@ def test_refused_run_leaves_no_hydra_files_or_log(tmp_path):
     assert sorted(x.name for x in d.iterdir()) == ["config.yaml"]
 
 
+def test_a_kill_right_after_the_log_appears_leaves_a_run_dir_resume_and_overwrite_take(tmp_path):
+    """The run dir is claimed, its manifest written atomically, before anything else goes into it: ``kill -9`` right
+    after ``train.log`` appears leaves a b3dgs run dir (manifest and log), which ``resume=auto`` and ``overwrite=true``
+    both take over (before, the log came first and the folder was refused as someone else's)."""
+    import shutil
+
+    from b3dgs.rundir import MANIFEST_NAME
+
+    d = tmp_path / "run"
+    p = _train([f"hydra.run.dir={d}", *kill_args(point="log")])
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == -signal.SIGKILL, err[-2000:]
+    names = sorted(x.name for x in d.iterdir())
+    assert "train.log" in names and MANIFEST_NAME in names and "config.yaml" not in names, names
+    shutil.copytree(d, tmp_path / "run2")
+    for run, flag in ((d, "resume=auto"), (tmp_path / "run2", "overwrite=true")):
+        p = _train([f"hydra.run.dir={run}", flag])
+        _, err = p.communicate(timeout=300)
+        assert p.returncode == 0, (flag, err[-2000:])
+        assert (run / "metrics.json").exists() and (run / "config.yaml").exists(), flag
+
+
 @pytest.mark.slow
 def test_joblib_multirun_over_a_non_seed_setting_loses_no_run(tmp_path):
     p = subprocess.run([sys.executable, "-m", "b3dgs.train", "-m", "hydra/launcher=joblib", "hydra.launcher.n_jobs=2",

@@ -16,7 +16,8 @@ from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
-from b3dgs.train import CONF_DIR, save_config
+from b3dgs.rundir import save_config
+from b3dgs.train import CONF_DIR
 from tests.fake_package import install_conf_package
 from tests.test_data import _blender_scene
 

@@ -8,7 +8,8 @@ from omegaconf import open_dict
 
 from b3dgs.errors import B3dgsError
 from b3dgs.render.renderers import TorchRenderer
-from b3dgs.train import CONF_DIR, build_callbacks, build_trainer
+from b3dgs.lifecycle import build_callbacks, build_trainer
+from b3dgs.train import CONF_DIR
 from b3dgs.validation import validate_config
 from tests.kill_hooks import KillAt
 

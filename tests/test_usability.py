@@ -76,7 +76,7 @@ def _train_cfg(*overrides):
 
 
 def test_torch_renderer_warns_before_a_long_cpu_run(caplog):
-    from b3dgs.train import warn_slow_renderer
+    from b3dgs.lifecycle import warn_slow_renderer
 
     with caplog.at_level(logging.WARNING, logger="b3dgs.train"):
         msg = warn_slow_renderer(_train_cfg("renderer=torch", "renderer.device_name=cpu"))

@@ -233,7 +233,7 @@ def test_damaged_run_files_are_one_line(tmp_path):
 def test_config_stores_data_path_absolute(tmp_path, monkeypatch):
     from omegaconf import OmegaConf
 
-    from b3dgs.train import save_config
+    from b3dgs.rundir import save_config
 
     monkeypatch.chdir(tmp_path)
     cfg = cfg_of(["data=transforms", "data.path=scenes/fox", f"trainer.default_root_dir={tmp_path}"])

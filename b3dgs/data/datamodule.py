@@ -7,7 +7,7 @@ import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from b3dgs.data.scene import NEAR_PLANE, check_scene_settings, read_scene
+from b3dgs.data.scene import NEAR_PLANE, check_scene_settings, read_raw, read_scene
 from b3dgs.errors import B3dgsError
 from b3dgs.types import Camera, Scene
 
@@ -139,7 +139,8 @@ class SceneDataModule(L.LightningDataModule):
     Arguments mirror :func:`b3dgs.data.load_scene` (``near_plane``: the renderer's, for the near-plane
     guard; ``calib_every``: calibration views held out of training, ``scene.calib``); ``name`` (optional) overrides the scene name;
     extra keyword arguments go to the format loader (e.g. ``n_views``, ``resolution``, ``seed``).
-    A prebuilt ``scene`` may be passed instead (then nothing is loaded, and nothing is checked).
+    A prebuilt ``scene`` may be passed instead (then nothing is loaded, and nothing is checked). ``keep_raw`` (set
+    before :meth:`setup`): keep what was read, for :meth:`select_train`.
 
     The settings are checked when the data module is built (:meth:`validate`), before any scene is read.
     """
@@ -180,6 +181,8 @@ class SceneDataModule(L.LightningDataModule):
         self.calib_every = calib_every  # calibration hold-out (scene.calib)
         # the held-out split: interleaved (every test_every-th view) or a contiguous sector (b3dgs.data.scene.sector_split)
         self.test_split, self.test_fraction, self.sector_axis = test_split, test_fraction, sector_axis
+        self.keep_raw = False
+        self._raw = None  # the scene as read (keep_raw)
         self.validate()
         self.background = tuple(float(x) for x in self.background)
         self.near_plane, self.test_fraction = float(self.near_plane), float(self.test_fraction)
@@ -208,10 +211,27 @@ class SceneDataModule(L.LightningDataModule):
     def setup(self, stage: Optional[str] = None) -> None:
         if self._scene is not None:
             return
-        scene = read_scene(self._format_loader, self.kind, self.path, self._settings(), self.kind_kwargs)
+        if self.keep_raw and self._raw is None:  # with the point tracks select_train(init_points_from_train_only) needs
+            self._raw = read_raw(self._format_loader, self.path, self._settings(), self.kind_kwargs, point_tracks=True)
+        scene = read_scene(self._format_loader, self.kind, self.path, self._settings(), self.kind_kwargs, raw=self._raw)
         if self.name:
             scene.name = str(self.name)
         self._scene = scene
+
+    def select_train(self, train_indices: Sequence[int], init_points_from_train_only: bool = False) -> "SceneDataModule":
+        """A data module over this one's views whose scene trains on ``train_indices`` of its training views only
+        (the others become the scene's ``candidates``; ``init_points_from_train_only``: the initial points those
+        views saw), made from what this one read (``keep_raw``) without reading the scene again."""
+        self.setup()
+        if self._raw is None:
+            raise B3dgsError("select_train needs the views this data module read, and it did not keep them",
+                             "set keep_raw = True before setup() (b3dgs.lifecycle.data_module(node, keep_raw=True))")
+        settings = {**self._settings(), "train_indices": [int(i) for i in train_indices],
+                    "init_points_from_train_only": bool(init_points_from_train_only)}
+        out = type(self)(self.kind, self.path, name=self.name, **settings, **self.kind_kwargs)
+        out._raw = self._raw
+        out.setup()
+        return out
 
     def _loader(self, cameras: Sequence[Camera], shuffle: bool) -> DataLoader:
         return DataLoader(

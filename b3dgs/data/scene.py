@@ -78,6 +78,7 @@ __all__ = [
     "guess_kinds",
     "load_scene",
     "look_at_point",
+    "read_scene",
     "materialize",
     "normalize_scene",
     "preprocess",
@@ -707,14 +708,26 @@ def check_scene_settings(kind: str, path: str | os.PathLike | None, settings: di
     return loader
 
 
-def read_scene(loader, kind: str, path: str | os.PathLike | None, settings: dict, kind_kwargs: dict) -> Scene:
-    """Read and preprocess a scene with ``loader`` (from :func:`check_scene_settings`, which checked the settings)."""
+def read_raw(loader, path: str | os.PathLike | None, settings: dict, kind_kwargs: dict,
+             point_tracks: bool = False) -> RawScene:
+    """A scene as its format ``loader`` (from :func:`check_scene_settings`, which checked the settings) reads it,
+    before :func:`preprocess`. ``point_tracks``: also which images observed each initial point, where the format
+    records it (``init_points_from_train_only``)."""
+    s = {**_SETTINGS, **settings}
+    if point_tracks and "point_tracks" in loader_params(loader):
+        kind_kwargs = {**kind_kwargs, "point_tracks": True}  # which images observed each SfM point
+    common = dict(max_side=s["max_side"], background=tuple(float(x) for x in s["background"]), max_images=s["max_images"])
+    return loader(path, **common, **kind_kwargs) if loader_reads_files(loader) else loader(**common, **kind_kwargs)
+
+
+def read_scene(loader, kind: str, path: str | os.PathLike | None, settings: dict, kind_kwargs: dict,
+               raw: Optional[RawScene] = None) -> Scene:
+    """Read a scene with ``loader`` (:func:`read_raw`; ``raw``: what it read before, read again otherwise) and
+    preprocess it with ``settings``."""
     s = {**_SETTINGS, **settings}
     background = tuple(float(x) for x in s["background"])
-    if s["init_points_from_train_only"] and "point_tracks" in loader_params(loader):
-        kind_kwargs = {**kind_kwargs, "point_tracks": True}  # which images observed each SfM point
-    common = dict(max_side=s["max_side"], background=background, max_images=s["max_images"])
-    raw = loader(path, **common, **kind_kwargs) if loader_reads_files(loader) else loader(**common, **kind_kwargs)
+    if raw is None:
+        raw = read_raw(loader, path, settings, kind_kwargs, point_tracks=s["init_points_from_train_only"])
     scene = preprocess(raw, test_every=s["test_every"], train_indices=s["train_indices"], normalize=s["normalize"],
                        background=background, near_plane=s["near_plane"], calib_every=s["calib_every"],
                        init_points_from_train_only=s["init_points_from_train_only"], test_split=s["test_split"],
@@ -743,6 +756,7 @@ def load_scene(
     test_split: str = "interleaved",
     test_fraction: float = 0.125,
     sector_axis: int = 0,
+    raw: Optional[RawScene] = None,
     **kind_kwargs: Any,
 ) -> Scene:
     """Load a scene of ``kind`` (``colmap``, ``transforms``, ``llff``, ``synthetic`` or a loader function
@@ -765,6 +779,8 @@ def load_scene(
         near_plane: the renderer's near plane, for the guard of :func:`check_near_plane`.
         calib_every: hold out every ``calib_every``-th train view as a calibration view
             (``scene.calib``; see :func:`split_calibration`); None or 0: none.
+        raw: the scene as :func:`read_raw` read it with these settings (then nothing is read again; its point
+            tracks are needed for ``init_points_from_train_only``).
         **kind_kwargs: passed to the format loader (e.g. ``n_views``, ``resolution``, ``seed`` for
             "synthetic"; ``images_dir`` for "colmap"/"llff"; ``sparse_dir`` for "colmap").
     """
@@ -773,7 +789,7 @@ def load_scene(
                     init_points_from_train_only=init_points_from_train_only, test_split=test_split,
                     test_fraction=test_fraction, sector_axis=sector_axis)
     loader = check_scene_settings(kind, path, settings, kind_kwargs)
-    return read_scene(loader, kind, path, settings, kind_kwargs)
+    return read_scene(loader, kind, path, settings, kind_kwargs, raw=raw)
 
 
 #: the defaults of :func:`load_scene`'s common settings (what :func:`read_scene` uses for one not given)

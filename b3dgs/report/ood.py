@@ -39,12 +39,12 @@ def support_scores(data_cfg: dict) -> dict[str, float]:
     """{test view name: nearest-train-centre distance / extent} for the scene of a ``data`` config."""
     key = json.dumps(data_cfg, sort_keys=True, default=str)
     if key not in _SCENES:
-        from hydra.utils import instantiate
         from omegaconf import OmegaConf
 
+        from b3dgs.lifecycle import data_module
+
         try:
-            dm = instantiate(OmegaConf.create(data_cfg))
-            dm.setup("fit")
+            dm = data_module(OmegaConf.create(data_cfg))
         except Exception as e:  # missing scene files, changed paths
             raise ReportError(f"OOD study: cannot reload the scene of data={data_cfg.get('name')} "
                               f"(path={data_cfg.get('path')}): {e}; pass ood.enabled=false to skip it") from e

@@ -303,9 +303,8 @@ class ActiveStudy:
     """One scene: phase-1 models, rows (policy × seed), results; see the module docstring."""
 
     def __init__(self, cfg: DictConfig):
-        from hydra.utils import instantiate
-
         from b3dgs.data.scene import take_candidate_store
+        from b3dgs.lifecycle import data_module
 
         self.cfg = cfg
         self.total = int(cfg.trainer.max_steps)
@@ -315,17 +314,10 @@ class ActiveStudy:
 
             raise B3dgsError(f"phase 1 would be {self.phase1} of {self.total} steps",
                              "pass trainer.max_steps >= 2 and phase1_divisor >= 2")
-        full = instantiate(cfg.data)
-        full.setup("fit")
+        full = data_module(cfg.data, keep_raw=True)  # the scene is read once: the pool, then its initial views
         self.pool_train = full.scene.train
         self.init_idx, self.hole = initial_views(cfg, self.pool_train)
-        data = OmegaConf.create(OmegaConf.to_container(cfg.data, resolve=True))
-        with open_dict(data):
-            data.train_indices = self.init_idx
-            data.init_points_from_train_only = bool(cfg.init_points_from_train_only)
-        dm = instantiate(data)
-        dm.setup("fit")
-        self.scene = dm.scene
+        self.scene = full.select_train(self.init_idx, bool(cfg.init_points_from_train_only)).scene
         # the candidates' images: read by this driver only (acquisition, oracle, contact sheet)
         self.store = take_candidate_store(self.scene)
         self.out = Path(str(cfg.out_dir)) / self.scene.name

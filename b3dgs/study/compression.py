@@ -18,9 +18,7 @@ from __future__ import annotations
 import glob
 import json
 import logging
-import os
 import time
-import warnings
 from pathlib import Path
 from typing import Any, Optional
 
@@ -58,7 +56,7 @@ def load_pruning(name: str, settings: Optional[DictConfig] = None):
 def round_targets(n_base: int, keep: float, rounds: int) -> list[int]:
     """Gaussian counts after each round: keep^(i/r) × N_base, the last exactly round(keep × N_base) (>= 1)."""
     if not 0 < keep <= 1:
-        raise B3dgsError(f"keep ratios must be in (0, 1], got {keep}")
+        raise B3dgsError(f"keep ratios must be in (0, 1], got {keep}", "pass keep=[0.55,0.35,0.2,0.1] (fractions kept)")
     out = [max(1, int(round(n_base * keep ** ((i + 1) / rounds)))) for i in range(rounds)]
     out[-1] = max(1, int(round(n_base * keep)))
     return out
@@ -111,23 +109,15 @@ class CompressionStudy:
     def finetune(self, cfg: DictConfig, scene, params: dict, seed: int):
         """A fresh standard module holding ``params``, trained ``cfg.trainer.max_steps`` steps (new Adam state, as
         PUP's refine stage); returns it on its renderer's device."""
-        import lightning as L
+        from b3dgs.lifecycle import build_trainer, fit, start_run
 
-        from b3dgs.data.datamodule import SceneDataModule
-        from b3dgs.train import build_run, build_trainer, fit_on_renderer_device
-
-        os.environ.pop("PL_GLOBAL_SEED", None)
-        L.seed_everything(int(seed), workers=True, verbose=False)
-        module = build_run(cfg, scene, init=False)
-        renderer = module.renderer
+        # the study's threads stay as they are; the fine-tune's guard counters are not recorded
+        dm, module = start_run(cfg, scene, seed=seed, threads=False, reset_guards=False, init=False)
         module._set_params({k: v.detach().cpu().clone() for k, v in params.items()})
         module._init_states()
-        trainer = build_trainer(cfg.trainer, renderer, [], enable_progress_bar=False, enable_checkpointing=False,
+        trainer = build_trainer(cfg.trainer, module.renderer, [], enable_progress_bar=False, enable_checkpointing=False,
                                 default_root_dir=str(self.out / ".lightning"))
-        with warnings.catch_warnings():
-            warnings.filterwarnings("ignore", message=".*does not have many workers.*")
-            warnings.filterwarnings("ignore", message=".*`training_step` returns.*")
-            fit_on_renderer_device(trainer, module, datamodule=SceneDataModule(scene=scene))
+        fit(trainer, module, dm)
         module.eval()
         return module
 
@@ -313,9 +303,11 @@ def keep_ply(row_dir: Path, module, scene) -> Path:
 
 def _check_score(name: str, s: torch.Tensor, n: int) -> None:
     if s.shape != (n,):
-        raise B3dgsError(f"pruning score {name!r} returned shape {tuple(s.shape)}, expected ({n},)")
+        raise B3dgsError(f"pruning score {name!r} returned shape {tuple(s.shape)}, expected ({n},)",
+                         "its score() must return one value per Gaussian of the splats it is given")
     if torch.isnan(s).any():
-        raise B3dgsError(f"pruning score {name!r} returned NaN for {int(torch.isnan(s).sum())} Gaussians")
+        raise B3dgsError(f"pruning score {name!r} returned NaN for {int(torch.isnan(s).sum())} Gaussians",
+                         "its score() must return finite values; check the run it scores, or its settings")
 
 
 def _plain(state: dict) -> dict:

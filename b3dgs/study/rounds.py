@@ -11,12 +11,9 @@ same run as fitting to T at once (``tests/test_rounds.py``).
 from __future__ import annotations
 
 import logging
-import os
-import warnings
 from pathlib import Path
 from typing import Optional
 
-import torch
 from omegaconf import DictConfig
 
 from b3dgs.errors import B3dgsError
@@ -34,37 +31,23 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
     view pool). ``run_dir/checkpoints/last.ckpt`` is written every ``checkpoint_every`` steps (default
     ``cfg.trainer.checkpoint_every``), every ``trainer.checkpoint_every_s`` seconds and at the end.
     """
-    import lightning as L
-
     from b3dgs.callbacks import ResumeState, RunCheckpoint
-    from b3dgs.data.datamodule import SceneDataModule
-    from b3dgs.numerics import reset_guards
-    from b3dgs.train import _checkpoint_every_s, build_callbacks, build_run, build_trainer, fit_on_renderer_device
+    from b3dgs.lifecycle import build_callbacks, build_trainer, checkpoint_every_s, fit, start_run
 
     total = int(cfg.trainer.max_steps)
     if not 0 < int(stop_step) <= total:
-        raise B3dgsError(f"a round must stop within the total budget: stop_step={stop_step}, trainer.max_steps={total}")
-    os.environ.pop("PL_GLOBAL_SEED", None)
-    L.seed_everything(int(cfg.seed), workers=True, verbose=False)
-    if ckpt_path is None:
-        reset_guards()
-    if cfg.get("threads"):
-        torch.set_num_threads(int(cfg.threads))
-    module = build_run(cfg, scene)
-    renderer = module.renderer
-    module.allow_new_views = bool(new_round)
-    dm = SceneDataModule(scene=scene)
-    dm.allow_new_views = bool(new_round)
+        raise B3dgsError(f"a round must stop within the total budget: stop_step={stop_step}, trainer.max_steps={total}",
+                         f"pass a stop step in 1..{total}, or raise trainer.max_steps")
+    # a round continued from a checkpoint gets the guard counters back from it
+    dm, module = start_run(cfg, scene, reset_guards=ckpt_path is None)
+    module.allow_new_views = dm.allow_new_views = bool(new_round)
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     every = int(checkpoint_every if checkpoint_every is not None else cfg.trainer.checkpoint_every)
-    ckpt = RunCheckpoint(run_dir / "checkpoints", every_n_steps=every, every_s=_checkpoint_every_s(cfg.trainer))
-    trainer = build_trainer(cfg.trainer, renderer, [ResumeState(), ckpt, *build_callbacks(cfg.get("callbacks"))],
+    ckpt = RunCheckpoint(run_dir / "checkpoints", every_n_steps=every, every_s=checkpoint_every_s(cfg.trainer))
+    trainer = build_trainer(cfg.trainer, module.renderer, [ResumeState(), ckpt, *build_callbacks(cfg.get("callbacks"))],
                             max_steps=int(stop_step), default_root_dir=str(run_dir), enable_checkpointing=True)
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=".*does not have many workers.*")
-        warnings.filterwarnings("ignore", message=".*`training_step` returns.*")
-        fit_on_renderer_device(trainer, module, datamodule=dm, ckpt_path=ckpt_path, weights_only=False)
+    fit(trainer, module, dm, ckpt_path)
     module.allow_new_views = False
     module.last_checkpoint = str(ckpt.last_path)
     return module
@@ -72,19 +55,9 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
 
 def load_round(cfg: DictConfig, scene: Scene, ckpt_path: str):
     """A module holding ``ckpt_path``'s model for scoring or evaluation (no trainer; on the renderer's device)."""
-    from b3dgs.train import build_run
+    from b3dgs.lifecycle import build_run, load_checkpoint, read_checkpoint
 
-    module = build_run(cfg, scene)
-    renderer = module.renderer
-    ck = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-    module.allow_new_views = True
-    module.on_load_checkpoint(ck)
-    module.allow_new_views = False
-    module.load_state_dict(ck["state_dict"])
-    module._loaded_step = int(ck.get("global_step", 0))
-    module.to(renderer.device)
-    module.eval()
-    return module
+    return load_checkpoint(build_run(cfg, scene), read_checkpoint(ckpt_path), new_views=True)
 
 
 def training_signature(cfg: DictConfig) -> str:

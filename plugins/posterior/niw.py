@@ -530,8 +530,8 @@ class NIWBlock(PosteriorBlock):
         if self.count not in COUNTS:
             from b3dgs.errors import did_you_mean
 
-            raise B3dgsError(f"posterior.niw.count={self.count} is not a count{did_you_mean(str(self.count), COUNTS)} "
-                             f"(fix: pass posterior.niw.count={'|'.join(COUNTS)})")
+            raise B3dgsError(f"posterior.niw.count={self.count} is not a count{did_you_mean(str(self.count), COUNTS)}",
+                             f"pass posterior.niw.count={'|'.join(COUNTS)}")
         if isinstance(self.fisher_probes, bool) or not isinstance(self.fisher_probes, int) or self.fisher_probes < 1:
             raise B3dgsError(f"posterior.niw.fisher_probes must be an integer >= 1, got {self.fisher_probes}")
 

@@ -158,7 +158,7 @@ class SHPosteriorBlock(PosteriorBlock):
         if B > 1:
             if shN is None or shN.shape[-2] < B - 1:
                 raise B3dgsError(f"posterior.sh: the posterior has {B} SH bases, the model's shN holds "
-                                 f"{None if shN is None else shN.shape[-2]} (fix: compute it at the model's SH degree)")
+                                 f"{None if shN is None else shN.shape[-2]}", "compute it at the model's SH degree")
             extra = shN[..., B - 1:, :]
             pad = extra.expand((n,) + extra.shape[-3:]) if extra.dim() == 3 else extra
             out["shN"] = torch.cat([shN[..., : B - 1, :] + delta[:, :, 1:], pad], dim=-2)

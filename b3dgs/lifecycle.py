@@ -1,0 +1,361 @@
+"""One run's lifecycle, the one home of what every run does: training (``b3dgs-train``), a study's rounds, the
+compression study's fine-tunes and loading a run (``b3dgs-eval``, the viewer, exports) all go through it.
+
+* :func:`start_run`: :func:`seed_run` (seed, guard counters, threads), the data module (:func:`data_module`: the
+  scene read once per run) and the model (:func:`build_run`);
+* :func:`build_trainer` (the ``trainer`` node's ``lightning.Trainer``, :func:`build_callbacks`) and :func:`fit`
+  (``trainer.fit`` under b3dgs's warnings filters, the model back on its renderer's device);
+* :func:`read_checkpoint` and :func:`load_checkpoint` (a checkpoint's model into a built module), and the checks of a
+  resume against the run it continues (:func:`check_resume`, :func:`check_resume_renderer`);
+* the checks of a run's settings that need its components (:func:`check_devices`, :func:`warn_slow_renderer`,
+  :func:`warn_disabled_options`).
+
+The run dir (lock, claim, resume and overwrite) is :mod:`b3dgs.rundir`'s.
+"""
+from __future__ import annotations
+
+import logging
+import os
+import warnings
+from collections import OrderedDict
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Optional
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from b3dgs.errors import B3dgsError
+
+if TYPE_CHECKING:
+    from b3dgs.data.datamodule import SceneDataModule
+    from b3dgs.render.renderers import Renderer
+    from b3dgs.types import Scene
+
+log = logging.getLogger(__name__)
+
+
+# ------------------------------------------------------------------------------------------ the model
+def build_plugins(cfg: DictConfig):
+    """Instantiate the strategy and the configured posterior blocks (in their listed order)."""
+    from hydra.utils import instantiate
+
+    strategy = instantiate(cfg.strategy)
+    blocks: "OrderedDict[str, Any]" = OrderedDict()
+    post = cfg.get("posterior") or {}
+    for name, node in post.items():
+        blocks[name] = instantiate(node)
+    return strategy, blocks
+
+
+def build_renderer(node) -> "Renderer":
+    """The renderer plugin of a config's ``renderer`` node, checked to run on this machine.
+
+    Run dirs written before renderers were plugins hold ``renderer: {backend: cpu|torch}``.
+    """
+    from hydra.utils import instantiate
+
+    from b3dgs.render.renderers import make_renderer
+
+    if node is None or isinstance(node, str):
+        renderer = make_renderer(node or "auto")
+    elif "_target_" in node:
+        renderer = instantiate(node)
+    else:
+        renderer = make_renderer(str(node.get("backend", "auto")))
+    renderer.check_available()
+    return renderer
+
+
+def build_module(cfg: DictConfig, strategy, blocks, renderer=None):
+    from hydra.utils import instantiate
+
+    from b3dgs.schedule import make_schedule
+
+    return instantiate(cfg.model, _partial_=True)(
+        strategy=strategy, posterior=blocks, renderer=renderer if renderer is not None else build_renderer(cfg.get("renderer")),
+        max_steps=int(cfg.trainer.max_steps), seed=int(cfg.seed), schedule=make_schedule(cfg.get("schedule")),
+    )
+
+
+def _config_renderer(cfg: DictConfig) -> "Renderer":
+    return build_renderer(cfg.get("renderer"))
+
+
+def build_run(cfg: DictConfig, scene: "Scene", *, renderer=None, init: bool = True):
+    """The model of a run, the one build sequence of b3dgs (training, rounds, loading a run, compression):
+    :func:`build_plugins` -> :func:`build_renderer` (unless ``renderer`` is given) -> :func:`build_module` ->
+    ``init_from_scene(scene)`` (the seeded initial Gaussians and every plugin's state). ``renderer``: a renderer
+    plugin, or a function of the config that makes one, in place of :func:`build_renderer`. ``init=False`` only
+    attaches ``scene``, for a caller that loads the parameters itself. The renderer is ``module.renderer``."""
+    strategy, blocks = build_plugins(cfg)
+    if renderer is None or callable(renderer):
+        renderer = (renderer or _config_renderer)(cfg)
+    module = build_module(cfg, strategy, blocks, renderer)
+    if init:
+        module.init_from_scene(scene)
+    else:
+        module.scene = scene
+    return module
+
+
+# ------------------------------------------------------------------------------------ start of a run
+def seed_run(seed: int, threads: Optional[int] = None, reset_guards: bool = True) -> None:
+    """Seed every RNG for a run (``lightning.seed_everything``, workers included; ``PL_GLOBAL_SEED`` is dropped
+    first, as it survives between multirun jobs), reset the numerical guard counters (``reset_guards``; a round
+    continued from a checkpoint gets its counters back from it) and set torch's CPU threads (``threads``)."""
+    import lightning as L
+
+    from b3dgs.numerics import reset_guards as _reset
+
+    os.environ.pop("PL_GLOBAL_SEED", None)
+    L.seed_everything(int(seed), workers=True, verbose=False)
+    if reset_guards:
+        _reset()
+    if threads:
+        torch.set_num_threads(int(threads))
+
+
+def data_module(data, keep_raw: bool = False) -> "SceneDataModule":
+    """A run's data module with its scene read (``setup("fit")``), the one place a run reads its scene: ``data``
+    is a config's ``data`` node (instantiated), a :class:`~b3dgs.types.Scene` already read (served as it is) or a
+    data module. ``keep_raw``: keep what was read, for :meth:`~b3dgs.data.datamodule.SceneDataModule.select_train`."""
+    from hydra.utils import instantiate
+
+    from b3dgs.data.datamodule import SceneDataModule
+    from b3dgs.types import Scene
+
+    if isinstance(data, Scene):
+        return SceneDataModule(scene=data)
+    dm = data if isinstance(data, SceneDataModule) else instantiate(data)
+    dm.keep_raw = bool(keep_raw)
+    dm.setup("fit")
+    return dm
+
+
+def start_run(cfg: DictConfig, data=None, *, seed: Optional[int] = None, threads: bool = True,
+              reset_guards: bool = True, init: bool = True):
+    """The start of every run that trains: :func:`seed_run` (``seed``, default ``cfg.seed``; ``cfg.threads`` unless
+    ``threads=False``), the data module (:func:`data_module` of ``data``, default ``cfg.data``) and the model
+    (:func:`build_run` on its scene; ``init=False``: the caller sets the parameters). Returns ``(datamodule, module)``."""
+    seed_run(int(cfg.seed if seed is None else seed), cfg.get("threads") if threads else None, reset_guards)
+    dm = data_module(cfg.data if data is None else data)
+    return dm, build_run(cfg, dm.scene, init=init)
+
+
+# ---------------------------------------------------------------------------------------- the trainer
+def resolve_accelerator(requested: Optional[str], renderer) -> str:
+    """Lightning's accelerator for ``trainer.accelerator``: ``auto`` follows the renderer's device."""
+    want = renderer.device.type
+    req = str(requested or "auto")
+    if req == "auto":
+        return want
+    if {"gpu": "cuda"}.get(req, req) != want:
+        raise B3dgsError(f"trainer.accelerator={req} does not match renderer={renderer.name}, which runs on {want}",
+                         f"trainer.accelerator=auto, or pick a renderer for {req}")
+    return req
+
+
+#: keys of the ``trainer`` node that b3dgs reads itself (its callbacks and final outputs); every other key is an
+#: argument of the node's ``_target_`` (``lightning.Trainer``)
+RUN_KEYS = ("eval_every", "curve_max_views", "checkpoint_every", "checkpoint_every_s", "keep_checkpoints",
+            "save_renders")
+#: trainer keys of run dirs written before the trainer node was a ``lightning.Trainer`` target
+_OLD_TRAINER_KEYS = {"progress_bar": "enable_progress_bar", "log_every": "log_every_n_steps"}
+
+
+def build_callbacks(node) -> list:
+    """The configured extra callbacks (``callbacks: {name: {_target_: ...}}``), in their listed order; they run
+    after b3dgs's own callbacks (Lightning runs checkpoint callbacks, such as ``last.ckpt``'s, last of all)."""
+    from hydra.utils import instantiate
+
+    return [instantiate(n) for n in (node or {}).values() if n is not None]
+
+
+def build_trainer(tcfg, renderer, callbacks: list, logger=False, **fixed):
+    """The ``trainer`` node's ``_target_`` (``lightning.Trainer``) built with its own arguments, the accelerator
+    resolved from the renderer (:func:`resolve_accelerator`), ``callbacks``, ``logger``, b3dgs's atomic checkpoint
+    IO, and ``fixed`` (what a caller sets whatever the config says, e.g. a round's ``max_steps``). With the progress
+    bar on, it is b3dgs's bar over global steps (:class:`b3dgs.callbacks.StepProgressBar`) unless ``callbacks`` has one."""
+    from hydra.utils import instantiate
+    from lightning.pytorch.callbacks import ProgressBar
+
+    from b3dgs.callbacks import AtomicCheckpointIO, StepProgressBar
+
+    keys = [str(k) for k in tcfg.keys() if k not in RUN_KEYS and _OLD_TRAINER_KEYS.get(k, k) not in fixed]
+    # resolved one by one in place (interpolations may point anywhere in the config; fixed ones are never read)
+    args = {_OLD_TRAINER_KEYS.get(k, k): tcfg[k] for k in keys}
+    args = {k: OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v for k, v in args.items()}
+    args.setdefault("_target_", "lightning.Trainer")
+    args["accelerator"] = resolve_accelerator(args.get("accelerator"), renderer)
+    args.update(fixed)
+    if args.get("enable_progress_bar", True) and not any(isinstance(c, ProgressBar) for c in callbacks):
+        callbacks = [*callbacks, StepProgressBar()]
+    # objects go in through a partial (instantiate would turn them into configs: hydra#2591)
+    return instantiate(args, _partial_=True)(callbacks=callbacks, logger=logger, plugins=[AtomicCheckpointIO()])
+
+
+def checkpoint_every_s(tcfg) -> Optional[float]:
+    """``trainer.checkpoint_every_s`` checked: seconds between time-based checkpoints, or ``None``."""
+    v = tcfg.get("checkpoint_every_s")
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not v >= 0:
+        raise B3dgsError(f"trainer.checkpoint_every_s={v} is invalid: it must be a number of seconds >= 0 or null",
+                         "pass trainer.checkpoint_every_s=300, or 0 / null for step-based checkpoints only")
+    return float(v)
+
+
+def fit_on_renderer_device(trainer, module, **fit_kwargs) -> None:
+    """``trainer.fit(module, ...)``, then the module back on its renderer's device. Lightning's teardown moves a
+    model trained on a GPU to the CPU, and all that follows training (the final evaluation, the posterior pass,
+    a study's scoring, exports) renders with the run's renderer: gsplat refuses CPU tensors. On the CPU it is a
+    no-op."""
+    trainer.fit(module, **fit_kwargs)
+    device = module.renderer.device
+    if module.device.type != device.type:
+        module.to(device)
+
+
+def fit(trainer, module, datamodule, ckpt_path: Optional[str] = None) -> None:
+    """Train: :func:`fit_on_renderer_device` on ``datamodule``, from ``ckpt_path`` if given (b3dgs's checkpoints
+    hold plugin states and config values, not only tensors), without Lightning's warnings about the data loader's
+    workers and ``training_step``'s return value (one camera per step, by design)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+        warnings.filterwarnings("ignore", message=".*`training_step` returns.*")
+        fit_on_renderer_device(trainer, module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=False)
+
+
+# ----------------------------------------------------------------------------------------- checkpoints
+def read_checkpoint(path, mmap: bool = False) -> dict:
+    """A b3dgs checkpoint, on the CPU (with its plugin states and config values: not ``weights_only``)."""
+    return torch.load(path, map_location="cpu", weights_only=False, mmap=mmap)
+
+
+def load_checkpoint(module, ck: dict, new_views: bool = False):
+    """Put the model of checkpoint ``ck`` into ``module`` (built by :func:`build_run`) for scoring or evaluation:
+    plugin states, parameters and the step it was saved at; returns it in eval mode on its renderer's device.
+    ``new_views``: the module's scene may train on views the checkpoint's run did not have (a study's round)."""
+    module.allow_new_views = bool(new_views)
+    try:
+        module.on_load_checkpoint(ck)
+    finally:
+        module.allow_new_views = False
+    module.load_state_dict(ck["state_dict"])
+    module._loaded_step = int(ck.get("global_step", 0))
+    module.eval()
+    module.to(module.renderer.device)
+    return module
+
+
+def check_resume_renderer(cfg: DictConfig, ckpt_path: str) -> None:
+    """Refuse to resume with another renderer (backend, device or setting) than the checkpoint's run used: the
+    identity of the renderer in the checkpoint, or (checkpoints written before it was recorded) the ``renderer``
+    node of its run dir's config.yaml. A damaged checkpoint passes here (:func:`check_resume` names it)."""
+    from b3dgs.checkpoint import renderer_identity, renderer_mismatch
+
+    try:
+        saved = ((read_checkpoint(ckpt_path, mmap=True).get("b3dgs") or {}).get("identity") or {}).get("renderer")
+    except Exception:  # noqa: BLE001
+        return
+    node = cfg.get("renderer")
+    if saved:
+        logger = logging.getLogger("b3dgs.render.renderers")
+        level = logger.level
+        logger.setLevel(logging.WARNING)  # the run builds (and names) its renderer again later
+        try:
+            current = renderer_identity(build_renderer(node))
+        finally:
+            logger.setLevel(level)
+        bad = renderer_mismatch(saved, current)
+    else:
+        cfg_path = Path(ckpt_path).resolve().parent.parent / "config.yaml"
+        try:
+            old = OmegaConf.load(cfg_path).get("renderer") if cfg_path.is_file() else None
+        except Exception:  # noqa: BLE001
+            old = None
+        plain = (lambda n: OmegaConf.to_container(n, resolve=True) if OmegaConf.is_config(n) else n)  # noqa: E731
+        bad = renderer_mismatch(plain(old), plain(node), resolved=False)
+    if bad is not None:
+        problem, want = bad
+        raise B3dgsError(f"resume: the checkpoint {ckpt_path} does not match this run: {problem}",
+                         f"pass {want}, or start afresh with overwrite=true or another hydra.run.dir (a resume "
+                         "continues the same run exactly)")
+
+
+def check_resume(module, ckpt_path: str) -> None:
+    """Refuse to resume a checkpoint of another model, posterior, strategy, scene, schedule or seed."""
+    try:
+        ck = read_checkpoint(ckpt_path, mmap=True)
+    except Exception as e:  # noqa: BLE001 - damaged file: say which and how to go on
+        raise B3dgsError(f"cannot read the checkpoint {ckpt_path} ({type(e).__name__})",
+                         "pass resume=PATH to an intact .ckpt, or overwrite=true to start afresh") from None
+    module.check_checkpoint_identity(
+        ck, f"resume: the checkpoint {ckpt_path}",
+        "start afresh with overwrite=true or another hydra.run.dir (a resume continues the same run exactly)")
+
+
+# ------------------------------------------------------------------------------ settings checked at start
+def _device_count(v: Any) -> int:
+    """How many devices ``trainer.devices`` asks for (-1: all of them, as Lightning reads it)."""
+    if isinstance(v, (list, tuple)) or OmegaConf.is_list(v):
+        return len(v)
+    try:
+        return int(str(v))
+    except ValueError:
+        return 1  # "auto": one device on the CPU
+
+
+def _show_value(v: Any) -> str:
+    if OmegaConf.is_config(v):
+        v = OmegaConf.to_container(v)
+    return "[" + ",".join(map(str, v)) + "]" if isinstance(v, (list, tuple)) else str(v)
+
+
+def check_devices(cfg: DictConfig) -> None:
+    """Refuse ``trainer.devices`` > 1 (or -1) on the CPU: Lightning would start training processes that fight
+    over the run dir."""
+    devices = cfg.trainer.get("devices", 1)
+    n = _device_count(devices)
+    node = cfg.get("renderer")
+    target = str(node.get("_target_", "")) if isinstance(node, DictConfig) else str(node or "")
+    on_cpu = (not torch.cuda.is_available() or str(cfg.trainer.get("accelerator", "auto")) == "cpu"
+              or target.endswith(("CPURenderer", "cpu"))
+              or (target.endswith("TorchRenderer") and str(node.get("device_name", "auto")) == "cpu"))
+    if on_cpu and (n > 1 or n == -1):
+        raise B3dgsError(f"trainer.devices={_show_value(devices)} asks for several training processes on the CPU, "
+                         "which b3dgs does not run (they would share one run dir)",
+                         "pass trainer.devices=1; threads=N sets how many CPU threads the one process uses")
+
+
+#: a run the renderer's stated speed puts above this many seconds gets a warning before it starts
+SLOW_RUN_S = 600.0
+
+
+def warn_slow_renderer(cfg: DictConfig) -> Optional[str]:
+    """A warning (logged and returned) when the renderer states a CPU cost per step (``cpu_seconds_per_step``, e.g.
+    the pure-PyTorch reference's ~1 s) that puts ``trainer.max_steps`` above :data:`SLOW_RUN_S` on the CPU."""
+    from b3dgs.schema import locate, value
+
+    node = cfg.get("renderer")
+    target = locate(str(node["_target_"])) if isinstance(node, DictConfig) and "_target_" in node else None
+    per_step, steps = getattr(target, "cpu_seconds_per_step", None), value(cfg.trainer, "max_steps", "trainer.max_steps")
+    device = str(node.get("device_name", "cpu")) if target else ""
+    on_cpu = device == "cpu" or (device == "auto" and not torch.cuda.is_available())
+    if not (per_step and on_cpu and isinstance(steps, int) and steps > 0 and steps * per_step > SLOW_RUN_S):
+        return None
+    msg = (f"renderer={getattr(target, 'name', node['_target_'])} trains at about "
+           f"{per_step:g} s per step on the CPU: trainer.max_steps={steps} will take about {steps * per_step / 60:.0f} "
+           f"min (fix: renderer=cpu, the C++ backend, is ~40x faster; or fewer trainer.max_steps)")
+    log.warning(msg)
+    return msg
+
+
+def warn_disabled_options(module) -> None:
+    """Warn where one setting silently turns off another (``strategy.max_gaussians`` below the initial count)."""
+    cap = getattr(module.strategy, "max_gaussians", None)
+    n = int(module.num_gaussians)
+    if isinstance(cap, int) and not isinstance(cap, bool) and cap < n:
+        log.warning("strategy.max_gaussians=%d is below the %d initial Gaussians: no Gaussian is ever added "
+                    "(densification by clone and split is off; only pruning changes the count) (fix: raise "
+                    "strategy.max_gaussians above %d, or lower model.init_max_points)", cap, n, n)
