@@ -1,1 +1,1 @@
-"""The benchmarks: python -m bench.<name> (or python bench/<name>.py); shared helpers in bench.common."""
+"""The benchmarks, one package: ``python -m bench.<name>`` from the repository root; shared helpers in bench.common."""

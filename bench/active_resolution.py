@@ -8,8 +8,8 @@ resolution) and the rankings are compared with the first side's:
 * the overlap of the selected ``acquire`` views (Jaccard) and how many picks differ;
 * the scoring time at each side (median of one run: the machine is noisy; the ratio is measured side by side).
 
-    python bench/active_resolution.py --scene ethiopian_head --seed 0                 # 64 vs full (256 px)
-    python bench/active_resolution.py --scene fox --sides full 64 32 --policies proxy native
+    python -m bench.active_resolution --scene ethiopian_head --seed 0                 # 64 vs full (256 px)
+    python -m bench.active_resolution --scene fox --sides full 64 32 --policies proxy native
 
 Resumable: every (policy, side) entry is written to ``bench/results/active_resolution.json`` when done and
 reused. The phase-1 models come from ``<study_out>/<scene>/phase1`` (trained by the study if missing).
@@ -17,14 +17,10 @@ reused. The phase-1 models come from ``<study_out>/<scene>/phase1`` (trained by 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
-try:  # python -m bench.active_resolution
-    from bench.common import RESULTS, machine, scene_names, scene_overrides, table, write_results
-except ModuleNotFoundError:  # python bench/active_resolution.py
-    from common import RESULTS, machine, scene_names, scene_overrides, table, write_results
+from bench.common import RESULTS, machine, scene_names, scene_overrides, table, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 NAME = "active_resolution"

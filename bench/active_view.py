@@ -42,12 +42,8 @@ from b3dgs.io import save_figure
 from b3dgs.report.document import markdown_table
 from b3dgs.report.stats import mean_sem, p_floor, sign_flip_p
 
-try:  # python -m bench.active_view
-    from bench.common import (ARCHIVED_FAMILY_POSTERIOR, RESULTS, compose, machine, n_train_views, PeriodicSync,
-                              scene_names, scene_overrides, sync_results, write_results)
-except ModuleNotFoundError:  # python bench/active_view.py
-    from common import (ARCHIVED_FAMILY_POSTERIOR, RESULTS, compose, machine, n_train_views, PeriodicSync, scene_names,
-                        scene_overrides, sync_results, write_results)
+from bench.common import (ARCHIVED_FAMILY_POSTERIOR, RESULTS, compose, machine, n_train_views, PeriodicSync,
+                          scene_names, scene_overrides, sync_results, write_results)
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY_SCENES = list(OmegaConf.load(ROOT / "conf" / "report.yaml").studies.scenes)

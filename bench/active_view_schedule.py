@@ -4,7 +4,7 @@
         --extra "policies=[uniform,farthest,ensemble,native]" "family_baselines=[]" --study-out /work/av_const &
     python -m bench.active_view --scenes fox --seeds 0 --jobs 1 --batches topk \
         --extra "policies=[uniform,farthest,ensemble,native]" "family_baselines=[]" +schedule=dash --study-out /work/av_dash
-    python bench/active_view_schedule.py            # reads bench/results/active_view_schedule/{constant,dash}/
+    python -m bench.active_view_schedule            # reads bench/results/active_view_schedule/{constant,dash}/
 
 Each folder holds the study's cross-scene table (``active_view.json``, from ``<study-out>/tables``) and its archived
 rows (``runs/``). Writes ``bench/results/active_view_schedule/compare.{json,md}``: per policy the final PSNR and LPIPS
@@ -14,11 +14,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS  # noqa: E402
+from bench.common import RESULTS
 
 
 def compare(a: dict, b: dict, name_a: str, name_b: str) -> dict:

@@ -1,6 +1,6 @@
 """Builds of the C++ extension side by side: the default build against one set by environment variables.
 
-    python bench/build_ab.py [--env B3DGS_FMA=1] [--checkpoint RUN_DIR/checkpoints/last.ckpt] [--rounds 5]
+    python -m bench.build_ab [--env B3DGS_FMA=1] [--checkpoint RUN_DIR/checkpoints/last.ckpt] [--rounds 5]
 
 Each round renders, in one fresh process per build, 100k random Gaussians at 256x256 (bench/render.py's scene) and
 the first test view of ``--checkpoint`` forward and forward+backward (``renderer=cpu``, one thread), the builds
@@ -19,10 +19,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-try:  # python -m bench.build_ab
-    from bench.common import RESULTS, machine, table, write_results
-except ModuleNotFoundError:  # python bench/build_ab.py
-    from common import RESULTS, machine, table, write_results
+from bench.common import RESULTS, machine, table, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 

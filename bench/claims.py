@@ -1,6 +1,6 @@
 """The paper's claims against our committed results: ``bench/results/claims.{md,json}``.
 
-    python bench/claims.py            # reads bench/results/{runs/,active_view,uq,compression}.json
+    python -m bench.claims            # reads bench/results/{runs/,active_view,uq,compression}.json
 
 Every row is one claim of the paper's claim-scope table (Appendix "Claim Scope Summary") or one headline number
 (Tables 2-5 and the appendix studies): the paper's figure, ours (mean over scenes of per-scene means over seeds,
@@ -29,14 +29,10 @@ import argparse
 import json
 import math
 import statistics
-import sys
 from pathlib import Path
 from typing import Callable, Optional
 
-try:  # python -m bench.claims
-    from bench.common import RESULTS, write_results
-except ModuleNotFoundError:  # python bench/claims.py
-    from common import RESULTS, write_results
+from bench.common import RESULTS, write_results
 
 from b3dgs.report.stats import paired_stats  # noqa: E402
 
@@ -95,10 +91,7 @@ class Results:
     def active_paired(self, key: str) -> dict[str, float]:
         """Per scene, the active-view study's seed-mean paired PSNR difference ``key`` (e.g. 'native-ensemble'),
         pooled over both ladders as bench/active_view.py pools them: 16 -> 32 scenes and the 8 -> 16 ones."""
-        try:  # python -m bench.claims
-            from bench.active_view import pooled_per_scene
-        except ModuleNotFoundError:  # python bench/claims.py
-            from active_view import pooled_per_scene
+        from bench.active_view import pooled_per_scene
 
         per = pooled_per_scene([self.active, self.active_small], key)
         if not per:  # a policy the campaign did not run: its rows paired by bench/active_view_extra.py
@@ -419,7 +412,7 @@ def ours_text(r: dict) -> str:
 
 
 def table_md(rows: list[dict], scenes: list[str]) -> str:
-    lines = [f"Claims of the paper against our committed results (`python bench/claims.py`). Canonical archive "
+    lines = [f"Claims of the paper against our committed results (`python -m bench.claims`). Canonical archive "
              f"scenes: {', '.join(scenes) or 'none yet'}. Ours = mean over scenes of per-scene seed means; CI = "
              f"bootstrap over scenes; p = exact sign-flip over scenes (two-sided).", "",
              "| claim | source | paper | ours | 95 % CI | p | scenes | verdict | why |",

@@ -1,7 +1,7 @@
 """Shared helpers for the benchmarks: scenes and protocol (from b3dgs's config), medians, JSON + table output.
 
-``bench/`` is a package: ``python -m bench.<name>``; ``python bench/<name>.py`` works too (each script imports
-``bench.common``, or ``common`` from its own folder when run as a file).
+``bench/`` is a package, run as ``python -m bench.<name>`` from the repository root (or with it on ``PYTHONPATH``);
+its modules import each other as ``bench.<module>`` only and leave ``sys.path`` alone (tests/test_bench_imports.py).
 """
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ import torch
 from b3dgs.io import atomic_path, write_json
 from b3dgs.study.active import FAMILY_POSTERIOR_UNRECORDED
 
+ROOT = Path(__file__).resolve().parents[1]  # the checkout this bench/ belongs to
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
@@ -196,6 +197,16 @@ class PeriodicSync:
         self.stop.set()
         self.thread.join()
         sync_results(*self.args)
+
+
+def bench_child(name: str, *argv: str) -> tuple[list[str], dict[str, str]]:
+    """The command and environment that run ``python -m bench.<name> argv...`` in a child process from any working
+    directory: this checkout goes first on ``PYTHONPATH``, so the child imports this ``bench`` and ``b3dgs``."""
+    import os
+    import sys
+
+    path = os.pathsep.join([str(ROOT), *[p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]])
+    return [sys.executable, "-m", f"bench.{name}", *argv], dict(os.environ, PYTHONPATH=path)
 
 
 def shared_dir() -> Path:

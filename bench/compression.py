@@ -1,14 +1,14 @@
 """The compression ladder (``b3dgs-study compress``) on the canonical standard runs of the shared scenes.
 
-    python bench/compression.py                          # ethiopian_head + fox, seeds 0 1 2 (as far as bases exist)
-    python bench/compression.py --seeds 0 --jobs 2       # one base per scene, the two scenes side by side
-    python bench/compression.py --aggregate-only         # only rebuild the tables and plots
+    python -m bench.compression                          # ethiopian_head + fox, seeds 0 1 2 (as far as bases exist)
+    python -m bench.compression --seeds 0 --jobs 2       # one base per scene, the two scenes side by side
+    python -m bench.compression --aggregate-only         # only rebuild the tables and plots
 
 Base runs are ``outputs/bench/<scene>/standard/s<seed>`` (``bench/studies.py`` trains them). One subprocess per
 base run (``--jobs`` at a time, ``threads=1`` each); every row is resumable, so an interrupted run of this script
 picks up where it stopped. Finished rows are copied to ``--archive`` (default bench/results/compression_runs/,
 committed) after each base and restored from it at the start, so a ladder spread over sessions resumes (with its base
-runs at the same paths: train them with ``bench/studies.py --studies canonical --methods standard``). Writes ``bench/results/compression.{json,md}`` and ``bench/results/compression/``
+runs at the same paths: train them with ``python -m bench.studies --studies canonical --methods standard``). Writes ``bench/results/compression.{json,md}`` and ``bench/results/compression/``
 (the study's plots).
 """
 from __future__ import annotations
@@ -22,10 +22,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-try:  # python -m bench.compression
-    from bench.common import RESULTS, machine, sync_results, write_results
-except ModuleNotFoundError:  # python bench/compression.py
-    from common import RESULTS, machine, sync_results, write_results
+from bench.common import RESULTS, machine, sync_results, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 NAME = "compression"

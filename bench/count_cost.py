@@ -1,7 +1,7 @@
 """What a NIW count (or the SH posterior) costs a training run: its pass over the training views, against the run.
 
-    python bench/count_cost.py --runs '/work/counts_s12/*/niw/s1'          # trained NIW runs (with checkpoints)
-    python bench/count_cost.py --table-only
+    python -m bench.count_cost --runs '/work/counts_s12/*/niw/s1'          # trained NIW runs (with checkpoints)
+    python -m bench.count_cost --table-only
 
 A count other than the paper's (``posterior.niw.count=weight|fisher|fisher3``) and ``posterior.sh`` are computed once,
 from one pass over the training views after training (:meth:`b3dgs.module.SplatModule.prepare_posterior`); during
@@ -24,14 +24,12 @@ import argparse
 import glob
 import json
 import os
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import RESULTS, machine, median_ms  # noqa: E402
+from bench.common import RESULTS, machine, median_ms
 
 COUNTS = ["weight", "fisher", "fisher3", "sh"]
 BOUND = 5.0  # issue 29: the NIW block's share of the training time stays <= 5 %
@@ -104,7 +102,7 @@ def table(res: dict) -> str:
     runs = res["runs"]
     counts = [c for c in COUNTS if any(c in v for v in runs.values())]
     lines = ["# What a count costs a training run (the pass over the training views after training)", "",
-             f"Command: `python bench/count_cost.py --runs ...`; {len(runs)} trained NIW runs (quick protocol), pass "
+             f"Command: `python -m bench.count_cost --runs ...`; {len(runs)} trained NIW runs (quick protocol), pass "
              f"timed on 1 thread ({res.get('load', '')}). Shares are upper bounds (a count's run skips the paper's "
              "per-step EMA, whose in-run time they include). Clock: (paper block s + pass) / (train s + pass), times "
              "from two machine loads. Side by side: paper block s / train s + pass / (pass + steps × the render's "

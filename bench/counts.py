@@ -2,8 +2,8 @@
 posterior (``uq=[native_sh]``: the canonical native plus ``posterior.sh``) against the paper's count, the deep ensemble
 and the constant baseline, over the seven scenes x seeds 0 1 2.
 
-    python bench/counts.py --jobs 2 --threads 1           # retrain what is missing, score, merge, tabulate
-    python bench/counts.py --table-only                   # tables from the archive only
+    python -m bench.counts --jobs 2 --threads 1           # retrain what is missing, score, merge, tabulate
+    python -m bench.counts --table-only                   # tables from the archive only
 
 Posterior re-evaluation without retraining: a count is a function of the trained Gaussians (one pass over the
 training views, :meth:`b3dgs.module.SplatModule.view_sums`), so each canonical NIW run is scored under every count
@@ -30,8 +30,7 @@ from typing import Optional
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import QUICK, RESULTS, model_overrides, scene_overrides, train_run  # noqa: E402
+from bench.common import QUICK, RESULTS, bench_child, model_overrides, scene_overrides, train_run
 
 SEVEN = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
 COUNTS = ["weight", "fisher", "fisher3", "sh"]  # scored as the uq regimes native_<name>
@@ -100,9 +99,9 @@ def run_row(args, scene: str, seed: int) -> Optional[str]:
         return f"{scene} s{seed}: retrained parameters {got} differ from the archived run's {want}; not merged"
     import subprocess
 
-    cmd = [sys.executable, __file__, "--score-one", str(run_dir), str(archive_dir), str(args.samples),
-           str(args.threads), *names]
-    res = subprocess.run(cmd, capture_output=True, text=True)
+    cmd, env = bench_child("counts", "--score-one", str(run_dir), str(archive_dir), str(args.samples),
+                           str(args.threads), *names)
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if res.returncode != 0:
         return f"{scene} s{seed}: scoring failed: {res.stderr[-1500:]}"
     print(f"{scene} s{seed}: merged {', '.join(names)} (parameters match the archive: {got})", flush=True)

@@ -21,10 +21,7 @@ from pathlib import Path
 
 import lightning as L
 
-try:  # python -m bench.device_profile
-    from bench.common import RESULTS, model_overrides, scene_overrides, table, write_results
-except ModuleNotFoundError:  # python bench/device_profile.py
-    from common import RESULTS, model_overrides, scene_overrides, table, write_results
+from bench.common import RESULTS, model_overrides, scene_overrides, table, write_results
 
 
 def _ms(ev, *names: str) -> float:

@@ -18,10 +18,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-try:  # python -m bench.host_syncs
-    from bench.common import RESULTS, machine, model_overrides, scene_overrides, table, write_results
-except ModuleNotFoundError:  # python bench/host_syncs.py
-    from common import RESULTS, machine, model_overrides, scene_overrides, table, write_results
+from bench.common import RESULTS, machine, model_overrides, scene_overrides, table, write_results
 
 from b3dgs.host_sync import summarise
 

@@ -1,6 +1,6 @@
 """SIMD lane occupancy of the CPU rasterizer: how many of the pixel lanes that the kernels evaluate do any work.
 
-    python bench/lanes.py [--sizes 100000] [--checkpoint RUN_DIR/checkpoints/last.ckpt ...] [--views 4]
+    python -m bench.lanes [--sizes 100000] [--checkpoint RUN_DIR/checkpoints/last.ckpt ...] [--views 4]
 
 The kernels process each row of a Gaussian's footprint in chunks of 8 pixels (kLanes). A lane is *live* when its
 pixel lies in the row interval and is not terminated, *used* when the pixel also composites the Gaussian
@@ -18,19 +18,14 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 from pathlib import Path
 
 os.environ["B3DGS_LANE_STATS"] = "1"  # before the extension is loaded: the counting build
 
 import torch  # noqa: E402
 
-try:  # python -m bench.lanes
-    from bench.common import RESULTS, machine, table, write_results
-    from bench.render import camera, random_gaussians
-except ModuleNotFoundError:  # python bench/lanes.py
-    from common import RESULTS, machine, table, write_results
-    from render import camera, random_gaussians
+from bench.common import RESULTS, machine, table, write_results
+from bench.render import camera, random_gaussians
 
 from b3dgs.render._ext import load_extension  # noqa: E402
 from b3dgs.render.renderers import make_renderer  # noqa: E402

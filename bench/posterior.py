@@ -1,6 +1,6 @@
 """Standard vs NIW vs DPMM at the quick protocol on the shared scenes, interleaved, several seeds.
 
-    python bench/posterior.py [--scenes ethiopian_head fox] [--seeds 0 1 2] [--out outputs/bench]
+    python -m bench.posterior [--scenes ethiopian_head fox] [--seeds 0 1 2] [--out outputs/bench]
 
 Per (scene, seed) the three methods run back to back, so the overhead ratios compare runs made
 under the same machine conditions. Writes bench/results/posterior.json and a table: PSNR, SSIM,
@@ -11,14 +11,10 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 from pathlib import Path
 
-try:  # python -m bench.posterior
-    from bench.common import (QUICK, ensure_lpips, machine, model_overrides, scene_overrides, table, train_run,
-                              write_results)
-except ModuleNotFoundError:  # python bench/posterior.py
-    from common import QUICK, ensure_lpips, machine, model_overrides, scene_overrides, table, train_run, write_results
+from bench.common import (QUICK, ensure_lpips, machine, model_overrides, scene_overrides, table, train_run,
+                          write_results)
 
 METHODS = ["standard", "niw", "dpmm"]
 

@@ -1,7 +1,7 @@
 """Renderer benchmark: forward and forward+backward of the full render (projection, binning,
 rasterization) for every renderer plugin available here, side by side in one run, at 256x256.
 
-    python bench/render.py [--sizes 10000 50000 100000] [--renderers cpu torch gsplat]
+    python -m bench.render [--sizes 10000 50000 100000] [--renderers cpu torch gsplat]
                            [--checkpoint RUN_DIR/checkpoints/last.ckpt]
 
 Writes bench/results/render.json (rows {renderer, device, n, width, height, fwd_ms, fwdbwd_ms, pairs})
@@ -12,15 +12,11 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from pathlib import Path
 
 import torch
 
-try:  # python -m bench.render
-    from bench.common import machine, median_ms, table, write_results
-except ModuleNotFoundError:  # python bench/render.py
-    from common import machine, median_ms, table, write_results
+from bench.common import machine, median_ms, table, write_results
 
 from b3dgs.render.renderers import Renderer, gsplat_available, make_renderer  # noqa: E402
 from b3dgs.types import Camera  # noqa: E402

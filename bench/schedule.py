@@ -1,9 +1,9 @@
 """Training schedules side by side: ``schedule=constant`` against ``schedule=dash`` (or any other
 schedule overrides), paired over scenes and seeds, at the quick protocol (256 px, 3000 steps), on one machine.
 
-    python bench/schedule.py                                   # 7 scenes x seeds 0 1 2, both schedules, 2 jobs
-    python bench/schedule.py --scenes fox fern --seeds 0 --variant dash_nolr="schedule=dash schedule.delay_lr_decay=false"
-    python bench/schedule.py --models niw dpmm --seeds 0        # the posterior models under both schedules
+    python -m bench.schedule                                   # 7 scenes x seeds 0 1 2, both schedules, 2 jobs
+    python -m bench.schedule --scenes fox fern --seeds 0 --variant dash_nolr="schedule=dash schedule.delay_lr_decay=false"
+    python -m bench.schedule --models niw dpmm --seeds 0        # the posterior models under both schedules
 
 Every (scene, seed) runs its variants back to back in one queue served by ``--jobs`` workers (one thread each), so
 the variants of a scene-seed share the machine's conditions (interleaved, never one schedule first and the other
@@ -18,7 +18,7 @@ of one source (this table's runs, or one archive, whose rows ran side by side). 
 pattern with a run dir. ``--base-model`` adds model − base tables per variant, e.g. the posterior
 models under dash against the standard model's dash rows of the grid, and against their archived constant runs:
 
-    python bench/schedule.py --table-only --models standard niw dpmm --seeds 0 --variant dash=schedule=dash \\
+    python -m bench.schedule --table-only --models standard niw dpmm --seeds 0 --variant dash=schedule=dash \\
         --out /tmp/m --archive bench/results/schedule_models_runs --name schedule_models --base-model standard \\
         --import "dash=bench/results/schedule_runs/{scene}/{model}/dash/s{seed}" \\
         --import "constant=bench/results/schedule_runs/{scene}/{model}/constant/s{seed}" \\
@@ -28,16 +28,14 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import (QUICK, RESULTS, machine, model_overrides, scene_overrides, sync_results,  # noqa: E402
-                    train_run)
+from bench.common import (QUICK, RESULTS, machine, model_overrides, scene_overrides, sync_results,
+                          train_run)
 
 SEVEN = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
 #: load.json: the --jobs/--threads a row was trained under (its time is paired only with rows of the same scene-seed)

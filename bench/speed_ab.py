@@ -1,7 +1,7 @@
 """Old against new code, side by side: quick-protocol training time and the renderer's fwd+bwd, one invocation.
 
     git worktree add --detach ../b3dgs-base <commit before the change>
-    python bench/speed_ab.py --base ../b3dgs-base [--scenes ethiopian_head fox] [--rounds 3] [--threads 1]
+    python -m bench.speed_ab --base ../b3dgs-base [--scenes ethiopian_head fox] [--rounds 3] [--threads 1]
 
 Round r trains seed r of every scene with both checkouts at the same time, one process each with
 ``threads=1`` (one core each: the machine's conditions hit both alike, and the campaigns run this way,
@@ -20,10 +20,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-try:  # python -m bench.speed_ab
-    from bench.common import QUICK, machine, plain_overrides, scene_overrides, table, write_results
-except ModuleNotFoundError:  # python bench/speed_ab.py
-    from common import QUICK, machine, plain_overrides, scene_overrides, table, write_results
+from bench.common import QUICK, machine, plain_overrides, scene_overrides, table, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 

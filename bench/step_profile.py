@@ -1,6 +1,6 @@
 """Where a training step's time goes: per-step milliseconds by phase, and the kernels' ns per pixel–Gaussian pair.
 
-    python bench/step_profile.py [--scenes ethiopian_head fox] [--steps 1500] [--models standard]
+    python -m bench.step_profile [--scenes ethiopian_head fox] [--steps 1500] [--models standard]
                                  [--code DIR --label NAME]   # profile another checkout (e.g. a git worktree)
 
 Each case trains in a subprocess (``PYTHONPATH=--code``, default this checkout) through ``b3dgs.train.train``
@@ -23,10 +23,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-try:  # python -m bench.step_profile
-    from bench.common import QUICK, RESULTS, machine, model_overrides, scene_overrides, table, write_results
-except ModuleNotFoundError:  # python bench/step_profile.py
-    from common import QUICK, RESULTS, machine, model_overrides, scene_overrides, table, write_results
+from bench.common import QUICK, RESULTS, machine, model_overrides, scene_overrides, table, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 PHASES = ("projection_fwd", "projection_bwd", "binning", "raster_fwd", "raster_bwd", "ssim_fwd", "ssim_bwd",

@@ -7,7 +7,7 @@
     python -m bench.studies --scenes synthetic --seeds 0 --budgets 8 all --max-steps 100 --out /tmp/b --report /tmp/b/report
 
 Scenes: any configured scene (``conf/scene/<name>.yaml``, or one an installed package adds); the protocol is
-``experiment=study`` (``conf/experiment/study.yaml``). ``python bench/studies.py`` runs the same.
+``experiment=study`` (``conf/experiment/study.yaml``). ``python -m bench.studies`` runs the same.
 
 Studies (grid defaults from conf/report.yaml):
 * canonical: standard / NIW / DPMM, ``outputs/bench/<scene>/<method>/s<seed>`` (shared with bench/posterior.py
@@ -41,12 +41,8 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-try:  # python -m bench.studies
-    from bench.common import (QUICK, RESULTS, archive_files, compose, model_overrides, n_train_views, scene_names,
-                              scene_overrides, train_run)
-except ModuleNotFoundError:  # python bench/studies.py
-    from common import (QUICK, RESULTS, archive_files, compose, model_overrides, n_train_views, scene_names,
-                        scene_overrides, train_run)
+from bench.common import (QUICK, RESULTS, archive_files, bench_child, compose, model_overrides, n_train_views,
+                          scene_names, scene_overrides, train_run)
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDIES = OmegaConf.load(ROOT / "conf" / "report.yaml").studies
@@ -251,8 +247,8 @@ def uq_subprocess(run_dir: Path, method: str, samples: int, seed: int, threads: 
 def _child(argv: list[str], threads: int | None, what: str) -> None:
     import subprocess
 
-    cmd = [sys.executable, __file__, *argv] + (["--threads", str(threads)] if threads else [])
-    res = subprocess.run(cmd, capture_output=True, text=True)
+    cmd, env = bench_child("studies", *argv, *(["--threads", str(threads)] if threads else []))
+    res = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if res.returncode != 0:
         raise RuntimeError(f"{what} failed:\n{res.stderr[-4000:]}")
 

@@ -1,7 +1,7 @@
 """Training at the quick protocol on the shared scenes: PSNR against training time, per model and device.
 
-    python bench/train.py [--scenes ethiopian_head fox] [--seeds 0] [--models standard] [--out outputs/bench]
-    python bench/train.py --device cuda --scenes fox --models standard niw dpmm     # on a GPU machine
+    python -m bench.train [--scenes ethiopian_head fox] [--seeds 0] [--models standard] [--out outputs/bench]
+    python -m bench.train --device cuda --scenes fox --models standard niw dpmm     # on a GPU machine
 
 Writes bench/results/train.json (train_cuda.json for --device cuda: final metrics, the curves and the
 device) and the matching .png. Runs are resumable: a finished run dir is reused. With several models,
@@ -11,15 +11,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
-try:  # python -m bench.train
-    from bench.common import (QUICK, RESULTS, ensure_lpips, machine, model_overrides, scene_overrides, table, train_run,
-                              write_results)
-except ModuleNotFoundError:  # python bench/train.py
-    from common import (QUICK, RESULTS, ensure_lpips, machine, model_overrides, scene_overrides, table, train_run,
-                        write_results)
+from bench.common import (QUICK, RESULTS, ensure_lpips, machine, model_overrides, scene_overrides, table, train_run,
+                          write_results)
 
 
 def main() -> None:

@@ -15,8 +15,8 @@ Rows (per scene and seed; the ensemble per scene):
 * ``ensemble (M)``: a deep ensemble of the standard runs;
 * ``PPU (standard)``: the PPU-style residual head on the frozen standard runs.
 
-    python bench/uq.py [--scenes ethiopian_head fox] [--seeds 0 1 2] [--samples 50]
-    python bench/uq.py --scenes synthetic --seeds 0 --max-steps 50 --train-overrides data.max_side=32 \\
+    python -m bench.uq [--scenes ethiopian_head fox] [--seeds 0 1 2] [--samples 50]
+    python -m bench.uq --scenes synthetic --seeds 0 --max-steps 50 --train-overrides data.max_side=32 \\
         --samples 4 --out outputs/dev_uq --name dev_uq            # smoke test
 
 Runs are trained (or reused when finished) through ``bench/common.train_run``; every evaluation writes
@@ -30,14 +30,10 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import time
 from pathlib import Path
 
-try:  # python -m bench.uq
-    from bench.common import QUICK, machine, model_overrides, scene_overrides, table, train_run, write_results
-except ModuleNotFoundError:  # python bench/uq.py
-    from common import QUICK, machine, model_overrides, scene_overrides, table, train_run, write_results
+from bench.common import QUICK, machine, model_overrides, scene_overrides, table, train_run, write_results
 
 VERSION = 2  # bump when what an evaluation measures changes: cached uq.json files are then recomputed
 PAPER = {  # Table 3 of the paper (13 scenes, 30k steps, GPU): for side-by-side reading

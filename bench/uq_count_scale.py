@@ -1,7 +1,7 @@
 """What sets the spread of the NIW posterior (issue 10 §2): the count scale c in N̂ ← c·N̂ (Eq. 2-3),
 the covariance mode of the draws and the scatter C_k, swept on trained NIW runs without retraining.
 
-    python bench/uq_count_scale.py --runs outputs/bench/ethiopian_head/niw/s0 outputs/bench/fox/niw/s0 \\
+    python -m bench.uq_count_scale --runs outputs/bench/ethiopian_head/niw/s0 outputs/bench/fox/niw/s0 \\
         [--scales 1 0.1 0.01 0.001] [--cov-modes relative absolute] [--scatter zero rendered] [--samples 50]
 
 Each run is loaded once; for every setting the NIW block's ``count_scale`` / ``cov_mode`` are set on the
@@ -29,15 +29,11 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
-import sys
 import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 
-try:  # python -m bench.uq_count_scale
-    from bench.common import machine, table, write_results
-except ModuleNotFoundError:  # python bench/uq_count_scale.py
-    from common import machine, table, write_results
+from bench.common import machine, table, write_results
 
 VERSION = 1  # bump when the measurement changes, so cached settings are recomputed
 COLS = ["mean_epistemic", "epistemic_fraction", "epi_ause_rmse", "epi_spearman_sq", "epi_view_spearman",

@@ -5,7 +5,7 @@
 - ``chunk c``: draws of c samples rendered in one call that shares the posterior set-up, the
   projection call and the tile binning (the native regime's default is c = 10).
 
-    python bench/uq_sampling.py [--run RUN_DIR] [--samples 50] [--chunks 1 10 25 50]
+    python -m bench.uq_sampling [--run RUN_DIR] [--samples 50] [--chunks 1 10 25 50]
 
 Without --run, a NIW model is initialised on the synthetic scene at 256 px. Writes
 bench/results/uq_sampling.json and a table with the speed-ups.
@@ -13,15 +13,10 @@ bench/results/uq_sampling.json and a table with the speed-ups.
 from __future__ import annotations
 
 import argparse
-import sys
-from pathlib import Path
 
 import torch
 
-try:  # python -m bench.uq_sampling
-    from bench.common import machine, median_ms, table, write_results
-except ModuleNotFoundError:  # python bench/uq_sampling.py
-    from common import machine, median_ms, table, write_results
+from bench.common import machine, median_ms, table, write_results
 
 
 def build(run: str | None):

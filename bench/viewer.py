@@ -1,6 +1,6 @@
 """b3dgs-view frame times per render mode, and the user guide's screenshot (RGB beside native σ in a real browser).
 
-    python bench/viewer.py --runs RUN [RUN ...] [--threads 2] [--screenshot docs/viewer_ethiopian_head.png]
+    python -m bench.viewer --runs RUN [RUN ...] [--threads 2] [--screenshot docs/viewer_ethiopian_head.png]
 
 For every run and every mode it offers: the median render + colour-map time of the first test view's pose at
 the viewer's full resolution (the training image's long side) and at the moving-camera pass's size for the
@@ -14,16 +14,12 @@ from __future__ import annotations
 import argparse
 import io
 import math
-import sys
 import time
 from pathlib import Path
 
 import torch
 
-try:  # python -m bench.viewer
-    from bench.common import load_file, machine, median_ms, table, write_results
-except ModuleNotFoundError:  # python bench/viewer.py
-    from common import load_file, machine, median_ms, table, write_results
+from bench.common import load_file, machine, median_ms, table, write_results
 
 from b3dgs.viewer.cameras import camera_pose, fov_y, render_size, view_camera  # noqa: E402
 from b3dgs.viewer.modes import ModeRenderer  # noqa: E402

@@ -62,18 +62,18 @@ if [ "$what" = canonical ] || [ "$what" = all ]; then
   # seed by seed, so that each finished seed gives seven paired units; the UQ regimes, the ensembles and the report last
   use_code "$R/runs"
   for seed in $SEEDS; do
-    nice -n 19 python bench/studies.py --studies canonical --uq --seeds "$seed" --jobs "$JOBS" --threads 1 \
+    nice -n 19 python -m bench.studies --studies canonical --uq --seeds "$seed" --jobs "$JOBS" --threads 1 \
       --out "$CAMPAIGN/out" --archive "$R/runs" --report "$CAMPAIGN/report" 2>&1 | tee -a "$log"
   done
   # shellcheck disable=SC2086
-  nice -n 19 python bench/studies.py --studies canonical --uq --seeds $SEEDS --jobs "$JOBS" --threads 1 \
+  nice -n 19 python -m bench.studies --studies canonical --uq --seeds $SEEDS --jobs "$JOBS" --threads 1 \
     --out "$CAMPAIGN/out" --archive "$R/runs" --report "$R/report" 2>&1 | tee -a "$log"
-  (cd "$ROOT" && PYTHONPATH="$ROOT" python bench/claims.py > /dev/null)
+  (cd "$ROOT" && PYTHONPATH="$ROOT" python -m bench.claims > /dev/null)
 fi
 if [ "$what" = compression ] || [ "$what" = all ]; then
   use_code "$R/compression_runs"
   # shellcheck disable=SC2086
-  nice -n 19 python bench/compression.py --scenes $SCENES --seeds 0 --jobs "$JOBS" --bench "$CAMPAIGN/out" \
+  nice -n 19 python -m bench.compression --scenes $SCENES --seeds 0 --jobs "$JOBS" --bench "$CAMPAIGN/out" \
     --out "$CAMPAIGN/compression" --archive "$R/compression_runs" 2>&1 | tee -a "$log"
   cp bench/results/compression.json bench/results/compression.md "$R/" && rm -rf "$R/compression" && cp -r bench/results/compression "$R/"
 fi
@@ -82,7 +82,7 @@ if [ "$what" = active ] || [ "$what" = all ]; then
   rows=()
   [ -z "${ACTIVE_POLICIES:-}" ] || rows=(--batches topk --extra "policies=[$ACTIVE_POLICIES]" "family_baselines=[]")
   # shellcheck disable=SC2086
-  nice -n 19 python bench/active_view.py --scenes $ACTIVE_SCENES --seeds $ACTIVE_SEEDS --jobs "$JOBS" \
+  nice -n 19 python -m bench.active_view --scenes $ACTIVE_SCENES --seeds $ACTIVE_SEEDS --jobs "$JOBS" \
     --study-out "$CAMPAIGN/study" ${rows[@]+"${rows[@]}"} \
     --archive "$R/active_view_runs" 2>&1 | tee -a "$log"
   # an archived file is final: a later seed's run rewrites meta.json/layout.json (the pinned code lists only its own
@@ -92,7 +92,7 @@ if [ "$what" = active ] || [ "$what" = all ]; then
     while read -r f; do git -C "$ROOT" checkout -- "$f"; cp "$ROOT/$f" "$CAMPAIGN/study/${f#bench/results/active_view_runs/}"; done
   # the tables of every scene and seed archived so far, by this checkout's code (not only the scenes just run)
   # shellcheck disable=SC2086
-  (cd "$ROOT" && PYTHONPATH="$ROOT" python bench/active_view.py --aggregate-only --scenes $SCENES \
+  (cd "$ROOT" && PYTHONPATH="$ROOT" python -m bench.active_view --aggregate-only --scenes $SCENES \
     --study-out "$CAMPAIGN/study" --archive "$R/active_view_runs" 2>&1 | tee -a "$log")
 fi
 if [ "$what" = active_ig ]; then
@@ -101,7 +101,7 @@ if [ "$what" = active_ig ]; then
   use_code "$R/active_view_ig_runs"
   IG_POLICIES="${IG_POLICIES:-info_gain+greedy_conditioned,cover,info_gain_params+greedy_conditioned,info_gain+topk,info_gain+diverse}"
   # shellcheck disable=SC2086
-  nice -n 19 python bench/active_view.py --scenes $ACTIVE_SCENES --seeds $ACTIVE_SEEDS --jobs "$JOBS" \
+  nice -n 19 python -m bench.active_view --scenes $ACTIVE_SCENES --seeds $ACTIVE_SEEDS --jobs "$JOBS" \
     --study-out "$CAMPAIGN/study_ig" --batches topk --extra "policies=[$IG_POLICIES]" "family_baselines=[]" \
     --archive "$R/active_view_ig_runs" 2>&1 | tee -a "$log"
   # shellcheck disable=SC2046
@@ -114,7 +114,7 @@ if [ "$what" = ood_sector ]; then
   nice -n 19 python -m bench.ood_sector --jobs "$JOBS" --threads 1 --out "$CAMPAIGN/ood_sector" \
     --archive "$R/ood_sector_runs" --results-root "$R" 2>&1 | tee -a "$log"
 fi
-(cd "$ROOT" && PYTHONPATH="$ROOT" python bench/claims.py > /dev/null)
+(cd "$ROOT" && PYTHONPATH="$ROOT" python -m bench.claims > /dev/null)
 echo "=== $(date -u +%FT%TZ) campaign $what done; commit bench/results/ in $ROOT" | tee -a "$log"
 exit 0
 }

@@ -62,11 +62,11 @@ if [[ $what == tests || $what == all ]]; then
   stage pytest_cuda 240 "$PY" -m pytest -q -rs --durations=8 -p no:cacheprovider -m cuda
 fi
 if [[ $what == train || $what == all ]]; then
-  stage train_cuda 240 "$PY" bench/train.py --device cuda --scenes fox --models standard niw dpmm
+  stage train_cuda 240 "$PY" -m bench.train --device cuda --scenes fox --models standard niw dpmm
   cp bench/results/train_cuda.json "$OUT/" 2>/dev/null
 fi
 if [[ $what == render || $what == all ]]; then
-  stage render 120 "$PY" bench/render.py --renderers cpu gsplat torch --sizes 10000 100000
+  stage render 120 "$PY" -m bench.render --renderers cpu gsplat torch --sizes 10000 100000
   cp bench/results/render.json "$OUT/" 2>/dev/null
 fi
 if [[ $what == tests || $what == all ]]; then  # last: it needs no GPU, only this machine's torch
@@ -80,7 +80,7 @@ if [[ $what == profile ]]; then
   # pycolmap there); PROFILE_QUICK=1: the trainings first, then the syncs of DPMM alone, no torch.profiler stage
   scenes=${PROFILE_SCENES:-fox ethiopian_head}; seeds=${PROFILE_SEEDS:-0 1}
   if [[ ${PROFILE_QUICK:-0} == 1 ]]; then
-    stage train_cuda 900 "$PY" bench/train.py --device cuda --scenes $scenes --models standard niw dpmm --seeds $seeds \
+    stage train_cuda 900 "$PY" -m bench.train --device cuda --scenes $scenes --models standard niw dpmm --seeds $seeds \
       --results "$R"
     stage host_syncs 90 "$PY" -m bench.host_syncs --device cuda --steps 300 --models dpmm --results "$R"
   else
@@ -88,7 +88,7 @@ if [[ $what == profile ]]; then
     [[ -f $R/step_profile_cuda.json ]] || stage step_profile 60 "$PY" -m bench.device_profile profile --device cuda \
       --models dpmm --results "$R"
     stage host_syncs 90 "$PY" -m bench.host_syncs --device cuda --steps 300 --models niw dpmm --results "$R"
-    stage train_cuda 900 "$PY" bench/train.py --device cuda --scenes $scenes --models standard niw dpmm \
+    stage train_cuda 900 "$PY" -m bench.train --device cuda --scenes $scenes --models standard niw dpmm \
       --seeds $seeds --results "$R"
   fi
   STAGE_LIMIT_report=30 DEADLINE=$(( DEADLINE + 30 )) stage report 30 "$PY" -m bench.device_profile report --card "$card" --results "$R"

@@ -469,8 +469,7 @@ def test_fma_build_matches_the_default_build(cpu_ext, tmp_path):
     root = Path(__file__).resolve().parents[1]
     child = (
         "import sys, torch\n"
-        f"sys.path.insert(0, {str(root / 'bench')!r})\n"
-        "from render import camera, random_gaussians\n"
+        "from bench.render import camera, random_gaussians\n"
         "from b3dgs.render.renderers import make_renderer\n"
         "p = {k: v.clone().requires_grad_(True) for k, v in random_gaussians(3000).items()}\n"
         "out = make_renderer('cpu').render(p, camera(64, 64), sh_degree=3, retain_means2d_grad=True)\n"

@@ -333,7 +333,7 @@ def test_study_grid_shares_runs_that_are_the_same_training_run(tmp_path):
     """bench/studies.py: the init-cap NIW run is the standard run (NIW only observes training), so it is
     written as a shared run dir (its own config, the twin's metrics) and the report says so."""
     out, rep = tmp_path / "b", tmp_path / "rep"
-    res = subprocess.run([sys.executable, "bench/studies.py", "--studies", "initcap", "--scenes", "synthetic",
+    res = subprocess.run([sys.executable, "-m", "bench.studies", "--studies", "initcap", "--scenes", "synthetic",
                           "--seeds", "0", "--max-steps", "40", "--cap", "200", "--out", str(out), "--report", str(rep),
                           "--jobs", "2", "--threads", "1",
                           "--extra", "data.max_side=32", "renderer=cpu"],
@@ -357,7 +357,7 @@ def test_canonical_grid_uq_regimes_ensemble_and_merge(tmp_path):
     has the uncertainty table; a regime missing from a uq.json is computed alone and merged (the others kept as they
     were)."""
     out, rep = tmp_path / "b", tmp_path / "rep"
-    cmd = [sys.executable, "bench/studies.py", "--studies", "canonical", "--uq", "--uq-samples", "4", "--scenes",
+    cmd = [sys.executable, "-m", "bench.studies", "--studies", "canonical", "--uq", "--uq-samples", "4", "--scenes",
            "synthetic", "--seeds", "0", "1", "2", "--methods", "standard", "niw", "--max-steps", "40", "--out", str(out),
            "--report", str(rep), "--jobs", "2", "--threads", "1", "--extra", "data.max_side=32", "renderer=cpu"]
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=900)

@@ -123,14 +123,13 @@ def test_a_scene_added_by_one_yaml_is_a_benchmark_scene(tmp_path, monkeypatch):
         "mine": "# @package _global_\ndefaults:\n  - override /data: blender\ndata:\n  path: ${data_root}/mine\n"})
     env = dict(os.environ, B3DGS_DATA=str(data),
                PYTHONPATH=os.pathsep.join(filter(None, [str(pkgs), str(ROOT), os.environ.get("PYTHONPATH")])))
-    for cmd in (["-m", "bench.studies"], ["bench/studies.py"]):
-        res = subprocess.run([sys.executable, *cmd, "--scenes", "mine", "--studies", "canonical", "sparse",
-                              "--seeds", "0", "--methods", "standard", "--budgets", "1", "all", "--dry-run",
-                              "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=600, cwd=ROOT,
-                             env=env)
-        assert res.returncode == 0, res.stderr[-2000:]
-        assert f"todo {tmp_path / 'out' / 'mine' / 'standard' / 's0'}" in res.stdout
-        assert f"todo {tmp_path / 'out' / 'sparse' / 'b1' / 'mine' / 'standard' / 's0'}" in res.stdout
+    res = subprocess.run([sys.executable, "-m", "bench.studies", "--scenes", "mine", "--studies", "canonical",
+                          "sparse", "--seeds", "0", "--methods", "standard", "--budgets", "1", "all", "--dry-run",
+                          "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=600, cwd=ROOT,
+                         env=env)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert f"todo {tmp_path / 'out' / 'mine' / 'standard' / 's0'}" in res.stdout
+    assert f"todo {tmp_path / 'out' / 'sparse' / 'b1' / 'mine' / 'standard' / 's0'}" in res.stdout
     res = subprocess.run([sys.executable, "-m", "bench.studies", "--scenes", "theirs", "--dry-run"], cwd=ROOT, env=env,
                          capture_output=True, text=True, timeout=600)
     assert res.returncode == 2 and "mine" in res.stderr  # argparse names the configured scenes

@@ -184,7 +184,7 @@ class Builder:
         if not any(r.uq for r in runs):
             self.blocks += [Heading("OOD support deficit"),
                             Para("No uq.json in these runs: run b3dgs-eval run=RUN uq=[proxy,native] (or "
-                                 "bench/studies.py --uq) to add the per-view uncertainties.")]
+                                 "python -m bench.studies --uq) to add the per-view uncertainties.")]
             return None
         res = ood_study(runs, float(o.quantile), str(o.score), regimes)
         q = float(o.quantile)
