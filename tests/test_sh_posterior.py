@@ -117,9 +117,11 @@ def test_native_sh_on_a_standard_model_and_bad_input(scene):
     uq = instantiate(cfg)  # as b3dgs-eval builds it: Hydra keeps the nested block as a structured node
     uq.fit([m], scene)
     assert isinstance(uq._fitted[0][0], SHPosteriorBlock)
-    pol = instantiate(OmegaConf.load(f"{CONF_DIR}/acquisition/native_sh.yaml"))
-    assert pol._native().add is not None and pol._native().model_blocks
-    assert not instantiate(OmegaConf.load(f"{CONF_DIR}/acquisition/sh.yaml"))._native().model_blocks
+    from b3dgs.study.active import load_policy  # acquisition=native_sh / sh as the study composes them
+
+    pol = load_policy("native_sh")[1]
+    assert pol.uq().add is not None and pol.uq().model_blocks
+    assert not load_policy("sh")[1].uq().model_blocks
     pred = uq.predict(scene.test[0])
     assert float(pred.epistemic.mean()) > 0 and uq.sigma2 > 0  # the added block's σ̂² on a standard model
     assert tuple(pred.var.shape) == tuple(pred.mean.shape[:-1])
@@ -207,9 +209,11 @@ def test_native_plus_sh_on_a_model_that_carries_the_sh_block(scene):
     pp = plus.predict(scene.test[0], generator=torch.Generator().manual_seed(1))
     po = own.predict(scene.test[0], generator=torch.Generator().manual_seed(1))
     assert torch.equal(pp.var, po.var) and torch.equal(pp.mean, po.mean)
-    pol = instantiate(OmegaConf.load(f"{CONF_DIR}/acquisition/native_plus_sh.yaml"))
-    pol._native().fit([m], scene)  # the acquisition's regime on the same model: accepted
-    assert len(pol._native()._fitted) == 2
+    from b3dgs.study.active import load_policy
+
+    pol = load_policy("native_plus_sh")[1]
+    pol.uq().fit([m], scene)  # the acquisition's regime (conf/uq/native_plus_sh.yaml) on the same model: accepted
+    assert len(pol.uq()._fitted) == 2
     with pytest.raises(B3dgsError, match=r"add\.sh differs from the model's own sh block \(prior_precision 1\.0 vs 4\.0\)"):
         NativeUQ(samples=2, add={"sh": SHPosteriorBlock(prior_precision=4.0)}).fit([m], scene)
 
