@@ -758,3 +758,28 @@ def test_sector_split_holds_out_one_contiguous_side(tmp_path):
     assert set(g["interleaved"]) == {names[0], names[8]} - set(g["sector"]) and g["interleaved"]
     assert {x.name for x in c.test} == set(g["sector"]) | set(g["interleaved"])
     assert not {x.name for x in c.test} & {x.name for x in c.train} and len(c.train) + len(c.test) == 16
+
+
+def test_cameras_at_one_point_are_refused():
+    """Issue 46 (degenerate geometry): views whose centres all coincide (one pose repeated, or a rotation-only
+    panorama) have no parallax and give the scene extent 0; preprocessing refuses them in one line. A scene whose
+    cameras are spread (the synthetic ring) and one of two distinct centres pass."""
+    import dataclasses
+
+    from b3dgs.data.scene import preprocess
+
+    raw = load_synthetic(n_views=8, resolution=8)
+    preprocess(raw)  # spread cameras: accepted
+    same = [dataclasses.replace(c, viewmat=raw.cameras[0].viewmat.clone()) for c in raw.cameras]
+    with pytest.raises(B3dgsError, match=r"all 8 cameras are at one point .*extent is 0") as ei:
+        preprocess(dataclasses.replace(raw, cameras=same))
+    assert ei.value.fix and "different positions" in ei.value.fix
+    # rotation only: every camera at the first one's centre, looking elsewhere
+    c0 = raw.cameras[0].center.double()
+    pano = []
+    for c in raw.cameras:
+        v = c.viewmat.clone().double()
+        v[:3, 3] = -v[:3, :3] @ c0
+        pano.append(dataclasses.replace(c, viewmat=v.float()))
+    with pytest.raises(B3dgsError, match="at one point"):
+        preprocess(dataclasses.replace(raw, cameras=pano))

@@ -286,6 +286,21 @@ def camera_extent(viewmats: np.ndarray) -> tuple[np.ndarray, float]:
     return mean, 1.1 * float(np.linalg.norm(centres - mean, axis=1).max())
 
 
+def check_camera_spread(name: str, viewmats: np.ndarray, rel_tol: float = 1e-6) -> None:
+    """Refuse cameras that make a scene meaningless: two or more views whose centres all lie at one point (the same
+    pose repeated, or a rotation-only panorama). They have no parallax, so nothing can be triangulated, and the scene's
+    extent is 0, which scales the centres' learning rate and the densification thresholds to nothing."""
+    if len(viewmats) < 2:
+        return
+    centres, _ = _centres_dirs(viewmats)
+    spread = float(np.linalg.norm(centres - centres.mean(axis=0), axis=1).max())
+    if not spread > rel_tol * max(1.0, float(np.abs(centres).max())):
+        raise B3dgsError(f"Scene {name!r}: all {len(viewmats)} cameras are at one point (their centres lie within "
+                         f"{spread:.3g} of their mean), so the views have no parallax and the scene's extent is 0",
+                         "use views taken from different positions; a rotation-only panorama or one pose repeated "
+                         "cannot be reconstructed in 3D")
+
+
 def normalize_scene(
     viewmats: np.ndarray, points: Optional[np.ndarray]
 ) -> tuple[np.ndarray, Optional[np.ndarray], float, np.ndarray, float]:
@@ -437,6 +452,7 @@ def preprocess(
     if len(set(names)) != len(names):
         raise B3dgsError(f"Scene {raw.name!r} has duplicate image names")
     viewmats = np.stack([c.viewmat.double().numpy() for c in cams])
+    check_camera_spread(raw.name, viewmats)
     points = None if raw.points is None else np.asarray(raw.points, dtype=np.float64).reshape(-1, 3)
     colors = None if raw.point_colors is None else np.asarray(raw.point_colors, dtype=np.float32).reshape(-1, 3)
     if points is not None and colors is not None and len(points) != len(colors):
