@@ -19,13 +19,13 @@ import json
 import math
 import zipfile
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any, Mapping, Optional, Sequence
 
 import torch
 
 from b3dgs.errors import B3dgsError
 
-__all__ = ["check_checkpoint", "checkpoint_record", "identity_mismatch", "params_digest", "plugin_config", "renderer_identity",
+__all__ = ["check_checkpoint", "check_sealed", "checkpoint_record", "content_digest", "seal_checkpoint", "identity_mismatch", "params_digest", "plugin_config", "renderer_identity",
            "renderer_mismatch", "run_identity", "scene_fingerprint", "upgrade_targets"]
 
 #: Class-path prefixes renamed since a run was written: (old, new). Plugins were the top-level package
@@ -228,6 +228,54 @@ def params_digest(tensors: Mapping[str, torch.Tensor], prefix: str = "") -> str:
         h.update(f"{k}:{t.dtype}:{tuple(t.shape)};".encode())
         h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
     return h.hexdigest()[:16]
+
+
+#: the parts of a checkpoint whose content :func:`content_digest` covers (those present when it was written)
+DIGEST_PARTS = ("state_dict", "optimizer_states")
+
+
+def _feed(h, key: str, v: Any) -> None:
+    if isinstance(v, torch.Tensor):
+        t = v.detach().to("cpu").contiguous().reshape(-1)  # 0-d tensors (step counters) too
+        h.update(f"{key}:{t.dtype}:{tuple(v.shape)};".encode())
+        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    elif isinstance(v, Mapping):
+        for k in sorted(v, key=str):
+            _feed(h, f"{key}.{k}", v[k])
+    elif isinstance(v, (list, tuple)):
+        for i, x in enumerate(v):
+            _feed(h, f"{key}[{i}]", x)
+    else:
+        h.update(f"{key}={v!r};".encode())
+
+
+def content_digest(checkpoint: Mapping[str, Any], parts: Sequence[str]) -> str:
+    """sha256 (16 hex digits) of ``parts`` of a checkpoint (every tensor's dtype, shape and bytes, every other
+    value's repr, in key order) and of the plugin states in ``checkpoint["b3dgs"]["states"]``: what a resume or an
+    evaluation reads back, so that bytes changed on disk since the checkpoint was written are caught on load."""
+    h = hashlib.sha256()
+    for part in parts:
+        _feed(h, part, checkpoint.get(part))
+    _feed(h, "states", (checkpoint.get("b3dgs") or {}).get("states"))
+    return h.hexdigest()[:16]
+
+
+def seal_checkpoint(checkpoint: dict) -> None:
+    """Record :func:`content_digest` in ``checkpoint["b3dgs"]`` (when it is written)."""
+    parts = [p for p in DIGEST_PARTS if p in checkpoint]
+    checkpoint.setdefault("b3dgs", {})["content"] = {"parts": parts, "sha256": content_digest(checkpoint, parts)}
+
+
+def check_sealed(checkpoint: Mapping[str, Any], what: str, fix: str) -> None:
+    """Refuse a checkpoint whose content differs from the digest recorded when it was written (its bytes changed
+    on disk since); a checkpoint written before digests were recorded passes."""
+    rec = (checkpoint.get("b3dgs") or {}).get("content")
+    if not rec:
+        return
+    parts = [p for p in rec.get("parts", []) if p in checkpoint]
+    if parts != list(rec.get("parts", [])) or content_digest(checkpoint, parts) != rec.get("sha256"):
+        raise B3dgsError(f"{what} changed since it was written: its content no longer matches the digest recorded "
+                         "in it (damaged or edited on disk)", fix)
 
 
 def checkpoint_record(checkpoint: Mapping[str, Any]) -> dict:

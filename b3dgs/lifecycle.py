@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, Optional
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from b3dgs.checkpoint import check_sealed
 from b3dgs.errors import B3dgsError
 
 if TYPE_CHECKING:
@@ -284,7 +285,8 @@ def check_resume_renderer(cfg: DictConfig, ckpt_path: str) -> None:
 
 
 def check_resume(module, ckpt_path: str) -> None:
-    """Refuse to resume a checkpoint of another model, posterior, strategy, scene, schedule or seed."""
+    """Refuse to resume a checkpoint of another model, posterior, strategy, scene, schedule or seed, or one whose
+    content changed on disk since it was written (:func:`b3dgs.checkpoint.check_sealed`)."""
     try:
         ck = read_checkpoint(ckpt_path, mmap=True)
     except Exception as e:  # noqa: BLE001 - damaged file: say which and how to go on
@@ -293,6 +295,8 @@ def check_resume(module, ckpt_path: str) -> None:
     module.check_checkpoint_identity(
         ck, f"resume: the checkpoint {ckpt_path}",
         "start afresh with overwrite=true or another hydra.run.dir (a resume continues the same run exactly)")
+    check_sealed(ck, f"resume: the checkpoint {ckpt_path}",  # before the run dir is touched (Lightning checks again)
+                 "start afresh with overwrite=true, or pass resume=PATH to an earlier intact checkpoint of this run")
 
 
 # ------------------------------------------------------------------------------ settings checked at start

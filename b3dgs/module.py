@@ -12,6 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from b3dgs.checkpoint import check_sealed, seal_checkpoint
 from b3dgs.device import move_tree
 from b3dgs.errors import B3dgsError
 from b3dgs.host_sync import scope
@@ -386,8 +387,12 @@ class SplatModule(L.LightningModule):
             "block_time_s": dict(self.block_time_s),
             "scene_extent": float(self.scene.extent) if self.scene is not None else None,
         }
+        seal_checkpoint(checkpoint)  # a digest of what a resume or an evaluation reads back (checked on load)
 
     def on_load_checkpoint(self, checkpoint: dict[str, Any]) -> None:
+        check_sealed(checkpoint, "the checkpoint",
+                     "train the run again (overwrite=true), or resume from an earlier checkpoint of it "
+                     "(resume=RUN/checkpoints/step<N>.ckpt, written with trainer.keep_checkpoints=true)")
         sd = checkpoint["state_dict"]
         shapes = {k: sd[f"splats.{k}"] for k in PARAM_ORDER if f"splats.{k}" in sd}
         if len(shapes) != len(PARAM_ORDER):

@@ -113,3 +113,33 @@ def test_kill9_then_resume_is_bit_identical(tmp_path, model):
     res = _train(cut, extra + ["resume=auto"])
     assert res.returncode == 0 and "holds a finished run" in res.stdout + res.stderr, res.stderr[-3000:]
     assert _files(cut) == before
+
+
+def test_a_checkpoint_changed_on_disk_is_refused_on_resume_and_on_load(tmp_path):
+    """Issue 46 (class: a checkpoint whose bytes changed since it was written, on every path that reads it): a
+    checkpoint records a digest of its parameters, optimizer state and plugin states when written; a resume and a
+    load for evaluation recompute it and refuse a checkpoint edited on disk (here one Adam moment, which the metrics'
+    parameter digest does not cover) in one line, before anything is trained or written."""
+    from b3dgs.errors import B3dgsError
+    from b3dgs.runs import load_run
+
+    d = tmp_path / "run"
+    r = _train(d, ["trainer.max_steps=12", "trainer.checkpoint_every=100"], kill_at=5, sig="TERM")
+    assert r.returncode == 143, r.stderr[-2000:]
+    last = d / "checkpoints" / "last.ckpt"
+    ck = torch.load(last, map_location="cpu", weights_only=False)
+    assert ck["b3dgs"]["content"]["parts"] == ["state_dict", "optimizer_states"]
+    load_run(d, checkpoint=last)  # untouched: loads (an unfinished run: its checkpoint named)
+    state = ck["optimizer_states"][0]["state"]
+    first = next(iter(state.values()))
+    first["exp_avg"].view(-1)[0] += 1.0
+    torch.save(ck, last)
+    before = _files(d)
+    r = _train(d, ["trainer.max_steps=12", "trainer.checkpoint_every=100", "resume=auto"])
+    assert r.returncode == 2, r.stderr[-2000:]
+    line = r.stderr.strip().splitlines()[-1]
+    assert "changed since it was written" in line and "(fix:" in line, line
+    assert {k: v for k, v in _files(d).items() if not k.endswith(".log")} == \
+        {k: v for k, v in before.items() if not k.endswith(".log")}  # nothing trained or written
+    with pytest.raises(B3dgsError, match="changed since it was written"):
+        load_run(d, checkpoint=last)
