@@ -234,3 +234,23 @@ def test_sh_degree_0_is_refused_with_the_fix(scene):
         NativeUQ(samples=2, add={"sh": SHPosteriorBlock()}, model_blocks=False).fit([m], scene)
     m._loaded_step = 10 ** 6  # degree 3: accepted
     NativeUQ(samples=2, add={"sh": SHPosteriorBlock()}, model_blocks=False).fit([m], scene)
+
+
+def test_viewer_sh_sigma_mode_and_native_label(scene):
+    """b3dgs-view / b3dgs-render panel=sh_sigma: σ of draws of the SH coefficients alone (the uq=sh regime), on any
+    run at SH degree >= 1; native σ's legend names every block it draws (issue 44 §5)."""
+    from b3dgs.viewer.modes import ModeRenderer
+    from b3dgs_plugins.posterior.niw import NIWBlock
+
+    m = module_with_blocks(scene, {"niw": NIWBlock(), "sh": SHPosteriorBlock()})
+    m._loaded_step = 10 ** 6
+    with torch.no_grad():
+        m.splats["shN"].normal_(0.0, 0.02, generator=torch.Generator().manual_seed(0))
+    mr = ModeRenderer(m, scene, samples=4)
+    assert "sh_sigma" in mr.available() and "sh_sigma" not in mr.unavailable()
+    assert "niw, sh" in mr.specs["native_sigma"].what and "directional SH" in mr.specs["native_sigma"].what
+    cam = scene.test[0]
+    f = mr.render("sh_sigma", cam)
+    assert f.values.shape == (cam.height, cam.width) and torch.isfinite(f.values).all()
+    assert float(f.values.max()) > 0 and mr.regime("sh_sigma").model_blocks is False
+    assert f.mode.hi == mr.specs["proxy_sigma"].hi  # one σ scale for the σ modes

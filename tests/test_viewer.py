@@ -58,7 +58,7 @@ def test_render_modes_shapes_and_fixed_scales():
     m, scene, cam = one_gaussian_module()
     mr = ModeRenderer(m, scene, samples=4)
     assert set(mr.available()) == {"rgb", "depth", "alpha", "proxy_sigma", "opacity"}
-    assert set(mr.unavailable()) == {"native_sigma", "dp_activity", "pos_std"}
+    assert set(mr.unavailable()) == {"native_sigma", "sh_sigma", "dp_activity", "pos_std"}  # SH degree 0: no sh_sigma
     small = view_camera(*camera_pose(cam), fov=2 * math.atan(0.5 * SIZE / F), width=20, height=12)
     for mode in mr.available():
         frame = mr.render(mode, small)

@@ -2,7 +2,9 @@
 
 Modes (:data:`MODES`): ``rgb``; ``depth`` and ``alpha`` (the renderer's own outputs); ``native_sigma`` (σ of
 S posterior re-renders, :class:`b3dgs_plugins.uq.native.NativeUQ`, for a run with posterior blocks: NIW or DPMM);
-``proxy_sigma`` (σ of S position-jittered re-renders, :class:`b3dgs_plugins.uq.proxy.ProxyUQ`, any run); and three
+``proxy_sigma`` (σ of S position-jittered re-renders, :class:`b3dgs_plugins.uq.proxy.ProxyUQ`, any run); ``sh_sigma``
+(σ of S re-renders drawing only the SH coefficients from the directional SH posterior, ``uq=sh``, any run rendered at
+SH degree >= 1); and three
 per-Gaussian overlays: ``dp_activity`` (E[a_k] of the DP block), ``pos_std`` (the NIW posterior's position
 standard deviation √(tr Var[μ_k] / 3), log scale) and ``opacity`` (σ(o_k)).
 
@@ -29,8 +31,10 @@ from torch import Tensor
 from b3dgs.errors import B3dgsError
 from b3dgs.types import Camera, Scene
 
-__all__ = ["MIN_ALPHA", "MODES", "Frame", "ModeRenderer", "ModeSpec", "colorize", "colormap_lut", "robust_max"]
+__all__ = ["MIN_ALPHA", "MODES", "SIGMA_MODES", "Frame", "ModeRenderer", "ModeSpec", "colorize", "colormap_lut", "robust_max"]
 
+#: the modes that show a σ of re-renders (one fitted UQ regime each; their scale is set together)
+SIGMA_MODES = ("native_sigma", "proxy_sigma", "sh_sigma")
 #: pixels whose accumulated α is below this show the background colour in depth and overlay modes
 MIN_ALPHA = 0.05
 BACKGROUND = (24, 24, 28)  # uint8 colour of "no value" pixels
@@ -69,6 +73,10 @@ MODES: dict[str, ModeSpec] = {m.key: m for m in (
              what="σ = √u_p of S posterior re-renders (Eq. 4), epistemic part; needs posterior blocks (niw, dpmm)"),
     ModeSpec("proxy_sigma", "Proxy σ", "pixel", "inferno", 0.0, 0.03, unit="(RGB, per channel)",
              what="σ of S re-renders with every centre jittered by N(0, (jitter·extent)²)"),
+    ModeSpec("sh_sigma", "SH σ (directional)", "pixel", "inferno", 0.0, 0.03, unit="(RGB, per channel)",
+             what="σ of S re-renders drawing only each Gaussian's SH coefficients from the directional SH posterior "
+                  "(uq=sh, posterior.sh; beyond the paper): high where a colour is seen from a side no training "
+                  "camera looked from; needs SH degree >= 1"),
     ModeSpec("dp_activity", "DP activity E[a_k]", "gaussian", "viridis", 0.0, 1.0,
              what="the DP block's expected activity per Gaussian; needs the dp block (dpmm)"),
     ModeSpec("pos_std", "Posterior position std", "gaussian", "magma", 1e-5, 1e-2, log=True,
@@ -161,6 +169,12 @@ class ModeRenderer:
         self.specs = dict(MODES)
         self.specs["depth"] = replace(MODES["depth"], hi=float(far))
         self.set_sigma_max(sigma_max)
+        blocks = list(module.posterior)
+        if blocks:  # say what native σ draws: every block of the model (Eq. 4 is the geometry's)
+            sh = " and the directional SH posterior (beyond the paper)" if "sh" in blocks else ""
+            self.specs["native_sigma"] = replace(
+                self.specs["native_sigma"], what=f"σ = √u_p of S posterior re-renders drawing every block of the model "
+                f"({', '.join(blocks)}): Eq. 4 for the geometry{sh}; epistemic part")
         self._regimes: dict[str, object] = {}
         self._overlay_params: dict[str, dict[str, Tensor]] = {}
 
@@ -170,6 +184,8 @@ class ModeRenderer:
         out = {}
         if not self.module.posterior:
             out["native_sigma"] = f"model={self.module.hparams.name} has no posterior blocks (train model=niw or dpmm)"
+        if self.module.active_sh_degree() < 1:
+            out["sh_sigma"] = "the run renders SH degree 0 (a colour without direction); train with model.sh_degree >= 1"
         if "dp_e_a" not in self.extras:
             out["dp_activity"] = "the run has no DP block (model=dpmm has one)"
         if "niw_pos_var" not in self.extras:
@@ -181,7 +197,7 @@ class ModeRenderer:
         return [k for k in self.specs if k not in gone]
 
     def set_sigma_max(self, sigma_max: float) -> None:
-        for k in ("native_sigma", "proxy_sigma"):
+        for k in SIGMA_MODES:
             self.set_scale(k, sigma_max)
 
     def set_scale(self, mode: str, hi: float) -> None:
@@ -213,7 +229,7 @@ class ModeRenderer:
                 values, mask = alpha, None
             else:
                 values, mask = out.depth.detach().cpu(), alpha >= MIN_ALPHA
-        elif mode in ("native_sigma", "proxy_sigma"):
+        elif mode in SIGMA_MODES:
             s = int(samples or self.samples)
             values, mask = self.sigma(mode, camera, s, generator), None
         else:
@@ -228,6 +244,11 @@ class ModeRenderer:
                 from b3dgs_plugins.uq.native import NativeUQ
 
                 reg = NativeUQ(samples=self.samples, chunk=8, count_scale=self.count_scale)
+            elif mode == "sh_sigma":  # conf/uq/sh.yaml: the SH posterior alone, from one pass over the training views
+                from b3dgs_plugins.posterior.sh import SHPosteriorBlock
+                from b3dgs_plugins.uq.native import NativeUQ
+
+                reg = NativeUQ(samples=self.samples, chunk=8, model_blocks=False, add={"sh": SHPosteriorBlock()})
             else:
                 from b3dgs_plugins.uq.proxy import ProxyUQ
 
@@ -241,7 +262,7 @@ class ModeRenderer:
         reg = self.regime(mode)
         reg.samples, reg.chunk = int(samples), min(int(samples), 8)
         gen = generator if generator is not None else torch.Generator().manual_seed(self.seed)
-        if mode == "native_sigma":
+        if mode in ("native_sigma", "sh_sigma"):
             _, u = reg.spread(camera, gen)
         else:
             u = reg.predict(camera, gen).epistemic

@@ -26,7 +26,7 @@ import torch
 
 from b3dgs.errors import B3dgsError
 from b3dgs.viewer.cameras import camera_pose, fov_y, render_size, view_camera
-from b3dgs.viewer.modes import (MIN_ALPHA, MODES, Frame, ModeRenderer, ModeSpec, colorize, colormap_lut, normalise,
+from b3dgs.viewer.modes import (MIN_ALPHA, MODES, SIGMA_MODES, Frame, ModeRenderer, ModeSpec, colorize, colormap_lut, normalise,
                                 robust_max)
 
 log = logging.getLogger(__name__)
@@ -80,7 +80,7 @@ class ViewerApp:
         self.modes = ModeRenderer(run.module, run.scene, samples=settings.samples, jitter=settings.jitter,
                                   sigma_max=settings.sigma_max or 0.03, seed=0, count_scale=settings.count_scale)
         # σ modes whose scale comes from the data (the first frame's 99th percentile) until a number fixes it
-        self.auto = {k: settings.sigma_max is None for k in ("native_sigma", "proxy_sigma")}
+        self.auto = {k: settings.sigma_max is None for k in SIGMA_MODES}
         self.ranged: set[str] = set()
         if settings.mode not in self.modes.available():
             why = self.modes.unavailable().get(settings.mode, f"modes: {', '.join(self.modes.specs)}")
@@ -141,6 +141,7 @@ class ViewerApp:
             self.sigma_in = gui.add_number("σ scale max", initial_value=float(self.s.sigma_max or 0.03), min=1e-5,
                                            max=10.0, step=1e-4, hint="upper end of the σ modes' colour scale (RGB "
                                            "units); a number typed here fixes it")
+            self.sigma_in.disabled = self.s.mode not in self.auto  # greyed out outside the σ modes (rgb, depth, ...)
             auto = gui.add_button("σ scale: auto from this view", hint="99th percentile of the σ of the current view")
             self.samples_in = gui.add_slider("σ samples S", min=2, max=64, step=1, initial_value=int(self.s.samples))
             self.legend_img = gui.add_image(self._legend_image(self.modes.specs[self.s.mode]), label=None)
@@ -210,6 +211,7 @@ class ViewerApp:
 
     def _mode_changed(self) -> None:
         spec = self.modes.specs[self.mode_key]
+        self.sigma_in.disabled = spec.key not in self.auto  # the σ scale applies to the σ modes only
         self.legend_img.image = self._legend_image(spec)
         self._show_scale(spec)
         self._touch_all()
