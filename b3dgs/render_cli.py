@@ -1,9 +1,10 @@
-"""``b3dgs-render run=DIR [path=test|train|interpolate] [panel=native_sigma]``: a finished run rendered along a camera
-path to PNG frames and an MP4 (``conf/render.yaml``).
+"""``b3dgs-render run=DIR [path=test|train|interpolate|orbit|FILE.json] [panel=native_sigma]``: a finished run rendered
+along a camera path to PNG frames and an MP4 (``conf/render.yaml``).
 
-The path is the run's test (or training) cameras in name order, or a smooth closed loop through them
+The path is the run's test (or training) cameras in name order, a smooth closed loop through them
 (:func:`interpolate_cameras`: centres on a periodic cubic spline, orientations by spherical interpolation, the first
-camera's intrinsics). ``panel=`` puts one of ``b3dgs-view``'s modes beside the RGB (:class:`b3dgs.viewer.modes.
+camera's intrinsics), a circle around the point they look at (:func:`orbit_cameras`), or a nerfstudio camera-path JSON
+(:func:`nerfstudio_path`, the format ``ns-render camera-path`` reads). A panel frame names both panels. ``panel=`` puts one of ``b3dgs-view``'s modes beside the RGB (:class:`b3dgs.viewer.modes.
 ModeRenderer`), with one colour scale for the whole path (``panel_max``, by default the 99th percentile over the
 frames) drawn under it. The video is encoded by imageio-ffmpeg's own ffmpeg binary. Known problems print one line
 ``b3dgs-render: error: ... (fix: ...)`` and exit with code 2; the last line says where the frames went.
@@ -27,9 +28,10 @@ from b3dgs.types import Camera
 
 log = logging.getLogger(__name__)
 
-__all__ = ["camera_path", "interpolate_cameras", "main", "render_path", "write_video"]
+__all__ = ["camera_path", "interpolate_cameras", "main", "nerfstudio_path", "orbit_cameras", "render_path",
+           "write_video"]
 
-PATHS = ("test", "train", "interpolate")
+PATHS = ("test", "train", "interpolate", "orbit")  # or a nerfstudio camera-path JSON file
 
 
 def interpolate_cameras(cams: Sequence[Camera], frames: int) -> list[Camera]:
@@ -56,19 +58,103 @@ def interpolate_cameras(cams: Sequence[Camera], frames: int) -> list[Camera]:
     return out
 
 
+def _look_at(centre: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """World-to-camera (OpenCV: x right, y down, z forward) of a camera at ``centre`` looking at ``target``."""
+    f = target - centre
+    f = f / np.linalg.norm(f)
+    r = np.cross(f, up)
+    r = r / np.linalg.norm(r)
+    d = np.cross(f, r)
+    R = np.stack([r, d, f], axis=1)  # camera-to-world rotation, columns x, y, z
+    view = np.eye(4)
+    view[:3, :3], view[:3, 3] = R.T, -R.T @ centre
+    return view
+
+
+def orbit_cameras(cams: Sequence[Camera], frames: int) -> list[Camera]:
+    """``frames`` cameras on a circle around the point the cameras look at (least squares over their optical axes,
+    :func:`b3dgs.data.scene.look_at_point`; their mean centre when the axes are parallel), in the plane orthogonal to
+    their mean up direction, at their mean distance from that axis and mean height along it, all looking at the point;
+    the first camera's intrinsics and size."""
+    from b3dgs.data.scene import look_at_point
+
+    cams = list(cams)
+    c2w = np.stack([c.camtoworld.double().cpu().numpy() for c in cams])
+    centres = c2w[:, :3, 3]
+    target, ok = look_at_point(np.stack([c.viewmat.double().cpu().numpy() for c in cams]))
+    target = target if ok else centres.mean(0)
+    up = -c2w[:, :3, 1].mean(0)  # OpenCV's y points down
+    if not np.linalg.norm(up) > 1e-9:
+        raise B3dgsError("path=orbit: the cameras have no common up direction", "pass path=interpolate")
+    up = up / np.linalg.norm(up)
+    rel = centres - target
+    height = float((rel @ up).mean())
+    flat = rel - np.outer(rel @ up, up)
+    radius = float(np.linalg.norm(flat, axis=1).mean())
+    a = flat[0] / np.linalg.norm(flat[0]) if np.linalg.norm(flat[0]) > 1e-9 else np.cross(up, [1.0, 0.0, 0.0])
+    a = a / np.linalg.norm(a)
+    b = np.cross(up, a)
+    ref = cams[0]
+    out = []
+    for i, t in enumerate(np.linspace(0.0, 2 * np.pi, frames, endpoint=False)):
+        pos = target + height * up + radius * (np.cos(t) * a + np.sin(t) * b)
+        out.append(Camera(f"orbit_{i:05d}", ref.K.clone(), torch.from_numpy(_look_at(pos, target, up)).float(),
+                          ref.width, ref.height))
+    return out
+
+
+def nerfstudio_path(file: Path, scene) -> list[Camera]:
+    """The cameras of a nerfstudio camera-path JSON (the file ``ns-render camera-path`` reads): ``camera_path``, a
+    list of ``{"camera_to_world": 16 numbers (4x4, row-major, OpenGL axes: x right, y up, z back), "fov": vertical
+    field of view in degrees}``, with ``render_height`` and ``render_width`` (or each entry's ``aspect``). The poses
+    are read in the scene's own frame (COLMAP's or transforms.json's: the frame of ``point_cloud.ply`` and of
+    ``b3dgs-export``'s ``cameras.json``) and mapped into the run's normalised frame with ``scene.transform``."""
+    import json
+
+    from b3dgs.data.scene import SceneTransform
+
+    try:
+        data = json.loads(Path(file).read_text())
+        entries = data["camera_path"]
+        H = int(data.get("render_height") or 0)
+        if not entries or H < 8:
+            raise ValueError("no camera_path entries" if not entries else f"render_height {H} < 8")
+        out = []
+        T = getattr(scene, "transform", None) or SceneTransform()
+        Rn, s, t = np.asarray(T.rotation, np.float64), float(T.scale), np.asarray(T.translation, np.float64)
+        for i, e in enumerate(entries):
+            c2w = np.asarray(e["camera_to_world"], np.float64).reshape(4, 4)
+            W = int(data.get("render_width") or round(H * float(e.get("aspect", 1.0))))
+            fy = 0.5 * H / np.tan(0.5 * np.deg2rad(float(e["fov"])))
+            R = Rn @ c2w[:3, :3] @ np.diag([1.0, -1.0, -1.0])  # OpenGL -> OpenCV axes, then into the normalised frame
+            c = s * Rn @ c2w[:3, 3] + t
+            view = np.eye(4)
+            view[:3, :3], view[:3, 3] = R.T, -R.T @ c
+            K = torch.tensor([[fy, 0.0, W / 2.0], [0.0, fy, H / 2.0], [0.0, 0.0, 1.0]], dtype=torch.float32)
+            out.append(Camera(f"path_{i:05d}", K, torch.from_numpy(view).float(), W, H))
+        return out
+    except (OSError, ValueError, KeyError, TypeError, IndexError) as e:
+        raise B3dgsError(f"path={file} is not a readable nerfstudio camera path ({type(e).__name__}: {e})",
+                         "pass a camera-path JSON as nerfstudio's viewer exports it (camera_path with camera_to_world "
+                         "and fov, render_height), or path=test|train|interpolate|orbit") from None
+
+
 def camera_path(scene, path: str, frames: int) -> list[Camera]:
     """The cameras of ``path`` (see the module doc), without images."""
+    if str(path).endswith(".json"):
+        return nerfstudio_path(Path(path), scene)
     if path not in PATHS:
-        raise B3dgsError(f"path={path} is not a camera path", f"pass path= one of {', '.join(PATHS)}")
+        raise B3dgsError(f"path={path} is not a camera path",
+                         f"pass path= one of {', '.join(PATHS)}, or a nerfstudio camera-path .json file")
     source = scene.train if path == "train" else (scene.test or scene.train)
     cams = [c.with_image(None) for c in sorted(source, key=lambda c: c.name)]
     if not cams:
         raise B3dgsError(f"the run's scene has no {path} cameras", "pass path=train")
-    if path != "interpolate":
+    if path not in ("interpolate", "orbit"):
         return cams
     if not isinstance(frames, int) or isinstance(frames, bool) or frames < 2:
         raise B3dgsError(f"frames={frames} is too few for a path", "pass frames= an integer >= 2, e.g. frames=120")
-    return interpolate_cameras(cams, frames)
+    return interpolate_cameras(cams, frames) if path == "interpolate" else orbit_cameras(cams, frames)
 
 
 def _legend(width: int, cmap: str, lo: float, hi: float, unit: str) -> np.ndarray:
@@ -85,6 +171,15 @@ def _legend(width: int, cmap: str, lo: float, hi: float, unit: str) -> np.ndarra
     draw.text((1, 14), f"{lo:.3g}", fill=(0, 0, 0))
     right = f"{hi:.3g} {unit}".strip()
     draw.text((max(1, width - 6 * len(right) - 1), 14), right, fill=(0, 0, 0))
+    return np.asarray(pil)
+
+
+def _caption(height: int, width: int, text: str) -> np.ndarray:
+    """A white strip (uint8 (height, width, 3)) with ``text`` written in it (under the RGB panel: what each panel is)."""
+    from PIL import Image, ImageDraw
+
+    pil = Image.fromarray(np.full((height, width, 3), 255, np.uint8))
+    ImageDraw.Draw(pil).text((1, 8), text, fill=(0, 0, 0))
     return np.asarray(pil)
 
 
@@ -123,10 +218,10 @@ def render_path(run, cams: Sequence[Camera], panel: Optional[str] = None, panel_
 
         spec = replace(spec, hi=float(top))
     legend = _legend(rgbs[0].shape[1], spec.cmap, spec.lo, spec.hi, spec.unit.strip("()").split(",")[0])
+    pad = _caption(legend.shape[0], rgbs[0].shape[1], f"left: RGB | right: {spec.label}")  # each panel named
     frames = []
     for rgb, (v, m) in zip(rgbs, values):
         side = np.concatenate([colorize(normalise(v, spec), spec.cmap, m), legend], axis=0)
-        pad = np.full((legend.shape[0], rgb.shape[1], 3), 255, np.uint8)
         frames.append(np.concatenate([np.concatenate([rgb, pad], axis=0), side], axis=1))
     return frames, spec.hi
 
@@ -204,7 +299,8 @@ def render(cfg: DictConfig) -> dict:
         renderer.check_available()
     run = open_run(Path(str(cfg.run)), renderer=renderer)
     path = str(cfg.path)
-    out = Path(str(cfg.out)) if cfg.get("out") else run.path / "render" / path
+    label = Path(path).stem if path.endswith(".json") else path  # the folder and video name of a path file
+    out = Path(str(cfg.out)) if cfg.get("out") else run.path / "render" / label
     if out.resolve().is_relative_to(run.path.resolve()):  # the frames join the run's manifest: check it first
         from b3dgs.rundir import read_manifest
 
@@ -212,10 +308,10 @@ def render(cfg: DictConfig) -> dict:
     cams = [c.fit(max_side, upscale=True, min_side=8) for c in camera_path(run.scene, path, cfg.get("frames"))]
     frames, top = render_path(run, cams, cfg.get("panel"), panel_max, int(cfg.samples), cfg.get("count_scale"))
     with_video = bool(cfg.get("video", True)) and len(frames) > 1
-    names = [f"frame_{i:05d}.png" for i in range(len(frames))] + ([f"{path}.mp4"] if with_video else [])
+    names = [f"frame_{i:05d}.png" for i in range(len(frames))] + ([f"{label}.mp4"] if with_video else [])
     with _claim(run.path, out, names):
         pngs = [save_png(out / n, f) for n, f in zip(names[:len(frames)], frames)]
-        video = write_video(out / f"{path}.mp4", frames, fps) if with_video else None
+        video = write_video(out / f"{label}.mp4", frames, fps) if with_video else None
     written = {"frames": [str(p) for p in pngs], "video": None if video is None else str(video), "panel_max": top}
     log.info("%s: %d frames of path=%s at %dx%d%s", run.path, len(frames), path, frames[0].shape[1], frames[0].shape[0],
              f", panel {cfg.get('panel')} 0 to {top:.3g}" if top is not None else "")

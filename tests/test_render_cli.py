@@ -103,3 +103,47 @@ def test_render_refuses_in_one_line(niw_run, tmp_path):
         lines = [ln for ln in res.stderr.splitlines() if ln.startswith("b3dgs-render: error:")]
         assert len(lines) == 1 and match in lines[0] and "(fix: " in lines[0], res.stderr[-2000:]
     assert not any(tmp_path.iterdir())
+
+
+def test_orbit_and_nerfstudio_camera_paths(tmp_path):
+    """path=orbit: a closed circle around the point the cameras look at, every frame looking at it, at the cameras'
+    mean distance; path=FILE.json (nerfstudio's camera-path format, OpenGL axes, the scene's own frame): a scene's own
+    cameras written in that format come back as the same cameras (poses and intrinsics); a bad file is one line."""
+    import json
+
+    from b3dgs.data import load_scene
+    from b3dgs.data.scene import look_at_point
+    from b3dgs.errors import B3dgsError
+    from b3dgs.render_cli import camera_path
+
+    scene = load_scene("synthetic", None, max_side=32, n_views=16)
+    orbit = camera_path(scene, "orbit", 12)
+    assert len(orbit) == 12
+    target, _ = look_at_point(np.stack([c.viewmat.double().numpy() for c in scene.test]))
+    for c in orbit:
+        c2w = c.camtoworld.double().numpy()
+        to = target - c2w[:3, 3]
+        assert np.dot(to / np.linalg.norm(to), c2w[:3, 2]) > 0.9999  # looks at the target
+    d = [np.linalg.norm(c.center.double().numpy() - target) for c in orbit]
+    assert max(d) - min(d) < 1e-4 * max(d)  # a circle
+    # the scene's test cameras, in the scene's own frame and OpenGL axes, as nerfstudio writes a camera path
+    T = scene.transform
+    Rn, s, t = np.asarray(T.rotation), T.scale, np.asarray(T.translation)
+    entries = []
+    for c in scene.test:
+        c2w = c.camtoworld.double().numpy()
+        own = np.eye(4)
+        own[:3, :3] = Rn.T @ c2w[:3, :3] @ np.diag([1.0, -1.0, -1.0])
+        own[:3, 3] = Rn.T @ (c2w[:3, 3] - t) / s
+        fov = float(np.rad2deg(2 * np.arctan(0.5 * c.height / float(c.K[1, 1]))))
+        entries.append({"camera_to_world": own.reshape(-1).tolist(), "fov": fov, "aspect": c.width / c.height})
+    f = tmp_path / "path.json"
+    f.write_text(json.dumps({"camera_type": "perspective", "render_height": scene.test[0].height,
+                             "render_width": scene.test[0].width, "camera_path": entries}))
+    back = camera_path(scene, str(f), 0)
+    for a, b in zip(back, scene.test):
+        assert torch.allclose(a.viewmat, b.viewmat, atol=1e-5) and (a.width, a.height) == (b.width, b.height)
+        assert torch.allclose(a.K[:2, :2], b.K[:2, :2], rtol=1e-4)
+    (tmp_path / "bad.json").write_text("{}")
+    with pytest.raises(B3dgsError, match="not a readable nerfstudio camera path"):
+        camera_path(scene, str(tmp_path / "bad.json"), 0)
