@@ -113,12 +113,17 @@ def nerfstudio_path(file: Path, scene) -> list[Camera]:
 
     from b3dgs.data.scene import SceneTransform
 
+    fix = ("pass a camera-path JSON as nerfstudio's viewer exports it (camera_path with camera_to_world and fov, "
+           "render_height), or path=test|train|interpolate|orbit")
     try:
         data = json.loads(Path(file).read_text())
-        entries = data["camera_path"]
-        H = int(data.get("render_height") or 0)
-        if not entries or H < 8:
-            raise ValueError("no camera_path entries" if not entries else f"render_height {H} < 8")
+        entries, H = data["camera_path"], int(data.get("render_height") or 0)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise B3dgsError(f"path={file} is not a readable nerfstudio camera path ({type(e).__name__}: {e})", fix) from None
+    if not entries or H < 8:
+        raise B3dgsError(f"path={file} is not a readable nerfstudio camera path "
+                         f"({'no camera_path entries' if not entries else f'render_height {H} < 8'})", fix)
+    try:
         out = []
         T = getattr(scene, "transform", None) or SceneTransform()
         Rn, s, t = np.asarray(T.rotation, np.float64), float(T.scale), np.asarray(T.translation, np.float64)
@@ -133,10 +138,8 @@ def nerfstudio_path(file: Path, scene) -> list[Camera]:
             K = torch.tensor([[fy, 0.0, W / 2.0], [0.0, fy, H / 2.0], [0.0, 0.0, 1.0]], dtype=torch.float32)
             out.append(Camera(f"path_{i:05d}", K, torch.from_numpy(view).float(), W, H))
         return out
-    except (OSError, ValueError, KeyError, TypeError, IndexError) as e:
-        raise B3dgsError(f"path={file} is not a readable nerfstudio camera path ({type(e).__name__}: {e})",
-                         "pass a camera-path JSON as nerfstudio's viewer exports it (camera_path with camera_to_world "
-                         "and fov, render_height), or path=test|train|interpolate|orbit") from None
+    except (ValueError, KeyError, TypeError, IndexError) as e:
+        raise B3dgsError(f"path={file} is not a readable nerfstudio camera path ({type(e).__name__}: {e})", fix) from None
 
 
 def camera_path(scene, path: str, frames: int) -> list[Camera]:

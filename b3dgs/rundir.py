@@ -150,7 +150,8 @@ TRAIN_FILES = ("config.yaml", ".hydra/config.yaml", ".hydra/hydra.yaml", ".hydra
 #: manifests is read with), besides its job log, the renders of metrics.json's views and the panels of uq.json
 V1_PATTERNS = (*TRAIN_FILES, "checkpoints/step[0-9]*.ckpt", "tb/events.out.tfevents.*", "tb/hparams.yaml", "train.log",
                "uq.json", ".uq.json.lock", "uq/sparsification.png", "uq/reliability.png", "tb_uq/events.out.tfevents.*")
-#: b3dgs-render's camera paths (``b3dgs.render_cli.PATHS``): its video is ``<path>.mp4``
+#: b3dgs-render's camera paths while manifests were of format 1 (its video was ``<path>.mp4``): the names a format-1
+#: ``*.mp4`` pattern stands for (later paths, ``orbit`` or a path file, are listed by name in format 2)
 RENDER_PATHS = ("test", "train", "interpolate")
 #: a format-1 pattern's wildcard component -> the names its writer gives files (a pattern matches nothing else: a
 #: user's ``render/test/my_cut.mp4`` or ``frame_final_edit.png`` is never one of ours); other wildcards match nothing
