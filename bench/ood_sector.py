@@ -147,7 +147,8 @@ def table(archive: Path, scenes: list[str], seeds: list[int]) -> tuple[dict, str
              "`python -m bench.ood_sector` (data.test_split=sector+interleaved, experiment=study, seeds "
              f"{', '.join(map(str, seeds))}). AUROC of each detector for sector (positive) against interleaved held-out "
              "views of one model, per scene (seed mean); `interleaved split` is the canonical runs' support-deficit "
-             "AUROC (best- against worst-supported third of the every-8th test views, bench/results/report). "
+             "AUROC over the same scenes (best- against worst-supported third of the every-8th test views, "
+             "bench/results/report). "
              "Paired: AUROC difference over scenes, exact sign-flip p.", "",
              "| detector | scenes | sector AUROC (macro) | interleaved split (macro) | − ensemble | p | − distance | p | "
              + " | ".join(scenes) + " |",
@@ -155,7 +156,7 @@ def table(archive: Path, scenes: list[str], seeds: list[int]) -> tuple[dict, str
     payload = {"scenes": scenes, "seeds": seeds, "per_scene": per, "rows": {}}
     for det in [d for d in order if d in per]:
         vals = per[det]
-        iv = [inter[(sc, det)] for sc in scenes if (sc, det) in inter]
+        iv = [inter[(sc, det)] for sc in vals if (sc, det) in inter]  # the same scenes as the sector column
         row = {"n": len(vals), "macro": float(np.mean(list(vals.values()))),
                "interleaved_macro": float(np.mean(iv)) if iv else None}
         cells = []
