@@ -420,3 +420,26 @@ def test_a_run_without_a_value_is_not_counted():
     runs = [Run(Path(f"r{s}"), {}, {"psnr": p}, scene="s", method="m", seed=s) for s, p in ((0, 20.0), (1, None))]
     assert per_scene(runs)["s"]["m"] == {"mean": 20.0, "sem": None, "n": 1}
     assert macro_row(runs, "proxy")["n_runs"] == 1
+
+
+def test_a_run_whose_metrics_disagree_with_its_own_records_is_refused(tmp_path):
+    """Issue 46 (class: a result file that disagrees with the run's own records): a metrics.json whose PSNR (or SSIM,
+    LPIPS) is not the mean of its per-view values, or not the curve's final point, is refused in one line naming the
+    file; the archived run as committed passes."""
+    from b3dgs.report.collect import ReportError, read_run
+
+    src = Path(__file__).resolve().parents[1] / "bench" / "results" / "runs" / "fox" / "niw" / "s0"
+    run = tmp_path / "s0"
+    shutil.copytree(src, run)
+    read_run(run)
+    m = json.loads((run / "metrics.json").read_text())
+    edited = {**m, "psnr": m["psnr"] + 0.5}
+    (run / "metrics.json").write_text(json.dumps(edited))
+    with pytest.raises(ReportError, match=r"disagrees with its own per-view values: psnr"):
+        read_run(run)
+    pv = [dict(v) for v in m["per_view"]]
+    for v in pv:  # per-view values edited along with it: the curve still tells
+        v["psnr"] += 0.5
+    (run / "metrics.json").write_text(json.dumps({**edited, "per_view": pv}))
+    with pytest.raises(ReportError, match=r"disagrees with its curve: final PSNR"):
+        read_run(run)

@@ -143,6 +143,30 @@ def classify(cfg: dict) -> tuple[str, Any]:
     return study, tag.get("level")
 
 
+def check_own_records(path: Path, metrics: dict, curve: list) -> None:
+    """Refuse a run whose metrics.json disagrees with its own records: each of psnr, ssim and lpips is the mean of
+    its per-view values (``evaluate_views`` writes it so), and the curve's point at the final step holds the final
+    PSNR. A hand-edited or mixed-up file would otherwise enter the tables as if measured."""
+    import math
+
+    per_view = [v for v in metrics.get("per_view") or [] if isinstance(v, dict)]
+    for key in ("psnr", "ssim", "lpips"):
+        vals = [v[key] for v in per_view if isinstance(v.get(key), (int, float))]
+        top = metrics.get(key)
+        if vals and isinstance(top, (int, float)) and len(vals) == len(per_view):
+            mean = math.fsum(vals) / len(vals)
+            if not abs(mean - top) <= 1e-6 * max(1.0, abs(top)):
+                raise ReportError(f"{path / 'metrics.json'} disagrees with its own per-view values: {key} {top:.6g}, "
+                                  f"the mean of its {len(vals)} views {mean:.6g}",
+                                  "restore the run's files (or train it again); leave it out of runs= meanwhile")
+    last = [p for p in curve if isinstance(p, dict) and p.get("step") == metrics.get("steps")
+            and isinstance(p.get("psnr"), (int, float))]
+    if last and isinstance(metrics.get("psnr"), (int, float)) and not abs(last[-1]["psnr"] - metrics["psnr"]) <= 1e-6:
+        raise ReportError(f"{path / 'metrics.json'} disagrees with its curve: final PSNR {metrics['psnr']:.6g}, "
+                          f"curve.json at step {metrics['steps']}: {last[-1]['psnr']:.6g}",
+                          "restore the run's files (or train it again); leave it out of runs= meanwhile")
+
+
 def read_run(path: Path) -> Run:
     """One finished run dir -> :class:`Run` (ReportError naming the file if it is malformed)."""
     try:
@@ -158,6 +182,7 @@ def read_run(path: Path) -> Run:
         raise ReportError(f"{path / 'config.yaml'} lacks data.name, model.name or seed ({e}); "
                           "is it a b3dgs-train run dir?") from e
     curve = _read_json(path / "curve.json").get("points", []) if (path / "curve.json").is_file() else []
+    check_own_records(path, metrics, curve)
     uq = _own_uq(path, metrics)
     study, level = classify(cfg)
     return Run(path, cfg, metrics, curve, uq, study, level, scene, method, seed)
