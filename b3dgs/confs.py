@@ -9,7 +9,7 @@ from omegaconf import OmegaConf
 
 from b3dgs import conf_dir
 
-__all__ = ["added_key_problem", "conf_roots", "known_keys", "load_option", "option_names"]
+__all__ = ["added_key_problem", "conf_roots", "option_clashes", "known_keys", "load_option", "option_names"]
 
 
 def conf_roots() -> list[Path]:
@@ -154,3 +154,17 @@ def added_key_problem(key: str, config: str, prog: Optional[str] = None) -> Opti
     where = f"{parent}.{leaf}" if parent else leaf
     return (f"+{key}: {where} reaches nothing {prog or 'b3dgs-' + config} reads{hint}",
             f"remove it, or set one of {parent + '.' if parent else ''}{{{', '.join(known)}}}")
+
+
+def option_clashes() -> list[tuple[str, list[Path]]]:
+    """Config options that two conf roots both give (``model/niw.yaml`` in b3dgs and in an installed package): one
+    name that means two files, of which Hydra would silently take one. [(``group/name``, [the files])]."""
+    seen: dict[str, list[Path]] = {}
+    for root in conf_roots():
+        if not root.is_dir():
+            continue
+        for f in sorted(root.rglob("*.yaml")):
+            rel = f.relative_to(root).with_suffix("").as_posix()
+            if "/" in rel and not rel.startswith("hydra/"):  # group options, not primary configs
+                seen.setdefault(rel, []).append(f)
+    return [(k, v) for k, v in sorted(seen.items()) if len(v) > 1]

@@ -247,6 +247,19 @@ def known_errors(prog: str, cfg=None):
 _VALIDATED_APPS = ("train", "eval")
 
 
+def _refuse_option_clashes(prog: str) -> None:
+    """One line and exit 2 when two conf roots (b3dgs's, an installed package's) give the same option: a name that
+    could mean either file (:func:`b3dgs.confs.option_clashes`)."""
+    from b3dgs.confs import option_clashes
+
+    clashes = option_clashes()
+    if clashes:
+        name, files = clashes[0]
+        _report(prog, B3dgsError(f"the config option {name} is given by {len(files)} files ({', '.join(map(str, files))}),"
+                                 " so the name could mean either", f"rename one of them (e.g. {name}_mine.yaml) "
+                                 "in the package that adds it"))
+
+
 def _refuse_unread_additions(prog: str, argv: list[str], config: str) -> None:
     """One line and exit 2 for a ``+key=value`` override that nothing of the app reads (:func:`b3dgs.confs.
     added_key_problem`); b3dgs-train and b3dgs-eval check their composed configs instead."""
@@ -276,6 +289,7 @@ def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str
     os.environ[_USER_ENV] = old or ""
     os.environ["HYDRA_FULL_ERROR"] = "1"
     try:
+        _refuse_option_clashes(prog)
         if config not in (None, *_VALIDATED_APPS):
             _refuse_unread_additions(prog, argv, config)
         if debug:

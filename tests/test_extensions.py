@@ -264,3 +264,21 @@ def test_module_names_no_block():
                 continue  # docstrings may explain
             found += [(tok.start[0], w) for w in words & banned]
     assert found == [], f"b3dgs/module.py names blocks or their sums: {found}"
+
+
+def test_an_option_two_packages_give_is_refused(package, capsys):
+    """Issue 46 (class: an input one name could mean two ways): a package that adds conf/model/niw.yaml, an option
+    b3dgs has, would be taken or ignored silently by Hydra's search path; every CLI refuses it in one line naming both
+    files. An option of a new name is fine."""
+    from b3dgs.confs import option_clashes
+    from b3dgs.errors import run_cli
+
+    assert option_clashes() == []
+    package("b3dgs_ext_clash", "model", "m", "X = 1\n", {"niw": "name: niw\n", "niw_mine": "name: niw_mine\n"})
+    clashes = option_clashes()
+    assert [name for name, _ in clashes] == ["model/niw"] and len(clashes[0][1]) == 2
+    with pytest.raises(SystemExit) as ei:
+        run_cli("b3dgs-render", lambda: None, argv=[], config="render")
+    assert ei.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "model/niw is given by 2 files" in err[0] and "(fix: rename one of them" in err[0]
