@@ -160,7 +160,7 @@ def option_clashes() -> list[tuple[str, list[Path]]]:
     """Config options that two conf roots both give (``model/niw.yaml`` in b3dgs and in an installed package): one
     name that means two files, of which Hydra would silently take one. [(``group/name``, [the files])]."""
     seen: dict[str, list[Path]] = {}
-    for root in conf_roots():
+    for root in dict.fromkeys(r.resolve() for r in conf_roots()):  # one folder named twice is one root
         if not root.is_dir():
             continue
         for f in sorted(root.rglob("*.yaml")):
