@@ -42,21 +42,6 @@ def _json(p: Path):
     return json.loads(p.read_text()) if p.is_file() else None
 
 
-def ensure_uq(run_dir: Path, regimes: list[str], samples: int, seed: int) -> None:
-    """uq.json of ``run_dir`` with every regime of ``regimes`` (the missing ones only)."""
-    import tempfile
-
-    from b3dgs.eval import evaluate_uq
-    from bench.studies import merge_uq, uq_regimes
-
-    have = _json(run_dir / "uq.json") or {}
-    todo = [r for r in regimes if r not in have]
-    if todo:
-        with tempfile.TemporaryDirectory(dir=run_dir, prefix=".uq.") as tmp:
-            res = evaluate_uq([str(run_dir)], uq_regimes(todo, samples, seed), seed=seed, panels=0, out_dir=Path(tmp))
-        merge_uq(run_dir / "uq.json", res)
-
-
 def view_scores(run_dir: Path, score_max_side: int = 64) -> dict:
     """Per held-out view of the run: its kind (sector / interleaved), the distance from its centre to the nearest
     training camera over the scene extent, and the acquisition scores of ``SCORES`` (the model's point estimate)."""
@@ -215,14 +200,14 @@ def main() -> None:
         """Trains what the scene lacks here (a run finished here is reused), then its scores and ensemble: the
         scene's pieces need the checkpoints, so a scene is archived as a whole once all of them exist."""
         from b3dgs.io import write_json
-        from bench.studies import ensure_ensemble
+        from bench.studies import ensure_ensemble, ensure_regimes
 
         runs = [("niw", s) for s in args.seeds] + [("standard", s) for s in args.ensemble_seeds]
         for m, s in runs:
             d = run_dir(sc, m, s)
             met = train_run(d, scene_overrides(sc) + protocol + model_overrides(m) + [f"seed={s}"] + args.extra + threads)
             if m == "niw":
-                ensure_uq(d, args.regimes, args.uq_samples, s)
+                ensure_regimes(d, args.regimes, args.uq_samples, s)
             archive_files(d, archive / sc / m / f"s{s}", ARCHIVED)
             print(f"{sc} {m} s{s}: PSNR {met['psnr']:.3f}, {met['train_time_s']:.0f} s", flush=True)
         for s in args.seeds:

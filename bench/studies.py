@@ -167,15 +167,21 @@ def merge_uq(path: Path, new: dict) -> dict:
 def ensure_uq(run_dir: Path, method: str, samples: int, seed: int) -> None:
     """uq.json for a canonical run with every regime conf/report.yaml asks of its method: only the missing ones are
     computed (a regime added to conf/report.yaml later is merged into the file, the others are kept)."""
+    ensure_regimes(run_dir, list(STUDIES.uq_regimes.get(method, ["proxy"])), samples, seed)
+
+
+def ensure_regimes(run_dir: Path, names: list[str], samples: int, seed: int) -> None:
+    """run_dir's uq.json with every regime of ``names``: those it lacks are computed and merged in."""
     import tempfile
 
     from b3dgs.eval import evaluate_uq
 
-    names = missing_regimes(run_dir, method)
-    if not names:
+    have = json.loads((run_dir / "uq.json").read_text()) if (run_dir / "uq.json").is_file() else {}
+    todo = [n for n in names if n not in have]
+    if not todo:
         return
     with tempfile.TemporaryDirectory(dir=run_dir, prefix=".uq.") as tmp:  # its plots and TensorBoard files: dropped
-        res = evaluate_uq([str(run_dir)], uq_regimes(names, samples, seed), seed=seed, panels=0, out_dir=Path(tmp))
+        res = evaluate_uq([str(run_dir)], uq_regimes(todo, samples, seed), seed=seed, panels=0, out_dir=Path(tmp))
     merge_uq(run_dir / "uq.json", res)
 
 
