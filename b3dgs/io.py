@@ -11,12 +11,17 @@ from pathlib import Path
 from typing import Any, Iterator
 
 
+#: the marker of :func:`atomic_path`'s temp files, ``.<name>.b3dgs-<random>.tmp``: what a kill leaves is told apart
+#: from a user's own ``.*.tmp`` file (:func:`b3dgs.rundir.remove_stale_tmp` removes only ours)
+TEMP_MARK = ".b3dgs-"
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     """Yield a temporary path in the target's directory; rename it onto ``path`` on success."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}{TEMP_MARK}", suffix=".tmp", dir=path.parent)
     os.close(fd)
     tmp_path = Path(tmp)
     umask = os.umask(0)

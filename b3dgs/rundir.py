@@ -7,8 +7,8 @@
 * :class:`DeferredFileHandler`: Hydra's job-log handler (``conf/hydra/default.yaml``) that keeps records in
   memory until :func:`arm_run_log` is called once every check has passed; a refused run writes no log.
   ``.hydra/`` is written by :func:`write_hydra_files` at the same moment (``hydra.output_subdir`` is null).
-* :func:`remove_stale_tmp`: the ``.<name>.<random>.tmp`` files of :func:`b3dgs.io.atomic_path` that a kill
-  left behind.
+* :func:`remove_stale_tmp`: the ``.<name>.b3dgs-<random>.tmp`` files of :func:`b3dgs.io.atomic_path` that a kill
+  left behind (a user's own ``.*.tmp`` files stay).
 * :class:`Interrupted` / :func:`interrupt_handlers`: SIGINT and SIGTERM become a checkpoint at the next step
   boundary (:class:`b3dgs.callbacks.RunCheckpoint`) and an exit with 128 + the signal number.
 * The run manifest ``<run dir>/.b3dgs-run.json`` (:func:`write_manifest`), written when a run is accepted: what
@@ -78,13 +78,35 @@ def run_dir_lock(run_dir: Path, prog: str = "b3dgs-train") -> Iterator[None]:
             pass
 
 
+#: a temp file of :func:`b3dgs.io.atomic_path`: ``.<name>.b3dgs-<random>.tmp``; before the marker (format-1 era)
+#: ``.<name>.<8 random characters of mkstemp>.tmp``, removed only where ``<name>`` is a file the manifest lists
+_TEMP_NOW = re.compile(r"^\.(?P<name>.+)\.b3dgs-[A-Za-z0-9_]{8}\.tmp$")
+_TEMP_BEFORE = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp$")
+
+
 def remove_stale_tmp(run_dir: Path) -> list[Path]:
-    """Remove the temp files (``.<name>.*.tmp``) that a killed run left in ``run_dir`` and its sub-folders."""
+    """Remove the temp files that a killed b3dgs writer left in ``run_dir`` and its sub-folders, and nothing else:
+    a user's own ``.notes.tmp`` stays (only :func:`b3dgs.io.atomic_path`'s names, or an older writer's temp of a
+    file the manifest lists)."""
+    run_dir = Path(run_dir)
+    listed = None
     gone = []
-    for p in Path(run_dir).rglob(".*.tmp"):
-        if p.is_file():
-            p.unlink()
-            gone.append(p)
+    for p in sorted(run_dir.rglob(".*.tmp")):
+        if not p.is_file() or p.is_symlink():
+            continue
+        if _TEMP_NOW.match(p.name) is None:
+            before = _TEMP_BEFORE.match(p.name)
+            if before is None:
+                continue
+            if listed is None:
+                try:
+                    listed = set(_listed(run_dir, read_manifest(run_dir)))
+                except B3dgsError:  # a damaged manifest: leave older-named temps alone
+                    listed = set()
+            if (p.parent / before.group("name")).relative_to(run_dir).as_posix() not in listed:
+                continue
+        p.unlink()
+        gone.append(p)
     return gone
 
 

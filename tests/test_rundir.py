@@ -1,6 +1,7 @@
 """One process per run dir: the lock, unique default run dirs, refused runs that leave nothing behind,
 concurrent trainings and a joblib multirun (tests/test_resume.py covers kills, signals and finished runs)."""
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -74,11 +75,27 @@ def test_another_process_holding_the_lock_is_named_and_its_death_frees_it(tmp_pa
 
 
 def test_remove_stale_tmp(tmp_path):
-    for name in (".point_cloud.ply.ab12.tmp", "checkpoints/.last.ckpt.x.tmp", "renders/.v0.png.q.tmp", "keep.tmp"):
+    from b3dgs.io import atomic_path
+    from b3dgs.rundir import record_written, write_manifest
+
+    write_manifest(tmp_path)
+    record_written(tmp_path, ["point_cloud.ply"])
+    ours = []
+    for name in ("point_cloud.ply", "checkpoints/last.ckpt", "renders/v0.png"):
+        with pytest.raises(KeyboardInterrupt), atomic_path(tmp_path / name) as tmp:
+            ours.append(tmp)
+            shutil.copy(tmp, tmp.with_name("kept-" + tmp.name))  # what a kill -9 leaves (the finally never runs)
+            raise KeyboardInterrupt
+    for tmp in ours:
+        tmp.with_name("kept-" + tmp.name).rename(tmp)
+    older = [".point_cloud.ply.ab12cd34.tmp"]  # an older writer's temp of a listed file
+    users = [".notes.tmp", "keep.tmp", ".report.md.ab12cd34.tmp", "renders/.my_cut.mp4.tmp"]  # not ours: stay
+    for name in older + users:
         (tmp_path / name).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / name).write_text("x")
-    assert len(remove_stale_tmp(tmp_path)) == 3
-    assert [p.name for p in tmp_path.rglob("*") if p.is_file()] == ["keep.tmp"]
+    gone = remove_stale_tmp(tmp_path)
+    assert sorted(gone) == sorted(ours + [tmp_path / n for n in older])
+    assert all((tmp_path / n).is_file() for n in users)
 
 
 def test_default_run_dirs_are_unique_per_process():
