@@ -68,13 +68,12 @@ def write_results(name: str, payload: dict, text: str, root: Path = RESULTS) -> 
 # b3dgs.data_root), plus those of installed packages (b3dgs.conf entry points): a scene is added with one YAML file.
 # The study protocol is conf/experiment/study.yaml (256 px, 3000 steps, no logger, progress bar or renders).
 QUICK = ["experiment=study"]
-# The posterior blocks each model had when the committed benchmarks and studies ran (the study's table of them): the
-# scripts that extend them pass these explicitly (model_overrides), so a later change of a model's default blocks
-# (conf/model/<name>.yaml) cannot change what an archived row means. The active-view study pins its families the same
-# way (ARCHIVED_FAMILY_POSTERIOR).
+# The posterior blocks each model had when the committed benchmarks and studies ran: conf/experiment/archived_posterior.yaml
+# (the study's table of them). The scripts that extend them pass these explicitly (model_overrides), so a later change
+# of a model's default blocks (conf/model/<name>.yaml) cannot change what an archived row means; the active-view study
+# pins its families with that preset (ARCHIVED_FAMILY_POSTERIOR, an override of b3dgs-study active).
 ARCHIVED_POSTERIOR = FAMILY_POSTERIOR_UNRECORDED
-ARCHIVED_FAMILY_POSTERIOR = "family_posterior={" + ",".join(
-    f"{fam}:[{','.join(blocks)}]" for fam, blocks in ARCHIVED_POSTERIOR.items()) + "}"
+ARCHIVED_FAMILY_POSTERIOR = "experiment=archived_posterior"
 
 
 def model_overrides(model: str) -> list[str]:

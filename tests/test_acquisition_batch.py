@@ -283,3 +283,36 @@ def test_study_runs_batch_rows_and_records_them(tmp_path):
     study = json.loads((sc / "study.json").read_text())
     assert {"native", "native+greedy_conditioned", "native+diverse"} <= set(study["table"])
     assert "native+diverse" in (sc / "study.md").read_text()
+
+
+def test_a_study_row_is_a_config_node_and_the_shorthand_is_the_same_node():
+    """policies=[...] takes nodes {policy, family, batch, blocks}; native@niw+diverse is the same row."""
+    from b3dgs.study.active import StudyRow, row_pins
+
+    assert StudyRow.parse("native@niw+diverse") == StudyRow("native", "niw", "diverse")
+    assert StudyRow.parse("native+diverse@niw") == StudyRow("native", "niw", "diverse")
+    assert StudyRow.parse({"policy": "sh", "family": "niw", "blocks": ["niw", "sh"]}) == StudyRow(
+        "sh", "niw", None, ("niw", "sh"))
+    short, _ = _rows("policies=[native,native@niw+diverse,proxy@standard+greedy_conditioned]", "family_baselines=[]")
+    nodes, batches = _rows("policies=[native,{policy:native,family:niw,batch:diverse},"
+                           "{policy:proxy,family:standard,batch:greedy_conditioned}]", "family_baselines=[]")
+    assert nodes == short == ["native", "native+diverse", "proxy@standard+greedy_conditioned"]  # niw: native's own
+    assert type(batches["native+diverse"]).__name__ == "Diverse"
+    # a row's blocks pin its family's posterior, as family_posterior does
+    cfg = _study_cfg("policies=[{policy:sh,family:niw,blocks:[niw,sh]},native]", "family_baselines=[]")
+    assert row_pins(cfg) == {"niw": ["niw", "sh"]}
+    assert row_pins(_study_cfg("policies=[native]", "family_posterior={niw:[niw]}")) == {"niw": ["niw"]}
+
+
+@pytest.mark.parametrize("policies,message", [
+    ("[{policy:native,famly:niw}]", "a study row has no field 'famly'; did you mean family?"),
+    ("[{family:niw}]", "a study row needs its policy"),
+    ("[{policy:native,blocks:niw}]", "study row native: blocks must be a list of posterior block names"),
+    ("[{policy:sh,family:niw,blocks:[niw,sh]},{policy:native,family:niw,blocks:[niw]}]",
+     "study row native: blocks ['niw'] differ from ['niw', 'sh']"),
+])
+def test_bad_study_rows_are_one_line_errors(policies, message):
+    with pytest.raises(B3dgsError) as e:
+        _rows(f"policies={policies}", "family_baselines=[]")
+    text = str(e.value)
+    assert message in text and "\n" not in text and "(fix: " in text, text

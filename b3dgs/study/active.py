@@ -28,6 +28,7 @@ from typing import Any, Optional
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
+from b3dgs import conf_dir
 from b3dgs.io import write_json
 from b3dgs.protocol import check_stored_protocol
 
@@ -52,7 +53,10 @@ def compose_config(config_name: str, overrides: list[str]) -> DictConfig:
 #: the posterior blocks each family's model had in every study folder written before ``family_posterior`` (which
 #: did not record them): left out of protocol.json at these values, so those folders stay valid, and a folder of
 #: one posterior refuses rows of another (e.g. after a change of conf/model/niw.yaml's default blocks)
-FAMILY_POSTERIOR_UNRECORDED = {"standard": [], "niw": ["niw"], "dpmm": ["niw", "dp", "noise", "opacity", "color"]}
+#: (conf/experiment/archived_posterior.yaml, the pins of the committed campaigns)
+FAMILY_POSTERIOR_UNRECORDED: dict = {
+    k: list(v) for k, v in OmegaConf.load(Path(conf_dir()) / "experiment" / "archived_posterior.yaml")
+    .family_posterior.items()}
 
 
 def family_posterior_override(cfg: DictConfig, family: str) -> list[str]:
@@ -162,17 +166,99 @@ def load_batch(name: str, settings: Optional[DictConfig] = None):
     return batch
 
 
+@dataclasses.dataclass(frozen=True)
+class StudyRow:
+    """One row of the study, a config node: ``{policy: native, family: niw, batch: diverse, blocks: [niw, sh]}``.
+
+    ``policy``: conf/acquisition/<name>.yaml (or a package's); ``family``: the model family its rounds train (default:
+    the policy's own); ``batch``: conf/acquisition/batch/<name>.yaml (default: a row per ``acquisition.batch``);
+    ``blocks``: the family's posterior blocks (as ``family_posterior.<family>``; rows of one family agree).
+    ``policies=[native@niw+diverse]`` is the shorthand of the same node (:meth:`parse`)."""
+
+    policy: str
+    family: Optional[str] = None
+    batch: Optional[str] = None
+    blocks: Optional[tuple] = None
+
+    @classmethod
+    def parse(cls, entry: Any) -> "StudyRow":
+        """A ``policies`` entry: a node with the fields above, or its shorthand ``policy[@family][+batch]`` (either
+        order of the two suffixes); anything else is a one-line error."""
+        from b3dgs.errors import B3dgsError
+
+        example = "policies=[native,{policy:native,family:niw,batch:diverse}] (shorthand: native@niw+diverse)"
+        if isinstance(entry, (dict, DictConfig)):
+            node = OmegaConf.to_container(entry, resolve=True) if isinstance(entry, DictConfig) else dict(entry)
+            fields = [f.name for f in dataclasses.fields(cls)]
+            unknown = [k for k in node if k not in fields]
+            if unknown:
+                from b3dgs.errors import did_you_mean
+
+                raise B3dgsError(f"a study row has no field {unknown[0]!r}{did_you_mean(unknown[0], fields)}",
+                                 f"a row holds {', '.join(fields)}, e.g. {example}")
+            if not isinstance(node.get("policy"), str) or not node["policy"]:
+                raise B3dgsError(f"a study row needs its policy, got {node!r}", f"pass e.g. {example}")
+            for k in ("family", "batch"):
+                if node.get(k) is not None and not isinstance(node[k], str):
+                    raise B3dgsError(f"study row {node['policy']}: {k} must be a name, got {node[k]!r}",
+                                     f"pass e.g. {example}")
+            blocks = node.get("blocks")
+            if blocks is not None:
+                if not isinstance(blocks, (list, tuple)) or not all(isinstance(b, str) for b in blocks):
+                    raise B3dgsError(f"study row {node['policy']}: blocks must be a list of posterior block names, "
+                                     f"got {blocks!r}", "pass e.g. {policy:sh,family:niw,blocks:[niw,sh]}")
+                node["blocks"] = tuple(blocks)
+            return cls(**node)
+        if not isinstance(entry, str) or not entry:
+            raise B3dgsError(f"a study row must be a policy name or a node, got {entry!r}", f"pass e.g. {example}")
+        base, fam, batch = str(entry), "", None
+        if "@" in base:
+            base, _, fam = base.partition("@")
+        if "+" in fam:
+            fam, _, batch = fam.partition("+")
+        if "+" in base:
+            base, _, batch = base.partition("+")
+        return cls(policy=base, family=fam or None, batch=batch)
+
+    @property
+    def policy_name(self) -> str:
+        """``policy`` or ``policy@family`` (what :func:`load_policy` takes)."""
+        return self.policy if self.family is None else f"{self.policy}@{self.family}"
+
+
 def split_row(name: str) -> tuple[str, Optional[str]]:
-    """``policy[@family][+batch]`` (either order of the two suffixes) -> (``policy[@family]``, batch or None)."""
-    base, fam = str(name), ""
-    if "@" in base:
-        base, _, fam = base.partition("@")
-    batch = None
-    if "+" in fam:
-        fam, _, batch = fam.partition("+")
-    if "+" in base:
-        base, _, batch = base.partition("+")
-    return (f"{base}@{fam}" if fam else base), batch
+    """``policy[@family][+batch]`` -> (``policy[@family]``, batch or None) (:meth:`StudyRow.parse`)."""
+    row = StudyRow.parse(name)
+    return row.policy_name, row.batch
+
+
+def study_rows(cfg: DictConfig) -> list[StudyRow]:
+    """The study's rows (``policies``: nodes or their shorthand), with each row's ``blocks`` checked against the
+    other rows of its family and against ``family_posterior``."""
+    from b3dgs.errors import B3dgsError
+
+    rows = [StudyRow.parse(e) for e in (cfg.get("policies") or [])]
+    pins = dict(cfg.get("family_posterior") or {})
+    for r in rows:
+        if r.blocks is None:
+            continue
+        fam = r.family or load_policy(r.policy)[1].family
+        have = pins.get(fam)
+        if have is not None and tuple(have) != r.blocks:
+            raise B3dgsError(f"study row {r.policy}: blocks {list(r.blocks)} differ from {list(have)}, which "
+                             f"another row or family_posterior.{fam} gives family {fam}",
+                             "rows of one family train one phase-1 model: give them the same blocks")
+        pins[fam] = list(r.blocks)
+    return rows
+
+
+def row_pins(cfg: DictConfig) -> dict:
+    """``family_posterior`` with the rows' ``blocks`` added (:func:`study_rows` checked that they agree)."""
+    pins = {k: list(v) for k, v in (cfg.get("family_posterior") or {}).items()}
+    for r in study_rows(cfg):
+        if r.blocks is not None:
+            pins[r.family or load_policy(r.policy)[1].family] = list(r.blocks)
+    return pins
 
 
 def row_label(policy_label: str, batch: str) -> str:
@@ -306,6 +392,11 @@ class ActiveStudy:
         from b3dgs.data.scene import take_candidate_store
         from b3dgs.lifecycle import data_module
 
+        pins = row_pins(cfg)  # rows' blocks are their families' pins (one phase-1 model per family)
+        if pins != {k: list(v) for k, v in (cfg.get("family_posterior") or {}).items()}:
+            cfg = cfg.copy()
+            with open_dict(cfg):
+                cfg.family_posterior = pins
         self.cfg = cfg
         self.total = int(cfg.trainer.max_steps)
         self.phase1 = self.total // int(cfg.phase1_divisor)
@@ -353,8 +444,8 @@ class ActiveStudy:
         bset = self.cfg.get("acquisition", {}).get("batch_settings")
         selectors = {b: load_batch(b, bset) for b in batch_names(self.cfg)}
         rows = []  # (policy label, policy, batch name)
-        for n in self.cfg.policies:
-            pname, batch = split_row(n)
+        for row in study_rows(self.cfg):
+            pname, batch = row.policy_name, row.batch
             label, p = load_policy(pname, self.cfg.get("policy_settings"))
             if batch is None:  # one policy object per row: a policy caches its fitted regime
                 mine = [b for b, sel in selectors.items() if sel.applies_to(p)] or [DEFAULT_BATCH]
