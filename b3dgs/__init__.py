@@ -38,6 +38,14 @@ def _register_resolvers() -> None:
     if not OmegaConf.has_resolver("b3dgs.div"):
         # integer division, for schedules that scale with trainer.max_steps (t_dp = max_steps / 6)
         OmegaConf.register_new_resolver("b3dgs.div", lambda a, b: int(a) // int(b))
+    if not OmegaConf.has_resolver("b3dgs.paper_images"):
+        # the paper's image folder of a scene (experiment=paper): images_4 / images_2 for Mip-NeRF 360, else null
+        def paper_images(kind, name):
+            from b3dgs.data.images import paper_image_folder
+
+            return paper_image_folder(kind, name)
+
+        OmegaConf.register_new_resolver("b3dgs.paper_images", paper_images)
     if not OmegaConf.has_resolver("b3dgs.data_root"):
         OmegaConf.register_new_resolver("b3dgs.data_root", data_root)
     if not OmegaConf.has_resolver("b3dgs.uid"):

@@ -355,6 +355,34 @@ def warn_slow_renderer(cfg: DictConfig) -> Optional[str]:
     return msg
 
 
+#: the C++ CPU kernels' training cost per pixel per step at ~50k Gaussians on this project's 2-core CPU (fox at
+#: 256x144 px, 3000 steps in 163 s: bench/results/train.md); more Gaussians cost more
+CPU_SECONDS_PER_PIXEL_STEP = 1.5e-6
+#: a CPU run that this rate puts above this many seconds gets a warning with the expected time
+LONG_CPU_RUN_S = 3600.0
+
+
+def warn_long_cpu_run(scene, renderer, max_steps: int) -> Optional[str]:
+    """A warning (logged and returned) when training ``max_steps`` steps on ``scene``'s training views with a CPU
+    renderer is expected to take over :data:`LONG_CPU_RUN_S` (e.g. ``experiment=paper``, the paper's 30k steps at
+    full resolution, which is meant for a GPU): the expected time at :data:`CPU_SECONDS_PER_PIXEL_STEP`, a lower
+    bound, since the cost grows with the Gaussian count."""
+    if torch.device(renderer.device).type != "cpu" or not scene.train:
+        return None
+    pixels = sum(int(c.width) * int(c.height) for c in scene.train) / len(scene.train)
+    hours = int(max_steps) * pixels * CPU_SECONDS_PER_PIXEL_STEP / 3600.0
+    if hours * 3600.0 <= LONG_CPU_RUN_S:
+        return None
+    c = scene.train[0]
+    msg = (f"trainer.max_steps={int(max_steps)} on {len(scene.train)} training views of about {c.width}x{c.height} px "
+           f"on the CPU renderer ({renderer.name}) will take at least ~{hours:.1f} h (about "
+           f"{CPU_SECONDS_PER_PIXEL_STEP * 1e6:g} µs per pixel per step on 2 quiet cores at 50k Gaussians, more as they grow) "
+           "(fix: train on a CUDA GPU with gsplat, for which experiment=paper is made; experiment=study is the CPU "
+           "protocol: 256 px, 3000 steps)")
+    log.warning(msg)
+    return msg
+
+
 def warn_disabled_options(module) -> None:
     """Warn where one setting silently turns off another (``strategy.max_gaussians`` below the initial count)."""
     cap = getattr(module.strategy, "max_gaussians", None)

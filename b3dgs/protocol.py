@@ -23,7 +23,7 @@ RUN_IGNORED = ("seed", "data_root", "hydra", "resume", "overwrite", "threads", "
                "callbacks", "lpips_weights")
 #: settings runs written before they were configurable did not record: left out of a protocol at these values
 RUN_DEFAULTS = {"trainer.precision": "32-true", "trainer.deterministic": False, "data.test_split": "interleaved",
-                "data.test_fraction": 0.125, "data.sector_axis": 0}
+                "data.test_fraction": 0.125, "data.sector_axis": 0, "data.images_dir": None}
 
 
 def flatten(d: Any, prefix: str = "") -> dict[str, Any]:

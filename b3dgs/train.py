@@ -66,7 +66,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
 
     from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint, RunFiles
     from b3dgs.lifecycle import (build_callbacks, build_trainer, check_resume, check_resume_renderer,
-                                 checkpoint_every_s, fit, start_run, warn_disabled_options)
+                                 checkpoint_every_s, fit, start_run, warn_disabled_options, warn_long_cpu_run)
     from b3dgs.rundir import Interrupted, claim_run_dir, finished_metrics, prepare_run_dir
 
     tcfg = cfg.trainer
@@ -84,6 +84,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
         log.info("%s holds a finished run (step %s, PSNR %s dB): nothing to do, nothing rewritten (overwrite=true "
                  "trains it again)", run_dir, done.get("steps"), "n/a" if psnr is None else f"{psnr:.3f}")
         return done
+    warn_long_cpu_run(scene, renderer, int(tcfg.max_steps))
     curve = CurveCallback(scene.test, eval_every=int(tcfg.eval_every), out_dir=run_dir,
                           max_eval_views=tcfg.get("curve_max_views"))
     ckpt = RunCheckpoint(run_dir / "checkpoints", every_n_steps=int(tcfg.checkpoint_every), every_s=every_s,

@@ -23,8 +23,8 @@ from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from b3dgs.data.images import import_pycolmap  # imports PIL first
-from b3dgs.data.scene import FrameSpec, RawScene, materialize, select_evenly
+from b3dgs.data.images import image_folders, image_size, import_pycolmap  # imports PIL first
+from b3dgs.data.scene import FrameSpec, RawScene, materialize, scale_intrinsics, select_evenly
 from b3dgs.errors import B3dgsError
 
 log = logging.getLogger(__name__)
@@ -203,8 +203,10 @@ def read_colmap(
         raise B3dgsError(f"COLMAP scene folder {root} does not exist", "pass data.path=PATH to an existing scene folder")
     img_root = root / images_dir
     if not img_root.is_dir():
+        there = image_folders(root)
         raise B3dgsError(f"COLMAP image folder {img_root} does not exist",
-                         f"pass data.images_dir=FOLDER, the folder of {root} that holds the images")
+                         f"pass data.images_dir=FOLDER, the folder of {root} that holds the images"
+                         + (f" ({', '.join(there)})" if there else ""))
     model_dir = find_sparse_dir(root, sparse_dir)
     check_colmap_binary(model_dir)
     pycolmap = import_pycolmap()
@@ -229,6 +231,8 @@ def read_colmap(
     if not frames:
         raise B3dgsError(f"COLMAP model in {model_dir} has no registered images")
     frames.sort(key=lambda f: f.name)
+    if images_dir != "images":  # e.g. Mip-NeRF 360's images_4: a uniform downscale of the model's cameras
+        frames = [_at_file_size(f) for f in frames]
 
     points = colors = None
     if len(rec.points3D) > 0:
@@ -241,6 +245,19 @@ def read_colmap(
             if points is not None else None
         return frames, points, colors, tracks
     return frames, points, colors
+
+
+def _at_file_size(f: FrameSpec) -> FrameSpec:
+    """``f`` at the size of its image file when that file is a uniform downscale of the camera (a folder such as
+    ``images_4``: K scaled by the per-axis ratio, as :func:`b3dgs.data.scene.materialize` scales it); any other size
+    is left for :func:`b3dgs.data.images.load_image` to refuse, naming the file."""
+    if not Path(f.path).is_file():
+        return f  # load_image names the missing file
+    w, h = image_size(f.path)
+    s = w / f.width
+    if (w, h) == (f.width, f.height) or s > 1.0 or abs(f.height * s - h) > 1.0:
+        return f
+    return FrameSpec(f.name, f.path, scale_intrinsics(f.K, w / f.width, h / f.height), f.viewmat, w, h)
 
 
 def load_colmap(

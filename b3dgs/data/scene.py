@@ -69,6 +69,7 @@ __all__ = [
     "RawScene",
     "SceneTransform",
     "DATA_RULES",
+    "check_images_dir",
     "check_intrinsics",
     "check_layout",
     "check_near_plane",
@@ -718,10 +719,30 @@ def check_scene_settings(kind: str, path: str | os.PathLike | None, settings: di
             raise B3dgsError(f"data.path={path} does not exist", "pass data.path=PATH to an existing scene folder")
         if kind_kwargs.get("sparse_dir") is None:  # a custom model folder is the loader's to find
             check_layout(kind, path)
+    if kind_kwargs.get("images_dir") is not None:
+        check_images_dir(kind, loader, path, kind_kwargs["images_dir"])
     check = getattr(loader, "validate", None)
     if callable(check):
         check(**kind_kwargs)
     return loader
+
+
+def check_images_dir(kind: str, loader, path: str | os.PathLike | None, folder: Any) -> None:
+    """Refuse a ``data.images_dir`` that is no folder name, that the format ``loader`` does not take (its images are
+    named in its own files), or that ``path`` does not hold (naming the image folders it does hold)."""
+    from b3dgs.data.images import image_folders
+
+    if not isinstance(folder, str) or not folder.strip() or Path(folder).is_absolute() or ".." in Path(folder).parts:
+        raise B3dgsError(f"data.images_dir={folder} is invalid: it must be the name of a folder inside data.path, or null",
+                         "pass data.images_dir=images_4 (a folder of the scene), or null for the format's own images/")
+    if "images_dir" not in loader_params(loader):
+        raise B3dgsError(f"data.images_dir={folder}: data={kind} has no image folder setting (its files name the images)",
+                         "pass data.images_dir=null")
+    if path is not None and Path(path).is_dir() and not (Path(path) / folder).is_dir():
+        there = image_folders(path)
+        raise B3dgsError(f"data.images_dir={folder}: {path} has no folder {folder}",
+                         f"pass data.images_dir= one of its image folders ({', '.join(there)})" if there else
+                         f"{path} holds no image folder: pass data.path=PATH to the scene folder")
 
 
 def read_raw(loader, path: str | os.PathLike | None, settings: dict, kind_kwargs: dict,

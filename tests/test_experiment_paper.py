@@ -1,0 +1,131 @@
+"""``experiment=paper``: the paper's protocol (30k steps, full resolution, its image-folder policy, the staged posterior
+schedule) composes for every model with the paper's numbers; ``data.images_dir`` picks, checks and loads an image folder
+(a downscaled one too); a long CPU run is warned about with its expected time."""
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.core.global_hydra import GlobalHydra
+from omegaconf import OmegaConf
+
+from b3dgs.data.images import save_png
+from b3dgs.data.scene import load_scene
+from b3dgs.errors import B3dgsError
+from b3dgs.train import CONF_DIR
+
+#: the paper's numbers (Sec. 3.3, Appendix "Canonical benchmark setup" and its schedule table, "Dataset handling") and
+#: the official 3DGS 30k optimizer the paper trains around; a drift in any of them fails here
+PAPER = {
+    "trainer.max_steps": 30000, "data.max_side": None, "data.test_every": 8, "schedule._target_": "b3dgs.schedule.ConstantSchedule",
+    "model.sh_degree": 3, "model.sh_increase_every": 1000, "model.lambda_dssim": 0.2, "model.init_max_points": None,
+    "model.lr_means": 1.6e-4, "model.lr_means_final": 1.6e-6, "model.lr_scales": 5e-3, "model.lr_quats": 1e-3,
+    "model.lr_opacities": 5e-2, "model.lr_sh0": 2.5e-3, "model.lr_shN": 1.25e-4,
+}
+ADC = {"strategy.refine_start": 500, "strategy.refine_stop": 15000, "strategy.refine_every": 100,
+       "strategy.reset_every": 3000, "strategy.grad_threshold": 2e-4, "strategy.percent_dense": 0.01,
+       "strategy.max_gaussians": None}
+MCMC = {"strategy.refine_start": 500, "strategy.refine_stop": 25000, "strategy.refine_every": 100,
+        "strategy.cap_max": 1_000_000}
+NIW = {"posterior.niw.t_niw": 0, "posterior.niw.kappa0": 0.01, "posterior.niw.nu0": 5.0}
+STAGES = {  # the canonical 30k DPMM row: DP (CAVI every 50) and noise from 5k, opacity / colour from 15k
+    **NIW, "posterior.dp.t_dp": 5000, "posterior.dp.cavi_every": 50, "posterior.dp.alpha": 5.0,
+    "posterior.noise.t_noise": 5000, "posterior.opacity.t_post": 15000, "posterior.color.t_post": 15000}
+EXPECTED = {"standard": {**PAPER, **ADC}, "niw": {**PAPER, **ADC, **NIW}, "dpmm": {**PAPER, **ADC, **STAGES},
+            "mcmc": {**PAPER, **MCMC, "model.init_opacity": 0.5}}
+
+
+def compose_train(overrides):
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        return compose(config_name="train", overrides=overrides, return_hydra_config=True)
+
+
+@pytest.mark.parametrize("model", sorted(EXPECTED))
+def test_paper_protocol_composes_with_the_papers_numbers(model):
+    from b3dgs.validation import validate_config
+
+    cfg = compose_train(["scene=fox", f"model={model}", "experiment=paper", "data_root=/data/root"])
+    got = {k: OmegaConf.select(cfg, k) for k in EXPECTED[model]}
+    assert got == EXPECTED[model]
+    assert sorted(cfg.get("posterior") or {}) == sorted({k.split(".")[1] for k in EXPECTED[model] if k.startswith("posterior.")})
+    assert cfg.data.images_dir is None  # fox: neither Mip-NeRF 360 nor a format with image folders
+    validate_config(cfg, app="train")  # every node checks (keys, types, ranges; plugins build and validate)
+
+
+def test_other_protocols_keep_their_strategy_numbers():
+    """The experiment's strategy settings (conf/experiment/strategy/paper_<strategy>.yaml) reach no other protocol."""
+    default = OmegaConf.load(Path(CONF_DIR) / "strategy" / "default.yaml")
+    for extra in ([], ["experiment=study"], ["experiment=smoke"]):
+        cfg = compose_train(["model=dpmm", *extra])
+        assert OmegaConf.to_container(cfg.strategy) == OmegaConf.to_container(default)
+        assert cfg.data.images_dir is None and cfg.posterior.dp.t_dp == cfg.trainer.max_steps // 6
+
+
+@pytest.mark.parametrize("data,name,folder", [
+    ("colmap", "bicycle", "images_4"), ("colmap", "treehill", "images_4"), ("llff", "garden", "images_4"),
+    ("colmap", "room", "images_2"), ("colmap", "bonsai", "images_2"), ("colmap", "truck", None),
+    ("colmap", "drjohnson", None), ("transforms", "bicycle", None), ("blender", "lego", None)])
+def test_the_image_folder_policy(data, name, folder):
+    cfg = compose_train([f"data={data}", f"data.path=/x/{name}", "experiment=paper"])
+    assert cfg.data.images_dir == folder
+    assert compose_train([f"data={data}", f"data.path=/x/{name}", "experiment=paper",
+                          "data.images_dir=images_8"]).data.images_dir == "images_8"
+    assert compose_train([f"data={data}", f"data.path=/x/{name}"]).data.images_dir is None
+
+
+def _colmap_with_folders(root: Path) -> None:
+    """A one-view PINHOLE model (64x48, fx = fy = 50) with images/ and a half-size images_2/ (and a odd images_3/)."""
+    from test_data import _write_colmap
+
+    _write_colmap(root, "PINHOLE", [50.0, 50.0, 32.0, 24.0], 64, 48, np.full((48, 64, 3), 0.5))
+    for folder, (w, h) in {"images_2": (32, 24), "images_3": (32, 40)}.items():
+        (root / folder).mkdir()
+        save_png(root / folder / "a.png", np.full((h, w, 3), 0.5))
+
+
+def test_images_dir_loads_a_downscaled_folder_and_refuses_what_it_cannot(tmp_path):
+    from b3dgs.data.datamodule import SceneDataModule
+
+    _colmap_with_folders(tmp_path)
+    full = load_scene("colmap", str(tmp_path), test_every=0, normalize=False)
+    half = SceneDataModule(kind="colmap", path=str(tmp_path), test_every=0, normalize=False, images_dir="images_2").scene
+    cam = half.train[0]
+    assert (cam.width, cam.height) == (32, 24) and (full.train[0].width, full.train[0].height) == (64, 48)
+    assert torch.allclose(cam.K, torch.tensor([[25.0, 0, 16], [0, 25, 12], [0, 0, 1]]))
+    with pytest.raises(B3dgsError, match=r"a\.png is 32x40 but its camera says 64x48"):  # not a uniform downscale
+        load_scene("colmap", str(tmp_path), test_every=0, images_dir="images_3")
+    with pytest.raises(B3dgsError, match=r"has no folder images_4 \(fix: .*\(images, images_2, images_3\)\)"):
+        SceneDataModule(kind="colmap", path=str(tmp_path), images_dir="images_4")
+    with pytest.raises(B3dgsError, match=r"data=synthetic has no image folder setting.*data\.images_dir=null"):
+        SceneDataModule(kind="synthetic", images_dir="images_2")
+    for bad in ("/abs/images", "../images", ""):
+        with pytest.raises(B3dgsError, match="must be the name of a folder inside data.path"):
+            SceneDataModule(kind="colmap", path=str(tmp_path), images_dir=bad)
+
+
+def test_a_long_cpu_run_is_warned_with_its_expected_time():
+    from b3dgs.lifecycle import CPU_SECONDS_PER_PIXEL_STEP, warn_long_cpu_run
+
+    def scene(w, h, n=100):
+        return SimpleNamespace(train=[SimpleNamespace(width=w, height=h)] * n)
+
+    cpu, gpu = SimpleNamespace(device=torch.device("cpu"), name="cpu"), SimpleNamespace(device="cuda:0", name="gsplat")
+    msg = warn_long_cpu_run(scene(1237, 822), cpu, 30000)  # bicycle's images_4, the paper's 30k steps
+    hours = 30000 * 1237 * 822 * CPU_SECONDS_PER_PIXEL_STEP / 3600
+    assert msg is not None and f"at least ~{hours:.1f} h" in msg and "CUDA GPU" in msg and "1237x822" in msg
+    assert warn_long_cpu_run(scene(1237, 822), gpu, 30000) is None
+    assert warn_long_cpu_run(scene(256, 144), cpu, 3000) is None  # the study protocol: minutes
+
+
+def test_paper_protocol_trains_a_few_steps_on_the_synthetic_scene(tmp_path):
+    """experiment=paper end to end on the CPU, cut to 20 steps (the full run is a GPU's: docs/user-guide.md)."""
+    from test_train import run_train
+
+    m = run_train(tmp_path, ["experiment=paper", "model=dpmm", "+data.n_views=8", "trainer.max_steps=20",
+                             "trainer.enable_progress_bar=false", "logger=none", "trainer.save_renders=false"])
+    cfg = OmegaConf.load(tmp_path / "config.yaml")
+    assert m["steps"] == 20 and cfg.data.max_side is None and cfg.strategy.refine_stop == 15000
+    assert m["num_train_views"] == 7 and np.isfinite(m["psnr"])
