@@ -139,9 +139,10 @@ def test_methods_are_labelled_by_what_ran(tmp_path, monkeypatch):
     runs, _ = load_runs(str(tmp_path / "runs" / "**"))
     assert sorted({r.method for r in runs}) == ["dpmm", "standard", "standard+niw+dp"]
     cfg = report_cfg(f"{tmp_path / 'runs'}/**", tmp_path / "rep")
-    assert list(cfg.pair) == ["dpmm", "standard"]
+    assert cfg.pair is None  # the default: dpmm − standard where both ran
     data = json.loads(build_report(cfg)["json"].read_text())
     assert set(data["canonical"]["table"]) == {"standard", "standard+niw+dp", "dpmm"}
+    assert (data["canonical"]["paired"][0]["a"], data["canonical"]["paired"][0]["b"]) == ("dpmm", "standard")
     assert data["canonical"]["paired"][0]["mean"] == pytest.approx(0.5)
     from b3dgs.report import plots
     from b3dgs.report.analysis import paired
@@ -443,3 +444,116 @@ def test_a_run_whose_metrics_disagree_with_its_own_records_is_refused(tmp_path):
     (run / "metrics.json").write_text(json.dumps({**edited, "per_view": pv}))
     with pytest.raises(ReportError, match=r"disagrees with its curve: final PSNR"):
         read_run(run)
+
+
+# ------------------------------------------------------------------------------------------ a user's own runs
+def md_table(md: str, caption: str) -> dict[str, dict[str, str]]:
+    """{first cell: {header: cell}} of the Markdown table under the bold ``caption`` (its first line starting so)."""
+    lines = md.split("\n**" + caption, 1)[1].splitlines()
+    start = next(i for i, ln in enumerate(lines) if ln.startswith("| "))
+    rows = []
+    for ln in lines[start:]:
+        if not ln.startswith("|"):
+            break
+        rows.append([c.strip() for c in ln.strip("|").split(" | ")])
+    return {r[0]: dict(zip(rows[0], r)) for r in rows[2:]}
+
+
+def user_runs(root: Path, methods, scenes=("sceneA", "sceneB"), **kw) -> None:
+    """A user's own runs: each method on each scene, seed 0, method i better by 0.1·i dB."""
+    for scene in scenes:
+        for i, m in enumerate(methods):
+            uq = kw.get("uq", {}).get(m)
+            write_run(root / scene / m, scene, m, 0, 20.0 + 0.1 * i, uq=uq,
+                      **{k: v for k, v in kw.items() if k != "uq"})
+
+
+def build(runs: str, out: Path, *extra) -> tuple[str, str, dict]:
+    from b3dgs.report.app import build_report
+
+    paths = build_report(report_cfg(runs, out, *extra))
+    return paths["md"].read_text(), paths["html"].read_text(), json.loads(paths["json"].read_text())
+
+
+def test_user_runs_split_by_group_by_are_canonical_sections(tmp_path):
+    """Issue 44 §7: a user's runs of two protocols, split with group_by, are canonical benchmarks (one section per
+    value, headed so), not a 'Study: canonical [...]' after 'No canonical runs (every run belongs to a study)'."""
+    for steps in (300, 600):
+        user_runs(tmp_path / "runs" / str(steps), ["standard", "niw"], max_steps=steps)
+    md, html, data = build(f"{tmp_path / 'runs'}/**", tmp_path / "rep", "group_by=[trainer.max_steps]")
+    assert "No canonical runs" not in md and "Study: canonical" not in md and "every run belongs" not in html
+    for steps in (300, 600):
+        head = f"Canonical benchmark [trainer.max_steps={steps}]"
+        assert f"## {head}\n" in md and f"<h2>{head}</h2>" in html
+        assert f"## OOD support deficit [trainer.max_steps={steps}]" in md
+        assert (tmp_path / "rep" / f"pareto_trainer.max_steps={steps}.png").is_file()
+        group = data["canonical_groups"][f"trainer.max_steps={steps}"]["canonical"]
+        assert set(group["table"]) == {"standard", "niw"} and group["paired"][0]["mean"] == pytest.approx(0.1)
+    assert "split by group_by=['trainer.max_steps']" in md
+    assert len(set(data["figures"])) == len(data["figures"])  # one file per group, none overwritten
+
+
+def test_a_study_without_levels_prints_no_none_level(tmp_path):
+    user_runs(tmp_path / "runs", ["standard", "niw"], study="mine")
+    md, html, data = build(f"{tmp_path / 'runs'}/**", tmp_path / "rep")
+    assert "None" not in md and "None" not in html
+    assert "## Study: mine\n" in md and "**Study: mine**" in md and "**Study: mine: paired niw − standard**" in md
+    assert md_table(md, "Study: mine**")["niw"]["PSNR ↑"] == "20.100"
+    assert data["studies"]["mine"]["None"]["paired"][0]["mean"] == pytest.approx(0.1)
+
+
+def test_the_default_pair_falls_back_to_the_methods_present(tmp_path):
+    """pair=null: the two methods present are paired (niw − standard); with three, the report names the pairs to
+    ask for; an explicit pair that did not run stays one line naming what did."""
+    user_runs(tmp_path / "two", ["standard", "niw"])
+    md, html, data = build(f"{tmp_path / 'two'}/**", tmp_path / "rep2")
+    assert "No paired analysis" not in md and "## Paired analysis: niw − standard" in md
+    assert "<h3>Paired analysis: niw − standard</h3>" in html
+    assert "the two methods present, niw − standard" in md
+    assert md_table(md, "niw − standard, scene-level")["psnr"]["Mean Δ"] == "+0.1"
+    assert data["canonical"]["paired"][0]["a"] == "niw" and (tmp_path / "rep2" / "paired.png").is_file()
+
+    user_runs(tmp_path / "three", ["standard", "niw", "mcmc"])
+    md, _, data = build(f"{tmp_path / 'three'}/**", tmp_path / "rep3")
+    assert "Paired analysis:" not in md and "paired" not in data["canonical"]
+    assert ("No paired analysis: 3 methods ran (standard, niw, mcmc) and the default dpmm − standard needs both; "
+            "choose a pair: pair=[niw,standard], pair=[mcmc,standard], pair=[mcmc,niw].") in md
+
+    md, _, _ = build(f"{tmp_path / 'two'}/**", tmp_path / "rep4", "pair=[dpmm,standard]")
+    lines = [ln for ln in md.splitlines() if "paired" in ln.lower()]
+    assert lines == ["No paired analysis: pair=['dpmm', 'standard'] needs both methods; found ['standard', 'niw'] "
+                     "(choose two with pair=[A,B])."]
+    md, _, _ = build(f"{tmp_path / 'two'}/**", tmp_path / "rep5", "pair=[standard,niw]")
+    assert "## Paired analysis: standard − niw" in md and "two methods present" not in md
+    with pytest.raises(ReportError, match=r"pair=\['niw'\] names 1 methods.*fix: pass pair=\[A,B\]"):
+        build(f"{tmp_path / 'two'}/**", tmp_path / "rep6", "pair=[niw]")
+
+
+def test_uq_columns_show_the_regimes_the_runs_have(tmp_path):
+    """A run evaluated with uq=[native] shows its native AUSE / ECE / Cov@95, named in the header, not a dash; runs
+    with different regimes get a column group per regime; every run with the configured proxy: as before."""
+    summ = lambda a: {"ause_rmse": a, "ece": 0.05, "cov95": 0.9, "per_view": []}  # noqa: E731
+    user_runs(tmp_path / "native", ["standard", "niw"],
+              uq={"niw": {"native": summ(0.01)}, "standard": {"native": summ(0.02)}})
+    md, html, data = build(f"{tmp_path / 'native'}/**", tmp_path / "rep1")
+    assert "**Canonical table (AUSE, ECE, Cov@95 from the 'native' uq.json regime)**" in md
+    t = md_table(md, "Canonical table")
+    assert t["niw"]["AUSE ↓ (native)"] == "0.0100" and t["standard"]["Cov@95 (native)"] == "0.900"
+    assert "<th>AUSE ↓ (native)</th>" in html
+    assert data["canonical"]["table"]["niw"]["ause_rmse"] == pytest.approx(0.01)
+
+    user_runs(tmp_path / "mixed", ["standard", "niw"],
+              uq={"niw": {"native": summ(0.01)}, "standard": {"proxy": summ(0.03)}})
+    md, _, data = build(f"{tmp_path / 'mixed'}/**", tmp_path / "rep2")
+    assert "**Canonical table (AUSE, ECE, Cov@95 per uq.json regime: proxy, native)**" in md
+    t = md_table(md, "Canonical table")
+    assert (t["standard"]["AUSE ↓ (proxy)"], t["standard"]["AUSE ↓ (native)"]) == ("0.0300", "—")
+    assert (t["niw"]["AUSE ↓ (proxy)"], t["niw"]["AUSE ↓ (native)"]) == ("—", "0.0100")
+    assert data["canonical"]["table"]["niw"]["ause_rmse@native"] == pytest.approx(0.01)
+
+    user_runs(tmp_path / "proxy", ["standard", "niw"],
+              uq={"niw": {"proxy": summ(0.01), "native": summ(0.04)}, "standard": {"proxy": summ(0.03)}})
+    md, _, _ = build(f"{tmp_path / 'proxy'}/**", tmp_path / "rep3")
+    t = md_table(md, "Canonical table")
+    assert "**Canonical table (AUSE, ECE, Cov@95 from the 'proxy' uq.json regime)**" in md
+    assert t["niw"]["AUSE ↓"] == "0.0100" and "AUSE ↓ (native)" not in t["niw"]

@@ -10,8 +10,8 @@ import numpy as np
 from b3dgs.report.collect import Run, group, method_order
 from b3dgs.report.stats import mean_sem, paired_stats, pareto_front, time_to_fraction
 
-__all__ = ["COLUMNS", "HIGHER_IS_BETTER", "scene_means", "macro_row", "canonical_table", "per_scene",
-           "paired", "curves", "time_to_target", "pareto", "UQ_COLUMNS", "uq_table"]
+__all__ = ["COLUMNS", "HIGHER_IS_BETTER", "scene_means", "uq_regimes", "uq_key", "macro_row", "canonical_table",
+           "per_scene", "paired", "curves", "time_to_target", "pareto", "UQ_COLUMNS", "uq_table"]
 
 UQ = "uq"  # placeholder for the configured uq.json regime (cfg.uq_regime)
 # (name, label, source: None = metrics.json / UQ = uq.json regime)
@@ -36,15 +36,41 @@ def scene_means(runs: Sequence[Run], name: str, regime: Optional[str] = None) ->
     return out
 
 
-def macro_row(runs: Sequence[Run], uq_regime: str) -> dict:
-    """Macro means over scenes of per-scene seed means, every column; ``n_scenes``/``n_runs`` beside."""
+def uq_regimes(runs: Sequence[Run], preferred: Optional[str]) -> list[str]:
+    """The uq.json regimes of a table's AUSE / ECE / Cov@95 columns: ``preferred`` (cfg.uq_regime) where every run
+    with a uq.json has it (or no run has one), else every regime the runs have, ``preferred`` first: a run
+    evaluated with ``uq=[native]`` only shows its native numbers, not a dash."""
+    have = [set(r.uq) for r in runs if r.uq]
+    if not have or (preferred and all(preferred in h for h in have)):
+        return [preferred] if preferred else []
+    found = set().union(*have)
+    return ([preferred] if preferred in found else []) + sorted(found - {preferred})
+
+
+def uq_key(name: str, regime: str, regimes: Sequence[str]) -> str:
+    """A macro row's key of uq.json value ``name`` of ``regime``: the plain name for the first regime, else
+    ``name@regime``."""
+    return name if not regimes or regime == regimes[0] else f"{name}@{regime}"
+
+
+def macro_row(runs: Sequence[Run], uq_regime: "str | Sequence[str] | None") -> dict:
+    """Macro means over scenes of per-scene seed means, every column; ``n_scenes``/``n_runs`` beside. The uq.json
+    columns come from ``uq_regime`` (one regime, or several: the first under the plain names, the others under
+    :func:`uq_key`'s ``name@regime``)."""
+    regimes = [uq_regime] if isinstance(uq_regime, str) else list(uq_regime or [])
     row = {"n_scenes": len({r.scene for r in runs}), "n_runs": sum(1 for r in runs if r.value("psnr") is not None),
            "seeds": sorted({r.seed for r in runs})}
     for name, _, src in COLUMNS:
-        sm = scene_means(runs, name, uq_regime if src == UQ else None)
-        row[name] = float(np.mean(list(sm.values()))) if sm else None
-        if sm and len(sm) < row["n_scenes"]:
-            row.setdefault("partial", {})[name] = len(sm)
+        if src == UQ and not regimes:
+            row[name] = None
+        for regime in regimes if src == UQ else [None]:
+            key = uq_key(name, regime, regimes) if regime else name
+            sm = scene_means(runs, name, regime)
+            row[key] = float(np.mean(list(sm.values()))) if sm else None
+            if sm and len(sm) < row["n_scenes"]:
+                row.setdefault("partial", {})[key] = len(sm)
+    if len(regimes) > 1:
+        row["uq_regimes"] = regimes
     return row
 
 
@@ -70,7 +96,7 @@ def uq_table(runs: Sequence[Run]) -> dict[str, dict]:
     return out
 
 
-def canonical_table(runs: Sequence[Run], uq_regime: str) -> dict[str, dict]:
+def canonical_table(runs: Sequence[Run], uq_regime: "str | Sequence[str] | None") -> dict[str, dict]:
     """{method: macro row} in the paper's method order."""
     by_m = group(runs, "method")
     return {m: macro_row(by_m[(m,)], uq_regime) for m in method_order(r.method for r in runs)}

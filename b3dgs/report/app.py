@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import math
+import re
 import sys
 from pathlib import Path
 from typing import Any, Optional
@@ -54,13 +55,26 @@ def _p(v: Optional[float]) -> str:
 
 
 # ------------------------------------------------------------------------------------------------ tables
-def macro_table(rows: dict[str, dict], caption: str, cols=None) -> Table:
+def table_columns(cols, regimes=None, default: Optional[str] = None) -> list[tuple[str, str, str]]:
+    """(row key, header, number format) per column: a uq.json column once per regime of ``regimes``, the regime
+    named in its header where there are several or it is not ``default`` (cfg.uq_regime)."""
+    out = []
+    for k, label, src in cols:
+        for g in (regimes or [None]) if src == A.UQ else [None]:
+            named = g is not None and (len(regimes) > 1 or g != default)
+            out.append((A.uq_key(k, g, regimes) if g else k, f"{label} ({g})" if named else label, SPECS.get(k, ".4g")))
+    return out
+
+
+def macro_table(rows: dict[str, dict], caption: str, cols=None, regimes=None, default: Optional[str] = None) -> Table:
+    """Macro rows (:func:`b3dgs.report.analysis.macro_row`) as a table; ``regimes``: those the rows were built with."""
     cols = cols or [c for c in A.COLUMNS]
-    header = ["Method"] + [label for _, label, _ in cols] + ["scenes", "runs"]
+    keys = table_columns(cols, regimes, default)
+    header = ["Method"] + [label for _, label, _ in keys] + ["scenes", "runs"]
     body = []
     for m, r in rows.items():
-        body.append([m] + [fmt(r.get(k), SPECS.get(k, ".4g")) + ("*" if k in r.get("partial", {}) else "")
-                           for k, _, _ in cols] + [str(r["n_scenes"]), str(r["n_runs"])])
+        body.append([m] + [fmt(r.get(k), spec) + ("*" if k in r.get("partial", {}) else "") for k, _, spec in keys]
+                    + [str(r["n_scenes"]), str(r["n_runs"])])
     note = "Macro means over scenes of per-scene seed means (the paper's Table 1 aggregation)."
     if any(k == "block_time_pct" for k, _, _ in cols):
         note += (" Blocks % of time: the posterior blocks' share of each run's training time, timed inside the run "
@@ -98,6 +112,32 @@ def per_scene_table(ps: dict, methods: list[str], caption: str) -> Table:
     return Table(["Scene"] + methods, rows, caption, "Seed mean ± SEM over seeds (n seeds).")
 
 
+DEFAULT_PAIR = ("dpmm", "standard")  # pair=null: the paper's comparison, where both ran
+
+
+def choose_pair(pair, methods) -> tuple[Optional[tuple[str, str]], Optional[str]]:
+    """The paired analysis' (first, second) method and a line saying why (None where it is the one asked for).
+
+    ``pair`` given: it, where both methods ran. ``pair`` null: dpmm − standard where both ran, else the two methods
+    present (the later in the paper's order first: niw − standard), else none, naming the pairs to ask for."""
+    ms = method_order(methods)
+    if pair:
+        a, b = [str(x) for x in pair]
+        if {a, b} <= set(ms):
+            return (a, b), None
+        return None, f"No paired analysis: pair={[a, b]} needs both methods; found {ms} (choose two with pair=[A,B])."
+    if set(DEFAULT_PAIR) <= set(ms):
+        return DEFAULT_PAIR, None
+    if len(ms) == 2:
+        return (ms[1], ms[0]), (f"Paired analysis of the two methods present, {ms[1]} − {ms[0]} (the default "
+                                f"{DEFAULT_PAIR[0]} − {DEFAULT_PAIR[1]} needs both; pair=[A,B] chooses another).")
+    if len(ms) < 2:
+        return None, f"No paired analysis: one method ran ({', '.join(ms)}); pair=[A,B] compares two."
+    options = [f"pair=[{b},{a}]" for i, a in enumerate(ms) for b in ms[i + 1:]]
+    return None, (f"No paired analysis: {len(ms)} methods ran ({', '.join(ms)}) and the default "
+                  f"{DEFAULT_PAIR[0]} − {DEFAULT_PAIR[1]} needs both; choose a pair: {', '.join(options)}.")
+
+
 # ------------------------------------------------------------------------------------------------ sections
 class Builder:
     def __init__(self, cfg: DictConfig, out: Path):
@@ -105,21 +145,31 @@ class Builder:
         self.blocks: list = []
         self.figures: list[str] = []
         self.boot = dict(OmegaConf.to_container(cfg.bootstrap, resolve=True))
+        self.tag = ""  # figure file-name suffix of the current group_by group ("" without group_by)
+        self.uq_regime = None if cfg.get("uq_regime") is None else str(cfg.uq_regime)
+
+    def png(self, name: str) -> Path:
+        """The path of figure ``name`` of the current group."""
+        return self.out / f"{name}{self.tag}.png"
 
     def figure(self, path: Path, caption: str) -> None:
         self.blocks.append(Figure(path, caption))
         self.figures.append(path.name)
 
-    def pairs(self, runs: list[Run], metrics, regime_of=None) -> list[dict]:
-        a, b = [str(x) for x in self.cfg.pair]
+    def pairs(self, runs: list[Run], pair: tuple[str, str], metrics, regime_of=None) -> list[dict]:
+        a, b = pair
         return [A.paired(runs, a, b, m, (regime_of or {}).get(m), **self.boot) for m in metrics]
 
-    def canonical(self, runs: list[Run]) -> dict:
+    def canonical(self, runs: list[Run], suffix: str = "") -> dict:
+        """The canonical benchmark of ``runs``; ``suffix``: the group_by values in the headings (" [k=v]")."""
         cfg, B = self.cfg, self.blocks
         methods = method_order(r.method for r in runs)
-        table = A.canonical_table(runs, str(cfg.uq_regime))
-        B += [Heading("Canonical benchmark"),
-              macro_table(table, f"Canonical table (AUSE, ECE, Cov@95 from the '{cfg.uq_regime}' uq.json regime)")]
+        regimes = A.uq_regimes(runs, self.uq_regime)
+        table = A.canonical_table(runs, regimes)
+        src = (f"from the '{regimes[0]}' uq.json regime" if len(regimes) == 1 else
+               f"per uq.json regime: {', '.join(regimes)}" if regimes else "from uq.json, which these runs lack")
+        B += [Heading("Canonical benchmark" + suffix),
+              macro_table(table, f"Canonical table (AUSE, ECE, Cov@95 {src})", regimes=regimes, default=self.uq_regime)]
         ps = A.per_scene(runs, "psnr")
         B.append(per_scene_table(ps, methods, "Per-scene PSNR (dB)"))
         out: dict = {"table": table, "per_scene_psnr": ps}
@@ -136,33 +186,34 @@ class Builder:
                            "PSNR is the regime's predictive mean (the ensemble's is its members' average render). NLL is "
                            "comparable only within one regime. The ensemble's train time is the sum over its members."))
             out["uq_table"] = uq
-        a, b = [str(x) for x in cfg.pair]
-        if {a, b} <= set(methods):
-            res = self.pairs(runs, [str(m) for m in cfg.paired_metrics])
-            B += [Heading(f"Paired analysis: {a} − {b}", 3), paired_table(res, f"{a} − {b}, scene-level")]
-            self.figure(plots.plot_paired(res, self.out / "paired.png"),
+        pair, why = choose_pair(cfg.get("pair"), methods)
+        if pair:
+            a, b = pair
+            res = self.pairs(runs, pair, [str(m) for m in cfg.paired_metrics])
+            B += [Heading(f"Paired analysis: {a} − {b}", 3), *([Para(why)] if why else []),
+                  paired_table(res, f"{a} − {b}, scene-level")]
+            self.figure(plots.plot_paired(res, self.png("paired")),
                         f"Per-scene Δ ({a} − {b}): bars per scene, the mean (line) and its bootstrap CI (band).")
             out["paired"] = res
         else:
-            B.append(Para(f"No paired analysis: pair={[a, b]} needs both methods; found {methods} "
-                          "(choose two with pair=[A,B])."))
+            B.append(Para(why))
         B.append(Heading("Error against run time", 3))
         cv = A.curves(runs, "psnr")
         out["curves"] = {"psnr": cv}
         if cv:
-            self.figure(plots.plot_curves(cv, self.out / "curves_psnr.png"),
+            self.figure(plots.plot_curves(cv, self.png("curves_psnr")),
                         "Test PSNR against training seconds (evaluation excluded), seed mean ± 1 SEM, one panel per scene.")
         cl = A.curves(runs, "lpips")
         if cl:
             out["curves"]["lpips"] = cl
-            self.figure(plots.plot_curves(cl, self.out / "curves_lpips.png", "test LPIPS"),
+            self.figure(plots.plot_curves(cl, self.png("curves_lpips"), "test LPIPS"),
                         "Test LPIPS against training seconds, seed mean ± 1 SEM.")
         else:
             B.append(Para("LPIPS is not logged in curve.json (the curve callback records PSNR and #Gaussians), "
                           "so only the final LPIPS appears, in the tables."))
         pa = A.pareto(runs)
         out["pareto"] = pa
-        self.figure(plots.plot_pareto(pa, self.out / "pareto.png"),
+        self.figure(plots.plot_pareto(pa, self.png("pareto")),
                     "Final PSNR against train time, #Gaussians and render FPS (per-scene seed means; the last row "
                     "is the macro mean). Ringed points joined by a dashed line form the Pareto frontier.")
         fr = [float(f) for f in cfg.time_fractions]
@@ -176,13 +227,13 @@ class Builder:
                        "first logged point (linear interpolation between logged points); seed means, macro mean."))
         return out
 
-    def ood(self, runs: list[Run]) -> Optional[dict]:
+    def ood(self, runs: list[Run], suffix: str = "") -> Optional[dict]:
         from b3dgs.report.ood import ood_study
 
         o = self.cfg.ood
         regimes = _as_list(o.get("regimes")) or None
         if not any(r.uq for r in runs):
-            self.blocks += [Heading("OOD support deficit"),
+            self.blocks += [Heading("OOD support deficit" + suffix),
                             Para("No uq.json in these runs: run b3dgs-eval run=RUN uq=[proxy,native] (or "
                                  "python -m bench.studies --uq) to add the per-view uncertainties.")]
             return None
@@ -190,7 +241,7 @@ class Builder:
         q = float(o.quantile)
         rows = [[k, fmt(v["auroc"], ".3f"), fmt(v["auprc"], ".3f"), fmt(v["prevalence"], ".2f"),
                  fmt(v["gap"], ".3g", signed=True), str(v["n_scenes"]), str(v["n_runs"])] for k, v in res["rows"].items()]
-        self.blocks += [Heading("OOD support deficit"), Table(
+        self.blocks += [Heading("OOD support deficit" + suffix), Table(
             ["Detector (method (regime))", "AUROC", "AUPRC", "OOD share", "OOD − ID gap", "scenes", "runs"], rows,
             f"Support-deficit OOD: ID = best-supported {q:.3g} quantile of test views, OOD = worst {q:.3g}",
             f"Support score = distance to the nearest training camera centre / scene extent. Detector: per-view "
@@ -199,61 +250,77 @@ class Builder:
         if res["skipped"]:
             self.blocks.append(Para("Skipped: " + "; ".join(res["skipped"])))
         if res["views"]:
-            self.figure(plots.plot_ood(res["views"], self.out / "ood.png"),
+            self.figure(plots.plot_ood(res["views"], self.png("ood")),
                         "Per-view uncertainty against support score; green ID, red OOD, grey ignored middle band.")
         return res
 
-    def sparse(self, runs: list[Run], canonical: list[Run]) -> dict:
+    def sparse(self, runs: list[Run], canonical: list[Run], suffix: str = "") -> dict:
         """Sparse-view confirmation and compactness tables; the 'all' budget comes from canonical runs."""
         levels = sorted({r.level for r in runs if r.level != "all"}, key=int)
         by_level = {lv: [r for r in runs if r.level == lv] for lv in levels}
         all_runs = [r for r in runs if r.level == "all"] or canonical
         if all_runs:
             by_level["all"] = all_runs
-        a, b = [str(x) for x in self.cfg.pair]
+        methods = method_order(r.method for rs in by_level.values() for r in rs)
+        pair, why = choose_pair(self.cfg.get("pair"), methods)
+        a, b = pair or ("", "")
+        regimes = A.uq_regimes([r for rs in by_level.values() for r in rs], self.uq_regime)
         table: dict = {}
         q_rows, c_rows = [], []
-        methods = method_order(r.method for rs in by_level.values() for r in rs)
         for lv, rs in by_level.items():
-            table[lv] = {m: A.macro_row(v, str(self.cfg.uq_regime)) for (m,), v in group(rs, "method").items()}
-            pp = A.paired(rs, a, b, "psnr", **self.boot)
-            pl = A.paired(rs, a, b, "lpips", **self.boot)
-            table[lv]["_paired"] = {"psnr": pp, "lpips": pl}
+            table[lv] = {m: A.macro_row(v, regimes) for (m,), v in group(rs, "method").items()}
             get = lambda m, k: table[lv].get(m, {}).get(k)  # noqa: E731
             q_rows.append([str(lv)] + [fmt(get(m, "psnr"), ".3f") for m in methods]
-                          + [fmt(get(m, "lpips"), ".4f") for m in methods]
-                          + [fmt(pp["mean"], ".3f", signed=True), f"{pp['wins']} / {pp['n']}", f"{pl['wins']} / {pl['n']}",
-                             _p(pp["p_two_sided"])])
+                          + [fmt(get(m, "lpips"), ".4f") for m in methods])
+            if pair:
+                pp = A.paired(rs, a, b, "psnr", **self.boot)
+                pl = A.paired(rs, a, b, "lpips", **self.boot)
+                table[lv]["_paired"] = {"psnr": pp, "lpips": pl}
+                q_rows[-1] += [fmt(pp["mean"], ".3f", signed=True), f"{pp['wins']} / {pp['n']}",
+                               f"{pl['wins']} / {pl['n']}", _p(pp["p_two_sided"])]
             c_rows.append([str(lv)] + [fmt(get(m, "num_gaussians"), ",.0f") for m in methods]
                           + [fmt(get(m, "render_fps"), ".1f") for m in methods]
                           + [fmt(get(m, "train_time_s"), ".1f") for m in methods])
+        paired_cols = [f"ΔPSNR ({a}−{b})", f"{a} PSNR wins", f"{a} LPIPS wins", "p (2-sided)"] if pair else []
         self.blocks += [
-            Heading("Sparse views"),
-            Table(["Budget"] + [f"{m} PSNR" for m in methods] + [f"{m} LPIPS" for m in methods]
-                  + [f"ΔPSNR ({a}−{b})", f"{a} PSNR wins", f"{a} LPIPS wins", "p (2-sided)"], q_rows,
+            Heading("Sparse views" + suffix), *([Para(why)] if why else []),
+            Table(["Budget"] + [f"{m} PSNR" for m in methods] + [f"{m} LPIPS" for m in methods] + paired_cols, q_rows,
                   "Sparse-view confirmation (macro means over scenes of seed means)",
-                  "Budget = train views, spread evenly over the sorted train list; 'all' = the canonical runs. "
-                  "Wins are scene means over seeds out of the scenes with both methods."),
+                  "Budget = train views, spread evenly over the sorted train list; 'all' = the canonical runs."
+                  + (" Wins are scene means over seeds out of the scenes with both methods." if pair else "")),
             Table(["Budget"] + [f"{m} Gauss." for m in methods] + [f"{m} FPS" for m in methods]
                   + [f"{m} time (s)" for m in methods], c_rows, "Sparse-view compactness, throughput and run time")]
         plot_tab = {lv: {m: v for m, v in t.items() if not m.startswith("_")} for lv, t in table.items()}
-        self.figure(plots.plot_levels(plot_tab, self.out / "sparse.png", "train views"),
+        self.figure(plots.plot_levels(plot_tab, self.png("sparse"), "train views"),
                     "Sparse views: macro PSNR and train time against the train-view budget.")
         return table
 
     def level_study(self, name: str, runs: list[Run], caption: str) -> dict:
-        """A study with one variable (init cap or a user's ``study.level``): macro table and paired rows per level."""
+        """A study with one variable (init cap or a user's ``study.level``): macro table and paired rows per level
+        (a study without levels: one table, captioned with the study alone)."""
         out: dict = {}
         self.blocks.append(Heading(caption))
+        pair, why = choose_pair(self.cfg.get("pair"), [r.method for r in runs])
+        if why:
+            self.blocks.append(Para(why))
+        regimes = A.uq_regimes(runs, self.uq_regime)
         cols = [c for c in A.COLUMNS if c[0] in ("psnr", "ssim", "lpips", "cov95", "num_gaussians", "train_time_s")]
         for (lv,), rs in group(runs, "level").items():
-            rows = {m: A.macro_row(v, str(self.cfg.uq_regime)) for (m,), v in
+            label = f"{name} = {lv}" if lv is not None else caption
+            rows = {m: A.macro_row(v, regimes) for (m,), v in
                     sorted(group(rs, "method").items(), key=lambda kv: method_order(r.method for r in rs).index(kv[0][0]))}
-            res = self.pairs(rs, ["psnr", "lpips", "cov95"], {"cov95": str(self.cfg.uq_regime)})
-            self.blocks += [macro_table(rows, f"{name} = {lv}", cols),
-                            paired_table(res, f"{name} = {lv}: paired {self.cfg.pair[0]} − {self.cfg.pair[1]}")]
-            out[str(lv)] = {"table": rows, "paired": res}
+            self.blocks.append(macro_table(rows, label, cols, regimes, self.uq_regime))
+            out[str(lv)] = {"table": rows}
+            if pair:
+                res = self.pairs(rs, pair, ["psnr", "lpips", "cov95"], {"cov95": regimes[0] if regimes else None})
+                self.blocks.append(paired_table(res, f"{label}: paired {pair[0]} − {pair[1]}"))
+                out[str(lv)]["paired"] = res
         return out
+
+
+def _group_tag(split: str) -> tuple[str, str]:
+    """(figure file-name suffix, heading suffix) of a group_by group ("", "" without group_by)."""
+    return (f"_{re.sub(r'[^A-Za-z0-9_.=-]+', '_', split)}", f" [{split}]") if split else ("", "")
 
 
 def build_report(cfg: DictConfig) -> dict[str, Path]:
@@ -261,12 +328,18 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
     patterns = _as_list(cfg.get("runs"))
     if not patterns:
         raise ReportError("runs= is empty: pass a glob of run dirs, e.g. b3dgs-report runs='outputs/bench/**'")
+    if cfg.get("pair") is not None and len(_as_list(cfg.pair)) != 2:
+        raise ReportError(f"pair={_as_list(cfg.pair)} names {len(_as_list(cfg.pair))} methods; the paired analysis "
+                          "takes two", "pass pair=[A,B] (first − second), e.g. pair=[niw,standard], or pair=null")
     out = Path(str(cfg.out))
     out.mkdir(parents=True, exist_ok=True)
-    runs, unfinished = load_runs(patterns, str(cfg.get("on_duplicate", "error")), _as_list(cfg.get("group_by")))
+    group_by = _as_list(cfg.get("group_by"))
+    runs, unfinished = load_runs(patterns, str(cfg.get("on_duplicate", "error")), group_by)
     bld = Builder(cfg, out)
-    studies = group(runs, "study")
-    canonical = studies.pop(("canonical",), [])
+    studies = {k[0]: v for k, v in group(runs, "study").items()}
+    # the canonical (non-study) runs: one group, or one per value of the group_by keys
+    canonical = {s: rs for s, rs in studies.items() if rs[0].base_study == "canonical"}
+    canonical_of = {rs[0].split: rs for rs in canonical.values()}
     protocols = sorted({f"{r.study}: {r.config.get('trainer', {}).get('max_steps')} steps, "
                         f"max_side {r.config.get('data', {}).get('max_side')}" for r in runs})
     bld.blocks.append(Para(
@@ -275,7 +348,8 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
         + (f" ({len(unfinished)} unfinished run dirs without metrics.json skipped)" if unfinished else "")
         + f"; scenes {sorted({r.scene for r in runs})}, methods {method_order(r.method for r in runs)}, seeds "
         f"{sorted({r.seed for r in runs})}; protocols: {'; '.join(protocols)}. Grouped by each run's own config "
-        "(data.name, model.name, seed; study from data.train_indices / model.init_max_points)."))
+        "(data.name, model.name, seed; study from data.train_indices / model.init_max_points)"
+        + (f", each study split by group_by={group_by} into a section per value." if group_by else ".")))
     shared = [r for r in runs if r.metrics.get("training_shared_with")]
     if shared:
         bld.blocks.append(Para(
@@ -287,20 +361,31 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
                             "method": r.method, "seed": r.seed, "uq_regimes": sorted(r.uq),
                             "training_shared_with": r.metrics.get("training_shared_with")} for r in runs],
                   "unfinished": [str(u) for u in unfinished], "config": OmegaConf.to_container(cfg, resolve=True)}
-    if canonical:
-        data["canonical"] = bld.canonical(canonical)
-        if cfg.ood.enabled:
-            data["ood"] = bld.ood(canonical)
-    else:
+    for study, rs in canonical.items():
+        split = rs[0].split
+        bld.tag, suffix = _group_tag(split)
+        res = bld.canonical(rs, suffix)
+        ood = bld.ood(rs, suffix) if cfg.ood.enabled else None
+        if split:  # report.json: canonical_groups[split] = {canonical, ood}
+            data.setdefault("canonical_groups", {})[split] = {"canonical": res, "ood": ood}
+        else:
+            data["canonical"] = res
+            if cfg.ood.enabled:
+                data["ood"] = ood
+    if not canonical:
         bld.blocks.append(Para("No canonical runs (every run belongs to a study)."))
     data["studies"] = {}
-    for (study,), rs in studies.items():
-        if study == "sparse":
-            data["studies"]["sparse"] = bld.sparse(rs, canonical)
-        elif study == "initcap":
-            data["studies"]["initcap"] = bld.level_study("init cap", rs, "Constrained initialisation")
+    for study, rs in studies.items():
+        base, split = rs[0].base_study, rs[0].split
+        bld.tag, suffix = _group_tag(split)
+        if base == "canonical":
+            continue
+        if base == "sparse":
+            data["studies"][study] = bld.sparse(rs, canonical_of.get(split, []), suffix)
+        elif base == "initcap":
+            data["studies"][study] = bld.level_study("init cap", rs, "Constrained initialisation" + suffix)
         else:
-            data["studies"][study] = bld.level_study(f"{study} level", rs, f"Study: {study}")
+            data["studies"][study] = bld.level_study(f"{base} level", rs, f"Study: {study}")
     data["figures"] = bld.figures
     title = str(cfg.get("title", "b3dgs report"))
     paths = {"md": out / "report.md", "html": out / "report.html", "json": out / "report.json"}

@@ -10,7 +10,10 @@ its done marker. A run is keyed by (study, level, scene, method, seed), all read
   is below the standard model's default (``conf/model/standard.yaml``), else ``canonical``; a ``study``
   node (``name``, ``level``) in the config, where one is allowed, wins;
 * level = the study's variable: the number of train views (``sparse``), ``model.init_max_points``
-  (``initcap``), else ``study.level`` (or None).
+  (``initcap``), else ``study.level`` (or None: a run without a level, e.g. every canonical run).
+
+``group_by`` keys split a study by their values: ``canonical [trainer.max_steps=300]`` is still a canonical group
+(:attr:`Run.base_study`), reported as its own canonical benchmark.
 """
 from __future__ import annotations
 
@@ -53,10 +56,16 @@ class Run:
     scene: str = ""
     method: str = ""
     seed: int = 0
+    split: str = ""  # the group_by values ("trainer.max_steps=300"), appended to ``study`` as " [...]"
 
     @property
     def key(self) -> tuple:
         return (self.study, self.level, self.scene, self.method, self.seed)
+
+    @property
+    def base_study(self) -> str:
+        """The study without its group_by values: ``canonical`` for ``canonical [trainer.max_steps=300]``."""
+        return self.study[: -len(f" [{self.split}]")] if self.split else self.study
 
     def value(self, name: str, regime: Optional[str] = None) -> Optional[float]:
         """A scalar of metrics.json, or of uq.json's ``regime`` when given (None if absent).
@@ -255,7 +264,8 @@ def _apply_group_by(run: Run, group_by: Sequence[str]) -> None:
     """Runs that differ in a ``group_by`` key are reported as separate studies (``study [key=value]``)."""
     if group_by:
         flat = flatten(run.config)
-        run.study = f"{run.study} [" + ", ".join(f"{k}={flat.get(k)}" for k in group_by) + "]"
+        run.split = ", ".join(f"{k}={flat.get(k)}" for k in group_by)
+        run.study = f"{run.study} [{run.split}]"
 
 
 def check_pooling(runs: Sequence[Run], group_by: Sequence[str] = ()) -> None:
