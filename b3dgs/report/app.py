@@ -260,7 +260,7 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
     """Write the report for ``cfg`` (conf/report.yaml); returns the written paths."""
     patterns = _as_list(cfg.get("runs"))
     if not patterns:
-        raise ReportError("runs= is empty: pass a glob of run dirs, e.g. b3dgs-report runs='outputs/bench/**'")
+        raise ReportError("runs= is empty: pass a glob of finished run dirs, e.g. b3dgs-report runs='outputs/train/*'")
     out = Path(str(cfg.out))
     out.mkdir(parents=True, exist_ok=True)
     runs, unfinished = load_runs(patterns, str(cfg.get("on_duplicate", "error")), _as_list(cfg.get("group_by")))
