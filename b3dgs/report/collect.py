@@ -298,7 +298,8 @@ def load_runs(patterns: Sequence[str] | str, on_duplicate: str = "error", group_
     if not finished:
         extra = f" ({len(unfinished)} unfinished: no metrics.json)" if unfinished else ""
         raise ReportError(f"no finished run dirs matched runs={patterns}{extra}; pass a glob of b3dgs-train "
-                          "run dirs, e.g. runs='outputs/bench/**' (quote it so the shell does not expand it)")
+                          "run dirs, e.g. runs='outputs/train/*' (b3dgs-train's own; a -m sweep's are "
+                          "in outputs/multirun/<time>/*; quote the glob so the shell does not expand it)")
     keyed: dict[tuple, Run] = {}
     for path in finished:
         run = read_run(path)

@@ -84,8 +84,8 @@ class CompressionStudy:
             runs += [Path(h) for h in hits if (Path(h) / "metrics.json").exists()]
         if not runs:
             raise B3dgsError(f"no finished base runs match base_runs={list(cfg.base_runs or [])}",
-                             "pass finished standard run dirs, e.g. base_runs=[outputs/bench/fox/standard/*] "
-                             "(train them with b3dgs-train first)")
+                             "pass finished standard run dirs, e.g. base_runs='[outputs/train/*_standard_*]' "
+                             "(train them first: b3dgs-train scene=NAME model=standard)")
         self.base_runs = sorted(dict.fromkeys(runs))
         if int(cfg.finetune_steps) < 1:
             raise B3dgsError(f"finetune_steps={cfg.finetune_steps}", "pass finetune_steps >= 1")
