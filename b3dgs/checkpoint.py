@@ -24,28 +24,10 @@ from typing import Any, Mapping, Optional, Sequence
 import torch
 
 from b3dgs.errors import B3dgsError
+from b3dgs.upgrade import CONSTANT_SCHEDULE, schedule_node, upgrade_targets
 
 __all__ = ["check_checkpoint", "check_sealed", "checkpoint_record", "content_digest", "seal_checkpoint", "identity_mismatch", "params_digest", "plugin_config", "renderer_identity",
-           "renderer_mismatch", "run_identity", "scene_fingerprint", "upgrade_targets"]
-
-#: Class-path prefixes renamed since a run was written: (old, new). Plugins were the top-level package
-#: ``plugins`` until they were installed as ``b3dgs_plugins`` (a name that cannot clash with another project's).
-RENAMED_TARGETS = (("plugins.", "b3dgs_plugins."),)
-
-
-def upgrade_targets(node: Any) -> Any:
-    """A plain config or identity (dicts, lists) with old ``_target_`` class paths renamed
-    (:data:`RENAMED_TARGETS`), so that run dirs and checkpoints written before a rename still load."""
-    if isinstance(node, list):
-        return [upgrade_targets(v) for v in node]
-    if not isinstance(node, Mapping):
-        return node
-    out = {k: upgrade_targets(v) for k, v in node.items()}
-    target = out.get("_target_")
-    for old, new in RENAMED_TARGETS:
-        if isinstance(target, str) and target.startswith(old):
-            out["_target_"] = new + target[len(old):]
-    return out
+           "renderer_mismatch", "run_identity", "scene_fingerprint"]
 
 PARAM_ORDER = ("means", "scales", "quats", "opacities", "sh0", "shN")
 
@@ -98,11 +80,6 @@ def scene_fingerprint(scene: Any) -> Optional[str]:
 
     rec = {"name": str(scene.name), "num_train": len(scene.train), "train": cams(scene.train), "test": cams(scene.test)}
     return hashlib.sha256(json.dumps(rec, sort_keys=True).encode()).hexdigest()[:16]
-
-
-#: the identity's schedule of checkpoints written before training schedules existed (they all trained at a
-#: constant resolution)
-CONSTANT_SCHEDULE = {"_target_": "b3dgs.schedule.ConstantSchedule"}
 
 
 def run_identity(hparams: Mapping[str, Any], strategy: Any, posterior: Mapping[str, Any], scene: Any,
@@ -194,7 +171,7 @@ def identity_mismatch(saved: Optional[Mapping], current: Mapping) -> Optional[tu
         if sh.get(key) != ch.get(key):
             return (f"it was trained with {_hp_path(key)}={_show(sh.get(key))}, this run has {_hp_path(key)}="
                     f"{_show(ch.get(key))}", f"{_hp_path(key)}={_show(sh.get(key))}")
-    sc, cc = saved.get("schedule") or CONSTANT_SCHEDULE, current.get("schedule") or CONSTANT_SCHEDULE
+    sc, cc = schedule_node(saved.get("schedule") or None), schedule_node(current.get("schedule") or None)
     if sc.get("_target_") != cc.get("_target_"):
         name = str(sc.get("_target_", "")).rsplit(".", 1)[-1].replace("Schedule", "").lower() or "constant"
         return (f"it was trained with the {sc.get('_target_')} schedule, this run uses {cc.get('_target_')}",

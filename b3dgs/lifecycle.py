@@ -49,20 +49,15 @@ def build_plugins(cfg: DictConfig):
 
 
 def build_renderer(node) -> "Renderer":
-    """The renderer plugin of a config's ``renderer`` node, checked to run on this machine.
-
-    Run dirs written before renderers were plugins hold ``renderer: {backend: cpu|torch}``.
-    """
+    """The renderer plugin of a config's ``renderer`` node (an older node: the option it names,
+    :func:`b3dgs.upgrade.renderer_option`), checked to run on this machine."""
     from hydra.utils import instantiate
 
     from b3dgs.render.renderers import make_renderer
+    from b3dgs.upgrade import renderer_option
 
-    if node is None or isinstance(node, str):
-        renderer = make_renderer(node or "auto")
-    elif "_target_" in node:
-        renderer = instantiate(node)
-    else:
-        renderer = make_renderer(str(node.get("backend", "auto")))
+    option = renderer_option(node)
+    renderer = instantiate(node) if option is None else make_renderer(option)
     renderer.check_available()
     return renderer
 
@@ -160,8 +155,6 @@ def resolve_accelerator(requested: Optional[str], renderer) -> str:
 #: argument of the node's ``_target_`` (``lightning.Trainer``)
 RUN_KEYS = ("eval_every", "curve_max_views", "checkpoint_every", "checkpoint_every_s", "keep_checkpoints",
             "save_renders")
-#: trainer keys of run dirs written before the trainer node was a ``lightning.Trainer`` target
-_OLD_TRAINER_KEYS = {"progress_bar": "enable_progress_bar", "log_every": "log_every_n_steps"}
 
 
 def build_callbacks(node) -> list:
@@ -181,10 +174,11 @@ def build_trainer(tcfg, renderer, callbacks: list, logger=False, **fixed):
     from lightning.pytorch.callbacks import ProgressBar
 
     from b3dgs.callbacks import AtomicCheckpointIO, StepProgressBar
+    from b3dgs.upgrade import trainer_arg
 
-    keys = [str(k) for k in tcfg.keys() if k not in RUN_KEYS and _OLD_TRAINER_KEYS.get(k, k) not in fixed]
+    keys = [str(k) for k in tcfg.keys() if k not in RUN_KEYS and trainer_arg(k) not in fixed]
     # resolved one by one in place (interpolations may point anywhere in the config; fixed ones are never read)
-    args = {_OLD_TRAINER_KEYS.get(k, k): tcfg[k] for k in keys}
+    args = {trainer_arg(k): tcfg[k] for k in keys}
     args = {k: OmegaConf.to_container(v, resolve=True) if OmegaConf.is_config(v) else v for k, v in args.items()}
     args.setdefault("_target_", "lightning.Trainer")
     args["accelerator"] = resolve_accelerator(args.get("accelerator"), renderer)

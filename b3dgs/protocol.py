@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any, Mapping, Optional
 
 from b3dgs.errors import B3dgsError
+from b3dgs.upgrade import omit_run_defaults
 
 #: keys of a b3dgs-train config that do not change a run's results (bookkeeping, logging, where it ran)
 RUN_IGNORED = ("seed", "data_root", "hydra", "resume", "overwrite", "threads", "b3dgs", "logger", "renderer", "data.path",
@@ -21,9 +22,6 @@ RUN_IGNORED = ("seed", "data_root", "hydra", "resume", "overwrite", "threads", "
                "trainer._target_", "trainer.enable_progress_bar", "trainer.log_every_n_steps", "trainer.devices",
                "trainer.enable_model_summary", "trainer.limit_val_batches", "trainer.num_sanity_val_steps",
                "callbacks", "lpips_weights")
-#: settings runs written before they were configurable did not record: left out of a protocol at these values
-RUN_DEFAULTS = {"trainer.precision": "32-true", "trainer.deterministic": False, "data.test_split": "interleaved",
-                "data.test_fraction": 0.125, "data.sector_axis": 0, "data.images_dir": None}
 
 
 def flatten(d: Any, prefix: str = "") -> dict[str, Any]:
@@ -46,8 +44,7 @@ def _ignored(key: str, ignore) -> bool:
 
 def run_protocol(cfg: Mapping, ignore=RUN_IGNORED) -> dict[str, Any]:
     """The flattened settings of a run config that change its results (everything but ``ignore``)."""
-    return {k: v for k, v in flatten(cfg).items()
-            if not _ignored(k, ignore) and not (k in RUN_DEFAULTS and v == RUN_DEFAULTS[k])}
+    return omit_run_defaults({k: v for k, v in flatten(cfg).items() if not _ignored(k, ignore)})
 
 
 def digest(settings: Mapping) -> str:

@@ -16,7 +16,8 @@
   wrote there, by name (each writer lists its files before writing them, :func:`record_written`).
   ``overwrite=true`` removes exactly the files it lists (:func:`remove_run_files`), a second b3dgs-render the frames
   it lists (:func:`remove_recorded`); a non-empty folder without it is someone else's (:func:`run_dir_kind`).
-  Manifests of format 1 (patterns) are read by the names our writers give files (:func:`_v1_matches`).
+  Manifests of format 1 (patterns) are read by the names our writers give files
+  (:func:`b3dgs.upgrade.manifest_v1_files`).
 * Resume and overwrite: :func:`prepare_run_dir` decides whether a training may use a run dir (continue its run,
   replace it, or start in an empty one) before anything is written; :func:`claim_run_dir` then takes the dir,
   the manifest first, so that a kill at any later moment leaves a folder that ``resume=auto`` and
@@ -39,6 +40,7 @@ from typing import Callable, Iterable, Iterator, Optional
 
 from b3dgs.errors import B3dgsError
 from b3dgs.locks import LockHeld, lock_holder, process_lock
+from b3dgs.upgrade import manifest_run_id, manifest_v1_files, old_temp_target, premanifest_files
 
 log = logging.getLogger(__name__)
 
@@ -78,10 +80,9 @@ def run_dir_lock(run_dir: Path, prog: str = "b3dgs-train") -> Iterator[None]:
             pass
 
 
-#: a temp file of :func:`b3dgs.io.atomic_path`: ``.<name>.b3dgs-<random>.tmp``; before the marker (format-1 era)
-#: ``.<name>.<8 random characters of mkstemp>.tmp``, removed only where ``<name>`` is a file the manifest lists
+#: a temp file of :func:`b3dgs.io.atomic_path`: ``.<name>.b3dgs-<random>.tmp`` (an older writer's:
+#: :func:`b3dgs.upgrade.old_temp_target`, removed only where ``<name>`` is a file the manifest lists)
 _TEMP_NOW = re.compile(r"^\.(?P<name>.+)\.b3dgs-[A-Za-z0-9_]{8}\.tmp$")
-_TEMP_BEFORE = re.compile(r"^\.(?P<name>.+)\.[a-z0-9_]{8}\.tmp$")
 
 
 def remove_stale_tmp(run_dir: Path) -> list[Path]:
@@ -95,15 +96,15 @@ def remove_stale_tmp(run_dir: Path) -> list[Path]:
         if not p.is_file() or p.is_symlink():
             continue
         if _TEMP_NOW.match(p.name) is None:
-            before = _TEMP_BEFORE.match(p.name)
-            if before is None:
+            target = old_temp_target(p.name)
+            if target is None:
                 continue
             if listed is None:
                 try:
                     listed = set(_listed(run_dir, read_manifest(run_dir)))
                 except B3dgsError:  # a damaged manifest: leave older-named temps alone
                     listed = set()
-            if (p.parent / before.group("name")).relative_to(run_dir).as_posix() not in listed:
+            if (p.parent / target).relative_to(run_dir).as_posix() not in listed:
                 continue
         p.unlink()
         gone.append(p)
@@ -168,21 +169,8 @@ MANIFEST_FORMAT = 2
 #: logger's files (:class:`b3dgs.callbacks.RunFiles`)
 TRAIN_FILES = ("config.yaml", ".hydra/config.yaml", ".hydra/hydra.yaml", ".hydra/overrides.yaml", "metrics.json",
                "curve.json", "curve.png", "point_cloud.ply", "checkpoints/last.ckpt")
-#: the patterns a format-1 manifest listed for b3dgs-train and b3dgs-eval (and what a run dir written before
-#: manifests is read with), besides its job log, the renders of metrics.json's views and the panels of uq.json
-V1_PATTERNS = (*TRAIN_FILES, "checkpoints/step[0-9]*.ckpt", "tb/events.out.tfevents.*", "tb/hparams.yaml", "train.log",
-               "uq.json", ".uq.json.lock", "uq/sparsification.png", "uq/reliability.png", "tb_uq/events.out.tfevents.*")
-#: b3dgs-render's camera paths while manifests were of format 1 (its video was ``<path>.mp4``): the names a format-1
-#: ``*.mp4`` pattern stands for (later paths, ``orbit`` or a path file, are listed by name in format 2)
-RENDER_PATHS = ("test", "train", "interpolate")
-#: a format-1 pattern's wildcard component -> the names its writer gives files (a pattern matches nothing else: a
-#: user's ``render/test/my_cut.mp4`` or ``frame_final_edit.png`` is never one of ours); other wildcards match nothing
-_V1_NAMES = {"step[0-9]*.ckpt": r"step\d+\.ckpt", "frame_[0-9]*.png": r"frame_\d{5,}\.png",
-             "events.out.tfevents.*": r"events\.out\.tfevents\.\d{10,}\..+\.\d+\.\d+",
-             "*.mp4": rf"(?:{'|'.join(RENDER_PATHS)})\.mp4"}
 #: the frames b3dgs-render writes: ``frame_<5 digits>.png``
-FRAME_NAME = re.compile(_V1_NAMES["frame_[0-9]*.png"])
-_GLOB = re.compile(r"[*?\[]")
+FRAME_NAME = re.compile(r"frame_\d{5,}\.png")
 
 
 def _iter_files(root: Path) -> Iterator[str]:
@@ -197,21 +185,6 @@ def _iter_files(root: Path) -> Iterator[str]:
 def _matches(rel: str, pattern: str) -> bool:
     a, b = rel.split("/"), pattern.split("/")
     return len(a) == len(b) and all(fnmatch.fnmatchcase(x, y) for x, y in zip(a, b))
-
-
-def _v1_matches(rel: str, pattern: str) -> bool:
-    """Whether a format-1 ``pattern`` names the file ``rel``: component by component, a literal one equal, a
-    wildcard one only as :data:`_V1_NAMES` says its writer names files."""
-    a, b = rel.split("/"), pattern.split("/")
-    if len(a) != len(b):
-        return False
-    for x, y in zip(a, b):
-        if not _GLOB.search(y):
-            if x != y:
-                return False
-        elif y not in _V1_NAMES or not re.fullmatch(_V1_NAMES[y], x):
-            return False
-    return True
 
 
 def _read_json(path: Path) -> Optional[dict]:
@@ -278,46 +251,22 @@ def foreign_files(run_dir: Path, limit: Optional[int] = None) -> list[str]:
     return sorted(out)
 
 
-def _uq_outputs(folder: Path) -> list[str]:
-    """The panels of the regimes in ``folder/uq.json``: each entry's ``panels``, or (files written before entries
-    listed them) ``uq/<regime>_<view>.png`` for the views of its ``_meta``."""
-    uq = _read_json(folder / "uq.json") or {}
-    views = [Path(str(v)).stem for v in (uq.get("_meta") or {}).get("views") or []]
-    out = []
-    for name, entry in uq.items():
-        if name.startswith("_") or not isinstance(entry, dict):
-            continue
-        panels = entry.get("panels")
-        out += [str(p) for p in panels] if isinstance(panels, list) else [f"uq/{name}_{v}.png" for v in views]
-    return out
-
-
-def _v1_files(run_dir: Path, patterns: Iterable[str]) -> list[str]:
-    """The files of ``run_dir`` that format-1 ``patterns`` name (:func:`_v1_matches`), with the renders of the views
-    in metrics.json and the panels of uq.json (which such a manifest did not list)."""
-    patterns = [str(p) for p in patterns]
-    per_view = (_read_json(run_dir / "metrics.json") or {}).get("per_view") or []
-    exact = {f"renders/{Path(str(v.get('name'))).stem}.png" for v in per_view if isinstance(v, dict) and v.get("name")}
-    exact |= set(_uq_outputs(run_dir))
-    return [f for f in _iter_files(run_dir) if f in exact or any(_v1_matches(f, p) for p in patterns)]
-
-
 def _listed(run_dir: Path, m: Optional[dict]) -> list[str]:
-    """The files a manifest ``m`` lists (a format-1 one: the files its patterns name, :func:`_v1_files`); for a run
-    dir written before manifests (``m`` None), what :data:`V1_PATTERNS` names."""
-    if m is None:
-        return _v1_files(run_dir, V1_PATTERNS) if is_legacy_run(run_dir) else []
-    if m.get("b3dgs_run") == MANIFEST_FORMAT:
+    """The files a manifest ``m`` lists (a format-1 one: the files its patterns name,
+    :func:`b3dgs.upgrade.manifest_v1_files`); for a run dir written before manifests (``m`` None), those of
+    :func:`b3dgs.upgrade.premanifest_files`."""
+    if m is not None and m.get("b3dgs_run") == MANIFEST_FORMAT:
         return list(dict.fromkeys(m["files"]))
-    return _v1_files(run_dir, m["writes"])
+    if m is None and not is_legacy_run(run_dir):
+        return []
+    files, metrics, uq = _iter_files(run_dir), _read_json(run_dir / "metrics.json"), _read_json(run_dir / "uq.json")
+    return premanifest_files(files, metrics, uq) if m is None else manifest_v1_files(files, m["writes"], metrics, uq)
 
 
 def manifest_token(m: Optional[dict]) -> Optional[str]:
     """The identity of the run a manifest belongs to: its ``run_id``, new for every run that starts afresh (a new
     run dir, ``overwrite=true``) and kept by a resume; for a format-1 manifest, its creation time."""
-    if m is None:
-        return None
-    return m.get("run_id") or f"created {m.get('created')}"
+    return None if m is None else manifest_run_id(m)
 
 
 def _job_logs(run_dir: Path) -> list[str]:
@@ -395,7 +344,7 @@ def manifest_lock(folder: Path, prog: str, wait_s: float = 120.0) -> Iterator[No
 
 def run_files(run_dir: Path) -> list[str]:
     """The files of ``run_dir`` that b3dgs wrote and that are there: those its manifest lists (a format-1 manifest,
-    or a run written before manifests: the files its patterns name, :func:`_v1_files`), sorted."""
+    or a run written before manifests: the files its patterns name, :mod:`b3dgs.upgrade`), sorted."""
     run_dir = Path(run_dir)
     return sorted(f for f in _listed(run_dir, read_manifest(run_dir)) if _safe_target(run_dir, f) is not None)
 

@@ -45,7 +45,7 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
     """
     import json
 
-    from b3dgs.checkpoint import upgrade_targets
+    from b3dgs.upgrade import upgrade_targets
     from b3dgs.lifecycle import build_run, data_module, load_checkpoint, read_checkpoint
 
     run_dir = Path(run_dir)

@@ -262,13 +262,15 @@ class DashSchedule(TrainingSchedule):
 
 
 def make_schedule(node: Any) -> TrainingSchedule:
-    """The schedule of a config's ``schedule`` node (``None``: constant, as in run dirs written before schedules)."""
-    if node is None:
-        return ConstantSchedule()
+    """The schedule of a config's ``schedule`` node (``None``, as in run dirs written before schedules:
+    :func:`b3dgs.upgrade.schedule_node`, the constant one)."""
     if isinstance(node, TrainingSchedule):
         return node
     from hydra.utils import instantiate
 
+    from b3dgs.upgrade import schedule_node
+
+    node = schedule_node(node)
     sched = instantiate(node)
     if not isinstance(sched, TrainingSchedule):
         raise B3dgsError(f"schedule._target_={node.get('_target_')} builds a {type(sched).__name__}, not a "

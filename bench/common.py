@@ -15,7 +15,7 @@ from typing import Callable, Sequence
 import torch
 
 from b3dgs.io import atomic_path, write_json
-from b3dgs.study.active import FAMILY_POSTERIOR_UNRECORDED
+from b3dgs.upgrade import FAMILY_POSTERIOR_UNRECORDED
 
 ROOT = Path(__file__).resolve().parents[1]  # the checkout this bench/ belongs to
 RESULTS = Path(__file__).resolve().parent / "results"

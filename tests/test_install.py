@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from b3dgs.checkpoint import identity_mismatch, upgrade_targets
+from b3dgs.checkpoint import identity_mismatch
+from b3dgs.upgrade import upgrade_targets
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -209,6 +209,6 @@ def test_eval_refuses_to_merge_into_a_run_replaced_under_it(run_copy, tmp_path, 
 def test_render_paths_match_the_cli():
     """A format-1 manifest's ``*.mp4`` stands for the videos b3dgs-render could write then, all still its paths."""
     from b3dgs.render_cli import PATHS
-    from b3dgs.rundir import RENDER_PATHS
+    from b3dgs.upgrade import RENDER_PATHS
 
     assert RENDER_PATHS == ("test", "train", "interpolate") and set(RENDER_PATHS) <= set(PATHS)

@@ -399,7 +399,7 @@ def test_runs_of_different_protocols_are_refused_not_pooled(tmp_path):
 
 
 def test_runs_from_before_a_class_rename_pool_with_new_ones(tmp_path):
-    """A seed trained before plugins.* became b3dgs_plugins.* (checkpoint.RENAMED_TARGETS) is the same protocol."""
+    """A seed trained before plugins.* became b3dgs_plugins.* (b3dgs.upgrade.RENAMED_TARGETS) is the same protocol."""
     for seed, target in ((0, "plugins.posterior.niw.NIWBlock"), (1, "b3dgs_plugins.posterior.niw.NIWBlock")):
         d = write_run(tmp_path / f"s{seed}", "sceneA", "niw", seed, 20.0 + seed)
         cfg = yaml.safe_load((d / "config.yaml").read_text())

@@ -64,8 +64,8 @@ def test_the_archived_runs_data_nodes_are_reproduced(scene, tmp_path):
     save_config(cfg, tmp_path / "config.yaml")
     got = yaml.safe_load((tmp_path / "config.yaml").read_text())["data"]
     want["path"] = str(Path(want["path"]).resolve())
-    # settings added since, at the values that reproduce the archived runs (b3dgs.protocol.RUN_DEFAULTS)
-    from b3dgs.protocol import RUN_DEFAULTS
+    # settings added since, at the values that reproduce the archived runs (b3dgs.upgrade.RUN_DEFAULTS)
+    from b3dgs.upgrade import RUN_DEFAULTS
 
     added = {k[len("data."):]: v for k, v in RUN_DEFAULTS.items() if k.startswith("data.") and k[len("data."):] not in want}
     assert {k: got.pop(k) for k in added} == added

@@ -29,9 +29,9 @@ from typing import Any, Optional, Sequence
 from omegaconf import OmegaConf
 
 from b3dgs.errors import B3dgsError
-from b3dgs.checkpoint import upgrade_targets
 from b3dgs.protocol import describe_diff, differing_keys, flatten, run_protocol
 from b3dgs.labels import method_label
+from b3dgs.upgrade import posterior_pass_s, upgrade_targets
 
 log = logging.getLogger(__name__)
 
@@ -76,8 +76,7 @@ class Run:
             t, bt = self.metrics.get("train_time_s"), self.metrics.get("block_time_s")
             if not isinstance(t, (int, float)) or t <= 0 or not isinstance(bt, dict):
                 return None
-            ps = self.metrics.get("posterior_pass_s")
-            ps = float(ps) if isinstance(ps, (int, float)) and ps > 0 else 0.0  # runs from before it was recorded: 0
+            ps = posterior_pass_s(self.metrics)
             return 100.0 * (float(sum(float(v) for v in bt.values())) + ps) / (float(t) + ps)
         src = self.metrics if regime is None else self.uq.get(regime, {})
         v = src.get(name)
@@ -179,7 +178,6 @@ def check_own_records(path: Path, metrics: dict, curve: list) -> None:
 def read_run(path: Path) -> Run:
     """One finished run dir -> :class:`Run` (ReportError naming the file if it is malformed)."""
     try:
-        # run dirs written before a class rename name the old _target_ paths: the same protocol
         cfg = upgrade_targets(OmegaConf.to_container(OmegaConf.load(path / "config.yaml"), resolve=False))
     except Exception as e:  # yaml errors come in many types
         raise ReportError(f"cannot read {path / 'config.yaml'}: {e}") from e

@@ -28,9 +28,9 @@ from typing import Any, Optional
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
-from b3dgs import conf_dir
 from b3dgs.io import write_json
 from b3dgs.protocol import check_stored_protocol
+from b3dgs.upgrade import FAMILY_POSTERIOR_UNRECORDED, omit_study_defaults, protocol_from_meta
 
 log = logging.getLogger(__name__)
 
@@ -48,15 +48,6 @@ def compose_config(config_name: str, overrides: list[str]) -> DictConfig:
         return compose(config_name=config_name, overrides=overrides)
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         return compose(config_name=config_name, overrides=overrides)
-
-
-#: the posterior blocks each family's model had in every study folder written before ``family_posterior`` (which
-#: did not record them): left out of protocol.json at these values, so those folders stay valid, and a folder of
-#: one posterior refuses rows of another (e.g. after a change of conf/model/niw.yaml's default blocks)
-#: (conf/experiment/archived_posterior.yaml, the pins of the committed campaigns)
-FAMILY_POSTERIOR_UNRECORDED: dict = {
-    k: list(v) for k, v in OmegaConf.load(Path(conf_dir()) / "experiment" / "archived_posterior.yaml")
-    .family_posterior.items()}
 
 
 def family_posterior_override(cfg: DictConfig, family: str) -> list[str]:
@@ -349,29 +340,22 @@ def merged_policies(meta_path: Path, policies: list[str]) -> list[str]:
 def study_protocol(cfg: DictConfig, family_posteriors: Optional[dict] = None) -> dict:
     """The flattened study settings that change its rows and caches (``out_dir/<scene>/protocol.json``), with
     ``family_posterior.<family>``: the posterior blocks of each family's model as composed (``family_posteriors``:
-    the families of :data:`FAMILY_POSTERIOR_UNRECORDED` and the pinned ones), where they differ from that table."""
+    the families of :data:`b3dgs.upgrade.FAMILY_POSTERIOR_UNRECORDED` and the pinned ones), where they differ from that
+    table (:func:`b3dgs.upgrade.omit_study_defaults`)."""
     from b3dgs.protocol import RUN_IGNORED, run_protocol
 
     out = run_protocol(OmegaConf.to_container(cfg, resolve=True), ignore=RUN_IGNORED + STUDY_IGNORED)
-    if out.get("acquisition.batch_settings") == {}:  # the default: folders from before batch options stay valid
-        del out["acquisition.batch_settings"]
-    for fam, blocks in sorted((family_posteriors or {}).items()):
-        if list(blocks) != FAMILY_POSTERIOR_UNRECORDED.get(fam):
-            out[f"family_posterior.{fam}"] = list(blocks)
-    return out
+    return omit_study_defaults(out, family_posteriors)
 
 
 def legacy_protocol(out: Path) -> Optional[dict]:
-    """What a scene folder written before ``protocol.json`` says of its settings (``meta.json``), else None."""
+    """What a scene folder written before ``protocol.json`` says of its settings (``meta.json``:
+    :func:`b3dgs.upgrade.protocol_from_meta`), else None."""
     try:
         meta = json.loads((out / "meta.json").read_text())
     except (OSError, ValueError):
         return None
-    legacy = {"acquire": meta.get("acquire"), "trainer.max_steps": meta.get("total_steps"), "variant": meta.get("variant"),
-              "acquisition.score_max_side": meta.get("score_max_side")}
-    if meta.get("variant") == "standard" and isinstance(meta.get("initial_views"), list):
-        legacy["initial_views"] = len(meta["initial_views"])
-    return legacy
+    return protocol_from_meta(meta)
 
 
 @contextlib.contextmanager

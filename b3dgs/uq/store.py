@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Mapping, Optional, Sequence
 
 from b3dgs.errors import B3dgsError
+from b3dgs.upgrade import uq_panels
 
 UQ_NAME = "uq.json"
 LOCK_NAME = ".uq.json.lock"
@@ -43,7 +44,7 @@ def ensemble_dir(members: Sequence[Path]) -> Path:
 def _read_config(run_dir: Path) -> Optional[dict]:
     from omegaconf import OmegaConf
 
-    from b3dgs.checkpoint import upgrade_targets
+    from b3dgs.upgrade import upgrade_targets
 
     try:
         return upgrade_targets(OmegaConf.to_container(OmegaConf.load(Path(run_dir) / "config.yaml"), resolve=False))
@@ -106,14 +107,6 @@ def read_uq(folder: Path) -> dict:
     return d
 
 
-def _old_panels(name: str, entry: Mapping, meta: Mapping) -> list[str]:
-    """A regime's panels: its entry's ``panels``, or (files written before entries listed them) one per view of
-    the file's ``_meta``."""
-    if isinstance(entry.get("panels"), list):
-        return [str(p) for p in entry["panels"]]
-    return [f"uq/{name}_{Path(str(v)).stem}.png" for v in meta.get("views") or []]
-
-
 def check_unchanged(folder: Path, new: Mapping[str, dict], expect: Optional[Mapping] = None) -> None:
     """Refuse to merge results into ``folder`` once a run changed under the evaluation: ``folder`` holds another run
     than ``expect`` (:func:`b3dgs.rundir.run_identity` when the evaluation started: ``overwrite=true`` replaced it, or
@@ -161,7 +154,7 @@ def merge_into(folder: Path, new: Mapping[str, dict], meta: Mapping, staging: Op
             for name, entry in new.items():
                 old = have.get(name)
                 if isinstance(old, dict):
-                    stale += sorted(set(_old_panels(name, old, old_meta)) - set(entry.get("panels") or []))
+                    stale += sorted(set(uq_panels(name, old, old_meta)) - set(entry.get("panels") or []))
             events = sorted((Path(staging) / "tb_uq").glob("*")) if staging is not None else []
             merged = {**{k: v for k, v in have.items() if k != "_meta"}, **new, "_meta": {**old_meta, **meta}}
             record_written(folder, [UQ_NAME, LOCK_NAME, *_plot_names(merged), *(f"tb_uq/{e.name}" for e in events),
