@@ -41,7 +41,7 @@ def _register_resolvers() -> None:
     if not OmegaConf.has_resolver("b3dgs.paper_images"):
         # the paper's image folder of a scene (experiment=paper): images_4 / images_2 for Mip-NeRF 360, else null
         def paper_images(kind, name):
-            from b3dgs.data.images import paper_image_folder
+            from b3dgs.paper import paper_image_folder
 
             return paper_image_folder(kind, name)
 

@@ -38,31 +38,14 @@ _MISSING_IMAGE_FIX = "restore the image, or correct the scene files that name it
 
 __all__ = [
     "IMAGE_EXTENSIONS",
-    "PAPER_IMAGE_FOLDERS",
     "encode_png",
     "image_folders",
     "image_size",
     "import_pycolmap",
     "list_images",
     "load_image",
-    "paper_image_folder",
     "save_png",
 ]
-
-#: the paper's image-folder policy (Appendix, "Dataset handling and hardware"): Mip-NeRF 360 outdoor scenes train on
-#: ``images_4``, indoor ones on ``images_2``; every other scene (Tanks and Temples, Deep Blending, ...) on its native
-#: ``images``. ``experiment=paper`` sets ``data.images_dir`` from it (:func:`paper_image_folder`).
-PAPER_IMAGE_FOLDERS = {
-    **dict.fromkeys(("bicycle", "flowers", "garden", "stump", "treehill"), "images_4"),  # Mip-NeRF 360 outdoor
-    **dict.fromkeys(("bonsai", "counter", "kitchen", "room"), "images_2"),  # Mip-NeRF 360 indoor
-}
-
-
-def paper_image_folder(kind: str, name: str) -> Optional[str]:
-    """The image folder the paper trains scene ``name`` on (:data:`PAPER_IMAGE_FOLDERS`) for a format with image
-    folders (``colmap``, ``llff``); None (the format's own images, ``images/``) for every other scene or format."""
-    return PAPER_IMAGE_FOLDERS.get(str(name)) if str(kind) in ("colmap", "llff") else None
-
 
 def image_folders(root: str | os.PathLike) -> list[str]:
     """The names of the folders directly inside ``root`` that hold image files, sorted (``images``, ``images_2``)."""
