@@ -557,3 +557,35 @@ def test_uq_columns_show_the_regimes_the_runs_have(tmp_path):
     t = md_table(md, "Canonical table")
     assert "**Canonical table (AUSE, ECE, Cov@95 from the 'proxy' uq.json regime)**" in md
     assert t["niw"]["AUSE ↓"] == "0.0100" and "AUSE ↓ (native)" not in t["niw"]
+
+
+def test_an_ensembles_uq_json_finds_its_runs_after_they_were_copied(tmp_path):
+    """An archived ensemble uq.json names its members by absolute paths of the machine that wrote it
+    (/work/main/bench/results/runs/...); read from another checkout, it joins the run at the same tail of the path
+    (before, the ensemble rows were silently left out there), and never a run that only an ambiguous tail matches."""
+    import json
+
+    from b3dgs.report.collect import Run, _attach_uq
+
+    runs = [Run(path=(tmp_path / "runs" / sc / "standard" / "s0").resolve(), config={}, metrics={}, scene=sc)
+            for sc in ("fox", "lego")]
+    for r in runs:
+        r.path.mkdir(parents=True)
+    summ = {"runs": ["/elsewhere/checkout/bench/results/runs/lego/standard/s0"], "ause": 0.1}
+    f = tmp_path / "runs" / "lego" / "ensemble" / "uq.json"
+    f.parent.mkdir(parents=True)
+    f.write_text(json.dumps({"ensemble": summ}))
+    _attach_uq(runs, [f])
+    assert runs[1].uq == {"ensemble": summ} and runs[0].uq == {}
+    # a relative member path is read from the uq.json's folder
+    runs[1].uq = {}
+    f.write_text(json.dumps({"ensemble": {**summ, "runs": ["../standard/s0"]}}))
+    _attach_uq(runs, [f])
+    assert "ensemble" in runs[1].uq
+    # a tail that two runs share (a copy of fox's runs elsewhere) joins neither
+    runs[1].uq = {}
+    runs.append(Run(path=(tmp_path / "copy" / "fox" / "standard" / "s0").resolve(), config={}, metrics={}, scene="fox"))
+    runs[2].path.mkdir(parents=True)
+    f.write_text(json.dumps({"ensemble": {**summ, "runs": ["/q/fox/standard/s0"]}}))
+    _attach_uq(runs, [f])
+    assert all(r.uq == {} for r in runs)

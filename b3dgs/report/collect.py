@@ -246,12 +246,30 @@ def _attach_uq(runs: list[Run], uq_files: Sequence[Path]) -> None:
                 continue
             for member in (summ.get("runs") or [])[:1]:
                 theirs = (summ.get("run_checkpoints") or [None])[0]
-                owner = by_path.get(Path(member).resolve()) or by_digest.get(theirs)
+                owner = (by_path.get(Path(member).resolve()) or by_digest.get(theirs)
+                         or _moved_run(runs, Path(f).parent, Path(member)))
                 if owner is not None and uq_scores_other_run(owner.path, owner.metrics, summ):
                     log.warning("%s: regime %s names the run %s, which now holds another model: left out of the "
                                 "report (fix: run b3dgs-eval for it again)", f, regime, member)
                 elif owner is not None and regime not in owner.uq:
                     owner.uq[regime] = summ
+
+
+def _moved_run(runs: Sequence[Run], base: Path, member: Path) -> Optional[Run]:
+    """The run a uq.json names by a path that no longer exists as written (the runs were copied to another machine or
+    checkout, ``/work/main/bench/results/runs/fox/standard/s0`` read from ``~/b3dgs/bench/results/runs/...``): a
+    relative path resolved from the uq.json's folder, else the one run whose path ends with the longest tail of the
+    named path (at least ``<method>/s<seed>``-deep plus one folder); None when no tail is unique."""
+    if not member.is_absolute():
+        return next((r for r in runs if r.path == (base / member).resolve()), None)
+    parts = member.parts
+    for k in range(len(parts) - 1, 2, -1):
+        hits = [r for r in runs if r.path.parts[-k:] == parts[-k:]]
+        if len(hits) == 1:
+            return hits[0]
+        if len(hits) > 1:
+            return None
+    return None
 
 
 #: settings every pooled run must share, across methods and scenes too (the protocol of a table)
