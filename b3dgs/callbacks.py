@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from lightning.pytorch.callbacks import Checkpoint, TQDMProgressBar
 from lightning.pytorch.plugins.io import TorchCheckpointIO
+from tqdm.std import tqdm as std_tqdm
 
 from b3dgs.device import timed_clock
 from b3dgs.io import atomic_path, save_figure, write_json
@@ -371,15 +372,22 @@ class StepProgressBar(TQDMProgressBar):
 
     When stdout is not a terminal (a cluster's log file, a pipe), the bar is printed as whole lines instead of being
     redrawn every step: the first step, then every ``line_every_s`` seconds (default 30), and the last step, so a long
-    run's log stays readable and small."""
+    run's log stays readable and small.
+
+    With ``final_after_eval`` (``b3dgs-train`` sets it) the bar's last line waits for the run's final evaluation:
+    :meth:`show_final` prints it with the final metrics (test PSNR over every test view, SSIM, LPIPS) in place of the
+    last periodic evaluation's PSNR; a terminal's bar is cleared at the end of training until then."""
 
     BAR_FORMAT = "{desc} {percentage:3.0f}%|{bar:16}| {n_fmt}/{total_fmt} steps [{elapsed}<{remaining} ETA, {rate_fmt}{postfix}]"
 
     def __init__(self, *args, line_every_s: float = LINE_EVERY_S, **kwargs):
         super().__init__(*args, **kwargs)
         self.line_every_s = float(line_every_s)
+        self.final_after_eval = False
         self._lines = False
         self._last_line: Optional[float] = None
+        self._shown: dict = {}  # the postfix last shown
+        self._held: Optional[dict] = None  # the bar's state at the end of training, until show_final
 
     def init_train_tqdm(self):
         from lightning.pytorch.callbacks.progress.tqdm_progress import Tqdm
@@ -400,6 +408,31 @@ class StepProgressBar(TQDMProgressBar):
     def on_train_epoch_end(self, trainer, pl_module) -> None:
         pass
 
+    def on_train_end(self, *_: Any) -> None:
+        bar = self.train_progress_bar
+        if not self.final_after_eval or bar is None or bar.disable:
+            super().on_train_end()
+            return
+        self._held = bar.format_dict  # the elapsed time stops here (the final evaluation is not training)
+        bar.leave = False  # a terminal's bar is cleared: show_final prints its last line
+        bar.close()
+
+    def show_final(self, metrics: dict) -> None:
+        """Print the bar's last line with the final evaluation's ``metrics`` (``metrics.json``'s values)."""
+        held, self._held = self._held, None
+        if held is None:
+            return
+
+        def fmt(key: str, spec: str, unit: str = "") -> Optional[str]:
+            v = metrics.get(key)
+            return None if v is None else f"{format(float(v), spec)}{unit}"
+
+        final = {"gaussians": f"{int(metrics['num_gaussians']):,}" if metrics.get("num_gaussians") is not None else None,
+                 "test PSNR": fmt("psnr", ".2f", " dB"), "SSIM": fmt("ssim", ".4f"), "LPIPS": fmt("lpips", ".4f")}
+        shown = {**self._shown, **{k: v for k, v in final.items() if v is not None}}
+        postfix = ", ".join(f"{k}={v}" for k, v in shown.items())
+        print(std_tqdm.format_meter(**{**held, "postfix": postfix, "ncols": None}), file=sys.stdout, flush=True)
+
     #: a terminal bar's postfix (which reads the loss back from the device) is redrawn at most this often
     REDRAW_EVERY_S = 0.25
 
@@ -412,11 +445,12 @@ class StepProgressBar(TQDMProgressBar):
             if not (self._last_line is None or n >= bar.total or now - self._last_line >= every):
                 return  # the metrics are read (a host sync on a GPU) only when they are shown
             self._last_line = now
-            bar.set_postfix(self.get_metrics(trainer, pl_module), refresh=False)
+            self._shown = self.get_metrics(trainer, pl_module)
+            bar.set_postfix(self._shown, refresh=False)
             if not self._lines:
                 bar.refresh()
-                return
-            print(str(bar), file=sys.stdout, flush=True)
+            elif not (self.final_after_eval and n >= bar.total):  # else the last line waits for show_final
+                print(str(bar), file=sys.stdout, flush=True)
 
     def get_metrics(self, trainer, pl_module) -> dict:
         shown = super().get_metrics(trainer, pl_module)

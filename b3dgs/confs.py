@@ -9,7 +9,8 @@ from omegaconf import OmegaConf
 
 from b3dgs import conf_dir
 
-__all__ = ["added_key_problem", "conf_roots", "option_clashes", "known_keys", "load_option", "option_names"]
+__all__ = ["added_key_problem", "conf_roots", "help_groups", "option_clashes", "known_keys", "load_option", "option_names",
+           "register_help_resolver"]
 
 
 def conf_roots() -> list[Path]:
@@ -168,3 +169,21 @@ def option_clashes() -> list[tuple[str, list[Path]]]:
             if "/" in rel and not rel.startswith("hydra/"):  # group options, not primary configs
                 seen.setdefault(rel, []).append(f)
     return [(k, v) for k, v in sorted(seen.items()) if len(v) > 1]
+
+
+def help_groups(*hidden: str) -> str:
+    """Hydra's ``--help`` list of config groups (``group: option, ...`` lines) without Hydra's own groups and the
+    ``hidden`` ones with their subgroups: an app's ``hydra.help.template`` lists the groups it uses with
+    ``${b3dgs.help_groups:uq,acquisition}`` (``b3dgs-train`` hides the eval / study groups it never reads)."""
+    from hydra.core.global_hydra import GlobalHydra
+
+    hydra = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
+    if hydra is None:  # resolved outside a Hydra app
+        return ""
+    return hydra.format_config_groups(lambda g: g.split("/")[0] not in ("hydra", *hidden))
+
+
+def register_help_resolver() -> None:
+    """``${b3dgs.help_groups:NAME,...}``: :func:`help_groups` in a config."""
+    if not OmegaConf.has_resolver("b3dgs.help_groups"):
+        OmegaConf.register_new_resolver("b3dgs.help_groups", help_groups)

@@ -89,6 +89,10 @@ class Plugin:
 class PosteriorBlock(Plugin):
     """A posterior block: closed-form or approximate posterior updates around the optimizer."""
 
+    #: settings that change the method, with the value a run's label leaves unsaid (:mod:`b3dgs.labels`): any other
+    #: value is written after the block's name, e.g. NIW's ``{"count": "paper"}`` labels ``count=fisher`` ``niw@fisher``
+    label_settings: ClassVar[dict] = {}
+
     @staticmethod
     def stage_start(t: Optional[int], info: dict, divisor: int) -> int:
         """A stage threshold: ``t`` when configured, else max_steps // ``divisor`` (the canonical schedule).

@@ -16,6 +16,7 @@ import hydra
 from omegaconf import DictConfig
 
 from b3dgs import conf_dir
+from b3dgs.confs import register_help_resolver
 from b3dgs.io import write_json
 from b3dgs.labels import method_label, register_resolver
 
@@ -23,6 +24,7 @@ log = logging.getLogger(__name__)
 
 CONF_DIR = conf_dir()
 register_resolver()  # ${b3dgs.method:} in run dir names (conf/hydra/default.yaml)
+register_help_resolver()  # ${b3dgs.help_groups:} in --help (conf/train.yaml)
 
 
 def train(cfg: DictConfig) -> dict:
@@ -64,7 +66,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
     from hydra.utils import instantiate
     from lightning.pytorch.loggers import TensorBoardLogger  # noqa: F401 - logger=tensorboard targets it
 
-    from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint, RunFiles
+    from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint, RunFiles, StepProgressBar
     from b3dgs.lifecycle import (build_callbacks, build_trainer, check_resume, check_resume_renderer,
                                  checkpoint_every_s, fit, start_run, warn_disabled_options, warn_long_cpu_run)
     from b3dgs.rundir import Interrupted, claim_run_dir, finished_metrics, prepare_run_dir
@@ -93,6 +95,8 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
     trainer = build_trainer(tcfg, renderer, [curve, ResumeState(), ckpt, RunFiles(run_dir),
                                              *build_callbacks(cfg.get("callbacks"))],
                             logger=logger, default_root_dir=str(run_dir))
+    if isinstance(trainer.progress_bar_callback, StepProgressBar):
+        trainer.progress_bar_callback.final_after_eval = True  # its last line shows the final evaluation
     claim_run_dir(run_dir, cfg, clear)  # every check has passed: only now is the run dir changed, manifest first
     log.info("Scene %s: %d train / %d test views, %d initial Gaussians, extent %.3f; renderer %s on %s",
              scene.name, len(scene.train), len(scene.test), module.num_gaussians, scene.extent, renderer.name,
@@ -112,6 +116,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
 
 def _finish(cfg: DictConfig, run_dir: Path, module, scene, renderer, trainer, curve, ckpt) -> dict:
     """The final evaluation and outputs of a trained model (also all a resume from the final checkpoint does)."""
+    from b3dgs.callbacks import StepProgressBar
     from b3dgs.checkpoint import checkpoint_record
     from b3dgs.data.scene import scene_transform
     from b3dgs.lifecycle import read_checkpoint
@@ -156,6 +161,8 @@ def _finish(cfg: DictConfig, run_dir: Path, module, scene, renderer, trainer, cu
         "per_view": ev["per_view"],
     }
     write_json(run_dir / "metrics.json", metrics)
+    if isinstance(trainer.progress_bar_callback, StepProgressBar):
+        trainer.progress_bar_callback.show_final(metrics)
 
     def fmt(v, digits):
         return "n/a" if v is None else f"{v:.{digits}f}"

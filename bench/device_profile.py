@@ -117,6 +117,7 @@ def profile(args) -> None:
         one = Path(args.out) / f"profile_{model}_{args.device}.json"
         run_dir = Path(args.out) / f"profile_{model}_{args.device}"
         cmd = [sys.executable, "-m", "b3dgs.train", *scene_overrides(args.scene), "experiment=study",
+               "trainer.enable_progress_bar=false",  # as profiled before experiment=study showed the bar
                *model_overrides(model), f"renderer={renderer}", f"trainer.max_steps={args.steps}",
                f"trainer.eval_every={args.steps}", *STAGES_FROM_0[model],
                "+callbacks.prof._target_=bench.device_profile.StepProfiler", f"+callbacks.prof.out={one}",

@@ -33,8 +33,9 @@ def count(model: str, scene: str, steps: int, device: str, out: Path, seed: int 
         return json.loads(out.read_text())
     run_dir = out.parent / f"run_{out.stem}"
     renderer = {"cpu": "cpu", "cuda": "gsplat"}[device]
+    # no progress bar: its metric reads are host syncs of their own (experiment=study shows it since issue 44)
     cmd = [sys.executable, "-m", "b3dgs.train", *scene_overrides(scene), "experiment=study", *MODELS[model],
-           f"trainer.max_steps={steps}", f"seed={seed}", f"renderer={renderer}", f"trainer.eval_every={steps}",
+           "trainer.enable_progress_bar=false", f"trainer.max_steps={steps}", f"seed={seed}", f"renderer={renderer}", f"trainer.eval_every={steps}",
            "+callbacks.host_sync._target_=b3dgs.host_sync.HostSyncCallback", f"+callbacks.host_sync.out={out}",
            f"+callbacks.host_sync.device_path={path == 'device'}", f"hydra.run.dir={run_dir}", "overwrite=true"]
     proc = subprocess.run(cmd, capture_output=True, text=True)

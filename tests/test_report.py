@@ -137,17 +137,17 @@ def test_methods_are_labelled_by_what_ran(tmp_path, monkeypatch):
         write_run(tmp_path / "runs" / scene / "nd", scene, "standard", 0, 20.0, posterior=["niw", "dp"])
         write_run(tmp_path / "runs" / scene / "dpmm", scene, "dpmm", 0, 20.5)
     runs, _ = load_runs(str(tmp_path / "runs" / "**"))
-    assert sorted({r.method for r in runs}) == ["dpmm", "standard", "standard+niw+dp"]
+    assert sorted({r.method for r in runs}) == ["dpmm", "niw+dp", "standard"]
     cfg = report_cfg(f"{tmp_path / 'runs'}/**", tmp_path / "rep")
     assert cfg.pair is None  # the default: dpmm − standard where both ran
     data = json.loads(build_report(cfg)["json"].read_text())
-    assert set(data["canonical"]["table"]) == {"standard", "standard+niw+dp", "dpmm"}
+    assert set(data["canonical"]["table"]) == {"standard", "niw+dp", "dpmm"}
     assert (data["canonical"]["paired"][0]["a"], data["canonical"]["paired"][0]["b"]) == ("dpmm", "standard")
     assert data["canonical"]["paired"][0]["mean"] == pytest.approx(0.5)
     from b3dgs.report import plots
     from b3dgs.report.analysis import paired
 
-    same = [paired(runs, "standard+niw+dp", "standard", "psnr")]
+    same = [paired(runs, "niw+dp", "standard", "psnr")]
     assert same[0]["per_scene"] == {"sceneA": 0.0, "sceneB": 0.0}
     drawn = []
     monkeypatch.setattr(plots, "_save", lambda fig, path: drawn.extend(fig.axes))

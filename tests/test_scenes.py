@@ -44,6 +44,11 @@ def test_scene_and_study_protocol_compose_the_campaign_config(scene, model):
     old = _compose([f"data={LOADERS[scene]}", f"data.path={root}/{scene}", *OLD_QUICK, f"model={model}", "seed=2",
                     f"data_root={root}"])
     new = _compose([f"scene={scene}", "experiment=study", f"model={model}", "seed=2", f"data_root={root}"])
+    # the study protocol shows its progress bar since issue 44, a setting that changes no result
+    from b3dgs.protocol import run_protocol
+
+    assert run_protocol(new) == run_protocol(old)
+    assert (old["trainer"].pop("enable_progress_bar"), new["trainer"].pop("enable_progress_bar")) == (False, True)
     assert new == old
     assert new["data"]["path"] == f"{root}/{scene}" and new["data"]["name"] == scene
     study_old = _compose([f"data={LOADERS[scene]}", f"data.path={root}/{scene}", f"data_root={root}"], "study")

@@ -1,5 +1,6 @@
 """Small things a user meets: "did you mean" for a misspelt key (at any depth) or option, the warning before a long
-run on the pure-PyTorch renderer, and ``renderer=auto -> ...`` said once per process."""
+run on the pure-PyTorch renderer, ``renderer=auto -> ...`` said once per process, and ``b3dgs-train --help`` listing
+only the groups training reads."""
 from __future__ import annotations
 
 import logging
@@ -114,3 +115,18 @@ def test_a_scene_file_without_the_global_header_is_refused_not_ignored(tmp_path)
                          cwd=tmp_path, env=ENV)
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert res.returncode == 2 and len(lines) == 1 and "scene.{data} reaches nothing" in lines[0], res.stderr[-2000:]
+
+
+def test_train_help_lists_only_the_groups_training_reads(tmp_path):
+    """uq, acquisition (and acquisition/batch) and pruning are b3dgs-eval's and b3dgs-study's groups: b3dgs-train's
+    --help leaves them out and lists the others with their options; the config follows as Hydra prints it."""
+    res = subprocess.run([sys.executable, "-m", "b3dgs.train", "--help"], capture_output=True, text=True, timeout=120,
+                         cwd=tmp_path, env=ENV)
+    assert res.returncode == 0, res.stderr[-2000:]
+    head, _, rest = res.stdout.partition("== Config ==")
+    groups = {ln.split(":")[0] for ln in head.splitlines() if ": " in ln and not ln.startswith(" ")}
+    assert {"data", "model", "posterior", "renderer", "scene", "schedule", "strategy", "trainer", "logger",
+            "experiment"} <= groups, head
+    assert not groups & {"uq", "acquisition", "acquisition/batch", "pruning", "hydra"}, head
+    assert "model: dpmm, mcmc, niw, standard" in head and "\nstrategy:\n  _target_: " in rest and "help_groups" not in res.stdout
+    assert not any(tmp_path.iterdir())

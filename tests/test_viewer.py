@@ -6,6 +6,7 @@ import math
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import threading
@@ -355,6 +356,43 @@ def saturated_share(pixels: np.ndarray, cmap: str = "inferno") -> float:
     """The share of pixels at (JPEG-close to) the colour map's top colour."""
     top = colormap_lut(cmap)[-1].astype(np.float64)
     return float((np.abs(pixels - top).sum(axis=-1) < 40).mean())
+
+
+def _serve_until_up(args, cwd) -> subprocess.Popen:
+    """``b3dgs-view`` started with ``args``, once it prints its URL (stderr kept apart from stdout)."""
+    proc = subprocess.Popen([sys.executable, "-m", "b3dgs.viewer.app", *args, "port=0", "duration_s=300"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=cwd, env=ENV)
+    for line in proc.stdout:
+        if re.search(r" at http://127\.0\.0\.1:\d+ ", line):
+            return proc
+    proc.kill()
+    raise AssertionError(f"the viewer did not start: {proc.stderr.read()[-2000:]}")
+
+
+@pytest.mark.slow
+def test_sigterm_stops_the_viewer_with_143_and_one_line(tmp_path):
+    """On a COLMAP run (its scene read with pycolmap, whose import installs glog's SIGTERM handler: a 20-line stack
+    trace), SIGTERM ends b3dgs-view with exit code 143 and one line on stderr."""
+    pytest.importorskip("viser", reason='viser not installed (fix: pip install -e ".[viewer]")')
+    from conftest import SHARED
+
+    if not (SHARED / "data" / "flower").is_dir():
+        pytest.skip(f"shared scene not found at {SHARED / 'data' / 'flower'}")
+    run = tmp_path / "run"
+    res = subprocess.run([sys.executable, "-m", "b3dgs.train", "scene=flower", f"data_root={SHARED / 'data'}",
+                          "data.max_side=32", "data.max_images=8", "trainer.max_steps=10", "trainer.eval_every=10",
+                          "trainer.enable_progress_bar=false", "logger=none", "trainer.save_renders=false",
+                          f"hydra.run.dir={run}"], capture_output=True, text=True, timeout=600, cwd=ROOT, env=ENV)
+    assert res.returncode == 0, res.stderr[-3000:]
+    proc = _serve_until_up([f"run={run}"], tmp_path)
+    try:
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGTERM)
+        rc = proc.wait(timeout=60)
+    finally:
+        proc.kill()
+    err = proc.stderr.read()
+    assert rc == 143 and err.splitlines() == ["b3dgs-view: stopped by SIGTERM"], (rc, err[-3000:])
 
 
 @pytest.mark.slow

@@ -4,8 +4,8 @@ A run dir holds ``config.yaml`` (the composed config written by ``b3dgs-train``)
 its done marker. A run is keyed by (study, level, scene, method, seed), all read from ``config.yaml``:
 
 * scene = ``data.name``, seed = ``seed``, method = the label of what ran (:func:`b3dgs.labels.method_label`:
-  ``model.name`` plus posterior / strategy / schedule changes, so ``posterior=[niw,dp]`` on the standard model
-  is ``standard+niw+dp``, not ``standard``);
+  the model option that ran the most of it plus posterior / strategy / schedule changes and a non-paper NIW count,
+  so ``posterior=[niw,dp]`` on the standard model is ``niw+dp``, not ``standard``);
 * study = ``sparse`` when ``data.train_indices`` is set, else ``initcap`` when ``model.init_max_points``
   is below the standard model's default (``conf/model/standard.yaml``), else ``canonical``; a ``study``
   node (``name``, ``level``) in the config, where one is allowed, wins;

@@ -3,11 +3,13 @@
 Known problems (a missing, unfinished or other-version run dir, viser not installed, a mode the run cannot
 show, a port outside 0-65535, a host that is not an address of this machine) print one line
 ``b3dgs-view: error: ... (fix: ...)`` and exit with code 2, before anything is served. ``--help`` lists the
-modes and every option (from ``conf/view.yaml``).
+modes and every option (from ``conf/view.yaml``). Ctrl-C stops the viewer (exit code 0); SIGTERM stops it with one
+line, ``b3dgs-view: stopped by SIGTERM``, and exit code 143.
 """
 from __future__ import annotations
 
 import logging
+import signal
 import sys
 import time
 from pathlib import Path
@@ -133,16 +135,25 @@ def hydra_main(cfg: DictConfig) -> None:
         settings = settings_from_cfg(cfg)
         quiet_known_noise()
         logging.getLogger("websockets").setLevel(logging.WARNING)
-        app = serve(cfg, settings)
-        limit = cfg.get("duration_s")
-        t0 = time.time()
-        try:
-            while limit is None or time.time() - t0 < float(limit):
-                time.sleep(0.2)
-        except KeyboardInterrupt:
-            pass
-        finally:
-            app.stop()
+        from b3dgs.data.images import import_pycolmap
+        from b3dgs.rundir import interrupt_handlers
+
+        # pycolmap first: importing it (a COLMAP run's scene) installs glog's SIGTERM handler, a 20-line stack trace
+        import_pycolmap()
+        with interrupt_handlers() as pending:
+            pending.deferred = True  # SIGINT / SIGTERM are recorded, and end the loop below (also while loading)
+            app = serve(cfg, settings)
+            limit = cfg.get("duration_s")
+            t0 = time.time()
+            try:
+                while pending.signum is None and (limit is None or time.time() - t0 < float(limit)):
+                    time.sleep(0.2)
+            finally:
+                app.stop()
+            if pending.signum not in (None, signal.SIGINT):  # Ctrl-C is the way to stop it: exit code 0
+                sys.stderr.write(f"b3dgs-view: stopped by {signal.Signals(pending.signum).name}\n")
+                sys.stderr.flush()
+                sys.exit(128 + pending.signum)
 
 
 def help_text() -> str:

@@ -498,6 +498,7 @@ class NIWBlock(PosteriorBlock):
 
     needs_residuals: ClassVar[bool] = True  # reads info["sq_err_sum"]
     changes_training: ClassVar[bool] = False  # it reads summaries; splats, optimizers, gradients untouched
+    label_settings: ClassVar[dict] = {"count": "paper"}  # count=fisher runs are labelled niw@fisher
 
     kappa0: float = 0.01
     nu0: float = 5.0
