@@ -8,7 +8,7 @@ compression study's fine-tunes and loading a run (``b3dgs-eval``, the viewer, ex
 * :func:`read_checkpoint` and :func:`load_checkpoint` (a checkpoint's model into a built module), and the checks of a
   resume against the run it continues (:func:`check_resume`, :func:`check_resume_renderer`);
 * the checks of a run's settings that need its components (:func:`check_devices`, :func:`warn_slow_renderer`,
-  :func:`warn_disabled_options`).
+  :func:`warn_settings`: :func:`warn_disabled_options`, :func:`warn_long_cpu_run`).
 
 The run dir (lock, claim, resume and overwrite) is :mod:`b3dgs.rundir`'s.
 """
@@ -165,11 +165,12 @@ def build_callbacks(node) -> list:
     return [instantiate(n) for n in (node or {}).values() if n is not None]
 
 
-def build_trainer(tcfg, renderer, callbacks: list, logger=False, **fixed):
+def build_trainer(tcfg, renderer, callbacks: list, logger=False, final_after_eval: bool = False, **fixed):
     """The ``trainer`` node's ``_target_`` (``lightning.Trainer``) built with its own arguments, the accelerator
     resolved from the renderer (:func:`resolve_accelerator`), ``callbacks``, ``logger``, b3dgs's atomic checkpoint
     IO, and ``fixed`` (what a caller sets whatever the config says, e.g. a round's ``max_steps``). With the progress
-    bar on, it is b3dgs's bar over global steps (:class:`b3dgs.callbacks.StepProgressBar`) unless ``callbacks`` has one."""
+    bar on, it is b3dgs's bar over global steps (:class:`b3dgs.callbacks.StepProgressBar`) unless ``callbacks`` has one;
+    ``final_after_eval``: its last line waits for the final evaluation (``StepProgressBar.show_final``)."""
     from hydra.utils import instantiate
     from lightning.pytorch.callbacks import ProgressBar
 
@@ -186,7 +187,10 @@ def build_trainer(tcfg, renderer, callbacks: list, logger=False, **fixed):
     if args.get("enable_progress_bar", True) and not any(isinstance(c, ProgressBar) for c in callbacks):
         callbacks = [*callbacks, StepProgressBar()]
     # objects go in through a partial (instantiate would turn them into configs: hydra#2591)
-    return instantiate(args, _partial_=True)(callbacks=callbacks, logger=logger, plugins=[AtomicCheckpointIO()])
+    trainer = instantiate(args, _partial_=True)(callbacks=callbacks, logger=logger, plugins=[AtomicCheckpointIO()])
+    if final_after_eval and isinstance(trainer.progress_bar_callback, StepProgressBar):
+        trainer.progress_bar_callback.final_after_eval = True
+    return trainer
 
 
 def checkpoint_every_s(tcfg) -> Optional[float]:
@@ -375,6 +379,12 @@ def warn_long_cpu_run(scene, renderer, max_steps: int) -> Optional[str]:
            "protocol: 256 px, 3000 steps)")
     log.warning(msg)
     return msg
+
+
+def warn_settings(module, scene, max_steps: int) -> None:
+    """The warnings of a run's settings before it trains: :func:`warn_disabled_options`, :func:`warn_long_cpu_run`."""
+    warn_disabled_options(module)
+    warn_long_cpu_run(scene, module.renderer, int(max_steps))
 
 
 def warn_disabled_options(module) -> None:

@@ -66,9 +66,9 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
     from hydra.utils import instantiate
     from lightning.pytorch.loggers import TensorBoardLogger  # noqa: F401 - logger=tensorboard targets it
 
-    from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint, RunFiles, StepProgressBar
+    from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint, RunFiles
     from b3dgs.lifecycle import (build_callbacks, build_trainer, check_resume, check_resume_renderer,
-                                 checkpoint_every_s, fit, start_run, warn_disabled_options, warn_long_cpu_run)
+                                 checkpoint_every_s, fit, start_run, warn_settings)
     from b3dgs.rundir import Interrupted, claim_run_dir, finished_metrics, prepare_run_dir
 
     tcfg = cfg.trainer
@@ -77,7 +77,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
                                        check_checkpoint=lambda path: check_resume_renderer(cfg, path))
     dm, module = start_run(cfg)
     scene, renderer = dm.scene, module.renderer
-    warn_disabled_options(module)
+    warn_settings(module, scene, int(tcfg.max_steps))
     if ckpt_path is not None:
         check_resume(module, ckpt_path)
     done = None if clear else finished_metrics(run_dir)
@@ -86,7 +86,6 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
         log.info("%s holds a finished run (step %s, PSNR %s dB): nothing to do, nothing rewritten (overwrite=true "
                  "trains it again)", run_dir, done.get("steps"), "n/a" if psnr is None else f"{psnr:.3f}")
         return done
-    warn_long_cpu_run(scene, renderer, int(tcfg.max_steps))
     curve = CurveCallback(scene.test, eval_every=int(tcfg.eval_every), out_dir=run_dir,
                           max_eval_views=tcfg.get("curve_max_views"))
     ckpt = RunCheckpoint(run_dir / "checkpoints", every_n_steps=int(tcfg.checkpoint_every), every_s=every_s,
@@ -94,9 +93,7 @@ def _train_locked(cfg: DictConfig, run_dir: Path) -> dict:
     logger = instantiate(cfg.logger, save_dir=str(run_dir)) if cfg.get("logger") else False
     trainer = build_trainer(tcfg, renderer, [curve, ResumeState(), ckpt, RunFiles(run_dir),
                                              *build_callbacks(cfg.get("callbacks"))],
-                            logger=logger, default_root_dir=str(run_dir))
-    if isinstance(trainer.progress_bar_callback, StepProgressBar):
-        trainer.progress_bar_callback.final_after_eval = True  # its last line shows the final evaluation
+                            logger=logger, default_root_dir=str(run_dir), final_after_eval=True)
     claim_run_dir(run_dir, cfg, clear)  # every check has passed: only now is the run dir changed, manifest first
     log.info("Scene %s: %d train / %d test views, %d initial Gaussians, extent %.3f; renderer %s on %s",
              scene.name, len(scene.train), len(scene.test), module.num_gaussians, scene.extent, renderer.name,
