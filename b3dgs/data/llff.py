@@ -68,7 +68,7 @@ def read_llff(
     if len(files) != len(pb):
         raise B3dgsError(f"{pb_path} has {len(pb)} poses but {root / images_dir} has {len(files)} images",
                          fix="keep exactly the images the poses were computed for in that folder (one per row, in "
-                             "name order), or regenerate poses_bounds.npy")
+                             "name order), pick another folder with data.images_dir, or regenerate poses_bounds.npy")
     frames = []
     for f, row in zip(files, pb):
         m = row[:15].reshape(3, 5)
@@ -97,8 +97,8 @@ def read_llff(
                     f"Image {f} is {w}x{h} but poses_bounds.npy says {W0}x{H0} (w x h), "
                     f"which is not a uniform downscale"
 ,
-                          fix="put the images the poses were computed for in the scene's images/ folder, or copies "
-                              "downscaled by one factor in both axes")
+                          fix="point data.images_dir at the images the poses were computed for, or at copies "
+                              "downscaled by one factor in both axes (e.g. images_4)")
         sx, sy = w / W, h / H
         K = np.array([[focal * sx, 0.0, w / 2.0], [0.0, focal * sy, h / 2.0], [0.0, 0.0, 1.0]])
         frames.append(FrameSpec(f.name, f, K, viewmat, w, h))
