@@ -39,7 +39,9 @@ class PruningScore(Plugin):
 
     def validate(self, **kwargs: Any) -> None:
         if int(self.rounds) < 1:
-            raise B3dgsError(f"pruning {type(self).__name__}.rounds must be >= 1, got {self.rounds}")
+            raise B3dgsError(f"pruning {type(self).__name__}.rounds must be >= 1, got {self.rounds}",
+                             fix="pass pruning.rounds >= 1 (the pruned model is fine-tuned after each round; most "
+                                 "conf/pruning files use 2)")
 
     def score(self, *, splats, optimizers, state, step, info) -> Tensor:
         raise NotImplementedError
@@ -48,7 +50,8 @@ class PruningScore(Plugin):
 def keep_top(score: Tensor, keep: int) -> Tensor:
     """(N,) bool mask of the ``keep`` highest scores; ties go to the lower index (stable sort), NaN ranks last."""
     if score.dim() != 1:
-        raise B3dgsError(f"a pruning score must be (N,), got {tuple(score.shape)}")
+        raise B3dgsError(f"a pruning score must be (N,), got {tuple(score.shape)}",
+                         fix="return one score per Gaussian from PruningScore.score, a 1-D tensor of shape (N,)")
     n = score.numel()
     keep = max(0, min(int(keep), n))
     s = torch.nan_to_num(score.detach().double(), nan=-float("inf"))

@@ -34,7 +34,9 @@ def regimes_from_cfg(cfg: DictConfig) -> dict:
         if isinstance(node, DictConfig) and "_target_" in node:
             out[name] = instantiate(node)
     if not out:
-        raise B3dgsError("No uncertainty regime selected: pass uq=[native,proxy] (options: native, proxy, ensemble, ppu)")
+        raise B3dgsError("No uncertainty regime selected",
+                         fix="pass uq=[native,proxy] (options: the files of conf/uq, e.g. native, proxy, ensemble, "
+                             "ppu)")
     return out
 
 
@@ -113,7 +115,9 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
         first = runs[0]
     else:
         if not run_dirs:
-            raise B3dgsError("run= must name at least one run dir")
+            raise B3dgsError("run= must name at least one run dir",
+                             fix="pass run=<a b3dgs-train run dir> (or run=[dir1,dir2] for regimes that combine "
+                                 "several runs)")
         refuse_running(run_dirs)
         if len(run_dirs) > 1 and any(getattr(r, "min_members", 0) for r in regimes.values()):
             check_members(run_dirs)
@@ -122,7 +126,9 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     scene = first.scene
     cams = scene.test[:max_views] if max_views else scene.test
     if not cams:
-        raise B3dgsError("The scene has no test views (data.test_every=0?); nothing to evaluate")
+        raise B3dgsError("The scene has no test views (data.test_every=0?); nothing to evaluate",
+                         fix="evaluate a run trained with held-out views: data.test_every=8 (the default) or "
+                             "data.test_split=sector")
     dests = _destinations(regimes, runs, out_dir)
     made = [d for d in dict.fromkeys(dests.values()) if not d.exists()]
     for d in dict.fromkeys(dests.values()):

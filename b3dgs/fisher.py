@@ -23,10 +23,12 @@ def pixel_set_grads(rgb: Tensor, leaves: Sequence[Tensor], stride: int,
     that set's pixel values (summed over channels unless ``per_channel``) with respect to ``leaves``
     (zeros for a leaf the render does not use). ``rgb``: (H, W, C) with its autograd graph."""
     if rgb.dim() != 3:
-        raise B3dgsError(f"pixel_set_grads: rgb must be (H, W, C), got {tuple(rgb.shape)}")
+        raise B3dgsError(f"pixel_set_grads: rgb must be (H, W, C), got {tuple(rgb.shape)}",
+                         fix="pass the rendered image of one camera, shape (H, W, C) with its autograd graph "
+                             "(e.g. an unbatched render(...).rgb)")
     s = int(stride)
     if s < 1:
-        raise B3dgsError(f"pixel stride must be >= 1, got {stride}")
+        raise B3dgsError(f"pixel stride must be >= 1, got {stride}", fix="pass stride >= 1 (1 uses every pixel)")
     H, W, C = rgb.shape
     mask = torch.zeros_like(rgb)
     channels = [slice(c, c + 1) for c in range(C)] if per_channel else [slice(0, C)]

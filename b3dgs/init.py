@@ -54,7 +54,9 @@ def init_gaussians(
         cols = torch.rand(n, 3, generator=generator)
         log.info("No SfM points: %d random Gaussians inside the scene bounds", n)
     if not torch.isfinite(pts).all():
-        raise B3dgsError("Initial points contain NaN/Inf; check the scene's points3D / bounds")
+        raise B3dgsError("Initial points contain NaN/Inf; check the scene's points3D / bounds",
+                         fix="repair or drop the non-finite points of the scene's points3D (COLMAP) / ply_file_path, "
+                             "or check that its poses are finite")
     n = pts.shape[0]
     dist = knn_mean_dist(pts).clamp_min(1e-7 * max(scene.extent, 1e-12))
     scales = torch.log(dist * init_scale).unsqueeze(-1).repeat(1, 3)

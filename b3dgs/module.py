@@ -70,11 +70,15 @@ class SplatModule(L.LightningModule):
         super().__init__()
         self.automatic_optimization = False
         if not 0.0 <= lambda_dssim <= 1.0:
-            raise B3dgsError(f"model.lambda_dssim must be in [0, 1], got {lambda_dssim}")
+            raise B3dgsError(f"model.lambda_dssim must be in [0, 1], got {lambda_dssim}",
+                             fix="pass model.lambda_dssim in [0, 1], e.g. the default 0.2 (0 = L1 only, 1 = D-SSIM "
+                                 "only)")
         if not 0 <= sh_degree <= 3:
-            raise B3dgsError(f"model.sh_degree must be in 0..3, got {sh_degree}")
+            raise B3dgsError(f"model.sh_degree must be in 0..3, got {sh_degree}",
+                             fix="pass model.sh_degree=0, 1, 2 or 3 (the default is 3)")
         if max_steps <= 0:
-            raise B3dgsError(f"trainer.max_steps must be > 0, got {max_steps}")
+            raise B3dgsError(f"trainer.max_steps must be > 0, got {max_steps}",
+                             fix="pass trainer.max_steps as a positive number of steps, e.g. trainer.max_steps=30000")
         self.save_hyperparameters(ignore=["strategy", "posterior", "renderer", "schedule"])
         self.renderer: Renderer = make_renderer(renderer)
         self.strategy = strategy
@@ -257,7 +261,7 @@ class SplatModule(L.LightningModule):
             if "NaN or Inf" not in str(e):
                 raise
             raise B3dgsError(f"step {step}, camera {cam.name}: the optimisation diverged (NaN/Inf Gaussian attributes "
-                             f"reached the renderer: {e})", _DIVERGED_FIX) from e
+                             f"reached the renderer: {getattr(e, 'problem', e)})", _DIVERGED_FIX) from e
         cam = self.device_camera(cam)
         gt = cam.image
         l1 = (out.rgb - gt).abs().mean()
@@ -396,7 +400,9 @@ class SplatModule(L.LightningModule):
         sd = checkpoint["state_dict"]
         shapes = {k: sd[f"splats.{k}"] for k in PARAM_ORDER if f"splats.{k}" in sd}
         if len(shapes) != len(PARAM_ORDER):
-            raise B3dgsError("Checkpoint has no Gaussian parameters (splats.*); is it a b3dgs checkpoint?")
+            raise B3dgsError("Checkpoint has no Gaussian parameters (splats.*); is it a b3dgs checkpoint?",
+                             fix="pass the last.ckpt of a b3dgs-train run dir (run=<run dir>), not a checkpoint of "
+                                 "another program")
         # niw -> standard would keep the niw state, standard -> dpmm would fail later with a KeyError
         self.check_checkpoint_identity(checkpoint, "the checkpoint",
                                        "use a checkpoint of this model, posterior, strategy and scene")

@@ -106,12 +106,15 @@ def _to_count(mask_or_count: Union[torch.Tensor, int, bool, float]) -> int:
             return int(mask_or_count.sum().item())
         if mask_or_count.numel() == 1:
             return int(mask_or_count.item())
-        raise B3dgsError("guard(): tensor argument must be a bool mask or a scalar count")
+        raise B3dgsError("guard(): tensor argument must be a bool mask or a scalar count",
+                         fix="pass guard() a bool mask of the guarded entries, or an int count (a one-element tensor "
+                             "also works)")
     if isinstance(mask_or_count, bool):
         return int(mask_or_count)
     n = int(mask_or_count)
     if n < 0:
-        raise B3dgsError(f"guard(): negative count {n}")
+        raise B3dgsError(f"guard(): negative count {n}",
+                         fix="pass guard() a count >= 0 (the number of entries the guard changed)")
     return n
 
 
@@ -163,5 +166,6 @@ def scalar_or_vector(name: str, x, K: int, device) -> torch.Tensor:
     if t.ndim == 0:
         return t.expand(K)
     if tuple(t.shape) != (K,):
-        raise B3dgsError(f"{name}: expected shape ({K},) or a scalar, got {tuple(t.shape)}")
+        raise B3dgsError(f"{name}: expected shape ({K},) or a scalar, got {tuple(t.shape)}",
+                         fix=f"pass {name} as a scalar or as a ({K},) tensor with one value per Gaussian")
     return t

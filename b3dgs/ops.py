@@ -88,7 +88,8 @@ class TopologyOps:
         n_old = self.num
         index = index.long()
         if index.dim() != 1 or fresh.shape != index.shape:
-            raise B3dgsError("gather: index and fresh must be 1-D and of equal length")
+            raise B3dgsError("gather: index and fresh must be 1-D and of equal length",
+                             fix="pass index (N',) of source rows and fresh (N',) bool flags of the same length")
         overrides = overrides or {}
         for name in list(self.splats.keys()):
             old = self.splats[name]
@@ -174,7 +175,9 @@ class TopologyOps:
         """Remove the Gaussians in ``mask``; at least one Gaussian is always kept."""
         n = self.num
         if mask.shape != (n,):
-            raise B3dgsError(f"prune: mask must have shape ({n},), got {tuple(mask.shape)}")
+            raise B3dgsError(f"prune: mask must have shape ({n},), got {tuple(mask.shape)}",
+                             fix=f"pass a bool mask with one entry per current Gaussian, shape ({n},) (rebuild it "
+                                 "after any earlier densify or prune of this step)")
         mask = mask.clone()
         if bool(mask.all()):
             # keep the most opaque Gaussian so the model never becomes empty (a floor: counted)

@@ -59,9 +59,13 @@ def _as_f32(name: str, x, shape: tuple) -> np.ndarray:
     a = np.asarray(x, dtype=np.float32)
     if a.ndim != len(shape) or any(s != -1 and s != t for s, t in zip(shape, a.shape)):
         want = "(" + ", ".join("N" if i == 0 else ("K" if s == -1 else str(s)) for i, s in enumerate(shape)) + ")"
-        raise B3dgsError(f"write_ply: {name} must have shape {want}, got {tuple(a.shape)}")
+        raise B3dgsError(f"write_ply: {name} must have shape {want}, got {tuple(a.shape)}",
+                         fix=f"pass {name} with one row per Gaussian, shape {want} (N = number of Gaussians, the "
+                             "same for every array)")
     if not np.isfinite(a).all():
-        raise B3dgsError(f"write_ply: {name} contains NaN or Inf")
+        raise B3dgsError(f"write_ply: {name} contains NaN or Inf",
+                         fix=f"pass finite values; a model with NaN/Inf {name} diverged in training: lower the "
+                             "learning rates (e.g. model.lr_means) and retrain")
     return a
 
 
@@ -105,7 +109,9 @@ def write_ply(
                                  o[:, None], s, q]
     for key, val in (extra or {}).items():
         if not isinstance(key, str) or not _NAME_RE.match(key):
-            raise B3dgsError(f"write_ply: extra name {key!r} is not a valid PLY property name")
+            raise B3dgsError(f"write_ply: extra name {key!r} is not a valid PLY property name",
+                             fix="name each extra property with letters, digits and _ only, not starting with a "
+                                 "digit (e.g. 'mu_var')")
         ndim = val.ndim if hasattr(val, "ndim") else np.ndim(val)
         if ndim == 1:
             a = _as_f32(f"extra[{key!r}]", val, (n,))
@@ -116,11 +122,14 @@ def write_ply(
             names.extend(f"{key}_{i}" for i in range(a.shape[1]))
             columns.append(a)
         else:
-            raise B3dgsError(f"write_ply: extra[{key!r}] must have shape (N,) or (N, d), got {tuple(np.shape(val))}")
+            raise B3dgsError(f"write_ply: extra[{key!r}] must have shape (N,) or (N, d), got {tuple(np.shape(val))}",
+                             fix=f"pass extra[{key!r}] with one row per Gaussian: shape (N,) or (N, d)")
     seen: set[str] = set()
     for nm in names:
         if nm in seen:
-            raise B3dgsError(f"write_ply: property name {nm!r} would appear twice (extra names clash)")
+            raise B3dgsError(f"write_ply: property name {nm!r} would appear twice (extra names clash)",
+                             fix="rename the extra property so it differs from the 3DGS fields (x, opacity, f_dc_0, "
+                                 "...) and from the other extras")
         seen.add(nm)
 
     from plyfile import PlyData, PlyElement
@@ -154,29 +163,43 @@ def read_ply(path: str | os.PathLike) -> dict:
         with open(path, "rb") as f:
             ply = PlyData.read(f, mmap=False)
     except PlyParseError as e:
-        raise B3dgsError(f"{path}: not a readable PLY file ({e})") from e
+        raise B3dgsError(f"{path}: not a readable PLY file ({e})",
+                         fix="pass a binary or ASCII PLY file (e.g. a run's point_cloud.ply), or re-export it "
+                             "with b3dgs-export") from e
     except (ValueError, EOFError, UnicodeDecodeError, OSError) as e:
-        raise B3dgsError(f"{path}: not a readable PLY file (corrupt or truncated: {e})") from e
+        raise B3dgsError(f"{path}: not a readable PLY file (corrupt or truncated: {e})",
+                         fix="pass a complete PLY file: re-export it with b3dgs-export, or copy it again if "
+                             "the transfer was cut short") from e
     try:
         vertex = ply["vertex"]
     except KeyError:
-        raise B3dgsError(f"{path}: PLY file has no 'vertex' element") from None
+        raise B3dgsError(f"{path}: PLY file has no 'vertex' element",
+                         fix="pass a PLY of Gaussians with a 'vertex' element (a 3DGS point_cloud.ply, as "
+                             "b3dgs-export writes)") from None
     arr = vertex.data
     props = list(arr.dtype.names or ())
     for p in props:
         if arr.dtype[p].subdtype is not None or arr.dtype[p].kind not in "fiub":
-            raise B3dgsError(f"{path}: vertex property {p!r} is a list or non-numeric; expected scalars")
+            raise B3dgsError(f"{path}: vertex property {p!r} is a list or non-numeric; expected scalars",
+                             fix="pass a 3DGS-layout PLY whose vertex properties are scalar floats (as b3dgs-export "
+                                 "writes), not a mesh")
 
     required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2"] + _BASE_AFTER
     for p in required:
         if p not in props:
-            raise B3dgsError(f"{path}: PLY file lacks vertex property {p!r} required by the 3DGS layout")
+            raise B3dgsError(f"{path}: PLY file lacks vertex property {p!r} required by the 3DGS layout",
+                             fix="pass a 3DGS-layout PLY (x, y, z, f_dc_0..2, opacity, scale_0..2, rot_0..3, as "
+                                 f"b3dgs-export writes); {p!r} is missing")
     rest_idx = sorted(int(mt.group(1)) for p in props if (mt := _REST_RE.match(p)))
     if rest_idx != list(range(len(rest_idx))):
         missing = sorted(set(range(max(rest_idx) + 1)) - set(rest_idx))
-        raise B3dgsError(f"{path}: PLY file lacks vertex property 'f_rest_{missing[0]}' (f_rest_* must be contiguous)")
+        raise B3dgsError(f"{path}: PLY file lacks vertex property 'f_rest_{missing[0]}' (f_rest_* must be contiguous)",
+                         fix="pass a 3DGS-layout PLY whose f_rest_0 .. f_rest_{3K-1} are all present (as "
+                             "b3dgs-export writes)")
     if len(rest_idx) % 3:
-        raise B3dgsError(f"{path}: {len(rest_idx)} f_rest_* properties, not a multiple of 3 colour channels")
+        raise B3dgsError(f"{path}: {len(rest_idx)} f_rest_* properties, not a multiple of 3 colour channels",
+                         fix="pass a 3DGS-layout PLY with 0, 9, 24 or 45 f_rest_* properties (SH degree 0-3, three "
+                             "colour channels)")
     k = len(rest_idx) // 3
     n = len(arr)
 
@@ -213,7 +236,9 @@ def read_ply(path: str | os.PathLike) -> dict:
     for name, a in list(out.items()) + [(f"extra[{k!r}]", v) for k, v in extra.items()]:
         if not np.isfinite(a).all():
             bad = int((~np.isfinite(a)).reshape(n, -1).any(axis=1).sum()) if n else 0
-            raise B3dgsError(f"{path}: {name} has non-finite values in {bad} of {n} vertices")
+            raise B3dgsError(f"{path}: {name} has non-finite values in {bad} of {n} vertices",
+                             fix="pass a PLY with finite values only; re-export the run with b3dgs-export, or drop "
+                                 "those vertices first")
 
     result = {key: torch.from_numpy(np.ascontiguousarray(v)) for key, v in out.items()}
     result["extra"] = {key: torch.from_numpy(np.ascontiguousarray(v)) for key, v in extra.items()}
@@ -240,7 +265,8 @@ def transform_gaussians(means: Tensor, scales_log: Tensor, quats: Tensor, scale:
     ``log(scale)`` added to every log-scale, each quaternion (w, x, y, z) left-multiplied by ``rotation``'s (its
     covariance becomes ``s² R Σ Rᵀ``). Computed in float64, returned in the input dtype."""
     if not (scale > 0 and np.isfinite(scale)):
-        raise B3dgsError(f"transform_gaussians: scale must be a positive finite number, got {scale}")
+        raise B3dgsError(f"transform_gaussians: scale must be a positive finite number, got {scale}",
+                         fix="pass scale > 0 and finite (1.0 keeps the size)")
     R = np.eye(3) if rotation is None else np.asarray(rotation, np.float64)
     t = np.zeros(3) if translation is None else np.asarray(translation, np.float64)
     dt = means.dtype
@@ -269,7 +295,9 @@ def write_splats(path: str | os.PathLike, splats: Mapping[str, Tensor], transfor
     if transform is not None:
         rot = np.asarray(transform.rotation, np.float64)
         if shN.shape[1] and not np.allclose(rot, np.eye(3), atol=1e-12):
-            raise B3dgsError("write_splats: a rotating transform would need the f_rest_* SH coefficients rotated too")
+            raise B3dgsError("write_splats: a rotating transform would need the f_rest_* SH coefficients rotated too",
+                             fix="pass a transform whose rotation is the identity (scale and translation only), or "
+                                 "splats with an empty shN (SH degree 0)")
         means, scales, quats = transform_gaussians(means, scales, quats, float(transform.scale), rot,
                                                    transform.translation)
     return write_ply(path, means, scales, quats, splats["opacities"], splats["sh0"][:, 0], shN, extra=extra,

@@ -30,18 +30,26 @@ class Camera:
 
     def __post_init__(self) -> None:
         if tuple(self.K.shape) != (3, 3):
-            raise B3dgsError(f"Camera {self.name!r}: K must be (3, 3), got {tuple(self.K.shape)}")
+            raise B3dgsError(f"Camera {self.name!r}: K must be (3, 3), got {tuple(self.K.shape)}",
+                             fix="pass K as a (3, 3) pinhole intrinsics matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
         if tuple(self.viewmat.shape) != (4, 4):
-            raise B3dgsError(f"Camera {self.name!r}: viewmat must be (4, 4), got {tuple(self.viewmat.shape)}")
+            raise B3dgsError(f"Camera {self.name!r}: viewmat must be (4, 4), got {tuple(self.viewmat.shape)}",
+                             fix="pass viewmat as a (4, 4) world-to-camera matrix (append the row [0, 0, 0, 1] to a "
+                                 "3x4 [R|t])")
         if self.width <= 0 or self.height <= 0:
-            raise B3dgsError(f"Camera {self.name!r}: width/height must be positive, got {self.width}x{self.height}")
+            raise B3dgsError(f"Camera {self.name!r}: width/height must be positive, got {self.width}x{self.height}",
+                             fix="pass the image's width and height in pixels, both > 0")
         if self.image is not None and tuple(self.image.shape) != (self.height, self.width, 3):
             raise B3dgsError(
                 f"Camera {self.name!r}: image must be (H, W, 3) = ({self.height}, {self.width}, 3), "
                 f"got {tuple(self.image.shape)}"
-            )
+,
+                      fix="pass the image at the camera's size, a float tensor of shape (height, width, 3), or scale "
+                          "K to the image's size")
         if not torch.isfinite(self.K).all() or not torch.isfinite(self.viewmat).all():
-            raise B3dgsError(f"Camera {self.name!r}: K or viewmat contains NaN/Inf")
+            raise B3dgsError(f"Camera {self.name!r}: K or viewmat contains NaN/Inf",
+                             fix="pass finite intrinsics and pose; repair that camera's entry in the scene's poses "
+                                 "file")
 
     def focal_max(self) -> float:
         """max(fx, fy) as a Python float, read once per camera object (a device copy made by :meth:`to` inherits the
@@ -104,7 +112,8 @@ def fit_size(width: float, height: float, max_side: Optional[int], *, upscale: b
     rendered frames, the viewer's frames). ``max_side=None``, or an image already that small without ``upscale``,
     keeps the size; ``max_side <= 0`` is a ValueError."""
     if max_side is not None and max_side <= 0:
-        raise B3dgsError(f"max_side must be positive, got {max_side}")
+        raise B3dgsError(f"max_side must be positive, got {max_side}",
+                         fix="pass max_side as a positive number of pixels, or None to keep the size")
     if max_side is None or (not upscale and max(width, height) <= max_side):
         return int(width), int(height)
     s = max_side / max(width, height)

@@ -6,6 +6,7 @@ The test reads every ``.py`` of ``b3dgs/`` and ``plugins/`` with ``ast`` and fin
 * every ``raise`` of a built-in exception class (``ValueError``, ``FileNotFoundError``, ``RuntimeError``, ...),
 * every ``raise`` of an exception class of the package that is no ``B3dgsError``,
 * every ``B3dgsError`` (or subclass) built with ``"(fix:"`` in its message text,
+* every ``B3dgsError`` (or subclass) built without a fix (neither a second positional argument nor ``fix=``),
 
 and fails unless each one is in :data:`ALLOWED` (programming errors a user cannot cause, with the reason) or in
 :data:`PENDING` (raises in files another change is rewriting; that change converts them and deletes their lines).
@@ -55,6 +56,8 @@ ALLOWED = {
         "internal signal, caught in the same function and re-raised as B3dgsError naming the damaged file",
     ("b3dgs/rundir.py", "ValueError", "not a file name relative to a run dir"):
         "programming error: a b3dgs writer passed a bad name to the manifest (users never name these files)",
+    ("b3dgs/uq/store.py", "B3dgsError", "not a JSON object"):
+        "internal signal, caught in the same function and re-raised as B3dgsError naming the damaged file, with its fix",
 }
 
 # ------------------------------------------------------------------------------------------------------------------
@@ -113,9 +116,19 @@ def scan(modules) -> list[tuple[str, int, str, str, str]]:
                     found.append((rel, node.lineno, name, _message(call) if call else "", "a built-in exception"))
                 elif name in foreign:
                     found.append((rel, node.lineno, name, _message(call) if call else "", "not a B3dgsError"))
-            if isinstance(node, ast.Call) and _name(node.func) in ours and "(fix:" in _message(node):
-                found.append((rel, node.lineno, _name(node.func), _message(node), '"(fix:" written into the text'))
+            if isinstance(node, ast.Call) and _name(node.func) in ours:
+                if "(fix:" in _message(node):
+                    found.append((rel, node.lineno, _name(node.func), _message(node), '"(fix:" written into the text'))
+                if not _has_fix(node):
+                    found.append((rel, node.lineno, _name(node.func), _message(node), "no fix"))
     return found
+
+
+def _has_fix(call: ast.Call) -> bool:
+    """Whether a ``B3dgsError(...)`` call passes a fix: a second positional argument, ``fix=``, or ``*args`` /
+    ``**kwargs`` (which may carry one)."""
+    return (len(call.args) >= 2 or any(isinstance(a, ast.Starred) for a in call.args)
+            or any(k.arg in ("fix", None) for k in call.keywords))
 
 
 def _key(entry, finding) -> bool:
@@ -140,18 +153,24 @@ def test_the_scan_finds_each_form(tmp_path):
         "    if x == 8: raise e\n"
         "    if x == 9: raise\n"
         "    err = B3dgsError('made here (fix: z)')\n"
-        "    raise NotImplementedError\n")
+        "    raise NotImplementedError\n"
+        "    if x == 10: raise B3dgsError(f'bad {x}')\n"
+        "    if x == 11: raise Mine(problem='bad')\n"
+        "    if x == 12: raise B3dgsError(*pair)\n"
+        "    if x == 13: raise B3dgsError(**parts)\n")
     got = [(line, name, what) for _, line, name, _, what in scan(_modules(("b3dgs",), tmp_path))]
     assert sorted(got) == [(5, "ValueError", "a built-in exception"), (6, "KeyError", "a built-in exception"),
                            (7, "Other", "not a B3dgsError"), (8, "B3dgsError", '"(fix:" written into the text'),
-                           (9, "Mine", '"(fix:" written into the text'), (14, "B3dgsError", '"(fix:" written into the text'),
-                           (15, "NotImplementedError", "a built-in exception")]
+                           (8, "B3dgsError", "no fix"), (9, "Mine", '"(fix:" written into the text'),
+                           (9, "Mine", "no fix"), (14, "B3dgsError", '"(fix:" written into the text'),
+                           (14, "B3dgsError", "no fix"), (15, "NotImplementedError", "a built-in exception"),
+                           (16, "B3dgsError", "no fix"), (17, "Mine", "no fix")]
 
 
 def test_every_deliberate_error_is_a_b3dgs_error_with_its_fix():
     bad = [f for f in scan(_modules()) if not any(_key(e, f) for e in (*ALLOWED, *PENDING))]
-    assert not bad, ("raise B3dgsError(problem, fix) for an error a user can cause (or add a programming error to "
-                     "ALLOWED with its reason):\n" + "\n".join(f"  {p}:{n}: {e}({t!r}): {w}" for p, n, e, t, w in bad))
+    assert not bad, ("raise B3dgsError(problem, fix=...) for an error a user can cause, its fix naming what the "
+                     "caller should do (or add a programming error to ALLOWED with its reason):\n" + "\n".join(f"  {p}:{n}: {e}({t!r}): {w}" for p, n, e, t, w in bad))
 
 
 def test_every_allow_list_entry_is_current_and_has_a_reason():

@@ -184,9 +184,10 @@ def _intrinsics(cam: Any, image_name: str) -> np.ndarray:
     else:
         raise B3dgsError(
             f"COLMAP camera {cam.camera_id} (used by image {image_name!r}) has the distorted model "
-            f"{model}; only {' / '.join(PINHOLE_MODELS)} are supported. Undistort the images first, e.g. "
-            f"`colmap image_undistorter --image_path images --input_path sparse/0 --output_path undistorted` "
-            f"or `pycolmap.undistort_images(output_path, input_path, image_path)`, and load the result."
+            f"{model}; only {' / '.join(PINHOLE_MODELS)} are supported",
+            fix="undistort the images first, e.g. `colmap image_undistorter --image_path images --input_path "
+                "sparse/0 --output_path undistorted` or `pycolmap.undistort_images(output_path, input_path, "
+                "image_path)`, and point data.path at the result",
         )
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
@@ -213,7 +214,9 @@ def read_colmap(
     try:
         rec = pycolmap.Reconstruction(str(model_dir))
     except Exception as e:  # pycolmap raises plain RuntimeError/ValueError on bad files
-        raise B3dgsError(f"Cannot read COLMAP model in {model_dir}: {e}") from e
+        raise B3dgsError(f"Cannot read COLMAP model in {model_dir}: {e}",
+                         fix="point data.path at a scene folder whose sparse/0 holds a complete COLMAP model "
+                             "(cameras, images, points3D), or rebuild it with b3dgs-process") from e
 
     frames = []
     skipped = []
@@ -229,7 +232,9 @@ def read_colmap(
     if skipped:
         log.warning("COLMAP: %d unregistered images skipped (%s...)", len(skipped), ", ".join(skipped[:3]))
     if not frames:
-        raise B3dgsError(f"COLMAP model in {model_dir} has no registered images")
+        raise B3dgsError(f"COLMAP model in {model_dir} has no registered images",
+                         fix="rerun COLMAP's mapper (or b3dgs-process) until images register, and point data.path at "
+                             "that model")
     frames.sort(key=lambda f: f.name)
     if images_dir != "images":  # e.g. Mip-NeRF 360's images_4: a uniform downscale of the model's cameras
         frames = [_at_file_size(f) for f in frames]

@@ -30,7 +30,9 @@ class CameraDataset(Dataset):
 def camera_collate(batch: list[Camera]) -> Camera:
     """Batches hold exactly one camera; return the Camera itself."""
     if len(batch) != 1:
-        raise B3dgsError(f"camera batches must have size 1, got {len(batch)}")
+        raise B3dgsError(f"camera batches must have size 1, got {len(batch)}",
+                         fix="build the DataLoader with batch_size=1 (b3dgs trains on one camera per step), as "
+                             "SceneDataModule does")
     return batch[0]
 
 

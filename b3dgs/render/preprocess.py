@@ -228,7 +228,8 @@ def preprocess(params: Mapping[str, Tensor], camera: Camera, S: int, sh_degree: 
     """
     fn = _BACKENDS.get(backend)
     if fn is None:
-        raise B3dgsError(f"preprocess: backend must be one of {sorted(_BACKENDS)}, got {backend!r}")
+        raise B3dgsError(f"preprocess: backend must be one of {sorted(_BACKENDS)}, got {backend!r}",
+                         fix=f"pass backend= one of {sorted(_BACKENDS)} (renderer=cpu and renderer=torch choose it)")
     deg = effective_sh_degree(sh_degree, params.get("shN"))
     if backend == "cpu":
         pre, (quat_zero, quat_extreme, scale_over) = _preprocess_cpu(params, camera, S, deg, near)

@@ -60,7 +60,8 @@ def covariance_3d(quats: Tensor, log_scales: Tensor) -> Tensor:
 def sh_basis(degree: int, dirs: Tensor) -> Tensor:
     """Real SH basis values of degree 0..3 at unit directions (…, 3) -> (…, (degree+1)²)."""
     if degree < 0 or degree > 3:
-        raise B3dgsError(f"SH degree must be in 0..3, got {degree}")
+        raise B3dgsError(f"SH degree must be in 0..3, got {degree}",
+                         fix="pass an SH degree of 0, 1, 2 or 3 (model.sh_degree for b3dgs-train)")
     x, y, z = dirs[..., 0], dirs[..., 1], dirs[..., 2]
     out = [torch.full_like(x, SH_C0)]
     if degree >= 1:
@@ -81,7 +82,9 @@ def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
     """Evaluate real SH of degree 0..3. coeffs (…, B, 3) with B >= (degree+1)², dirs (…, 3) unit."""
     nb = (degree + 1) ** 2
     if coeffs.shape[-2] < nb:
-        raise B3dgsError(f"eval_sh: degree {degree} needs {nb} coefficients, got {coeffs.shape[-2]}")
+        raise B3dgsError(f"eval_sh: degree {degree} needs {nb} coefficients, got {coeffs.shape[-2]}",
+                         fix=f"pass coeffs with at least {nb} SH coefficients per Gaussian (sh0 and shN "
+                             "concatenated), or a lower degree")
     if degree == 0:
         return SH_C0 * coeffs[..., 0, :]
     basis = sh_basis(degree, dirs.detach() if not dirs.requires_grad else dirs)

@@ -86,23 +86,32 @@ def bin_gaussians(
     C++ (a stable counting sort by tile over the depth order).
     """
     if means2d.dim() != 3 or means2d.shape[-1] != 2:
-        raise B3dgsError(f"bin_gaussians: means2d must be (S, N, 2), got {_shape_str(means2d)}")
+        raise B3dgsError(f"bin_gaussians: means2d must be (S, N, 2), got {_shape_str(means2d)}",
+                         fix="pass means2d as the projected 2-D centres, a float tensor of shape (S, N, 2) "
+                             "(b3dgs.render.projection's output)")
     S, N = means2d.shape[:2]
     if tuple(radii.shape) != (S, N):
-        raise B3dgsError(f"bin_gaussians: radii must be (S, N) = ({S}, {N}), got {_shape_str(radii)}")
+        raise B3dgsError(f"bin_gaussians: radii must be (S, N) = ({S}, {N}), got {_shape_str(radii)}",
+                         fix="pass radii with one entry per projected Gaussian, shape (S, N) like means2d[..., 0]")
     if tuple(depths.shape) != (S, N):
-        raise B3dgsError(f"bin_gaussians: depths must be (S, N) = ({S}, {N}), got {_shape_str(depths)}")
+        raise B3dgsError(f"bin_gaussians: depths must be (S, N) = ({S}, {N}), got {_shape_str(depths)}",
+                         fix="pass depths with one entry per projected Gaussian, shape (S, N) like means2d[..., 0]")
     if width <= 0 or height <= 0 or tile_size <= 0:
-        raise B3dgsError(f"bin_gaussians: bad width/height/tile_size {width}/{height}/{tile_size}")
+        raise B3dgsError(f"bin_gaussians: bad width/height/tile_size {width}/{height}/{tile_size}",
+                         fix="pass the image's width and height in pixels (> 0) and tile_size > 0, e.g. the default "
+                             "16")
     if extent is None:
         extent = radii.detach()[..., None].expand(S, N, 2)
     elif tuple(extent.shape) != (S, N, 2):
-        raise B3dgsError(f"bin_gaussians: extent must be (S, N, 2) = ({S}, {N}, 2), got {_shape_str(extent)}")
+        raise B3dgsError(f"bin_gaussians: extent must be (S, N, 2) = ({S}, {N}, 2), got {_shape_str(extent)}",
+                         fix="pass extent as per-axis pixel half-extents of shape (S, N, 2), or extent=None to use "
+                             "radii")
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
     fn = _BIN_BACKENDS.get(backend)
     if fn is None:
-        raise B3dgsError(f"bin_gaussians: backend must be one of {BACKENDS}, got {backend!r}")
+        raise B3dgsError(f"bin_gaussians: backend must be one of {BACKENDS}, got {backend!r}",
+                         fix=f"pass backend= one of {BACKENDS} (renderer=cpu uses cpu, renderer=torch uses torch)")
     return fn(means2d, radii, depths, extent, width, height, tile_size, tiles_x, tiles_y)
 
 
@@ -179,50 +188,66 @@ _BIN_BACKENDS = {"cpu": _bin_cpu, "torch": _bin_torch}
 # --------------------------------------------------------------------------------------------
 def _check_inputs(means2d, conics, colors, opacities, depths, bins, width, height, background, backend):
     if backend not in BACKENDS:
-        raise B3dgsError(f"rasterize: backend must be one of {BACKENDS}, got {backend!r}")
+        raise B3dgsError(f"rasterize: backend must be one of {BACKENDS}, got {backend!r}",
+                         fix=f"pass backend= one of {BACKENDS} (renderer=cpu uses cpu, renderer=torch uses torch)")
     if not isinstance(means2d, Tensor) or means2d.dim() != 3 or means2d.shape[-1] != 2:
-        raise B3dgsError(f"rasterize: means2d must be a (S, N, 2) tensor, got {_shape_str(means2d) if isinstance(means2d, Tensor) else type(means2d)}")
+        raise B3dgsError(f"rasterize: means2d must be a (S, N, 2) tensor, got {_shape_str(means2d) if isinstance(means2d, Tensor) else type(means2d)}",
+                         fix="pass means2d as the projected 2-D centres, a float tensor of shape (S, N, 2) "
+                             "(b3dgs.render.projection's output)")
     S, N = means2d.shape[:2]
     dtype = means2d.dtype
     if dtype not in (torch.float32, torch.float64):
-        raise B3dgsError(f"rasterize: means2d must be float32 or float64, got {dtype}")
+        raise B3dgsError(f"rasterize: means2d must be float32 or float64, got {dtype}",
+                         fix="cast the inputs to float32 (or all to float64) before rasterize, e.g. means2d.float()")
     expected = {"conics": (conics, (S, N, 3)), "colors": (colors, (S, N, 3)),
                 "opacities": (opacities, (S, N)), "depths": (depths, (S, N))}
     for name, (t, shape) in expected.items():
         if not isinstance(t, Tensor):
-            raise B3dgsError(f"rasterize: {name} must be a tensor, got {type(t)}")
+            raise B3dgsError(f"rasterize: {name} must be a tensor, got {type(t)}",
+                             fix=f"pass {name} as a torch tensor (convert numpy arrays with torch.from_numpy)")
         if tuple(t.shape) != shape:
-            raise B3dgsError(f"rasterize: {name} must have shape {shape}, got {_shape_str(t)}")
+            raise B3dgsError(f"rasterize: {name} must have shape {shape}, got {_shape_str(t)}",
+                             fix=f"pass {name} with shape {shape}: one row per Gaussian of means2d, S = number of "
+                                 "cameras")
         if t.dtype != dtype:
-            raise B3dgsError(f"rasterize: {name} has dtype {t.dtype}, expected {dtype} (same as means2d)")
+            raise B3dgsError(f"rasterize: {name} has dtype {t.dtype}, expected {dtype} (same as means2d)",
+                             fix=f"cast {name} to {dtype}, the dtype of means2d (e.g. {name}.to(means2d.dtype))")
     if not isinstance(background, Tensor) or tuple(background.shape) != (3,):
         raise B3dgsError(f"rasterize: background must be a (3,) tensor, got "
-                         f"{_shape_str(background) if isinstance(background, Tensor) else type(background)}")
+                         f"{_shape_str(background) if isinstance(background, Tensor) else type(background)}",
+                         fix="pass background as a float tensor of 3 RGB values, e.g. torch.ones(3) for white")
     for name, t in (("means2d", means2d), ("conics", conics), ("colors", colors),
                     ("opacities", opacities), ("depths", depths), ("background", background)):
         need = _BACKEND_DEVICE_TYPE[backend] or means2d.device.type
         if t.device != means2d.device or t.device.type != need:
             raise B3dgsError(f"rasterize: {name} is on {t.device}; the {backend} backend needs every input on "
-                             f"one {need} device")
+                             f"one {need} device",
+                             fix=f"move every input to one {need} device (.to(means2d.device)); renderer.device_name "
+                                 "picks it for b3dgs-train")
     # the C++ backend checks finiteness and Gaussian ids inside its own passes (_raise_bad_inputs)
     if backend != "cpu":
         _check_finite(means2d=means2d, conics=conics, colors=colors, opacities=opacities, depths=depths)
     _check_finite(background=background)
     if width <= 0 or height <= 0:
-        raise B3dgsError(f"rasterize: width/height must be positive, got {width}x{height}")
+        raise B3dgsError(f"rasterize: width/height must be positive, got {width}x{height}",
+                         fix="pass the image's width and height in pixels, both > 0 (camera.width, camera.height)")
     ts = bins.tile_size
     if bins.tiles_x != (width + ts - 1) // ts or bins.tiles_y != (height + ts - 1) // ts:
         raise B3dgsError(f"rasterize: bins ({bins.tiles_x}x{bins.tiles_y} tiles of {ts}) do not match "
-                         f"the image size {width}x{height}")
+                         f"the image size {width}x{height}",
+                         fix="rebuild the bins with bin_gaussians(..., width, height) for this image size before "
+                             "rasterize")
     if bins.tile_offsets.dtype != torch.int64 or tuple(bins.tile_offsets.shape) != (bins.num_tiles + 1,):
         raise B3dgsError(f"rasterize: bins.tile_offsets must be int64 ({bins.num_tiles + 1},), got "
-                         f"{bins.tile_offsets.dtype} {_shape_str(bins.tile_offsets)}")
+                         f"{bins.tile_offsets.dtype} {_shape_str(bins.tile_offsets)}",
+                         fix="pass the TileBins that bin_gaussians returned, unchanged")
     if bins.flat_ids.dtype != torch.int64 or bins.flat_ids.dim() != 1:
         raise B3dgsError(f"rasterize: bins.flat_ids must be int64 (P,), got {bins.flat_ids.dtype} "
-                         f"{_shape_str(bins.flat_ids)}")
+                         f"{_shape_str(bins.flat_ids)}", fix="pass the TileBins that bin_gaussians returned, unchanged")
     P = bins.num_pairs
     if int(bins.tile_offsets[0]) != 0 or int(bins.tile_offsets[-1]) != P:
-        raise B3dgsError("rasterize: bins.tile_offsets must start at 0 and end at len(flat_ids)")
+        raise B3dgsError("rasterize: bins.tile_offsets must start at 0 and end at len(flat_ids)",
+                         fix="pass the TileBins that bin_gaussians returned, unchanged")
     if backend != "cpu" and P > 0 and (int(bins.flat_ids.min()) < 0 or int(bins.flat_ids.max()) >= N):
         _raise_stale_bins(N)
 
@@ -230,11 +255,15 @@ def _check_inputs(means2d, conics, colors, opacities, depths, bins, width, heigh
 def _check_finite(**tensors: Tensor) -> None:
     for name, t in tensors.items():
         if not bool(torch.isfinite(t.detach()).all()):
-            raise B3dgsError(f"rasterize: {name} contains NaN or Inf")
+            raise B3dgsError(f"rasterize: {name} contains NaN or Inf",
+                             fix="the Gaussians hold NaN/Inf (training diverged): lower the learning rates (e.g. "
+                                 "model.lr_means) or check the data")
 
 
 def _raise_stale_bins(n: int) -> None:
-    raise B3dgsError(f"rasterize: bins.flat_ids out of range for N={n} Gaussians (stale bins?)")
+    raise B3dgsError(f"rasterize: bins.flat_ids out of range for N={n} Gaussians (stale bins?)",
+                     fix="rebuild the bins with bin_gaussians after the Gaussians were added or pruned, before "
+                         "rasterize")
 
 
 def _raise_bad_inputs(flags: Tensor, n: int, **tensors: Tensor) -> None:
@@ -244,7 +273,9 @@ def _raise_bad_inputs(flags: Tensor, n: int, **tensors: Tensor) -> None:
         _raise_stale_bins(n)
     if nonfinite:
         _check_finite(**tensors)  # names the first tensor holding a NaN / Inf
-        raise B3dgsError("rasterize: an input contains NaN or Inf")
+        raise B3dgsError("rasterize: an input contains NaN or Inf",
+                         fix="the Gaussians hold NaN/Inf (training diverged): lower the learning rates (e.g. "
+                             "model.lr_means) or check the data")
 
 
 # --------------------------------------------------------------------------------------------

@@ -51,7 +51,9 @@ def check_render_params(params: Mapping[str, Tensor]) -> tuple[int, int, bool]:
     required = ("means", "opacities", "sh0") + (() if "covars" in params else ("quats", "scales"))
     missing = [k for k in required if k not in params]
     if missing:
-        raise B3dgsError(f"render: missing Gaussian parameters {missing}")
+        raise B3dgsError(f"render: missing Gaussian parameters {missing}",
+                         fix="pass every Gaussian parameter: means, opacities, sh0, and quats + scales (or covars), "
+                             "e.g. module.params()")
     means = params["means"]
     n = means.shape[-2]
     s, batched = 1, False
@@ -67,10 +69,14 @@ def check_render_params(params: Mapping[str, Tensor]) -> tuple[int, int, bool]:
             tail_dims = len(tail)
             ok = t.dim() in (1 + tail_dims, 2 + tail_dims) and tuple(t.shape[t.dim() - tail_dims:]) == tail
         if not ok or t.shape[t.dim() - tail_dims - 1] != n:
-            raise B3dgsError(f"render: parameter {name!r} has shape {tuple(t.shape)}; expected ([S,] {n}, ...)")
+            raise B3dgsError(f"render: parameter {name!r} has shape {tuple(t.shape)}; expected ([S,] {n}, ...)",
+                             fix=f"pass {name!r} with one row per Gaussian ({n}), optionally after a leading sample "
+                                 "dimension S")
         if t.dim() == 2 + tail_dims:
             if s != 1 and t.shape[0] not in (1, s):
-                raise B3dgsError(f"render: inconsistent sample dimension for {name!r}: {t.shape[0]} vs {s}")
+                raise B3dgsError(f"render: inconsistent sample dimension for {name!r}: {t.shape[0]} vs {s}",
+                                 fix=f"give {name!r} the same leading sample dimension S as the other sampled "
+                                     "parameters (or 1 to share it)")
             s, batched = max(s, t.shape[0]), True
     return s, n, batched
 

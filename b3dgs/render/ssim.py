@@ -32,7 +32,9 @@ def ssim_separable(pred: Tensor, gt: Tensor) -> Tensor:
     """The same SSIM as :func:`b3dgs.metrics.image.ssim` for one (H, W, 3) pair, with the 11x11 Gaussian window applied as
     two 1-D passes (kornia's Gaussian kernel): about 5x cheaper, for the training loss. Differentiable."""
     if pred.shape != gt.shape or pred.dim() != 3 or pred.shape[-1] != 3:
-        raise B3dgsError(f"ssim_separable: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
+        raise B3dgsError(f"ssim_separable: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}",
+                         fix="pass the render and the ground truth of one view as two (H, W, 3) tensors of the same "
+                             "size")
     kx, ky = _separable_window(pred.device, pred.dtype)
     a = pred.permute(2, 0, 1).unsqueeze(0)
     b = gt.to(pred.dtype).permute(2, 0, 1).unsqueeze(0)
@@ -66,5 +68,7 @@ def ssim_fused(pred: Tensor, gt: Tensor) -> Tensor:
     """:func:`ssim_separable` computed by the C++ extension together with its gradient (one pass over
     the image instead of ~20 autograd ops; the training loss of ``renderer=cpu``). gt gets no gradient."""
     if pred.shape != gt.shape or pred.dim() != 3 or pred.shape[-1] != 3:
-        raise B3dgsError(f"ssim_fused: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}")
+        raise B3dgsError(f"ssim_fused: expected two (H, W, 3) images, got {tuple(pred.shape)} and {tuple(gt.shape)}",
+                         fix="pass the render and the ground truth of one view as two (H, W, 3) tensors of the same "
+                             "size")
     return _SSIMFused.apply(pred, gt.to(pred.dtype).detach())

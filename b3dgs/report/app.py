@@ -327,7 +327,8 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
     """Write the report for ``cfg`` (conf/report.yaml); returns the written paths."""
     patterns = _as_list(cfg.get("runs"))
     if not patterns:
-        raise ReportError("runs= is empty: pass a glob of finished run dirs, e.g. b3dgs-report runs='outputs/train/*'")
+        raise ReportError("runs= is empty",
+                          fix="pass a glob of finished run dirs, e.g. b3dgs-report runs='outputs/train/*'")
     if cfg.get("pair") is not None and len(_as_list(cfg.pair)) != 2:
         raise ReportError(f"pair={_as_list(cfg.pair)} names {len(_as_list(cfg.pair))} methods; the paired analysis "
                           "takes two", "pass pair=[A,B] (first − second), e.g. pair=[niw,standard], or pair=null")

@@ -123,7 +123,9 @@ def _read_json(path: Path) -> Any:
     try:
         return json.loads(path.read_text())
     except (OSError, ValueError) as e:
-        raise ReportError(f"cannot read {path}: {e}") from e
+        raise ReportError(f"cannot read {path}: {e}",
+                          fix="restore or regenerate that file (b3dgs-train writes metrics.json, b3dgs-eval uq.json), "
+                              "or leave its run out of runs=") from e
 
 
 @lru_cache(maxsize=1)
@@ -180,14 +182,18 @@ def read_run(path: Path) -> Run:
     try:
         cfg = upgrade_targets(OmegaConf.to_container(OmegaConf.load(path / "config.yaml"), resolve=False))
     except Exception as e:  # yaml errors come in many types
-        raise ReportError(f"cannot read {path / 'config.yaml'}: {e}") from e
+        raise ReportError(f"cannot read {path / 'config.yaml'}: {e}",
+                          fix="restore that run dir's config.yaml (b3dgs-train writes it), or leave the run out of "
+                              "runs=") from e
     metrics = _read_json(path / "metrics.json")
     try:
         scene, seed, _ = str(cfg["data"]["name"]), int(cfg["seed"]), cfg["model"]["name"]
         method = method_label(cfg)
     except (KeyError, TypeError, ValueError) as e:
         raise ReportError(f"{path / 'config.yaml'} lacks data.name, model.name or seed ({e}); "
-                          "is it a b3dgs-train run dir?") from e
+                          "is it a b3dgs-train run dir?",
+                          fix="narrow runs= to b3dgs-train run dirs (each with the config.yaml b3dgs-train "
+                              "wrote)") from e
     curve = _read_json(path / "curve.json").get("points", []) if (path / "curve.json").is_file() else []
     check_own_records(path, metrics, curve)
     uq = _own_uq(path, metrics)
@@ -313,9 +319,10 @@ def load_runs(patterns: Sequence[str] | str, on_duplicate: str = "error", group_
     finished, unfinished, uq_files = find_runs(patterns)
     if not finished:
         extra = f" ({len(unfinished)} unfinished: no metrics.json)" if unfinished else ""
-        raise ReportError(f"no finished run dirs matched runs={patterns}{extra}; pass a glob of b3dgs-train "
-                          "run dirs, e.g. runs='outputs/train/*' (b3dgs-train's own; a -m sweep's are "
-                          "in outputs/multirun/<time>/*; quote the glob so the shell does not expand it)")
+        raise ReportError(f"no finished run dirs matched runs={patterns}{extra}",
+                          fix="pass a glob of b3dgs-train run dirs, e.g. runs='outputs/train/*' (b3dgs-train's own; "
+                              "a -m sweep's are in outputs/multirun/<time>/*; quote the glob so the shell does not "
+                              "expand it)")
     keyed: dict[tuple, Run] = {}
     for path in finished:
         run = read_run(path)
@@ -324,7 +331,7 @@ def load_runs(patterns: Sequence[str] | str, on_duplicate: str = "error", group_
         if old is not None:
             if on_duplicate != "newest":
                 raise ReportError(f"two finished runs share (study, level, scene, method, seed)={run.key}: "
-                                  f"{old.path} and {run.path}; narrow runs= or pass on_duplicate=newest")
+                                  f"{old.path} and {run.path}", fix="narrow runs= or pass on_duplicate=newest")
             newer = (run.path / "metrics.json").stat().st_mtime > (old.path / "metrics.json").stat().st_mtime
             run = run if newer else old
         keyed[run.key] = run

@@ -47,7 +47,9 @@ def support_scores(data_cfg: dict) -> dict[str, float]:
             dm = data_module(OmegaConf.create(data_cfg))
         except Exception as e:  # missing scene files, changed paths
             raise ReportError(f"OOD study: cannot reload the scene of data={data_cfg.get('name')} "
-                              f"(path={data_cfg.get('path')}): {e}; pass ood.enabled=false to skip it") from e
+                              f"(path={data_cfg.get('path')}): {e}",
+                              fix="restore the scene at that path (the runs' data.path), or pass ood.enabled=false "
+                                  "to skip the OOD study") from e
         scene = dm.scene
         dist = support_distances([c.center.double().numpy() for c in scene.train],
                                  [c.center.double().numpy() for c in scene.test], scene.extent)
@@ -58,7 +60,9 @@ def support_scores(data_cfg: dict) -> dict[str, float]:
 def label_views(scores: Sequence[float], quantile: float) -> np.ndarray:
     """1 for OOD (>= the 1-q quantile), 0 for ID (<= the q quantile), -1 for the ignored middle band."""
     if not 0 < quantile < 0.5:
-        raise ReportError(f"ood.quantile={quantile} must lie in (0, 0.5) (ID and OOD bands may not overlap)")
+        raise ReportError(f"ood.quantile={quantile} must lie in (0, 0.5) (ID and OOD bands may not overlap)",
+                          fix="pass ood.quantile strictly between 0 and 0.5, e.g. the default 1/3 (the best- and "
+                              "worst-supported thirds of the test views)")
     s = np.asarray(scores, dtype=float)
     lo, hi = np.quantile(s, quantile), np.quantile(s, 1 - quantile)
     lab = np.full(s.shape, -1)

@@ -42,12 +42,15 @@ def training_mse(module: Any, cameras: Sequence[Any]) -> float:
     import torch
 
     if not cameras:
-        raise B3dgsError("training_mse needs at least one camera with an image")
+        raise B3dgsError("training_mse needs at least one camera with an image",
+                         fix="pass the scene's training cameras with their images (scene.train), at least one")
     total, count = 0.0, 0
     with torch.no_grad():
         for cam in cameras:
             if cam.image is None:
-                raise B3dgsError(f"camera {cam.name!r} has no image")
+                raise B3dgsError(f"camera {cam.name!r} has no image",
+                                 fix="pass cameras loaded with their images (the scene's train or calib views), not "
+                                     "image-less poses")
             img = module.render_eval(cam).detach().double().cpu()
             total += float((img - cam.image.double()).square().sum())
             count += img.numel()
@@ -83,12 +86,17 @@ def fit_scale_and_level(u: Iterable[float], r2: Iterable[float], channels: int =
     u = np.asarray(list(u) if not isinstance(u, np.ndarray) else u, np.float64).reshape(-1)
     r2 = np.asarray(list(r2) if not isinstance(r2, np.ndarray) else r2, np.float64).reshape(-1)
     if u.shape != r2.shape or u.size == 0:
-        raise B3dgsError(f"u and r2 must be non-empty and equally long ({u.size} vs {r2.size})")
+        raise B3dgsError(f"u and r2 must be non-empty and equally long ({u.size} vs {r2.size})",
+                         fix="pass one variance u per squared residual r2, from the same calibration pixels, "
+                             "non-empty")
     if not (np.all(np.isfinite(u)) and np.all(np.isfinite(r2))) or np.any(u < 0) or np.any(r2 < 0):
-        raise B3dgsError("u and r2 must be finite and >= 0")
+        raise B3dgsError("u and r2 must be finite and >= 0",
+                         fix="pass finite, non-negative variances u and squared residuals r2 (drop NaN pixels first)")
     mse = float(r2.mean() / channels)
     if not mse > 0:
-        raise B3dgsError("the calibration residuals are all zero: no aleatoric level can be fitted")
+        raise B3dgsError("the calibration residuals are all zero: no aleatoric level can be fitted",
+                         fix="calibrate on held-out views the model does not reproduce exactly: train with "
+                             "data.calib_every=16 and check the calibration images are not copies of training views")
     mean_u = float(u.mean())
     out = {"mse": mse, "mean_u": mean_u, "n_pixels": int(u.size), "channels": int(channels)}
     if not fit_scale or not mean_u > 0:
@@ -134,9 +142,12 @@ def conformal_scale(scores: Iterable[float], level: float = 0.95, z: Optional[fl
 
     t = np.sort(np.asarray(list(scores) if not isinstance(scores, np.ndarray) else scores, np.float64).reshape(-1))
     if t.size == 0 or not np.all(t >= 0) or np.any(np.isnan(t)):
-        raise B3dgsError("conformal scores must be a non-empty array of values >= 0")
+        raise B3dgsError("conformal scores must be a non-empty array of values >= 0",
+                         fix="pass non-negative normalised scores |r| / sigma from at least one calibration pixel, "
+                             "without NaN")
     if not 0 < level < 1:
-        raise B3dgsError(f"level must be in (0, 1), got {level}")
+        raise B3dgsError(f"level must be in (0, 1), got {level}",
+                         fix="pass level strictly between 0 and 1, e.g. the default 0.95")
     n = int(t.size)
     rank = int(math.ceil((n + 1) * level))
     q = float(t[rank - 1]) if rank <= n else float("inf")

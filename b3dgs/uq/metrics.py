@@ -119,7 +119,7 @@ AGGREGATION_NOTE = ("All scalars (AUSE and ECE included) are computed per view a
 # ------------------------------------------------------------------------------------ validation
 def _to_numpy(x: Any, name: str) -> np.ndarray:
     if x is None:
-        raise B3dgsError(f"{name} is None")
+        raise B3dgsError(f"{name} is None", fix=f"pass {name} as a numpy array or torch tensor")
     try:
         import torch
 
@@ -141,27 +141,40 @@ def _validate(mean: Any, var: Any, gt: Any, mask: Any = None
         if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
             raise TypeError(f"{name} must be a real numeric array, got dtype {a.dtype}")
     if mean.ndim != 3 or mean.shape[-1] != 3:
-        raise B3dgsError(f"mean must have shape (H, W, 3), got {tuple(mean.shape)}")
+        raise B3dgsError(f"mean must have shape (H, W, 3), got {tuple(mean.shape)}",
+                         fix="pass the rendered colour image as mean, a float array of shape (H, W, 3)")
     if gt.shape != mean.shape:
-        raise B3dgsError(f"gt shape {tuple(gt.shape)} does not match mean shape {tuple(mean.shape)}")
+        raise B3dgsError(f"gt shape {tuple(gt.shape)} does not match mean shape {tuple(mean.shape)}",
+                         fix="pass the ground-truth image of the same view at the rendered size, shape (H, W, 3) "
+                             "like mean")
     if var.ndim == 3 and var.shape[-1] == 1:
         var = var[..., 0]
     if var.shape != mean.shape[:2]:
         raise B3dgsError(f"var must have shape (H, W) = {tuple(mean.shape[:2])} "
-                         f"(one variance per pixel, shared by RGB), got {tuple(var.shape)}")
+                         f"(one variance per pixel, shared by RGB), got {tuple(var.shape)}",
+                         fix="pass one variance per pixel, shape (H, W) or (H, W, 1); reduce a per-channel (H, W, 3) "
+                             "variance with .mean(-1)")
     if mean.shape[0] * mean.shape[1] == 0:
-        raise B3dgsError("empty image")
+        raise B3dgsError("empty image", fix="pass a view with at least one pixel (H, W >= 1)")
     mean = mean.astype(np.float64, copy=False)
     gt = gt.astype(np.float64, copy=False)
     var = var.astype(np.float64, copy=False)
     if not np.all(np.isfinite(mean)):
-        raise B3dgsError("mean contains NaN or Inf")
+        raise B3dgsError("mean contains NaN or Inf",
+                         fix="the render is not finite: check the model (retrain, or lower the optimiser's learning "
+                             "rates) before scoring it")
     if not np.all(np.isfinite(gt)):
-        raise B3dgsError("gt contains NaN or Inf")
+        raise B3dgsError("gt contains NaN or Inf",
+                         fix="load the ground-truth image as finite floats in [0, 1] (b3dgs.data.images.load_image "
+                             "does)")
     if not np.all(np.isfinite(var)):
-        raise B3dgsError("var contains NaN or Inf")
+        raise B3dgsError("var contains NaN or Inf",
+                         fix="the UQ regime's predict returned a non-finite variance: check that regime (uq=...) and "
+                             "its posterior block")
     if np.any(var < 0):
-        raise B3dgsError(f"var must be >= 0 (min is {float(var.min())})")
+        raise B3dgsError(f"var must be >= 0 (min is {float(var.min())})",
+                         fix="pass variances >= 0 (a standard deviation squared); clip tiny negative rounding errors "
+                             "with numpy.clip(var, 0, None)")
     hw = tuple(int(d) for d in mean.shape[:2])
     mean = mean.reshape(-1, 3)
     gt = gt.reshape(-1, 3)
@@ -173,31 +186,38 @@ def _validate(mean: Any, var: Any, gt: Any, mask: Any = None
         if mask.ndim == 3 and mask.shape[-1] == 1:
             mask = mask[..., 0]
         if mask.shape != hw:
-            raise B3dgsError(f"mask must have shape (H, W) = {hw}, got {tuple(mask.shape)}")
+            raise B3dgsError(f"mask must have shape (H, W) = {hw}, got {tuple(mask.shape)}",
+                             fix="pass a bool mask of the image's shape (H, W), or mask=None to score every pixel")
         mask = mask.reshape(-1)
         mean, gt, var = mean[mask], gt[mask], var[mask]
         if var.size == 0:
-            raise B3dgsError("mask selects no pixels")
+            raise B3dgsError("mask selects no pixels", fix="pass a mask with at least one True pixel, or mask=None")
     return mean, var, gt
 
 
 def _check_fractions(fractions: Iterable[float] | None) -> np.ndarray:
     f = DEFAULT_FRACTIONS.copy() if fractions is None else np.asarray(list(fractions), dtype=np.float64)
     if f.ndim != 1 or f.size < 2:
-        raise B3dgsError("fractions must be a 1-D grid with at least two points")
+        raise B3dgsError("fractions must be a 1-D grid with at least two points",
+                         fix="pass fractions as a 1-D list of at least two values, e.g. [0, 0.01, ..., 0.99] (the "
+                             "default when None)")
     if not np.all(np.isfinite(f)) or f.min() < 0 or f.max() >= 1:
-        raise B3dgsError("fractions must lie in [0, 1)")
+        raise B3dgsError("fractions must lie in [0, 1)",
+                         fix="pass fractions in [0, 1), e.g. numpy.arange(100) / 100 (the default when None)")
     if np.any(np.diff(f) <= 0):
-        raise B3dgsError("fractions must be strictly increasing")
+        raise B3dgsError("fractions must be strictly increasing",
+                         fix="sort the fractions in ascending order and drop duplicates (numpy.unique does both)")
     return f
 
 
 def _check_levels(levels: Iterable[float] | None) -> np.ndarray:
     p = DEFAULT_LEVELS.copy() if levels is None else np.asarray(list(levels), dtype=np.float64)
     if p.ndim != 1 or p.size < 1:
-        raise B3dgsError("levels must be a non-empty 1-D grid")
+        raise B3dgsError("levels must be a non-empty 1-D grid",
+                         fix="pass levels as a 1-D list of at least one value, e.g. [0.05, 0.10, ..., 0.95] (the "
+                             "default when None)")
     if not np.all(np.isfinite(p)) or p.min() <= 0 or p.max() >= 1:
-        raise B3dgsError("levels must lie in (0, 1)")
+        raise B3dgsError("levels must lie in (0, 1)", fix="pass levels strictly between 0 and 1, e.g. [0.5, 0.9, 0.95]")
     return p
 
 
@@ -235,15 +255,20 @@ def sparsification(uncertainty: Any, error: Any, metric: str = "rmse",
     "ause_normalization", "metric"}``.
     """
     if metric not in ("rmse", "mae"):
-        raise B3dgsError(f"metric must be 'rmse' or 'mae', got {metric!r}")
+        raise B3dgsError(f"metric must be 'rmse' or 'mae', got {metric!r}", fix="pass metric='rmse' or metric='mae'")
     u = np.asarray(_to_numpy(uncertainty, "uncertainty"), dtype=np.float64).reshape(-1)
     e = np.asarray(_to_numpy(error, "error"), dtype=np.float64).reshape(-1)
     if u.shape != e.shape or u.size == 0:
-        raise B3dgsError(f"uncertainty and error must be non-empty and equally long ({u.size} vs {e.size})")
+        raise B3dgsError(f"uncertainty and error must be non-empty and equally long ({u.size} vs {e.size})",
+                         fix="pass one uncertainty per error value, both flattened from the same pixels and "
+                             "non-empty")
     if not (np.all(np.isfinite(u)) and np.all(np.isfinite(e))):
-        raise B3dgsError("uncertainty/error contain NaN or Inf")
+        raise B3dgsError("uncertainty/error contain NaN or Inf",
+                         fix="pass finite uncertainties and errors (drop NaN pixels with a mask first)")
     if np.any(e < 0):
-        raise B3dgsError("per-pixel error must be >= 0")
+        raise B3dgsError("per-pixel error must be >= 0",
+                         fix="pass a non-negative per-pixel error, e.g. the absolute or squared residual "
+                             "(per_pixel_errors gives both)")
     f = _check_fractions(fractions)
     removed = _removed_counts(u.size, f)
     # descending, stable: negate and use a stable ascending sort (ties keep the row-major order)
@@ -327,7 +352,7 @@ def gaussian_nll(mean: Any, var: Any, gt: Any, mask: Any = None,
 
 def _nll(m: np.ndarray, v: np.ndarray, g: np.ndarray, var_floor: float) -> dict:
     if not (var_floor > 0 and math.isfinite(var_floor)):
-        raise B3dgsError("var_floor must be a positive finite number")
+        raise B3dgsError("var_floor must be a positive finite number", fix="pass var_floor > 0, e.g. the default 1e-8")
     n_floored = int(np.count_nonzero(v < var_floor))
     vf = np.maximum(v, var_floor)[:, None]
     r2 = (g - m) ** 2
@@ -347,13 +372,15 @@ def spearman_rho(x: Any, y: Any, max_pixels: int | None = DEFAULT_MAX_SPEARMAN_P
     a = np.asarray(_to_numpy(x, "x"), dtype=np.float64).reshape(-1)
     b = np.asarray(_to_numpy(y, "y"), dtype=np.float64).reshape(-1)
     if a.shape != b.shape:
-        raise B3dgsError(f"x and y must have the same length ({a.size} vs {b.size})")
+        raise B3dgsError(f"x and y must have the same length ({a.size} vs {b.size})",
+                         fix="pass x and y flattened from the same pixels, so they have equal length")
     if a.size < 2:
-        raise B3dgsError("need at least two samples")
+        raise B3dgsError("need at least two samples",
+                         fix="pass at least two pixels (e.g. a mask with two or more True pixels)")
     if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
-        raise B3dgsError("x/y contain NaN or Inf")
+        raise B3dgsError("x/y contain NaN or Inf", fix="pass finite values (drop NaN pixels with a mask first)")
     if max_pixels is not None and max_pixels < 2:
-        raise B3dgsError("max_pixels must be >= 2")
+        raise B3dgsError("max_pixels must be >= 2", fix="pass max_pixels >= 2, or None to use every pixel")
     return _spearmanr(a, b, max_pixels, seed)
 
 
@@ -503,10 +530,13 @@ def summarize(per_view: Sequence[dict], keep_curves: bool = False) -> dict:
     """
     per_view = list(per_view)
     if not per_view:
-        raise B3dgsError("summarize needs at least one per-view result")
+        raise B3dgsError("summarize needs at least one per-view result",
+                         fix="pass the list of per-view results (b3dgs.uq.metrics.evaluate_view's dicts), with at "
+                             "least one view")
     norms = {d.get("ause_normalization") for d in per_view}
     if len(norms) > 1:
-        raise B3dgsError(f"per-view results mix AUSE normalisations: {sorted(map(str, norms))}")
+        raise B3dgsError(f"per-view results mix AUSE normalisations: {sorted(map(str, norms))}",
+                         fix="compute every view with the same normalize= setting before summarising them")
     keys = [k for k, x in per_view[0].items() if _is_scalar(x)]
     keys = [k for k in keys if all(_is_scalar(d.get(k)) for d in per_view)]
     out: dict[str, Any] = {"n_views": len(per_view)}

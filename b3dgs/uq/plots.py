@@ -66,7 +66,9 @@ def plot_sparsification(curves_by_regime: Mapping[str, Mapping], path: str | os.
     axis), so the figure is self-consistent whichever normalisation produced the curves.
     """
     if not curves_by_regime:
-        raise B3dgsError("curves_by_regime is empty")
+        raise B3dgsError("curves_by_regime is empty",
+                         fix="pass {regime name: sparsification curve} with at least one regime (b3dgs-eval's "
+                             "uq.json holds them)")
     fig = _new_figure((10.0, 4.0), dpi)
     axes = fig.subplots(1, 2)
     colors = [f"C{i % 10}" for i in range(len(curves_by_regime))]
@@ -98,7 +100,9 @@ def plot_reliability(levels_by_regime: Mapping[str, Mapping], path: str | os.Pat
     ``"calibration"`` entry is used), or a full evaluate_view / summarize result.
     """
     if not levels_by_regime:
-        raise B3dgsError("levels_by_regime is empty")
+        raise B3dgsError("levels_by_regime is empty",
+                         fix="pass {regime name: calibration result} with at least one regime (b3dgs-eval's uq.json "
+                             "holds them)")
     fig = _new_figure((5.0, 5.0), dpi)
     ax = fig.subplots()
     ax.plot([0, 1], [0, 1], color="0.5", lw=1.0, ls=":", label="ideal")
@@ -125,7 +129,8 @@ def _image(x: Any, name: str) -> np.ndarray:
     if a.ndim == 3 and a.shape[0] == 3 and a.shape[-1] != 3:  # CHW -> HWC
         a = np.moveaxis(a, 0, -1)
     if a.ndim != 3 or a.shape[-1] != 3:
-        raise B3dgsError(f"{name} must be an (H, W, 3) image, got shape {a.shape}")
+        raise B3dgsError(f"{name} must be an (H, W, 3) image, got shape {a.shape}",
+                         fix=f"pass {name} as an RGB image of shape (H, W, 3) (or (3, H, W))")
     return np.clip(np.nan_to_num(a), 0.0, 1.0)
 
 
@@ -136,7 +141,9 @@ def _map(x: Any, name: str, hw: tuple[int, int]) -> np.ndarray:
     if a.ndim == 3 and a.shape[-1] == 3:  # a per-channel map: average over RGB
         a = a.mean(axis=-1)
     if a.shape != hw:
-        raise B3dgsError(f"{name} must have shape {hw}, got {a.shape}")
+        raise B3dgsError(f"{name} must have shape {hw}, got {a.shape}",
+                         fix=f"pass {name} at the render's size {hw} (one value per pixel, or (H, W, 3) averaged "
+                             "over RGB)")
     return a
 
 
@@ -150,7 +157,8 @@ def plot_uncertainty_panel(render: Any, gt: Any, error_map: Any, uncertainty_map
     """
     r, g = _image(render, "render"), _image(gt, "gt")
     if r.shape != g.shape:
-        raise B3dgsError(f"render {r.shape} and gt {g.shape} differ in shape")
+        raise B3dgsError(f"render {r.shape} and gt {g.shape} differ in shape",
+                         fix="pass the render and the ground truth of the same view at the same size (H, W, 3)")
     hw = r.shape[:2]
     e, u = _map(error_map, "error_map", hw), _map(uncertainty_map, "uncertainty_map", hw)
     aspect = hw[1] / max(hw[0], 1)

@@ -45,14 +45,17 @@ class UQRegime:
 
     def validate(self, **kwargs) -> None:
         if self.samples < 1:
-            raise B3dgsError(f"{type(self).__name__}.samples must be >= 1, got {self.samples}")
+            raise B3dgsError(f"{type(self).__name__}.samples must be >= 1, got {self.samples}",
+                             fix="pass uq.samples >= 1 (b3dgs-eval uq.samples=50 is the default)")
         if self.chunk < 1:
-            raise B3dgsError(f"{type(self).__name__}.chunk must be >= 1")
+            raise B3dgsError(f"{type(self).__name__}.chunk must be >= 1",
+                             fix="pass the regime's chunk >= 1 (draws rendered together, e.g. uq.native_sh.chunk=10)")
 
     def fit(self, models: Sequence, scene: Scene) -> None:
         self.validate()
         if not models:
-            raise B3dgsError(f"{type(self).__name__} needs at least one trained model")
+            raise B3dgsError(f"{type(self).__name__} needs at least one trained model",
+                             fix="pass at least one trained SplatModule, e.g. [b3dgs.runs.load_run(run_dir).module]")
         self.models = list(models)
         self.scene = scene
         self.fit_info: dict = {}

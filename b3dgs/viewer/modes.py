@@ -153,11 +153,16 @@ class ModeRenderer:
     def __init__(self, module, scene: Scene, samples: int = 16, jitter: float = 0.002, sigma_max: float = 0.03,
                  depth_max: Optional[float] = None, seed: int = 0, count_scale: Optional[float] = 0.1) -> None:
         if samples < 2:
-            raise B3dgsError(f"viewer samples must be >= 2 (a spread needs two draws), got {samples}")
+            raise B3dgsError(f"viewer samples must be >= 2 (a spread needs two draws), got {samples}",
+                             fix="pass samples >= 2 (b3dgs-view samples=16 is the default)")
         if not sigma_max > 0:
-            raise B3dgsError(f"viewer sigma_max must be > 0, got {sigma_max}")
+            raise B3dgsError(f"viewer sigma_max must be > 0, got {sigma_max}",
+                             fix="pass sigma_max > 0 (b3dgs-view sigma_max=0.03 in RGB units), or null for the "
+                                 "automatic scale")
         if count_scale is not None and not (0 < float(count_scale) < float("inf")):
-            raise B3dgsError(f"viewer count_scale must be a finite number > 0 or None, got {count_scale}")
+            raise B3dgsError(f"viewer count_scale must be a finite number > 0 or None, got {count_scale}",
+                             fix="pass count_scale as a finite number > 0 (b3dgs-view count_scale=0.1, as uq=native "
+                                 "uses), or null for the model's own counts")
         # native σ draws with N̂ <- count_scale·N̂, the default of uq=native (conf/uq/native.yaml), so the viewer shows
         # what b3dgs-eval scores; None: the model's own posterior
         self.count_scale = None if count_scale is None else float(count_scale)
@@ -210,10 +215,13 @@ class ModeRenderer:
                generator: Optional[torch.Generator] = None) -> Frame:
         """Render ``mode`` from ``camera`` (any size and intrinsics); ``samples`` overrides the σ modes' S."""
         if mode not in self.specs:
-            raise B3dgsError(f"unknown viewer mode {mode!r} (modes: {', '.join(self.specs)})")
+            raise B3dgsError(f"unknown viewer mode {mode!r} (modes: {', '.join(self.specs)})",
+                             fix=f"pass one of the modes: {', '.join(self.specs)} (b3dgs-view mode=...)")
         why = self.unavailable().get(mode)
         if why is not None:
-            raise B3dgsError(f"mode {mode} is not available for this run: {why}")
+            raise B3dgsError(f"mode {mode} is not available for this run: {why}",
+                             fix=f"pick an available mode ({', '.join(self.available())}), or train a run that has "
+                                 "this one")
         spec = self.specs[mode]
         t0 = time.perf_counter()
         m = self.module
@@ -276,7 +284,8 @@ class ModeRenderer:
             return self.extras["dp_e_a"].float()
         if mode == "pos_std":
             return self.extras["niw_pos_var"].clamp_min(0).sqrt().float() / self.extent
-        raise B3dgsError(f"{mode} is not a per-Gaussian mode")
+        raise B3dgsError(f"{mode} is not a per-Gaussian mode",
+                         fix="pass a per-Gaussian mode: opacity, dp_activity or pos_std")
 
     def _overlay(self, mode: str) -> dict[str, Tensor]:
         """The Gaussians with their normalised value as a grey SH-0 colour (cached per mode)."""

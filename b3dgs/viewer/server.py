@@ -84,7 +84,8 @@ class ViewerApp:
         self.ranged: set[str] = set()
         if settings.mode not in self.modes.available():
             why = self.modes.unavailable().get(settings.mode, f"modes: {', '.join(self.modes.specs)}")
-            raise B3dgsError(f"viewer mode {settings.mode} is not available for this run: {why}")
+            raise B3dgsError(f"viewer mode {settings.mode} is not available for this run: {why}",
+                             fix=f"pass b3dgs-view mode= one of {', '.join(self.modes.available())}")
         self.cap = int(settings.max_side or 4096)
         self.cost: dict[str, float] = {}  # seconds per pixel, per mode (EMA)
         self.clients: dict[int, _ClientState] = {}

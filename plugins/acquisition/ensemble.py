@@ -22,7 +22,8 @@ class EnsemblePolicy(AcquisitionPolicy):
     def validate(self, **kwargs):
         super().validate(**kwargs)
         if int(self.members) < 2:
-            raise B3dgsError(f"acquisition ensemble needs members >= 2, got {self.members}")
+            raise B3dgsError(f"acquisition ensemble needs members >= 2, got {self.members}",
+                             fix="pass acquisition.members >= 2, e.g. the default 3")
 
     @torch.no_grad()
     def score(self, ctx, candidates):

@@ -33,10 +33,13 @@ class FisherPolicy(AcquisitionPolicy):
     def validate(self, **kwargs):
         super().validate(**kwargs)
         if int(self.pixel_stride) < 1:
-            raise B3dgsError(f"acquisition fisher.pixel_stride must be >= 1, got {self.pixel_stride}")
+            raise B3dgsError(f"acquisition fisher.pixel_stride must be >= 1, got {self.pixel_stride}",
+                             fix="pass acquisition.pixel_stride as an integer >= 1, e.g. the default 8")
         bad = [p for p in self.params if p not in PARAMS + ("quats",)]
         if bad:
-            raise B3dgsError(f"acquisition fisher.params: unknown parameters {bad}")
+            raise B3dgsError(f"acquisition fisher.params: unknown parameters {bad}",
+                             fix=f"list only known parameters in acquisition.params: "
+                                 f"{', '.join(PARAMS + ('quats',))}")
 
     def view_fisher(self, ctx, camera) -> torch.Tensor:
         """(P,) diagonal Fisher of one view over ``params`` (flattened in that order), float64 on the CPU."""

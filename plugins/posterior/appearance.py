@@ -52,7 +52,8 @@ _SIGMA2_FLOOR = 1e-12
 
 def _vec(name: str, x: torch.Tensor) -> torch.Tensor:
     if not isinstance(x, torch.Tensor) or x.ndim != 1:
-        raise B3dgsError(f"{name}: expected a 1-D (K,) tensor, got {getattr(x, 'shape', type(x).__name__)}")
+        raise B3dgsError(f"{name}: expected a 1-D (K,) tensor, got {getattr(x, 'shape', type(x).__name__)}",
+                         fix=f"pass {name} as a 1-D torch tensor with one entry per Gaussian, shape (K,)")
     return x.to(_F64)
 
 
@@ -74,14 +75,17 @@ def opacity_to_logit(opacity: torch.Tensor) -> torch.Tensor:
     """Logit of opacities in [0, 1], clamped to +-OPACITY_MAX_LOGIT (guard ``opacity.logit_clamp``)."""
     o = _vec("opacity", opacity)
     if not bool(((o >= 0) & (o <= 1)).all()):
-        raise B3dgsError("opacity must lie in [0, 1]")
+        raise B3dgsError("opacity must lie in [0, 1]",
+                         fix="pass opacities as probabilities in [0, 1] (torch.sigmoid of the stored logits)")
     lg = torch.logit(o)
     return _clamp_logit(lg).to(_dtype(opacity))
 
 
 def _clamp_logit(lg: torch.Tensor) -> torch.Tensor:
     if bool(torch.isnan(lg).any()):
-        raise B3dgsError("logit contains NaN")
+        raise B3dgsError("logit contains NaN",
+                         fix="the Gaussians' opacity logits hold NaN (training diverged): lower the learning rates "
+                             "(e.g. model.lr_opacities)")
     out = ~(lg.abs() <= OPACITY_MAX_LOGIT)
     if guard("opacity.logit_clamp", out):
         lg = lg.clamp(-OPACITY_MAX_LOGIT, OPACITY_MAX_LOGIT)
@@ -100,7 +104,8 @@ def logit_normal_moments(logit: torch.Tensor, logit_var: torch.Tensor) -> Tuple[
 def _ln_moments(m: torch.Tensor, logit_var: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     v = _vec("logit_var", logit_var)
     if v.shape != m.shape:
-        raise B3dgsError(f"logit_var shape {tuple(v.shape)} != logit shape {tuple(m.shape)}")
+        raise B3dgsError(f"logit_var shape {tuple(v.shape)} != logit shape {tuple(m.shape)}",
+                         fix="pass logit_var with one entry per Gaussian, the same shape (K,) as the logits")
     v = _clean_nonneg("logit_var", v, "logit_normal_moments")
     t, w = _gauss_hermite(_GH_NODES)
     t = torch.as_tensor(t, dtype=_F64, device=m.device)
@@ -157,9 +162,11 @@ def opacity_fisher_var(grad_sq_ema: torch.Tensor, prior_precision: Num, data_sca
     pp = _scalar_or_vec("prior_precision", prior_precision, K, g.device)
     ds = _scalar_or_vec("data_scale", data_scale, K, g.device)
     if not bool((torch.isfinite(pp) & (pp > 0)).all()):
-        raise B3dgsError("prior_precision must be finite and > 0")
+        raise B3dgsError("prior_precision must be finite and > 0",
+                         fix="pass prior_precision > 0 and finite (posterior.opacity.prior_precision, default 1.0)")
     if not bool((torch.isfinite(ds) & (ds >= 0)).all()):
-        raise B3dgsError("data_scale must be finite and >= 0")
+        raise B3dgsError("data_scale must be finite and >= 0",
+                         fix="pass data_scale >= 0 and finite (1.0 uses the Fisher as summed)")
     g = _clean_nonneg("grad_sq_ema", g, "opacity_fisher_var")
     prec = ds * g + pp
     return (1.0 / prec).to(_dtype(grad_sq_ema))
@@ -169,7 +176,9 @@ def opacity_fisher_var(grad_sq_ema: torch.Tensor, prior_precision: Num, data_sca
 def _sigma2(sigma2: Num, K: int, device, where: str) -> torch.Tensor:
     s2 = _scalar_or_vec("sigma2", sigma2, K, device)
     if bool(torch.isnan(s2).any()):
-        raise B3dgsError("sigma2 contains NaN")
+        raise B3dgsError("sigma2 contains NaN",
+                         fix="pass a finite sigma2 (the NoiseBlock's E[sigma^2]); NaN means the noise posterior "
+                             "diverged: check posterior.noise")
     low = ~(s2 >= _SIGMA2_FLOOR)
     if guard(f"{where}.sigma2_floor", low):
         s2 = torch.where(low, torch.full_like(s2, _SIGMA2_FLOOR), s2)
@@ -194,9 +203,10 @@ def color_posterior_var(
     s2 = _sigma2(sigma2, K, ws.device, "color_posterior_var")
     pp = _scalar_or_vec("prior_precision", prior_precision, K, ws.device)
     if not bool((torch.isfinite(pp) & (pp > 0)).all()):
-        raise B3dgsError("prior_precision must be finite and > 0")
+        raise B3dgsError("prior_precision must be finite and > 0",
+                         fix="pass prior_precision > 0 and finite (posterior.color.prior_precision, default 1.0)")
     if space not in ("rgb", "dc"):
-        raise B3dgsError(f"space must be 'rgb' or 'dc', got {space!r}")
+        raise B3dgsError(f"space must be 'rgb' or 'dc', got {space!r}", fix="pass space='rgb' or space='dc'")
     lik = ws / s2
     if space == "dc":
         lik = (SH_C0 * SH_C0) * lik
@@ -217,21 +227,25 @@ def color_posterior_mean(
     mean = c + (sum_p w r / sigma^2 - tau0 (c - eta0)) / (sum_p w^2 / sigma^2 + tau0).
     """
     if not isinstance(color, torch.Tensor) or color.ndim != 2:
-        raise B3dgsError(f"color: expected (K, C), got {getattr(color, 'shape', type(color).__name__)}")
+        raise B3dgsError(f"color: expected (K, C), got {getattr(color, 'shape', type(color).__name__)}",
+                         fix="pass color as a float tensor of shape (K, C): one colour per Gaussian")
     K = color.shape[0]
     c = color.to(_F64)
     r = weighted_residual_sum
     if not isinstance(r, torch.Tensor) or r.shape != color.shape:
-        raise B3dgsError(f"weighted_residual_sum: expected shape {tuple(color.shape)}, got {getattr(r, 'shape', None)}")
+        raise B3dgsError(f"weighted_residual_sum: expected shape {tuple(color.shape)}, got {getattr(r, 'shape', None)}",
+                         fix="pass weighted_residual_sum of the same shape (K, C) as color")
     r = r.to(_F64)
     ws = _vec("weight_sq_sum", weight_sq_sum)
     if ws.numel() != K:
-        raise B3dgsError(f"weight_sq_sum: expected ({K},), got {tuple(ws.shape)}")
+        raise B3dgsError(f"weight_sq_sum: expected ({K},), got {tuple(ws.shape)}",
+                         fix=f"pass weight_sq_sum with one entry per Gaussian, shape ({K},)")
     ws = _clean_nonneg("weight_sq_sum", ws, "color_posterior_mean")
     s2 = _sigma2(sigma2, K, c.device, "color_posterior_mean")
     pp = _scalar_or_vec("prior_precision", prior_precision, K, c.device)
     if not bool((torch.isfinite(pp) & (pp > 0)).all()):
-        raise B3dgsError("prior_precision must be finite and > 0")
+        raise B3dgsError("prior_precision must be finite and > 0",
+                         fix="pass prior_precision > 0 and finite (posterior.color.prior_precision, default 1.0)")
     eta = torch.as_tensor(prior_mean, dtype=_F64, device=c.device)
     prec = ws / s2 + pp
     grad = r / s2[:, None] - pp[:, None] * (c - eta)

@@ -34,7 +34,8 @@ class ColorBlock(PosteriorBlock):
 
     def validate(self, max_steps: int = 0, **kw) -> None:
         if self.prior_precision <= 0:
-            raise B3dgsError("posterior.color.prior_precision must be > 0")
+            raise B3dgsError("posterior.color.prior_precision must be > 0",
+                             fix="pass posterior.color.prior_precision > 0, e.g. the default 1.0")
 
     def initialize_state(self, *, splats, scene, info):
         n, dev = splats["means"].shape[0], splats["means"].device

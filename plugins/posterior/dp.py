@@ -34,16 +34,19 @@ _MAX_LOGIT = 80.0
 
 def _vec(name: str, x: torch.Tensor) -> torch.Tensor:
     if not isinstance(x, torch.Tensor) or x.ndim != 1:
-        raise B3dgsError(f"{name}: expected a 1-D (K,) tensor, got {getattr(x, 'shape', type(x).__name__)}")
+        raise B3dgsError(f"{name}: expected a 1-D (K,) tensor, got {getattr(x, 'shape', type(x).__name__)}",
+                         fix=f"pass {name} as a 1-D torch tensor with one entry per Gaussian, shape (K,)")
     if x.numel() == 0:
-        raise B3dgsError(f"{name}: K must be >= 1")
+        raise B3dgsError(f"{name}: K must be >= 1",
+                         fix=f"pass {name} with at least one entry (one per Gaussian; K >= 1)")
     return x.to(_F64)
 
 
 def _check_alpha(alpha: Union[float, torch.Tensor]) -> float:
     a = float(alpha)
     if not (math.isfinite(a) and a > 0):
-        raise B3dgsError(f"alpha must be finite and > 0, got {alpha}")
+        raise B3dgsError(f"alpha must be finite and > 0, got {alpha}",
+                         fix="pass alpha > 0 and finite (posterior.dp.alpha, default 5.0)")
     return a
 
 
@@ -72,9 +75,11 @@ def cavi_stick_update(counts: torch.Tensor, alpha: Union[float, torch.Tensor]) -
 def _check_gammas(gamma1: torch.Tensor, gamma2: torch.Tensor) -> Tuple[torch.Tensor, torch.Tensor]:
     g1, g2 = _vec("gamma1", gamma1), _vec("gamma2", gamma2)
     if g1.shape != g2.shape:
-        raise B3dgsError(f"gamma1 {tuple(g1.shape)} and gamma2 {tuple(g2.shape)} differ")
+        raise B3dgsError(f"gamma1 {tuple(g1.shape)} and gamma2 {tuple(g2.shape)} differ",
+                         fix="pass gamma1 and gamma2 with one entry each per Gaussian, the same shape (K,)")
     if not bool((torch.isfinite(g1) & (g1 > 0) & torch.isfinite(g2) & (g2 > 0)).all()):
-        raise B3dgsError("Beta parameters gamma1, gamma2 must be finite and > 0")
+        raise B3dgsError("Beta parameters gamma1, gamma2 must be finite and > 0",
+                         fix="pass Beta parameters > 0 and finite (as cavi_stick_update returns them)")
     return g1, g2
 
 
@@ -151,7 +156,9 @@ def prune_threshold(K: int, base: float = 0.01) -> float:
     scaling with 1/K keeps the rule "prune components carrying < base x their fair share".
     """
     if int(K) < 1 or not (base > 0):
-        raise B3dgsError(f"need K >= 1 and base > 0, got K={K}, base={base}")
+        raise B3dgsError(f"need K >= 1 and base > 0, got K={K}, base={base}",
+                         fix="pass K >= 1 (the number of Gaussians) and base > 0 (posterior.dp.prune_pi, default "
+                             "0.05)")
     return float(base) / int(K)
 
 
@@ -181,16 +188,20 @@ def activity_posterior(
     u = _vec("usage", usage)
     K = elp.numel()
     if u.numel() != K:
-        raise B3dgsError(f"usage has {u.numel()} entries, expected_log_pi has {K}")
+        raise B3dgsError(f"usage has {u.numel()} entries, expected_log_pi has {K}",
+                         fix="pass usage with one entry per Gaussian, the same length as expected_log_pi")
     if not (temperature > 0):
-        raise B3dgsError(f"temperature must be > 0, got {temperature}")
+        raise B3dgsError(f"temperature must be > 0, got {temperature}",
+                         fix="pass temperature > 0 (posterior.dp.gate_temperature, default 1.0)")
     if not (0.0 <= evidence_weight <= 1.0):
-        raise B3dgsError(f"evidence_weight must be in [0, 1], got {evidence_weight}")
+        raise B3dgsError(f"evidence_weight must be in [0, 1], got {evidence_weight}",
+                         fix="pass evidence_weight in [0, 1] (0 keeps the prior, 1 uses the usage evidence alone)")
     if not (eps > 0):
-        raise B3dgsError("eps must be > 0")
+        raise B3dgsError("eps must be > 0", fix="pass eps > 0, e.g. the default")
     tau = prune_threshold(K) if threshold is None else float(threshold)
     if not (tau > 0):
-        raise B3dgsError(f"threshold must be > 0, got {threshold}")
+        raise B3dgsError(f"threshold must be > 0, got {threshold}",
+                         fix="pass threshold > 0, or threshold=None for prune_threshold(K)")
     bad = ~torch.isfinite(u) | (u < 0)
     if guard("activity_posterior.invalid_usage", bad):
         u = torch.where(bad, torch.zeros_like(u), u)
@@ -239,13 +250,16 @@ class DPBlock(PosteriorBlock):
 
     def validate(self, max_steps: int = 0, **kw) -> None:
         if self.alpha <= 0:
-            raise B3dgsError("posterior.dp.alpha must be > 0")
+            raise B3dgsError("posterior.dp.alpha must be > 0", fix="pass posterior.dp.alpha > 0, e.g. the default 5.0")
         if self.cavi_every < 1:
-            raise B3dgsError("posterior.dp.cavi_every must be >= 1")
+            raise B3dgsError("posterior.dp.cavi_every must be >= 1",
+                             fix="pass posterior.dp.cavi_every as an integer >= 1, e.g. the default 50")
         if not 0 <= self.ema < 1:
-            raise B3dgsError("posterior.dp.ema must be in [0, 1)")
+            raise B3dgsError("posterior.dp.ema must be in [0, 1)",
+                             fix="pass posterior.dp.ema in [0, 1), e.g. the default 0.99")
         if not 0 < self.prior_active < 1:
-            raise B3dgsError("posterior.dp.prior_active must be in (0, 1)")
+            raise B3dgsError("posterior.dp.prior_active must be in (0, 1)",
+                             fix="pass posterior.dp.prior_active strictly between 0 and 1, e.g. the default 0.5")
 
     def initialize_state(self, *, splats, scene, info):
         n, dev = splats["means"].shape[0], splats["means"].device

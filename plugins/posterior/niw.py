@@ -44,21 +44,27 @@ _F64 = torch.float64
 def _kd(name: str, x: torch.Tensor) -> Tuple[int, int]:
     if not isinstance(x, torch.Tensor) or x.ndim != 2:
         shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
-        raise B3dgsError(f"{name}: expected a (K, D) tensor, got {shape}")
+        raise B3dgsError(f"{name}: expected a (K, D) tensor, got {shape}",
+                         fix=f"pass {name} as a torch tensor with one row per Gaussian: shape (K, D), e.g. (N, 3) "
+                             "for centres")
     return int(x.shape[0]), int(x.shape[1])
 
 
 def _vecD(name: str, x: torch.Tensor, K: int, D: int) -> torch.Tensor:
     if not isinstance(x, torch.Tensor) or tuple(x.shape) != (K, D):
         shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
-        raise B3dgsError(f"{name}: expected shape ({K}, {D}), got {shape}")
+        raise B3dgsError(f"{name}: expected shape ({K}, {D}), got {shape}",
+                         fix=f"pass {name} as a torch tensor of shape ({K}, {D}): one D-vector per Gaussian, rows "
+                             "matching the other arguments")
     return x.to(_F64)
 
 
 def _mat(name: str, x: torch.Tensor, K: int, D: int) -> torch.Tensor:
     if not isinstance(x, torch.Tensor) or tuple(x.shape) != (K, D, D):
         shape = tuple(x.shape) if isinstance(x, torch.Tensor) else type(x).__name__
-        raise B3dgsError(f"{name}: expected shape ({K}, {D}, {D}), got {shape}")
+        raise B3dgsError(f"{name}: expected shape ({K}, {D}, {D}), got {shape}",
+                         fix=f"pass {name} as a torch tensor of shape ({K}, {D}, {D}): one symmetric DxD matrix per "
+                             "Gaussian")
     return x.to(_F64)
 
 
@@ -68,7 +74,9 @@ def _sym(A: torch.Tensor) -> torch.Tensor:
 
 def _require_finite(name: str, x: torch.Tensor) -> None:
     if not bool(torch.isfinite(x).all()):
-        raise B3dgsError(f"{name}: contains NaN/Inf")
+        raise B3dgsError(f"{name}: contains NaN/Inf",
+                         fix=f"pass a finite {name}; if training produced it, the splats diverged: lower the "
+                             "learning rates or rerun with b3dgs.debug=true to find the step")
 
 
 # ----------------------------------------------------------------------------- conjugate update
@@ -101,9 +109,11 @@ def niw_update(
     _require_finite("m0", m0_)
     _require_finite("S0", S0_)
     if not bool(((k0 > 0) & torch.isfinite(k0)).all()):
-        raise B3dgsError("kappa0 must be finite and > 0")
+        raise B3dgsError("kappa0 must be finite and > 0",
+                         fix="pass kappa0 > 0 for every Gaussian (posterior.niw.kappa0, default 0.01)")
     if not bool(((n0 > D - 1) & torch.isfinite(n0)).all()):
-        raise B3dgsError(f"nu0 must be finite and > D-1 = {D - 1} for a proper inverse-Wishart")
+        raise B3dgsError(f"nu0 must be finite and > D-1 = {D - 1} for a proper inverse-Wishart",
+                         fix="pass nu0 > D - 1 for every Gaussian (posterior.niw.nu0, default 5.0 = D + 2 for D = 3)")
     bad = ~torch.isfinite(N_) | (N_ < 0)
     if guard("niw_update.invalid_count", bad):
         N_ = torch.where(bad, torch.zeros_like(N_), N_)
@@ -134,7 +144,9 @@ def niw_batch_stats(
     (0 where N == 0), C = sum_i w_i (x_i - xbar)(x_i - xbar)^T (two-pass, centred).
     """
     if not isinstance(x, torch.Tensor) or x.ndim != 3:
-        raise B3dgsError(f"x: expected a (K, n, D) tensor, got {getattr(x, 'shape', type(x).__name__)}")
+        raise B3dgsError(f"x: expected a (K, n, D) tensor, got {getattr(x, 'shape', type(x).__name__)}",
+                         fix="pass x as a float tensor of shape (K, n, D): n observations of a D-vector for each of "
+                             "K Gaussians")
     K, n, D = x.shape
     dtype = _out_dtype(x)
     x_ = x.to(_F64)
@@ -143,10 +155,13 @@ def niw_batch_stats(
         w_ = torch.ones(K, n, dtype=_F64, device=x.device)
     else:
         if not isinstance(w, torch.Tensor) or tuple(w.shape) != (K, n):
-            raise B3dgsError(f"w: expected shape ({K}, {n}), got {getattr(w, 'shape', type(w).__name__)}")
+            raise B3dgsError(f"w: expected shape ({K}, {n}), got {getattr(w, 'shape', type(w).__name__)}",
+                             fix="pass w of shape (K, n), one weight per observation in x, or w=None for unit "
+                                 "weights")
         w_ = w.to(_F64)
         if not bool((torch.isfinite(w_) & (w_ >= 0)).all()):
-            raise B3dgsError("w: weights must be finite and >= 0")
+            raise B3dgsError("w: weights must be finite and >= 0",
+                             fix="pass finite weights >= 0 (e.g. compositing weights), or w=None for unit weights")
     N = w_.sum(1)
     has = N > 0
     Nsafe = torch.where(has, N, torch.ones_like(N))
@@ -163,11 +178,13 @@ def niw_batch_stats(
 def prior_scale_for_expected_cov(Sigma: torch.Tensor, nu0: Scalar) -> torch.Tensor:
     """S0 = Sigma * (nu0 - D - 1), so that E[Sigma] under the NIW prior (Eq. 1) equals Sigma."""
     if not isinstance(Sigma, torch.Tensor) or Sigma.ndim != 3 or Sigma.shape[-1] != Sigma.shape[-2]:
-        raise B3dgsError(f"Sigma: expected (K, D, D), got {getattr(Sigma, 'shape', type(Sigma).__name__)}")
+        raise B3dgsError(f"Sigma: expected (K, D, D), got {getattr(Sigma, 'shape', type(Sigma).__name__)}",
+                         fix="pass Sigma as a float tensor of shape (K, D, D), one square covariance per Gaussian")
     K, D = int(Sigma.shape[0]), int(Sigma.shape[-1])
     nu = _vec("nu0", nu0, K, Sigma.device)
     if not bool((nu > D + 1).all()):
-        raise B3dgsError(f"nu0 must be > D+1 = {D + 1} for E[Sigma] to exist")
+        raise B3dgsError(f"nu0 must be > D+1 = {D + 1} for E[Sigma] to exist",
+                         fix="pass nu0 > D + 1 (posterior.niw.nu0, default 5.0 = D + 2 for D = 3)")
     S0 = _sym(Sigma.to(_F64)) * (nu - D - 1)[:, None, None]
     return S0.to(_out_dtype(Sigma))
 
@@ -178,7 +195,9 @@ def expected_cov(S_n: torch.Tensor, nu_n: Scalar, eps: float = EXPECTED_COV_DENO
     The denominator is floored at ``eps`` (guard ``niw.expected_cov_denom_floor``).
     """
     if not isinstance(S_n, torch.Tensor) or S_n.ndim != 3 or S_n.shape[-1] != S_n.shape[-2]:
-        raise B3dgsError(f"S_n: expected (K, D, D), got {getattr(S_n, 'shape', type(S_n).__name__)}")
+        raise B3dgsError(f"S_n: expected (K, D, D), got {getattr(S_n, 'shape', type(S_n).__name__)}",
+                         fix="pass S_n as a float tensor of shape (K, D, D), one square scale matrix per Gaussian "
+                             "(niw_update's S_n)")
     K, D = int(S_n.shape[0]), int(S_n.shape[-1])
     denom = _vec("nu_n", nu_n, K, S_n.device) - D - 1
     small = ~(denom >= eps)
@@ -226,7 +245,8 @@ def safe_cholesky(A: torch.Tensor, jitters: Sequence[float] = CHOLESKY_JITTERS) 
     non-finite matrices are replaced by the identity (``cholesky.nonfinite``).
     """
     if not isinstance(A, torch.Tensor) or A.ndim < 2 or A.shape[-1] != A.shape[-2]:
-        raise B3dgsError(f"A: expected (..., D, D), got {getattr(A, 'shape', type(A).__name__)}")
+        raise B3dgsError(f"A: expected (..., D, D), got {getattr(A, 'shape', type(A).__name__)}",
+                         fix="pass A as a float tensor of shape (..., D, D), a batch of square matrices")
     dtype = _out_dtype(A)
     shape = A.shape
     D = int(shape[-1])
@@ -316,7 +336,9 @@ def niw_sampler(m_n: torch.Tensor, kappa_n: Scalar, nu_n: Scalar, S_n: torch.Ten
     nu = _vec("nu_n", nu_n, K, dev)
     kap = _vec("kappa_n", kappa_n, K, dev)
     if not bool(((nu > D - 1) & torch.isfinite(nu)).all()):
-        raise B3dgsError(f"nu_n must be finite and > D-1 = {D - 1}")
+        raise B3dgsError(f"nu_n must be finite and > D-1 = {D - 1}",
+                         fix="pass nu_n > D - 1 for every Gaussian, as niw_update returns it from a prior with nu0 > "
+                             "D + 1")
     small = ~(kap >= KAPPA_FLOOR)
     if guard("niw.kappa_floor", small):
         kap = torch.where(small, torch.full_like(kap, KAPPA_FLOOR), kap)
@@ -333,7 +355,8 @@ def draw_niw(sampler: NIWSampler, n_samples: int, generator: Optional[torch.Gene
     (nu - D - 1) (A A^T)^{-1}, a function of A alone.
     """
     if not isinstance(n_samples, int) or n_samples < 1:
-        raise B3dgsError(f"n_samples must be a positive int, got {n_samples!r}")
+        raise B3dgsError(f"n_samples must be a positive int, got {n_samples!r}",
+                         fix="pass n_samples as an int >= 1 (e.g. uq.native.samples)")
     K, D = sampler.m.shape
     A = bartlett_factor(sampler.nu, n_samples, D, generator)
     X = tril_solve(A, sampler.L.transpose(-1, -2).unsqueeze(0))
@@ -515,26 +538,36 @@ class NIWBlock(PosteriorBlock):
 
     def validate(self, max_steps: int = 0, **kw) -> None:
         if self.kappa0 <= 0:
-            raise B3dgsError("posterior.niw.kappa0 must be > 0")
+            raise B3dgsError("posterior.niw.kappa0 must be > 0",
+                             fix="pass posterior.niw.kappa0 > 0, e.g. the default 0.01")
         if self.nu0 <= D + 1:
-            raise B3dgsError(f"posterior.niw.nu0 must be > D + 1 = {D + 1} for a proper prior with finite E[Σ]")
+            raise B3dgsError(f"posterior.niw.nu0 must be > D + 1 = {D + 1} for a proper prior with finite E[Σ]",
+                             fix="pass posterior.niw.nu0 > 4, e.g. the default 5.0 (D + 2)")
         if not 0 <= self.ema < 1:
-            raise B3dgsError("posterior.niw.ema must be in [0, 1)")
+            raise B3dgsError("posterior.niw.ema must be in [0, 1)",
+                             fix="pass posterior.niw.ema in [0, 1), e.g. the default 0.99 (0 keeps only the latest "
+                                 "count)")
         if self.update_every < 1:
-            raise B3dgsError("posterior.niw.update_every must be >= 1")
+            raise B3dgsError("posterior.niw.update_every must be >= 1",
+                             fix="pass posterior.niw.update_every as an integer >= 1, e.g. the default 100")
         if self.cov_mode not in ("relative", "absolute", "none"):
-            raise B3dgsError("posterior.niw.cov_mode must be relative | absolute | none")
+            raise B3dgsError("posterior.niw.cov_mode must be relative | absolute | none",
+                             fix="pass posterior.niw.cov_mode=relative, absolute or none")
         if self.sampler_backend not in ("auto", "cpu", "torch"):
-            raise B3dgsError("posterior.niw.sampler_backend must be auto | cpu | torch")
+            raise B3dgsError("posterior.niw.sampler_backend must be auto | cpu | torch",
+                             fix="pass posterior.niw.sampler_backend=auto, cpu or torch")
         if not (isinstance(self.count_scale, (int, float)) and 0 < float(self.count_scale) < float("inf")):
-            raise B3dgsError(f"posterior.niw.count_scale must be a finite number > 0, got {self.count_scale}")
+            raise B3dgsError(f"posterior.niw.count_scale must be a finite number > 0, got {self.count_scale}",
+                             fix="pass posterior.niw.count_scale as a finite number > 0, e.g. the default 1.0 (< 1 "
+                                 "widens the posterior)")
         if self.count not in COUNTS:
             from b3dgs.errors import did_you_mean
 
             raise B3dgsError(f"posterior.niw.count={self.count} is not a count{did_you_mean(str(self.count), COUNTS)}",
                              f"pass posterior.niw.count={'|'.join(COUNTS)}")
         if isinstance(self.fisher_probes, bool) or not isinstance(self.fisher_probes, int) or self.fisher_probes < 1:
-            raise B3dgsError(f"posterior.niw.fisher_probes must be an integer >= 1, got {self.fisher_probes}")
+            raise B3dgsError(f"posterior.niw.fisher_probes must be an integer >= 1, got {self.fisher_probes}",
+                             fix="pass posterior.niw.fisher_probes as an integer >= 1, e.g. the default 4")
 
     # ------------------------------------------------------------------ state
     def _prior_for(self, splats, rows: Optional[Tensor] = None):
@@ -642,7 +675,9 @@ class NIWBlock(PosteriorBlock):
         else:
             F = sums["fisher"].double()
             if tuple(F.shape) != (n, D, D):
-                raise B3dgsError(f"posterior.niw: the view pass gave a Fisher of shape {tuple(F.shape)}, expected ({n}, 3, 3)")
+                raise B3dgsError(f"posterior.niw: the view pass gave a Fisher of shape {tuple(F.shape)}, expected ({n}, 3, 3)",
+                                 fix="this is a bug in b3dgs (the NIW block's own Fisher accumulator): rerun with "
+                                     "b3dgs.debug=true and report the traceback")
             s2 = float(state["mse"] / state["mse_n"]) if float(state["mse_n"]) > 0 else None  # plug-in σ̂²
             low = s2 is None or not s2 >= SIGMA2_FLOOR
             if guard("niw.sigma2_floor", int(low)):

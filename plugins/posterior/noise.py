@@ -41,20 +41,26 @@ def _check_ab(a: torch.Tensor, b: torch.Tensor) -> None:
     if on_device_path(a):  # the training step's own state (no host read per step); the CPU path checks
         return
     if not bool((torch.isfinite(a) & (a > 0)).all()) or not bool((torch.isfinite(b) & (b > 0)).all()):
-        raise B3dgsError("inverse-gamma parameters a, b must be finite and > 0")
+        raise B3dgsError("inverse-gamma parameters a, b must be finite and > 0",
+                         fix="pass inverse-gamma parameters a > 0 and b > 0, finite (posterior.noise.a0 and b0, "
+                             "defaults 2.0 and 1e-3)")
     try:
         torch.broadcast_shapes(a.shape, b.shape)
     except RuntimeError as e:
-        raise B3dgsError(f"a {tuple(a.shape)} and b {tuple(b.shape)} do not broadcast") from e
+        raise B3dgsError(f"a {tuple(a.shape)} and b {tuple(b.shape)} do not broadcast",
+                         fix="pass a and b of broadcastable shapes, e.g. both scalars or both (K,)") from e
 
 
 def _check_evidence(ss: torch.Tensor, n: torch.Tensor, where: str) -> torch.Tensor:
     if on_device_path(ss):  # the step's residual, finite whenever the loss is (checked by the core)
         return guard_where(f"{where}.negative_ss", ss < 0, torch.zeros_like(ss), ss)
     if not bool((torch.isfinite(n) & (n >= 0)).all()):
-        raise B3dgsError(f"{where}: n_obs must be finite and >= 0")
+        raise B3dgsError(f"{where}: n_obs must be finite and >= 0",
+                         fix=f"pass n_obs finite and >= 0 to {where} (a count of observed pixels)")
     if not bool(torch.isfinite(ss).all()):
-        raise B3dgsError(f"{where}: sum_sq_residual must be finite")
+        raise B3dgsError(f"{where}: sum_sq_residual must be finite",
+                         fix=f"pass a finite sum_sq_residual to {where}; a NaN residual means the render diverged: "
+                             "lower the learning rates (e.g. model.lr_means)")
     neg = ss < 0
     if guard(f"{where}.negative_ss", neg):  # tiny negative values from cancellation upstream
         ss = torch.where(neg, torch.zeros_like(ss), ss)
@@ -90,13 +96,17 @@ def ig_update_ema(
     decay=1 is the plain conjugate update.
     """
     if not (0.0 <= float(decay) <= 1.0):
-        raise B3dgsError(f"decay must be in [0, 1], got {decay}")
+        raise B3dgsError(f"decay must be in [0, 1], got {decay}",
+                         fix="pass decay in [0, 1] (posterior.noise.decay, default 0.99; 1 is the plain conjugate "
+                             "update)")
     a_, b_ = _t(a), _t(b)
     _check_ab(a_, b_)
     n = _t(n_obs)
     ss = _check_evidence(_t(sum_sq_residual), n, "ig_update_ema")
     if (a0 is None) != (b0 is None):
-        raise B3dgsError("pass both a0 and b0 (or neither)")
+        raise B3dgsError("pass both a0 and b0 (or neither)",
+                         fix="pass both a0 and b0 (the prior the EMA decays towards), or neither for a plain decayed "
+                             "update")
     if a0 is None:
         return decay * a_ + 0.5 * n, decay * b_ + 0.5 * ss
     pa, pb = _t(a0), _t(b0)
@@ -135,7 +145,8 @@ def ig_var(a: Num, b: Num, eps: float = IG_MEAN_DENOM_EPS) -> torch.Tensor:
 def ig_sample(a: Num, b: Num, n_samples: int, generator: Optional[torch.Generator] = None) -> torch.Tensor:
     """Draw sigma^2 ~ IG(a, b) as b / Gamma(a, 1); returns (n_samples, *broadcast(a, b).shape)."""
     if not isinstance(n_samples, int) or n_samples < 1:
-        raise B3dgsError(f"n_samples must be a positive int, got {n_samples!r}")
+        raise B3dgsError(f"n_samples must be a positive int, got {n_samples!r}",
+                         fix="pass n_samples as an int >= 1 (e.g. uq.native.samples)")
     a_, b_ = _t(a), _t(b)
     _check_ab(a_, b_)
     shape = torch.broadcast_shapes(a_.shape, b_.shape)
@@ -173,9 +184,12 @@ class NoiseBlock(PosteriorBlock):
 
     def validate(self, max_steps: int = 0, **kw) -> None:
         if self.a0 <= 0 or self.b0 <= 0:
-            raise B3dgsError("posterior.noise.a0 and b0 must be > 0")
+            raise B3dgsError("posterior.noise.a0 and b0 must be > 0",
+                             fix="pass posterior.noise.a0 > 0 and posterior.noise.b0 > 0, e.g. the defaults 2.0 and "
+                                 "1e-3")
         if not 0 <= self.decay < 1:
-            raise B3dgsError("posterior.noise.decay must be in [0, 1)")
+            raise B3dgsError("posterior.noise.decay must be in [0, 1)",
+                             fix="pass posterior.noise.decay in [0, 1), e.g. the default 0.99")
 
     def initialize_state(self, *, splats, scene, info):
         dev = splats["means"].device

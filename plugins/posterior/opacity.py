@@ -34,9 +34,11 @@ class OpacityBlock(PosteriorBlock):
 
     def validate(self, max_steps: int = 0, **kw) -> None:
         if self.prior_precision <= 0:
-            raise B3dgsError("posterior.opacity.prior_precision must be > 0")
+            raise B3dgsError("posterior.opacity.prior_precision must be > 0",
+                             fix="pass posterior.opacity.prior_precision > 0, e.g. the default 1.0")
         if not 0 <= self.ema < 1:
-            raise B3dgsError("posterior.opacity.ema must be in [0, 1)")
+            raise B3dgsError("posterior.opacity.ema must be in [0, 1)",
+                             fix="pass posterior.opacity.ema in [0, 1), e.g. the default 0.99")
 
     def initialize_state(self, *, splats, scene, info):
         n, dev = splats["means"].shape[0], splats["means"].device

@@ -90,7 +90,8 @@ class SHPosteriorBlock(PosteriorBlock):
     def validate(self, **kw) -> None:
         if not (self.prior_precision > 0 and math.isfinite(self.prior_precision)):
             raise B3dgsError(f"posterior.sh.prior_precision={self.prior_precision} must be a finite number > 0 "
-                             "(the precision of an unconstrained SH coefficient; 1.0 is the default)")
+                             "(the precision of an unconstrained SH coefficient)",
+                             fix="pass posterior.sh.prior_precision as a finite number > 0, e.g. the default 1.0")
         if kw.get("sh_degree") == 0:
             raise B3dgsError(_DEGREE0, _DEGREE0_FIX)
 
@@ -110,7 +111,9 @@ class SHPosteriorBlock(PosteriorBlock):
         info = sums.get("sh_information")
         if info is None or info.dim() != 3 or info.shape[0] != n or info.shape[1] != info.shape[2]:
             raise B3dgsError(f"posterior.sh: the view pass gave SH information of shape "
-                             f"{None if info is None else tuple(info.shape)}, expected ({n}, B, B)")
+                             f"{None if info is None else tuple(info.shape)}, expected ({n}, B, B)",
+                             fix="this is a bug in b3dgs (the SH block's own accumulator): rerun with "
+                                 "b3dgs.debug=true and report the traceback")
         nv = float(sums.get("n_values", 0))
         s2 = float(sums["sq_err"]) / nv if nv > 0 else float("nan")
         if guard("sh.sigma2_floor", int(not s2 >= SIGMA2_FLOOR)):

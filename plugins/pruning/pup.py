@@ -25,9 +25,11 @@ class PUPPruning(PruningScore):
     def validate(self, **kwargs) -> None:
         super().validate(**kwargs)
         if int(self.pixel_stride) < 1:
-            raise B3dgsError(f"pruning pup.pixel_stride must be >= 1, got {self.pixel_stride}")
+            raise B3dgsError(f"pruning pup.pixel_stride must be >= 1, got {self.pixel_stride}",
+                             fix="pass pruning.pixel_stride as an integer >= 1, e.g. the default 4")
         if not self.eig_floor > 0:
-            raise B3dgsError(f"pruning pup.eig_floor must be > 0, got {self.eig_floor}")
+            raise B3dgsError(f"pruning pup.eig_floor must be > 0, got {self.eig_floor}",
+                             fix="pass pruning.eig_floor > 0, e.g. the default 1e-30")
 
     def score(self, *, splats, optimizers, state, step, info):
         F = spatial_fisher(info, int(self.pixel_stride), bool(self.per_channel))

@@ -40,20 +40,28 @@ class AdaptiveDensityControl(Plugin):
 
     def validate(self, **kwargs) -> None:
         if self.refine_every <= 0:
-            raise B3dgsError("strategy.refine_every must be > 0")
+            raise B3dgsError("strategy.refine_every must be > 0",
+                             fix="pass strategy.refine_every as a positive number of steps, e.g. the default 100")
         if self.refine_start < 0 or self.refine_stop < self.refine_start:
-            raise B3dgsError("strategy.refine_start must be >= 0 and <= strategy.refine_stop")
+            raise B3dgsError("strategy.refine_start must be >= 0 and <= strategy.refine_stop",
+                             fix="pass 0 <= strategy.refine_start <= strategy.refine_stop, e.g. the defaults 250 and "
+                                 "1500")
         if self.grad_threshold <= 0:
-            raise B3dgsError("strategy.grad_threshold must be > 0")
+            raise B3dgsError("strategy.grad_threshold must be > 0",
+                             fix="pass strategy.grad_threshold > 0, e.g. the default 0.0002")
         if not 0 < self.percent_dense <= 1:
             raise B3dgsError(f"strategy.percent_dense={self.percent_dense} is invalid: it must be a fraction of the scene "
                              "extent in (0, 1]", "pass strategy.percent_dense=0.01")
         if not 0 < self.prune_opacity < 1:
-            raise B3dgsError("strategy.prune_opacity must be in (0, 1)")
+            raise B3dgsError("strategy.prune_opacity must be in (0, 1)",
+                             fix="pass strategy.prune_opacity in (0, 1), e.g. the default 0.005")
         if self.max_gaussians is not None and self.max_gaussians < 1:
-            raise B3dgsError("strategy.max_gaussians must be >= 1 or null")
+            raise B3dgsError("strategy.max_gaussians must be >= 1 or null",
+                             fix="pass strategy.max_gaussians as a positive count (the default is 50000), or null "
+                                 "for no cap")
         if self.prune_big_after is not None and self.prune_big_after < 0:
-            raise B3dgsError("strategy.prune_big_after must be >= 0 or null (null: after the first opacity reset)")
+            raise B3dgsError("strategy.prune_big_after must be >= 0 or null (null: after the first opacity reset)",
+                             fix="pass strategy.prune_big_after as a step >= 0, or null")
 
     def initialize_state(self, *, splats, scene, info):
         n, dev = splats["means"].shape[0], splats["means"].device

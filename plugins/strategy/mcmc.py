@@ -24,7 +24,8 @@ def relocation(opacity: Tensor, scale: Tensor, copies: Tensor) -> tuple[Tensor, 
     """
     if opacity.dim() != 1 or scale.shape != (opacity.shape[0], 3) or copies.shape != opacity.shape:
         raise B3dgsError(f"relocation: opacity (M,), scale (M, 3), copies (M,); got {tuple(opacity.shape)}, "
-                         f"{tuple(scale.shape)}, {tuple(copies.shape)}")
+                         f"{tuple(scale.shape)}, {tuple(copies.shape)}",
+                         fix="pass opacity (M,), scale (M, 3) and copies (M,) for the same M Gaussians")
     o = opacity.double().clamp(1e-12, 1 - 1e-12)
     n = copies.double().clamp_min(1)
     o_new = 1 - torch.pow(1 - o, 1 / n)
@@ -67,13 +68,19 @@ class MCMCStrategy(Plugin):
 
     def validate(self, **kwargs) -> None:
         if self.cap_max < 1:
-            raise B3dgsError(f"strategy.cap_max must be >= 1, got {self.cap_max}")
+            raise B3dgsError(f"strategy.cap_max must be >= 1, got {self.cap_max}",
+                             fix="pass strategy.cap_max as a positive count of Gaussians, e.g. the default 50000")
         if self.refine_every <= 0 or self.refine_start < 0 or self.refine_stop < self.refine_start:
-            raise B3dgsError("strategy.refine_every must be > 0 and 0 <= strategy.refine_start <= strategy.refine_stop")
+            raise B3dgsError("strategy.refine_every must be > 0 and 0 <= strategy.refine_start <= strategy.refine_stop",
+                             fix="pass strategy.refine_every > 0 and 0 <= strategy.refine_start <= "
+                                 "strategy.refine_stop, e.g. the defaults 100, 250 and 2500")
         if not 0 < self.min_opacity < 1:
-            raise B3dgsError(f"strategy.min_opacity must be in (0, 1), got {self.min_opacity}")
+            raise B3dgsError(f"strategy.min_opacity must be in (0, 1), got {self.min_opacity}",
+                             fix="pass strategy.min_opacity in (0, 1), e.g. the default 0.005")
         if self.grow_rate < 0 or self.noise_lr < 0 or self.opacity_reg < 0 or self.scale_reg < 0:
-            raise B3dgsError("strategy.grow_rate, noise_lr, opacity_reg and scale_reg must be >= 0")
+            raise B3dgsError("strategy.grow_rate, noise_lr, opacity_reg and scale_reg must be >= 0",
+                             fix="pass non-negative values, e.g. the defaults strategy.grow_rate=0.05, noise_lr=5e5, "
+                                 "opacity_reg=0.01, scale_reg=0.01 (0 turns a term off)")
 
     def initialize_state(self, *, splats, scene, info):
         dev = splats["means"].device

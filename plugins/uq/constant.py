@@ -28,7 +28,9 @@ class ConstantUQ(UQRegime):
 
     def validate(self, **kwargs):
         if self.max_train_views is not None and self.max_train_views < 1:
-            raise B3dgsError(f"uq.constant.max_train_views must be >= 1 or null, got {self.max_train_views}")
+            raise B3dgsError(f"uq.constant.max_train_views must be >= 1 or null, got {self.max_train_views}",
+                             fix="pass uq.constant.max_train_views as a positive count, or null for every training "
+                                 "view")
 
     def fit(self, models, scene):
         super().fit(models, scene)

@@ -20,8 +20,8 @@ class EnsembleUQ(UQRegime):
     def fit(self, models, scene):
         super().fit(models, scene)
         if len(self.models) < self.min_members:
-            raise B3dgsError(f"uq=ensemble needs >= {self.min_members} run dirs (got {len(self.models)}); "
-                             "pass run=[dir1,dir2,dir3]")
+            raise B3dgsError(f"uq=ensemble needs >= {self.min_members} run dirs (got {len(self.models)})",
+                             fix="pass run=[dir1,dir2,dir3]: runs of one scene trained with different seeds")
 
     @torch.no_grad()
     def predict(self, camera, generator=None):

@@ -107,8 +107,8 @@ class NativeUQ(UQRegime):
         m = self.models[0]
         if not self.add and (not m.posterior or not self.model_blocks):
             raise B3dgsError("uq=native needs a model trained with posterior blocks (model=niw or model=dpmm) or blocks "
-                             "added at evaluation (uq=[native_sh]); "
-                             "use uq=proxy for a standard model")
+                             "added at evaluation (uq=[native_sh])",
+                             fix="use uq=proxy (or uq=[native_sh]) for a standard model, or train with model=niw")
         self.sigma2 = 0.0
         # one prepared draw function per block: posterior set-up once, not per chunk or view
         blocks = self._blocks(m)

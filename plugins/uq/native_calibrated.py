@@ -80,7 +80,8 @@ class NativeConformalUQ(_CalibratedNative):
     def validate(self, **kwargs):
         super().validate(**kwargs)
         if not 0 < self.level < 1:
-            raise B3dgsError(f"uq.native_conformal.level must be in (0, 1), got {self.level}")
+            raise B3dgsError(f"uq.native_conformal.level must be in (0, 1), got {self.level}",
+                             fix="pass uq.native_conformal.level strictly between 0 and 1, e.g. 0.95")
 
     def fit(self, models, scene):
         super().fit(models, scene)
@@ -93,7 +94,9 @@ class NativeConformalUQ(_CalibratedNative):
         if not np.isfinite(conf["q"]):
             raise B3dgsError(f"uq=native_conformal: the {conf['rank']}-th smallest of the {conf['n']} calibration "
                              "scores is infinite (residuals where u_p + σ̂² = 0: a run without the plug-in σ̂², "
-                             "posterior.niw.plugin_noise=false, or too few calibration pixels)")
+                             "posterior.niw.plugin_noise=false, or too few calibration pixels)",
+                             fix="train with posterior.niw.plugin_noise=true, or hold out more calibration views "
+                                 "(a smaller data.calib_every, e.g. 8)")
         self.k = float(conf["multiplier"])
         self.fit_info.update({f"conformal_{k}": v for k, v in conf.items()})
 

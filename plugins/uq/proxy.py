@@ -22,7 +22,8 @@ class ProxyUQ(UQRegime):
     def validate(self, **kwargs):
         super().validate(**kwargs)
         if not self.jitter > 0:
-            raise B3dgsError(f"uq.proxy.jitter must be > 0, got {self.jitter}")
+            raise B3dgsError(f"uq.proxy.jitter must be > 0, got {self.jitter}",
+                             fix="pass uq.proxy.jitter > 0 (a fraction of the scene extent), e.g. the default 0.002")
 
     @torch.no_grad()
     def predict(self, camera, generator=None):
