@@ -511,6 +511,8 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2, help="scene-seeds run at once (one thread each)")
     ap.add_argument("--study-out", default=None, help="default outputs/study (--smoke: outputs/study_smoke)")
     ap.add_argument("--aggregate-only", action="store_true")
+    ap.add_argument("--results-root", default=str(RESULTS),
+                    help="where the tables and their plots go (default bench/results; bench.reproduce passes a temp dir)")
     ap.add_argument("--score-max-side", default="64",
                     help="acquisition.score_max_side of the committed study (64; 'null' = full size, use a new --study-out)")
     ap.add_argument("--batches", nargs="+", default=list(BATCHES),
@@ -569,21 +571,22 @@ def main() -> None:
         print(text)
         return
     results = {}
-    tables = out / "tables" if args.extra else None  # rows with --extra are another study: tables stay with it
+    # rows with --extra are another study: tables stay with it
+    root = out / "tables" if args.extra else Path(args.results_root)
     for lad in LADDERS:  # one table per ladder: 16 -> 32 scenes are never pooled with 8 -> 16 ones in a table
         group = [sc for sc in scenes if ladders.get(sc) == lad]
         if group:
-            results[lad] = aggregate(group, out, walls, results=tables / NAME if tables else None)
+            results[lad] = aggregate(group, out, walls, results=root / NAME)
             results[lad]["ladder"] = lad
     pooled = pooled_pairs(list(results.values())) if len(results) > 1 else None
     for lad, res in results.items():
         text = markdown(res)
         if lad == "16to32":
-            plots(res, (tables or RESULTS) / NAME)
+            plots(res, root / NAME)
             if pooled:  # the paired answers over every scene sit with the main table
                 res["paired_all_ladders"] = pooled
                 text += pooled_markdown(pooled, {sc: lad2 for sc, lad2 in ladders.items() if sc in scenes})
-        write_results(NAME if lad == "16to32" else f"{NAME}_{lad}", res, text, root=tables or RESULTS)
+        write_results(NAME if lad == "16to32" else f"{NAME}_{lad}", res, text, root=root)
 
 
 if __name__ == "__main__":

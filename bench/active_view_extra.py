@@ -142,7 +142,7 @@ def pair_rho(rows: list[dict], policies: list[str], against: list[str]) -> list[
     return out
 
 
-def write(res: dict, name: str, policies: list[str], against: list[str]) -> None:
+def write(res: dict, name: str, policies: list[str], against: list[str], root: Path = RESULTS) -> None:
     from b3dgs.io import atomic_path, write_json
 
     lines = [f"# Active view: {', '.join(policies)} against the committed campaign", "",
@@ -182,8 +182,8 @@ def write(res: dict, name: str, policies: list[str], against: list[str]) -> None
                      f"{signs} |")
     if res["problems"]:
         lines += ["", "## Left out", ""] + [f"- {x}" for x in res["problems"]]
-    write_json(RESULTS / f"{name}.json", res)
-    with atomic_path(RESULTS / f"{name}.md") as tmp:
+    write_json(root / f"{name}.json", res)
+    with atomic_path(root / f"{name}.md") as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 
@@ -196,6 +196,7 @@ def main() -> None:
     ap.add_argument("--against", nargs="+", default=AGAINST)
     ap.add_argument("--within", nargs="*", default=[], help="new policies every new policy is also paired with")
     ap.add_argument("--name", default="active_view_extra", help="bench/results/<name>.{json,md}")
+    ap.add_argument("--results-root", default=str(RESULTS), help="where <name>.{json,md} go (default bench/results)")
     args = ap.parse_args()
     new, archive = Path(args.new), Path(args.archive)
     for p, what in ((new, "--new"), (archive, "--archive")):
@@ -205,7 +206,9 @@ def main() -> None:
     against = args.against + [w for w in args.within if w not in args.against]
     res["paired"] = pair(res["rows"], args.policies, against)
     res["paired_rho"] = pair_rho(res["rows"], args.policies, against)
-    write(res, args.name, args.policies, against)
+    root = Path(args.results_root)
+    root.mkdir(parents=True, exist_ok=True)
+    write(res, args.name, args.policies, against, root)
 
 
 if __name__ == "__main__":

@@ -61,6 +61,7 @@ def main() -> None:
     ap.add_argument("--dir", default=str(RESULTS / "active_view_schedule"))
     ap.add_argument("--a", default="constant")
     ap.add_argument("--b", default="dash")
+    ap.add_argument("--results-root", default=None, help="where compare.{json,md} go (default: --dir)")
     args = ap.parse_args()
     d = Path(args.dir)
     tables = {}
@@ -72,8 +73,10 @@ def main() -> None:
     from b3dgs.io import atomic_path, write_json
 
     res = compare(tables[args.a], tables[args.b], args.a, args.b)
-    write_json(d / "compare.json", res)
-    with atomic_path(d / "compare.md") as tmp:
+    root = Path(args.results_root) if args.results_root else d
+    root.mkdir(parents=True, exist_ok=True)
+    write_json(root / "compare.json", res)
+    with atomic_path(root / "compare.md") as tmp:
         tmp.write_text(markdown(res))
     print(markdown(res))
 

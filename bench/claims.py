@@ -435,6 +435,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--results", default=str(RESULTS), help="the results folder (default bench/results)")
     ap.add_argument("--name", default="claims")
+    ap.add_argument("--results-root", default=str(RESULTS), help="where <name>.{json,md} go (default bench/results)")
     ap.add_argument("--scenes", nargs="+", default=None,
                     help="restrict every claim to these scenes (write it under another --name)")
     args = ap.parse_args()
@@ -443,9 +444,10 @@ def main() -> None:
     rows, text = build(Path(args.results), args.scenes)
     if not args.scenes:  # the full table also says what the scenes added since the earlier two changed
         early, early_text = build(Path(args.results), list(EARLIER_SCENES))
-        write_results(f"{args.name}_two_scenes", {"rows": early, "scenes": list(EARLIER_SCENES)}, early_text)
+        write_results(f"{args.name}_two_scenes", {"rows": early, "scenes": list(EARLIER_SCENES)}, early_text,
+                      root=Path(args.results_root))
         text += "\n\n" + change_md(early, rows)
-    write_results(args.name, {"rows": rows}, text)  # prints the table
+    write_results(args.name, {"rows": rows}, text, root=Path(args.results_root))  # prints the table
 
 
 def change_md(early: list[dict], rows: list[dict]) -> str:

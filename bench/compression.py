@@ -63,12 +63,12 @@ def run_base(base: Path, out: Path, extra: list[str], archive: Path | None = Non
 ARCHIVED = ("meta.json", "*/s*/base.json", "*/s*/protocol.json", "*/s*/*_k*/result.json")
 
 
-def aggregate(out: Path) -> dict:
+def aggregate(out: Path, root: Path = RESULTS) -> dict:
     from b3dgs.report.document import markdown_table
     from b3dgs.study.compression import write_report
 
     s = write_report(out, plots=True)
-    dst = RESULTS / NAME
+    dst = root / NAME
     dst.mkdir(parents=True, exist_ok=True)
     for png in (out / "plots").glob("*.png"):
         shutil.copy2(png, dst / png.name)
@@ -83,7 +83,7 @@ def aggregate(out: Path) -> dict:
               "Absolute PSNR is not comparable (other scenes, resolution and budgets); the comparison is the ordering "
               "of scores and the sign of the differences."]
     write_results(NAME, {"machine": machine(), "summary": s, "paper": {str(k): v for k, v in PAPER.items()}},
-                  "\n".join(lines) + "\n")
+                  "\n".join(lines) + "\n", root=root)
     return s
 
 
@@ -95,6 +95,7 @@ def main() -> None:
     ap.add_argument("--out", default=str(ROOT / "outputs" / "compression"))
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--aggregate-only", action="store_true")
+    ap.add_argument("--results-root", default=str(RESULTS), help="where the table and plots go (default bench/results)")
     ap.add_argument("--extra", nargs="*", default=[], help="extra overrides for b3dgs-study compress")
     ap.add_argument("--archive", default=None,
                     help="copy of every finished row's result.json (and base.json) for resuming across machines; "
@@ -120,9 +121,9 @@ def main() -> None:
         with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
             list(ex.map(one, bases))
     sync_results(out, archive, ARCHIVED)
-    s = aggregate(out)
+    s = aggregate(out, Path(args.results_root))
     print(json.dumps({"rows": s["n_rows"], "scenes": s["scenes"]}), flush=True)
-    print(f"wrote {RESULTS / (NAME + '.md')}", flush=True)
+    print(f"wrote {Path(args.results_root) / (NAME + '.md')}", flush=True)
 
 
 if __name__ == "__main__":

@@ -135,8 +135,10 @@ def main() -> None:
     ap.add_argument("--load", default="", help="what else ran on the machine while the passes were timed (for the table)")
     ap.add_argument("--table-only", action="store_true")
     ap.add_argument("--name", default="count_cost", help="bench/results/<name>.{json,md}")
+    ap.add_argument("--results-root", default=str(RESULTS), help="where <name>.{json,md} are (default bench/results)")
     args = ap.parse_args()
-    path = RESULTS / f"{args.name}.json"
+    root = Path(args.results_root)
+    path = root / f"{args.name}.json"
     res = json.loads(path.read_text()) if path.is_file() else {"runs": {}}
     if not args.table_only:
         dirs = sorted({Path(p) for pat in args.runs for p in (glob.glob(pat) or [pat])})
@@ -153,7 +155,7 @@ def main() -> None:
     if not res["runs"]:
         raise SystemExit(f"bench/count_cost.py: {path} holds no runs yet (fix: pass --runs)")
     md = table(res)
-    with atomic_path(RESULTS / f"{args.name}.md") as tmp:
+    with atomic_path(root / f"{args.name}.md") as tmp:
         tmp.write_text(md)
     print(md)
 

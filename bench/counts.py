@@ -202,12 +202,13 @@ def write(args, res: dict, problems: list[str]) -> None:
         lines += [f"- {reg}: {', '.join(v)}" for reg, v in res["missing"].items()]
     if problems:
         lines += ["", "## Rows not merged", ""] + [f"- {x}" for x in problems]
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    write_json(RESULTS / "counts.json", {**res, "problems": problems, "samples": args.samples})
-    with atomic_path(RESULTS / "counts.md") as tmp:
+    root = Path(args.results_root)
+    root.mkdir(parents=True, exist_ok=True)
+    write_json(root / "counts.json", {**res, "problems": problems, "samples": args.samples})
+    with atomic_path(root / "counts.md") as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
-    print(f"wrote {RESULTS / 'counts.md'}")
+    print(f"wrote {root / 'counts.md'}")
 
 
 def main() -> None:
@@ -232,6 +233,7 @@ def main() -> None:
     ap.add_argument("--out", default="outputs/bench_counts")
     ap.add_argument("--archive", default=str(RESULTS / "runs"))
     ap.add_argument("--table-only", action="store_true")
+    ap.add_argument("--results-root", default=str(RESULTS), help="where counts.{json,md} go (default bench/results)")
     args = ap.parse_args()
     problems: list[str] = []
     if not args.table_only:

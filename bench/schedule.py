@@ -273,6 +273,7 @@ def main() -> None:
     ap.add_argument("--out", default="outputs/bench_schedule")
     ap.add_argument("--archive", default=str(RESULTS / "schedule_runs"))
     ap.add_argument("--name", default="schedule", help="result files bench/results/<name>.{json,md,png}")
+    ap.add_argument("--results-root", default=str(RESULTS), help="where <name>.{json,md,png} go (default bench/results)")
     ap.add_argument("--extra", nargs="*", default=[], help="overrides for every run")
     args = ap.parse_args()
     from b3dgs.io import atomic_path, write_json
@@ -329,16 +330,17 @@ def main() -> None:
                         curves[(scene, model, name, seed)] = got[1]
     summary = summarize(rows, curves, names, ref, args.models, args.base_model)
     lines = markdown(rows, summary, names, ref, args.threads, imports)
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    write_json(RESULTS / f"{args.name}.json", {"machine": machine(), "variants": variants, "imports": imports,
+    root = Path(args.results_root)
+    root.mkdir(parents=True, exist_ok=True)
+    write_json(root / f"{args.name}.json", {"machine": machine(), "variants": variants, "imports": imports,
                                                "reference": ref, "jobs": args.jobs, "threads": args.threads,
                                                "rows": rows, "summary": summary})
-    with atomic_path(RESULTS / f"{args.name}.md") as tmp:
+    with atomic_path(root / f"{args.name}.md") as tmp:
         tmp.write_text("\n".join(lines) + "\n")
     if curves:
-        plot(curves, RESULTS / f"{args.name}.png")
+        plot(curves, root / f"{args.name}.png")
     print("\n".join(lines[:40]))
-    print(f"wrote {RESULTS / (args.name + '.md')}")
+    print(f"wrote {root / (args.name + '.md')}")
 
 
 if __name__ == "__main__":

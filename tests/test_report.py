@@ -383,6 +383,25 @@ def test_canonical_grid_uq_regimes_ensemble_and_merge(tmp_path):
     assert "constant" in now and all(now[k] == kept[k] for k in ("proxy", "ppu", "native"))
 
 
+def test_an_ensemble_whose_member_is_not_among_the_runs_is_left_out_with_a_line(tmp_path, caplog):
+    """Through load_runs on an archive's layout: an ensemble uq.json naming its members by another checkout's absolute
+    paths joins its first member here; one whose first member is not among the runs is left out with a warning line,
+    not silently (the silent drop hid that the report rebuilt outside /work/main lost its ensemble rows)."""
+    arch = tmp_path / "clone" / "bench" / "results" / "runs"
+    for s in (0, 1, 2):
+        write_run(arch / "sceneA" / "standard" / f"s{s}", "sceneA", "standard", s, 20.0 + s)
+    gone = "/work/elsewhere/bench/results/runs/sceneA/standard"
+    ens = {"ensemble": {"cov95": 0.5, "runs": [f"{gone}/s{s}" for s in (0, 1, 2)]}}
+    (arch / "sceneA" / "ensemble").mkdir(parents=True)
+    (arch / "sceneA" / "ensemble" / "uq.json").write_text(json.dumps(ens))
+    runs, _ = load_runs([str(arch / "sceneA" / "standard" / "*"), str(arch / "sceneA" / "ensemble" / "uq.json")])
+    assert {r.seed: "ensemble" in r.uq for r in runs} == {0: True, 1: False, 2: False}
+    # an ensemble whose first member is not among the runs is left out with a line saying so, not silently
+    with caplog.at_level("WARNING"):
+        runs, _ = load_runs([str(arch / "sceneA" / "standard" / "s1"), str(arch / "sceneA" / "ensemble" / "uq.json")])
+    assert not any("ensemble" in r.uq for r in runs) and "not among the report's runs" in caplog.text
+
+
 # ------------------------------------------------------------------------------------------ pooling
 def test_runs_of_different_protocols_are_refused_not_pooled(tmp_path):
     write_run(tmp_path / "a", "sceneA", "standard", 0, 20.0, max_steps=300)

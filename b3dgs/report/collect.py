@@ -254,6 +254,9 @@ def _attach_uq(runs: list[Run], uq_files: Sequence[Path]) -> None:
                 theirs = (summ.get("run_checkpoints") or [None])[0]
                 owner = (by_path.get(Path(member).resolve()) or by_digest.get(theirs)
                          or _moved_run(runs, Path(f).parent, Path(member)))
+                if owner is None:
+                    log.warning("%s: regime %s names the run %s, which is not among the report's runs: left out "
+                                "(fix: add that run to runs=)", f, regime, member)
                 if owner is not None and uq_scores_other_run(owner.path, owner.metrics, summ):
                     log.warning("%s: regime %s names the run %s, which now holds another model: left out of the "
                                 "report (fix: run b3dgs-eval for it again)", f, regime, member)
