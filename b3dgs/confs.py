@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 from b3dgs import conf_dir
 
 __all__ = ["added_key_problem", "conf_roots", "help_groups", "option_clashes", "known_keys", "load_option", "option_names",
-           "register_help_resolver"]
+           "help_groups_only", "register_help_resolver"]
 
 
 def conf_roots() -> list[Path]:
@@ -171,19 +171,31 @@ def option_clashes() -> list[tuple[str, list[Path]]]:
     return [(k, v) for k, v in sorted(seen.items()) if len(v) > 1]
 
 
+def _format_groups(keep) -> str:
+    """Hydra's ``--help`` list of the config groups ``keep(group)`` accepts ("" outside a Hydra app)."""
+    from hydra.core.global_hydra import GlobalHydra
+
+    hydra = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
+    return "" if hydra is None else hydra.format_config_groups(keep)
+
+
 def help_groups(*hidden: str) -> str:
     """Hydra's ``--help`` list of config groups (``group: option, ...`` lines) without Hydra's own groups and the
     ``hidden`` ones with their subgroups: an app's ``hydra.help.template`` lists the groups it uses with
     ``${b3dgs.help_groups:uq,acquisition}`` (``b3dgs-train`` hides the eval / study groups it never reads)."""
-    from hydra.core.global_hydra import GlobalHydra
+    return _format_groups(lambda g: g.split("/")[0] not in ("hydra", *hidden))
 
-    hydra = GlobalHydra.instance().hydra if GlobalHydra.instance().is_initialized() else None
-    if hydra is None:  # resolved outside a Hydra app
-        return ""
-    return hydra.format_config_groups(lambda g: g.split("/")[0] not in ("hydra", *hidden))
+
+def help_groups_only(*shown: str) -> str:
+    """Hydra's ``--help`` list of config groups restricted to ``shown`` (and their subgroups): an app that reads one
+    group lists only it (``b3dgs-eval``: ``${b3dgs.help_only:uq}``), whatever groups b3dgs or a package adds later."""
+    return _format_groups(lambda g: g.split("/")[0] in shown)
 
 
 def register_help_resolver() -> None:
-    """``${b3dgs.help_groups:NAME,...}``: :func:`help_groups` in a config."""
+    """``${b3dgs.help_groups:NAME,...}`` (:func:`help_groups`) and ``${b3dgs.help_only:NAME,...}``
+    (:func:`help_groups_only`) in a config."""
     if not OmegaConf.has_resolver("b3dgs.help_groups"):
         OmegaConf.register_new_resolver("b3dgs.help_groups", help_groups)
+    if not OmegaConf.has_resolver("b3dgs.help_only"):
+        OmegaConf.register_new_resolver("b3dgs.help_only", help_groups_only)

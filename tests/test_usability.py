@@ -130,3 +130,16 @@ def test_train_help_lists_only_the_groups_training_reads(tmp_path):
     assert not groups & {"uq", "acquisition", "acquisition/batch", "pruning", "hydra"}, head
     assert "model: dpmm, mcmc, niw, standard" in head and "\nstrategy:\n  _target_: " in rest and "help_groups" not in res.stdout
     assert not any(tmp_path.iterdir())
+
+
+def test_eval_help_lists_only_the_uq_group(tmp_path):
+    """b3dgs-eval reads one group, uq (the run's model, data and renderer come from its checkpoint): its --help lists
+    only that group, with its options."""
+    res = subprocess.run([sys.executable, "-m", "b3dgs.eval", "--help"], capture_output=True, text=True, timeout=120,
+                         cwd=tmp_path, env=ENV)
+    assert res.returncode == 0, res.stderr[-2000:]
+    head, _, rest = res.stdout.partition("== Config ==")
+    groups = {ln.split(":")[0] for ln in head.splitlines() if ": " in ln and not ln.startswith(" ")}
+    assert groups == {"uq"}, head
+    assert "native_plus_sh" in head and "\nrun: ???" in rest and "help_only" not in res.stdout
+    assert not any(tmp_path.iterdir())
