@@ -108,6 +108,14 @@ def _hydra_error(exc: BaseException) -> Optional[B3dgsError]:
         if len(given) > 1:
             return B3dgsError(f"{key} is given {len(given)} times ({' '.join(given)})", "pass it once")
         return B3dgsError(f"+{key} adds a key the config already has", f"pass {key}=VALUE without the +")
+    import re
+
+    local = re.match(r"In '([\w.-]+)/([^']+)': Could not override '([^'@]+)@\1\.", head)
+    if local is not None:  # a group file's defaults list ran in the group's package: the file is not global
+        group, name, target = local.groups()
+        return B3dgsError(f"{group}/{name}.yaml is not a global config file: its defaults list overrides /{target} "
+                          f"inside {group}.{target}, which no config has",
+                          "start that file with the line '# @package _global_' (as every b3dgs scene file does)")
     if "Could not override" in head or "Could not append" in head or "not in struct" in text:
         key = head.split("'")[1] if "'" in head else head
         return B3dgsError(f"unknown config key {key}{_key_suggestion(key)}",

@@ -115,6 +115,14 @@ def test_a_scene_file_without_the_global_header_is_refused_not_ignored(tmp_path)
                          cwd=tmp_path, env=ENV)
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert res.returncode == 2 and len(lines) == 1 and "scene.{data} reaches nothing" in lines[0], res.stderr[-2000:]
+    # the same file with a defaults list (override /data: colmap): it said "unknown config key scene/mine"
+    (tmp_path / "conf" / "scene" / "mine.yaml").write_text("defaults:\n  - override /data: colmap\ndata:\n  path: /nope\n")
+    res = subprocess.run([sys.executable, "-m", "b3dgs.train", "scene=mine",
+                          f"hydra.searchpath=[file://{tmp_path / 'conf'}]", f"hydra.run.dir={tmp_path / 'run'}"],
+                         capture_output=True, text=True, timeout=120, cwd=tmp_path, env=ENV)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1, res.stderr[-2000:]
+    assert "scene/mine.yaml is not a global config file" in lines[0] and "@package _global_" in lines[0], lines[0]
 
 
 def test_train_help_lists_only_the_groups_training_reads(tmp_path):
