@@ -63,6 +63,7 @@ def build_renderer(node) -> "Renderer":
 
 
 def build_module(cfg: DictConfig, strategy, blocks, renderer=None):
+    """The ``model`` node's module with the arguments the run fills itself (b3dgs.validation.MODEL_SET_BY_RUN)."""
     from hydra.utils import instantiate
 
     from b3dgs.schedule import make_schedule

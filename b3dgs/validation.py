@@ -133,6 +133,14 @@ def _option(group: str, name: str) -> dict:
     return {**out, **data}
 
 
+#: the model's arguments that b3dgs-train fills from elsewhere (b3dgs.lifecycle.build_module), with where to set them:
+#: a ``model.<name>`` key would be accepted by the model's signature and then silently replaced
+MODEL_SET_BY_RUN = {"strategy": "strategy=<option> or strategy.<setting>=...",
+                    "posterior": "posterior=[...] and posterior.<block>.<setting>=... (e.g. posterior.niw.kappa0=1)",
+                    "renderer": "renderer=<option>", "max_steps": "trainer.max_steps=N", "seed": "seed=N",
+                    "schedule": "schedule=<option> or schedule.<setting>=..."}
+
+
 def _check_train(cfg: DictConfig, values: dict) -> None:
     from b3dgs.data.scene import get_loader, loader_reads_files
 
@@ -153,6 +161,10 @@ def _check_train(cfg: DictConfig, values: dict) -> None:
             if "_target_" not in node:
                 raise B3dgsError(f"{group} has no _target_", f"pick a {group}= option ({'|'.join(option_names(group))})")
             values.update({f"{group}.{k}": v for k, v in check_node(node, group, **extra.get(group, {})).items()})
+    for key, where in MODEL_SET_BY_RUN.items():
+        if isinstance(cfg.get("model"), DictConfig) and key in cfg.model:
+            raise B3dgsError(f"model.{key} is not read: b3dgs-train builds the model's {key} from its own setting",
+                             f"pass {where} instead of model.{key}")
     plugins = [(g, cfg[g]) for g in ("strategy", "schedule") if isinstance(cfg.get(g), DictConfig)]
     plugins += _blocks(cfg, "posterior", "a posterior block", values)
     _blocks(cfg, "callbacks", "a callback", values)

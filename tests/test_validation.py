@@ -51,6 +51,8 @@ BAD = [  # (overrides, text the one-line message must contain)
     (["trainer.enable_progress_bar=maybe"], "true or false"),
     (["strategy.refine_every=0"], "strategy.refine_every"),
     (["model=niw", "posterior.niw.kappa0=-1"], "posterior.niw.kappa0"),
+    (["model=niw", "+model.posterior.niw.kappa0=1"], "model.posterior is not read"),  # trained with 0.01 (issue 46 §4)
+    (["+model.max_steps=10"], "pass trainer.max_steps=N instead of model.max_steps"),
     (["+posterior.bogus.x=1"], "posterior.bogus"),
     (["seed=abc"], "seed"),
     (["seed=-1"], "seed=-1 is invalid: it must be an integer in [0, 2^32)"),
