@@ -101,13 +101,16 @@ def test_a_scene_file_without_the_global_header_is_refused_not_ignored(tmp_path)
     """conf/scene/mine.yaml without '# @package _global_': its keys land under scene.*, where nothing reads them;
     b3dgs-train used to train the synthetic scene and exit 0 (issue 46 §3). Now one line naming the file and the fix."""
     (tmp_path / "conf" / "scene").mkdir(parents=True)
-    (tmp_path / "conf" / "scene" / "mine.yaml").write_text("data:\n  path: /nope\n  max_side: 64\n")
-    res = subprocess.run([sys.executable, "-m", "b3dgs.train", "scene=mine",
-                          f"hydra.searchpath=[file://{tmp_path / 'conf'}]", f"hydra.run.dir={tmp_path / 'run'}"],
-                         capture_output=True, text=True, timeout=120, cwd=tmp_path, env=ENV)
-    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-    assert res.returncode == 2 and len(lines) == 1, res.stderr[-2000:]
-    assert "scene/mine.yaml is not a global config file" in lines[0] and "@package _global_" in lines[0], lines[0]
+    # the plain file, and the same with a defaults list (override /data: colmap), which said "unknown config key"
+    for body in ("data:\n  path: /nope\n  max_side: 64\n",
+                 "defaults:\n  - override /data: colmap\ndata:\n  path: /nope\n"):
+        (tmp_path / "conf" / "scene" / "mine.yaml").write_text(body)
+        res = subprocess.run([sys.executable, "-m", "b3dgs.train", "scene=mine",
+                              f"hydra.searchpath=[file://{tmp_path / 'conf'}]", f"hydra.run.dir={tmp_path / 'run'}"],
+                             capture_output=True, text=True, timeout=120, cwd=tmp_path, env=ENV)
+        lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+        assert res.returncode == 2 and len(lines) == 1, res.stderr[-2000:]
+        assert "scene/mine.yaml is not a global config file" in lines[0] and "@package _global_" in lines[0], lines[0]
     assert not (tmp_path / "run").exists()
     # the same keys given as a +scene.* override: refused too (it trained the synthetic scene; issue 46 §4)
     res = subprocess.run([sys.executable, "-m", "b3dgs.train", "+scene.data.path=/nope",
@@ -115,14 +118,6 @@ def test_a_scene_file_without_the_global_header_is_refused_not_ignored(tmp_path)
                          cwd=tmp_path, env=ENV)
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert res.returncode == 2 and len(lines) == 1 and "scene.{data} reaches nothing" in lines[0], res.stderr[-2000:]
-    # the same file with a defaults list (override /data: colmap): it said "unknown config key scene/mine"
-    (tmp_path / "conf" / "scene" / "mine.yaml").write_text("defaults:\n  - override /data: colmap\ndata:\n  path: /nope\n")
-    res = subprocess.run([sys.executable, "-m", "b3dgs.train", "scene=mine",
-                          f"hydra.searchpath=[file://{tmp_path / 'conf'}]", f"hydra.run.dir={tmp_path / 'run'}"],
-                         capture_output=True, text=True, timeout=120, cwd=tmp_path, env=ENV)
-    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
-    assert res.returncode == 2 and len(lines) == 1, res.stderr[-2000:]
-    assert "scene/mine.yaml is not a global config file" in lines[0] and "@package _global_" in lines[0], lines[0]
 
 
 def test_train_help_lists_only_the_groups_training_reads(tmp_path):
