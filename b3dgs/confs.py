@@ -181,9 +181,20 @@ def _format_groups(keep) -> str:
 
 def help_groups(*hidden: str) -> str:
     """Hydra's ``--help`` list of config groups (``group: option, ...`` lines) without Hydra's own groups and the
-    ``hidden`` ones with their subgroups: an app's ``hydra.help.template`` lists the groups it uses with
-    ``${b3dgs.help_groups:uq,acquisition}`` (``b3dgs-train`` hides the eval / study groups it never reads)."""
-    return _format_groups(lambda g: g.split("/")[0] not in ("hydra", *hidden))
+    ``hidden`` ones: ``NAME`` hides a group with its subgroups, ``NAME/SUB`` one subgroup, ``NAME=OPTION`` one option
+    of a group. An app's ``hydra.help.template`` lists what it reads with ``${b3dgs.help_groups:uq,acquisition}``
+    (``b3dgs-train`` hides the eval / study groups and the study-only presets)."""
+    options = {tuple(h.split("=", 1)) for h in hidden if "=" in h}
+    groups = {h for h in hidden if "=" not in h}
+    text = _format_groups(lambda g: not any(g == h or g.startswith(h + "/") for h in groups | {"hydra"}))
+    lines = []
+    for line in text.splitlines(keepends=True):
+        group, sep, rest = line.partition(": ")
+        if sep and any(g == group for g, _ in options):
+            kept = [o for o in rest.strip().split(", ") if (group, o) not in options]
+            line = f"{group}: {', '.join(kept)}\n"
+        lines.append(line)
+    return "".join(lines)
 
 
 def help_groups_only(*shown: str) -> str:

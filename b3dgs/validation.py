@@ -17,7 +17,7 @@ from typing import Any
 from omegaconf import DictConfig, OmegaConf
 
 from b3dgs.checkpoint import check_checkpoint
-from b3dgs.confs import global_groups, known_keys, load_option, option_names
+from b3dgs.confs import conf_roots, global_groups, known_keys, load_option, option_names
 from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.schema import UNRESOLVED, apply_rules, check_node, locate, show, value
 
@@ -93,6 +93,22 @@ def _hydra_choice(group: str):
         return None
 
 
+def _refuse_other_apps_option(cfg: DictConfig, key: str, app: str) -> None:
+    """A top-level ``key`` that the chosen option of a global group (``experiment=archived_posterior``) sets but only
+    another b3dgs command reads: refuse the option by name (else the user sees "unknown config key <key>")."""
+    for group in sorted(global_groups()):
+        choice = OmegaConf.select(cfg, f"hydra.runtime.choices.{group}", default=None) or _hydra_choice(group)
+        option = load_option(group, str(choice)) if choice else None
+        if not isinstance(option, dict) or key not in option:
+            continue
+        apps = sorted({f.stem for root in conf_roots() if root.is_dir() for f in root.glob("*.yaml")})  # train, eval, ...
+        readers = [f"b3dgs-{a}" for a in apps if a != app and key in known_keys("", a)]
+        where = f"it is an option for {' / '.join(readers)}" if readers else "nothing reads it"
+        raise B3dgsError(f"{group}={choice} sets {key}, which b3dgs-{app} does not read ({where})",
+                         f"drop {group}={choice} from this command"
+                         + (f", or run {readers[0]} with it" if readers else ""))
+
+
 def _check_top(cfg: DictConfig, app: str, values: dict) -> None:
     known = set(known_keys("", app)) | {"hydra", "b3dgs"}
     for key in map(str, cfg.keys()):
@@ -109,8 +125,10 @@ def _check_top(cfg: DictConfig, app: str, values: dict) -> None:
             raise B3dgsError(f"{key}.{{{keys}}} reaches nothing: {key} options set top-level keys",
                              f"pass {first}... without the '{key}.' prefix")
         if key not in known:
-            raise B3dgsError(f"unknown config key {key}{did_you_mean(key, known)}",
-                             f"remove it or correct its spelling (top-level keys: {', '.join(sorted(known))})")
+            _refuse_other_apps_option(cfg, key, app)
+            shown = sorted(k for k in known if "/" not in k)  # not a defaults-list subgroup (experiment/strategy)
+            raise B3dgsError(f"unknown config key {key}{did_you_mean(key, shown)}",
+                             f"remove it or correct its spelling (top-level keys: {', '.join(shown)})")
         if not isinstance(cfg[key], DictConfig) and key not in ("hydra", "run"):
             values[key] = value(cfg, key, key)
     extra_b3dgs = sorted(map(str, set(cfg.get("b3dgs") or {}) - {"debug"}))

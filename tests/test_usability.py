@@ -130,9 +130,40 @@ def test_train_help_lists_only_the_groups_training_reads(tmp_path):
     groups = {ln.split(":")[0] for ln in head.splitlines() if ": " in ln and not ln.startswith(" ")}
     assert {"data", "model", "posterior", "renderer", "scene", "schedule", "strategy", "trainer", "logger",
             "experiment"} <= groups, head
-    assert not groups & {"uq", "acquisition", "acquisition/batch", "pruning", "hydra"}, head
+    assert not groups & {"uq", "acquisition", "acquisition/batch", "pruning", "hydra", "experiment/strategy"}, head
+    # the study-only preset is left out of its group's line, the other presets stay
+    experiments = next(ln for ln in head.splitlines() if ln.startswith("experiment: ")).split(": ")[1].split(", ")
+    assert "archived_posterior" not in experiments and {"paper", "study", "smoke"} <= set(experiments), head
     assert "model: dpmm, mcmc, niw, standard" in head and "\nstrategy:\n  _target_: " in rest and "help_groups" not in res.stdout
     assert not any(tmp_path.iterdir())
+
+
+def test_train_refuses_a_study_preset_by_name(tmp_path):
+    """experiment=archived_posterior sets family_posterior, which only b3dgs-study reads: b3dgs-train names the
+    option and the command it belongs to, instead of "unknown config key family_posterior"."""
+    res = subprocess.run([sys.executable, "-m", "b3dgs.train", "experiment=archived_posterior",
+                          f"hydra.run.dir={tmp_path / 'run'}"], capture_output=True, text=True, timeout=120,
+                         cwd=tmp_path, env=ENV)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1, res.stderr[-2000:]
+    assert "experiment=archived_posterior sets family_posterior" in lines[0] and "b3dgs-study" in lines[0], lines[0]
+    assert not (tmp_path / "run").exists()
+
+
+def test_help_groups_hides_groups_subgroups_and_options(monkeypatch):
+    """help_groups' tokens: NAME hides a group and its subgroups, NAME/SUB one subgroup, NAME=OPTION one option."""
+    from b3dgs import confs
+
+    listing = "acquisition: a, b\nacquisition/batch: x\nexperiment: paper, preset, study\nexperiment/strategy: s\n" \
+              "hydra/launcher: basic\nmodel: m\n"
+
+    def fake_format(keep):
+        return "".join(ln + "\n" for ln in listing.splitlines() if keep(ln.split(":")[0]))
+
+    monkeypatch.setattr(confs, "_format_groups", fake_format)
+    assert confs.help_groups("acquisition", "experiment/strategy", "experiment=preset") == \
+        "experiment: paper, study\nmodel: m\n"
+    assert confs.help_groups() == "".join(ln + "\n" for ln in listing.splitlines() if not ln.startswith("hydra"))
 
 
 def test_eval_help_lists_only_the_uq_group(tmp_path):
