@@ -1,4 +1,5 @@
-"""The README fits on a screen and every relative link in README.md and docs/*.md resolves (files and anchors)."""
+"""The README fits on a screen, every relative link in README.md and docs/*.md resolves (files and anchors), and
+the commands they show quote their bracketed values (zsh)."""
 import re
 from pathlib import Path
 
@@ -43,3 +44,41 @@ def test_the_check_sees_links_and_anchors(tmp_path):
     (tmp_path / "a.md").write_text("# Top\n## Uncertainty (`b3dgs-eval`)\n[x](a.md#uncertainty-b3dgs-eval) [y](b.md)\n")
     assert LINK.findall(_prose(tmp_path / "a.md")) == ["a.md#uncertainty-b3dgs-eval", "b.md"]
     assert "uncertainty-b3dgs-eval" in _anchors(tmp_path / "a.md")
+
+
+_COMMAND = re.compile(r"^\s*(?:[A-Z_]+=\S+\s+)*(?:b3dgs-[a-z]+|python -m (?:bench|b3dgs)\S*)(?:\s|$)")
+_TOKEN = re.compile(r"(?:'[^']*'|\"[^\"]*\"|\S)+")
+
+
+def _commands(text: str):
+    """(line, command) of every shell command a page shows: fenced code-block lines and inline code spans."""
+    block = False
+    for i, line in enumerate(text.splitlines(), 1):
+        if line.lstrip().startswith("```"):
+            block = not block
+        elif block:
+            if _COMMAND.match(line.split("  #")[0]):
+                yield i, line.split("  #")[0]
+        else:
+            yield from ((i, span) for span in re.findall(r"`([^`]+)`", line) if _COMMAND.match(span))
+
+
+def _unquoted_brackets(command: str) -> list[str]:
+    """The words of ``command`` with a ``[`` outside quotes (zsh: "no matches found"; bash globs them), leaving out
+    usage placeholders such as ``[--seeds N]``."""
+    return [t for t in _TOKEN.findall(command) if not t.startswith("[")
+            and "[" in re.sub(r"'[^']*'|\"[^\"]*\"", "", t)]
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_commands_quote_bracketed_values(page):
+    """A command copied from the docs runs in zsh as in bash: `'uq=[native,proxy]'`, not `uq=[native,proxy]`."""
+    bad = [f"line {i}: {w}" for i, c in _commands(page.read_text()) for w in _unquoted_brackets(c)]
+    assert not bad, f"{page.name}: quote these words: " + "; ".join(bad)
+
+
+def test_the_quoting_check_sees_unquoted_brackets():
+    text = "run `b3dgs-eval run=R uq=[native]` or\n```\nb3dgs-train 'posterior=[niw]' x=\"[a]\"  # uq=[x]\n" \
+           "python -m bench.train [--seeds N] seeds=[0],[1]\n```\n"
+    assert [(i, w) for i, c in _commands(text) for w in _unquoted_brackets(c)] == \
+        [(1, "uq=[native]"), (4, "seeds=[0],[1]")]
