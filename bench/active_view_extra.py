@@ -74,7 +74,7 @@ def collect(new: Path, archive: Path, policies: list[str], against: list[str], s
                 continue
             row = {"scene": scene, "seed": int(seed), "ladder": ladder, "policy": label, "psnr": r["psnr"],
                    "rho": _rho(r, o_new), "rho_support": oracle_rho(r.get("scores"), deficit),
-                   "scoring_time_s": r.get("scoring_time_s")}
+                   "scoring_time_s": r.get("scoring_time_s"), "round2_time_s": r.get("round2_time_s")}
             for b in within:  # new rows paired with each other (same phase-1 models, same new study)
                 other = _read(scene_dir / f"{b}_s{seed}" / "result.json") if b != label else None
                 if other is not None:
@@ -87,6 +87,7 @@ def collect(new: Path, archive: Path, policies: list[str], against: list[str], s
                     o_b = _read(archive / scene / "phase1" / f"{old['family']}_s{seed}" / "oracle.json")
                     row[f"psnr_{b}"], row[f"rho_{b}"] = old["psnr"], _rho(old, o_b)
                     row[f"rho_support_{b}"] = oracle_rho(old.get("scores"), deficit)
+                    row[f"scoring_time_s_{b}"] = old.get("scoring_time_s")
             rows.append(row)
     return {"rows": rows, "problems": problems}
 
@@ -142,6 +143,24 @@ def pair_rho(rows: list[dict], policies: list[str], against: list[str]) -> list[
     return out
 
 
+def cost(rows: list[dict], policies: list[str], against: list[str]) -> list[dict]:
+    """Per policy, the seconds its scoring took (the study's ``scoring_time_s``: scoring the candidates of one round,
+    conditioning included; an ensemble's members were trained in phase 1 and are not in it) over every scene-seed,
+    beside the new rows' round-2 training seconds. The committed policies' come from their own rows."""
+    out = []
+    for p in [*policies, *(b for b in against if b not in policies)]:
+        new = p in policies
+        sel = [r for r in rows if r["policy"] == p] if new else \
+            list({(r["scene"], r["seed"]): r for r in rows}.values())  # one committed row per scene-seed
+        t = [float(r["scoring_time_s" if new else f"scoring_time_s_{p}"]) for r in sel
+             if r.get("scoring_time_s" if new else f"scoring_time_s_{p}") is not None]
+        r2 = [float(r["round2_time_s"]) for r in rows if r.get("round2_time_s") is not None]
+        if t:
+            out.append({"policy": p, "new": new, "n": len(t), "median_s": float(np.median(t)), "min_s": float(min(t)),
+                        "max_s": float(max(t)), "round2_median_s": float(np.median(r2)) if r2 else None})
+    return out
+
+
 def write(res: dict, name: str, policies: list[str], against: list[str], root: Path = RESULTS) -> None:
     from b3dgs.io import atomic_path, write_json
 
@@ -180,6 +199,14 @@ def write(res: dict, name: str, policies: list[str], against: list[str], root: P
         signs = " ".join(f"{s[:10]}{v:+.2f}" for s, v in p["per_scene"].items())
         lines.append(f"| {what} | {p['a']} | {p['b']} | {p['mean']:+.3f} | {cis} | {pv} | {p['wins']} / {p['losses']} | "
                      f"{signs} |")
+    if res.get("cost"):
+        lines += ["", "## Scoring time (s per round, every scene-seed)", "",
+                  "Beside the median round-2 training time of the new rows (the same protocol for every row).", "",
+                  "| policy | row | scene-seeds | median s | range s | median / round-2 training |", "|---|---|---|---|---|---|"]
+        for c in res["cost"]:
+            share = "—" if not c["round2_median_s"] else f"{100 * c['median_s'] / c['round2_median_s']:.1f} %"
+            lines.append(f"| {c['policy']} | {'new' if c['new'] else 'committed'} | {c['n']} | {c['median_s']:.1f} | "
+                         f"{c['min_s']:.1f}–{c['max_s']:.1f} | {share} |")
     if res["problems"]:
         lines += ["", "## Left out", ""] + [f"- {x}" for x in res["problems"]]
     write_json(root / f"{name}.json", res)
@@ -206,6 +233,7 @@ def main() -> None:
     against = args.against + [w for w in args.within if w not in args.against]
     res["paired"] = pair(res["rows"], args.policies, against)
     res["paired_rho"] = pair_rho(res["rows"], args.policies, against)
+    res["cost"] = cost(res["rows"], args.policies, against)
     root = Path(args.results_root)
     root.mkdir(parents=True, exist_ok=True)
     write(res, args.name, args.policies, against, root)

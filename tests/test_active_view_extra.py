@@ -1,7 +1,7 @@
 """bench/active_view_extra.py: pairing later active-view rows with the committed campaign's."""
 import pytest
 
-from bench.active_view_extra import applies, pair, pair_rho
+from bench.active_view_extra import applies, cost, pair, pair_rho
 
 
 def _row(scene, seed, policy, psnr, **against):
@@ -27,3 +27,20 @@ def test_batch_rows_pair_only_with_batch_rows():
     rho = {(p["rho"], p["a"], p["b"]) for p in pair_rho(rows, ["sh", "sh+diverse"], against)}
     # ρ is the score's, not the batch's: never against a batch row, which would repeat its top-k row's
     assert not [r for r in rho if "+" in r[2]] and ("rho_support", "sh+diverse", "farthest") in rho
+
+
+def test_cost_reports_each_policys_scoring_seconds_beside_round_two():
+    """The new rows' scoring seconds are theirs; a committed policy's come once per scene-seed from its own rows."""
+    rows = []
+    for scene, seed, t_new, t_old, r2 in (("a", 0, 2.0, 10.0, 100.0), ("a", 1, 4.0, 30.0, 300.0),
+                                          ("b", 0, 6.0, 20.0, 200.0)):
+        for policy, extra in (("ig", 0.0), ("ig+greedy", 1.0)):
+            r = _row(scene, seed, policy, 20.0, fisher=19.0)
+            r.update(scoring_time_s=t_new + extra, round2_time_s=r2, scoring_time_s_fisher=t_old)
+            rows.append(r)
+    rows.append({**_row("b", 1, "ig", 20.0), "scoring_time_s": None, "round2_time_s": None})  # not recorded
+    got = {c["policy"]: c for c in cost(rows, ["ig", "ig+greedy"], ["fisher", "farthest"])}
+    assert set(got) == {"ig", "ig+greedy", "fisher"}  # farthest: no committed seconds in any row
+    assert got["ig"]["n"] == 3 and got["ig"]["median_s"] == 4.0 and (got["ig"]["min_s"], got["ig"]["max_s"]) == (2.0, 6.0)
+    assert got["ig+greedy"]["median_s"] == 5.0 and got["ig"]["new"] and not got["fisher"]["new"]
+    assert got["fisher"]["n"] == 3 and got["fisher"]["median_s"] == 20.0 and got["fisher"]["round2_median_s"] == 200.0
