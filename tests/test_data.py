@@ -111,10 +111,43 @@ def _write_colmap(root: Path, model: str, params: list[float], w: int, h: int, i
     save_png(root / "images" / "a.png", image if image is not None else np.zeros((h, w, 3)))
 
 
-def test_colmap_distorted_model_rejected(tmp_path):
-    _write_colmap(tmp_path, "SIMPLE_RADIAL", [50.0, 32.0, 24.0, 0.01], 64, 48, None)
-    with pytest.raises(ValueError, match=r"SIMPLE_RADIAL.*(undistort|image_undistorter)"):
-        load_scene("colmap", str(tmp_path), test_every=0)
+@pytest.mark.parametrize("model,params", [("SIMPLE_RADIAL", [50.0, 32.0, 24.0, 0.05]),
+                                          ("OPENCV", [50.0, 52.0, 31.0, 25.0, -0.08, 0.01, 0.002, -0.001])])
+def test_colmap_distorted_model_undistorted_on_load_or_used_as_pinhole(tmp_path, caplog, model, params):
+    """A distorted COLMAP camera (once refused) is undistorted on load by default (data.undistort null or true: K'
+    is K with both focal lengths scaled by one factor, the image resampled); data.undistort=false loads its pinhole
+    part as it is, with one warning naming what was ignored."""
+    from b3dgs.data.datamodule import SceneDataModule
+    from b3dgs.data.undistort import Distortion, undistort_image
+
+    yy, xx = np.mgrid[0:48, 0:64]
+    image = np.stack([0.5 + 0.4 * np.sin(xx / 5.0), 0.5 + 0.4 * np.cos(yy / 4.0), np.full((48, 64), 0.3)], -1)
+    _write_colmap(tmp_path, model, params, 64, 48, image)
+    fx, fy, cx, cy = (params[0], params[0], *params[1:3]) if model == "SIMPLE_RADIAL" else params[:4]
+    K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    default = load_scene("colmap", str(tmp_path), test_every=0, normalize=False).train[0]
+    on = SceneDataModule(kind="colmap", path=str(tmp_path), test_every=0, normalize=False, undistort=True).scene.train[0]
+    with caplog.at_level(logging.WARNING, logger="b3dgs.data"):
+        off = load_scene("colmap", str(tmp_path), test_every=0, normalize=False, undistort=False).train[0]
+    assert torch.equal(default.image, on.image) and torch.equal(default.K, on.K)
+    s = float(on.K[0, 0]) / fx
+    assert s != 1.0 and float(on.K[1, 1]) == pytest.approx(s * fy, rel=1e-6)
+    assert torch.equal(on.K[:2, 2], torch.tensor([cx, cy], dtype=torch.float32))
+    png = load_image(tmp_path / "images" / "a.png")
+    want, Kp = undistort_image(png, K, Distortion(model, tuple(params[len(params) - (1 if model == "SIMPLE_RADIAL" else 4):])))
+    assert np.array_equal(on.image.numpy(), want) and np.allclose(on.K.numpy(), Kp, rtol=1e-6)
+    assert not torch.equal(on.image, off.image)
+    assert torch.equal(off.K, torch.tensor(K, dtype=torch.float32)) and torch.equal(off.image, torch.from_numpy(png))
+    warnings = [r.getMessage() for r in caplog.records if "distortion" in r.getMessage()]
+    assert len(warnings) == 1 and f"camera 1 {model}" in warnings[0] and "data.undistort=false" in warnings[0]
+
+
+def test_colmap_model_it_cannot_undistort_is_refused_in_one_line(tmp_path):
+    _write_colmap(tmp_path, "FOV", [50.0, 50.0, 32.0, 24.0, 0.5], 64, 48, None)
+    for undistort in (None, True, False):
+        with pytest.raises(B3dgsError, match=r"camera 1 .*FOV.*image_undistorter") as e:
+            load_scene("colmap", str(tmp_path), test_every=0, undistort=undistort)
+        assert "\n" not in str(e.value)
 
 
 def test_colmap_tiny_pinhole_and_size_mismatch(tmp_path):

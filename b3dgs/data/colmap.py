@@ -1,8 +1,12 @@
 """COLMAP scenes (``images/`` + ``sparse/0``), read with pycolmap.
 
-Only undistorted pinhole models (PINHOLE, SIMPLE_PINHOLE) are accepted; anything with lens
-distortion must be undistorted first (``colmap image_undistorter`` or ``pycolmap.undistort_images``),
-as the 3DGS preprocessing does.
+Pinhole models (PINHOLE, SIMPLE_PINHOLE) are loaded as they are. A camera with lens distortion (SIMPLE_RADIAL,
+COLMAP's default, RADIAL, OPENCV, FULL_OPENCV, OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE,
+THIN_PRISM_FISHEYE) is undistorted on load (``data.undistort`` null, the default, or true): each image is resampled,
+at the loaded size, into a pinhole view of the same size whose focal lengths are scaled so that no border is blank
+(:mod:`b3dgs.data.undistort`). ``data.undistort=false`` uses such cameras as their pinhole part (fx, fy, cx, cy),
+with one warning listing the distortion ignored. Other models (FOV, the division models, equirectangular, ...) are
+refused with a one-line error: undistort those with ``colmap image_undistorter`` (or b3dgs-process) first.
 
 pycolmap is imported lazily, inside :func:`read_colmap`, and only after PIL (see
 :mod:`b3dgs.data.images` for why).
@@ -18,6 +22,7 @@ import logging
 import mmap
 import os
 import struct
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
@@ -25,6 +30,7 @@ import numpy as np
 
 from b3dgs.data.images import image_folders, image_size, import_pycolmap  # imports PIL first
 from b3dgs.data.scene import FrameSpec, RawScene, materialize, scale_intrinsics, select_evenly
+from b3dgs.data.undistort import MODELS, Distortion, describe
 from b3dgs.errors import B3dgsError
 
 log = logging.getLogger(__name__)
@@ -173,23 +179,33 @@ def check_colmap_binary(model_dir: str | os.PathLike) -> None:
             _walk(p, walker)
 
 
-def _intrinsics(cam: Any, image_name: str) -> np.ndarray:
+def _intrinsics(cam: Any, image_name: str, undistort: Optional[bool] = None) -> tuple[np.ndarray, Any]:
+    """(K of the camera's pinhole part, its lens: a :class:`Distortion`, None for a pinhole model, or with
+    ``undistort=False`` the description of the distortion ignored)."""
     model = cam.model.name if hasattr(cam.model, "name") else str(cam.model)
     p = np.asarray(cam.params, dtype=np.float64)
+    lens = None
     if model == "PINHOLE":
         fx, fy, cx, cy = p[:4]
     elif model == "SIMPLE_PINHOLE":
         fx, cx, cy = p[:3]
         fy = fx
+    elif model in MODELS and model != "NERFSTUDIO_OPENCV":
+        n = len(p) - len(MODELS[model])  # 3: f, cx, cy; 4: fx, fy, cx, cy
+        fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if n == 3 else p[:4]
+        coeffs = tuple(float(c) for c in p[n:])
+        lens = f"camera {cam.camera_id} {model} {describe(model, coeffs)}" if undistort is False else \
+            Distortion(model, coeffs, where=f"COLMAP camera {cam.camera_id} (image {image_name!r})")
     else:
         raise B3dgsError(
-            f"COLMAP camera {cam.camera_id} (used by image {image_name!r}) has the distorted model "
-            f"{model}; only {' / '.join(PINHOLE_MODELS)} are supported",
+            f"COLMAP camera {cam.camera_id} (used by image {image_name!r}) has the model {model}, which b3dgs cannot "
+            f"undistort (it reads {' / '.join(PINHOLE_MODELS)} and undistorts "
+            f"{', '.join(m for m in MODELS if m != 'NERFSTUDIO_OPENCV')})",
             fix="undistort the images first, e.g. `colmap image_undistorter --image_path images --input_path "
                 "sparse/0 --output_path undistorted` or `pycolmap.undistort_images(output_path, input_path, "
                 "image_path)`, and point data.path at the result",
         )
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]), lens
 
 
 def read_colmap(
@@ -197,8 +213,11 @@ def read_colmap(
     images_dir: str = "images",
     sparse_dir: Optional[str] = None,
     point_tracks: bool = False,
+    undistort: Optional[bool] = None,
 ) -> tuple[list[FrameSpec], Optional[np.ndarray], Optional[np.ndarray]]:
-    """Parse a COLMAP model: (frames sorted by image name, points xyz (M, 3), colours (M, 3) in [0, 1])."""
+    """Parse a COLMAP model: (frames sorted by image name, points xyz (M, 3), colours (M, 3) in [0, 1]).
+    A distorted camera's frames carry its lens (undistorted by :func:`b3dgs.data.scene.materialize`); with
+    ``undistort=False`` they do not, and one warning lists the distortion ignored."""
     root = Path(path)
     if not root.is_dir():
         raise B3dgsError(f"COLMAP scene folder {root} does not exist", "pass data.path=PATH to an existing scene folder")
@@ -220,15 +239,22 @@ def read_colmap(
 
     frames = []
     skipped = []
+    ignored: dict[int, str] = {}  # camera id -> its distortion, when undistort=False
     for im in rec.images.values():
         if hasattr(im, "has_pose") and not im.has_pose:
             skipped.append(im.name)
             continue
         cam = rec.cameras[im.camera_id]
-        K = _intrinsics(cam, im.name)
+        K, lens = _intrinsics(cam, im.name, undistort)
+        if isinstance(lens, str):  # undistort=False
+            ignored[cam.camera_id], lens = lens, None
         viewmat = np.eye(4)
         viewmat[:3, :4] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
-        frames.append(FrameSpec(im.name, img_root / im.name, K, viewmat, int(cam.width), int(cam.height)))
+        frames.append(FrameSpec(im.name, img_root / im.name, K, viewmat, int(cam.width), int(cam.height), lens))
+    if ignored:
+        log.warning("COLMAP: lens distortion IGNORED (data.undistort=false: images used as their pinhole part, not "
+                    "undistorted): %s%s", "; ".join(ignored[k] for k in sorted(ignored)[:3]),
+                    f" (+{len(ignored) - 3} more cameras)" if len(ignored) > 3 else "")
     if skipped:
         log.warning("COLMAP: %d unregistered images skipped (%s...)", len(skipped), ", ".join(skipped[:3]))
     if not frames:
@@ -262,7 +288,7 @@ def _at_file_size(f: FrameSpec) -> FrameSpec:
     s = w / f.width
     if (w, h) == (f.width, f.height) or s > 1.0 or abs(f.height * s - h) > 1.0:
         return f
-    return FrameSpec(f.name, f.path, scale_intrinsics(f.K, w / f.width, h / f.height), f.viewmat, w, h)
+    return replace(f, K=scale_intrinsics(f.K, w / f.width, h / f.height), width=w, height=h)
 
 
 def load_colmap(
@@ -273,13 +299,16 @@ def load_colmap(
     images_dir: str = "images",
     sparse_dir: Optional[str] = None,
     point_tracks: bool = False,
+    undistort: Optional[bool] = None,
 ) -> RawScene:
     """Load a COLMAP scene: cameras (K at the loaded size, OpenCV w2c), images, SfM points.
 
-    Raises ``ValueError`` for distorted camera models (undistort first), size mismatches between
-    an image file and its camera, unreadable images; ``FileNotFoundError`` for missing folders/files.
+    ``undistort``: None or True undistort distorted cameras, False uses their pinhole part (module docstring).
+    Raises :class:`B3dgsError` for camera models it cannot undistort, size mismatches between an image file and its
+    camera, unreadable images, missing folders/files.
     """
-    out = read_colmap(path, images_dir=images_dir, sparse_dir=sparse_dir, point_tracks=point_tracks)
+    out = read_colmap(path, images_dir=images_dir, sparse_dir=sparse_dir, point_tracks=point_tracks,
+                      undistort=undistort)
     frames, points, colors = out[:3]
     frames = [frames[i] for i in select_evenly(len(frames), max_images)]
     cams = materialize(frames, max_side=max_side, background=background)

@@ -141,7 +141,9 @@ class SceneDataModule(L.LightningDataModule):
     Arguments mirror :func:`b3dgs.data.load_scene` (``near_plane``: the renderer's, for the near-plane
     guard; ``calib_every``: calibration views held out of training, ``scene.calib``); ``name`` (optional) overrides the scene name;
     extra keyword arguments go to the format loader (e.g. ``n_views``, ``resolution``, ``seed``); ``images_dir``: the
-    image folder inside ``path`` of a format that has one (``colmap``, ``llff``; e.g. ``images_4``), None for its own.
+    image folder inside ``path`` of a format that has one (``colmap``, ``llff``; e.g. ``images_4``), None for its own;
+    ``undistort``: lens distortion of ``colmap`` / ``transforms`` views (True: undistorted, False: ignored, None: each
+    format's default, see :mod:`b3dgs.data.colmap` and :mod:`b3dgs.data.transforms`).
     A prebuilt ``scene`` may be passed instead (then nothing is loaded, and nothing is checked). ``keep_raw`` (set
     before :meth:`setup`): keep what was read, for :meth:`select_train`.
 
@@ -166,11 +168,14 @@ class SceneDataModule(L.LightningDataModule):
         test_fraction: float = 0.125,
         sector_axis: int = 0,
         images_dir: Optional[str] = None,
+        undistort: Optional[bool] = None,
         **kind_kwargs: Any,
     ):
         super().__init__()
         if images_dir is not None:  # the image folder inside path (colmap, llff); None: the format's own (images/)
             kind_kwargs["images_dir"] = images_dir
+        if undistort is not None:  # colmap, transforms; None: the format's default (b3dgs.data.undistort)
+            kind_kwargs["undistort"] = undistort
         self.kind = str(kind)
         self.path = None if path is None else str(path)
         self.name = name

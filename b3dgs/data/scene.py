@@ -43,6 +43,7 @@ import numpy as np
 import torch
 
 from b3dgs.data.images import load_image
+from b3dgs.data.undistort import undistort_image
 from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.schema import RGB_RULE, apply_rules, is_int, positive_rule
 from b3dgs.types import Camera, Scene, fit_size
@@ -74,6 +75,7 @@ __all__ = [
     "check_layout",
     "check_near_plane",
     "check_scene_settings",
+    "check_undistort",
     "compute_bounds",
     "get_loader",
     "guess_kinds",
@@ -93,7 +95,8 @@ __all__ = [
 
 @dataclass
 class FrameSpec:
-    """One view before its image is decoded: native-resolution intrinsics and OpenCV w2c pose."""
+    """One view before its image is decoded: native-resolution intrinsics and OpenCV w2c pose; ``distortion``: its
+    lens (:class:`b3dgs.data.undistort.Distortion`), undistorted by :func:`materialize`, or None (a pinhole view)."""
 
     name: str
     path: Path
@@ -101,6 +104,7 @@ class FrameSpec:
     viewmat: np.ndarray  # (4, 4) float64 world-to-camera, OpenCV
     width: int
     height: int
+    distortion: Any = None  # Optional[Distortion]
 
 
 @dataclass
@@ -253,14 +257,19 @@ def materialize(
     """Decode each frame's image once, at the target size, and build :class:`Camera` objects.
 
     The image file's native size must equal the frame's (width, height). ``K`` is scaled by the
-    actual per-axis ratio ``new_w / w`` and ``new_h / h``.
+    actual per-axis ratio ``new_w / w`` and ``new_h / h``. A frame with a ``distortion`` is then undistorted at that
+    size (:func:`b3dgs.data.undistort.undistort_image`: resize first, then remap with the resized ``K``; the
+    coefficients act on normalised coordinates), its ``K`` replaced by the pinhole ``K'``; frames sharing a lens, ``K``
+    and size share one sampling grid. The frames are not changed (a second call reads and undistorts the files again).
     """
-    cams = []
+    cams, grids = [], {}
     for f in frames:
         check_intrinsics(f.name, f.K, f.width, f.height)
         w2, h2 = fit_size(f.width, f.height, max_side)
         img = load_image(f.path, size=(w2, h2), expected_size=(f.width, f.height), background=background)
         K = scale_intrinsics(f.K, w2 / f.width, h2 / f.height)
+        if f.distortion is not None:
+            img, K = undistort_image(img, K, f.distortion, cache=grids)
         cams.append(
             Camera(
                 name=f.name,
@@ -735,6 +744,8 @@ def check_scene_settings(kind: str, path: str | os.PathLike | None, settings: di
             check_layout(kind, path)
     if kind_kwargs.get("images_dir") is not None:
         check_images_dir(kind, loader, path, kind_kwargs["images_dir"])
+    if kind_kwargs.get("undistort") is not None:
+        check_undistort(kind, loader, kind_kwargs["undistort"])
     check = getattr(loader, "validate", None)
     if callable(check):
         check(**kind_kwargs)
@@ -757,6 +768,17 @@ def check_images_dir(kind: str, loader, path: str | os.PathLike | None, folder: 
         raise B3dgsError(f"data.images_dir={folder}: {path} has no folder {folder}",
                          f"pass data.images_dir= one of its image folders ({', '.join(there)})" if there else
                          f"{path} holds no image folder: pass data.path=PATH to the scene folder")
+
+
+def check_undistort(kind: str, loader, value: Any) -> None:
+    """Refuse a ``data.undistort`` that is not null/true/false, or that the format ``loader`` does not take (a format
+    without lens distortion)."""
+    if not isinstance(value, bool):
+        raise B3dgsError(f"data.undistort={value} is invalid: it must be true, false or null",
+                         "pass data.undistort=true (undistort), false (ignore distortion) or null (the format's default)")
+    if "undistort" not in loader_params(loader):
+        raise B3dgsError(f"data.undistort={str(value).lower()}: data={kind} has no lens distortion setting",
+                         "pass data.undistort=null")
 
 
 def read_raw(loader, path: str | os.PathLike | None, settings: dict, kind_kwargs: dict,
@@ -833,7 +855,8 @@ def load_scene(
         raw: the scene as :func:`read_raw` read it with these settings (then nothing is read again; its point
             tracks are needed for ``init_points_from_train_only``).
         **kind_kwargs: passed to the format loader (e.g. ``n_views``, ``resolution``, ``seed`` for
-            "synthetic"; ``images_dir`` for "colmap"/"llff"; ``sparse_dir`` for "colmap").
+            "synthetic"; ``images_dir`` for "colmap"/"llff"; ``sparse_dir`` for "colmap"; ``undistort`` (True, False
+            or None) for "colmap"/"transforms", see :mod:`b3dgs.data.undistort`).
     """
     settings = dict(max_side=max_side, test_every=test_every, train_indices=train_indices, normalize=normalize,
                     background=background, max_images=max_images, near_plane=near_plane, calib_every=calib_every,

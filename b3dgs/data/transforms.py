@@ -11,10 +11,15 @@
 * Poses: ``transform_matrix`` is an OpenGL/NeRF camera-to-world (x right, y up, z backwards); it is
   converted to OpenCV by flipping the camera's y and z axes (``c2w[:3, 1:3] *= -1``), then inverted.
 * ``file_path`` is relative to the JSON file's folder, with or without an extension.
-* **Lens distortion is ignored**: ``k1, k2, k3, k4, p1, p2`` are *not* applied (the images are used
-  as if they were pinhole); when any is non-zero a single ``logging.warning`` reports that they are
-  ignored and their largest magnitudes. Fisheye / equirectangular ``camera_model`` raise ``ValueError``.
-* RGBA images are composited over the scene ``background``.
+* **Lens distortion** (``data.undistort``, :mod:`b3dgs.data.undistort`): ``camera_model`` OPENCV (the default;
+  nerfstudio's and instant-ngp's ``k1, k2, k3, k4`` radial on r^2..r^8, ``p1, p2`` tangential) or OPENCV_FISHEYE
+  (equidistant, ``k1..k4`` on theta). With ``undistort=None`` (the default) OPENCV coefficients are *ignored*, as
+  before this option existed (archived runs on fox reproduce bit for bit; the images are used as if pinhole, never
+  touched): a single ``logging.warning`` reports that they are ignored, their largest magnitudes, and that
+  ``data.undistort=true`` undistorts them; OPENCV_FISHEYE frames (once refused) are undistorted. ``undistort=True``
+  undistorts every frame into a pinhole view of the same size (focal lengths scaled, no blank border);
+  ``undistort=False`` ignores all distortion, with the warning. FISHEYE, EQUIRECTANGULAR and FISHEYE624 are refused.
+* RGBA images are composited over the scene ``background`` (before undistortion, which commutes with it).
 * Optional ``ply_file_path`` (nerfstudio) gives initial points (xyz, and colours if present).
 * If ``path`` is a folder without ``transforms.json`` but with Blender's ``transforms_{train,val,test}.json``,
   their frames are merged (the held-out split is then re-made by :func:`b3dgs.data.load_scene`).
@@ -32,6 +37,7 @@ import numpy as np
 
 from b3dgs.data.images import image_size
 from b3dgs.data.scene import FrameSpec, RawScene, materialize, scale_intrinsics, select_evenly
+from b3dgs.data.undistort import FISHEYE, MODELS, Distortion
 from b3dgs.errors import B3dgsError
 
 log = logging.getLogger(__name__)
@@ -64,7 +70,7 @@ def _check_numbers(jf: Path, meta: dict) -> None:
                              "write a 4x4 (or 3x4) list of numbers in that file")
 
 
-_UNSUPPORTED_MODELS = ("OPENCV_FISHEYE", "FISHEYE", "EQUIRECTANGULAR", "FISHEYE624")
+_UNSUPPORTED_MODELS = ("FISHEYE", "EQUIRECTANGULAR", "FISHEYE624")
 _EXTS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".exr", ".webp")
 
 # OpenGL (x right, y up, z back) -> OpenCV (x right, y down, z forward) on the camera side.
@@ -150,8 +156,10 @@ def _rescale_shared_intrinsics(jf: Path, meta: dict, frames: list[FrameSpec], un
 
 def read_transforms(
     path: str | os.PathLike,
+    undistort: Optional[bool] = None,
 ) -> tuple[list[FrameSpec], Optional[np.ndarray], Optional[np.ndarray], dict[str, float]]:
-    """Parse transforms JSON file(s): (frames sorted by name, points, colours, max |distortion| per key)."""
+    """Parse transforms JSON file(s): (frames sorted by name, points, colours, max |coefficient| per key of the
+    distortion left ignored). Frames to undistort (``undistort``, see the module docstring) carry their lens."""
     path = Path(path)
     files = _resolve_json(path)
     frames: list[FrameSpec] = []
@@ -180,15 +188,22 @@ def read_transforms(
                                      "(its 4x4 camera-to-world pose)")
             model = str(g.get("camera_model", "OPENCV")).upper()
             if model in _UNSUPPORTED_MODELS:
-                raise B3dgsError(f"{jf}: camera_model {model} is not a pinhole model; undistort the images first",
+                raise B3dgsError(f"{jf}: camera_model {model} cannot be undistorted (b3dgs undistorts OPENCV and "
+                                 "OPENCV_FISHEYE)",
                                  fix="undistort the images to a pinhole model first (e.g. nerfstudio's "
                                      "ns-process-data or COLMAP's image_undistorter) and write camera_model PINHOLE "
                                      "or OPENCV with zero distortion")
             img_path = _resolve_image(root, fr["file_path"])
             name = Path(os.path.relpath(img_path, path if path.is_dir() else root)).as_posix()
-            for k in DISTORTION_KEYS:
-                if k in g and g[k] is not None and float(g[k]) != 0.0:
-                    distortion[k] = max(distortion.get(k, 0.0), abs(float(g[k])))
+            lens, vals = None, {k: float(g[k]) for k in DISTORTION_KEYS if g.get(k) is not None and float(g[k]) != 0.0}
+            lens_model = "OPENCV_FISHEYE" if model == "OPENCV_FISHEYE" else "NERFSTUDIO_OPENCV"
+            if undistort or (undistort is None and lens_model in FISHEYE):  # null: OPENCV ignored, as it always was
+                if vals or lens_model in FISHEYE:
+                    lens = Distortion(lens_model, tuple(vals.get(k, 0.0) for k in MODELS[lens_model]),
+                                      where=f"{jf.name} frame {fr['file_path']!r}")
+                vals = {k: v for k, v in vals.items() if k not in MODELS[lens_model]}
+            for k, v in vals.items():
+                distortion[k] = max(distortion.get(k, 0.0), abs(v))
             if "w" in g and "h" in g:
                 w, h = int(round(float(g["w"]))), int(round(float(g["h"])))
             else:
@@ -227,7 +242,7 @@ def read_transforms(
                 raise B3dgsError(f"{jf}: transform_matrix of {fr['file_path']!r} is singular",
                                  fix="write a rigid camera-to-world pose (an invertible 4x4) for "
                                      f"{fr['file_path']!r}, or drop that frame") from e
-            frames.append(FrameSpec(name, img_path, K, viewmat, w, h))
+            frames.append(FrameSpec(name, img_path, K, viewmat, w, h, lens))
         _rescale_shared_intrinsics(jf, meta, frames[first:], unsized)
         if meta.get("ply_file_path") and points is None:
             ply = root / meta["ply_file_path"]
@@ -245,14 +260,17 @@ def load_transforms(
     max_side: Optional[int] = None,
     background: Sequence[float] = (0.0, 0.0, 0.0),
     max_images: Optional[int] = None,
+    undistort: Optional[bool] = None,
 ) -> RawScene:
-    """Load a ``transforms.json`` scene (see the module docstring; distortion is ignored, with a warning)."""
-    frames, points, colors, distortion = read_transforms(path)
+    """Load a ``transforms.json`` scene (see the module docstring: ``undistort`` None ignores OPENCV distortion with a
+    warning and undistorts OPENCV_FISHEYE, True undistorts every frame, False ignores all distortion)."""
+    frames, points, colors, distortion = read_transforms(path, undistort=undistort)
     if distortion:
         log.warning(
             "transforms.json: lens distortion is IGNORED (images used as pinhole, not undistorted); "
-            "max |coefficient|: %s",
+            "max |coefficient|: %s; %s",
             ", ".join(f"{k}={v:.3g}" for k, v in distortion.items()),
+            "as data.undistort=false asks" if undistort is False else "data.undistort=true undistorts them",
         )
     frames = [frames[i] for i in select_evenly(len(frames), max_images)]
     cams = materialize(frames, max_side=max_side, background=background)
