@@ -54,7 +54,8 @@ else commit="$(git -C "$ROOT" rev-parse HEAD)"; fi
 git -C "$CODE" checkout -q -f --detach "$commit"
 [ -f "$ARCH/CODE_COMMIT" ] || echo "$commit" > "$ARCH/CODE_COMMIT"
 export B3DGS_SHARED="${B3DGS_SHARED:-$(cd "$ROOT/.." && pwd)/shared}"
-echo "=== $(date -u +%FT%TZ) geometry rows $GEO_POLICIES on $GEO_SCENES seeds $GEO_SEEDS, code $(git -C "$CODE" rev-parse --short HEAD)" | tee -a "$log"
+echo "=== $(date -u +%FT%TZ) geometry rows $GEO_POLICIES on $GEO_SCENES seeds $GEO_SEEDS," \
+  "code $(git -C "$CODE" rev-parse --short HEAD)" | tee -a "$log"
 # shellcheck disable=SC2086
 (cd "$CODE" && PYTHONPATH="$CODE" nice -n 19 python -m bench.active_view --scenes $GEO_SCENES --seeds $GEO_SEEDS \
   --jobs "$JOBS" --study-out "$OUT" --batches topk --extra "policies=[$GEO_POLICIES]" "family_baselines=[]" \

@@ -34,14 +34,18 @@ Gaussian's size: hence τ_μ = 1 / (r · extent)² with ``geometry_prior_scale``
 1 % of the scene extent across; a larger r lets the unconstrained directions' prior variance, where the first-order
 term is meaningless, dominate the score). ``geometry_probes`` = 4 (NIW's ``fisher_probes``): a candidate's J is one
 view's estimate (no averaging over views; relative error √(2/4) per entry, averaged out over the thousands of Gaussians
-a score sums), and 4 probes keep an F of rank 3; the cost is probes × views backward passes per scoring. Measured
-(CPU, 2 shared cores, dtu_scan65's phase-1 model at score side 64; one scoring of 16 training views and 26
-candidates): see docs/studies.md. 3×3 inverses and log-determinants are batched Cholesky (``safe_cholesky``) in float64.
+a score sums), and 4 probes keep an F of rank 3; the cost is probes × views backward passes per scoring. Measured (one
+thread on a shared 2-core CPU, the study's side 64, seed-0 phase-1 models, two repeats): dtu_scan65 (22k Gaussians, 16
+training views, 26 candidates) top-k 1.0 → 3.7 s, greedy_conditioned 3.4 → 8.6–8.9 s; fox (50k, 16 + 42) top-k
+2.4–2.5 → 8.7–9.4 s, greedy_conditioned 10.3–11.1 → 23.0–24.3 s (a round-2 training takes 10+ minutes). 3×3
+inverses and log-determinants are batched Cholesky (``safe_cholesky``) in float64. At r = 0.01 the term is small
+beside the colour's (on the tests' half-ring scene about 1.5 % of the predictive score; on dtu_scan65 seed 0 it changed
+2 of the 16 ``greedy_conditioned`` picks); it grows about as r² until the prior stops binding.
 
 ``condition`` (``batch=greedy_conditioned``) adds the picked view's J exactly (rank-one downdate of P; Λ^μ += J^μ and
-its 3×3 Cholesky redone for the Gaussians it moves), so a re-score
-equals recomputing the posterior with the view among the training views; ``conditioned_ratio`` gives every remaining
-candidate's exact conditioned score over its first score (scoring is a few products per visible Gaussian).
+its 3×3 Cholesky redone for the Gaussians it moves), so a re-score equals recomputing the posterior with the view among
+the training views; ``conditioned_ratio`` gives every remaining candidate's exact conditioned score over its first
+score (scoring is a few products per visible Gaussian).
 """
 from __future__ import annotations
 
@@ -93,7 +97,7 @@ class InfoGainPolicy(AcquisitionPolicy):
     """Closed-form information of a view for the SH colour posterior (module docstring): ``objective`` predictive
     (target-aware, EPIG-like; the default) or params (parameter gain, BALD/FisherRF-like); ``targets`` pool or
     pool+train; ``prior_precision`` τ of the SH posterior (as ``posterior.sh.prior_precision``); ``geometry``: add the
-    centres' term (``geometry_probes`` Hutchinson probes per view, prior std ``geometry_prior_scale`` × scene extent)."""
+    centres' term (``geometry_probes`` Hutchinson probes per view, prior std ``geometry_prior_scale`` × extent)."""
 
     family: str = "niw"
     objective: str = "predictive"
@@ -125,7 +129,7 @@ class InfoGainPolicy(AcquisitionPolicy):
         r = self.geometry_prior_scale
         if not (_is_number(r) and r > 0):
             raise B3dgsError(f"acquisition info_gain: geometry_prior_scale={r!r} must be a finite number > 0",
-                             "pass acquisition.geometry_prior_scale=0.01 (the centres' prior std over the scene extent)")
+                             "pass acquisition.geometry_prior_scale=0.01 (the centres' prior std / the scene extent)")
 
     # ---------------------------------------------------------------- the posterior of the current training views
     def _view(self, ctx, camera, means: Tensor, deg: int, sigma2: float, ro=None) -> _View:
@@ -279,7 +283,8 @@ class InfoGainPolicy(AcquisitionPolicy):
     @torch.no_grad()
     def score_at(self, ctx, candidates, positions) -> Tensor:
         st = self.prepare(ctx, candidates)
-        out = torch.tensor([self._gain(st, st["views"][candidates[i].name], candidates[i].name) for i in positions], dtype=torch.float64)
+        names = [candidates[i].name for i in positions]
+        out = torch.tensor([self._gain(st, st["views"][n], n) for n in names], dtype=torch.float64)
         if st["P0"] is None and st["first"] is None and len(out) == len(candidates):
             st["first"] = out.clone()  # the unconditioned scores, for conditioned_ratio
         return out
