@@ -30,17 +30,18 @@ tr((P^μ_k − (Λ^μ_k + J^μ_kc)⁻¹) G^μ_k), the drop of the targets' rende
 order (delta method: Var[C_pc] ≈ ∇Cᵀ P^μ ∇C), params adds ½ log det(I + P^μ_k J^μ_kc). Approximations: the
 posterior is block-diagonal (the colour-centre cross terms of the joint Fisher are dropped, and so are the Gaussians'
 cross terms, as for the colour), and linear in the centre, which holds while a centre's std stays within about a
-Gaussian's size: hence τ_μ = 1 / (r · extent)² with ``geometry_prior_scale`` r = 0.01 (trained Gaussians are about
-1 % of the scene extent across; a larger r lets the unconstrained directions' prior variance, where the first-order
-term is meaningless, dominate the score). ``geometry_probes`` = 4 (NIW's ``fisher_probes``): a candidate's J is one
-view's estimate (no averaging over views; relative error √(2/4) per entry, averaged out over the thousands of Gaussians
+Gaussian's size. τ_μ = 1 / (r · extent)² with ``geometry_prior_scale`` r = 0.1: at r = 0.01 (a trained Gaussian's
+size, where the linearisation holds for every centre) the term is about 1.5 % of the predictive score on the tests'
+half-ring scene and changed 2 of 16 ``greedy_conditioned`` picks on dtu_scan65 seed 0, i.e. it is info_gain again;
+at r = 0.1 it weighs about as much as the colour term, and what it adds is led by the centres the training views
+constrain least (their prior variance, where the first-order term is only a ranking, not a variance): coverage of
+the geometry in the colour term's units, the part of COVER's signal the colour posterior lacks.
+``geometry_probes`` = 4 (NIW's ``fisher_probes``): a candidate's J is one view's estimate (no averaging over views; relative error √(2/4) per entry, averaged out over the thousands of Gaussians
 a score sums), and 4 probes keep an F of rank 3; the cost is probes × views backward passes per scoring. Measured (one
 thread on a shared 2-core CPU, the study's side 64, seed-0 phase-1 models, two repeats): dtu_scan65 (22k Gaussians, 16
 training views, 26 candidates) top-k 1.0 → 3.7 s, greedy_conditioned 3.4 → 8.6–8.9 s; fox (50k, 16 + 42) top-k
 2.4–2.5 → 8.7–9.4 s, greedy_conditioned 10.3–11.1 → 23.0–24.3 s (a round-2 training takes 10+ minutes). 3×3
-inverses and log-determinants are batched Cholesky (``safe_cholesky``) in float64. At r = 0.01 the term is small
-beside the colour's (on the tests' half-ring scene about 1.5 % of the predictive score; on dtu_scan65 seed 0 it changed
-2 of the 16 ``greedy_conditioned`` picks); it grows about as r² until the prior stops binding.
+inverses and log-determinants are batched Cholesky (``safe_cholesky``) in float64.
 
 ``condition`` (``batch=greedy_conditioned``) adds the picked view's J exactly (rank-one downdate of P; Λ^μ += J^μ and
 its 3×3 Cholesky redone for the Gaussians it moves), so a re-score equals recomputing the posterior with the view among
@@ -105,7 +106,7 @@ class InfoGainPolicy(AcquisitionPolicy):
     prior_precision: float = 1.0
     geometry: bool = False
     geometry_probes: int = 4
-    geometry_prior_scale: float = 0.01
+    geometry_prior_scale: float = 0.1
 
     def validate(self, **kwargs) -> None:
         super().validate(**kwargs)
@@ -129,7 +130,7 @@ class InfoGainPolicy(AcquisitionPolicy):
         r = self.geometry_prior_scale
         if not (_is_number(r) and r > 0):
             raise B3dgsError(f"acquisition info_gain: geometry_prior_scale={r!r} must be a finite number > 0",
-                             "pass acquisition.geometry_prior_scale=0.01 (the centres' prior std / the scene extent)")
+                             "pass acquisition.geometry_prior_scale=0.1 (the centres' prior std / the scene extent)")
 
     # ---------------------------------------------------------------- the posterior of the current training views
     def _view(self, ctx, camera, means: Tensor, deg: int, sigma2: float, ro=None) -> _View:
