@@ -204,3 +204,143 @@ def test_bad_input_is_refused_in_one_line_or_counted():
     s = _policy("info_gain").score(ctx, views[3:5])
     assert torch.isfinite(s).all() and guard_counts().get("info_gain.invalid_weights", 0) > 0
     reset_guards()
+
+
+# ---------------------------------------------------------------------------------------------- geometry=true
+def _exact_fisher(ctx, cam):
+    """(N, 3, 3) Σ_p Σ_c ∇_μ C_pc ∇_μ C_pcᵀ from every pixel and channel's own gradient (no probes), float64."""
+    from b3dgs.fisher import pixel_set_grads
+
+    p = ctx.params()
+    p["means"].requires_grad_(True)
+    with torch.enable_grad():
+        rgb = ctx.render(cam, params=p, grad=True).rgb
+        F = torch.zeros(p["means"].shape[0], 3, 3, dtype=torch.float64)
+        for (g,) in pixel_set_grads(rgb, [p["means"]], max(rgb.shape[:2]), per_channel=True):
+            F += g.double()[:, :, None] * g.double()[:, None, :]
+    return F
+
+
+def _brute_geometry(Fs_train, Fs_cands, Fs_targets, tau, sigma2, objective):
+    """The centres' term from explicit 3 x 3 matrices and inverses (float64)."""
+    eye = torch.eye(3, dtype=torch.float64)
+    lam = tau * eye + sum(F / sigma2 for F in Fs_train)
+    P = torch.linalg.inv(lam)
+    G = sum(F / sigma2 for F in Fs_targets)
+    out = []
+    for F in Fs_cands:
+        J = F / sigma2
+        if objective == "params":
+            out.append(0.5 * float(torch.linalg.slogdet(eye + P @ J)[1].sum()))
+        else:
+            out.append(float(((P - torch.linalg.inv(lam + J)) @ G).diagonal(dim1=-2, dim2=-1).sum()))
+    return torch.tensor(out, dtype=torch.float64)
+
+
+def test_geometry_off_is_the_colour_score_bit_for_bit_and_renders_no_gradient():
+    m, views = _tiny(sh_degree=2)
+    train, cands = views[:3], views[3:]
+    assert _policy("info_gain").geometry is False and _policy("info_gain_params").geometry is False
+    for name in ("info_gain", "info_gain_params"):
+        off = _policy(name)
+        off.view_fisher = None  # never called: calling it would raise
+        got = off.score(ScoringContext([m], train, score_max_side=None), cands)
+        on = _policy(name + "_geometry")
+        on.score(ScoringContext([m], train, score_max_side=None), cands)
+        colour = torch.tensor([on._sh_gain(on._state, on._state["views"][c.name]) for c in cands], dtype=torch.float64)
+        torch.testing.assert_close(got, colour, rtol=0, atol=0)
+        assert off._state["geo"] is None and on._state["geo"] is not None
+
+
+@pytest.mark.parametrize("objective,targets", [("predictive", "pool"), ("predictive", "pool+train"), ("params", "pool")])
+def test_geometry_term_matches_a_float64_brute_force_from_exact_per_pixel_gradients(objective, targets):
+    m, views = _tiny(sh_degree=1)
+    train, cands = views[:3], views[3:]
+    ctx = ScoringContext([m], train, score_max_side=None, extent=2.0)
+    pol = _policy("info_gain_geometry", objective=objective, targets=targets, geometry_prior_scale=0.05)
+    pol.view_fisher = _exact_fisher  # the F source, injected: no probes
+    got = pol.score(ctx, cands)
+    s2 = pol._state["sigma2"]
+    tau = 1.0 / (0.05 * 2.0) ** 2
+    assert pol._state["geo"]["tau"] == pytest.approx(tau, rel=1e-12)
+    Ft, Fc = [_exact_fisher(ctx, c) for c in train], [_exact_fisher(ctx, c) for c in cands]
+    geo = _brute_geometry(Ft, Fc, Fc + (Ft if targets == "pool+train" else []), tau, s2, objective)
+    colour = _brute(m, train, cands, cands + (train if targets == "pool+train" else []), 1.0, s2, objective)
+    assert geo.min() > 0 and geo.max() > 1e-3 * colour.max()  # the term is there and not lost in the colour's
+    torch.testing.assert_close(got, colour + geo, rtol=1e-9, atol=1e-12)
+
+
+def test_the_probe_estimate_of_a_views_fisher_is_the_exact_one_in_expectation():
+    m, views = _tiny(sh_degree=1)
+    ctx = ScoringContext([m], views[:3], score_max_side=None)
+    exact = _exact_fisher(ctx, views[4])
+    est = _policy("info_gain_geometry", geometry_probes=400).view_fisher(ctx, views[4])
+    assert est.dtype == torch.float64 and est.shape == exact.shape
+    tr = lambda F: F.diagonal(dim1=-2, dim2=-1).sum()  # noqa: E731
+    assert float(tr(exact)) > 0 and float(tr(est)) == pytest.approx(float(tr(exact)), rel=0.1)
+    assert float((est - exact).norm() / exact.norm()) < 0.2  # √(2/400) per entry, pooled over 12 Gaussians
+    # the probes are drawn from the seed and the view's name: the same F whenever and wherever the view is scored
+    again = _policy("info_gain_geometry", geometry_probes=400).view_fisher(ctx, views[4].with_image(None))
+    torch.testing.assert_close(again, est, rtol=0, atol=0)
+
+
+def test_geometry_conditioning_equals_recomputing_the_posterior_with_the_view():
+    m, views = _tiny(sh_degree=1)
+    train, cands = views[:3], views[3:]
+    for objective in ("predictive", "params"):
+        pol = _policy("info_gain_geometry", objective=objective, geometry_prior_scale=0.05)
+        ctx = ScoringContext([m], train, score_max_side=None)
+        first = pol.score(ctx, cands)
+        geo_first = [pol._geo_gain(pol._state["geo"], pol._state["geo"]["views"][c.name]) for c in cands]
+        assert pol.condition(ctx, cands[0]) is True
+        cond = pol.score(ctx, cands)
+        geo_cond = [pol._geo_gain(pol._state["geo"], pol._state["geo"]["views"][c.name]) for c in cands]
+        ratio = pol.conditioned_ratio(ctx, cands, range(len(cands)))
+        fresh = _policy("info_gain_geometry", objective=objective, geometry_prior_scale=0.05)
+        ref = fresh.score(ScoringContext([m], train + [cands[0].with_image(None)], score_max_side=None), cands)
+        torch.testing.assert_close(cond, ref, rtol=1e-9, atol=1e-12)
+        torch.testing.assert_close(ratio * first, cond, rtol=1e-9, atol=1e-12)
+        assert geo_cond[0] < geo_first[0]  # the picked view's centres' information is known now
+        pol.reset_conditioning(ctx)
+        torch.testing.assert_close(pol.score(ctx, cands), first, rtol=0, atol=0)
+
+
+def test_a_repeated_training_pose_teaches_the_centres_far_less_than_an_unseen_side(hole_setup):
+    model, scene, _, unobserved = hole_setup
+    many = list(scene.train) + [c for c in scene.train[:3] for _ in range(4)]
+    ctx = ScoringContext([model], many, score_max_side=32, extent=scene.extent, seed=0)
+    repeats = [c.with_image(None) for c in scene.train[:3]]
+    hole = [c for c in scene.candidates if c.name in unobserved][:3]
+    for name, factor in (("info_gain_geometry", 3.0), ("info_gain_params_geometry", 1.8)):  # the log saturates slower
+        pol = _policy(name)
+        pol.score(ctx, repeats + hole)
+        geo = pol._state["geo"]
+        g = [pol._geo_gain(geo, geo["views"][c.name]) for c in repeats + hole]
+        assert min(g[3:]) > factor * max(g[:3]), (name, g)
+
+
+def test_bad_geometry_settings_are_refused_in_one_line_and_bad_fisher_entries_counted():
+    for bad in (0, -2, 1.5, True, "4"):
+        with pytest.raises(B3dgsError, match="geometry_probes=.*fix"):
+            _policy("info_gain_geometry", geometry_probes=bad).validate()
+    for bad in (0.0, -0.1, float("inf"), float("nan"), True):
+        with pytest.raises(B3dgsError, match="geometry_prior_scale=.*fix"):
+            _policy("info_gain_geometry", geometry_prior_scale=bad).validate()
+    with pytest.raises(B3dgsError, match="geometry=.*fix"):
+        _policy("info_gain", geometry="yes").validate()
+    m, views = _tiny(sh_degree=1)
+    with pytest.raises(B3dgsError, match="extent.*fix"):
+        _policy("info_gain_geometry").score(ScoringContext([m], views[:3], extent=float("nan")), views[3:5])
+    reset_guards()
+    pol = _policy("info_gain_geometry")
+    probe = pol.view_fisher
+
+    def nan_row(ctx, cam):  # one non-finite Fisher row per view: counted and left out
+        F = probe(ctx, cam)
+        F[0, 0, 0] = float("nan")
+        return F
+
+    pol.view_fisher = nan_row
+    s = pol.score(ScoringContext([m], views[:3]), views[3:5])
+    assert torch.isfinite(s).all() and guard_counts().get("info_gain.geometry_nonfinite", 0) == 5
+    reset_guards()
