@@ -46,13 +46,18 @@ class Rebuild:
     scenes: bool = False
 
 
-def _extra(name: str, policies: str, within: str = "") -> Rebuild:
-    """A bench.active_view_extra table: its rows' archive ``<name>_runs`` paired with the committed campaign's."""
-    return Rebuild(("bench.active_view_extra", "--new", f"{{res}}/{name}_runs", "--archive", "{res}/active_view_runs",
-                    "--policies", *policies.split(), *(("--within", *within.split()) if within else ()),
+def _extra(name: str, policies: str, within: str = "", runs: str = "", archive: str = "active_view_runs",
+           against: str = "") -> Rebuild:
+    """A bench.active_view_extra table: its rows' archive (``runs``, default ``<name>_runs``) paired with the rows
+    of ``archive`` (default the committed campaign's; ``against``: only those policies)."""
+    return Rebuild(("bench.active_view_extra", "--new", f"{{res}}/{runs or name + '_runs'}", "--archive",
+                    f"{{res}}/{archive}", "--policies", *policies.split(),
+                    *(("--within", *within.split()) if within else ()),
+                    *(("--against", *against.split()) if against else ()),
                     "--name", name, "--results-root", "{out}"), (name,), slow=True, scenes=True)
 
 
+_GEO = "info_gain_geometry info_gain_geometry+greedy_conditioned"
 _SCHEDULE = ("bench.schedule", "--table-only", "--out", "{tmp}/schedule", "--results-root", "{out}")
 
 #: the rebuilds, by name; the arguments are those the committed tables were made with (docs, scripts/campaign.sh,
@@ -67,6 +72,11 @@ REBUILDS: dict[str, Rebuild] = {
     "active_view_ig": _extra("active_view_ig", "info_gain+greedy_conditioned cover info_gain_params+greedy_conditioned "
                                                "info_gain info_gain+diverse info_gain@standard", within="cover"),
     "active_view_counts": _extra("active_view_counts", "native_fisher3"),
+    # issue 42's centre term (scripts/geometry_rows.sh): against the campaign, and against issue 42's own rows
+    "active_view_geo": _extra("active_view_geo", _GEO, within=_GEO),
+    "active_view_geo_ig": _extra("active_view_geo_ig", _GEO, runs="active_view_geo_runs", archive="active_view_ig_runs",
+                                 against="info_gain info_gain+greedy_conditioned info_gain+diverse "
+                                         "info_gain_params+greedy_conditioned cover"),
     "active_view_schedule": Rebuild(("bench.active_view_schedule", "--dir", "{res}/active_view_schedule",
                                      "--results-root", "{out}/active_view_schedule"),
                                     ("active_view_schedule/compare",)),
