@@ -73,6 +73,7 @@ def collect(new: Path, archive: Path, policies: list[str], against: list[str], s
                 problems.append(f"{scene} s{seed}: phase 1 ({fam}) differs from the committed campaign's: left out")
                 continue
             row = {"scene": scene, "seed": int(seed), "ladder": ladder, "policy": label, "psnr": r["psnr"],
+                   "lpips": r.get("lpips"),
                    "rho": _rho(r, o_new), "rho_support": oracle_rho(r.get("scores"), deficit),
                    "scoring_time_s": r.get("scoring_time_s"), "round2_time_s": r.get("round2_time_s")}
             for b in within:  # new rows paired with each other (same phase-1 models, same new study)
@@ -81,6 +82,7 @@ def collect(new: Path, archive: Path, policies: list[str], against: list[str], s
                     o_b = _read(scene_dir / "phase1" / f"{other['family']}_s{seed}" / "oracle.json")
                     row[f"psnr_{b}"], row[f"rho_{b}"] = other["psnr"], _rho(other, o_b)
                     row[f"rho_support_{b}"] = oracle_rho(other.get("scores"), deficit)
+                    row[f"lpips_{b}"] = other.get("lpips")
             for b in against:
                 old = _read(archive / scene / f"{b}_s{seed}" / "result.json")
                 if old is not None:
@@ -88,6 +90,7 @@ def collect(new: Path, archive: Path, policies: list[str], against: list[str], s
                     row[f"psnr_{b}"], row[f"rho_{b}"] = old["psnr"], _rho(old, o_b)
                     row[f"rho_support_{b}"] = oracle_rho(old.get("scores"), deficit)
                     row[f"scoring_time_s_{b}"] = old.get("scoring_time_s")
+                    row[f"lpips_{b}"] = old.get("lpips")
             rows.append(row)
     return {"rows": rows, "problems": problems}
 
@@ -108,7 +111,9 @@ def applies(policy: str, against: str) -> bool:
     return "+" in policy or "+" not in against
 
 
-def pair(rows: list[dict], policies: list[str], against: list[str]) -> list[dict]:
+def pair(rows: list[dict], policies: list[str], against: list[str], key: str = "psnr") -> list[dict]:
+    """Each new policy's final ``key`` (psnr; lpips, lower is better) minus each other policy's, per budget ladder,
+    paired over scenes (each scene's seed mean one unit)."""
     from b3dgs.report.stats import paired_stats
 
     out = []
@@ -116,10 +121,10 @@ def pair(rows: list[dict], policies: list[str], against: list[str]) -> list[dict
         for p in policies:
             mine = [r for r in rows if r["policy"] == p and r["ladder"] == ladder]
             for b in against:
-                per = scene_deltas(mine, "psnr", b) if applies(p, b) else {}
+                per = scene_deltas(mine, key, b) if applies(p, b) else {}
                 if not per:
                     continue
-                st = paired_stats(list(per.values()), higher_is_better=True) if len(per) >= 2 else {}
+                st = paired_stats(list(per.values()), higher_is_better=key != "lpips") if len(per) >= 2 else {}
                 out.append({"ladder": ladder, "a": p, "b": b, "per_scene": per, **st})
     return out
 
@@ -178,16 +183,21 @@ def write(res: dict, name: str, policies: list[str], against: list[str], root: P
                  for b in against]
         lines.append(f"| {r['scene']} | {r['ladder']} | {r['seed']} | {r['policy']} | {f(r['psnr'])} | "
                      f"{f(r['rho'], 2)} / {f(r.get('rho_support'), 2)} | " + " | ".join(cells) + " |")
-    lines += ["", "## Paired final PSNR (a − b, dB)", "", "| ladder | a | b | mean Δ | 95 % CI | p | a better / worse | per scene |",
-              "|---|---|---|---|---|---|---|---|"]
-    for p in res["paired"]:
-        ci = p.get("ci") or {}
-        cis = "—" if ci.get("low") is None else f"[{ci['low']:+.3f}, {ci['high']:+.3f}]"
-        pv = "—" if p.get("p_two_sided") is None else f"{p['p_two_sided']:.3g}"
-        mean = float(np.mean(list(p["per_scene"].values())))
-        signs = " ".join(f"{s[:10]}{v:+.2f}" for s, v in p["per_scene"].items())
-        lines.append(f"| {p['ladder']} | {p['a']} | {p['b']} | {mean:+.3f} | {cis} | {pv} | {p.get('wins', '—')} / "
-                     f"{p.get('losses', '—')} | {signs} |")
+    for title, entries, nd in (("Paired final PSNR (a − b, dB)", res["paired"], 2),
+                               ("Paired final LPIPS (a − b, lower is better: 'a better' counts a − b < 0)",
+                                res.get("paired_lpips", []), 4)):
+        if not entries:
+            continue
+        lines += ["", f"## {title}", "", "| ladder | a | b | mean Δ | 95 % CI | p | a better / worse | per scene |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for p in entries:
+            ci = p.get("ci") or {}
+            cis = "—" if ci.get("low") is None else f"[{ci['low']:+.{nd + 1}f}, {ci['high']:+.{nd + 1}f}]"
+            pv = "—" if p.get("p_two_sided") is None else f"{p['p_two_sided']:.3g}"
+            mean = float(np.mean(list(p["per_scene"].values())))
+            signs = " ".join(f"{s[:10]}{v:+.{nd}f}" for s, v in p["per_scene"].items())
+            lines.append(f"| {p['ladder']} | {p['a']} | {p['b']} | {mean:+.{nd + 1}f} | {cis} | {pv} | "
+                         f"{p.get('wins', '—')} / {p.get('losses', '—')} | {signs} |")
     lines += ["", "## Paired ρ (a − b), every scene of both ladders", "",
               "farthest's score is the support deficit itself (its ρₛ is 1): its rows give the ceiling.", "",
               "| ρ with | a | b | mean Δρ | 95 % CI | p | a higher / lower | per scene |", "|---|---|---|---|---|---|---|---|"]
@@ -232,6 +242,7 @@ def main() -> None:
     res = collect(new, archive, args.policies, args.against, within=tuple(args.within))
     against = args.against + [w for w in args.within if w not in args.against]
     res["paired"] = pair(res["rows"], args.policies, against)
+    res["paired_lpips"] = pair(res["rows"], args.policies, against, key="lpips")
     res["paired_rho"] = pair_rho(res["rows"], args.policies, against)
     res["cost"] = cost(res["rows"], args.policies, against)
     root = Path(args.results_root)

@@ -44,3 +44,17 @@ def test_cost_reports_each_policys_scoring_seconds_beside_round_two():
     assert got["ig"]["n"] == 3 and got["ig"]["median_s"] == 4.0 and (got["ig"]["min_s"], got["ig"]["max_s"]) == (2.0, 6.0)
     assert got["ig+greedy"]["median_s"] == 5.0 and got["ig"]["new"] and not got["fisher"]["new"]
     assert got["fisher"]["n"] == 3 and got["fisher"]["median_s"] == 20.0 and got["fisher"]["round2_median_s"] == 200.0
+
+
+def test_lpips_pairs_with_lower_is_better():
+    """LPIPS is paired like PSNR, but a lower LPIPS is the better one: a − b < 0 counts as a win."""
+    rows = []
+    for scene, a, b in (("a", 0.10, 0.12), ("b", 0.20, 0.25), ("c", 0.30, 0.29)):
+        r = _row(scene, 0, "ig", 20.0, farthest=20.0)
+        r.update(lpips=a, lpips_farthest=b)
+        rows.append(r)
+    (got,) = pair(rows, ["ig"], ["farthest"], key="lpips")
+    assert got["per_scene"] == pytest.approx({"a": -0.02, "b": -0.05, "c": 0.01})
+    assert (got["wins"], got["losses"]) == (2, 1) and got["mean"] == pytest.approx(-0.02)
+    (psnr,) = pair(rows, ["ig"], ["farthest"])
+    assert psnr["per_scene"] == {"a": 0.0, "b": 0.0, "c": 0.0}
