@@ -41,7 +41,10 @@ a score sums), and 4 probes keep an F of rank 3; the cost is probes × views bac
 thread on a shared 2-core CPU, the study's side 64, seed-0 phase-1 models, two repeats): dtu_scan65 (22k Gaussians, 16
 training views, 26 candidates) top-k 1.0 → 3.7 s, greedy_conditioned 3.4 → 8.6–8.9 s; fox (50k, 16 + 42) top-k
 2.4–2.5 → 8.7–9.4 s, greedy_conditioned 10.3–11.1 → 23.0–24.3 s (a round-2 training takes 10+ minutes). 3×3
-inverses and log-determinants are batched Cholesky (``safe_cholesky``) in float64.
+inverses and log-determinants are batched Cholesky (``safe_cholesky``) in float64. It did not earn its place
+(``bench/results/active_view_geo_ig.md``, seed 0 on the seven scenes, each paired with the same row without it):
++0.08 dB over ``info_gain`` (3 of 7 scenes, p 0.41), −0.01 dB over ``info_gain+greedy_conditioned`` (p 0.70), and both
+lose to farthest; so ``geometry`` stays false by default.
 
 ``condition`` (``batch=greedy_conditioned``) adds the picked view's J exactly (rank-one downdate of P; Λ^μ += J^μ and
 its 3×3 Cholesky redone for the Gaussians it moves), so a re-score equals recomputing the posterior with the view among
