@@ -152,6 +152,7 @@ def cost(rows: list[dict], policies: list[str], against: list[str]) -> list[dict
     """Per policy, the seconds its scoring took (the study's ``scoring_time_s``: scoring the candidates of one round,
     conditioning included; an ensemble's members were trained in phase 1 and are not in it) over every scene-seed,
     beside the new rows' round-2 training seconds. The committed policies' come from their own rows."""
+    r2 = [float(r["round2_time_s"]) for r in rows if r.get("round2_time_s") is not None]
     out = []
     for p in [*policies, *(b for b in against if b not in policies)]:
         new = p in policies
@@ -159,7 +160,6 @@ def cost(rows: list[dict], policies: list[str], against: list[str]) -> list[dict
             list({(r["scene"], r["seed"]): r for r in rows}.values())  # one committed row per scene-seed
         t = [float(r["scoring_time_s" if new else f"scoring_time_s_{p}"]) for r in sel
              if r.get("scoring_time_s" if new else f"scoring_time_s_{p}") is not None]
-        r2 = [float(r["round2_time_s"]) for r in rows if r.get("round2_time_s") is not None]
         if t:
             out.append({"policy": p, "new": new, "n": len(t), "median_s": float(np.median(t)), "min_s": float(min(t)),
                         "max_s": float(max(t)), "round2_median_s": float(np.median(r2)) if r2 else None})

@@ -155,8 +155,8 @@ def _feasible(d: Distortion, K: np.ndarray, w: int, h: int, s: float, border, ra
 
 def pinhole_scale(d: Distortion, K: np.ndarray, w: int, h: int, iters: int = 60) -> float:
     """The focal scale ``s`` of the undistorted view (module docstring): the smallest in [S_MIN, S_MAX] that samples
-    every output pixel inside the source, by bisection; 1.0 for a perspective model with zero coefficients. Raises :class:`B3dgsError` when even
-    ``S_MAX`` does not (the distortion is too strong, or the map folds)."""
+    every output pixel inside the source, by bisection; 1.0 for a perspective model with zero coefficients. Raises
+    :class:`B3dgsError` when even ``S_MAX`` does not (the distortion is too strong, or the map folds)."""
     if d.is_identity:
         return 1.0
     K = np.asarray(K, np.float64)
