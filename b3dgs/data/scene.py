@@ -35,6 +35,7 @@ import inspect
 import logging
 import math
 import os
+import shlex
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Sequence
@@ -79,6 +80,7 @@ __all__ = [
     "compute_bounds",
     "get_loader",
     "guess_kinds",
+    "infer_data_option",
     "load_scene",
     "look_at_point",
     "read_scene",
@@ -646,12 +648,49 @@ def guess_kinds(path: str | os.PathLike) -> list[str]:
     return [k for k, (_, test) in _MARKERS.items() if p.is_dir() and test(p)]
 
 
+def infer_data_option(path: str | os.PathLike) -> tuple[str, str]:
+    """The ``data=`` option of a scene folder given alone as ``data.path`` (no ``data=``), and what decided it:
+    a COLMAP model (``sparse/0``, ``sparse/`` or the folder) -> ``colmap``; ``transforms.json`` -> ``transforms``;
+    only Blender's ``transforms_{train,val,test}.json`` -> ``blender`` (NeRF-synthetic: alpha on white);
+    ``poses_bounds.npy`` -> ``llff``. Raises :class:`B3dgsError` for a missing folder, a folder of photos only
+    (naming ``b3dgs-process``) and a folder of no known format."""
+    p = Path(path).expanduser()
+    if not p.exists():
+        raise B3dgsError(f"data.path={path} does not exist", "pass data.path=PATH to an existing scene folder")
+    kinds = guess_kinds(p)
+    if "colmap" in kinds:
+        return "colmap", "a COLMAP model"
+    if "transforms" in kinds:
+        if p.is_file() or (p / "transforms.json").is_file():
+            return "transforms", "a transforms.json"
+        return "blender", "Blender's transforms_*.json (NeRF-synthetic: alpha on white)"
+    if "llff" in kinds:
+        return "llff", "an LLFF poses_bounds.npy"
+    _refuse_photos_only(p)
+    raise B3dgsError(f"data.path={path} holds no scene: no COLMAP model (sparse/0), transforms*.json or "
+                     "poses_bounds.npy",
+                     "pass data.path=PATH to a scene folder, or name its format with data=colmap|transforms|llff")
+
+
+def _refuse_photos_only(p: Path) -> None:
+    """Refuse a folder that holds photos (directly or in image folders) and no camera poses: b3dgs-process makes a
+    scene of it."""
+    from b3dgs.data.images import IMAGE_EXTENSIONS, image_folders
+
+    if p.is_dir() and (image_folders(p) or any(f.suffix in IMAGE_EXTENSIONS for f in p.iterdir() if f.is_file())):
+        raise B3dgsError(f"data.path={p} holds photos but no camera poses (no COLMAP model, transforms*.json or "
+                         "poses_bounds.npy)",
+                         f"run `b3dgs-process images={shlex.quote(str(p))} out=SCENE` (structure from motion), then pass data.path=SCENE")
+
+
 def check_layout(kind: str, path: str | os.PathLike) -> None:
     """Refuse a scene folder without the files of ``kind`` that holds another format's, naming that format
     (a folder holding no known format is left to the loader, whose :class:`B3dgsError` names the missing file)."""
     if kind not in _MARKERS or not Path(path).is_dir() or _MARKERS[kind][1](Path(path)):
         return
     others = [k for k in guess_kinds(path) if k != kind]
+    if not others:
+        _refuse_photos_only(Path(path))
     if others:
         blender = " (data=blender for a NeRF-synthetic one: alpha on white)" if others[0] == "transforms" else ""
         raise B3dgsError(f"data={kind}: {path} has no {_MARKERS[kind][0]} but holds a {others[0]} scene",
@@ -735,6 +774,13 @@ def check_scene_settings(kind: str, path: str | os.PathLike | None, settings: di
     kind = str(kind) if str(kind).lower() not in LOADERS else str(kind).lower()
     apply_rules({f"data.{k}": _plain(v) for k, v in settings.items()}, DATA_RULES)
     loader = get_loader(kind)
+    if not loader_reads_files(loader) and path not in (None, ""):
+        try:
+            fix = f"drop data={kind}: data.path alone picks the folder's format (here data={infer_data_option(path)[0]})"
+        except B3dgsError:
+            fix = "drop data.path, or pass data=colmap|transforms|llff for the folder's format"
+        raise B3dgsError(f"data={kind} is a scene generated in code and reads no folder, but data.path={path} is set",
+                         fix)
     if loader_reads_files(loader):
         if path is None or str(path) == "":
             raise B3dgsError(f"data={kind} reads a scene folder, and data.path is not set", "pass data.path=PATH")

@@ -1,0 +1,131 @@
+"""``data.path=DIR`` alone reads that folder in its own format (issue 52 §1, issue 55): it used to train the built-in
+synthetic scene and exit 0, with the path recorded in config.yaml and never read."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from b3dgs.data.images import save_png
+from b3dgs.data.scene import check_scene_settings, infer_data_option
+from b3dgs.data.synthetic import load_synthetic
+from b3dgs.errors import B3dgsError, infer_data_override
+
+ENV = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "HYDRA_FULL_ERROR": ""}
+
+
+def _num(*xs) -> str:
+    return " ".join(repr(float(x)) for x in xs)
+
+
+def write_colmap_text(root: Path, n_views: int = 8, side: int = 32) -> Path:
+    """A COLMAP text model (PINHOLE, ``sparse/0``) and PNGs of the procedural scene: a scene made here, no files."""
+    raw = load_synthetic(n_views=n_views, resolution=side, n_points=200)
+    sparse, images = root / "sparse" / "0", root / "images"
+    sparse.mkdir(parents=True)
+    images.mkdir()
+    cam = raw.cameras[0]
+    fx, fy, cx, cy = (float(cam.K[0, 0]), float(cam.K[1, 1]), float(cam.K[0, 2]), float(cam.K[1, 2]))
+    (sparse / "cameras.txt").write_text(f"1 PINHOLE {cam.width} {cam.height} {_num(fx, fy, cx, cy)}\n")
+    lines = []
+    for i, c in enumerate(raw.cameras, start=1):
+        w2c = c.viewmat.double().numpy()
+        qx, qy, qz, qw = Rotation.from_matrix(w2c[:3, :3]).as_quat()
+        t = w2c[:3, 3]
+        lines += [f"{i} {_num(qw, qx, qy, qz, *t)} 1 view_{i:03d}.png", ""]
+        save_png(images / f"view_{i:03d}.png", c.image.numpy())
+    (sparse / "images.txt").write_text("\n".join(lines) + "\n")
+    pts = raw.points[:100]
+    cols = (np.clip(raw.point_colors[:100], 0, 1) * 255).round().astype(int)
+    (sparse / "points3D.txt").write_text("".join(
+        f"{j + 1} {_num(*p)} {c[0]} {c[1]} {c[2]} 0.5\n" for j, (p, c) in enumerate(zip(pts, cols))))
+    return root
+
+
+def _layout(root: Path, files: list[str]) -> Path:
+    for name in files:
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        (root / name).write_bytes(b"")
+    return root
+
+
+@pytest.mark.parametrize("files,option", [
+    (["sparse/0/cameras.bin", "sparse/0/images.bin", "sparse/0/points3D.bin", "images/a.png"], "colmap"),
+    (["sparse/cameras.txt", "sparse/images.txt", "sparse/points3D.txt"], "colmap"),
+    (["transforms.json", "images/a.png"], "transforms"),
+    (["transforms_train.json", "transforms_test.json", "train/r_0.png"], "blender"),
+    (["poses_bounds.npy", "images/a.png"], "llff"),
+    (["poses_bounds.npy", "sparse/0/cameras.bin", "sparse/0/images.bin", "sparse/0/points3D.bin"], "colmap"),
+])
+def test_the_folder_names_its_format(tmp_path, files, option):
+    assert infer_data_option(_layout(tmp_path, files))[0] == option
+
+
+def test_a_folder_of_photos_only_names_b3dgs_process(tmp_path):
+    for root in (_layout(tmp_path / "flat", ["a.jpg", "b.jpg"]), _layout(tmp_path / "nested", ["images/a.png"])):
+        with pytest.raises(B3dgsError) as e:
+            infer_data_option(root)
+        assert "photos but no camera poses" in str(e.value) and "b3dgs-process images=" in e.value.fix
+        with pytest.raises(B3dgsError, match="b3dgs-process"):  # an explicit data= is checked against it too
+            check_scene_settings("colmap", root, {}, {})
+    with pytest.raises(B3dgsError, match="holds no scene"):
+        infer_data_option(_layout(tmp_path / "empty", ["notes.txt"]))
+    with pytest.raises(B3dgsError, match="does not exist"):
+        infer_data_option(tmp_path / "nope")
+
+
+def test_synthetic_with_a_path_is_refused_naming_the_folders_format(tmp_path):
+    _layout(tmp_path, ["transforms.json"])
+    with pytest.raises(B3dgsError) as e:
+        check_scene_settings("synthetic", tmp_path, {}, {})
+    assert "reads no folder" in str(e.value) and "data=transforms" in e.value.fix
+
+
+def test_the_override_is_added_only_when_no_format_or_scene_is_named(tmp_path, capsys):
+    colmap = _layout(tmp_path / "c", ["sparse/0/cameras.txt", "sparse/0/images.txt", "sparse/0/points3D.txt"])
+    nerf = _layout(tmp_path / "t", ["transforms.json"])
+    assert infer_data_override("b3dgs-train", [f"data.path={colmap}", "seed=1"]) == \
+        ["data=colmap", f"data.path={colmap}", "seed=1"]
+    assert "reading it with data=colmap" in capsys.readouterr().err
+    for argv in ([f"data=llff", f"data.path={colmap}"], ["scene=fox", f"data.path={colmap}"], ["seed=1"],
+                 ["data.path=${data_root}/fox"], ["data.path=/data/café shots"]):
+        assert infer_data_override("b3dgs-train", argv) == argv
+    quoted = f"data.path='{colmap}'"
+    assert infer_data_override("b3dgs-train", [quoted]) == ["data=colmap", quoted]
+    assert infer_data_override("b3dgs-train", ["-m", f"data.path={colmap},{colmap}"])[1] == "data=colmap"
+    with pytest.raises(B3dgsError, match="different formats"):
+        infer_data_override("b3dgs-train", ["-m", f"data.path={colmap},{nerf}"])
+
+
+def test_data_path_alone_trains_that_colmap_scene(tmp_path):
+    """The newcomer's command: ``b3dgs-train data.path=DIR`` (a COLMAP scene made here) trains DIR, not the synthetic
+    scene; config.yaml and metrics.json say so."""
+    scene = write_colmap_text(tmp_path / "kitchen")
+    run = tmp_path / "run"
+    res = subprocess.run([sys.executable, "-m", "b3dgs.train", f"data.path={scene}", "trainer.max_steps=6",
+                          "logger=none", "renderer=torch", f"hydra.run.dir={run}"],
+                         capture_output=True, text=True, timeout=300, cwd=tmp_path, env=ENV)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "reading it with data=colmap" in res.stderr
+    cfg = yaml.safe_load((run / "config.yaml").read_text())
+    assert cfg["data"]["kind"] == "colmap" and cfg["data"]["path"] == str(scene)
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["scene"] == "kitchen" and metrics["num_train_views"] + metrics["num_test_views"] == 8
+
+
+def test_data_path_to_photos_only_is_one_line_and_writes_nothing(tmp_path):
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    save_png(photos / "a.png", np.zeros((8, 8, 3)))
+    res = subprocess.run([sys.executable, "-m", "b3dgs.train", f"data.path={photos}", f"hydra.run.dir={tmp_path / 'r'}"],
+                         capture_output=True, text=True, timeout=120, cwd=tmp_path, env=ENV)
+    lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
+    assert res.returncode == 2 and len(lines) == 1 and "b3dgs-process" in lines[0], res.stderr[-2000:]
+    assert not (tmp_path / "r").exists()
