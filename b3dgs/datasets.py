@@ -21,6 +21,7 @@ import stat
 import subprocess
 import sys
 import tarfile
+import tempfile
 import time
 import urllib.error
 import urllib.parse
@@ -341,7 +342,7 @@ def _resize(folder: Path, step: dict) -> None:
 
     from PIL import Image
 
-    from b3dgs.io import atomic_path
+    from b3dgs.io import atomic_path, write_json
 
     scale = None
     for p in sorted((folder / step["folder"]).iterdir()):
@@ -362,8 +363,6 @@ def _resize(folder: Path, step: dict) -> None:
                        ("h", scale[1])):
             if key in meta:
                 meta[key] = float(meta[key]) * s
-        from b3dgs.io import write_json
-
         write_json(path, meta)
 
 
@@ -433,8 +432,6 @@ def get(scene: Scene, root: Path, scenes: Optional[dict[str, Scene]] = None) -> 
                          f"move it away (or complete it by hand), then run `{PROG} get {scene.name}` again")
     root.mkdir(parents=True, exist_ok=True)
     downloads = root / DOWNLOADS
-    import tempfile
-
     staging = Path(tempfile.mkdtemp(prefix=f".{scene.name}{STAGING_MARK}", dir=root))
     folder = staging / "scene"
     folder.mkdir()
