@@ -16,16 +16,30 @@ def conf_dir() -> str:
     return str(here / "conf" if (here / "conf" / "train.yaml").is_file() else here.parent / "conf")
 
 
-def data_root() -> str:
-    """The folder of the named scenes (``conf/scene/<name>.yaml``: ``<data_root>/<name>``): ``$B3DGS_DATA``, else
-    ``$B3DGS_SHARED/data``, else ``../shared/data`` beside a source checkout (where the benchmark scenes live)."""
+def data_root_and_origin() -> tuple[str, str]:
+    """The folder of the named scenes and where that choice came from: ``$B3DGS_DATA``; else ``$B3DGS_SHARED/data``;
+    else ``../shared/data`` beside a source checkout when that folder exists (where the benchmark scenes live); else
+    the user cache, ``$B3DGS_CACHE/data`` or ``~/.cache/b3dgs/data`` (where ``b3dgs-data get`` puts scenes on a
+    fresh clone)."""
     import os
     from pathlib import Path
 
     if os.environ.get("B3DGS_DATA"):
-        return os.environ["B3DGS_DATA"]
-    shared = os.environ.get("B3DGS_SHARED") or str(Path(conf_dir()).resolve().parent.parent / "shared")
-    return str(Path(shared) / "data")
+        return os.environ["B3DGS_DATA"], "$B3DGS_DATA"
+    if os.environ.get("B3DGS_SHARED"):
+        return str(Path(os.environ["B3DGS_SHARED"]) / "data"), "$B3DGS_SHARED/data"
+    beside = Path(conf_dir()).resolve().parent.parent / "shared" / "data"
+    if beside.is_dir():
+        return str(beside), "../shared/data beside the checkout"
+    cache = os.environ.get("B3DGS_CACHE")
+    base = Path(cache).expanduser() if cache else Path.home() / ".cache" / "b3dgs"
+    return str(base / "data"), "the user cache ($B3DGS_CACHE/data, else ~/.cache/b3dgs/data)"
+
+
+def data_root() -> str:
+    """The folder of the named scenes (``conf/scene/<name>.yaml``: ``<data_root>/<name>``): see
+    :func:`data_root_and_origin`."""
+    return data_root_and_origin()[0]
 
 
 def _register_resolvers() -> None:
