@@ -97,3 +97,47 @@ def check_stored_protocol(folder: Path, settings: Mapping, fix: str,
         Path(folder).mkdir(parents=True, exist_ok=True)
         write_json(path, {"digest": digest(settings), "settings": settings})
     return digest(settings)
+
+
+def scene_digest(scene: Any) -> dict[str, str]:
+    """Digests of what a study's rows are made from (issue 55 §3): the decoded ``images``, the cameras' ``poses``
+    (K, view matrix, size) and the ``split`` (which view is train, test or calibration), each over the views in name
+    order, so that a resume can name the part that changed."""
+    import numpy as np
+
+    groups = {g: sorted(getattr(scene, g, None) or [], key=lambda c: c.name) for g in ("train", "test", "calib")}
+    images, poses = hashlib.sha256(), hashlib.sha256()
+    for c in sorted((c for cams in groups.values() for c in cams), key=lambda c: c.name):  # whatever the split
+        for h in (images, poses):
+            h.update(c.name.encode() + b"\0")
+        if c.image is not None:
+            images.update(np.ascontiguousarray(c.image.detach().cpu().numpy(), dtype=np.float32).tobytes())
+        poses.update(np.asarray([*c.K.flatten().tolist(), *c.viewmat.flatten().tolist(), c.width, c.height],
+                                dtype=np.float64).tobytes())
+    split = json.dumps({g: [c.name for c in cams] for g, cams in groups.items()}, sort_keys=True)
+    return {"images": images.hexdigest()[:16], "poses": poses.hexdigest()[:16],
+            "split": hashlib.sha256(split.encode()).hexdigest()[:16]}
+
+
+def check_stored_scene(folder: Path, scene: Any, fix: str) -> dict[str, str]:
+    """Refuse to add to ``folder`` rows made from other data: ``folder/scene.json`` holds :func:`scene_digest` of the
+    scene its rows were made from (recorded on first use; a folder from before it gets the current one). ``scene``: a
+    scene or its :func:`scene_digest`. Returns the digests."""
+    from b3dgs.io import write_json
+
+    current = dict(scene) if isinstance(scene, Mapping) else scene_digest(scene)
+    path = Path(folder) / "scene.json"
+    if path.exists():
+        try:
+            stored = dict(json.loads(path.read_text())["digest"])
+        except (ValueError, KeyError, TypeError):
+            raise B3dgsError(f"{path} is damaged", f"remove it only if the rows in {folder} were made from this "
+                             "scene's data, or pass another out_dir") from None
+        changed = [k for k in current if stored.get(k) != current[k]]
+        if changed:
+            raise B3dgsError(f"{folder} holds rows made from other data: the scene's {', '.join(changed)} changed "
+                             "since they were made", fix)
+    else:
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        write_json(path, {"digest": current})
+    return current

@@ -29,7 +29,7 @@ import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from b3dgs.io import write_json
-from b3dgs.protocol import check_stored_protocol
+from b3dgs.protocol import check_stored_protocol, check_stored_scene, scene_digest
 from b3dgs.upgrade import FAMILY_POSTERIOR_UNRECORDED, omit_study_defaults, protocol_from_meta
 
 log = logging.getLogger(__name__)
@@ -391,6 +391,7 @@ class ActiveStudy:
                              "pass trainer.max_steps >= 2 and phase1_divisor >= 2")
         full = data_module(cfg.data, keep_raw=True)  # the scene is read once: the pool, then its initial views
         self.pool_train = full.scene.train
+        digest_of_pool = scene_digest(full.scene)  # before the candidates' images move to their store
         self.init_idx, self.hole = initial_views(cfg, self.pool_train)
         self.scene = full.select_train(self.init_idx, bool(cfg.init_points_from_train_only)).scene
         # the candidates' images: read by this driver only (acquisition, oracle, contact sheet)
@@ -408,6 +409,8 @@ class ActiveStudy:
             self.out, study_protocol(cfg, posteriors), legacy=legacy_protocol(self.out),
             fix="pass another out_dir, or the settings of the rows there (their protocol.json) to continue them "
                 "(a family's posterior blocks: family_posterior={niw:[...]})")
+        self.scene_digest = check_stored_scene(
+            self.out, digest_of_pool, fix=f"pass another out_dir (or remove {self.out} to start this scene over)")
         self._phase1_meta: dict[str, dict] = {}
 
     def family_cfg(self, family: str, seed: int) -> DictConfig:
@@ -489,7 +492,7 @@ class ActiveStudy:
         fit_round(self.family_cfg(family, seed), self.scene, d, self.phase1,
                   ckpt_path=str(ckpt) if ckpt.exists() else None)
         write_json(done, {"family": family, "seed": seed, "steps": self.phase1, "train_time_s": time.perf_counter() - t0,
-                          "train_views": [c.name for c in self.scene.train]})
+                          "train_views": [c.name for c in self.scene.train], "scene_digest": self.scene_digest})
         return str(ckpt)
 
     def phase1_time(self, family: str, seed: int) -> float:
@@ -573,7 +576,8 @@ class ActiveStudy:
         res = {**sel, "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": ev.get("lpips"),
                "train_time_s": self.phase1_time(policy.family, seed) + t_round2, "round2_time_s": t_round2,
                "num_gaussians": module.num_gaussians, "steps": int(module.global_step),
-               "hole_hits": sum(1 for n in sel["selected"] if n in set(self.hole)) if self.hole else None}
+               "hole_hits": sum(1 for n in sel["selected"] if n in set(self.hole)) if self.hole else None,
+               "scene_digest": self.scene_digest}
         write_json(res_path, res)
         return res
 

@@ -30,7 +30,7 @@ from b3dgs.compression import keep_top
 from b3dgs.errors import B3dgsError
 from b3dgs.io import atomic_path, save_figure, write_json
 from b3dgs.labels import method_label
-from b3dgs.protocol import check_stored_protocol, flatten
+from b3dgs.protocol import check_stored_protocol, check_stored_scene, flatten
 from b3dgs.report.document import markdown_table
 from b3dgs.report.stats import mean_sem, paired_stats
 
@@ -274,6 +274,8 @@ class CompressionStudy:
             settings["base_checkpoint"] = (loaded.metrics or {}).get("checkpoint")  # a retrained base: other rows
             check_stored_protocol(self.base_dir(loaded), flatten(settings),
                                   fix="pass another out_dir, or the settings of the rows there (their protocol.json)")
+            check_stored_scene(self.base_dir(loaded), loaded.scene,
+                               fix=f"pass another out_dir (or remove {self.base_dir(loaded)} to recompute its rows)")
             base = self.base_row(loaded, lp)
             for rounds in self.control_rounds():
                 self.control_row(rounds, loaded, base, lp)
