@@ -239,7 +239,7 @@ def _points_bin(r: _Reader) -> tuple:
 
 def _bad_line(path: Path, line: int, what: str) -> B3dgsError:
     return B3dgsError(f"COLMAP file {path} line {line}: {what}",
-                      f"fix that line or re-export the model (e.g. `colmap model_converter --output_type TXT`)")
+                      "fix that line or re-export the model (e.g. `colmap model_converter --output_type TXT`)")
 
 
 def _lines(path: Path, keep_next: bool = False) -> Iterator[tuple[int, str, Optional[tuple[int, str]]]]:
@@ -269,6 +269,13 @@ def _numbers(path: Path, line: int, fields: list[str], kind, what: str) -> list:
         raise _bad_line(path, line, f"{what}: expected numbers, got {' '.join(fields)[:80]!r}") from None
 
 
+def _in_range(path: Path, line: int, values: list[int], lo: int, hi: int, what: str) -> list[int]:
+    bad = [v for v in values if not lo <= v < hi]
+    if bad:
+        raise _bad_line(path, line, f"{what} {bad[0]} is out of range ({lo} .. {hi - 1})")
+    return values
+
+
 def _cameras_txt(path: Path) -> list[tuple]:
     out = []
     for n, line, _ in _lines(path):
@@ -276,6 +283,7 @@ def _cameras_txt(path: Path) -> list[tuple]:
         if len(f) < 4:
             raise _bad_line(path, n, f"expected `CAMERA_ID MODEL WIDTH HEIGHT PARAMS...`, got {line[:80]!r}")
         cid, w, h = _numbers(path, n, [f[0], f[2], f[3]], int, "camera id, width and height")
+        _in_range(path, n, [cid], 0, 2**32, "camera id")
         if f[1] not in MODEL_IDS:
             raise _bad_line(path, n, f"unknown camera model {f[1]!r} (COLMAP's models: {', '.join(MODEL_IDS)})")
         want = CAMERA_MODELS[MODEL_IDS[f[1]]][1]
@@ -290,9 +298,10 @@ def _images_txt(path: Path) -> list[tuple]:
     for n, line, nxt in _lines(path, keep_next=True):
         f = line.split()
         if len(f) != 10:
-            raise _bad_line(path, n, f"expected `IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME` (10 fields, no spaces in "
-                                     f"the name), got {len(f)} fields")
+            raise _bad_line(path, n, "expected `IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME` (10 fields, no spaces "
+                                     f"in the name), got {len(f)} fields")
         iid, cid = _numbers(path, n, [f[0], f[8]], int, "image and camera ids")
+        _in_range(path, n, [iid, cid], 0, 2**32, "image or camera id")
         pose = _numbers(path, n, f[1:8], float, "pose")
         xys, ids = np.empty((0, 2)), np.empty(0, np.int64)
         if nxt is not None and nxt[1]:
@@ -301,7 +310,8 @@ def _images_txt(path: Path) -> list[tuple]:
                 raise _bad_line(path, nxt[0], f"the 2D points of image {iid} must be `X Y POINT3D_ID` triples, got "
                                               f"{len(g)} fields")
             xys = np.array(_numbers(path, nxt[0], g[0::3] + g[1::3], float, "2D points")).reshape(2, -1).T.copy()
-            ids = np.array(_numbers(path, nxt[0], g[2::3], int, "3D point ids"), dtype=np.int64)
+            ids = _numbers(path, nxt[0], g[2::3], int, "3D point ids")
+            ids = np.array(_in_range(path, nxt[0], ids, -1, 2**63, "3D point id"), dtype=np.int64)
         out.append((iid, tuple(pose[:4]), tuple(pose[4:]), cid, f[9], xys, ids, f"line {n}"))
     return out
 
@@ -316,9 +326,8 @@ def _points_txt(path: Path) -> tuple:
         pid, r, g, b = _numbers(path, n, [f[0], *f[4:7]], int, "point id and colour")
         if not all(0 <= c <= 255 for c in (r, g, b)):
             raise _bad_line(path, n, f"the colour {r} {g} {b} of 3D point {pid} is not 0..255")
-        track = _numbers(path, n, f[8:], int, "track")
-        if pid < 0 or any(t < 0 or t >= 2**32 for t in track):
-            raise _bad_line(path, n, "negative or too large id in the point id or its track")
+        _in_range(path, n, [pid], 0, 2**64, "3D point id")
+        track = _in_range(path, n, _numbers(path, n, f[8:], int, "track"), 0, 2**32, "track image id or 2D point index")
         ids.append(pid)
         xyz.append(_numbers(path, n, f[1:4], float, "position"))
         rgb.append((r, g, b))
