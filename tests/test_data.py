@@ -725,7 +725,7 @@ def _damaged_model(tmp_path: Path, name: str, keep) -> Path:
     ("cameras.bin", lambda n: 10, "truncated"),
     ("cameras.bin", lambda n: 4, "shorter than its 8-byte header"),
 ])
-def test_damaged_colmap_files_refused_before_pycolmap(tmp_path, name, keep, text):
+def test_damaged_colmap_files_refused_in_one_line(tmp_path, name, keep, text):
     from b3dgs.data.colmap import check_colmap_binary
     from b3dgs.errors import B3dgsError
 
@@ -735,7 +735,7 @@ def test_damaged_colmap_files_refused_before_pycolmap(tmp_path, name, keep, text
         check_colmap_binary(d)
     assert name in str(ei.value)
     (tmp_path / "images").symlink_to(HEAD / "images")
-    with pytest.raises(B3dgsError, match=text):  # the loader checks before pycolmap reads anything
+    with pytest.raises(B3dgsError, match=text):  # the loader refuses it in the same line
         load_scene("colmap", str(tmp_path), max_side=16)
 
 

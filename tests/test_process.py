@@ -110,6 +110,15 @@ def test_registered_poses_match_the_originals_up_to_a_similarity(made):
     assert max(errors) < 2.0, np.round(errors, 2)
 
 
+def test_the_output_reads_without_pycolmap_as_pycolmap_reads_it(made):
+    """b3dgs.data.colmap_model (the loader's NumPy reader) gives the model pycolmap gives: cameras, poses bit for bit,
+    2D points, 3D points in pycolmap's order, colours and tracks."""
+    from tests.test_colmap_reader import _assert_same, _numpy_view, _pycolmap_view
+
+    model = made["out"] / "sparse" / "0"
+    _assert_same(_numpy_view(model, points2d=True), _pycolmap_view(model, points2d=True))
+
+
 def test_the_scene_loads_and_trains_with_the_printed_command(made, tmp_path):
     from b3dgs.data.scene import load_scene
 

@@ -371,8 +371,8 @@ def _serve_until_up(args, cwd) -> subprocess.Popen:
 
 @pytest.mark.slow
 def test_sigterm_stops_the_viewer_with_143_and_one_line(tmp_path):
-    """On a COLMAP run (its scene read with pycolmap, whose import installs glog's SIGTERM handler: a 20-line stack
-    trace), SIGTERM ends b3dgs-view with exit code 143 and one line on stderr."""
+    """On a COLMAP run (its scene was once read with pycolmap, whose import installs glog's SIGTERM handler: a
+    20-line stack trace; now read without it), SIGTERM ends b3dgs-view with exit code 143 and one line on stderr."""
     pytest.importorskip("viser", reason='viser not installed (fix: pip install -e ".[viewer]")')
     from conftest import SHARED
 

@@ -1,7 +1,7 @@
 """Scene loading: COLMAP, transforms.json, LLFF and the procedural synthetic scene.
 
 ``b3dgs.data.images`` is imported first so that PIL is loaded before anything could import
-pycolmap (which is itself only imported lazily inside the COLMAP loader).
+pycolmap (which only ``b3dgs-process`` imports, lazily; the COLMAP loader reads models with NumPy).
 """
 from __future__ import annotations
 

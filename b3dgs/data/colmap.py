@@ -1,4 +1,4 @@
-"""COLMAP scenes (``images/`` + ``sparse/0``), read with pycolmap.
+"""COLMAP scenes (``images/`` + ``sparse/0``).
 
 Pinhole models (PINHOLE, SIMPLE_PINHOLE) are loaded as they are. A camera with lens distortion (SIMPLE_RADIAL,
 COLMAP's default, RADIAL, OPENCV, FULL_OPENCV, OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE,
@@ -8,27 +8,25 @@ at the loaded size, into a pinhole view of the same size whose focal lengths are
 with one warning listing the distortion ignored. Other models (FOV, the division models, equirectangular, ...) are
 refused with a one-line error: undistort those with ``colmap image_undistorter`` (or b3dgs-process) first.
 
-pycolmap is imported lazily, inside :func:`read_colmap`, and only after PIL (see
-:mod:`b3dgs.data.images` for why).
-
-Before pycolmap sees a binary model, :func:`check_colmap_binary` walks ``cameras.bin``, ``images.bin``
-and ``points3D.bin`` record by record (counts, record sizes, the exact file size): pycolmap trusts the
-counts in the headers, so a truncated ``points3D.bin`` once made it reserve memory without bound, and a
-short ``images.bin`` loaded silently. ``rigs.bin`` / ``frames.bin`` (COLMAP 3.12+) get a header check.
+The model (``.bin`` or ``.txt``) is read by :mod:`b3dgs.data.colmap_model` (NumPy, no pycolmap), which checks
+each file as it parses it: a truncated or inconsistent file is one line naming it (``check_colmap_binary`` walks a
+binary model the same way). Loading, training and evaluating a COLMAP scene therefore never import pycolmap; only
+``b3dgs-process`` (SfM) does. The loaded scene is the one pycolmap gave: the same frames, bit for bit the same poses
+(:func:`~b3dgs.data.colmap_model.qvec_to_rotmat`) and the 3D points in the same order
+(:func:`~b3dgs.data.colmap_model.unordered_map_order`).
 """
 from __future__ import annotations
 
 import logging
-import mmap
 import os
-import struct
 from dataclasses import replace
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import numpy as np
 
-from b3dgs.data.images import image_folders, image_size, import_pycolmap  # imports PIL first
+from b3dgs.data.colmap_model import ColmapCamera, model_format, read_model, unordered_map_order
+from b3dgs.data.images import image_folders, image_size
 from b3dgs.data.scene import FrameSpec, RawScene, materialize, scale_intrinsics, select_evenly
 from b3dgs.data.undistort import MODELS, Distortion, describe
 from b3dgs.errors import B3dgsError
@@ -41,9 +39,7 @@ __all__ = ["check_colmap_binary", "find_sparse_dir", "load_colmap", "read_colmap
 
 
 def _has_model(d: Path) -> bool:
-    return all((d / f"{n}.bin").is_file() for n in ("cameras", "images", "points3D")) or all(
-        (d / f"{n}.txt").is_file() for n in ("cameras", "images", "points3D")
-    )
+    return model_format(d) is not None
 
 
 def find_sparse_dir(root: Path, sparse_dir: Optional[str] = None) -> Path:
@@ -61,128 +57,17 @@ def find_sparse_dir(root: Path, sparse_dir: Optional[str] = None) -> Path:
                      "model inside it)")
 
 
-def _camera_param_counts() -> dict[int, int]:
-    """COLMAP camera model id -> number of parameters, from pycolmap's own model table."""
-    pycolmap = import_pycolmap()
-    out = {}
-    for name, mid in pycolmap.CameraModelId.__members__.items():
-        if name == "INVALID" or int(mid) < 0:  # pycolmap 4.0 logs a failed check for it on stderr
-            continue
-        try:
-            out[int(mid)] = len(pycolmap.Camera.create_from_model_name(1, name, 1.0, 2, 2).params)
-        except Exception:  # INVALID and models pycolmap cannot build
-            continue
-    return out
-
-
-class _Reader:
-    """Bounds-checked little-endian reads from a memory-mapped file (no read past its end)."""
-
-    def __init__(self, path: Path, buf):
-        self.path, self.buf, self.pos = path, buf, 0
-
-    def remaining(self) -> int:
-        return len(self.buf) - self.pos
-
-    def bad(self, what: str) -> B3dgsError:
-        return B3dgsError(
-            f"COLMAP file {self.path} is damaged: {what} (at byte {self.pos} of {len(self.buf)})",
-            "re-export the model (e.g. `colmap model_converter --output_type BIN`) or restore the file")
-
-    def skip(self, n: int, what: str) -> None:
-        if n < 0 or n > self.remaining():
-            raise self.bad(f"truncated inside {what}")
-        self.pos += n
-
-    def unpack(self, fmt: str, what: str) -> tuple:
-        n = struct.calcsize(fmt)
-        if n > self.remaining():
-            raise self.bad(f"truncated inside {what}")
-        out = struct.unpack_from(fmt, self.buf, self.pos)
-        self.pos += n
-        return out
-
-    def count(self, min_record: int, what: str) -> int:
-        (n,) = self.unpack("<Q", f"the {what} count")
-        if n * min_record > self.remaining():
-            raise self.bad(f"header says {n} {what} but only {self.remaining()} bytes follow "
-                           f"(at least {min_record} per record): truncated")
-        return n
-
-    def name(self, what: str) -> None:
-        end = self.buf.find(b"\0", self.pos)
-        if end < 0:
-            raise self.bad(f"unterminated name in {what}")
-        self.pos = end + 1
-
-    def done(self) -> None:
-        if self.remaining():
-            raise self.bad(f"{self.remaining()} unexpected bytes after the last record")
-
-
-def _walk(path: Path, walker) -> None:
-    size = path.stat().st_size
-    if size < 8:
-        raise B3dgsError(f"COLMAP file {path} is damaged: {size} bytes, shorter than its 8-byte header",
-                         "re-export the model (e.g. `colmap model_converter --output_type BIN`) or restore the file")
-    with open(path, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as buf:
-        r = _Reader(path, buf)
-        walker(r)
-
-
-def _walk_cameras(r: _Reader) -> None:
-    nparams = _camera_param_counts()
-    for i in range(r.count(24, "cameras")):
-        _, model_id, w, h = r.unpack("<iiQQ", f"camera {i}")
-        if model_id not in nparams:
-            raise r.bad(f"camera {i} has the unknown model id {model_id}")
-        if not (0 < w < 2**20 and 0 < h < 2**20):
-            raise r.bad(f"camera {i} has the size {w}x{h}")
-        r.skip(8 * nparams[model_id], f"the parameters of camera {i}")
-    r.done()
-
-
-def _walk_images(r: _Reader) -> None:
-    for i in range(r.count(73, "images")):
-        r.skip(64, f"the pose of image {i}")
-        r.name(f"image {i}")
-        (n2d,) = r.unpack("<Q", f"the point count of image {i}")
-        r.skip(24 * n2d, f"the 2D points of image {i}")
-    r.done()
-
-
-def _walk_points(r: _Reader) -> None:
-    for i in range(r.count(51, "3D points")):
-        r.skip(43, f"3D point {i}")
-        (track,) = r.unpack("<Q", f"the track length of 3D point {i}")
-        r.skip(8 * track, f"the track of 3D point {i}")
-    r.done()
-
-
-def _walk_header(r: _Reader) -> None:
-    r.count(8, "records")
-
-
 def check_colmap_binary(model_dir: str | os.PathLike) -> None:
-    """Walk the binary model files of ``model_dir`` and raise :class:`B3dgsError` naming a damaged one.
-
-    Every record of cameras/images/points3D.bin is bounds-checked and the files must end exactly after
-    their last record; rigs.bin / frames.bin (if present) must have a plausible record count.
-    A text model (``.txt``) is left to pycolmap.
-    """
-    d = Path(model_dir)
-    walkers = {"cameras": _walk_cameras, "images": _walk_images, "points3D": _walk_points,
-               "rigs": _walk_header, "frames": _walk_header}
-    for stem, walker in walkers.items():
-        p = d / f"{stem}.bin"
-        if p.is_file():
-            _walk(p, walker)
+    """Parse the binary model of ``model_dir`` and raise :class:`B3dgsError` naming a damaged or inconsistent file:
+    every record of cameras/images/points3D.bin is bounds-checked and each file must end right after its last record
+    (:func:`~b3dgs.data.colmap_model.read_model`). A text model is checked the same way when it is read."""
+    read_model(model_dir, ".bin")
 
 
-def _intrinsics(cam: Any, image_name: str, undistort: Optional[bool] = None) -> tuple[np.ndarray, Any]:
+def _intrinsics(cam: ColmapCamera, image_name: str, undistort: Optional[bool] = None) -> tuple[np.ndarray, Any]:
     """(K of the camera's pinhole part, its lens: a :class:`Distortion`, None for a pinhole model, or with
     ``undistort=False`` the description of the distortion ignored)."""
-    model = cam.model.name if hasattr(cam.model, "name") else str(cam.model)
+    model = cam.model
     p = np.asarray(cam.params, dtype=np.float64)
     lens = None
     if model == "PINHOLE":
@@ -194,11 +79,11 @@ def _intrinsics(cam: Any, image_name: str, undistort: Optional[bool] = None) -> 
         n = len(p) - len(MODELS[model])  # 3: f, cx, cy; 4: fx, fy, cx, cy
         fx, fy, cx, cy = (p[0], p[0], p[1], p[2]) if n == 3 else p[:4]
         coeffs = tuple(float(c) for c in p[n:])
-        lens = f"camera {cam.camera_id} {model} {describe(model, coeffs)}" if undistort is False else \
-            Distortion(model, coeffs, where=f"COLMAP camera {cam.camera_id} (image {image_name!r})")
+        lens = f"camera {cam.id} {model} {describe(model, coeffs)}" if undistort is False else \
+            Distortion(model, coeffs, where=f"COLMAP camera {cam.id} (image {image_name!r})")
     else:
         raise B3dgsError(
-            f"COLMAP camera {cam.camera_id} (used by image {image_name!r}) has the model {model}, which b3dgs cannot "
+            f"COLMAP camera {cam.id} (used by image {image_name!r}) has the model {model}, which b3dgs cannot "
             f"undistort (it reads {' / '.join(PINHOLE_MODELS)} and undistorts "
             f"{', '.join(m for m in MODELS if m != 'NERFSTUDIO_OPENCV')})",
             fix="undistort the images first, e.g. `colmap image_undistorter --image_path images --input_path "
@@ -228,35 +113,20 @@ def read_colmap(
                          f"pass data.images_dir=FOLDER, the folder of {root} that holds the images"
                          + (f" ({', '.join(there)})" if there else ""))
     model_dir = find_sparse_dir(root, sparse_dir)
-    check_colmap_binary(model_dir)
-    pycolmap = import_pycolmap()
-    try:
-        rec = pycolmap.Reconstruction(str(model_dir))
-    except Exception as e:  # pycolmap raises plain RuntimeError/ValueError on bad files
-        raise B3dgsError(f"Cannot read COLMAP model in {model_dir}: {e}",
-                         fix="point data.path at a scene folder whose sparse/0 holds a complete COLMAP model "
-                             "(cameras, images, points3D), or rebuild it with b3dgs-process") from e
+    model = read_model(model_dir)
 
     frames = []
-    skipped = []
     ignored: dict[int, str] = {}  # camera id -> its distortion, when undistort=False
-    for im in rec.images.values():
-        if hasattr(im, "has_pose") and not im.has_pose:
-            skipped.append(im.name)
-            continue
-        cam = rec.cameras[im.camera_id]
+    for im in model.images.values():
+        cam = model.cameras[im.camera_id]
         K, lens = _intrinsics(cam, im.name, undistort)
         if isinstance(lens, str):  # undistort=False
-            ignored[cam.camera_id], lens = lens, None
-        viewmat = np.eye(4)
-        viewmat[:3, :4] = np.asarray(im.cam_from_world().matrix(), dtype=np.float64)
-        frames.append(FrameSpec(im.name, img_root / im.name, K, viewmat, int(cam.width), int(cam.height), lens))
+            ignored[cam.id], lens = lens, None
+        frames.append(FrameSpec(im.name, img_root / im.name, K, im.viewmat(), cam.width, cam.height, lens))
     if ignored:
         log.warning("COLMAP: lens distortion IGNORED (data.undistort=false: images used as their pinhole part, not "
                     "undistorted): %s%s", "; ".join(ignored[k] for k in sorted(ignored)[:3]),
                     f" (+{len(ignored) - 3} more cameras)" if len(ignored) > 3 else "")
-    if skipped:
-        log.warning("COLMAP: %d unregistered images skipped (%s...)", len(skipped), ", ".join(skipped[:3]))
     if not frames:
         raise B3dgsError(f"COLMAP model in {model_dir} has no registered images",
                          fix="rerun COLMAP's mapper (or b3dgs-process) until images register, and point data.path at "
@@ -265,15 +135,16 @@ def read_colmap(
     if images_dir != "images":  # e.g. Mip-NeRF 360's images_4: a uniform downscale of the model's cameras
         frames = [_at_file_size(f) for f in frames]
 
-    points = colors = None
-    if len(rec.points3D) > 0:
-        pts = list(rec.points3D.values())
-        points = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
-        colors = np.array([p.color for p in pts], dtype=np.float32).reshape(-1, 3) / 255.0
-    if point_tracks:  # the image names that observed each point (init_points_from_train_only)
-        names = {i: im.name for i, im in rec.images.items()}
-        tracks = [sorted({names[e.image_id] for e in p.track.elements if e.image_id in names}) for p in pts] \
-            if points is not None else None
+    points = colors = tracks = None
+    if len(model.point_ids) > 0:
+        order = unordered_map_order(model.point_ids)  # pycolmap's order: runs keep their bits
+        points = model.xyz[order]
+        colors = model.rgb[order].astype(np.float32) / 255.0
+        if point_tracks:  # the image names that observed each point (init_points_from_train_only)
+            names = {i: im.name for i, im in model.images.items()}
+            ids, s = model.track["image_id"].tolist(), model.track_start
+            tracks = [sorted({names[k] for k in ids[s[i]:s[i + 1]]}) for i in order.tolist()]
+    if point_tracks:
         return frames, points, colors, tracks
     return frames, points, colors
 

@@ -63,8 +63,9 @@ def import_pycolmap() -> Any:
 
     try:
         import pycolmap
-    except ImportError as e:  # pragma: no cover - pycolmap is a hard dependency
-        raise B3dgsError("reading a COLMAP scene needs pycolmap, which is not installed", "pip install pycolmap") from e
+    except ImportError as e:  # pragma: no cover - pycolmap is a dependency (for b3dgs-process)
+        raise B3dgsError("b3dgs-process (SfM) needs pycolmap, which is not installed",
+                         'pip install "pycolmap<4.1"') from e
     return pycolmap
 
 

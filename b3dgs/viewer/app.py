@@ -135,11 +135,8 @@ def hydra_main(cfg: DictConfig) -> None:
         settings = settings_from_cfg(cfg)
         quiet_known_noise()
         logging.getLogger("websockets").setLevel(logging.WARNING)
-        from b3dgs.data.images import import_pycolmap
         from b3dgs.rundir import interrupt_handlers
 
-        # pycolmap first: importing it (a COLMAP run's scene) installs glog's SIGTERM handler, a 20-line stack trace
-        import_pycolmap()
         with interrupt_handlers() as pending:
             pending.deferred = True  # SIGINT / SIGTERM are recorded, and end the loop below (also while loading)
             app = serve(cfg, settings)
