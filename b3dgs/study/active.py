@@ -110,8 +110,8 @@ def load_policy(name: str, settings: Optional[DictConfig] = None):
 
     base, _, family = str(name).partition("@")
     node = option_node("study", "acquisition", base, settings,
-                       "pass policies=[...] of conf/acquisition/<name>.yaml (uniform, farthest, ensemble, ppu, "
-                       "fisher, proxy, native, oracle) or a package's")
+                       f"pass policies=[...] of conf/acquisition/<name>.yaml ({', '.join(option_names('acquisition'))})"
+                       " or a package's")
     if family:
         with open_dict(node):
             node.family = family
@@ -147,7 +147,8 @@ def load_batch(name: str, settings: Optional[DictConfig] = None):
     from b3dgs.errors import B3dgsError
 
     node = option_node("study", "acquisition/batch", str(name), settings,
-                       "pass acquisition.batch=topk, diverse or greedy_conditioned (conf/acquisition/batch/<name>.yaml)")
+                       f"pass acquisition.batch={'|'.join(option_names('acquisition/batch'))} "
+                       "(conf/acquisition/batch/<name>.yaml)")
     try:
         batch = instantiate(node, _convert_="all")
     except Exception as e:  # noqa: BLE001 - a misspelt setting: one line naming it
