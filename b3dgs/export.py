@@ -13,7 +13,12 @@ Every format is in the scene's own frame (COLMAP / transforms.json), as ``point_
   only the DC colour (view-dependent colour does not fit the format);
 - ``3dgs``: ``point_cloud/iteration_<step>/point_cloud.ply`` (the layout alone, no extra properties: SIBR reads a fixed
   record), ``cameras.json`` (every train and test camera: centre, camera-to-world rotation, fx, fy, size) and
-  ``cfg_args``, the folder the official scripts and the SIBR viewer read.
+  ``cfg_args``, the folder the official scripts and the SIBR viewer read; written whole in a staging folder and renamed
+  into place (:func:`write_model_folder`).
+
+It writes only what is its own (:func:`b3dgs.rundir.check_replace`): an existing file that no run's manifest lists is
+refused unless ``overwrite=true``, a model folder goes only where none is or over an earlier export, and nothing goes
+into a run's ``checkpoints/``.
 """
 from __future__ import annotations
 

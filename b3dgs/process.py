@@ -33,7 +33,9 @@ there, and reruns a stage whose options changed and the stages after it (``max_s
 ``undistort``). A changed photo folder is refused (``overwrite=true`` starts afresh), and so is an ``out=`` that holds
 anything else. Ctrl-C and SIGTERM stop within half a second (exit codes 130 / 143 and a line naming the stage), a
 kill at once, and the rerun resumes from the last finished stage. Known problems print one line
-``b3dgs-process: error: ... (fix: ...)`` and exit with code 2.
+``b3dgs-process: error: ... (fix: ...)`` and exit with code 2. Every photo is decoded whole before anything is written
+(a truncated one is refused, naming it); the files moved into ``images/`` and ``sparse/0/`` are listed in the state
+file, and ``overwrite=true`` or a rerun removes only those (a user's file beside them stays).
 """
 from __future__ import annotations
 
@@ -134,8 +136,8 @@ def _sizes(photos: list[Path]) -> list[tuple[int, int]]:
                 im.draft("RGB", (max(1, size[0] // 8), max(1, size[1] // 8)))  # JPEG only; others decode in full
                 im.load()
         except Exception as e:  # noqa: BLE001 - PIL raises OSError, SyntaxError, ValueError, zlib errors...
-            why = " ".join(str(e).split()) or type(e).__name__
-            raise B3dgsError(f"the photo {p} cannot be read whole ({why})",
+            why = " ".join(str(e).replace(f"'{p}'", "it").replace(str(p), "it").split()) or type(e).__name__
+            raise B3dgsError(f"cannot read the photo {p} whole: {why}",
                              "remove it from images= or replace it with a complete copy") from None
         out.append(size)
     return out

@@ -252,22 +252,21 @@ def write_video(path: Path, frames: Sequence[np.ndarray], fps: int) -> Path:
 
 
 @contextmanager
-def _claim(run_dir: Path, out: Path, names: Sequence[str]):
+def _claim(out: Path, names: Sequence[str]):
     """Make room for the frames and video ``names`` in ``out``: in a run dir (the rendered one or another), under its
     lock, the frames of an earlier render that its manifest lists in ``out`` go (a shorter path must not leave those of
     a longer one) and ``names`` join the manifest before they are written; elsewhere (or in a run dir written before
     manifests), the files of ``out`` named as this command names frames (``frame_<5 digits>.png``). Nothing else in
     ``out`` is touched: a user's ``frame_final_edit.png`` or ``my_cut.mp4`` stays, and one of ``names`` that exists and
     is not b3dgs's (unlisted in a run dir; elsewhere any video, since no record says whose it is) is refused before
-    anything goes.
-    Nothing is written into a run's ``checkpoints/``."""
-    from b3dgs.rundir import (FRAME_NAME, manifest_lock, read_manifest, record_written, refuse_in_checkpoints,
-                              remove_listed, remove_recorded, run_files)
+    anything goes. Nothing is written into a run's ``checkpoints/``."""
+    from b3dgs.rundir import (FRAME_NAME, holds_run, manifest_lock, read_manifest, record_written,
+                              refuse_in_checkpoints, remove_listed, remove_recorded, run_files)
 
     refuse_in_checkpoints(out, "b3dgs-render")
     q = out.resolve()
-    owner = next((d for d in (q, *q.parents) if read_manifest(d, fix=_FIX_OUT) is not None), None)
-    if owner is not None:
+    owner = next((d for d in (q, *q.parents) if holds_run(d)), None)
+    if owner is not None and read_manifest(owner, fix=_FIX_OUT) is not None:
         folder = q.relative_to(owner).as_posix()
         folder = "" if folder == "." else folder
         with manifest_lock(owner, "b3dgs-render"):
@@ -280,7 +279,11 @@ def _claim(run_dir: Path, out: Path, names: Sequence[str]):
             yield
         return
     frames = [p.name for p in out.glob("frame_*.png") if FRAME_NAME.fullmatch(p.name)] if out.is_dir() else []
-    _refuse_foreign(out, [n for n in names if not FRAME_NAME.fullmatch(n)])  # no record says whose a video is
+    # no record says whose a video is (in a run written before manifests: the names its outputs had)
+    theirs = set(run_files(owner)) if owner is not None else set()
+    rel = "." if owner is None else q.relative_to(owner).as_posix()
+    _refuse_foreign(out, [n for n in names if not FRAME_NAME.fullmatch(n)
+                          and (n if rel == "." else f"{rel}/{n}") not in theirs])
     out.mkdir(parents=True, exist_ok=True)
     remove_listed(out, frames)
     yield
@@ -332,7 +335,7 @@ def render(cfg: DictConfig) -> dict:
     frames, top = render_path(run, cams, cfg.get("panel"), panel_max, int(cfg.samples), cfg.get("count_scale"))
     with_video = bool(cfg.get("video", True)) and len(frames) > 1
     names = [f"frame_{i:05d}.png" for i in range(len(frames))] + ([f"{label}.mp4"] if with_video else [])
-    with _claim(run.path, out, names):
+    with _claim(out, names):
         pngs = [save_png(out / n, f) for n, f in zip(names[:len(frames)], frames)]
         video = write_video(out / f"{label}.mp4", frames, fps) if with_video else None
     written = {"frames": [str(p) for p in pngs], "video": None if video is None else str(video), "panel_max": top}

@@ -195,7 +195,7 @@ def test_a_truncated_photo_is_refused_before_anything_is_written(tmp_path):
     photos = _jpegs(tmp_path / "photos")
     data = photos[1].read_bytes()
     photos[1].write_bytes(data[:int(len(data) * 0.45)])
-    with pytest.raises(B3dgsError, match=r"the photo .*p1\.jpg cannot be read whole") as e:
+    with pytest.raises(B3dgsError, match=r"cannot read the photo .*p1\.jpg whole: image file is truncated") as e:
         process(_cfg(images=str(tmp_path / "photos"), out=str(tmp_path / "out")))
     assert "\n" not in str(e.value) and not (tmp_path / "out").exists()
     (tmp_path / "photos" / "p1.jpg").write_bytes(b"\x89PNG\r\n\x1a\n" + b"\0" * 64)
