@@ -13,13 +13,20 @@ Every format is in the scene's own frame (COLMAP / transforms.json), as ``point_
   only the DC colour (view-dependent colour does not fit the format);
 - ``3dgs``: ``point_cloud/iteration_<step>/point_cloud.ply`` (the layout alone, no extra properties: SIBR reads a fixed
   record), ``cameras.json`` (every train and test camera: centre, camera-to-world rotation, fx, fy, size) and
-  ``cfg_args``, the folder the official scripts and the SIBR viewer read.
+  ``cfg_args``, the folder the official scripts and the SIBR viewer read; written whole in a staging folder and renamed
+  into place (:func:`write_model_folder`).
+
+It writes only what is its own (:func:`b3dgs.rundir.check_replace`): an existing file that no run's manifest lists is
+refused unless ``overwrite=true``, a model folder goes only where none is or over an earlier export, and nothing goes
+into a run's ``checkpoints/``.
 """
 from __future__ import annotations
 
 import logging
+import re
 from contextlib import nullcontext
 from pathlib import Path
+from typing import Optional
 
 import hydra
 import numpy as np
@@ -101,7 +108,9 @@ def camera_entries(cameras, inv) -> list[dict]:
     return out
 
 
-def export_3dgs(run, folder: Path, step: int) -> Path:
+def export_3dgs(run, folder: Path, step: int, model_path: Optional[Path] = None) -> Path:
+    """The official 3DGS model folder of ``run`` at ``step`` in ``folder`` (``cfg_args`` names ``model_path``, default
+    ``folder``: the folder it will have once staged into place)."""
     from b3dgs.io import atomic_path, write_json
 
     _, _, inv = _own_frame(run)
@@ -110,15 +119,100 @@ def export_3dgs(run, folder: Path, step: int) -> Path:
     write_json(folder / "cameras.json", camera_entries(cams, inv))
     bg = [float(v) for v in run.cfg.model.get("background", (0.0, 0.0, 0.0))]
     args = (f"Namespace(data_device='cuda', eval={bool(run.scene.test)}, images='images', "
-            f"model_path={str(folder)!r}, resolution=-1, sh_degree={int(run.cfg.model.get('sh_degree', 3))}, "
+            f"model_path={str(model_path or folder)!r}, resolution=-1, sh_degree={int(run.cfg.model.get('sh_degree', 3))}, "
             f"source_path={str(run.cfg.data.get('path') or '')!r}, white_background={bg == [1.0, 1.0, 1.0]})")
     with atomic_path(folder / "cfg_args") as tmp:
         tmp.write_text(args)
     return folder
 
 
+#: the files of a model folder (``format=3dgs``) besides ``point_cloud/iteration_<step>/point_cloud.ply``
+MODEL_FILES = ("cameras.json", "cfg_args", ".b3dgs-run.json")
+_MODEL_PLY = re.compile(r"point_cloud/iteration_\d+/point_cloud\.ply")
+
+
+def _model_files(folder: Path) -> list[str]:
+    """The files of ``folder`` (symlinks as entries), relative to it."""
+    from b3dgs.rundir import _iter_files
+
+    return list(_iter_files(folder))
+
+
+def _not_ours(folder: Path) -> list[str]:
+    """The files of ``folder`` that are not part of a model folder b3dgs-export wrote: those its own manifest does not
+    list (a folder exported before it carried one: unless it has the layout alone, in a run dir whose manifest lists
+    every file); every file for a folder without such a manifest."""
+    from b3dgs.rundir import LOCK_NAME, MANIFEST_NAME, owning_run_dir, read_manifest, run_files
+
+    files = [f for f in _model_files(folder) if f != LOCK_NAME]
+    try:
+        m = read_manifest(folder)
+    except B3dgsError:
+        return files
+    if m is not None:
+        listed = set(m.get("files", [])) | {MANIFEST_NAME}
+        return [f for f in files if f not in listed] if m.get("writer") == "b3dgs-export" else files
+    owner = owning_run_dir(folder)
+    if owner is None or not all(f in MODEL_FILES or _MODEL_PLY.fullmatch(f) for f in files):
+        return files
+    pre = Path(folder).resolve().relative_to(owner).as_posix()
+    return [] if {f"{pre}/{f}" for f in files} <= set(run_files(owner)) else files
+
+
+def _check_folder(out: Path) -> Optional[Path]:
+    """Whether a model folder may be written at ``out`` (new, empty, or one b3dgs-export wrote: replaced whole); the run
+    dir whose manifest lists it, or ``None``. A folder that holds anything else (a user's model, its other iterations)
+    is refused: a model folder is never merged into one."""
+    from b3dgs.rundir import owning_run_dir, read_manifest, refuse_in_checkpoints
+
+    refuse_in_checkpoints(out, "b3dgs-export")
+    files = _not_ours(out) if out.is_dir() else []
+    if files:
+        raise B3dgsError(f"out={out} holds files b3dgs-export did not write ({', '.join(files[:3])}"
+                         f"{' and more' if len(files) > 3 else ''}); a model folder is written whole, never into "
+                         "another", "pass another out= (a new or empty folder)")
+    owner = owning_run_dir(out)
+    if owner is not None:
+        read_manifest(owner, fix="pass out=PATH outside the run dir")
+    return owner
+
+
+def write_model_folder(run, out: Path, step: int, owner: Optional[Path]) -> Path:
+    """The model folder of ``run`` at ``step`` (:func:`export_3dgs`) written whole into a staging folder beside ``out``
+    and renamed into place (a previous export there, checked by :func:`_check_folder`, goes as a whole), so that ``out``
+    holds one export or none; its files are listed in its own manifest (``writer: b3dgs-export``) and in ``owner``'s
+    (the run dir it lies in), before they are moved in."""
+    import os
+    import shutil
+    import tempfile
+
+    from b3dgs.rundir import MANIFEST_NAME, _write_manifest, record_written, run_files
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.b3dgs-stage-", dir=out.parent))
+    old = None
+    try:
+        export_3dgs(run, stage, step, model_path=out.resolve())
+        files = _model_files(stage)
+        _write_manifest(stage, files, None, None, writer="b3dgs-export")
+        if owner is not None:
+            pre = out.resolve().relative_to(owner).as_posix()
+            gone = [f for f in run_files(owner) if f.startswith(f"{pre}/")]
+            record_written(owner, [f"{pre}/{f}" for f in [*files, MANIFEST_NAME]], forget=gone)
+        if out.is_dir():
+            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.b3dgs-old-", dir=out.parent))
+            os.replace(out, old / "model")
+        os.replace(stage, out)
+    finally:
+        shutil.rmtree(stage, ignore_errors=True)
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
+    return out
+
+
 def export(cfg: DictConfig) -> dict:
     """Export ``cfg.run`` (at ``cfg.checkpoint``, default its last) as ``cfg.format`` into ``cfg.out``."""
+    from b3dgs.rundir import check_replace, manifest_lock, record_written
     from b3dgs.runs import load_run
 
     fmt = str(cfg.get("format"))
@@ -127,38 +221,32 @@ def export(cfg: DictConfig) -> dict:
 
         raise B3dgsError(f"format={fmt} is not an export format{did_you_mean(fmt, FORMATS)}",
                          f"pass format={'|'.join(FORMATS)}")
+    overwrite = cfg.get("overwrite", False)
+    if not isinstance(overwrite, bool):
+        raise B3dgsError(f"overwrite={overwrite} is invalid: it must be true or false",
+                         "pass overwrite=true to replace an existing out= file, or leave it out")
     run_dir = Path(str(cfg.run))
     ckpt = cfg.get("checkpoint")
     if ckpt is not None and not Path(str(ckpt)).is_file():
         raise B3dgsError(f"checkpoint={ckpt}: no such file", f"pass one of {run_dir}/checkpoints/*.ckpt, or null (the last)")
-    run = load_run(run_dir, checkpoint=None if ckpt is None else str(ckpt))
-    step = int(getattr(run.module, "_loaded_step", 0) or 0)
     default = {"ply": run_dir / "export" / "point_cloud.ply", "splat": run_dir / "export" / "scene.splat",
                "3dgs": run_dir / "export" / "3dgs"}[fmt]
     out = Path(str(cfg.out)) if cfg.get("out") else default
-    inside = out.resolve().is_relative_to(run_dir.resolve())
-    if inside:  # what goes into the run dir joins its manifest: check it before writing
-        from b3dgs.rundir import read_manifest
-
-        read_manifest(run_dir, fix="pass out=PATH outside the run dir")
     if fmt == "3dgs" and out.exists() and not out.is_dir():
         raise B3dgsError(f"out={out} is a file; format=3dgs writes a folder", "pass out= a folder path")
     if fmt != "3dgs" and out.is_dir():
         raise B3dgsError(f"out={out} is a folder; format={fmt} writes one file", f"pass out=PATH/NAME.{fmt}")
-    names = []
-    if inside:  # listed in the run's manifest, under its lock, before it is written
-        rel = out.resolve().relative_to(run_dir.resolve()).as_posix()
-        pre = "" if rel == "." else f"{rel}/"
-        names = [rel] if fmt != "3dgs" else [f"{pre}cameras.json", f"{pre}cfg_args",
-                                              f"{pre}point_cloud/iteration_{step}/point_cloud.ply"]
-    from b3dgs.rundir import manifest_lock, record_written
-
-    with manifest_lock(run_dir, "b3dgs-export") if inside else nullcontext():
-        if names:
-            record_written(run_dir, names)
+    # what may be written there is settled before the (slow) load: nothing of a user's is replaced unasked
+    owner = _check_folder(out) if fmt == "3dgs" else check_replace(
+        out, "b3dgs-export", overwrite, "pass overwrite=true to replace it, or another out=")
+    run = load_run(run_dir, checkpoint=None if ckpt is None else str(ckpt))
+    step = int(getattr(run.module, "_loaded_step", 0) or 0)
+    with manifest_lock(owner, "b3dgs-export") if owner is not None else nullcontext():
         if fmt == "3dgs":
-            export_3dgs(run, out, step)
+            write_model_folder(run, out, step, owner)
         else:
+            if owner is not None:  # listed in the run's manifest, under its lock, before it is written
+                record_written(owner, [out.resolve().relative_to(owner).as_posix()])
             (export_ply if fmt == "ply" else export_splat)(run, out)
     n = run.module.num_gaussians
     log.info("%s: %d Gaussians at step %d as %s -> %s", run_dir, n, step, fmt, out)

@@ -350,9 +350,11 @@ class SplatModule(L.LightningModule):
 
         return run_identity(self.hparams, self.strategy, self.posterior, self.scene, self.schedule, self.renderer)
 
-    def check_checkpoint_identity(self, checkpoint: Mapping[str, Any], what: str, fix: str) -> None:
+    def check_checkpoint_identity(self, checkpoint: Mapping[str, Any], what: str, fix: str,
+                                  suggest: bool = True) -> None:
         """Refuse a checkpoint of another model, posterior, strategy, scene or schedule with a one-line
-        ``ValueError`` ``"<what> does not match: <reason> (fix: pass <key=value> or <fix>)"``."""
+        ``ValueError`` ``"<what> does not match: <reason> (fix: pass <key=value> or <fix>)"``; ``suggest=False``
+        (a command that takes no training options, e.g. b3dgs-export): ``fix`` alone."""
         from b3dgs.checkpoint import identity_mismatch
 
         extra = checkpoint.get("b3dgs") or {}
@@ -366,7 +368,7 @@ class SplatModule(L.LightningModule):
         bad = identity_mismatch(saved, current)
         if bad is not None:
             problem, want = bad
-            raise B3dgsError(f"{what} does not match this run: {problem}", f"pass {want}, or {fix}")
+            raise B3dgsError(f"{what} does not match this run: {problem}", f"pass {want}, or {fix}" if suggest else fix)
 
     def pool_fingerprint(self) -> Optional[str]:
         """Fingerprint of the whole view pool (train + candidates, and test): what training rounds share."""

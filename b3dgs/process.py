@@ -33,7 +33,9 @@ there, and reruns a stage whose options changed and the stages after it (``max_s
 ``undistort``). A changed photo folder is refused (``overwrite=true`` starts afresh), and so is an ``out=`` that holds
 anything else. Ctrl-C and SIGTERM stop within half a second (exit codes 130 / 143 and a line naming the stage), a
 kill at once, and the rerun resumes from the last finished stage. Known problems print one line
-``b3dgs-process: error: ... (fix: ...)`` and exit with code 2.
+``b3dgs-process: error: ... (fix: ...)`` and exit with code 2. Every photo is decoded whole before anything is written
+(a truncated one is refused, naming it); the files moved into ``images/`` and ``sparse/0/`` are listed in the state
+file, and ``overwrite=true`` or a rerun removes only those (a user's file beside them stays).
 """
 from __future__ import annotations
 
@@ -121,16 +123,23 @@ def _fingerprint(listing: list[list]) -> str:
 
 
 def _sizes(photos: list[Path]) -> list[tuple[int, int]]:
-    """(width, height) of every photo from its header; an unreadable one is a one-line error."""
-    from b3dgs.data.images import image_size
+    """(width, height) of every photo, each decoded whole first (a JPEG at 1/8 scale, which still reads all of its
+    data): a truncated or corrupt photo is refused in one line naming it, before anything is written (SfM would
+    register it and the undistortion copy its missing part as a flat fill)."""
+    from PIL import Image
 
     out = []
     for p in photos:
         try:
-            out.append(image_size(p))
-        except B3dgsError as e:
-            raise B3dgsError(f"cannot read the photo {p}: {e.problem.rpartition(': ')[2]}",
-                             "remove it from images= or replace it with a readable copy") from e
+            with Image.open(p) as im:
+                size = int(im.width), int(im.height)
+                im.draft("RGB", (max(1, size[0] // 8), max(1, size[1] // 8)))  # JPEG only; others decode in full
+                im.load()
+        except Exception as e:  # noqa: BLE001 - PIL raises OSError, SyntaxError, ValueError, zlib errors...
+            why = " ".join(str(e).replace(f"'{p}'", "it").replace(str(p), "it").split()) or type(e).__name__
+            raise B3dgsError(f"cannot read the photo {p} whole: {why}",
+                             "remove it from images= or replace it with a complete copy") from None
+        out.append(size)
     return out
 
 
@@ -218,8 +227,9 @@ class _Run:
     """One ``b3dgs-process`` invocation: its inputs, options and the paths of its stages."""
 
     def __init__(self, cfg: DictConfig, photos: list[Path], sizes: list[tuple[int, int]], images: Path, out: Path,
-                 single: bool, matcher: str):
+                 single: bool, matcher: str, state: dict):
         self.cfg, self.photos, self.sizes, self.images, self.out = cfg, photos, sizes, images, out
+        self.state = state
         self.work = out / WORK
         self.single, self.matcher = single, matcher
         self.threads = -1 if cfg.get("threads") is None else int(cfg.threads)
@@ -422,6 +432,28 @@ class _Run:
                         f"{shown}" + (f", {models} models (the largest kept)" if models > 1 else "")
                         + (f", after {len(tries)} tries" if len(tries) > 1 else "")}
 
+    def _into_place(self, new: dict[str, Path]) -> None:
+        """Move the files ``new`` (name in ``out`` -> staged file) into ``out``, replacing only what b3dgs-process
+        wrote there (:func:`_owned`): a user's file in ``images/`` or ``sparse/0/`` stays, and one that a new file
+        would replace is refused. The names are recorded before they are moved; the earlier ones not written again
+        go. A kill in between leaves the stage unrecorded, and the rerun does it again."""
+        from b3dgs.rundir import remove_listed
+
+        owned = _owned(self.out, self.state)
+        clash = [f for f in new if (self.out / f).exists() and f not in owned]
+        if clash:
+            raise B3dgsError(f"out={self.out} holds {', '.join(clash[:3])}, which b3dgs-process did not write and "
+                             "would replace", f"move {'them' if len(clash) > 1 else 'it'} out of {self.out}, or "
+                             "pass out= a new folder")
+        remove_listed(self.out, [f for f in owned if f not in new])
+        self.state["files"] = sorted(set(owned) | set(new))
+        _write_state(self.out, self.state)
+        for f, src in new.items():
+            (self.out / f).parent.mkdir(parents=True, exist_ok=True)
+            os.replace(src, self.out / f)
+        self.state["files"] = sorted(new)
+        _write_state(self.out, self.state)
+
     def undistort(self, pycolmap) -> dict:
         from PIL import Image
 
@@ -462,12 +494,8 @@ class _Run:
         (stage / "model").mkdir()
         rec.write(str(stage / "model"))
         sizes = sorted({(v[2], v[3]) for v in scales.values()})
-        # into place: a kill between these lines leaves the stage unrecorded, and the rerun does it again
-        _remove(self.out / "images")
-        _remove(self.out / "sparse")
-        os.replace(stage / "images", self.out / "images")
-        (self.out / "sparse").mkdir()
-        os.replace(stage / "model", self.out / "sparse" / "0")
+        self._into_place({**{f"images/{n}": stage / "images" / n for n in sorted(os.listdir(stage / "images"))},
+                          **{f"sparse/0/{n}": stage / "model" / n for n in sorted(os.listdir(stage / "model"))}})
         _remove(stage)
         size = " / ".join(f"{w}x{h}" for w, h in sizes[:3]) + (" / ..." if len(sizes) > 3 else "")
         return {"images": len(images), "sizes": [list(s) for s in sizes], "size": size,
@@ -523,17 +551,29 @@ def _diff(old: list, new: list) -> str:
     return f"{added} added, {removed} removed, {changed} changed"
 
 
+#: what pycolmap writes into a model folder (``sparse/0/``): a state file from before b3dgs-process listed its files
+#: owns these there, and the photos it lists in ``images/``
+MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin", "rigs.bin", "frames.bin")
+
+
+def _owned(out: Path, state: dict) -> list[str]:
+    """The files b3dgs-process wrote into ``out``'s ``images/`` and ``sparse/0/``, as its state file lists them (one
+    written before it listed them: the photos it names and pycolmap's model files)."""
+    files = state.get("files")
+    if isinstance(files, list) and all(isinstance(f, str) for f in files):
+        return list(files)
+    names = [r[0] for r in state.get("photos", []) if isinstance(r, list) and r and isinstance(r[0], str)]
+    return [f"images/{n}" for n in names] + [f"sparse/0/{n}" for n in MODEL_FILES]
+
+
 def _remove_ours(out: Path, state: dict) -> None:
-    """``overwrite=true``: what b3dgs-process wrote into ``out`` (nothing else)."""
-    for name in ("images", "sparse", WORK):
-        _remove(out / name)
+    """``overwrite=true``: what b3dgs-process wrote into ``out``, by name (:func:`_owned`, its work folder, the scene
+    file and the state file), and the folders that this leaves empty; a user's file beside them stays."""
+    from b3dgs.rundir import remove_listed
+
     scene_file = state.get("scene_file")
-    if scene_file:
-        _remove(out / scene_file)
-        for parent in (out / scene_file).parents:
-            if parent == out or not parent.is_dir() or any(parent.iterdir()):
-                break
-            parent.rmdir()
+    remove_listed(out, [*_owned(out, state), *([scene_file] if isinstance(scene_file, str) else [])])
+    _remove(out / WORK)
     _remove(out / STATE)
 
 
@@ -574,11 +614,22 @@ def _scene_name(cfg: DictConfig, out: Path) -> str:
     return name
 
 
+def _hydra_value(value: str) -> str:
+    """``value`` as Hydra's override grammar reads it back unchanged: quoted (``'...'``, its quotes and backslashes
+    escaped) unless it holds only characters the grammar takes bare."""
+    if all(c.isascii() and (c.isalnum() or c in "_./:-+~@") for c in value):
+        return value
+    escaped = re.sub(r"(\\+)(?='|$)", lambda m: 2 * m.group(1), value)  # Hydra un-escapes only these backslashes
+    return "'" + escaped.replace("'", "\\'") + "'"
+
+
 def _searchpath_override(conf: Path) -> str:
-    value = f"file://{conf}"
-    if not all(c.isascii() and (c.isalnum() or c in "_./:-+~@") for c in value):
-        value = "'" + value.replace("'", "\\'") + "'"
-    return f"hydra.searchpath=[{value}]"
+    return f"hydra.searchpath=[{_hydra_value(f'file://{conf}')}]"
+
+
+def _shell_override(key: str, value: str) -> str:
+    """``key=value`` as a shell word that reaches Hydra as ``value`` (spaces, quotes, commas in a path)."""
+    return shlex.quote(f"{key}={_hydra_value(value)}")
 
 
 def _scene_yaml(name: str, out: Path, images: Path, summary: str, command: str) -> str:
@@ -671,9 +722,10 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap) -> d
     matcher = str(cfg.matcher)
     if matcher == "auto":
         matcher = "exhaustive" if len(photos) <= EXHAUSTIVE_UP_TO else "sequential"
-    run = _Run(cfg, photos, sizes, images, out, single, matcher)
     if state is None:
-        state = {"format": FORMAT, "images": str(images), "fingerprint": fp, "photos": listing, "stages": {}}
+        state = {"format": FORMAT, "images": str(images), "fingerprint": fp, "photos": listing, "stages": {},
+                 "files": []}
+    run = _Run(cfg, photos, sizes, images, out, single, matcher, state)
     state["images"] = str(images)
     run.work.mkdir(parents=True, exist_ok=True)
     _write_state(out, state)
@@ -739,7 +791,7 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap) -> d
          + f" (this run {total:.1f} s)")
     _say(f"scene: {out}/images, {out}/sparse/0, {target}")
     _say(f"train it: {command}")
-    _say(f"      or: b3dgs-train data=colmap {shlex.quote('data.path=' + str(out))}")
+    _say(f"      or: b3dgs-train data=colmap {_shell_override('data.path', str(out))}")
     return {"out": str(out), "name": name, "command": command, "scene_file": str(target), "stages": report,
             "registered": int(m["registered"]), "photos": len(photos), "seconds": total}
 

@@ -252,30 +252,52 @@ def write_video(path: Path, frames: Sequence[np.ndarray], fps: int) -> Path:
 
 
 @contextmanager
-def _claim(run_dir: Path, out: Path, names: Sequence[str]):
-    """Make room for the frames and video ``names`` in ``out``: in the run dir, under its lock, the frames of an
-    earlier render that its manifest lists in ``out`` go (a shorter path must not leave those of a longer one) and
-    ``names`` join the manifest before they are written; elsewhere (or in a run dir written before manifests), the
-    files of ``out`` named as this command names frames (``frame_<5 digits>.png``). Nothing else in ``out`` is
-    touched: a user's ``frame_final_edit.png`` or ``my_cut.mp4`` stays."""
-    from b3dgs.rundir import (FRAME_NAME, manifest_lock, read_manifest, record_written, remove_listed,
-                              remove_recorded, run_files)
+def _claim(out: Path, names: Sequence[str]):
+    """Make room for the frames and video ``names`` in ``out``: in a run dir (the rendered one or another), under its
+    lock, the frames of an earlier render that its manifest lists in ``out`` go (a shorter path must not leave those of
+    a longer one) and ``names`` join the manifest before they are written; elsewhere (or in a run dir written before
+    manifests), the files of ``out`` named as this command names frames (``frame_<5 digits>.png``). Nothing else in
+    ``out`` is touched: a user's ``frame_final_edit.png`` or ``my_cut.mp4`` stays, and one of ``names`` that exists and
+    is not b3dgs's (unlisted in a run dir; elsewhere any video, since no record says whose it is) is refused before
+    anything goes. Nothing is written into a run's ``checkpoints/``."""
+    from b3dgs.rundir import (FRAME_NAME, holds_run, manifest_lock, read_manifest, record_written,
+                              refuse_in_checkpoints, remove_listed, remove_recorded, run_files)
 
-    base, q = run_dir.resolve(), out.resolve()
-    if q.is_relative_to(base) and read_manifest(run_dir) is not None:
-        folder = q.relative_to(base).as_posix()
+    refuse_in_checkpoints(out, "b3dgs-render")
+    q = out.resolve()
+    owner = next((d for d in (q, *q.parents) if holds_run(d)), None)
+    if owner is not None and read_manifest(owner, fix=_FIX_OUT) is not None:
+        folder = q.relative_to(owner).as_posix()
         folder = "" if folder == "." else folder
-        with manifest_lock(run_dir, "b3dgs-render"):
-            old = [f for f in run_files(run_dir)
-                   if f.rpartition("/")[0] == folder and FRAME_NAME.fullmatch(f.rpartition("/")[2])]
-            remove_recorded(run_dir, old)
-            record_written(run_dir, [f"{folder}/{n}".lstrip("/") for n in names])
+        with manifest_lock(owner, "b3dgs-render"):
+            listed = set(run_files(owner))
+            _refuse_foreign(out, [n for n in names if f"{folder}/{n}".lstrip("/") not in listed])
+            old = [f for f in listed if f.rpartition("/")[0] == folder and FRAME_NAME.fullmatch(f.rpartition("/")[2])]
+            remove_recorded(owner, old)
+            record_written(owner, [f"{folder}/{n}".lstrip("/") for n in names])
             out.mkdir(parents=True, exist_ok=True)
             yield
         return
+    frames = [p.name for p in out.glob("frame_*.png") if FRAME_NAME.fullmatch(p.name)] if out.is_dir() else []
+    # no record says whose a video is (in a run written before manifests: the names its outputs had)
+    theirs = set(run_files(owner)) if owner is not None else set()
+    rel = "." if owner is None else q.relative_to(owner).as_posix()
+    _refuse_foreign(out, [n for n in names if not FRAME_NAME.fullmatch(n)
+                          and (n if rel == "." else f"{rel}/{n}") not in theirs])
     out.mkdir(parents=True, exist_ok=True)
-    remove_listed(out, [p.name for p in out.glob("frame_*.png") if FRAME_NAME.fullmatch(p.name)])
+    remove_listed(out, frames)
     yield
+
+
+_FIX_OUT = "pass out=DIR to write the frames into another folder"
+
+
+def _refuse_foreign(out: Path, names: Sequence[str]) -> None:
+    """Refuse the files ``names`` of ``out`` that exist (b3dgs did not write them)."""
+    there = [n for n in names if (out / n).exists() or (out / n).is_symlink()]
+    if there:
+        raise B3dgsError(f"out={out} holds {', '.join(there[:3])}, which b3dgs did not write and b3dgs-render would "
+                         "replace", _FIX_OUT + " (or video=false)" if all(n.endswith(".mp4") for n in there) else _FIX_OUT)
 
 
 def render(cfg: DictConfig) -> dict:
@@ -304,15 +326,16 @@ def render(cfg: DictConfig) -> dict:
     path = str(cfg.path)
     label = Path(path).stem if path.endswith(".json") else path  # the folder and video name of a path file
     out = Path(str(cfg.out)) if cfg.get("out") else run.path / "render" / label
-    if out.resolve().is_relative_to(run.path.resolve()):  # the frames join the run's manifest: check it first
-        from b3dgs.rundir import read_manifest
+    from b3dgs.rundir import read_manifest, refuse_in_checkpoints
 
-        read_manifest(run.path, fix="pass out=DIR to write the frames into another folder")
+    refuse_in_checkpoints(out, "b3dgs-render")
+    if out.resolve().is_relative_to(run.path.resolve()):  # the frames join the run's manifest: check it first
+        read_manifest(run.path, fix=_FIX_OUT)
     cams = [c.fit(max_side, upscale=True, min_side=8) for c in camera_path(run.scene, path, cfg.get("frames"))]
     frames, top = render_path(run, cams, cfg.get("panel"), panel_max, int(cfg.samples), cfg.get("count_scale"))
     with_video = bool(cfg.get("video", True)) and len(frames) > 1
     names = [f"frame_{i:05d}.png" for i in range(len(frames))] + ([f"{label}.mp4"] if with_video else [])
-    with _claim(run.path, out, names):
+    with _claim(out, names):
         pngs = [save_png(out / n, f) for n, f in zip(names[:len(frames)], frames)]
         video = write_video(out / f"{label}.mp4", frames, fps) if with_video else None
     written = {"frames": [str(p) for p in pngs], "video": None if video is None else str(video), "panel_max": top}

@@ -281,12 +281,16 @@ def _job_logs(run_dir: Path) -> list[str]:
     return out
 
 
-def _write_manifest(run_dir: Path, files: Iterable[str], token: Optional[str], created: Optional[str]) -> None:
+def _write_manifest(run_dir: Path, files: Iterable[str], token: Optional[str], created: Optional[str],
+                    writer: Optional[str] = None) -> None:
+    """The manifest of ``run_dir``; ``writer`` marks a folder that one command wrote whole (b3dgs-export's model
+    folder), not a run."""
     from b3dgs.io import write_json
 
     write_json(Path(run_dir) / MANIFEST_NAME, {
         "b3dgs_run": MANIFEST_FORMAT, "run_id": token or uuid.uuid4().hex,
-        "created": created or time.strftime("%Y-%m-%dT%H:%M:%S%z"), "files": list(dict.fromkeys(map(str, files)))})
+        "created": created or time.strftime("%Y-%m-%dT%H:%M:%S%z"), "files": list(dict.fromkeys(map(str, files))),
+        **({"writer": writer} if writer else {})})
 
 
 def write_manifest(run_dir: Path) -> None:
@@ -320,7 +324,7 @@ def record_written(folder: Path, names: Iterable[str], forget: Iterable[str] = (
     have, gone = _listed(folder, m), set(map(str, forget))
     files = [f for f in dict.fromkeys([*have, *_check_names(names)]) if f not in gone]
     if files != have or m.get("b3dgs_run") != MANIFEST_FORMAT:
-        _write_manifest(folder, files, manifest_token(m), m.get("created"))
+        _write_manifest(folder, files, manifest_token(m), m.get("created"), m.get("writer"))
 
 
 @contextmanager
@@ -409,6 +413,53 @@ def remove_run_files(run_dir: Path, keep: Iterable[str] = ()) -> list[str]:
     gone = remove_listed(run_dir, [f for f in listed if f not in kept])
     _write_manifest(run_dir, [*kept, *TRAIN_FILES, *_job_logs(run_dir)], None, None)
     return gone
+
+
+def holds_run(folder: Path) -> bool:
+    """Whether ``folder`` is a b3dgs run dir (a manifest, or a run written before manifests)."""
+    folder = Path(folder)
+    return (folder / MANIFEST_NAME).exists() or is_legacy_run(folder)
+
+
+def owning_run_dir(path: Path) -> Optional[Path]:
+    """The nearest folder above ``path`` (resolved) that holds a b3dgs run (:func:`holds_run`), else ``None``."""
+    for d in Path(path).resolve().parents:
+        if holds_run(d):
+            return d
+    return None
+
+
+def refuse_in_checkpoints(path: Path, prog: str) -> None:
+    """Refuse ``path`` if it is, or lies inside, a run's ``checkpoints/`` folder: b3dgs writes nothing there but
+    the training's own checkpoints (an export there would replace the run's only ``last.ckpt``)."""
+    p = Path(path).resolve()
+    for d in (p, *p.parents):
+        if d.name == "checkpoints" and holds_run(d.parent):
+            raise B3dgsError(f"out={path} lies in the checkpoints/ folder of the run {d.parent}, where only its "
+                             f"training writes", f"pass out= a path outside {d}")
+
+
+def check_replace(path: Path, prog: str, overwrite: bool = False, fix: Optional[str] = None) -> Optional[Path]:
+    """Whether ``prog`` may write the file ``path``; returns the run dir whose manifest is to list it (or ``None``).
+
+    Refused, in one line: a path in a run's ``checkpoints/`` (:func:`refuse_in_checkpoints`) or one of a training's
+    own files (:data:`TRAIN_FILES`), whatever ``overwrite``; an existing file that no run's manifest lists (a user's),
+    unless ``overwrite`` (``fix`` says how to pass it)."""
+    path = Path(path)
+    refuse_in_checkpoints(path, prog)
+    owner = owning_run_dir(path)
+    rel = None
+    if owner is not None:
+        read_manifest(owner, fix="pass out=PATH outside the run dir")
+        rel = path.resolve().relative_to(owner).as_posix()
+        if rel in TRAIN_FILES or rel in (MANIFEST_NAME, LOCK_NAME):
+            raise B3dgsError(f"out={path} is the run's own {rel}, which its training wrote",
+                             "pass out= another path")
+    if (path.exists() or path.is_symlink()) and not overwrite:
+        if owner is None or rel not in run_files(owner):
+            raise B3dgsError(f"out={path} exists and b3dgs did not write it ({prog} replaces only files a run's "
+                             "manifest lists)", fix or "pass another out=")
+    return owner
 
 
 def run_identity(folder: Path) -> dict:

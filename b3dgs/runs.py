@@ -89,9 +89,12 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
                              f"finish the run again with `b3dgs-train ... hydra.run.dir={run_dir} resume=auto`") from None
     if checkpoint is None:  # the run's own last.ckpt must be the model its metrics.json describes
         check_run_checkpoint(run_dir, ck, metrics)
+    # the commands that load a run take no training options: the fix names none (no model=, seed=)
     module.check_checkpoint_identity(
-        ck, f"{ckpt_path}", f"keep each run dir's config.yaml and checkpoints from one b3dgs-train run "
-        f"(train it again with `b3dgs-train ... hydra.run.dir={run_dir} overwrite=true`)")
+        ck, f"{ckpt_path}", f"pass checkpoint= one of {run_dir}/checkpoints/*.ckpt, or run= the run dir that "
+        f"checkpoint came from" if checkpoint else f"keep each run dir's config.yaml and checkpoints from one "
+        f"b3dgs-train run (train it again with `b3dgs-train ... hydra.run.dir={run_dir} overwrite=true`)",
+        suggest=False)
     return LoadedRun(run_dir, cfg, load_checkpoint(module, ck), scene, metrics)
 
 

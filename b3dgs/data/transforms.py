@@ -100,10 +100,17 @@ def _resolve_image(root: Path, file_path: str) -> Path:
     if p.is_file():
         return p
     if p.suffix.lower() not in _EXTS:
-        for ext in _EXTS:
-            q = p.with_name(p.name + ext)
-            if q.is_file():
-                return q
+        found: list[Path] = []
+        for q in (p.with_name(p.name + ext) for ext in _EXTS):
+            if q.is_file() and not any(os.path.samefile(q, f) for f in found):  # .png and .PNG on a case-blind disk
+                found.append(q)
+        if len(found) > 1:  # which one was meant cannot be told: never load one of them silently
+            raise B3dgsError(f"file_path {file_path!r} has no extension and two files have that name: "
+                             f"{found[0].name} and {found[1].name}",
+                             f"write file_path with its extension ({Path(file_path).name}{found[0].suffix} or "
+                             f"{Path(file_path).name}{found[1].suffix}) in the transforms file, or remove the other file")
+        if found:
+            return found[0]
     raise B3dgsError(f"the image of file_path {file_path!r} does not exist (looked for {p} with and without an "
                      "extension)", "restore the image, or correct file_path in the transforms file")
 
@@ -163,7 +170,8 @@ def read_transforms(
     path = Path(path)
     files = _resolve_json(path)
     frames: list[FrameSpec] = []
-    distortion: dict[str, float] = {}
+    distortion: dict[str, float] = {}  # max |coefficient| ignored on frames used as pinhole (not undistorted)
+    dropped: dict[str, float] = {}  # ... and on undistorted frames whose lens model lacks it (OPENCV_FISHEYE's p1, p2)
     points = colors = None
     for jf in files:
         try:
@@ -202,8 +210,9 @@ def read_transforms(
                     lens = Distortion(lens_model, tuple(vals.get(k, 0.0) for k in MODELS[lens_model]),
                                       where=f"{jf.name} frame {fr['file_path']!r}")
                 vals = {k: v for k, v in vals.items() if k not in MODELS[lens_model]}
-            for k, v in vals.items():
-                distortion[k] = max(distortion.get(k, 0.0), abs(v))
+            for k, v in vals.items():  # undistorted frames: the lens model has no such coefficient
+                into = dropped if lens is not None else distortion
+                into[k] = max(into.get(k, 0.0), abs(v))
             if "w" in g and "h" in g:
                 w, h = int(round(float(g["w"]))), int(round(float(g["h"])))
             else:
@@ -251,6 +260,10 @@ def read_transforms(
                                  "restore that file, or drop ply_file_path from the transforms file (random points "
                                  "are used then)")
             points, colors = _read_ply(ply)
+    if dropped:  # the images were undistorted; only these coefficients, which their model lacks, were not applied
+        log.warning("transforms.json: frames undistorted with their %s lens (k1..k4); %s, which that model does not "
+                    "have, ignored", ", ".join(sorted({f.distortion.model for f in frames if f.distortion})),
+                    ", ".join(f"{k}={v:.3g}" for k, v in dropped.items()))
     frames.sort(key=lambda f: f.name)
     return frames, points, colors, distortion
 
