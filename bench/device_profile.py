@@ -135,6 +135,42 @@ def _load(path: Path):
     return json.loads(path.read_text()) if path.exists() else None
 
 
+def parity_ratios(rows: list[dict]) -> list[dict]:
+    """NIW's and DPMM's training time against standard's of the same scene and seed: one row per scene and model
+    (seed means; ``seeds``: how many pairs), then the mean over scenes against the targets (NIW <= 1.05x, DPMM
+    <= 1.15x). ``rows``: runs with scene, model, seed, train_time_s, psnr and optionally block_share."""
+    ratios = []
+    for scene in sorted({r["scene"] for r in rows}):
+        for model in ("niw", "dpmm"):
+            pairs = [(r, next((b for b in rows if b["scene"] == scene and b["seed"] == r["seed"]
+                               and b["model"] == "standard"), None))
+                     for r in rows if r["scene"] == scene and r["model"] == model]
+            pairs = [(r, b) for r, b in pairs if b is not None]
+            if not pairs:
+                continue
+            t = statistics.mean(r["train_time_s"] for r, _ in pairs)
+            tb = statistics.mean(b["train_time_s"] for _, b in pairs)
+            share = statistics.mean((r.get("block_share") or 0.0) for r, _ in pairs)
+            ratios.append({"scene": scene, "model": model, "seeds": len(pairs), "standard_s": round(tb, 2),
+                           "model_s": round(t, 2), "x_standard": round(t / tb, 4),
+                           "excess_pct": round(100 * (t / tb - 1), 2), "in_run_block_share_pct": round(100 * share, 2),
+                           "psnr_model": round(statistics.mean(r["psnr"] for r, _ in pairs), 3),
+                           "psnr_standard": round(statistics.mean(b["psnr"] for _, b in pairs), 3)})
+    for model, limit in (("niw", 1.05), ("dpmm", 1.15)):
+        rs = [r for r in ratios if r["model"] == model]
+        if rs:
+            x = statistics.mean(r["x_standard"] for r in rs)
+            ratios.append({"scene": "mean over scenes", "model": model, "seeds": sum(r["seeds"] for r in rs),
+                           "x_standard": round(x, 4), "excess_pct": round(100 * (x - 1), 2),
+                           "target": f"<= {limit}", "met": x <= limit})
+    return ratios
+
+
+#: the parity table's columns (bench/results/device_<card>.md)
+PARITY_COLUMNS = ["scene", "model", "seeds", "standard_s", "model_s", "x_standard", "excess_pct",
+                  "in_run_block_share_pct", "psnr_standard", "psnr_model", "target", "met"]
+
+
 def report(args) -> None:
     res = Path(args.results)
     train = _load(res / "train_cuda.json")
@@ -148,34 +184,10 @@ def report(args) -> None:
         lines += [f"Machine: {m.get('cuda_device')}, torch {m.get('torch')}, Python {m.get('python')}. "
                   "Command: `bash scripts/device_check.sh profile` (the device tool, `carry: [.device]`).", ""]
         rows = train["rows"]
-        ratios = []
-        for scene in sorted({r["scene"] for r in rows}):
-            for model in ("niw", "dpmm"):
-                pairs = [(r, next((b for b in rows if b["scene"] == scene and b["seed"] == r["seed"]
-                                   and b["model"] == "standard"), None))
-                         for r in rows if r["scene"] == scene and r["model"] == model]
-                pairs = [(r, b) for r, b in pairs if b is not None]
-                if not pairs:
-                    continue
-                t = statistics.mean(r["train_time_s"] for r, _ in pairs)
-                tb = statistics.mean(b["train_time_s"] for _, b in pairs)
-                share = statistics.mean((r.get("block_share") or 0.0) for r, _ in pairs)
-                ratios.append({"scene": scene, "model": model, "seeds": len(pairs), "standard_s": round(tb, 2),
-                               "model_s": round(t, 2), "x_standard": round(t / tb, 4),
-                               "excess_pct": round(100 * (t / tb - 1), 2), "in_run_block_share_pct": round(100 * share, 2),
-                               "psnr_model": round(statistics.mean(r["psnr"] for r, _ in pairs), 3),
-                               "psnr_standard": round(statistics.mean(b["psnr"] for _, b in pairs), 3)})
-        for model, limit in (("niw", 1.05), ("dpmm", 1.15)):
-            rs = [r for r in ratios if r["model"] == model]
-            if rs:
-                x = statistics.mean(r["x_standard"] for r in rs)
-                ratios.append({"scene": "mean over scenes", "model": model, "seeds": sum(r["seeds"] for r in rs),
-                               "x_standard": round(x, 4), "excess_pct": round(100 * (x - 1), 2),
-                               "target": f"<= {limit}", "met": x <= limit})
+        ratios = parity_ratios(rows)
         payload["ratios"] = ratios
         lines += ["## Training time against standard (quick protocol, gsplat; seed means)", "",
-                  table(ratios, ["scene", "model", "seeds", "standard_s", "model_s", "x_standard", "excess_pct",
-                                 "in_run_block_share_pct", "psnr_standard", "psnr_model", "target", "met"]), "",
+                  table(ratios, PARITY_COLUMNS), "",
                   "`in_run_block_share_pct`: the posterior blocks' hooks' share of the training time by the in-run "
                   "timer (host wall clock around each hook, `metrics.json` `block_time_s`); `excess_pct`: the "
                   "wall-clock excess over standard in the same run set.", "", "### Every run", "",
