@@ -115,8 +115,7 @@ class AcquisitionPolicy:
 
 
 def composed(policy: AcquisitionPolicy, field: str, group: str):
-    """The object in ``policy.<field>``; a keyed ``conf/<group>`` file composed into it (``defaults: [/<group>@<field>:
-    <name>]``) gives a one-entry mapping, unwrapped here."""
+    """``policy.<field>``, unwrapped when a keyed ``conf/<group>`` file composed into it gave a one-entry mapping."""
     r = getattr(policy, field)
     if isinstance(r, Mapping):
         if len(r) != 1:
@@ -280,10 +279,8 @@ class ScoringContext:
 
     # ---------------------------------------------------------------- uncertainty regimes
     def fit_posterior(self, block, member: int = 0) -> dict:
-        """The state of posterior ``block`` (a :class:`b3dgs.plugin.PosteriorBlock`, e.g. one a policy composes from
-        ``conf/posterior``) on the phase-1 model, from one view pass over the training views at the scoring resolution
-        (:meth:`b3dgs.module.SplatModule.prepare_posterior`; cached per block object). The block's own methods answer
-        from it; a policy keeps any conditioned state (``condition_on_view`` returns new ones) to itself."""
+        """The state of posterior ``block`` (e.g. one a policy composes from ``conf/posterior``) on the phase-1 model,
+        from one view pass over the training views at the scoring resolution (cached per block object)."""
         key = ("posterior", id(block), member)
         if key not in self._regimes:
             m = self._models[member]

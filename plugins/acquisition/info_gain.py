@@ -1,11 +1,8 @@
 """info_gain: what a candidate view would teach the directional (SH) colour posterior, in closed form (beyond the paper).
 
-The SH posterior of Gaussian k (``plugins/posterior/sh.py``, the block this policy composes from ``conf/posterior/sh``
-and fits with :meth:`b3dgs.acquisition.ScoringContext.fit_posterior`; its τ is ``posterior.sh.prior_precision``) has
-precision Λ_k = τI + Σ_{v ∈ train} s_kv y_kv y_kvᵀ, with
-s_kv = Σ_p w_kp² / σ̂² (view v's squared compositing weights in units of the pixel noise) and y_kv = y(d_kv), the real
-SH basis at the direction from v's centre to μ_k. A view c adds J_kc = s_kc y_kc y_kcᵀ, rank one per Gaussian; with
-P_k = Λ_k⁻¹, u = P_k y_kc and q = y_kcᵀ u (matrix determinant lemma, Sherman–Morrison):
+The SH posterior block (``plugins/posterior/sh.py``, composed from ``conf/posterior/sh``, fitted on the training views
+by :meth:`b3dgs.acquisition.ScoringContext.fit_posterior`) gives P_k = Λ_k⁻¹ and what a view c adds, J_kc = s_kc y_kc
+y_kcᵀ, rank one per Gaussian (s = Σ_p w² / σ̂², y the SH basis toward c); with u = P_k y_kc and q = y_kcᵀ u:
 
     params      ½ log det(I + P_k J_kc) = ½ log(1 + s_kc q)                  (BALD; FisherRF's quantity)
     predictive  tr((P_k − (Λ_k + J_kc)⁻¹) G_k) = s_kc uᵀ G_k u / (1 + s_kc q),  G_k = Σ_{t ∈ targets} s_kt y_kt y_ktᵀ
@@ -32,21 +29,11 @@ tr((P^μ_k − (Λ^μ_k + J^μ_kc)⁻¹) G^μ_k), the drop of the targets' rende
 order (delta method: Var[C_pc] ≈ ∇Cᵀ P^μ ∇C), params adds ½ log det(I + P^μ_k J^μ_kc). Approximations: the
 posterior is block-diagonal (the colour-centre cross terms of the joint Fisher are dropped, and so are the Gaussians'
 cross terms, as for the colour), and linear in the centre, which holds while a centre's std stays within about a
-Gaussian's size. τ_μ = 1 / (r · extent)² with ``geometry_prior_scale`` r = 0.1: at r = 0.01 (a trained Gaussian's
-size, where the linearisation holds for every centre) the term is about 1.5 % of the predictive score on the tests'
-half-ring scene and changed 2 of 16 ``greedy_conditioned`` picks on dtu_scan65 seed 0, i.e. it is info_gain again;
-at r = 0.1 it weighs about as much as the colour term, and what it adds is led by the centres the training views
-constrain least (their prior variance, where the first-order term is only a ranking, not a variance): coverage of
-the geometry in the colour term's units, the part of COVER's signal the colour posterior lacks.
-``geometry_probes`` = 4 (NIW's ``fisher_probes``): a candidate's J is one view's estimate (no averaging over views; relative error √(2/4) per entry, averaged out over the thousands of Gaussians
-a score sums), and 4 probes keep an F of rank 3; the cost is probes × views backward passes per scoring. Measured (one
-thread on a shared 2-core CPU, the study's side 64, seed-0 phase-1 models, two repeats): dtu_scan65 (22k Gaussians, 16
-training views, 26 candidates) top-k 1.0 → 3.7 s, greedy_conditioned 3.4 → 8.6–8.9 s; fox (50k, 16 + 42) top-k
-2.4–2.5 → 8.7–9.4 s, greedy_conditioned 10.3–11.1 → 23.0–24.3 s (a round-2 training takes 10+ minutes). 3×3
-inverses and log-determinants are batched Cholesky (``safe_cholesky``) in float64. It did not earn its place
-(``bench/results/active_view_geo_ig.md``, seed 0 on the seven scenes, each paired with the same row without it):
-+0.08 dB over ``info_gain`` (3 of 7 scenes, p 0.41), −0.01 dB over ``info_gain+greedy_conditioned`` (p 0.70), and both
-lose to farthest; so ``geometry`` stays false by default.
+Gaussian's size. τ_μ = 1 / (r · extent)² with ``geometry_prior_scale`` r = 0.1 (at 0.01 it barely moves the picks;
+at 0.1 it weighs about as much as the colour term, led by the centres the training views constrain least: coverage of
+the geometry in the colour term's units). ``geometry_probes`` = 4 (NIW's ``fisher_probes``; relative error √(2/4) per
+entry, averaged over the Gaussians a score sums); the cost is probes × views backward passes per scoring. Its cost and
+its verdict (it stays off by default) are in ``docs/studies.md`` (``bench/results/active_view_geo_ig.md``).
 
 ``condition`` (``batch=greedy_conditioned``) adds the picked view's J exactly (rank-one downdate of P; Λ^μ += J^μ and
 its 3×3 Cholesky redone for the Gaussians it moves), so a re-score equals recomputing the posterior with the view among
@@ -83,8 +70,10 @@ class _GeoView:
     J: Tensor  # (n, 3, 3) float64
 
 
-def _is_number(x) -> bool:
-    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x)
+def _inverse(lam: Tensor) -> tuple[Tensor, Tensor]:
+    """(Λ⁻¹, log det Λ) of a batch of 3×3 precisions, by Cholesky."""
+    L = safe_cholesky(lam)
+    return torch.cholesky_inverse(L), 2 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
 
 
 @dataclass
@@ -124,7 +113,7 @@ class InfoGainPolicy(AcquisitionPolicy):
             raise B3dgsError(f"acquisition info_gain: geometry_probes={k!r} must be an integer >= 1",
                              "pass acquisition.geometry_probes=4")
         r = self.geometry_prior_scale
-        if not (_is_number(r) and r > 0):
+        if isinstance(r, bool) or not isinstance(r, (int, float)) or not (math.isfinite(r) and r > 0):
             raise B3dgsError(f"acquisition info_gain: geometry_prior_scale={r!r} must be a finite number > 0",
                              "pass acquisition.geometry_prior_scale=0.1 (the centres' prior std / the scene extent)")
 
@@ -177,9 +166,8 @@ class InfoGainPolicy(AcquisitionPolicy):
             G = torch.zeros(N, 3, 3, dtype=torch.float64, device=device)
             for v in list(views.values()) + (train if self.targets == "pool+train" else []):
                 G.index_add_(0, v.idx, v.J)
-        L = safe_cholesky(lam)
-        return {"lam": lam, "P": torch.cholesky_inverse(L), "logdet": 2 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1),
-                "G": G, "views": views, "saved": None, "tau": tau}
+        P, logdet = _inverse(lam)
+        return {"lam": lam, "P": P, "logdet": logdet, "G": G, "views": views, "saved": None, "tau": tau}
 
     def _geo_gain(self, geo: dict, v: _GeoView) -> float:
         """Predictive tr((P^μ − (Λ^μ + J^μ)⁻¹) G^μ) or params ½ log det(I + P^μ J^μ) over the view's Gaussians."""
@@ -217,7 +205,7 @@ class InfoGainPolicy(AcquisitionPolicy):
         s2 = float(post["sigma2"])
         geo = self._geometry(ctx, candidates, ctx.train, s2, means.shape[0], means.device) if self.geometry else None
         self._state = {"key": key, "post": post, "fitted": post, "G": G, "views": views, "means": means,
-                       "deg": blk.degree(post), "sigma2": s2, "first": None, "geo": geo,
+                       "deg": ctx.sh_degree(), "sigma2": s2, "first": None, "geo": geo,
                        "setup_s": time.perf_counter() - t0}
         return self._state
 
@@ -274,10 +262,7 @@ class InfoGainPolicy(AcquisitionPolicy):
                 if geo["saved"] is None:
                     geo["saved"] = {k: geo[k].clone() for k in ("lam", "P", "logdet")}
                 lam = geo["lam"][g.idx] + g.J
-                L = safe_cholesky(lam)
-                geo["lam"][g.idx] = lam
-                geo["P"][g.idx] = torch.cholesky_inverse(L)
-                geo["logdet"][g.idx] = 2 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+                geo["lam"][g.idx], (geo["P"][g.idx], geo["logdet"][g.idx]) = lam, _inverse(lam)
         blk, post = self.posterior, st["post"]
         v = st["views"].get(camera.name) or blk.view_information(
             state=post, camera=camera, render=ctx.render(camera, return_weights=True), means=st["means"])

@@ -346,7 +346,7 @@ def sample_niw(
 #: the counts ``posterior.niw.count`` offers (names kept stable for scripts outside the project)
 COUNTS = ("paper", "weight", "fisher", "fisher3")
 #: floor on the plug-in residual variance σ̂² that turns Fisher information into precision
-SIGMA2_FLOOR = 1e-8
+COUNT_SIGMA2_FLOOR = 1e-8
 
 
 def fisher_count(fisher_trace: Tensor, S0: Tensor, kappa0: float, nu0: float) -> Tensor:
@@ -589,9 +589,9 @@ class NIWBlock(PosteriorBlock):
                                  fix="this is a bug in b3dgs (the NIW block's own Fisher accumulator): rerun with "
                                      "b3dgs.debug=true and report the traceback")
             s2 = float(state["mse"] / state["mse_n"]) if float(state["mse_n"]) > 0 else None  # plug-in σ̂²
-            low = s2 is None or not s2 >= SIGMA2_FLOOR
+            low = s2 is None or not s2 >= COUNT_SIGMA2_FLOOR
             if guard("niw.sigma2_floor", int(low)):
-                s2 = SIGMA2_FLOOR if s2 is None or not math.isfinite(s2) else max(s2, SIGMA2_FLOOR)
+                s2 = COUNT_SIGMA2_FLOOR if s2 is None or not math.isfinite(s2) else max(s2, COUNT_SIGMA2_FLOOR)
             P = _sym(F) / float(s2)
             count = fisher_count(torch.diagonal(P, dim1=-2, dim2=-1).sum(-1), state["S0"], self.kappa0, self.nu0)
             if self.count == "fisher3":
@@ -684,13 +684,13 @@ class NIWBlock(PosteriorBlock):
             return None
 
     @torch.no_grad()
-    def condition_on_view(self, *, splats, state, weight_sums):
+    def condition_on_view(self, *, splats, state, weight_sums=None, render=None, camera=None):
         """The posterior after one more view's pseudo-observations (acquisition: greedy conditioned batches): n_k = c·w_k
         observations at the current centre (x̄_k = μ_k, C_k = 0), the closed-form update of the paper's NIW
         appendix applied to the current posterior. The summaries already sit at μ_k with C = 0, and two such
         batches at one point combine into one of summed count (conjugacy), so this is N̂ ← N̂ + w on a copy of
         the state, refreshed."""
-        if self.count.startswith("fisher"):
+        if self.count.startswith("fisher") or weight_sums is None:
             return None  # a view's Fisher needs its render's per-pixel gradients, not its weight sums
         st = dict(state)
         st["N"] = state["N"] + weight_sums.to(state["N"].dtype).to(state["N"].device).clamp_min(0.0)

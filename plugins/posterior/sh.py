@@ -21,10 +21,8 @@ pass over the training views (:meth:`b3dgs.module.SplatModule.prepare_posterior`
 and can be added to any trained run at evaluation (``uq=[native_sh]``) or fitted by a policy at the scoring resolution
 (:meth:`b3dgs.acquisition.ScoringContext.fit_posterior`; ``acquisition=info_gain``).
 
-What a view teaches it is public, for policies and tools: :meth:`SHPosteriorBlock.view_information` (a view's
-rank-one information s y yᵀ per Gaussian, from its point-estimate render), :meth:`~SHPosteriorBlock.precision` (Λ of
-a set of views), :meth:`~SHPosteriorBlock.covariance` (Λ⁻¹) and :meth:`~SHPosteriorBlock.condition` (the state after
-one more view, exact) or the block hook ``condition_on_view`` (the same, from a render and a camera).
+Public for policies and tools: ``view_information`` (a view's rank-one information per Gaussian), ``precision`` (Λ),
+``covariance`` (Λ⁻¹) and ``condition`` (the state after one more view, exact; the hook ``condition_on_view``).
 """
 from __future__ import annotations
 
@@ -50,9 +48,8 @@ SIGMA2_FLOOR = 1e-6
 
 @dataclass
 class SHView:
-    """One view's information per Gaussian it sees (:meth:`SHPosteriorBlock.view_information`): rows ``idx``,
-    s = Σ_p w² / σ̂² and y, the SH basis at the direction from the view's centre to the Gaussian; the information is
-    s y yᵀ, rank one per Gaussian, for each colour channel."""
+    """One view's information s y yᵀ per Gaussian it sees, for each colour channel: rows ``idx``, s = Σ_p w² / σ̂² and
+    y, the SH basis at the direction from the view's centre to the Gaussian."""
 
     idx: Tensor  # (n,) long
     s: Tensor  # (n,) float64
@@ -79,10 +76,9 @@ def seen_weights(render) -> tuple[Tensor, Tensor]:
 
 
 class SHInformation(ViewAccumulator):
-    """The pass's views for the SH posterior (``sh_views``: the SH degree and, per view, its centre, the rows it sees
-    and their Σ_p w_kp², kept per view so Λ is assembled as :meth:`SHPosteriorBlock.precision` assembles it);
-    ``sq_err`` / ``n_values``: the summed squared residual of the renders against the views' images and the number of
-    values summed (σ̂² of the module docstring)."""
+    """``sh_views``: the SH degree and per view its centre, rows seen and their Σ_p w_kp² (Λ is assembled per view, by
+    :meth:`SHPosteriorBlock.precision`); ``sq_err`` / ``n_values``: the renders' summed squared residual against the
+    views' images and the number of values summed (σ̂² of the module docstring)."""
 
     key = "sh_information"
 
@@ -131,11 +127,6 @@ class SHPosteriorBlock(PosteriorBlock):
 
     # ---------------------------------------------------------------- what a view teaches (public: policies, tools)
     @staticmethod
-    def degree(state) -> int:
-        """The SH degree of the computed posterior."""
-        return int(round(math.sqrt(state["lam"].shape[-1]))) - 1
-
-    @staticmethod
     def _view(center: Tensor, idx: Tensor, wsq: Tensor, means: Tensor, degree: int, sigma2: float) -> SHView:
         d = torch.nn.functional.normalize(means[idx] - center.to(means), dim=-1)
         return SHView(idx, wsq / sigma2, sh_basis(degree, d))
@@ -144,8 +135,8 @@ class SHPosteriorBlock(PosteriorBlock):
         """What the view ``camera`` would teach the posterior ``state``: s = Σ_p w² / σ̂² from ``render`` (its
         point-estimate render with weights, at the resolution of the pass that made ``state``) and y toward the
         camera's centre from ``means`` (N, 3). Needs no image of the view."""
-        return self._view(camera.center, *seen_weights(render), means.detach().double(), self.degree(state),
-                          float(state["sigma2"]))
+        deg = int(round(math.sqrt(state["lam"].shape[-1]))) - 1
+        return self._view(camera.center, *seen_weights(render), means.detach().double(), deg, float(state["sigma2"]))
 
     def precision(self, views: Iterable[SHView], *, n: int, degree: int, device) -> Tensor:
         """(n, B, B) Λ = τI + Σ_views s y yᵀ, float64."""
@@ -177,8 +168,7 @@ class SHPosteriorBlock(PosteriorBlock):
         return new
 
     def condition_on_view(self, *, splats, state, weight_sums=None, render=None, camera=None):
-        """:meth:`condition` on the view of ``render`` and ``camera``; None when only ``weight_sums`` come (Σ_p w
-        carries neither Σ_p w² nor the direction)."""
+        """:meth:`condition` on the view of ``render`` and ``camera``; None with ``weight_sums`` alone (no direction)."""
         if render is None or camera is None:
             return None
         return self.condition(state, self.view_information(state=state, camera=camera, render=render,
@@ -190,9 +180,8 @@ class SHPosteriorBlock(PosteriorBlock):
         n = splats["means"].shape[0]
         views = sums.get("sh_views")
         if views is None:
-            raise B3dgsError("posterior.sh: the view pass gave no sh_views",
-                             fix="this is a bug in b3dgs (the SH block's own accumulator): rerun with "
-                                 "b3dgs.debug=true and report the traceback")
+            raise B3dgsError("posterior.sh: the view pass gave no sh_views", "this is a bug in b3dgs: rerun with "
+                             "b3dgs.debug=true and report the traceback")
         nv = float(sums.get("n_values", 0))
         s2 = float(sums["sq_err"]) / nv if nv > 0 else float("nan")
         if guard("sh.sigma2_floor", int(not s2 >= SIGMA2_FLOOR)):
