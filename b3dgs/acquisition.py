@@ -39,7 +39,7 @@ from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.neighbours import nearest_distances, nearest_other_distances
 from b3dgs.types import Camera, resize_image
 
-__all__ = ["AcquisitionPolicy", "BatchSelector", "RegimePolicy", "ScoringContext", "Selection", "diverse_picks",
+__all__ = ["AcquisitionPolicy", "BatchSelector", "RegimePolicy", "ScoringContext", "Selection", "composed", "diverse_picks",
            "epistemic_scores", "top_k"]
 
 
@@ -114,6 +114,17 @@ class AcquisitionPolicy:
         """Undo every :meth:`condition` (the selector calls it when its batch is done)."""
 
 
+def composed(policy: AcquisitionPolicy, field: str, group: str):
+    """``policy.<field>``, unwrapped when a keyed ``conf/<group>`` file composed into it gave a one-entry mapping."""
+    r = getattr(policy, field)
+    if isinstance(r, Mapping):
+        if len(r) != 1:
+            raise B3dgsError(f"{type(policy).__name__}: {field} holds {len(r)} entries ({', '.join(map(str, r))}), "
+                             "expected one", f"compose it with defaults: [/{group}@{field}: <name>]")
+        r = next(iter(r.values()))
+    return r
+
+
 @dataclass
 class RegimePolicy(AcquisitionPolicy):
     """A score policy that is a UQ regime plus a reduction: a candidate's score is the mean over its pixels of the
@@ -131,12 +142,7 @@ class RegimePolicy(AcquisitionPolicy):
     def uq(self):
         """The UQ regime this policy scores with (one instance for the policy's life: its fit is cached per
         scoring context)."""
-        r = self.regime
-        if isinstance(r, Mapping):
-            if len(r) != 1:
-                raise B3dgsError(f"{type(self).__name__}: regime holds {len(r)} entries ({', '.join(map(str, r))}), "
-                                 "expected one UQ regime", "compose it with defaults: [/uq@regime: <name>]")
-            r = next(iter(r.values()))
+        r = composed(self, "regime", "uq")
         if not (callable(getattr(r, "fit", None)) and callable(getattr(r, "predict", None))):
             raise B3dgsError(f"{type(self).__name__}: regime is {type(r).__name__}, not a UQ regime",
                              "compose it with defaults: [/uq@regime: <name>] (a conf/uq option)")
@@ -233,7 +239,7 @@ class ScoringContext:
         self.extent = float(extent)
         self.seed = int(seed)
         self.train = [self._small_train(c) for c in train]
-        self._regimes: dict[int, Any] = {}
+        self._regimes: dict[Any, Any] = {}  # fitted regimes and posterior block states
 
     # ---------------------------------------------------------------- cameras and renders
     @property
@@ -272,6 +278,17 @@ class ScoringContext:
             return m.render_camera(self.camera(camera), params=params, return_weights=return_weights)
 
     # ---------------------------------------------------------------- uncertainty regimes
+    def fit_posterior(self, block, member: int = 0) -> dict:
+        """The state of posterior ``block`` (e.g. one a policy composes from ``conf/posterior``) on the phase-1 model,
+        from one view pass over the training views at the scoring resolution (cached per block object)."""
+        key = ("posterior", id(block), member)
+        if key not in self._regimes:
+            m = self._models[member]
+            state = block.initialize_state(splats=m.splats, scene=None, info={})
+            m.prepare_posterior(self.train, blocks=[("policy", block, state)])
+            self._regimes[key] = state
+        return self._regimes[key]
+
     def fit_regime(self, regime, member: int = 0):
         """``regime`` (a :class:`b3dgs.uq.regime.UQRegime`) fitted on the phase-1 model and the training
         views at the scoring resolution (cached per regime object)."""

@@ -19,7 +19,7 @@ import torch
 from b3dgs.errors import B3dgsError
 
 __all__ = ["guard", "guard_counts", "guard_calls", "reset_guards", "LOG_EVERY", "float_dtype", "scalar_or_vector",
-           "on_device_path", "forced_device_path", "guard_deferred", "guard_where"]
+           "on_device_path", "forced_device_path", "guard_deferred", "guard_where", "safe_cholesky", "sym"]
 
 log = logging.getLogger(__name__)
 
@@ -169,3 +169,60 @@ def scalar_or_vector(name: str, x, K: int, device) -> torch.Tensor:
         raise B3dgsError(f"{name}: expected shape ({K},) or a scalar, got {tuple(t.shape)}",
                          fix=f"pass {name} as a scalar or as a ({K},) tensor with one value per Gaussian")
     return t
+
+
+def sym(A: torch.Tensor) -> torch.Tensor:
+    """The symmetric part ½(A + Aᵀ) of a batch of square matrices."""
+    return 0.5 * (A + A.transpose(-1, -2))
+
+
+#: Escalating diagonal jitter for safe_cholesky, relative to the mean |diagonal|.
+CHOLESKY_JITTERS = (1e-12, 1e-10, 1e-8, 1e-6, 1e-5, 1e-4, 1e-3)
+
+
+def safe_cholesky(A: torch.Tensor, jitters: Sequence[float] = CHOLESKY_JITTERS) -> torch.Tensor:
+    """Lower Cholesky factor of symmetric A (..., D, D), computed in float64, never NaN.
+
+    Failing matrices get diagonal jitter ``j * mean|diag|`` for j in ``jitters`` (escalating;
+    guard ``cholesky.jitter``); if all fail, eigenvalues are clipped (``cholesky.eig_fallback``);
+    non-finite matrices are replaced by the identity (``cholesky.nonfinite``).
+    """
+    if not isinstance(A, torch.Tensor) or A.ndim < 2 or A.shape[-1] != A.shape[-2]:
+        raise B3dgsError(f"A: expected (..., D, D), got {getattr(A, 'shape', type(A).__name__)}",
+                         fix="pass A as a float tensor of shape (..., D, D), a batch of square matrices")
+    dtype = float_dtype(A)
+    shape = A.shape
+    D = int(shape[-1])
+    A64 = sym(A.to(torch.float64).reshape(-1, D, D))
+    eye = torch.eye(D, dtype=torch.float64, device=A.device)
+    finite = torch.isfinite(A64).all(-1).all(-1)
+    if guard("cholesky.nonfinite", ~finite):
+        A64 = torch.where(finite[:, None, None], A64, eye.expand_as(A64))
+    scale = A64.diagonal(dim1=-2, dim2=-1).abs().mean(-1)
+    scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+    L, info = torch.linalg.cholesky_ex(A64)
+    failed = info != 0
+    n_failed = int(failed.sum())
+    if n_failed:
+        guard("cholesky.jitter", n_failed)
+        L = L.clone()
+        for j in jitters:
+            idx = failed.nonzero().squeeze(1)
+            Lj, infoj = torch.linalg.cholesky_ex(A64[idx] + (j * scale[idx])[:, None, None] * eye)
+            ok = infoj == 0
+            L[idx[ok]] = Lj[ok]
+            failed[idx[ok]] = False
+            if not bool(failed.any()):
+                break
+        if guard("cholesky.eig_fallback", failed):
+            idx = failed.nonzero().squeeze(1)
+            evals, evecs = torch.linalg.eigh(A64[idx])
+            floor = (jitters[-1] if len(jitters) else 1e-3) * scale[idx]
+            evals = torch.maximum(evals, floor[:, None])
+            Af = sym(evecs @ torch.diag_embed(evals) @ evecs.transpose(-1, -2))
+            Lf, infof = torch.linalg.cholesky_ex(Af)
+            # last resort: diagonal factor (always valid)
+            diag_L = torch.diag_embed(torch.sqrt(torch.maximum(Af.diagonal(dim1=-2, dim2=-1), floor[:, None])))
+            Lf = torch.where((infof == 0)[:, None, None], Lf, diag_L)
+            L[idx] = Lf
+    return L.reshape(shape).to(dtype)

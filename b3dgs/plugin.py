@@ -125,11 +125,14 @@ class PosteriorBlock(Plugin):
         """Return ``params`` with this block's attributes at their posterior mean."""
         return params
 
-    def condition_on_view(self, *, splats, state, weight_sums: Tensor) -> Optional[dict]:
+    def condition_on_view(self, *, splats, state, weight_sums: Optional[Tensor] = None, render=None,
+                          camera=None) -> Optional[dict]:
         """A new state: the posterior after the pseudo-observations of one more view, without its image
         (acquisition's greedy_conditioned batch). ``weight_sums`` (N,) is Σ_p w_kp of the view's point-estimate
-        render, in training-resolution pixels (the unit of the renderer-derived counts). ``state`` must not be
-        modified. None (default): this block's posterior does not change with such pseudo-observations."""
+        render, in training-resolution pixels (the unit of the renderer-derived counts); ``render`` and ``camera``,
+        when the caller passes them: that render at the resolution of the pass that made ``state`` (with weights)
+        and its camera, for a block that needs more than Σ_p w (the SH posterior: Σ_p w² and the direction).
+        ``state`` must not be modified. None (default): this block's posterior does not change with what is given."""
         return None
 
     def view_pass(self, *, state) -> Optional[list["ViewAccumulator"]]:

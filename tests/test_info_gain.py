@@ -74,7 +74,7 @@ def test_both_objectives_match_a_float64_brute_force(objective, targets):
     m, views = _tiny(sh_degree=2)
     train, cands = views[:3], views[3:]
     ctx = ScoringContext([m], train, score_max_side=None)
-    pol = _policy("info_gain", objective=objective, targets=targets, prior_precision=2.0)
+    pol = _policy("info_gain", objective=objective, targets=targets, posterior={"sh": {"prior_precision": 2.0}})
     got = pol.score(ctx, cands)
     s2 = pol._state["sigma2"]
     ref = _brute(m, train, cands, cands + (train if targets == "pool+train" else []), 2.0, s2, objective)
@@ -90,7 +90,7 @@ def test_predictive_score_is_the_drop_of_rendered_colour_variance_under_posterio
     train, cands = views[:3], views[3:6]
     tau = 100.0  # small colour spread: the clamp at 0 never binds
     ctx = ScoringContext([m], train, score_max_side=None)
-    pol = _policy("info_gain", prior_precision=tau)
+    pol = _policy("info_gain", posterior={"sh": {"prior_precision": tau}})
     scores = pol.score(ctx, cands)
     st = pol._state
     deg, s2 = st["deg"], st["sigma2"]
@@ -180,7 +180,7 @@ def test_bad_input_is_refused_in_one_line_or_counted():
     with pytest.raises(B3dgsError, match="targets=.*fix"):
         _policy("info_gain", targets="test").validate()
     with pytest.raises(B3dgsError, match="prior_precision.*fix"):
-        _policy("info_gain", prior_precision=0.0).validate()
+        _policy("info_gain", posterior={"sh": {"prior_precision": 0.0}}).validate()
     m0, views0 = _tiny(sh_degree=0)
     with pytest.raises(B3dgsError, match="SH degree 0.*fix"):
         _policy("info_gain").score(ScoringContext([m0], views0[:2]), views0[2:4])
@@ -190,7 +190,7 @@ def test_bad_input_is_refused_in_one_line_or_counted():
     flip = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0], dtype=torch.float64))  # looks the other way: sees nothing
     away = Camera("away", away.K, flip @ away.viewmat, away.width, away.height, None)
     s = _policy("info_gain").score(ScoringContext([m], views[:3]), [away, views[4]])
-    assert float(s[0]) == 0.0 and float(s[1]) > 0 and guard_counts().get("info_gain.empty_view") == 1
+    assert float(s[0]) == 0.0 and float(s[1]) > 0 and guard_counts().get("sh.empty_view") == 1
     ctx = ScoringContext([m], views[:3])
     render = ctx.render
 
@@ -202,7 +202,7 @@ def test_bad_input_is_refused_in_one_line_or_counted():
 
     ctx.render = nan_weights
     s = _policy("info_gain").score(ctx, views[3:5])
-    assert torch.isfinite(s).all() and guard_counts().get("info_gain.invalid_weights", 0) > 0
+    assert torch.isfinite(s).all() and guard_counts().get("sh.invalid_weights", 0) > 0
     reset_guards()
 
 

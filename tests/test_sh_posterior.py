@@ -27,12 +27,22 @@ def _sh_module(scene):
     return m
 
 
+def _information(m, sums):
+    """(N, B, B) Σ_views Σ_p w_kp² y yᵀ of a pass's ``sh_views``, written out (y toward each view's centre)."""
+    deg, means = sums["sh_views"]["degree"], m.splats["means"].detach().double()
+    info = torch.zeros(m.num_gaussians, (deg + 1) ** 2, (deg + 1) ** 2, dtype=torch.float64)
+    for centre, idx, wsq in sums["sh_views"]["views"]:
+        y = sh_basis(deg, torch.nn.functional.normalize(means[idx] - centre.double(), dim=-1))
+        info[idx] += wsq[:, None, None] * y[:, :, None] * y[:, None, :]
+    return info
+
+
 def test_view_pass_sh_information_matches_per_pixel_gradients(scene):
     """Σ_p w_kp² y yᵀ of the pass equals Σ_p ∇_A C_pc ∇_A C_pcᵀ (per channel) from autograd, one pixel at a time."""
     m = _sh_module(scene)
     cam = scene.train[0].resized(8, 8)
     sums = m.view_sums([cam], [SHInformation()])
-    info = sums["sh_information"]
+    info = _information(m, sums)
     B = (m.active_sh_degree() + 1) ** 2
     assert tuple(info.shape) == (m.num_gaussians, B, B) and B == 16
     sp = m.params()
@@ -65,9 +75,10 @@ def test_draws_have_the_posterior_covariance(scene):
     sums = m.view_sums(accumulators=[SHInformation()])
     s2 = float(sums["sq_err"] / sums["n_values"])
     assert float(st["sigma2"]) == pytest.approx(s2)
-    B = sums["sh_information"].shape[-1]
-    lam = sums["sh_information"] / s2 + blk.prior_precision * torch.eye(B, dtype=torch.float64)
-    k = int(sums["sh_information"].diagonal(dim1=-2, dim2=-1).sum(-1).argmax())  # the best-observed Gaussian
+    info = _information(m, sums)
+    lam = info / s2 + blk.prior_precision * torch.eye(info.shape[-1], dtype=torch.float64)
+    torch.testing.assert_close(st["lam"], lam, rtol=1e-12, atol=1e-12)
+    k = int(info.diagonal(dim1=-2, dim2=-1).sum(-1).argmax())  # the best-observed Gaussian
     cov = torch.linalg.inv(lam[k])
     g = torch.Generator().manual_seed(1)
     p = blk.sampler(splats=m.splats, state=st)(4000, g, dict(m.params()))
@@ -83,6 +94,34 @@ def test_draws_have_the_posterior_covariance(scene):
     v = blk.colour_variance(splats=m.splats, state=st, dirs=d)
     y = sh_basis(3, d[k])
     assert float(v[k]) == pytest.approx(float(y @ cov @ y), rel=1e-8)
+
+
+def test_conditioning_on_a_view_equals_the_pass_with_it_and_only_a_render_conditions(scene):
+    """The public method set (policies, tools): condition(view_information(render of a new view)) equals the pass
+    over the training views plus that view (Λ and Λ⁻¹), leaves the given state alone, and the block hook
+    condition_on_view does the same from a render and a camera, and nothing from weight sums alone."""
+    m = _sh_module(scene)
+    train, new_cam = scene.train[:3], scene.train[3].with_image(None)
+    blk = m.posterior["sh"]
+    st = blk.initialize_state(splats=m.splats, scene=None, info={})
+    m.prepare_posterior(train, blocks=[("sh", blk, st)])
+    lam0, cov0 = st["lam"].clone(), blk.covariance(st).clone()
+    ro = m.render_camera(new_cam, return_weights=True)
+    view = blk.view_information(state=st, camera=new_cam, render=ro, means=m.splats["means"])
+    got = blk.condition(st, view)
+    assert torch.equal(st["lam"], lam0) and torch.equal(st["cov"], cov0)  # the given state is not modified
+    ref = blk.initialize_state(splats=m.splats, scene=None, info={})
+    m.prepare_posterior(train + [new_cam], blocks=[("sh", blk, ref)])
+    ref["sigma2"] = st["sigma2"]  # σ̂² comes from the training images alone (the new view has none)
+    torch.testing.assert_close(got["lam"], blk.precision(
+        [blk.view_information(state=ref, camera=c, render=m.render_camera(c, return_weights=True),
+                              means=m.splats["means"]) for c in train + [new_cam]],
+        n=m.num_gaussians, degree=m.active_sh_degree(), device="cpu"), rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(got["cov"], torch.linalg.inv(got["lam"]), rtol=1e-7, atol=1e-12)
+    assert float((got["cov"] - cov0).diagonal(dim1=-2, dim2=-1).sum()) < 0  # the view taught something
+    hook = blk.condition_on_view(splats=m.splats, state=st, weight_sums=ro.weight_sum, render=ro, camera=new_cam)
+    assert torch.equal(hook["cov"], got["cov"]) and torch.equal(hook["lam"], got["lam"])
+    assert blk.condition_on_view(splats=m.splats, state=st, weight_sums=ro.weight_sum) is None
 
 
 def test_a_colour_seen_from_one_side_is_uncertain_from_the_other():

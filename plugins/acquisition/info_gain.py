@@ -1,9 +1,8 @@
 """info_gain: what a candidate view would teach the directional (SH) colour posterior, in closed form (beyond the paper).
 
-The SH posterior of Gaussian k (``plugins/posterior/sh.py``) has precision Λ_k = τI + Σ_{v ∈ train} s_kv y_kv y_kvᵀ, with
-s_kv = Σ_p w_kp² / σ̂² (view v's squared compositing weights in units of the pixel noise) and y_kv = y(d_kv), the real
-SH basis at the direction from v's centre to μ_k. A view c adds J_kc = s_kc y_kc y_kcᵀ, rank one per Gaussian; with
-P_k = Λ_k⁻¹, u = P_k y_kc and q = y_kcᵀ u (matrix determinant lemma, Sherman–Morrison):
+The SH posterior block (``plugins/posterior/sh.py``, composed from ``conf/posterior/sh``, fitted on the training views
+by :meth:`b3dgs.acquisition.ScoringContext.fit_posterior`) gives P_k = Λ_k⁻¹ and what a view c adds, J_kc = s_kc y_kc
+y_kcᵀ, rank one per Gaussian (s = Σ_p w² / σ̂², y the SH basis toward c); with u = P_k y_kc and q = y_kcᵀ u:
 
     params      ½ log det(I + P_k J_kc) = ½ log(1 + s_kc q)                  (BALD; FisherRF's quantity)
     predictive  tr((P_k − (Λ_k + J_kc)⁻¹) G_k) = s_kc uᵀ G_k u / (1 + s_kc q),  G_k = Σ_{t ∈ targets} s_kt y_kt y_ktᵀ
@@ -30,21 +29,11 @@ tr((P^μ_k − (Λ^μ_k + J^μ_kc)⁻¹) G^μ_k), the drop of the targets' rende
 order (delta method: Var[C_pc] ≈ ∇Cᵀ P^μ ∇C), params adds ½ log det(I + P^μ_k J^μ_kc). Approximations: the
 posterior is block-diagonal (the colour-centre cross terms of the joint Fisher are dropped, and so are the Gaussians'
 cross terms, as for the colour), and linear in the centre, which holds while a centre's std stays within about a
-Gaussian's size. τ_μ = 1 / (r · extent)² with ``geometry_prior_scale`` r = 0.1: at r = 0.01 (a trained Gaussian's
-size, where the linearisation holds for every centre) the term is about 1.5 % of the predictive score on the tests'
-half-ring scene and changed 2 of 16 ``greedy_conditioned`` picks on dtu_scan65 seed 0, i.e. it is info_gain again;
-at r = 0.1 it weighs about as much as the colour term, and what it adds is led by the centres the training views
-constrain least (their prior variance, where the first-order term is only a ranking, not a variance): coverage of
-the geometry in the colour term's units, the part of COVER's signal the colour posterior lacks.
-``geometry_probes`` = 4 (NIW's ``fisher_probes``): a candidate's J is one view's estimate (no averaging over views; relative error √(2/4) per entry, averaged out over the thousands of Gaussians
-a score sums), and 4 probes keep an F of rank 3; the cost is probes × views backward passes per scoring. Measured (one
-thread on a shared 2-core CPU, the study's side 64, seed-0 phase-1 models, two repeats): dtu_scan65 (22k Gaussians, 16
-training views, 26 candidates) top-k 1.0 → 3.7 s, greedy_conditioned 3.4 → 8.6–8.9 s; fox (50k, 16 + 42) top-k
-2.4–2.5 → 8.7–9.4 s, greedy_conditioned 10.3–11.1 → 23.0–24.3 s (a round-2 training takes 10+ minutes). 3×3
-inverses and log-determinants are batched Cholesky (``safe_cholesky``) in float64. It did not earn its place
-(``bench/results/active_view_geo_ig.md``, seed 0 on the seven scenes, each paired with the same row without it):
-+0.08 dB over ``info_gain`` (3 of 7 scenes, p 0.41), −0.01 dB over ``info_gain+greedy_conditioned`` (p 0.70), and both
-lose to farthest; so ``geometry`` stays false by default.
+Gaussian's size. τ_μ = 1 / (r · extent)² with ``geometry_prior_scale`` r = 0.1 (at 0.01 it barely moves the picks;
+at 0.1 it weighs about as much as the colour term, led by the centres the training views constrain least: coverage of
+the geometry in the colour term's units). ``geometry_probes`` = 4 (NIW's ``fisher_probes``; relative error √(2/4) per
+entry, averaged over the Gaussians a score sums); the cost is probes × views backward passes per scoring. Its cost and
+its verdict (it stays off by default) are in ``docs/studies.md`` (``bench/results/active_view_geo_ig.md``).
 
 ``condition`` (``batch=greedy_conditioned``) adds the picked view's J exactly (rank-one downdate of P; Λ^μ += J^μ and
 its 3×3 Cholesky redone for the Gaussians it moves), so a re-score equals recomputing the posterior with the view among
@@ -57,31 +46,20 @@ import math
 import time
 import zlib
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import torch
 from torch import Tensor
 
-from b3dgs.acquisition import AcquisitionPolicy, Selection, top_k
+from b3dgs.acquisition import AcquisitionPolicy, Selection, composed, top_k
 from b3dgs.errors import B3dgsError
-from b3dgs.numerics import guard
-from b3dgs.render.projection import sh_basis
-from b3dgs_plugins.posterior.niw import FisherAccumulator, safe_cholesky
+from b3dgs.fisher import FisherAccumulator
+from b3dgs.numerics import guard, safe_cholesky
 
 OBJECTIVES = ("predictive", "params")
 TARGETS = ("pool", "pool+train")
-SIGMA2_FLOOR = 1e-6  # σ̂² below this is raised to it (guard ``info_gain.sigma2_floor``), as the SH block does
 CHANNELS = 3
 GEOMETRY_SALT = 424242  # the probes of view v are drawn from seed · 1000003 + salt + crc32(v's name)
-
-
-@dataclass
-class _View:
-    """One view's rank-one information per Gaussian it sees: rows ``idx``, s = Σ_p w² / σ̂² and the SH basis y."""
-
-    idx: Tensor  # (n,) long
-    s: Tensor  # (n,) float64
-    y: Tensor  # (n, B) float64
 
 
 @dataclass
@@ -92,21 +70,24 @@ class _GeoView:
     J: Tensor  # (n, 3, 3) float64
 
 
-def _is_number(x) -> bool:
-    return not isinstance(x, bool) and isinstance(x, (int, float)) and math.isfinite(x)
+def _inverse(lam: Tensor) -> tuple[Tensor, Tensor]:
+    """(Λ⁻¹, log det Λ) of a batch of 3×3 precisions, by Cholesky."""
+    L = safe_cholesky(lam)
+    return torch.cholesky_inverse(L), 2 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
 
 
 @dataclass
 class InfoGainPolicy(AcquisitionPolicy):
     """Closed-form information of a view for the SH colour posterior (module docstring): ``objective`` predictive
     (target-aware, EPIG-like; the default) or params (parameter gain, BALD/FisherRF-like); ``targets`` pool or
-    pool+train; ``prior_precision`` τ of the SH posterior (as ``posterior.sh.prior_precision``); ``geometry``: add the
-    centres' term (``geometry_probes`` Hutchinson probes per view, prior std ``geometry_prior_scale`` × extent)."""
+    pool+train; ``posterior``: the SH posterior block (``defaults: [/posterior@posterior: sh]``; its settings by name,
+    ``posterior: {sh: {prior_precision: 2.0}}``); ``geometry``: add the centres' term (``geometry_probes`` Hutchinson
+    probes per view, prior std ``geometry_prior_scale`` × extent)."""
 
     family: str = "niw"
     objective: str = "predictive"
     targets: str = "pool"
-    prior_precision: float = 1.0
+    posterior: Any = None
     geometry: bool = False
     geometry_probes: int = 4
     geometry_prior_scale: float = 0.1
@@ -119,10 +100,11 @@ class InfoGainPolicy(AcquisitionPolicy):
         if self.targets not in TARGETS:
             raise B3dgsError(f"acquisition info_gain: targets={self.targets!r} is not one of {'|'.join(TARGETS)}",
                              "pass acquisition.targets=pool (or pool+train)")
-        tau = self.prior_precision
-        if isinstance(tau, bool) or not isinstance(tau, (int, float)) or not (tau > 0 and math.isfinite(tau)):
-            raise B3dgsError(f"acquisition info_gain: prior_precision={tau!r} must be a finite number > 0",
-                             "pass acquisition.prior_precision=1.0")
+        blk = self.block()
+        if not callable(getattr(blk, "view_information", None)):
+            raise B3dgsError(f"acquisition info_gain: posterior is {type(blk).__name__}, not the SH posterior block",
+                             "compose it with defaults: [/posterior@posterior: sh]")
+        blk.validate()
         if not isinstance(self.geometry, bool):
             raise B3dgsError(f"acquisition info_gain: geometry={self.geometry!r} must be true or false",
                              "pass acquisition.geometry=true (or false)")
@@ -131,44 +113,14 @@ class InfoGainPolicy(AcquisitionPolicy):
             raise B3dgsError(f"acquisition info_gain: geometry_probes={k!r} must be an integer >= 1",
                              "pass acquisition.geometry_probes=4")
         r = self.geometry_prior_scale
-        if not (_is_number(r) and r > 0):
+        if isinstance(r, bool) or not isinstance(r, (int, float)) or not (math.isfinite(r) and r > 0):
             raise B3dgsError(f"acquisition info_gain: geometry_prior_scale={r!r} must be a finite number > 0",
                              "pass acquisition.geometry_prior_scale=0.1 (the centres' prior std / the scene extent)")
 
-    # ---------------------------------------------------------------- the posterior of the current training views
-    def _view(self, ctx, camera, means: Tensor, deg: int, sigma2: float, ro=None) -> _View:
-        ro = ctx.render(camera, return_weights=True) if ro is None else ro
-        if ro.weight_sq_sum is None:
-            raise B3dgsError("acquisition info_gain: the renderer returned no weight sums",
-                             "use a renderer that gives them (cpu, torch or gsplat)")
-        wsq = ro.weight_sq_sum.detach().reshape(-1).double()
-        bad = ~torch.isfinite(wsq) | (wsq < 0)
-        if guard("info_gain.invalid_weights", bad):
-            wsq = torch.where(bad, torch.zeros_like(wsq), wsq)
-        idx = torch.nonzero(wsq > 0).squeeze(-1)
-        guard("info_gain.empty_view", int(idx.numel() == 0))  # a view that sees no Gaussian scores 0
-        d = torch.nn.functional.normalize(means[idx] - camera.center.to(means), dim=-1)
-        return _View(idx, wsq[idx] / sigma2, sh_basis(deg, d))
-
-    @staticmethod
-    def _sigma2(ctx, renders) -> float:
-        """The training views' residual MSE at the scoring resolution (views without an image left out)."""
-        sq, n = 0.0, 0
-        for cam, ro in zip(ctx.train, renders):
-            if cam.image is None:
-                continue
-            rgb = ro.rgb.detach().double()
-            sq += float((rgb - cam.image.to(rgb)).square().sum())
-            n += rgb.numel()
-        s2 = sq / n if n else float("nan")
-        if guard("info_gain.sigma2_floor", int(not s2 >= SIGMA2_FLOOR)):
-            s2 = SIGMA2_FLOOR if not math.isfinite(s2) else max(s2, SIGMA2_FLOOR)
-        return s2
-
-    @staticmethod
-    def _add(M: Tensor, v: _View) -> None:
-        """M[k] += s y yᵀ for the Gaussians of view v."""
-        M.index_add_(0, v.idx, v.s[:, None, None] * (v.y[:, :, None] * v.y[:, None, :]))
+    def block(self):
+        """The SH posterior block this policy scores with (one instance for the policy's life)."""
+        self.posterior = composed(self, "posterior", "posterior")
+        return self.posterior
 
     # ---------------------------------------------------------------- the centres' information (geometry=true)
     def view_fisher(self, ctx, camera) -> Tensor:
@@ -214,9 +166,8 @@ class InfoGainPolicy(AcquisitionPolicy):
             G = torch.zeros(N, 3, 3, dtype=torch.float64, device=device)
             for v in list(views.values()) + (train if self.targets == "pool+train" else []):
                 G.index_add_(0, v.idx, v.J)
-        L = safe_cholesky(lam)
-        return {"lam": lam, "P": torch.cholesky_inverse(L), "logdet": 2 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1),
-                "G": G, "views": views, "saved": None, "tau": tau}
+        P, logdet = _inverse(lam)
+        return {"lam": lam, "P": P, "logdet": logdet, "G": G, "views": views, "saved": None, "tau": tau}
 
     def _geo_gain(self, geo: dict, v: _GeoView) -> float:
         """Predictive tr((P^μ − (Λ^μ + J^μ)⁻¹) G^μ) or params ½ log det(I + P^μ J^μ) over the view's Gaussians."""
@@ -230,49 +181,43 @@ class InfoGainPolicy(AcquisitionPolicy):
 
     @torch.no_grad()
     def prepare(self, ctx, candidates: Sequence) -> dict:
-        """The posterior of the current training views and every candidate's (and target's) information, cached for
-        this scoring context and candidate list."""
+        """The SH posterior of the current training views (the block's, fitted by the context) and every candidate's
+        (and target's) information, cached for this scoring context and candidate list."""
         key = (id(ctx), tuple(c.name for c in candidates))
         st = getattr(self, "_state", None)
         if st is not None and st["key"] == key:
             return st
         t0 = time.perf_counter()
-        deg = ctx.sh_degree()
-        if deg < 1:
-            raise B3dgsError("acquisition info_gain: the phase-1 model renders SH degree 0, so its colour has no "
-                             "direction to learn from a new view",
-                             "train the phase-1 model with model.sh_degree >= 1 for more than model.sh_increase_every "
-                             "steps")
+        blk = self.block()
+        post = ctx.fit_posterior(blk)  # Λ and σ̂² of the training views at the scoring resolution (one pass)
+        blk.covariance(post)
         means = ctx.params()["means"].detach().double()
-        N, B = means.shape[0], (deg + 1) ** 2
-        renders = [ctx.render(c, return_weights=True) for c in ctx.train]  # one render per training view
-        s2 = self._sigma2(ctx, renders)
-        eye = torch.eye(B, dtype=torch.float64, device=means.device)
-        lam = self.prior_precision * eye.expand(N, B, B).clone()
-        train = [self._view(ctx, c, means, deg, s2, ro) for c, ro in zip(ctx.train, renders)]
-        for v in train:
-            self._add(lam, v)
-        P = torch.cholesky_inverse(safe_cholesky(lam))
-        views = {c.name: self._view(ctx, c, means, deg, s2) for c in candidates}
+
+        def info(c):
+            return blk.view_information(state=post, camera=c, render=ctx.render(c, return_weights=True), means=means)
+
+        views = {c.name: info(c) for c in candidates}
         G = None
         if self.objective == "predictive":
-            G = torch.zeros(N, B, B, dtype=torch.float64, device=means.device)
-            for v in list(views.values()) + (train if self.targets == "pool+train" else []):
-                self._add(G, v)
-        geo = self._geometry(ctx, candidates, ctx.train, s2, N, means.device) if self.geometry else None
-        self._state = {"key": key, "P": P, "P0": None, "G": G, "views": views, "means": means, "deg": deg,
-                       "sigma2": s2, "first": None, "geo": geo, "setup_s": time.perf_counter() - t0}
+            G = torch.zeros_like(post["lam"])
+            for v in list(views.values()) + ([info(c) for c in ctx.train] if self.targets == "pool+train" else []):
+                v.add_to(G)
+        s2 = float(post["sigma2"])
+        geo = self._geometry(ctx, candidates, ctx.train, s2, means.shape[0], means.device) if self.geometry else None
+        self._state = {"key": key, "post": post, "fitted": post, "G": G, "views": views, "means": means,
+                       "deg": ctx.sh_degree(), "sigma2": s2, "first": None, "geo": geo,
+                       "setup_s": time.perf_counter() - t0}
         return self._state
 
     # ---------------------------------------------------------------- scores
-    def _gain(self, st: dict, v: _View, name: str) -> float:
+    def _gain(self, st: dict, v, name: str) -> float:
         geo = st["geo"]
         return self._sh_gain(st, v) + (0.0 if geo is None else self._geo_gain(geo, geo["views"][name]))
 
-    def _sh_gain(self, st: dict, v: _View) -> float:
+    def _sh_gain(self, st: dict, v) -> float:
         if v.idx.numel() == 0:
             return 0.0
-        P = st["P"][v.idx]
+        P = self.posterior.covariance(st["post"])[v.idx]
         u = torch.einsum("nij,nj->ni", P, v.y)
         q = (u * v.y).sum(-1)
         if self.objective == "params":
@@ -289,7 +234,7 @@ class InfoGainPolicy(AcquisitionPolicy):
         st = self.prepare(ctx, candidates)
         names = [candidates[i].name for i in positions]
         out = torch.tensor([self._gain(st, st["views"][n], n) for n in names], dtype=torch.float64)
-        if st["P0"] is None and st["first"] is None and len(out) == len(candidates):
+        if st["post"] is st["fitted"] and st["first"] is None and len(out) == len(candidates):
             st["first"] = out.clone()  # the unconditioned scores, for conditioned_ratio
         return out
 
@@ -304,14 +249,12 @@ class InfoGainPolicy(AcquisitionPolicy):
     # ---------------------------------------------------------------- batch conditioning (greedy_conditioned)
     @torch.no_grad()
     def condition(self, ctx, camera) -> bool:
-        """P ← (Λ + J_camera)⁻¹, exactly (a rank-one downdate per Gaussian the view sees); with ``geometry`` also
+        """The SH block's exact conditioning on the view (rank-one per Gaussian it sees); with ``geometry`` also
         Λ^μ ← Λ^μ + J^μ_camera and P^μ, log det Λ^μ recomputed for the Gaussians it moves."""
         st = getattr(self, "_state", None)
         if st is None or st["key"][0] != id(ctx):
             raise B3dgsError("acquisition info_gain: condition() before any score() in this scoring context",
                              "score the candidates first (the batch selectors do)")
-        if st["P0"] is None:  # the unconditioned state, for reset_conditioning
-            st["P0"] = st["P"].clone()
         geo = st["geo"]
         if geo is not None:
             g = geo["views"].get(camera.name) or self._geo_view(ctx, camera, st["sigma2"])
@@ -319,17 +262,11 @@ class InfoGainPolicy(AcquisitionPolicy):
                 if geo["saved"] is None:
                     geo["saved"] = {k: geo[k].clone() for k in ("lam", "P", "logdet")}
                 lam = geo["lam"][g.idx] + g.J
-                L = safe_cholesky(lam)
-                geo["lam"][g.idx] = lam
-                geo["P"][g.idx] = torch.cholesky_inverse(L)
-                geo["logdet"][g.idx] = 2 * L.diagonal(dim1=-2, dim2=-1).log().sum(-1)
-        v = st["views"].get(camera.name) or self._view(ctx, camera, st["means"], st["deg"], st["sigma2"])
-        if v.idx.numel() == 0:
-            return True
-        P = st["P"][v.idx]
-        u = torch.einsum("nij,nj->ni", P, v.y)
-        q = (u * v.y).sum(-1)
-        st["P"][v.idx] = P - (v.s / (1.0 + v.s * q))[:, None, None] * (u[:, :, None] * u[:, None, :])
+                geo["lam"][g.idx], (geo["P"][g.idx], geo["logdet"][g.idx]) = lam, _inverse(lam)
+        blk, post = self.posterior, st["post"]
+        v = st["views"].get(camera.name) or blk.view_information(
+            state=post, camera=camera, render=ctx.render(camera, return_weights=True), means=st["means"])
+        st["post"] = blk.condition(post, v)
         return True
 
     def conditioned_ratio(self, ctx, candidates, positions) -> Optional[Tensor]:
@@ -342,8 +279,8 @@ class InfoGainPolicy(AcquisitionPolicy):
 
     def reset_conditioning(self, ctx) -> None:
         st = getattr(self, "_state", None)
-        if st is not None and st["P0"] is not None:
-            st["P"], st["P0"] = st["P0"], None
+        if st is not None:
+            st["post"] = st["fitted"]
         geo = None if st is None else st["geo"]
         if geo is not None and geo["saved"] is not None:
             geo.update(geo["saved"])

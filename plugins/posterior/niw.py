@@ -16,8 +16,9 @@ from torch import Tensor
 
 from b3dgs.device import randn
 from b3dgs.errors import B3dgsError
+from b3dgs.fisher import FisherAccumulator
 from b3dgs.numerics import float_dtype as _out_dtype
-from b3dgs.numerics import guard
+from b3dgs.numerics import guard, safe_cholesky, sym as _sym
 from b3dgs.numerics import scalar_or_vector as _vec
 from b3dgs.plugin import PosteriorBlock, ViewAccumulator
 from b3dgs.render.projection import covariance_3d
@@ -32,8 +33,6 @@ D = 3  # the dimension of a Gaussian's centre
 EXPECTED_COV_DENOM_EPS = 1e-3
 #: Floor on kappa_n when dividing by it (kappa_n = kappa0 + N > 0 for a valid prior).
 KAPPA_FLOOR = 1e-12
-#: Escalating diagonal jitter for safe_cholesky, relative to the mean |diagonal|.
-CHOLESKY_JITTERS = (1e-12, 1e-10, 1e-8, 1e-6, 1e-5, 1e-4, 1e-3)
 #: Floor on the Bartlett chi-square draws (only reachable for nu close to D-1).
 BARTLETT_CHI2_FLOOR = 1e-30
 
@@ -66,10 +65,6 @@ def _mat(name: str, x: torch.Tensor, K: int, D: int) -> torch.Tensor:
                          fix=f"pass {name} as a torch tensor of shape ({K}, {D}, {D}): one symmetric DxD matrix per "
                              "Gaussian")
     return x.to(_F64)
-
-
-def _sym(A: torch.Tensor) -> torch.Tensor:
-    return 0.5 * (A + A.transpose(-1, -2))
 
 
 def _require_finite(name: str, x: torch.Tensor) -> None:
@@ -237,54 +232,6 @@ def posterior_mean_params(
 
 
 # ----------------------------------------------------------------------------- cholesky / sampling
-def safe_cholesky(A: torch.Tensor, jitters: Sequence[float] = CHOLESKY_JITTERS) -> torch.Tensor:
-    """Lower Cholesky factor of symmetric A (..., D, D), computed in float64, never NaN.
-
-    Failing matrices get diagonal jitter ``j * mean|diag|`` for j in ``jitters`` (escalating;
-    guard ``cholesky.jitter``); if all fail, eigenvalues are clipped (``cholesky.eig_fallback``);
-    non-finite matrices are replaced by the identity (``cholesky.nonfinite``).
-    """
-    if not isinstance(A, torch.Tensor) or A.ndim < 2 or A.shape[-1] != A.shape[-2]:
-        raise B3dgsError(f"A: expected (..., D, D), got {getattr(A, 'shape', type(A).__name__)}",
-                         fix="pass A as a float tensor of shape (..., D, D), a batch of square matrices")
-    dtype = _out_dtype(A)
-    shape = A.shape
-    D = int(shape[-1])
-    A64 = _sym(A.to(_F64).reshape(-1, D, D))
-    eye = torch.eye(D, dtype=_F64, device=A.device)
-    finite = torch.isfinite(A64).all(-1).all(-1)
-    if guard("cholesky.nonfinite", ~finite):
-        A64 = torch.where(finite[:, None, None], A64, eye.expand_as(A64))
-    scale = A64.diagonal(dim1=-2, dim2=-1).abs().mean(-1)
-    scale = torch.where(scale > 0, scale, torch.ones_like(scale))
-    L, info = torch.linalg.cholesky_ex(A64)
-    failed = info != 0
-    n_failed = int(failed.sum())
-    if n_failed:
-        guard("cholesky.jitter", n_failed)
-        L = L.clone()
-        for j in jitters:
-            idx = failed.nonzero().squeeze(1)
-            Lj, infoj = torch.linalg.cholesky_ex(A64[idx] + (j * scale[idx])[:, None, None] * eye)
-            ok = infoj == 0
-            L[idx[ok]] = Lj[ok]
-            failed[idx[ok]] = False
-            if not bool(failed.any()):
-                break
-        if guard("cholesky.eig_fallback", failed):
-            idx = failed.nonzero().squeeze(1)
-            evals, evecs = torch.linalg.eigh(A64[idx])
-            floor = (jitters[-1] if len(jitters) else 1e-3) * scale[idx]
-            evals = torch.maximum(evals, floor[:, None])
-            Af = _sym(evecs @ torch.diag_embed(evals) @ evecs.transpose(-1, -2))
-            Lf, infof = torch.linalg.cholesky_ex(Af)
-            # last resort: diagonal factor (always valid)
-            diag_L = torch.diag_embed(torch.sqrt(torch.maximum(Af.diagonal(dim1=-2, dim2=-1), floor[:, None])))
-            Lf = torch.where((infof == 0)[:, None, None], Lf, diag_L)
-            L[idx] = Lf
-    return L.reshape(shape).to(dtype)
-
-
 def tril_solve(A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
     """A^{-1} B for lower-triangular A (..., D, D) and B (..., D, M), by forward substitution written
     elementwise (vectorised over the batch; batched LAPACK calls on 3x3 blocks are far slower)."""
@@ -399,7 +346,7 @@ def sample_niw(
 #: the counts ``posterior.niw.count`` offers (names kept stable for scripts outside the project)
 COUNTS = ("paper", "weight", "fisher", "fisher3")
 #: floor on the plug-in residual variance σ̂² that turns Fisher information into precision
-SIGMA2_FLOOR = 1e-8
+COUNT_SIGMA2_FLOOR = 1e-8
 
 
 def fisher_count(fisher_trace: Tensor, S0: Tensor, kappa0: float, nu0: float) -> Tensor:
@@ -421,43 +368,6 @@ def fisher_count(fisher_trace: Tensor, S0: Tensor, kappa0: float, nu0: float) ->
     if guard("niw.count_nonfinite", bad):
         n = torch.where(bad, torch.zeros_like(n), n)
     return n
-
-
-class FisherAccumulator(ViewAccumulator):
-    """Σ_views Σ_p Σ_c ∇_μk C_pc ∇_μk C_pcᵀ (``fisher``, (N, 3, 3)): the Fisher information of each centre under a
-    unit-variance pixel likelihood (FisherRF's quantity; divided by σ² it is the Laplace precision), estimated with
-    ``probes`` Rademacher probes per view: E_z[(Σ_p z_p ∇C_p)(Σ_p z_p ∇C_p)ᵀ] = Σ_p ∇C_p ∇C_pᵀ for independent ±1
-    z_p (Hutchinson), one backward pass of the renderer per probe instead of one per pixel, on every backend;
-    unbiased, relative error ~ √(2 / (probes · views seeing k)). ``b3dgs.fisher.pixel_set_grads`` is the exact
-    reference. The probes are drawn on the CPU from ``seed``, so every device draws the same."""
-
-    key = "fisher"
-    needs_means_grad = True
-
-    def __init__(self, probes: int):
-        if isinstance(probes, bool) or not isinstance(probes, int) or probes < 1:
-            raise B3dgsError(f"FisherAccumulator: probes must be an integer >= 1, got {probes!r}",
-                             "use the block's fisher_probes (4 by default)")
-        self.probes = probes
-
-    def merge(self, other: ViewAccumulator) -> ViewAccumulator:
-        return self if self.probes >= getattr(other, "probes", 0) else other
-
-    def start(self, *, params, sh_degree, seed):
-        n = params["means"].shape[0]
-        self.fisher = torch.zeros(n, D, D, dtype=torch.float64, device=params["means"].device)
-        self.generator = torch.Generator(device="cpu").manual_seed(int(seed))
-
-    def add(self, *, camera, render, params, sh_degree):
-        means, dev = params["means"], params["means"].device
-        for m in range(self.probes):
-            z = (torch.randint(0, 2, render.rgb.shape, generator=self.generator) * 2 - 1).to(render.rgb.dtype).to(dev)
-            (gm,) = torch.autograd.grad(render.rgb, means, grad_outputs=z, retain_graph=m < self.probes - 1)
-            gm = gm.double()
-            self.fisher += (gm.unsqueeze(-1) * gm.unsqueeze(-2)) / self.probes
-
-    def result(self):
-        return {"fisher": self.fisher}
 
 
 @dataclass
@@ -679,9 +589,9 @@ class NIWBlock(PosteriorBlock):
                                  fix="this is a bug in b3dgs (the NIW block's own Fisher accumulator): rerun with "
                                      "b3dgs.debug=true and report the traceback")
             s2 = float(state["mse"] / state["mse_n"]) if float(state["mse_n"]) > 0 else None  # plug-in σ̂²
-            low = s2 is None or not s2 >= SIGMA2_FLOOR
+            low = s2 is None or not s2 >= COUNT_SIGMA2_FLOOR
             if guard("niw.sigma2_floor", int(low)):
-                s2 = SIGMA2_FLOOR if s2 is None or not math.isfinite(s2) else max(s2, SIGMA2_FLOOR)
+                s2 = COUNT_SIGMA2_FLOOR if s2 is None or not math.isfinite(s2) else max(s2, COUNT_SIGMA2_FLOOR)
             P = _sym(F) / float(s2)
             count = fisher_count(torch.diagonal(P, dim1=-2, dim2=-1).sum(-1), state["S0"], self.kappa0, self.nu0)
             if self.count == "fisher3":
@@ -774,13 +684,13 @@ class NIWBlock(PosteriorBlock):
             return None
 
     @torch.no_grad()
-    def condition_on_view(self, *, splats, state, weight_sums):
+    def condition_on_view(self, *, splats, state, weight_sums=None, render=None, camera=None):
         """The posterior after one more view's pseudo-observations (acquisition: greedy conditioned batches): n_k = c·w_k
         observations at the current centre (x̄_k = μ_k, C_k = 0), the closed-form update of the paper's NIW
         appendix applied to the current posterior. The summaries already sit at μ_k with C = 0, and two such
         batches at one point combine into one of summed count (conjugacy), so this is N̂ ← N̂ + w on a copy of
         the state, refreshed."""
-        if self.count.startswith("fisher"):
+        if self.count.startswith("fisher") or weight_sums is None:
             return None  # a view's Fisher needs its render's per-pixel gradients, not its weight sums
         st = dict(state)
         st["N"] = state["N"] + weight_sums.to(state["N"].dtype).to(state["N"].device).clamp_min(0.0)

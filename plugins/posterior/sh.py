@@ -18,21 +18,26 @@ Approximations: the clamp of the colour at 0 is ignored; the precision is diagon
 cross terms between Gaussians that share pixels are dropped, as in FisherRF's diagonal); σ² is the plug-in residual
 MSE of the same pass over the training views. The posterior is a function of the trained Gaussians, computed in one
 pass over the training views (:meth:`b3dgs.module.SplatModule.prepare_posterior`), so it needs no training-time state
-and can be added to any trained run at evaluation (``uq=[native_sh]``).
+and can be added to any trained run at evaluation (``uq=[native_sh]``) or fitted by a policy at the scoring resolution
+(:meth:`b3dgs.acquisition.ScoringContext.fit_posterior`; ``acquisition=info_gain``).
+
+Public for policies and tools: ``view_information`` (a view's rank-one information per Gaussian), ``precision`` (Λ),
+``covariance`` (Λ⁻¹) and ``condition`` (the state after one more view, exact; the hook ``condition_on_view``).
 """
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import ClassVar, Optional
+from typing import ClassVar, Iterable, Optional
 
 import torch
+from torch import Tensor
 
 from b3dgs.device import randn
 from b3dgs.errors import B3dgsError
-from b3dgs.numerics import guard
+from b3dgs.numerics import guard, safe_cholesky
 from b3dgs.plugin import PosteriorBlock, ViewAccumulator
-from b3dgs_plugins.posterior.niw import safe_cholesky
+from b3dgs.render.projection import sh_basis
 
 _DEGREE0 = ("posterior.sh: the model renders SH degree 0, so its colour has no direction and the directional "
             "posterior has nothing to add to a constant colour")
@@ -41,48 +46,65 @@ _DEGREE0_FIX = "train with model.sh_degree >= 1 (the default 3) for more than mo
 SIGMA2_FLOOR = 1e-6
 
 
+@dataclass
+class SHView:
+    """One view's information s y yᵀ per Gaussian it sees, for each colour channel: rows ``idx``, s = Σ_p w² / σ̂² and
+    y, the SH basis at the direction from the view's centre to the Gaussian."""
+
+    idx: Tensor  # (n,) long
+    s: Tensor  # (n,) float64
+    y: Tensor  # (n, B) float64
+
+    def add_to(self, M: Tensor) -> Tensor:
+        """M[k] += s y yᵀ for the Gaussians of this view, in place; returns M."""
+        return M.index_add_(0, self.idx, self.s[:, None, None] * (self.y[:, :, None] * self.y[:, None, :]))
+
+
+def seen_weights(render) -> tuple[Tensor, Tensor]:
+    """(rows, Σ_p w²) of the Gaussians a render sees, float64; non-finite or negative sums are left out (guard
+    ``sh.invalid_weights``), a view that sees none is counted (``sh.empty_view``: it teaches nothing)."""
+    if render.weight_sq_sum is None:
+        raise B3dgsError("posterior.sh: the renderer gave no per-Gaussian Σ w² (weight_sq_sum)",
+                         "use a renderer that returns weights (cpu, torch or gsplat)")
+    wsq = render.weight_sq_sum.detach().reshape(-1).double()
+    bad = ~torch.isfinite(wsq) | (wsq < 0)
+    if guard("sh.invalid_weights", bad):
+        wsq = torch.where(bad, torch.zeros_like(wsq), wsq)
+    idx = torch.nonzero(wsq > 0).squeeze(-1)
+    guard("sh.empty_view", int(idx.numel() == 0))
+    return idx, wsq[idx]
+
+
 class SHInformation(ViewAccumulator):
-    """Σ_views Σ_p w_kp² y(d_kv) y(d_kv)ᵀ (``sh_information``, (N, B, B)): the information of Gaussian k's SH
-    coefficients under a unit-variance pixel likelihood (y: the real SH basis at the active degree, B = (deg+1)²,
-    d_kv the unit direction from view v's centre to μ_k); ``sq_err`` / ``n_values``: the summed squared residual of
-    the renders against the views' images and the number of values summed (σ̂² of the module docstring)."""
+    """``sh_views``: the SH degree and per view its centre, rows seen and their Σ_p w_kp² (Λ is assembled per view, by
+    :meth:`SHPosteriorBlock.precision`); ``sq_err`` / ``n_values``: the renders' summed squared residual against the
+    views' images and the number of values summed (σ̂² of the module docstring)."""
 
     key = "sh_information"
 
     def start(self, *, params, sh_degree, seed):
-        n, dev = params["means"].shape[0], params["means"].device
-        nb = (sh_degree + 1) ** 2
-        self.sums = {"sh_information": torch.zeros(n, nb, nb, dtype=torch.float64, device=dev),
-                     "sq_err": torch.zeros((), dtype=torch.float64, device=dev),
-                     "n_values": torch.zeros((), dtype=torch.float64, device=dev)}
+        dev = params["means"].device
+        self.views = {"degree": int(sh_degree), "views": []}
+        self.sq_err = torch.zeros((), dtype=torch.float64, device=dev)
+        self.n_values = torch.zeros((), dtype=torch.float64, device=dev)
 
     def add(self, *, camera, render, params, sh_degree):
-        from b3dgs.render.projection import sh_basis
-
-        means = params["means"].detach()
-        dev = means.device
-        if render.weight_sq_sum is None:
-            raise B3dgsError("posterior.sh: the renderer gave no per-Gaussian Σ w² (weight_sq_sum)",
-                             "use a renderer that returns weights (cpu, torch or gsplat)")
-        wsq = render.weight_sq_sum.detach().reshape(-1).double()
-        seen = torch.nonzero(wsq > 0).squeeze(-1)
-        d = torch.nn.functional.normalize(means[seen].double() - camera.center.to(dev, torch.float64), dim=-1)
-        y = sh_basis(sh_degree, d)
-        self.sums["sh_information"].index_add_(0, seen, wsq[seen, None, None] * (y[:, :, None] * y[:, None, :]))
+        self.views["views"].append((camera.center, *seen_weights(render)))
         if camera.image is not None:
-            diff = render.rgb.detach().double().reshape(-1) - camera.image.to(dev).double().reshape(-1)
-            self.sums["sq_err"] += diff.square().sum()
-            self.sums["n_values"] += diff.numel()
+            rgb = render.rgb.detach().double()
+            self.sq_err += (rgb - camera.image.to(rgb)).square().sum()
+            self.n_values += rgb.numel()
 
     def result(self):
-        return self.sums
+        return {"sh_views": self.views, "sq_err": self.sq_err, "n_values": self.n_values}
 
 
 @dataclass
 class SHPosteriorBlock(PosteriorBlock):
     """q(A_k) = Π_channels N(Â_k, Λ_k⁻¹) over all active SH coefficients (module docstring), from one pass over the
     training views. ``prior_precision`` τ (in units of 1/SH-coefficient²): the variance of a colour no camera
-    constrains is ‖y(d)‖²/τ (‖y‖² = (deg+1)²/(4π) summed over the bases, ≈ 1.27 at degree 3 for τ = 1)."""
+    constrains is ‖y(d)‖²/τ (‖y‖² = (deg+1)²/(4π) summed over the bases, ≈ 1.27 at degree 3 for τ = 1). The state
+    holds Λ (``lam``), σ̂² and N; Λ⁻¹ (``cov``) and the draws' factor (``u``) are derived from Λ when first asked."""
 
     prior_precision: float = 1.0
     per_gaussian_state: ClassVar[tuple[str, ...]] = ()  # computed after training, checked against N when drawn
@@ -103,43 +125,94 @@ class SHPosteriorBlock(PosteriorBlock):
     def view_pass(self, *, state) -> Optional[list[ViewAccumulator]]:
         return [SHInformation()]
 
+    # ---------------------------------------------------------------- what a view teaches (public: policies, tools)
+    @staticmethod
+    def _view(center: Tensor, idx: Tensor, wsq: Tensor, means: Tensor, degree: int, sigma2: float) -> SHView:
+        d = torch.nn.functional.normalize(means[idx] - center.to(means), dim=-1)
+        return SHView(idx, wsq / sigma2, sh_basis(degree, d))
+
+    def view_information(self, *, state, camera, render, means: Tensor) -> SHView:
+        """What the view ``camera`` would teach the posterior ``state``: s = Σ_p w² / σ̂² from ``render`` (its
+        point-estimate render with weights, at the resolution of the pass that made ``state``) and y toward the
+        camera's centre from ``means`` (N, 3). Needs no image of the view."""
+        deg = int(round(math.sqrt(state["lam"].shape[-1]))) - 1
+        return self._view(camera.center, *seen_weights(render), means.detach().double(), deg, float(state["sigma2"]))
+
+    def precision(self, views: Iterable[SHView], *, n: int, degree: int, device) -> Tensor:
+        """(n, B, B) Λ = τI + Σ_views s y yᵀ, float64."""
+        B = (degree + 1) ** 2
+        lam = self.prior_precision * torch.eye(B, dtype=torch.float64, device=device).expand(n, B, B).clone()
+        for v in views:
+            v.add_to(lam)
+        return lam
+
+    def covariance(self, state) -> Tensor:
+        """(N, B, B) Λ⁻¹ of ``state`` (computed once, kept in it)."""
+        if "cov" not in state:
+            state["cov"] = torch.cholesky_inverse(safe_cholesky(state["lam"]))
+        return state["cov"]
+
+    @torch.no_grad()
+    def condition(self, state, view: SHView) -> dict:
+        """A new state, the posterior after ``view``'s information (``state`` is not modified): Λ + s y yᵀ and Λ⁻¹
+        by the exact rank-one downdate (Sherman–Morrison) for the Gaussians the view sees."""
+        P = self.covariance(state)
+        new = {k: v for k, v in state.items() if k != "u"}
+        if view.idx.numel():
+            Pk = P[view.idx]
+            u = torch.einsum("nij,nj->ni", Pk, view.y)
+            q = (u * view.y).sum(-1)
+            new["cov"] = P.clone()
+            new["cov"][view.idx] = Pk - (view.s / (1.0 + view.s * q))[:, None, None] * (u[:, :, None] * u[:, None, :])
+            new["lam"] = view.add_to(state["lam"].clone())
+        return new
+
+    def condition_on_view(self, *, splats, state, weight_sums=None, render=None, camera=None):
+        """:meth:`condition` on the view of ``render`` and ``camera``; None with ``weight_sums`` alone (no direction)."""
+        if render is None or camera is None:
+            return None
+        return self.condition(state, self.view_information(state=state, camera=camera, render=render,
+                                                           means=splats["means"]))
+
     @torch.no_grad()
     def absorb_view_sums(self, *, splats, state, sums: dict) -> None:
-        """Λ_k from the pass's Σ w² y yᵀ and σ̂² = the pass's residual MSE; keeps the upper Cholesky inverse
-        U_k = L_kᵀ⁻¹ (Λ_k = L_k L_kᵀ), so a draw is Â_k + U_k z with z ~ N(0, I): Cov = Λ_k⁻¹."""
+        """Λ from the pass's views (:meth:`precision`) and σ̂² = the pass's residual MSE."""
         n = splats["means"].shape[0]
-        info = sums.get("sh_information")
-        if info is None or info.dim() != 3 or info.shape[0] != n or info.shape[1] != info.shape[2]:
-            raise B3dgsError(f"posterior.sh: the view pass gave SH information of shape "
-                             f"{None if info is None else tuple(info.shape)}, expected ({n}, B, B)",
-                             fix="this is a bug in b3dgs (the SH block's own accumulator): rerun with "
-                                 "b3dgs.debug=true and report the traceback")
+        views = sums.get("sh_views")
+        if views is None:
+            raise B3dgsError("posterior.sh: the view pass gave no sh_views", "this is a bug in b3dgs: rerun with "
+                             "b3dgs.debug=true and report the traceback")
         nv = float(sums.get("n_values", 0))
         s2 = float(sums["sq_err"]) / nv if nv > 0 else float("nan")
         if guard("sh.sigma2_floor", int(not s2 >= SIGMA2_FLOOR)):
             s2 = SIGMA2_FLOOR if not math.isfinite(s2) else max(s2, SIGMA2_FLOOR)
-        B = info.shape[-1]
-        if B == 1:  # SH degree 0: a view-independent colour, nothing directional to be uncertain about
+        deg = views["degree"]
+        if deg == 0:  # a view-independent colour, nothing directional to be uncertain about
             raise B3dgsError(_DEGREE0, _DEGREE0_FIX)
-        lam = info.double() / s2 + self.prior_precision * torch.eye(B, dtype=torch.float64, device=info.device)
-        L = safe_cholesky(lam)
-        eye = torch.eye(B, dtype=torch.float64, device=info.device).expand_as(L)
-        state["u"] = torch.linalg.solve_triangular(L.transpose(-1, -2), eye, upper=True)  # (N, B, B) = L^-T
-        state["n"] = torch.tensor(n, dtype=torch.int64, device=info.device)
-        state["sigma2"] = torch.tensor(s2, dtype=torch.float64, device=info.device)
+        means = splats["means"].detach().double()
+        for k in ("u", "cov"):
+            state.pop(k, None)
+        state["lam"] = self.precision((self._view(*v, means, deg, s2) for v in views["views"]), n=n, degree=deg,
+                                      device=means.device)
+        state["n"] = torch.tensor(n, dtype=torch.int64, device=means.device)
+        state["sigma2"] = torch.tensor(s2, dtype=torch.float64, device=means.device)
 
-    def _u(self, splats, state) -> torch.Tensor:
-        n = splats["means"].shape[0]
-        if "u" not in state or int(state["n"]) != n:
+    def _u(self, state, splats=None) -> Tensor:
+        """(N, B, B) U = L⁻ᵀ (Λ = L Lᵀ), so a draw is Â_k + U_k z with z ~ N(0, I): Cov = Λ_k⁻¹ (kept in ``state``);
+        checked against the N of ``splats`` when given."""
+        n = int(state["n"]) if splats is None else splats["means"].shape[0]
+        if "lam" not in state or int(state["n"]) != n:
             raise B3dgsError(f"posterior.sh: the posterior was computed for {int(state['n'])} Gaussians, the model has {n}",
                              "call SplatModule.prepare_posterior() after the last topology change")
+        if "u" not in state:
+            L = safe_cholesky(state["lam"])
+            eye = torch.eye(L.shape[-1], dtype=torch.float64, device=L.device).expand_as(L)
+            state["u"] = torch.linalg.solve_triangular(L.transpose(-1, -2), eye, upper=True)
         return state["u"]
 
-    def colour_variance(self, *, splats, state, dirs: torch.Tensor) -> torch.Tensor:
+    def colour_variance(self, *, splats, state, dirs: Tensor) -> Tensor:
         """(N,) Var[c_k(d_k)] = y(d_k)ᵀ Λ_k⁻¹ y(d_k) per channel, for unit directions ``dirs`` (N, 3)."""
-        from b3dgs.render.projection import sh_basis
-
-        u = self._u(splats, state)
+        u = self._u(state, splats)
         B = u.shape[-1]
         deg = int(round(math.sqrt(B))) - 1
         y = sh_basis(deg, dirs.double())
@@ -150,7 +223,7 @@ class SHPosteriorBlock(PosteriorBlock):
     def sample(self, *, splats, state, n, generator, params, info):
         """SH draws Â_k + U_k z (z ~ N(0, I), independent per channel), added to ``params``' sh0 / shN (which may
         already hold (n, N, ...) draws of an earlier block)."""
-        u = self._u(splats, state)
+        u = self._u(state, splats)
         B = u.shape[-1]
         out = dict(params)
         sh0, shN = out["sh0"], out.get("shN")
@@ -174,17 +247,16 @@ class SHPosteriorBlock(PosteriorBlock):
         s2 = float(state["sigma2"])
         return s2 if math.isfinite(s2) else None
 
-    @staticmethod
-    def _trace(state) -> torch.Tensor:
+    def _trace(self, state) -> Tensor:
         """(N,) tr Λ_k⁻¹ = ‖U_k‖²_F."""
-        return state["u"].square().sum((-1, -2))
+        return self._u(state).square().sum((-1, -2))
 
     def export(self, *, splats=None, state):
-        return {"sh_var_trace": self._trace(state).float()} if "u" in state else {}
+        return {"sh_var_trace": self._trace(state).float()} if "lam" in state else {}
 
     def summary(self, *, state):
-        if "u" not in state:
+        if "lam" not in state:
             return {"computed": False}
         tr = self._trace(state)
-        return {"computed": True, "sigma2": float(state["sigma2"]), "bases": int(state["u"].shape[-1]),
+        return {"computed": True, "sigma2": float(state["sigma2"]), "bases": int(state["lam"].shape[-1]),
                 "trace_median": float(tr.median()), "trace_max": float(tr.max())}
