@@ -111,3 +111,17 @@ def test_pair_sums_every_must_be_a_positive_integer(block, bad):
 
     with pytest.raises(B3dgsError, match="pair_sums_every"):
         block(pair_sums_every=bad).validate(max_steps=100)
+
+
+def test_dp_cadence_bench_grid(tmp_path):
+    dp_cadence = pytest.importorskip("bench.dp_cadence")
+    assert dp_cadence.variants([4, 1]) == ["every1=", "every4=+posterior.dp.pair_sums_every=4 "
+                                                       "+posterior.color.pair_sums_every=4"]
+    with pytest.raises(SystemExit, match="--every"):
+        dp_cadence.variants([0])
+    # the table of an empty grid (trains nothing): bench/schedule.py's machinery under this name and title
+    dp_cadence.main(["--table-only", "--scenes", "fox", "--seeds", "0", "--out", str(tmp_path / "o"),
+                     "--archive", str(tmp_path / "a"), "--results-root", str(tmp_path)])
+    out = json.loads((tmp_path / "dp_cadence.json").read_text())
+    assert out["rows"] == [] and set(out["variants"]) == {"every1", "every4"}
+    assert (tmp_path / "dp_cadence.md").read_text().startswith("# DPMM pair-sum cadences side by side")
