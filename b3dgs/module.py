@@ -252,7 +252,9 @@ class SplatModule(L.LightningModule):
                 group["lr"] = self.means_lr(step)
         ops = self._get_ops()
         ops.step = step
-        need_weights = any(b.needs_weights for b in self.posterior.values())
+        # the per-Gaussian pair sums only on steps where a plugin reads them (Plugin.reads_pair_sums)
+        static = self._static_info()
+        need_weights = any(p.reads_pair_sums(step, static) for p in self.plugins.values())
         cam = self.schedule.camera(self.device_camera(cam), step)  # the step's resolution (schedule=dash)
         try:
             with scope("render"):
@@ -276,7 +278,7 @@ class SplatModule(L.LightningModule):
             raise B3dgsError(f"non-finite loss at step {step} (camera {cam.name})", _DIVERGED_FIX)
         ops.per_gaussian = {}
         info = {
-            **self._static_info(), "ops": ops, "camera": cam, "render": out, "per_gaussian": ops.per_gaussian,
+            **static, "ops": ops, "camera": cam, "render": out, "per_gaussian": ops.per_gaussian,
             "width": cam.width, "height": cam.height, "gt": gt, "loss": loss.detach(),
             "l1": l1.detach(), "num_values": gt.numel(), "loss_terms": [], **self.schedule.step_info(step),
             "view_sums": self.view_sums,  # a pass over the training views, for plugins that need one (rarely)

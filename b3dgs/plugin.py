@@ -31,8 +31,10 @@ from torch import Tensor
 class Plugin:
     """Base of every plugin kind (strategies, posterior blocks). All hooks are no-ops by default.
 
-    What the core reads from a plugin is declared here: ``needs_weights`` asks the renderer for the
-    per-Gaussian compositing sums Σ_p w_kp and Σ_p w_kp² (``info["per_gaussian"]``) every step;
+    What the core reads from a plugin is declared here: ``needs_weights`` says that the plugin reads the
+    per-Gaussian compositing sums Σ_p w_kp and Σ_p w_kp² (``info["per_gaussian"]``), and :meth:`reads_pair_sums`
+    on which steps (by default every step): the core asks the renderer for them only on a step where some plugin
+    reads them;
     ``needs_residuals`` asks for ``info["sq_err_sum"]``, the step's summed squared residual (not computed otherwise);
     ``changes_training`` = False promises that the plugin only observes training (it never edits splats,
     optimizers, gradients or the topology), so a model with it trains bit for bit like one without it
@@ -61,6 +63,15 @@ class Plugin:
         counter alone; ``()`` on an ordinary step. ``info``: the run's static info (``max_steps``, ...). Read by
         :class:`b3dgs.host_sync.HostSyncCallback` to tell ordinary steps, which must not synchronise, from the rest."""
         return ()
+
+    def reads_pair_sums(self, step: int, info: dict) -> bool:
+        """Whether this plugin reads the per-Gaussian pair sums (``info["per_gaussian"]["weight_sum"]`` and
+        ``["weight_sq_sum"]``) at ``step``, decided from the step counter and the run's static info (``max_steps``)
+        alone, like :meth:`periodic`. The core asks the renderer for the sums only on steps where some plugin
+        returns True (on gsplat they are a second pass over the pixel-pair list, the largest per-step cost DPMM
+        adds); on other steps they are absent from ``info``, and a plugin must not read sums that another
+        plugin's cadence brought in on a step it does not declare. Default: ``needs_weights`` (every step)."""
+        return self.needs_weights
 
     def step_pre_backward(self, *, splats, optimizers, state, step, info) -> None:
         pass
@@ -100,6 +111,13 @@ class PosteriorBlock(Plugin):
         ``max_steps`` is the run's TOTAL step budget (``info["max_steps"]``), also when it is trained in rounds
         (the rounds continue the global step), so the thresholds never restart."""
         return int(t) if t is not None else int(info.get("max_steps", 0)) // divisor
+
+    @staticmethod
+    def strided_decay(ema: float, every: int) -> float:
+        """The decay per update of an EMA meant to update every step with decay ``ema`` that updates only every
+        ``every``-th step: ``ema ** every``, so that its memory in steps (~1 / (1 - ema)) is unchanged; ``ema`` itself
+        (the same float) at ``every`` = 1."""
+        return ema if every == 1 else ema ** every
 
     @staticmethod
     def train_views(state: dict, info: dict) -> float:

@@ -220,8 +220,8 @@ def summarize(rows: list[dict], curves: dict, names: list[str], ref: str, models
 
 
 def markdown(rows: list[dict], summary: list[dict], names: list[str], ref: str, threads: int,
-             imports: dict[str, list[str]]) -> list[str]:
-    lines = [f"# Training schedules side by side ({', '.join(names)}; reference: {ref})", "",
+             imports: dict[str, list[str]], title: str = "Training schedules side by side") -> list[str]:
+    lines = [f"# {title} ({', '.join(names)}; reference: {ref})", "",
              f"Quick protocol (256 px, 3000 steps), {load_text(rows)}, {threads} thread(s) per run, variants "
              "of a scene-seed interleaved. Paired differences (variant − reference): each scene's seed mean is one unit; "
              "bootstrap CI (BCa with >= 6 scenes) and exact sign-flip p.", ""]
@@ -256,7 +256,7 @@ def markdown(rows: list[dict], summary: list[dict], names: list[str], ref: str, 
     return lines
 
 
-def main() -> None:
+def main(argv: Optional[list[str]] = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=SEVEN)
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -275,7 +275,8 @@ def main() -> None:
     ap.add_argument("--name", default="schedule", help="result files bench/results/<name>.{json,md,png}")
     ap.add_argument("--results-root", default=str(RESULTS), help="where <name>.{json,md,png} go (default bench/results)")
     ap.add_argument("--extra", nargs="*", default=[], help="overrides for every run")
-    args = ap.parse_args()
+    ap.add_argument("--title", default="Training schedules side by side", help="the table's heading")
+    args = ap.parse_args(argv)
     from b3dgs.io import atomic_path, write_json
 
     variants = parse_variants(args.variant or ["constant=schedule=constant", "dash=schedule=dash"])
@@ -329,7 +330,7 @@ def main() -> None:
                         rows.append(got[0])
                         curves[(scene, model, name, seed)] = got[1]
     summary = summarize(rows, curves, names, ref, args.models, args.base_model)
-    lines = markdown(rows, summary, names, ref, args.threads, imports)
+    lines = markdown(rows, summary, names, ref, args.threads, imports, args.title)
     root = Path(args.results_root)
     root.mkdir(parents=True, exist_ok=True)
     write_json(root / f"{args.name}.json", {"machine": machine(), "variants": variants, "imports": imports,

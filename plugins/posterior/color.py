@@ -22,6 +22,11 @@ class ColorBlock(PosteriorBlock):
     of training views; σ² is E[σ²] of the NoiseBlock when present (``info["sigma2"]``), else the
     block's own plug-in residual MSE. Approximations: linearisation around the optimizer's colour,
     view-independent (DC) colour only, diagonal precision. Active after ``t_post``.
+
+    The Σ w² EMA starts at ``t_post`` (before it the block reads only the residual for σ²), so the block asks
+    for the renderer's pair sums from ``t_post`` on: the same values, and no sums in the first half of a run
+    where no other block reads them. From ``t_post`` the EMA is a per-step recurrence like the DP usage, read
+    on every step unless ``pair_sums_every`` = k > 1 (every k-th step, decay ema^k; results change).
     """
 
     per_gaussian_state: ClassVar[tuple[str, ...]] = ("wsq",)
@@ -29,6 +34,9 @@ class ColorBlock(PosteriorBlock):
     prior_precision: float = 1.0
     ema: float = 0.99
     t_post: Optional[int] = None
+    #: from ``t_post``, read Σ_p w² on every k-th step only (step % k == 0), the EMA then decaying by ema^k per read;
+    #: 1: every step (the runs archived). Not in conf/posterior/color.yaml: ``+posterior.color.pair_sums_every=4``
+    pair_sums_every: int = 1
     needs_weights: ClassVar[bool] = True
     needs_residuals: ClassVar[bool] = True  # reads info["sq_err_sum"]
 
@@ -36,6 +44,9 @@ class ColorBlock(PosteriorBlock):
         if self.prior_precision <= 0:
             raise B3dgsError("posterior.color.prior_precision must be > 0",
                              fix="pass posterior.color.prior_precision > 0, e.g. the default 1.0")
+        if not isinstance(self.pair_sums_every, int) or self.pair_sums_every < 1:
+            raise B3dgsError(f"posterior.color.pair_sums_every={self.pair_sums_every} must be an integer >= 1",
+                             fix="pass posterior.color.pair_sums_every as an integer >= 1 (1, the default: every step)")
 
     def initialize_state(self, *, splats, scene, info):
         n, dev = splats["means"].shape[0], splats["means"].device
@@ -54,8 +65,13 @@ class ColorBlock(PosteriorBlock):
         if step < self.stage_start(self.t_post, info, 2):
             return
         wsq = info["per_gaussian"].get("weight_sq_sum")
-        if wsq is not None:
-            state["wsq"].mul_(self.ema).add_((1 - self.ema) * wsq[0].double() * self.train_views(state, info))
+        if wsq is not None and self.reads_pair_sums(step, info):
+            d = self.strided_decay(self.ema, self.pair_sums_every)
+            state["wsq"].mul_(d).add_((1 - d) * wsq[0].double() * self.train_views(state, info))
+
+    def reads_pair_sums(self, step: int, info: dict) -> bool:
+        """From ``t_post`` (the Σ w² EMA's start), on every ``pair_sums_every``-th step (default: every step)."""
+        return step >= self.stage_start(self.t_post, info, 2) and step % self.pair_sums_every == 0
 
     def rgb_var(self, state):
         return app.color_posterior_var(state["wsq"], state["sigma2"], self.prior_precision)

@@ -226,7 +226,13 @@ class DPBlock(PosteriorBlock):
     updated by CAVI (Blei & Jordan 2006) every ``cavi_every`` steps after ``t_dp``.
 
     Usage counts: an EMA over steps of each Gaussian's total compositing weight Σ_p w_kp in the
-    step's view, scaled by the number of training views (expected pixel responsibilities).
+    step's view, scaled by the number of training views (expected pixel responsibilities). The EMA is a
+    recurrence over every step's view: usage at a CAVI step depends on each earlier step's Σ_p w (weight
+    (1 - ema)·ema^age), so the paper's block reads the renderer's pair sums on every step (the default,
+    ``pair_sums_every`` = 1), although CAVI itself runs only every ``cavi_every`` steps. ``pair_sums_every`` = k > 1
+    updates the EMA on every k-th step only, with decay ema^k (the same memory in steps, from 1/k of the views):
+    the renderer computes the sums on 1/k of the steps (the cost DPMM adds on gsplat), and results change
+    (``bench/dp_cadence.py`` measures by how much).
     Ordering for the stick-breaking: by decreasing expected usage (ties by index), re-sorted at
     every CAVI step, the usual choice that makes the truncated prior's size bias match the data.
     Gates: E[π_k] and an approximate activity posterior E[a_k] (see the functions above).
@@ -246,6 +252,10 @@ class DPBlock(PosteriorBlock):
     prior_active: float = 0.5
     gate_temperature: float = 1.0
     prune: bool = True
+    #: read the pair sums (Σ_p w) on every k-th step only (step % k == 0), the usage EMA then decaying by ema^k per
+    #: read; 1: every step (the paper, and the runs archived). Not in conf/posterior/dp.yaml, so a run at the
+    #: default records no new setting: ``+posterior.dp.pair_sums_every=4`` (see ``bench/dp_cadence.py``)
+    pair_sums_every: int = 1
     needs_weights: ClassVar[bool] = True
 
     def validate(self, max_steps: int = 0, **kw) -> None:
@@ -254,6 +264,9 @@ class DPBlock(PosteriorBlock):
         if self.cavi_every < 1:
             raise B3dgsError("posterior.dp.cavi_every must be >= 1",
                              fix="pass posterior.dp.cavi_every as an integer >= 1, e.g. the default 50")
+        if not isinstance(self.pair_sums_every, int) or self.pair_sums_every < 1:
+            raise B3dgsError(f"posterior.dp.pair_sums_every={self.pair_sums_every} must be an integer >= 1",
+                             fix="pass posterior.dp.pair_sums_every as an integer >= 1 (1, the default: every step)")
         if not 0 <= self.ema < 1:
             raise B3dgsError("posterior.dp.ema must be in [0, 1)",
                              fix="pass posterior.dp.ema in [0, 1), e.g. the default 0.99")
@@ -275,12 +288,13 @@ class DPBlock(PosteriorBlock):
     @torch.no_grad()
     def step_post_backward(self, *, splats, optimizers, state, step, info):
         ws = info["per_gaussian"].get("weight_sum")
-        if ws is not None:
+        if ws is not None and self.reads_pair_sums(step, info):
             w = ws[0].double()
             rs = info.get("resolution_scale", 1.0)
             if rs != 1.0:  # a downsampled step (schedule=dash): the weights in full-resolution pixels
                 w = w / (rs * rs)
-            state["usage"].mul_(self.ema).add_((1 - self.ema) * w * self.train_views(state, info))
+            d = self.strided_decay(self.ema, self.pair_sums_every)
+            state["usage"].mul_(d).add_((1 - d) * w * self.train_views(state, info))
         if "cavi" not in self.periodic(step, info):
             return
         self.cavi(state)
@@ -289,6 +303,10 @@ class DPBlock(PosteriorBlock):
             mask = (state["e_pi"] < prune_threshold(k, self.prune_pi)) | (state["e_a"] < self.prune_activity)
             state["last_pruned"] = mask.sum()
             info["ops"].prune(mask, reason="dp")
+
+    def reads_pair_sums(self, step: int, info: dict) -> bool:
+        """Every step by default (the usage EMA is a per-step recurrence); every ``pair_sums_every``-th if set."""
+        return step % self.pair_sums_every == 0
 
     def periodic(self, step: int, info: dict) -> tuple[str, ...]:
         """``cavi`` (and activity pruning) every ``cavi_every`` steps from ``t_dp``."""
