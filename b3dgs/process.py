@@ -23,6 +23,10 @@ progress inside a call, so extraction and matching run as a series of calls) and
    their long side is at most ``max_side`` (``b3dgs.types.fit_size``, PIL's Lanczos filter; the cameras and the
    model's 2D points scaled by the same per-axis ratio, so image and camera sizes agree exactly).
 
+``video=clip.mp4 fps=2`` instead of ``images=``: the video's frames, decoded whole by imageio-ffmpeg's ffmpeg
+(:func:`extract_frames`), into ``out/.b3dgs-process/frames/``, then the same four stages. The same photos and ``seed``
+give the same scene (:func:`_renumber`; matching's RANSAC seeded). The summary names every photo left out and why.
+
 The result is the COLMAP layout that ``data=colmap`` loads: ``out/images/`` and ``out/sparse/0/`` (cameras, images,
 points3D .bin), plus ``out/conf/scene/<name>.yaml``; the last lines print the command that trains it.
 
@@ -59,7 +63,7 @@ from omegaconf import DictConfig
 from b3dgs import conf_dir, data_root
 from b3dgs.errors import B3dgsError
 
-__all__ = ["EXHAUSTIVE_UP_TO", "STAGES", "list_photos", "main", "process"]
+__all__ = ["EXHAUSTIVE_UP_TO", "STAGES", "extract_frames", "list_photos", "main", "process"]
 
 STATE = ".b3dgs-process.json"   # the record of finished stages, in out/
 WORK = ".b3dgs-process"         # the stages' own files (databases, the raw model), in out/
