@@ -23,6 +23,10 @@ progress inside a call, so extraction and matching run as a series of calls) and
    their long side is at most ``max_side`` (``b3dgs.types.fit_size``, PIL's Lanczos filter; the cameras and the
    model's 2D points scaled by the same per-axis ratio, so image and camera sizes agree exactly).
 
+``video=clip.mp4 fps=2`` instead of ``images=``: the video's frames, decoded whole by imageio-ffmpeg's ffmpeg
+(:func:`extract_frames`), into ``out/.b3dgs-process/frames/``, then the same four stages. The same photos and ``seed``
+give the same scene (:func:`_renumber`; matching's RANSAC seeded). The summary names every photo left out and why.
+
 The result is the COLMAP layout that ``data=colmap`` loads: ``out/images/`` and ``out/sparse/0/`` (cameras, images,
 points3D .bin), plus ``out/conf/scene/<name>.yaml``; the last lines print the command that trains it.
 
@@ -59,11 +63,12 @@ from omegaconf import DictConfig
 from b3dgs import conf_dir, data_root
 from b3dgs.errors import B3dgsError
 
-__all__ = ["EXHAUSTIVE_UP_TO", "STAGES", "list_photos", "main", "process"]
+__all__ = ["EXHAUSTIVE_UP_TO", "STAGES", "extract_frames", "list_photos", "main", "process"]
 
 STATE = ".b3dgs-process.json"   # the record of finished stages, in out/
 WORK = ".b3dgs-process"         # the stages' own files (databases, the raw model), in out/
 LOCK = ".b3dgs-process.lock"
+FRAMES = "frames"                # video=: the frames, in out/.b3dgs-process/
 STAGES = ("extract", "match", "map", "undistort")
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 MATCHERS = ("auto", "exhaustive", "sequential")
@@ -223,6 +228,52 @@ def _colmap_log(verbose: bool) -> Iterator[Any]:
 # ----------------------------------------------------------------------------------------------- the stages
 
 
+def _renumber(pycolmap, src: Path, dst: Path, names: list[str]) -> None:
+    """Copy the feature database ``src`` into ``dst`` with its ids in name order: photo ``names[i]`` gets image and
+    frame id ``i + 1``, its camera and rig ids numbered by first use in that order. COLMAP's extractor numbers photos
+    as its threads finish them, and every later stage depends on the ids (a pair's matches are stored from the smaller
+    id to the larger, which changes RANSAC's samples; the mapper breaks ties by id): with these ids, the same photos
+    give the same scene whatever the thread count or timing."""
+    _remove(dst)
+    old = pycolmap.Database.open(str(src))
+    new = pycolmap.Database.open(str(dst))
+    try:
+        images = {im.name: im for im in old.read_all_images()}
+        cameras = {c.camera_id: c for c in old.read_all_cameras()}
+        priors = {}
+        for prior in old.read_all_pose_priors():
+            priors.setdefault(int(prior.corr_data_id.id), []).append(prior)
+        cam_ids: dict[int, int] = {}
+        for i, name in enumerate((n for n in names if n in images), start=1):
+            im = images[name]
+            if im.camera_id not in cam_ids:
+                cam = cameras[im.camera_id]
+                cam_ids[im.camera_id] = cam.camera_id = len(cam_ids) + 1
+                new.write_camera(cam, use_camera_id=True)
+                rig = pycolmap.Rig()
+                rig.rig_id = cam.camera_id
+                rig.add_ref_sensor(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, cam.camera_id))
+                new.write_rig(rig, use_rig_id=True)
+            cam_id = cam_ids[im.camera_id]
+            keypoints, descriptors = old.read_keypoints(im.image_id), old.read_descriptors(im.image_id)
+            frame = pycolmap.Frame()
+            frame.frame_id, frame.rig_id = i, cam_id
+            frame.add_data_id(pycolmap.data_t(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, cam_id), i))
+            new.write_frame(frame, use_frame_id=True)
+            for prior in priors.get(int(im.image_id), []):
+                prior.corr_data_id = pycolmap.data_t(pycolmap.sensor_t(pycolmap.SensorType.CAMERA, cam_id), i)
+                new.write_pose_prior(prior)
+            im.image_id, im.camera_id, im.frame_id = i, cam_id, i
+            new.write_image(im, use_image_id=True)
+            new.write_keypoints(i, keypoints)
+            new.write_descriptors(i, descriptors)
+    finally:
+        old.close()
+        new.close()
+
+
+
+
 class _Run:
     """One ``b3dgs-process`` invocation: its inputs, options and the paths of its stages."""
 
@@ -240,8 +291,8 @@ class _Run:
         c = self.cfg
         extract = {"camera_model": str(c.camera_model), "single_camera": self.single,
                    "sift_max_side": int(c.sift_max_side)}
-        match = {**extract, "matcher": self.matcher}
-        mapping = {**match, "seed": int(c.seed)}
+        match = {**extract, "matcher": self.matcher, "seed": int(c.seed)}
+        mapping = dict(match)
         return {"extract": extract, "match": match, "map": mapping, "undistort": {**mapping, "max_side": int(c.max_side)}}
 
     def outputs(self, stage: str) -> list[Path]:
@@ -290,7 +341,9 @@ class _Run:
             rows = {im.name: int(db.num_keypoints_for_image(im.image_id)) for im in db.read_all_images()}
         finally:
             db.close()
-        os.replace(part, self.work / "features.db")
+        _renumber(pycolmap, part, self.work / "features.db.sorted", self.names)
+        os.replace(self.work / "features.db.sorted", self.work / "features.db")
+        _remove(part)
         empty = [n for n in self.names if not rows.get(n)]
         return {"keypoints": sum(rows.values()), "photos_without_features": empty,
                 "note": f"{sum(rows.values()):,} keypoints"
@@ -326,13 +379,16 @@ class _Run:
         shutil.copyfile(self.work / "features.db", part)
         opts = pycolmap.FeatureMatchingOptions()
         opts.num_threads = self.threads
+        verify = pycolmap.TwoViewGeometryOptions()
+        verify.ransac.random_seed = int(self.cfg.seed)  # else each pair's RANSAC is seeded at random
         pairs = self._pairs(pycolmap, part)
         bar = _bar(f"match ({self.matcher})", len(pairs), " pairs")
         if any(c.isspace() for x in self.names for c in x):
             # COLMAP's pair list is "name1 name2" per line: names with white space take its own matcher in one call
             run = pycolmap.match_exhaustive if self.matcher == "exhaustive" else pycolmap.match_sequential
             kw = {} if self.matcher == "exhaustive" else {"pairing_options": self._sequential(pycolmap)}
-            _call(lambda: run(part, matching_options=opts, device=pycolmap.Device.cpu, **kw))
+            _call(lambda: run(part, matching_options=opts, verification_options=verify, device=pycolmap.Device.cpu,
+                              **kw))
             bar.update(len(pairs))
         else:
             step = self._chunk(len(pairs), 400)
@@ -342,17 +398,22 @@ class _Run:
                 pairing = pycolmap.ImportedPairingOptions()
                 pairing.match_list_path = str(listing)
                 _call(lambda: pycolmap.match_image_pairs(part, matching_options=opts, pairing_options=pairing,
-                                                         device=pycolmap.Device.cpu))
+                                                         verification_options=verify, device=pycolmap.Device.cpu))
                 bar.update(len(chunk))
         bar.close()
         _remove(listing)
         db = pycolmap.Database.open(str(part))
         try:
-            verified = sum(1 for k in db.read_two_view_geometry_num_inliers()[1] if k > 0)
+            ids = {im.image_id: im.name for im in db.read_all_images()}
+            pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+            matched = {ids.get(int(i)) for p, k in zip(pair_ids, inliers) if k > 0
+                       for i in pycolmap.pair_id_to_image_pair(p)}
+            verified = sum(1 for k in inliers if k > 0)
         finally:
             db.close()
         os.replace(part, self.work / "matches.db")
         return {"pairs": len(pairs), "verified_pairs": verified,
+                "photos_without_matches": [n for n in self.names if n not in matched],
                 "note": f"{verified:,} of {len(pairs):,} pairs with verified matches"}
 
     def need(self) -> int:
@@ -525,7 +586,7 @@ def _write_state(out: Path, state: dict) -> None:
     write_json(out / STATE, state)
 
 
-def _check_out(out: Path, images: Path, state: Optional[dict]) -> None:
+def _check_out(out: Path, images: Path, state: Optional[dict], key: str = "images") -> None:
     if out.exists() and not out.is_dir():
         raise B3dgsError(f"out={out} is a file", "pass out= a new or empty folder")
     try:
@@ -534,7 +595,7 @@ def _check_out(out: Path, images: Path, state: Optional[dict]) -> None:
     except ValueError:
         inside = False
     if inside:
-        raise B3dgsError(f"images={images} is inside out={out}, where the undistorted images are written",
+        raise B3dgsError(f"{key}={images} is inside out={out}, where the undistorted images are written",
                          f"pass out= a folder outside the photos' folder, e.g. out={out.parent / (out.name + '_scene')}")
     if state is None and out.is_dir():
         other = sorted(p.name for p in out.iterdir() if p.name != LOCK)
@@ -542,6 +603,32 @@ def _check_out(out: Path, images: Path, state: Optional[dict]) -> None:
             raise B3dgsError(f"out={out} holds what b3dgs-process did not write "
                              f"({', '.join(other[:3])}{f' and {len(other) - 3} more' if len(other) > 3 else ''})",
                              "pass out= a new or empty folder")
+
+
+def _left_out(state: dict, names: list[str]) -> dict[str, str]:
+    """Every photo the scene does not hold, by name, with why (the first that applies, in stage order)."""
+    stages = state["stages"]
+    no_features = set(stages["extract"].get("photos_without_features", []))
+    no_matches = set(stages["match"].get("photos_without_matches", []))
+    unregistered = set(stages["map"].get("unregistered", []))
+    out = {}
+    for n in names:
+        if n in no_features:
+            out[n] = "no SIFT features found"
+        elif n in no_matches:
+            out[n] = "no verified matches with any other photo"
+        elif n in unregistered:
+            out[n] = "not registered by the mapper"
+    return out
+
+
+def _not_photos(folder: Path) -> list[str]:
+    """The files in ``folder`` that :func:`list_photos` does not read (another suffix; hidden files not named)."""
+    try:
+        return sorted(p.name for p in folder.iterdir() if p.is_file() and not p.name.startswith(".")
+                      and p.suffix.lower() not in PHOTO_SUFFIXES)
+    except OSError:
+        return []
 
 
 def _diff(old: list, new: list) -> str:
@@ -687,33 +774,143 @@ def process(cfg: DictConfig) -> dict:
 def _process(cfg: DictConfig) -> dict:
     from b3dgs.locks import LockHeld, process_lock
 
-    images = Path(os.path.abspath(Path(str(cfg.images)).expanduser()))  # absolute, without ".."
     out = Path(os.path.abspath(Path(str(cfg.out)).expanduser()))
-    photos = list_photos(images)
-    sizes = _sizes(photos)  # reads every header: an unreadable photo is refused before anything is written
+    video = _video_arg(cfg)
+    if video is None:
+        images = Path(os.path.abspath(Path(str(cfg.images)).expanduser()))  # absolute, without ".."
+        photos = list_photos(images)
+        sizes = _sizes(photos)  # reads every header: an unreadable photo is refused before anything is written
+    else:
+        images, photos, sizes = out / WORK / FRAMES, [], []  # the frames, extracted once the lock is held
     with _colmap_log(bool(cfg.get("verbose", False))) as pycolmap:
         _check_options(cfg, pycolmap)
         name = _scene_name(cfg, out)
         state = _read_state(out)
-        _check_out(out, images, state)
+        _check_out(out, video or images, state, "images" if video is None else "video")
         out.mkdir(parents=True, exist_ok=True)
         try:
             with process_lock(out / LOCK, wait=False, remove=True):
-                return _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap)
+                if state is not None and bool(cfg.get("overwrite", False)):
+                    _remove_ours(out, state)
+                    state = None
+                if video is not None:
+                    photos = _frames(cfg, video, images, out, state)
+                    sizes = _sizes(photos)
+                return _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, video)
         except LockHeld as e:
             raise B3dgsError(f"out={out} is in use by another b3dgs-process (pid {e.pid})",
                              "wait for it to finish, or pass out= another folder") from None
 
 
-def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap) -> dict:
+def _video_arg(cfg: DictConfig) -> Optional[Path]:
+    """``video=`` as an absolute path (None without it), checked: one of images= and video=, a file, ``fps`` > 0."""
+    given_images, given_video = cfg.get("images") is not None, cfg.get("video") is not None
+    if given_images and given_video:
+        raise B3dgsError(f"both images={cfg.images} and video={cfg.video} given",
+                         "pass images= (a folder of photos) or video= (a clip whose frames are the photos), not both")
+    if not given_images and not given_video:
+        raise B3dgsError("no photos given", "pass images= a folder of photos, or video= a clip (with fps=)")
+    if not given_video:
+        return None
+    video = Path(os.path.abspath(Path(str(cfg.video)).expanduser()))
+    if not video.is_file():
+        raise B3dgsError(f"video={video}: {'a folder, not a file' if video.is_dir() else 'no such file'}",
+                         "pass video= a video file (e.g. clip.mp4), or images= a folder of photos")
+    fps = cfg.get("fps")
+    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not 0 < fps <= 120:
+        raise B3dgsError(f"fps={fps} is not a frame rate", "pass fps= frames per second to keep, e.g. fps=2")
+    return video
+
+
+def _video_key(video: Path, fps: float) -> dict:
+    st = video.stat()
+    return {"path": str(video), "size": int(st.st_size), "mtime_ns": int(st.st_mtime_ns), "fps": float(fps)}
+
+
+def _frames(cfg: DictConfig, video: Path, folder: Path, out: Path, state: Optional[dict]) -> list[Path]:
+    """``video=``'s frames at ``fps=`` in ``folder`` (extracted once: a rerun with the same video and fps finds them),
+    as :func:`list_photos` lists them. A different video (or fps) than ``out`` was processed from is refused."""
+    key = _video_key(video, float(cfg.fps))
+    if state is not None:
+        if state.get("video") != key:
+            old = state.get("video") or {}
+            was = f"video={old.get('path')} fps={old.get('fps'):g}" if old else f"images={state.get('images')}"
+            raise B3dgsError(f"out={out} was processed from {was}, not this video={video} fps={cfg.fps:g} (or the "
+                             "video changed since)", "pass overwrite=true to process it afresh, or out= a new folder")
+        if folder.is_dir():
+            return list_photos(folder)
+    part = folder.with_name(folder.name + ".partial")
+    _remove(part)
+    _remove(folder)
+    t0 = time.perf_counter()
+    _say(f"[0/{len(STAGES)}] frames: {video.name} at fps={cfg.fps:g}")
+    n = _call(lambda: extract_frames(video, part, float(cfg.fps)))
+    os.replace(part, folder)
+    _say(f"[0/{len(STAGES)}] frames: {n} frames in {time.perf_counter() - t0:.1f} s")
+    if state is not None:
+        state["video"] = key
+    return list_photos(folder)
+
+
+def extract_frames(video: Path, folder: Path, fps: float, quality: int = 2) -> int:
+    """Decode ``video`` whole with imageio-ffmpeg's ffmpeg and write one frame per 1/``fps`` seconds into ``folder`` as
+    ``frame_00001.jpg``, ... (ffmpeg's JPEG ``-q:v quality``, 2 the best but one); returns how many. A video ffmpeg
+    cannot open or that fails to decode anywhere (``-xerror``: a truncated clip stops ffmpeg with an error instead of
+    ending early) raises :class:`B3dgsError` with ffmpeg's last line; so do fewer than 3 frames. The frames already
+    written stay for the caller to remove. Each frame gets the video's modification time, so frames extracted again
+    list the same (the state file's fingerprint)."""
+    import subprocess
+
+    import imageio_ffmpeg
+
+    folder.mkdir(parents=True, exist_ok=True)
+    fix = "re-encode or re-download the video (it should play to its end), or pass images= a folder of photos"
+    try:
+        gen = imageio_ffmpeg.read_frames(str(video))
+        total = round(float(next(gen).get("duration") or 0) * fps) or None
+        gen.close()
+    except (OSError, RuntimeError, StopIteration, KeyError, ValueError):
+        total = None  # the decoding below names the problem
+    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-nostdin", "-v", "error", "-xerror", "-err_detect", "explode",
+           "-i", str(video), "-vf", f"fps={fps:g}", "-q:v", str(int(quality)), str(folder / "frame_%05d.jpg")]
+    bar = _bar("frames", total or 0, " frames")
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    err: list[bytes] = []
+    reader = threading.Thread(target=lambda: err.append(proc.stderr.read()), daemon=True)
+    reader.start()
+    try:
+        while proc.poll() is None:
+            time.sleep(0.2)
+            _stop_if_signalled()
+            _advance(bar, len(os.listdir(folder)))
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    reader.join()
+    frames = sorted(folder.glob("frame_*.jpg"))
+    _advance(bar, len(frames))
+    bar.close()
+    if proc.returncode != 0:
+        lines = [re.sub(r"^\[[^\]]*\]\s*", "", ln.strip()) for ln in b"".join(err).decode(errors="replace").splitlines()]
+        lines = [ln for ln in lines if ln]
+        why = " ".join((lines[0] if lines else f"ffmpeg exit code {proc.returncode}").split()).replace(str(video), "it")
+        raise B3dgsError(f"cannot decode video={video} whole ({len(frames)} frames read): {why[:200]}", fix)
+    mtime = video.stat().st_mtime_ns
+    for f in frames:
+        os.utime(f, ns=(mtime, mtime))
+    if len(frames) < MIN_PHOTOS:
+        raise B3dgsError(f"video={video} gave {len(frames)} frame{'s' if len(frames) != 1 else ''} at fps={fps:g}; "
+                         f"structure from motion needs at least {MIN_PHOTOS}", "pass a larger fps=, or a longer video")
+    return len(frames)
+
+
+def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, video=None) -> dict:
     from b3dgs.rundir import Interrupted
 
     t_start = time.perf_counter()
     listing = _listing(photos)
     fp = _fingerprint(listing)
-    if state is not None and bool(cfg.get("overwrite", False)):
-        _remove_ours(out, state)
-        state = None
     if state is not None and state.get("fingerprint") != fp:
         raise B3dgsError(f"images={images} changed since {out} was processed from it "
                          f"({_diff(state.get('photos', []), listing)})",
@@ -725,13 +922,16 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap) -> d
     if state is None:
         state = {"format": FORMAT, "images": str(images), "fingerprint": fp, "photos": listing, "stages": {},
                  "files": []}
+        if video is not None:
+            state["video"] = _video_key(video, float(cfg.fps))
     run = _Run(cfg, photos, sizes, images, out, single, matcher, state)
     state["images"] = str(images)
     run.work.mkdir(parents=True, exist_ok=True)
     _write_state(out, state)
     keys = run.keys()
     cams = "one camera" if single else "one camera per photo"
-    _say(f"b3dgs-process: {len(photos)} photos in {images} -> {out} ({matcher} matching, {cfg.camera_model}, {cams})")
+    source = f"{images}" if video is None else f"{images} (frames of {video} at fps={cfg.fps:g})"
+    _say(f"b3dgs-process: {len(photos)} photos in {source} -> {out} ({matcher} matching, {cfg.camera_model}, {cams})")
     report: dict[str, Any] = {}
     for i, stage in enumerate(STAGES):
         _stop_if_signalled()
@@ -774,7 +974,7 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap) -> d
     m, u = state["stages"]["map"], state["stages"]["undistort"]
     summary = f"{m['registered']} of {len(photos)} photos registered; PINHOLE, {u['size']} px (max_side={cfg.max_side})"
     scene_file = f"conf/scene/{name}.yaml"
-    text = _scene_yaml(name, out, images, summary, command)
+    text = _scene_yaml(name, out, images if video is None else video, summary, command)
     old = state.get("scene_file")
     if old and old != scene_file:
         _remove(out / old)
@@ -789,11 +989,19 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap) -> d
     total = time.perf_counter() - t_start
     _say(f"b3dgs-process: {summary}; " + ", ".join(f"{s} {state['stages'][s]['seconds']:.1f} s" for s in STAGES)
          + f" (this run {total:.1f} s)")
+    left_out = _left_out(state, [p.name for p in photos])
+    for why in dict.fromkeys(left_out.values()):
+        names = [n for n, w in left_out.items() if w == why]
+        _say(f"left out ({why}): {len(names)} photo{'s' if len(names) > 1 else ''}: {', '.join(names)}")
+    skipped = _not_photos(images) if video is None else []
+    if skipped:
+        _say(f"not read (not a photo: {' '.join(PHOTO_SUFFIXES)}): {', '.join(skipped)}")
     _say(f"scene: {out}/images, {out}/sparse/0, {target}")
     _say(f"train it: {command}")
     _say(f"      or: b3dgs-train data=colmap {_shell_override('data.path', str(out))}")
     return {"out": str(out), "name": name, "command": command, "scene_file": str(target), "stages": report,
-            "registered": int(m["registered"]), "photos": len(photos), "seconds": total}
+            "registered": int(m["registered"]), "photos": len(photos), "seconds": total, "left_out": left_out,
+            "not_photos": skipped}
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="process")
