@@ -51,7 +51,9 @@ def did_you_mean(word: str, choices: Iterable[str]) -> str:
 
 def _rerun_with_m() -> str:
     """The running command again with ``-m`` first (its name as :func:`run_cli` was given it)."""
-    return " ".join([_PROG or "b3dgs-train", "-m", *(a for a in sys.argv[1:] if a not in _MULTIRUN_FLAGS)])
+    import shlex
+
+    return shlex.join([_PROG or "b3dgs-train", "-m", *(a for a in sys.argv[1:] if a not in _MULTIRUN_FLAGS)])
 
 
 def _one_line(text: str) -> str:
@@ -112,7 +114,7 @@ def _hydra_error(exc: BaseException) -> Optional[B3dgsError]:
         arg = head.split("'", 1)[1].rsplit("'", 1)[0] if "'" in head else "key=a,b"
         key, _, value = arg.partition("=")
         return B3dgsError(f"{arg} is a sweep, a list or a string", f"to sweep over it, put -m first: "
-                          f"{_rerun_with_m()}; a list: {key}=[{value}]; a string: \"{key}='{value}'\"")
+                          f"{_rerun_with_m()}; a list: '{key}=[{value}]'; a string: \"{key}='{value}'\"")
     if "Could not append" in head and "already" in text:
         key = head.split("'")[1] if "'" in head else head
         given = [a for a in sys.argv[1:] if a.lstrip("+~").partition("=")[0] == key]
