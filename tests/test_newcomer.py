@@ -146,6 +146,8 @@ def test_setup_script_parses_and_says_what_it_does():
     assert "python -m venv .venv" in text and "VIRTUAL_ENV" in text
 
 
+@pytest.mark.slow  # a training and an eval in subprocesses (~80 s on 2 busy cores); tests/test_progress.py checks the
+# bar itself in a log stream without them
 def test_eval_bars_finish_when_piped(tmp_path):
     """b3dgs-eval with its output in a pipe: each regime's bar ends on its final N/N state (it stopped at 0/N)."""
     run = tmp_path / "run"
