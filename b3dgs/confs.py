@@ -10,7 +10,7 @@ from omegaconf import OmegaConf
 from b3dgs import conf_dir
 
 __all__ = ["added_key_problem", "conf_roots", "help_groups", "option_clashes", "known_keys", "load_option", "option_names",
-           "help_groups_only", "register_help_resolver"]
+           "app_groups", "help_text", "load_primary"]
 
 
 def conf_roots() -> list[Path]:
@@ -179,34 +179,47 @@ def _format_groups(keep) -> str:
     return "" if hydra is None else hydra.format_config_groups(keep)
 
 
-def help_groups(*hidden: str) -> str:
-    """Hydra's ``--help`` list of config groups (``group: option, ...`` lines) without Hydra's own groups and the
-    ``hidden`` ones: ``NAME`` hides a group with its subgroups, ``NAME/SUB`` one subgroup, ``NAME=OPTION`` one option
-    of a group. An app's ``hydra.help.template`` lists what it reads with ``${b3dgs.help_groups:uq,acquisition}``
-    (``b3dgs-train`` hides the eval / study groups and the study-only presets)."""
+def load_primary(config: str) -> dict:
+    """The contents of app ``config``'s primary config (``conf/<config>.yaml``, the first root that has it; {} if none)."""
+    f = next((f for f in (root / f"{config}.yaml" for root in conf_roots()) if f.is_file()), None)
+    return {} if f is None else _load(f)[0]
+
+
+def app_groups(config: str) -> set[str]:
+    """The config groups app ``config`` reads: those its primary config's defaults list names (Hydra's aside)."""
+    return {g for g in _defaults_groups(load_primary(config)) if g != "_self_" and g.split("/")[0] != "hydra"}
+
+
+def help_groups(config: str, *hidden: str) -> str:
+    """Hydra's ``--help`` list of the config groups (``group: option, ...`` lines) app ``config`` reads
+    (:func:`app_groups`), less the ``hidden`` ones: ``NAME`` hides a group, ``NAME=OPTION`` one option of a group
+    (``b3dgs-train`` hides experiment/strategy, which its experiment picks, and the study-only preset)."""
     options = {tuple(h.split("=", 1)) for h in hidden if "=" in h}
-    groups = {h for h in hidden if "=" not in h}
-    text = _format_groups(lambda g: not any(g == h or g.startswith(h + "/") for h in groups | {"hydra"}))
+    shown = app_groups(config) - {h for h in hidden if "=" not in h}
     lines = []
-    for line in text.splitlines(keepends=True):
+    for line in _format_groups(lambda g: g in shown).splitlines(keepends=True):
         group, sep, rest = line.partition(": ")
         if sep and any(g == group for g, _ in options):
-            kept = [o for o in rest.strip().split(", ") if (group, o) not in options]
-            line = f"{group}: {', '.join(kept)}\n"
+            line = f"{group}: {', '.join(o for o in rest.strip().split(', ') if (group, o) not in options)}\n"
         lines.append(line)
     return "".join(lines)
 
 
-def help_groups_only(*shown: str) -> str:
-    """Hydra's ``--help`` list of config groups restricted to ``shown`` (and their subgroups): an app that reads one
-    group lists only it (``b3dgs-eval``: ``${b3dgs.help_only:uq}``), whatever groups b3dgs or a package adds later."""
-    return _format_groups(lambda g: g.split("/")[0] in shown)
+#: the end of every b3dgs command's ``--help``
+HELP_FOOTER = ("Overrides are key=value, group=option or +key=value; -m (--multirun) before them sweeps a,b,c values;\n"
+               "--cfg job prints the composed config; --hydra-help lists Hydra's own flags.")
 
 
-def register_help_resolver() -> None:
-    """``${b3dgs.help_groups:NAME,...}`` (:func:`help_groups`) and ``${b3dgs.help_only:NAME,...}``
-    (:func:`help_groups_only`) in a config."""
-    if not OmegaConf.has_resolver("b3dgs.help_groups"):
-        OmegaConf.register_new_resolver("b3dgs.help_groups", help_groups)
-    if not OmegaConf.has_resolver("b3dgs.help_only"):
-        OmegaConf.register_new_resolver("b3dgs.help_only", help_groups_only)
+def help_text(config: str, *hidden: str, _parent_=None) -> str:
+    """The ``--help`` template of a b3dgs command (``hydra.help.template: ${b3dgs.help:CONFIG,HIDDEN...}`` in its
+    primary config): its ``hydra.help.header`` (the purpose line and three examples), the config groups it reads
+    (:func:`help_groups`; none listed for a command that reads none), its config (Hydra's ``$CONFIG``) and
+    :data:`HELP_FOOTER`."""
+    header = str(_parent_.get("header", "")).rstrip() if _parent_ is not None else ""
+    groups = help_groups(config, *hidden)
+    parts = [header.replace("$", "$$"), ""]
+    if groups:
+        parts += ["== Configuration groups ==", "Compose your configuration from those groups (group=option)", "",
+                  groups.rstrip().replace("$", "$$"), ""]
+    parts += ["== Config ==", "Override anything in the config (foo.bar=value)", "", "$CONFIG", HELP_FOOTER]
+    return "\n".join(parts)

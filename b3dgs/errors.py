@@ -24,6 +24,7 @@ from typing import Callable, Iterable, Optional
 EXIT_CODE = 2
 DEBUG_KEY = "b3dgs.debug"
 _APP_CONFIG: Optional[str] = None  # the running CLI's primary config (run_cli), for "did you mean"
+_PROG: Optional[str] = None  # the running CLI's name (run_cli), for fixes that repeat its command
 
 __all__ = ["B3dgsError", "EXIT_CODE", "did_you_mean", "format_error", "known_errors", "quiet_known_noise", "run_cli"]
 
@@ -46,6 +47,13 @@ def did_you_mean(word: str, choices: Iterable[str]) -> str:
     """``"; did you mean X?"`` for the closest of ``choices``, else ``""``."""
     close = difflib.get_close_matches(str(word), sorted(set(map(str, choices))), n=1, cutoff=0.6)
     return f"; did you mean {close[0]}?" if close else ""
+
+
+def _rerun_with_m() -> str:
+    """The running command again with ``-m`` first (its name as :func:`run_cli` was given it)."""
+    import shlex
+
+    return shlex.join([_PROG or "b3dgs-train", "-m", *(a for a in sys.argv[1:] if a not in _MULTIRUN_FLAGS)])
 
 
 def _one_line(text: str) -> str:
@@ -102,6 +110,11 @@ def _hydra_error(exc: BaseException) -> Optional[B3dgsError]:
         lines += [ln.strip() for ln in str(cause).splitlines() if ln.strip()]
     head = lines[0] if lines else type(exc).__name__
     text = " ".join(lines)
+    if head.startswith("Ambiguous value for argument"):  # a,b,c without -m: Hydra's three readings, kept
+        arg = head.split("'", 1)[1].rsplit("'", 1)[0] if "'" in head else "key=a,b"
+        key, _, value = arg.partition("=")
+        return B3dgsError(f"{arg} is a sweep, a list or a string", f"to sweep over it, put -m first: "
+                          f"{_rerun_with_m()}; a list: '{key}=[{value}]'; a string: \"{key}='{value}'\"")
     if "Could not append" in head and "already" in text:
         key = head.split("'")[1] if "'" in head else head
         given = [a for a in sys.argv[1:] if a.lstrip("+~").partition("=")[0] == key]
@@ -180,6 +193,8 @@ def format_error(exc: BaseException) -> Optional[str]:
         return f"{key} is not set (fix: pass {key}=VALUE on the command line)"
     if isinstance(exc, FileNotFoundError):
         return f"{_one_line(exc)} (fix: check the path)"
+    if isinstance(exc, ValueError) and str(exc).startswith("Only one of --run, --multirun"):  # Hydra's flags
+        return f"{_one_line(exc)} (fix: drop all of those flags but one)"
     io = _io_error(exc)
     if io is not None:
         return io
@@ -323,6 +338,18 @@ def _refuse_unread_additions(prog: str, argv: list[str], config: str) -> None:
                 _report(prog, B3dgsError(*problem))
 
 
+_MULTIRUN_FLAGS = ("-m", "--multirun")
+
+
+def multirun_first(argv: list[str]) -> list[str]:
+    """``argv`` with ``-m`` / ``--multirun`` moved before the overrides when it comes after one (``seed=0,1 -m``),
+    which Hydra's argument parser refuses with its usage text; ``argv`` itself when nothing moves."""
+    at = [i for i, a in enumerate(argv) if a in _MULTIRUN_FLAGS]
+    if not at or not any("=" in a and not a.startswith("-") for a in argv[:at[0]]):
+        return argv
+    return [argv[at[0]], *(a for i, a in enumerate(argv) if i not in at)]
+
+
 def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str]] = None,
             config: Optional[str] = None) -> None:
     """Call a ``@hydra.main`` function; print known composition errors (bad override, unknown option)
@@ -332,9 +359,12 @@ def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str
     Hydra is asked (through its own ``HYDRA_FULL_ERROR`` switch) to pass exceptions on, so that they
     reach this handler instead of Hydra's multi-line report.
     """
-    global _APP_CONFIG
-    _APP_CONFIG = config
+    global _APP_CONFIG, _PROG
+    _APP_CONFIG, _PROG = config, prog
     argv = sys.argv[1:] if argv is None else argv
+    moved = multirun_first(argv)
+    if moved is not argv and argv == sys.argv[1:]:
+        sys.argv[1:] = argv = moved
     debug = _debug_requested(argv)
     old = os.environ.get("HYDRA_FULL_ERROR")
     os.environ[_USER_ENV] = old or ""

@@ -2,7 +2,7 @@
 
 ``tqdm`` redraws its bar with a carriage return on every update: in a terminal that is one moving line, in a
 cluster's log file or a pipe it is one ever-growing line. :func:`progress` gives a normal bar when its stream is a
-terminal and, otherwise, whole lines at most every ``line_every_s`` seconds plus the last one (the training bar,
+terminal and, otherwise, whole lines at most every ``line_every_s`` seconds plus the final state (the training bar,
 :class:`b3dgs.callbacks.StepProgressBar`, follows the same rule)."""
 from __future__ import annotations
 
@@ -59,12 +59,14 @@ class _LineTqdm(tqdm):
 def progress(iterable: Optional[Iterable] = None, *, file: Any = None, line_every_s: float = LINE_EVERY_S,
              **kwargs) -> tqdm:
     """``tqdm(iterable, file=file, **kwargs)`` on a terminal; else a bar printed as whole lines, at most one every
-    ``line_every_s`` seconds and one at the end (``leave=False`` bars print nothing at the end)."""
+    ``line_every_s`` seconds and its final state at the end (also for a ``leave=False`` bar, which a terminal clears:
+    a log has nothing to clear, and a bar whose last line says 0/N reads as a job that stopped)."""
     stream = sys.stderr if file is None else file
     if auto_tqdm is not tqdm:  # Jupyter: its widget
         return auto_tqdm(iterable, file=file, **kwargs) if file is not None else auto_tqdm(iterable, **kwargs)
     if is_terminal(stream):
         return tqdm(iterable, file=stream, **kwargs)
     kwargs.setdefault("dynamic_ncols", False)
+    kwargs["leave"] = True
     return _LineTqdm(iterable, file=_Lines(stream), mininterval=float(line_every_s), maxinterval=float(line_every_s),
                      ascii=True, **kwargs)

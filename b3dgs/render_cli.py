@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import sys
 from contextlib import contextmanager
+from functools import lru_cache
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -160,6 +161,20 @@ def camera_path(scene, path: str, frames: int) -> list[Camera]:
     return interpolate_cameras(cams, frames) if path == "interpolate" else orbit_cameras(cams, frames)
 
 
+@lru_cache(maxsize=None)
+def caption_font(size: int = 10):
+    """The captions' font: DejaVu Sans, which matplotlib ships and which has σ and N̂ (PIL's built-in font draws σ as
+    a missing-glyph box); PIL's own font where matplotlib's cannot be found."""
+    from PIL import ImageFont
+
+    try:
+        from matplotlib import font_manager
+
+        return ImageFont.truetype(font_manager.findfont("DejaVu Sans", fallback_to_default=False), size)
+    except (ImportError, OSError, ValueError):
+        return ImageFont.load_default()
+
+
 def _legend(width: int, cmap: str, lo: float, hi: float, unit: str) -> np.ndarray:
     """A colour bar ``width`` px wide with its two ends written under it (uint8, (28, width, 3))."""
     from PIL import Image, ImageDraw
@@ -171,9 +186,10 @@ def _legend(width: int, cmap: str, lo: float, hi: float, unit: str) -> np.ndarra
     img[2:12] = bar[None]
     pil = Image.fromarray(img)
     draw = ImageDraw.Draw(pil)
-    draw.text((1, 14), f"{lo:.3g}", fill=(0, 0, 0))
+    font = caption_font()
+    draw.text((1, 14), f"{lo:.3g}", fill=(0, 0, 0), font=font)
     right = f"{hi:.3g} {unit}".strip()
-    draw.text((max(1, width - 6 * len(right) - 1), 14), right, fill=(0, 0, 0))
+    draw.text((max(1, width - int(draw.textlength(right, font=font)) - 1), 14), right, fill=(0, 0, 0), font=font)
     return np.asarray(pil)
 
 
@@ -182,7 +198,7 @@ def _caption(height: int, width: int, text: str) -> np.ndarray:
     from PIL import Image, ImageDraw
 
     pil = Image.fromarray(np.full((height, width, 3), 255, np.uint8))
-    ImageDraw.Draw(pil).text((1, 8), text, fill=(0, 0, 0))
+    ImageDraw.Draw(pil).text((1, 8), text, fill=(0, 0, 0), font=caption_font())
     return np.asarray(pil)
 
 

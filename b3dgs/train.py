@@ -16,7 +16,6 @@ import hydra
 from omegaconf import DictConfig
 
 from b3dgs import conf_dir
-from b3dgs.confs import register_help_resolver
 from b3dgs.io import write_json
 from b3dgs.labels import method_label, register_resolver
 
@@ -24,7 +23,6 @@ log = logging.getLogger(__name__)
 
 CONF_DIR = conf_dir()
 register_resolver()  # ${b3dgs.method:} in run dir names (conf/hydra/default.yaml)
-register_help_resolver()  # ${b3dgs.help_groups:} in --help (conf/train.yaml)
 
 
 def train(cfg: DictConfig) -> dict:

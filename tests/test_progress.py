@@ -120,8 +120,8 @@ def test_a_log_file_gets_whole_bar_lines_not_a_redraw_per_step(tmp_path):
 
 def test_study_and_eval_bars_print_whole_lines_in_a_log_file():
     """b3dgs.progress: the eval / render / compression bars print whole lines when their stream is not a terminal
-    (a cluster log): no carriage-return redraws, the last state once, and nothing for a cleared (leave=False) bar
-    beyond its lines. On a terminal it is tqdm's own bar."""
+    (a cluster log): no carriage-return redraws, the last state once, also for a bar a terminal clears (leave=False:
+    eval's bars, which stopped at 0/N in a pipe; issue 52). On a terminal it is tqdm's own bar."""
     import io
 
     from tqdm.std import tqdm as std_tqdm
@@ -136,10 +136,10 @@ def test_study_and_eval_bars_print_whole_lines_in_a_log_file():
     assert lines[0].startswith("uq native:   0%") and lines[-1].startswith("uq native: 100%")
     assert sum(ln.startswith("uq native: 100%") for ln in lines) == 1 and len(lines) == 6
     buf = io.StringIO()
-    for _ in progress(range(1000), desc="render", file=buf, leave=False):  # 30 s apart: only the first line
+    for _ in progress(range(1000), desc="render", file=buf, leave=False):  # 30 s apart: the first and the last line
         pass
-    assert buf.getvalue().splitlines() == [ln for ln in buf.getvalue().splitlines() if ln.startswith("render:   0%")]
-    assert len(buf.getvalue().splitlines()) == 1
+    lines = buf.getvalue().splitlines()
+    assert len(lines) == 2 and lines[0].startswith("render:   0%") and lines[1].startswith("render: 100%"), lines
 
     class Tty(io.StringIO):
         def isatty(self):

@@ -127,6 +127,7 @@ def test_train_help_lists_only_the_groups_training_reads(tmp_path):
                          cwd=tmp_path, env=ENV)
     assert res.returncode == 0, res.stderr[-2000:]
     head, _, rest = res.stdout.partition("== Config ==")
+    head = head.partition("== Configuration groups ==")[2]  # after the purpose line and the examples
     groups = {ln.split(":")[0] for ln in head.splitlines() if ": " in ln and not ln.startswith(" ")}
     assert {"data", "model", "posterior", "renderer", "scene", "schedule", "strategy", "trainer", "logger",
             "experiment"} <= groups, head
@@ -134,7 +135,7 @@ def test_train_help_lists_only_the_groups_training_reads(tmp_path):
     # the study-only preset is left out of its group's line, the other presets stay
     experiments = next(ln for ln in head.splitlines() if ln.startswith("experiment: ")).split(": ")[1].split(", ")
     assert "archived_posterior" not in experiments and {"paper", "study", "smoke"} <= set(experiments), head
-    assert "model: dpmm, mcmc, niw, standard" in head and "\nstrategy:\n  _target_: " in rest and "help_groups" not in res.stdout
+    assert "model: dpmm, mcmc, niw, standard" in head and "\nstrategy:\n  _target_: " in rest and "b3dgs.help" not in res.stdout
     assert not any(tmp_path.iterdir())
 
 
@@ -150,8 +151,8 @@ def test_train_refuses_a_study_preset_by_name(tmp_path):
     assert not (tmp_path / "run").exists()
 
 
-def test_help_groups_hides_groups_subgroups_and_options(monkeypatch):
-    """help_groups' tokens: NAME hides a group and its subgroups, NAME/SUB one subgroup, NAME=OPTION one option."""
+def test_help_groups_lists_the_apps_groups_less_hidden_groups_and_options(monkeypatch):
+    """help_groups(APP, ...): the groups APP's defaults list names; NAME hides a group, NAME=OPTION one option."""
     from b3dgs import confs
 
     listing = "acquisition: a, b\nacquisition/batch: x\nexperiment: paper, preset, study\nexperiment/strategy: s\n" \
@@ -161,9 +162,14 @@ def test_help_groups_hides_groups_subgroups_and_options(monkeypatch):
         return "".join(ln + "\n" for ln in listing.splitlines() if keep(ln.split(":")[0]))
 
     monkeypatch.setattr(confs, "_format_groups", fake_format)
-    assert confs.help_groups("acquisition", "experiment/strategy", "experiment=preset") == \
+    monkeypatch.setattr(confs, "app_groups", lambda config: {"experiment", "experiment/strategy", "model"})
+    assert confs.help_groups("train", "experiment/strategy", "experiment=preset") == \
         "experiment: paper, study\nmodel: m\n"
-    assert confs.help_groups() == "".join(ln + "\n" for ln in listing.splitlines() if not ln.startswith("hydra"))
+    assert confs.help_groups("train") == "experiment: paper, preset, study\nexperiment/strategy: s\nmodel: m\n"
+    monkeypatch.undo()
+    assert confs.app_groups("eval") == {"uq"} and confs.app_groups("export") == set()
+    assert {"data", "model", "experiment", "experiment/strategy"} <= confs.app_groups("train")
+    assert not confs.app_groups("train") & {"uq", "acquisition", "pruning", "hydra", "_self_"}
 
 
 def test_eval_help_lists_only_the_uq_group(tmp_path):
@@ -173,7 +179,8 @@ def test_eval_help_lists_only_the_uq_group(tmp_path):
                          cwd=tmp_path, env=ENV)
     assert res.returncode == 0, res.stderr[-2000:]
     head, _, rest = res.stdout.partition("== Config ==")
+    head = head.partition("== Configuration groups ==")[2]  # after the purpose line and the examples
     groups = {ln.split(":")[0] for ln in head.splitlines() if ": " in ln and not ln.startswith(" ")}
     assert groups == {"uq"}, head
-    assert "native_plus_sh" in head and "\nrun: ???" in rest and "help_only" not in res.stdout
+    assert "native_plus_sh" in head and "\nrun: ???" in rest and "b3dgs.help" not in res.stdout
     assert not any(tmp_path.iterdir())

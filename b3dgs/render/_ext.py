@@ -83,6 +83,16 @@ def _import_built(path: Path, name: str) -> ModuleType:
     return mod
 
 
+#: the first build's time on this project's 2-core CPU (g++ -O3, ~50 s), said before it starts
+BUILD_TIME = "about 1 minute"
+
+
+def announce_build(build_dir: Path) -> None:
+    """One stderr line before a build (only a build, never a cached load): a first run is otherwise a silent pause."""
+    sys.stderr.write(f"b3dgs: compiling the C++ CPU kernels once ({BUILD_TIME}; cached in {build_dir.parent})\n")
+    sys.stderr.flush()
+
+
 def _build_locked(build_dir: Path, name: str, verbose: bool) -> ModuleType:
     from torch.utils import cpp_extension
 
@@ -95,6 +105,7 @@ def _build_locked(build_dir: Path, name: str, verbose: bool) -> ModuleType:
         stale = build_dir / "lock"  # torch FileBaton left over by a killed build
         if stale.exists():
             stale.unlink()
+        announce_build(build_dir)
         return cpp_extension.load(
             name=name,
             sources=[str(s) for s in _SOURCES],

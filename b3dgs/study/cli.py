@@ -37,16 +37,32 @@ def study_app(config_name: str, study_cls):
     return app
 
 
+def usage(got: str = "") -> str:
+    """``b3dgs-study --help``: the purpose, the studies, and an example of each (the first of its config's
+    ``hydra.help.header``) and how to get a study's own help."""
+    from b3dgs.confs import load_primary
+
+    lines = ["b3dgs-study: the paper's studies, each its own Hydra app: active view selection, compression.",
+             f"usage: b3dgs-study <study> [hydra overrides]{got}"]
+    lines += [f"  {k:<9} {doc}" for k, (_, doc, _) in STUDIES.items()]
+    lines.append("Examples:")
+    for _, _, config in STUDIES.values():
+        header = str(((load_primary(config).get("hydra") or {}).get("help") or {}).get("header", ""))
+        lines += [ln for ln in header.splitlines() if ln.startswith("  b3dgs-study ")][:1]
+    lines.append("  b3dgs-study active --help                            # a study's examples, config groups and config")
+    return "\n".join(lines)
+
+
 def main() -> None:
     import importlib
 
     from b3dgs.errors import run_cli
 
     if len(sys.argv) < 2 or sys.argv[1] not in STUDIES:
-        lines = "\n".join(f"  b3dgs-study {k} ...   {doc}" for k, (_, doc, _) in STUDIES.items())
-        got = f" (got {sys.argv[1]!r})" if len(sys.argv) >= 2 else ""
-        print(f"usage: b3dgs-study <study> [hydra overrides]{got}\n{lines}", file=sys.stderr)
-        raise SystemExit(2)
+        asked = len(sys.argv) >= 2 and sys.argv[1] in ("-h", "--help")
+        got = f" (got {sys.argv[1]!r})" if len(sys.argv) >= 2 and not asked else ""
+        print(usage(got), file=sys.stdout if asked else sys.stderr)
+        raise SystemExit(0 if asked else 2)
     module, _, config = STUDIES[sys.argv.pop(1)]
     run_cli("b3dgs-study", importlib.import_module(module).hydra_main, config=config)
 

@@ -154,15 +154,17 @@ def hydra_main(cfg: DictConfig) -> None:
 
 
 def help_text() -> str:
-    """``b3dgs-view --help``: usage, the modes (:data:`b3dgs.viewer.modes.MODES`) and the options with their defaults
+    """``b3dgs-view --help``: its purpose and examples (``hydra.help.header`` of ``conf/view.yaml``), usage, the modes (:data:`b3dgs.viewer.modes.MODES`) and the options with their defaults
     and comments (``conf/view.yaml``)."""
     import re
 
     from b3dgs.viewer.modes import MODES
 
-    lines = ["usage: b3dgs-view run=DIR [key=value ...]", "",
-             "A local web viewer (viser) of a finished b3dgs-train run and its uncertainty: open the printed URL.",
-             "", "Modes (mode=NAME at start, or the panel's Mode menu; a run offers those its model supports):"]
+    from b3dgs.confs import load_primary
+
+    header = str(load_primary("view")["hydra"]["help"]["header"]).rstrip()  # the purpose and three examples
+    lines = [header, "", "usage: b3dgs-view run=DIR [key=value ...]", "",
+             "Modes (mode=NAME at start, or the panel's Mode menu; a run offers those its model supports):"]
     lines += [f"  {m.key:<14}{m.label}: {m.what}" for m in MODES.values()]
     lines += ["", "Options (key=value; defaults from conf/view.yaml):"]
     text = (Path(CONF_DIR) / "view.yaml").read_text()
@@ -173,8 +175,6 @@ def help_text() -> str:
             lines.append(f"  {opt.group(1) + '=' + opt.group(2):<22}{opt.group(3) or ''}")
         elif more:
             lines.append(f"  {'':<22}{more.group(1)}")
-    lines += ["", "Examples:", "  b3dgs-view run=outputs/train/RUN", "  b3dgs-view run=RUN mode=native_sigma port=0",
-              "  b3dgs-view run=RUN sigma_max=0.05 max_side=512 photos=true"]
     return "\n".join(lines)
 
 
