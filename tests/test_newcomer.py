@@ -28,6 +28,7 @@ COMMANDS = {
     "b3dgs-study active": (["b3dgs.study.cli", "active"], {"data", "experiment", "renderer", "scene", "strategy",
                                                             "trainer"}),
     "b3dgs-study compress": (["b3dgs.study.cli", "compress"], set()),
+    "b3dgs-process": (["b3dgs.process"], set()),
 }
 
 
