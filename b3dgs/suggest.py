@@ -51,6 +51,10 @@ __all__ = ["TargetPool", "generate_candidates", "information_map", "main", "read
 #: the files one b3dgs-suggest writes into its folder (a rerun removes exactly these, then writes its own)
 OWN_FILE = re.compile(r"(cameras|path|suggest)\.json|plot\.png|preview_\d{2,}\.png")
 DEFAULT_BATCH = "greedy_conditioned"
+#: the length of the training cameras' mean unit direction from the centre from which a capture with every camera within
+#: 90° of that mean is forward-facing (LLFF ≈ 0.99, a half circle 2/π ≈ 0.64, a hemisphere ≈ 0.6; a ring 20° above the
+#: equator ≈ 0.34: not)
+FORWARD_RESULTANT = 0.5
 
 
 # ---------------------------------------------------------------------------------------------- the scene's frame
@@ -62,8 +66,9 @@ def _unit(v: np.ndarray) -> np.ndarray:
 def scene_frame(train: Sequence[Camera], margin_deg: float = 10.0) -> dict:
     """The training cameras' centre (the point they look at, :func:`b3dgs.data.scene.look_at_point`; their mean centre
     when that is not well posed), up (their mean −y), basis ``a``, ``b`` of the plane orthogonal to it, their
-    distances and elevations from the centre, and whether they are forward-facing (all within 90° of their mean
-    direction from the centre, ``axis``); ``cos_limit``: a candidate direction d is frontal when d · axis >= it."""
+    distances and elevations from the centre, and whether they are forward-facing: all within 90° of their mean
+    direction from the centre (``axis``) and that mean's length at least :data:`FORWARD_RESULTANT` (a low orbit all
+    around is not); ``cos_limit``: a candidate direction d is frontal when d · axis >= it."""
     from b3dgs.data.scene import look_at_point
 
     if not train:
@@ -87,7 +92,7 @@ def scene_frame(train: Sequence[Camera], margin_deg: float = 10.0) -> dict:
     elev = np.arcsin(np.clip(dirs @ up, -1.0, 1.0))
     mean = dirs.mean(0)
     axis = _unit(mean) if np.linalg.norm(mean) > 1e-6 else up
-    forward = bool(np.linalg.norm(mean) > 1e-6 and (dirs @ axis).min() > 0.0)
+    forward = bool(np.linalg.norm(mean) >= FORWARD_RESULTANT and (dirs @ axis).min() > 0.0)
     return {"centre": centre, "up": up, "a": a, "b": b, "dist": dist, "elev": elev, "axis": axis,
             "forward": forward, "cos_limit": -math.sin(math.radians(float(margin_deg))) if forward else -1.0 - 1e-9}
 
@@ -110,8 +115,7 @@ def _frontal(fr: dict, pos: np.ndarray) -> bool:
 def _rings(fr: dict, ref: Camera, azimuths: int, elevations: int, distances: Sequence[float], margin_deg: float,
            prefix: str) -> list[Camera]:
     """Poses on rings around the centre (azimuths × elevations spanning the training ones widened by ``margin_deg``,
-    clipped to ±80°, × ``distances``), looking at it; those outside a forward-facing capture's frontal half-space left
-    out."""
+    clipped to ±80°, × ``distances``), looking at it."""
     m = math.radians(float(margin_deg))
     lo, hi = float(fr["elev"].min()) - m, float(fr["elev"].max()) + m
     lo, hi = max(lo, -math.radians(80)), min(hi, math.radians(80))
@@ -122,8 +126,7 @@ def _rings(fr: dict, ref: Camera, azimuths: int, elevations: int, distances: Seq
             for ai, t in enumerate(np.linspace(0.0, 2 * math.pi, int(azimuths), endpoint=False)):
                 d = math.cos(e) * (math.cos(t) * fr["a"] + math.sin(t) * fr["b"]) + math.sin(e) * fr["up"]
                 pos = fr["centre"] + float(r) * d
-                if _frontal(fr, pos):
-                    out.append(_look_at(f"{prefix}_d{di}_e{ei}_a{ai:03d}", pos, fr["centre"], fr["up"], ref))
+                out.append(_look_at(f"{prefix}_d{di}_e{ei}_a{ai:03d}", pos, fr["centre"], fr["up"], ref))
     return out
 
 
@@ -132,7 +135,8 @@ def _reference(train: Sequence[Camera]) -> Camera:
 
 
 def generate_candidates(train: Sequence[Camera], gen, seed: int = 0) -> tuple[list[Camera], dict]:
-    """The generated candidates (module doc) and the frame they were generated in (:func:`scene_frame`)."""
+    """The generated candidates (module doc; before :func:`frontal` drops those behind a forward-facing capture) and
+    the frame they were generated in (:func:`scene_frame`)."""
     fr = scene_frame(train, float(gen.margin_deg))
     ref = _reference(train)
     r_lo, r_hi = float(fr["dist"].min()), float(fr["dist"].max())
@@ -146,18 +150,24 @@ def generate_candidates(train: Sequence[Camera], gen, seed: int = 0) -> tuple[li
         cup = -c.camtoworld[:3, 1].double().cpu().numpy()
         for j in range(int(gen.jitter_per_camera)):
             pos = base + rng.normal(0.0, sigma, 3)
-            if np.linalg.norm(pos - fr["centre"]) < 1e-6 or not _frontal(fr, pos):
+            if np.linalg.norm(pos - fr["centre"]) < 1e-6:
                 continue
             stem = re.sub(r"[^A-Za-z0-9_.-]", "_", Path(c.name).stem)
             cands.append(_look_at(f"jitter_{stem}_{j}", pos, fr["centre"], cup, c.with_image(None)))
     return cands, fr
 
 
+def frontal(cams: Sequence[Camera], fr: dict) -> list[Camera]:
+    """Those of ``cams`` in the frontal half-space of a forward-facing capture widened by the margin (all of them for
+    another capture)."""
+    return [c for c in cams if _frontal(fr, c.center.double().cpu().numpy())]
+
+
 def target_ring(fr: dict, train: Sequence[Camera], targets) -> list[Camera]:
     """info_gain's targets: a dense ring of novel poses at the training cameras' median distance (frontal only for a
     forward-facing capture)."""
-    return _rings(fr, _reference(train), int(targets.azimuths), int(targets.elevations), [float(np.median(fr["dist"]))],
-                  0.0, "target")
+    return frontal(_rings(fr, _reference(train), int(targets.azimuths), int(targets.elevations),
+                          [float(np.median(fr["dist"]))], 0.0, "target"), fr)
 
 
 # ---------------------------------------------------------------------------------------------- candidates from a file
@@ -550,18 +560,19 @@ def suggest(cfg: DictConfig) -> dict:
     if cfg.get("candidates"):
         raw = read_candidates(str(cfg.candidates), scene)
         fr = scene_frame(train, float(cfg.generate.margin_deg))
-        behind = sum(1 for c in raw if not _frontal(fr, c.center.double().cpu().numpy()))
         source = str(cfg.candidates)
     else:
         raw, fr = generate_candidates(train, cfg.generate, seed)
-        behind = None  # generated candidates are frontal by construction
         source = "generated"
+    ahead = frontal(raw, fr)
     ctx = ScoringContext([module], train, cfg.get("score_max_side"), scene.extent, seed)
     r_core = core_radius(module, fr, float(cfg.core_quantile))
-    cands, dropped = filter_candidates(raw, ctx, fr, r_core, float(cfg.min_coverage))
+    cands, dropped = filter_candidates(ahead, ctx, fr, r_core, float(cfg.min_coverage))
+    dropped = {"behind_forward_capture": len(raw) - len(ahead), **dropped}
     if not cands:
-        raise B3dgsError(f"no candidate is left of {len(raw)}: {dropped['inside_core']} inside the Gaussians' dense core,"
-                         f" {dropped['sees_almost_nothing']} see almost nothing",
+        raise B3dgsError(f"no candidate is left of {len(raw)}: {dropped['behind_forward_capture']} behind a forward-facing"
+                         f" capture, {dropped['inside_core']} inside the Gaussians' dense core, "
+                         f"{dropped['sees_almost_nothing']} see almost nothing",
                          "pass other candidates= poses, or lower min_coverage (and core_quantile)")
     targets = target_ring(fr, train, cfg.targets) if uses_targets(policy) else []
     n = min(int(cfg.n), len(cands))
@@ -622,8 +633,7 @@ def suggest(cfg: DictConfig) -> dict:
             "preview": f"preview_{r + 1:02d}.png", "information_map_sum": maps[r]})
     record = {
         "run": str(run.path), "policy": str(cfg.policy), "batch": bname, "requested": int(cfg.n), "returned": len(picks),
-        "candidates": {"source": source, "total": len(raw), "kept": len(cands), **dropped,
-                       "outside_frontal_half_space": behind},
+        "candidates": {"source": source, "total": len(raw), "kept": len(cands), "dropped": dropped},
         "targets": len(targets) if uses_targets(policy) else 0,
         "forward_facing": fr["forward"], "frame": "the run's normalised frame (viewmat, K, direction); position and "
         "rotation in the scene's own frame, as cameras.json",
@@ -643,9 +653,8 @@ def suggest(cfg: DictConfig) -> dict:
             save_png(out / s["preview"], img)
         _plot(out / "plot.png", fr, train, cands, sel.scores, picks, str(cfg.policy))
         write_json(out / "suggest.json", record)  # last: its presence says the folder is complete
-    log.info("%s: %d suggestions by %s (%s) among %d candidates (%d generated or read, %d inside the core, %d see almost "
-             "nothing) -> %s", run.path, len(picks), cfg.policy, bname, len(cands), len(raw), dropped["inside_core"],
-             dropped["sees_almost_nothing"], out)
+    log.info("%s: %d suggestions by %s (%s) among %d candidates (%d generated or read; dropped: %s) -> %s", run.path,
+             len(picks), cfg.policy, bname, len(cands), len(raw), ", ".join(f"{v} {k}" for k, v in dropped.items()), out)
     record["out"] = str(out)
     return record
 
