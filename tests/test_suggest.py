@@ -28,7 +28,8 @@ ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
 SMALL = ["generate.azimuths=6", "generate.elevations=2", "generate.distances=1", "generate.jitter_per_camera=1",
          "targets.azimuths=6", "targets.elevations=1", "score_max_side=16", "preview_max_side=24"]
-TRAIN = [sys.executable, "-m", "b3dgs.train", "data.max_side=32", "+data.n_views=24", "model.sh_increase_every=5",
+TRAIN = [sys.executable, "-m", "b3dgs.train", "data.max_side=32", "+data.n_views=16", "+data.n_points=600",
+         "model.sh_degree=1", "model.sh_increase_every=5",
          "logger=none", "trainer.enable_progress_bar=false"]
 
 
@@ -150,6 +151,25 @@ def test_suggest_writes_ranked_cameras_previews_plot_and_render_reads_the_path(r
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         w = render(compose(config_name="render", overrides=[f"run={run}", f"path={out / 'path.json'}", "video=false"]))
     assert len(w["frames"]) == 3
+    # b3dgs-view draws them as frusta labelled by rank, first in its camera list
+    from b3dgs.viewer.run import open_run
+
+    viewed = open_run(run)
+    assert [c.name for c in viewed.suggested] == ["suggest_01", "suggest_02", "suggest_03"]
+    for c, s in zip(viewed.suggested, sug):
+        assert np.allclose(c.viewmat.double().numpy(), np.asarray(s["viewmat"]), atol=1e-6)
+    try:
+        import viser  # noqa: F401
+    except ImportError:
+        return
+    from b3dgs.viewer.server import ViewerApp, ViewerSettings
+
+    app = ViewerApp(viewed, ViewerSettings(port=0))
+    try:
+        assert [(lbl, k) for lbl, _, k in app._cameras][:2] == [("suggested #1: suggest_01", "suggested"),
+                                                               ("suggested #2: suggest_02", "suggested")]
+    finally:
+        app.stop()
 
 
 def test_rerun_replaces_only_its_own_files(runs):
@@ -220,14 +240,15 @@ def test_one_camera_scene_is_forward_facing_and_gets_nothing_from_behind(runs):
 def test_bad_input_is_one_line_and_writes_nothing(runs, tmp_path):
     run = runs["std"]
     before = {p.name: p.stat().st_mtime_ns for p in (run / "suggest").iterdir()} if (run / "suggest").exists() else {}
-    for args, words in ((["n=0"], "n=0"), ([f"candidates={tmp_path / 'nope.json'}"], "no such file")):
-        res = cli(f"run={run}", *SMALL, *args)
-        assert res.returncode == 2, (args, res.stderr[-2000:])
-        lines = res.stderr.strip().splitlines()
-        assert len(lines) == 1 and words in lines[0] and "(fix:" in lines[0], (args, res.stderr)
+    res = cli(f"run={run}", *SMALL, f"candidates={tmp_path / 'nope.json'}")
+    assert res.returncode == 2, res.stderr[-2000:]
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("b3dgs-suggest: error:") and "no such file" in lines[0], res.stderr
+    assert "(fix:" in lines[0]
     bad = tmp_path / "bad.json"
     bad.write_text('{"frames": []}')
     for args, words in (([f"candidates={bad}"], "neither a 3DGS camera list nor a nerfstudio camera_path"),
+                        (["n=0"], "n=0 must be an integer >= 1"),
                         (["policy=oracle"], "ground truth"), (["policy=nonsense"], "unknown acquisition option"),
                         (["policy=farthest", "batch=greedy_conditioned"], "builds its batch itself"),
                         (["min_coverage=2"], "min_coverage=2")):
