@@ -28,7 +28,6 @@ from __future__ import annotations
 import logging
 import math
 import re
-from contextlib import nullcontext
 from pathlib import Path
 from typing import Optional, Sequence
 
