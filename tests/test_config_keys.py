@@ -60,6 +60,7 @@ FREE = {
     "report": set(),
     "study": {"policy_settings", "callbacks", "data", "renderer", "strategy", "trainer", "acquisition.batch_settings"},
     "compress": {"strategy_settings"},
+    "suggest": {"policy_settings"},
 }
 
 

@@ -14,7 +14,7 @@ from typing import Optional
 
 from b3dgs.errors import B3dgsError
 
-__all__ = ["ViewedRun", "acquired_views", "open_run"]
+__all__ = ["ViewedRun", "acquired_views", "open_run", "suggested_cameras"]
 
 
 @dataclass
@@ -26,6 +26,7 @@ class ViewedRun:
     metrics: dict
     curve: list[dict] = field(default_factory=list)
     acquired: list[str] = field(default_factory=list)
+    suggested: list = field(default_factory=list)  # b3dgs-suggest's cameras in rank order (RUN/suggest/suggest.json)
 
     @property
     def module(self):
@@ -58,6 +59,24 @@ def acquired_views(path: Optional[Path]) -> list[str]:
     except (ValueError, KeyError, TypeError) as e:
         raise B3dgsError(f"{f} is not an active-view selection ({type(e).__name__}: {e})",
                          "pass acquired=ROW_DIR of b3dgs-study active, or leave acquired out") from None
+
+
+def suggested_cameras(run_dir: Path) -> list:
+    """The cameras ``b3dgs-suggest`` left in ``run_dir/suggest/suggest.json``, in rank order (the run's frame); []
+    when there is none or it cannot be read (the viewer opens the run anyway)."""
+    import torch
+
+    from b3dgs.types import Camera
+
+    f = Path(run_dir) / "suggest" / "suggest.json"
+    if not f.is_file():
+        return []
+    try:
+        return [Camera(f"suggest_{int(s['rank']):02d}", torch.tensor(s["K"], dtype=torch.float32),
+                       torch.tensor(s["viewmat"], dtype=torch.float32), int(s["width"]), int(s["height"]))
+                for s in json.loads(f.read_text())["suggestions"]]
+    except (ValueError, KeyError, TypeError, B3dgsError):
+        return []
 
 
 def open_run(run_dir, acquired: Optional[str] = None, renderer=None) -> ViewedRun:
@@ -114,4 +133,4 @@ def open_run(run_dir, acquired: Optional[str] = None, renderer=None) -> ViewedRu
         except (ValueError, AttributeError):
             curve = []
     sel = Path(acquired) if acquired else (run_dir if (run_dir / "selection.json").is_file() else None)
-    return ViewedRun(run_dir, loaded, metrics, curve, acquired_views(sel))
+    return ViewedRun(run_dir, loaded, metrics, curve, acquired_views(sel), suggested_cameras(run_dir))

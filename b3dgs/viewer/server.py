@@ -35,6 +35,7 @@ __all__ = ["ViewerApp", "ViewerSettings", "home_view"]
 
 TRAIN_COLOUR, TEST_COLOUR = (150, 150, 160), (230, 60, 40)
 CANDIDATE_COLOUR, ACQUIRED_COLOUR = (90, 90, 100), (40, 120, 240)
+SUGGESTED_COLOUR = (40, 200, 90)  # b3dgs-suggest's poses, labelled with their rank
 
 
 @dataclass
@@ -118,10 +119,11 @@ class ViewerApp:
         return up / n if n > 1e-6 else np.array([0.0, 0.0, 1.0])
 
     def _camera_list(self) -> list[tuple[str, object, str]]:
-        """(label, camera, kind) for the jump list: acquired (pick order) first, then test, then train."""
+        """(label, camera, kind) for the jump list: b3dgs-suggest's suggestions (rank order) and acquired views (pick
+        order) first, then test, then train."""
         sc = self.scene
         pool = {c.name: c for c in list(sc.train) + list(getattr(sc, "candidates", None) or [])}
-        out = []
+        out = [(f"suggested #{i + 1}: {c.name}", c, "suggested") for i, c in enumerate(getattr(self.run, "suggested", []))]
         for i, name in enumerate(self.run.acquired):
             if name in pool:
                 out.append((f"acquired #{i + 1}: {name}", pool[name], "acquired"))
@@ -160,6 +162,8 @@ class ViewerApp:
             n_acq = len(self.run.acquired)
             gui.add_markdown(f"Frusta: grey = train ({len(self.scene.train)}), **red = test** ({len(self.scene.test)})"
                              + (f", **blue = acquired** ({n_acq}, labelled in pick order)" if n_acq else "")
+                             + (f", **green = suggested** ({len(self.run.suggested)}, b3dgs-suggest, labelled by rank)"
+                                if getattr(self.run, "suggested", None) else "")
                              + ". Click a frustum to look through it; drag to orbit.")
         with gui.add_folder("Run"):
             gui.add_markdown(self._metrics_text())
@@ -317,17 +321,18 @@ class ViewerApp:
         thumbs = self.s.photos and len(self._cameras) <= self.s.thumbnails
         for i, (label, cam, kind) in enumerate(self._cameras):
             wxyz, pos = camera_pose(cam)
-            colour = {"train": TRAIN_COLOUR, "test": TEST_COLOUR, "acquired": ACQUIRED_COLOUR}.get(kind, CANDIDATE_COLOUR)
+            colour = {"train": TRAIN_COLOUR, "test": TEST_COLOUR, "acquired": ACQUIRED_COLOUR,
+                      "suggested": SUGGESTED_COLOUR}.get(kind, CANDIDATE_COLOUR)
             img = None
             if thumbs and cam.image is not None:
                 step = max(1, max(cam.width, cam.height) // 48)
                 img = (cam.image[::step, ::step].clamp(0, 1).cpu().numpy() * 255).astype(np.uint8)
             h = scene_api.add_camera_frustum(
                 f"/cameras/{kind}_{i:04d}", fov=fov_y(cam), aspect=cam.width / cam.height, scale=scale,
-                thickness=2.0 if kind in ("test", "acquired") else 1.0, thickness_units="screen", color=colour,
+                thickness=2.0 if kind in ("test", "acquired", "suggested") else 1.0, thickness_units="screen", color=colour,
                 image=img, wxyz=wxyz, position=pos, visible=bool(self.show_cameras.value))
-            if kind == "acquired":
-                scene_api.add_label(f"/cameras/{kind}_{i:04d}/pick", label.split(":")[0].replace("acquired ", ""),
+            if kind in ("acquired", "suggested"):
+                scene_api.add_label(f"/cameras/{kind}_{i:04d}/pick", label.split(":")[0].replace(f"{kind} ", ""),
                                     position=(0.0, 0.0, 0.0))
             h.on_click(lambda event, cam=cam: self.jump(event.client, cam))
             st.frusta[cam.name] = h

@@ -1,0 +1,76 @@
+"""bench/suggest.py's pieces without training: the sector's angular range (nearest camera direction), the hit rate
+against chance, snapping suggestions to distinct held-out cameras, and the table from an archive."""
+from __future__ import annotations
+
+import json
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import torch
+
+from b3dgs.render_cli import _look_at
+from b3dgs.types import Camera
+
+
+def _cam(name, az, r=3.0):
+    pos = np.array([r * math.cos(az), r * math.sin(az), 0.5])
+    view = _look_at(pos, np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    return Camera(name, torch.tensor([[10.0, 0, 8], [0, 10.0, 8], [0, 0, 1]]), torch.from_numpy(view).float(), 16, 16)
+
+
+def _scene():
+    az = np.linspace(0, 2 * math.pi, 16, endpoint=False)
+    cams = [_cam(f"v{i:02d}", a) for i, a in enumerate(az)]
+    sector = [c for i, c in enumerate(cams) if i in (0, 1)]
+    inter = [cams[8]]
+    train = [c for c in cams if c not in sector and c not in inter]
+    return SimpleNamespace(train=train, test=sector + inter,
+                           test_groups={"sector": [c.name for c in sector], "interleaved": [c.name for c in inter]})
+
+
+def _rec(azimuths, cand_azimuths):
+    def d(a):
+        return [math.cos(a), math.sin(a), 0.0]
+
+    sug = []
+    for i, a in enumerate(azimuths):
+        vm = _cam("s", a, r=3.2).viewmat.double().numpy()
+        sug.append({"rank": i + 1, "direction": d(a), "viewmat": vm.tolist()})
+    return {"centre": [0.0, 0.0, 0.0], "suggestions": sug, "candidate_directions": {f"c{i}": d(a) for i, a in
+                                                                                   enumerate(cand_azimuths)}}
+
+
+def test_hit_rate_against_chance_and_snapping():
+    from bench.suggest import hits, snap
+
+    scene = _scene()
+    step = 2 * math.pi / 16
+    rec = _rec([0.1 * step, 1.1 * step, 5 * step], np.linspace(0, 2 * math.pi, 32, endpoint=False) + 0.01)
+    h = hits(rec, scene)
+    assert h["n"] == 3 and h["hit_rate"] == 2 / 3
+    assert abs(h["chance"] - 4 / 32) < 1e-9  # 2 of 16 camera directions' Voronoi cells: 4 of 32 candidates
+    # two suggestions nearest the same held-out camera take it and the next nearest
+    rec = _rec([0.4 * step, 0.45 * step], [])
+    assert snap(rec, scene, 2) == ["v00", "v01"]
+
+
+def test_table_pairs_over_scenes(tmp_path):
+    from bench.suggest import table
+
+    for k, sc in enumerate(["a", "b", "c"]):
+        d = tmp_path / sc / "s0"
+        d.mkdir(parents=True)
+        (d / "hits.json").write_text(json.dumps({
+            "info_gain": {"hit_rate": 0.8 + 0.05 * k, "chance": 0.1}, "distance": {"hit_rate": 0.5, "chance": 0.1},
+            "cover": {"hit_rate": 0.4, "chance": 0.1}, "uniform": {"hit_rate": 0.1, "chance": 0.1}}))
+        for pol, psnr in (("info_gain", 20.0 + k), ("uniform", 19.0 + k), ("distance", 19.5 + k), ("none", 18.0)):
+            (d / f"outcome_{pol}.json").write_text(json.dumps({
+                "sector": {"psnr": psnr, "lpips": 0.2}, "all": {"psnr": psnr + 1, "lpips": 0.1}}))
+    payload, text = table(tmp_path, ["a", "b", "c"], [0])
+    p = payload["paired"]
+    assert abs(p["info_gain hit − chance"]["mean"] - 0.75) < 1e-9 and p["info_gain hit − chance"]["wins"] == 3
+    assert abs(p["info_gain − distance (hit rate)"]["mean"] - 0.35) < 1e-9
+    assert abs(p["info_gain − uniform (sector PSNR)"]["mean"] - 1.0) < 1e-9
+    assert "info_gain − cover (sector PSNR)" not in p  # cover has no outcome rows
+    assert "| info_gain − uniform | sector PSNR | 3 | +1.0000 | 3/0 |" in text
