@@ -62,14 +62,6 @@ def _register_resolvers() -> None:
         OmegaConf.register_new_resolver("b3dgs.paper_images", paper_images)
     if not OmegaConf.has_resolver("b3dgs.data_root"):
         OmegaConf.register_new_resolver("b3dgs.data_root", data_root)
-    if not OmegaConf.has_resolver("b3dgs.help"):
-        # every command's --help (hydra.help.template in conf/<app>.yaml): b3dgs.confs.help_text
-        def help_text(*args, _parent_=None):
-            from b3dgs.confs import help_text
-
-            return help_text(*args, _parent_=_parent_)
-
-        OmegaConf.register_new_resolver("b3dgs.help", help_text)
     if not OmegaConf.has_resolver("b3dgs.uid"):
         # default run dirs unique per process (conf/hydra/default.yaml): "<pid>-<4 random hex digits>", cached, so
         # resolved once per config in the launching process (joblib workers get the parent's value)

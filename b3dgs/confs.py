@@ -223,3 +223,13 @@ def help_text(config: str, *hidden: str, _parent_=None) -> str:
                   groups.rstrip().replace("$", "$$"), ""]
     parts += ["== Config ==", "Override anything in the config (foo.bar=value)", "", "$CONFIG", HELP_FOOTER]
     return "\n".join(parts)
+
+
+def register_help_resolver() -> None:
+    """``${b3dgs.help:APP,...}``: every command's ``--help`` (:func:`help_text`), registered once by
+    :func:`b3dgs.errors.run_cli` before Hydra reads its config."""
+    from omegaconf import OmegaConf
+
+    if not OmegaConf.has_resolver("b3dgs.help"):
+        OmegaConf.register_new_resolver("b3dgs.help", help_text)
+

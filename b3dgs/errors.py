@@ -283,49 +283,6 @@ def _refuse_option_clashes(prog: str) -> None:
                                  "in the package that adds it"))
 
 
-#: apps whose primary config has the ``data`` group: there ``data.path=DIR`` alone picks the folder's format
-_DATA_APPS = ("train", "study")
-
-
-def infer_data_override(prog: str, argv: list[str]) -> list[str]:
-    """``argv`` with ``data=<format>`` added when it sets ``data.path=DIR`` without ``data=`` or ``scene=``: the
-    folder's format (:func:`b3dgs.data.scene.infer_data_option`), so that a path is never silently ignored for the
-    default scene. One line on stderr says which format was read; a sweep over folders of different formats, a
-    missing folder or a folder of photos only is a :class:`B3dgsError`. Overrides Hydra cannot parse are left to it."""
-    from hydra.core.override_parser.overrides_parser import OverridesParser
-
-    from b3dgs.data.scene import infer_data_option
-
-    parser, groups, at = OverridesParser.create(), set(), None
-    for i, arg in enumerate(argv):
-        if arg.startswith("-") or "=" not in arg:
-            continue
-        try:
-            override = parser.parse_overrides([arg])[0]
-        except Exception:  # noqa: BLE001 - Hydra reports a bad override in its own words
-            return argv
-        groups.add(override.key_or_group)
-        at = i if override.key_or_group == "data.path" else at
-    if at is None or groups & {"data", "scene"}:
-        return argv
-    override = parser.parse_overrides([argv[at]])[0]
-    values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
-    if not all(isinstance(v, str) and v and "${" not in v for v in values):
-        return argv  # null or an interpolation: the data module checks what it resolves to
-    found = {v: infer_data_option(v) for v in values}
-    options = sorted({option for option, _ in found.values()})
-    if len(options) > 1:
-        raise B3dgsError("data.path sweeps folders of different formats ("
-                         + ", ".join(f"{v}: {option}" for v, (option, _) in found.items()) + ")",
-                         "sweep the folders of each format in their own command, each with its data=FORMAT")
-    option, what = found[values[0]]
-    shown = argv[at].partition("=")[2]
-    sys.stderr.write(f"{prog}: data.path={shown} holds {what}: reading it with data={option} "
-                     f"(pass data=FORMAT to choose another)\n")
-    sys.stderr.flush()
-    return [*argv[:at], f"data={option}", *argv[at:]]
-
-
 def _refuse_unread_additions(prog: str, argv: list[str], config: str) -> None:
     """One line and exit 2 for a ``+key=value`` override that nothing of the app reads (:func:`b3dgs.confs.
     added_key_problem`); b3dgs-train and b3dgs-eval check their composed configs instead."""
@@ -351,10 +308,13 @@ def multirun_first(argv: list[str]) -> list[str]:
 
 
 def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str]] = None,
-            config: Optional[str] = None) -> None:
+            config: Optional[str] = None,
+            prepare_argv: Optional[Callable[[str, list[str]], list[str]]] = None) -> None:
     """Call a ``@hydra.main`` function; print known composition errors (bad override, unknown option)
     as one line and exit with code 2. Errors inside the task are handled by :func:`known_errors`.
     ``config``: the app's primary config (``train``, ``eval``, ...), whose keys "did you mean" suggests first.
+    ``prepare_argv(prog, argv)``: the overrides as the app reads them (e.g. :func:`b3dgs.data.scene.infer_data_override`
+    adds ``data=FORMAT`` for a ``data.path`` given alone); its :class:`B3dgsError` is reported as one line.
 
     Hydra is asked (through its own ``HYDRA_FULL_ERROR`` switch) to pass exceptions on, so that they
     reach this handler instead of Hydra's multi-line report.
@@ -370,14 +330,17 @@ def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str
     os.environ[_USER_ENV] = old or ""
     os.environ["HYDRA_FULL_ERROR"] = "1"
     try:
+        from b3dgs.confs import register_help_resolver
+
+        register_help_resolver()  # ${b3dgs.help:APP} in every conf/<app>.yaml's hydra.help.template
         _refuse_option_clashes(prog)
-        if config in _DATA_APPS:
+        if prepare_argv is not None:
             try:
-                inferred = infer_data_override(prog, argv)
+                prepared = prepare_argv(prog, argv)
             except B3dgsError as e:
                 _report(prog, e)
-            if inferred is not argv and argv == sys.argv[1:]:
-                sys.argv[1:] = argv = inferred
+            if prepared is not argv and argv == sys.argv[1:]:
+                sys.argv[1:] = argv = prepared
         if config not in (None, *_VALIDATED_APPS):
             _refuse_unread_additions(prog, argv, config)
         if debug:

@@ -345,24 +345,17 @@ def select(policy, batch, ctx, candidates: Sequence[Camera], targets: Sequence[C
 
 # ---------------------------------------------------------------------------------------------- information map
 def sh_gain_per_gaussian(policy, ctx, pool: Sequence[Camera], camera: Camera) -> tuple[Tensor, Tensor]:
-    """(rows, g) of ``camera``'s score per Gaussian it sees, float64: g_k = 3 s_kc uᵀG_k u / (1 + s_kc q)
-    (predictive) or 3 · ½ log(1 + s_kc q) (params), with u = P_k y_kc, q = y_kcᵀ u, the quantities info_gain's score
-    sums (its SH term; the centres' term of ``geometry=true`` is not split per pixel), under the policy's current
-    conditioning. The ONE place that reads info_gain's prepared state (``prepare``'s P, G and per-view s, y): when the
-    SH block owns the posterior, re-point it there."""
+    """(rows, g) of ``camera``'s score per Gaussian it sees, float64: info_gain's SH term per Gaussian
+    (``InfoGainPolicy.sh_gains``, on the SH block's posterior under the policy's current conditioning; the centres'
+    term of ``geometry=true`` is not split per pixel)."""
     st = policy.prepare(ctx, list(pool))
     v = st["views"].get(camera.name)
     if v is None:
-        v = policy._view(ctx, camera, st["means"], st["deg"], st["sigma2"])
+        v = policy.posterior.view_information(state=st["post"], camera=camera,
+                                             render=ctx.render(camera, return_weights=True), means=st["means"])
     if v.idx.numel() == 0:
         return v.idx, torch.zeros(0, dtype=torch.float64)
-    P = st["P"][v.idx]
-    u = torch.einsum("nij,nj->ni", P, v.y)
-    q = (u * v.y).sum(-1)
-    if policy.objective == "params":
-        return v.idx, 3 * 0.5 * torch.log1p(v.s * q)
-    Gu = torch.einsum("nij,nj->ni", st["G"][v.idx], u)
-    return v.idx, 3 * v.s * (u * Gu).sum(-1) / (1.0 + v.s * q)
+    return v.idx, policy.sh_gains(st, v)
 
 
 def information_map(module, camera: Camera, rows: Tensor, gain: Tensor) -> tuple[Tensor, Tensor]:
@@ -550,7 +543,7 @@ def suggest(cfg: DictConfig) -> dict:
 
         read_manifest(run.path, fix="pass out=DIR to write the suggestions into another folder")
     scene, module = run.scene, run.module
-    if hasattr(policy, "prepare") and module.active_sh_degree() < 1:
+    if hasattr(policy, "sh_gains") and module.active_sh_degree() < 1:
         raise B3dgsError(f"policy={cfg.policy}: the run renders SH degree 0, so its colour has no direction a new view "
                          "could teach", "pass policy=cover or farthest, or train with model.sh_degree >= 1 for more "
                          "than model.sh_increase_every steps")
@@ -582,7 +575,7 @@ def suggest(cfg: DictConfig) -> dict:
     cond = (sel.info or {}).get("conditioned_scores")
     # the per-pixel information maps: info_gain's own state (conditioned on the earlier picks, as its greedy scores
     # were), or, for another policy, a fresh info_gain's where the run allows it
-    map_policy, pool = (policy, list(cands) + list(targets)) if hasattr(policy, "prepare") else (None, None)
+    map_policy, pool = (policy, list(cands) + list(targets)) if hasattr(policy, "sh_gains") else (None, None)
     map_note = None
     if map_policy is None:
         from b3dgs.study.active import load_policy

@@ -188,7 +188,9 @@ def main() -> None:
     """``b3dgs-train``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
     from b3dgs.errors import run_cli
 
-    run_cli("b3dgs-train", hydra_main, config="train")
+    from b3dgs.data.scene import infer_data_override
+
+    run_cli("b3dgs-train", hydra_main, config="train", prepare_argv=infer_data_override)
 
 
 if __name__ == "__main__":

@@ -14,9 +14,9 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from b3dgs.data.images import save_png
-from b3dgs.data.scene import check_scene_settings, infer_data_option
+from b3dgs.data.scene import check_scene_settings, infer_data_option, infer_data_override
 from b3dgs.data.synthetic import load_synthetic
-from b3dgs.errors import B3dgsError, infer_data_override
+from b3dgs.errors import B3dgsError
 
 ENV = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "HYDRA_FULL_ERROR": ""}
 

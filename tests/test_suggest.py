@@ -271,8 +271,16 @@ def test_info_gain_on_a_degree_0_run_is_refused_in_one_line(runs, monkeypatch):
 class _Tiny:
     """A few random Gaussians (SH degree 1) and a renderer: what a ScoringContext and the map read of a model."""
 
+    from b3dgs.module import SplatModule
+
+    prepare_posterior, view_sums = SplatModule.prepare_posterior, SplatModule.view_sums  # the view pass, as a run's
+    del SplatModule
+
     def __init__(self, splats, renderer):
+        from types import SimpleNamespace
+
         self.splats, self.renderer, self.bg = splats, renderer, torch.zeros(3)
+        self.hparams = SimpleNamespace(seed=0)
 
     def active_sh_degree(self):
         return 1
@@ -294,6 +302,7 @@ def test_information_map_is_exact_against_a_float64_brute_force():
     from b3dgs.acquisition import ScoringContext
     from b3dgs.render.projection import rgb_to_sh0, sh_basis
     from b3dgs.render.renderers import make_renderer
+    from b3dgs.study.active import load_policy
     from b3dgs.suggest import information_map, sh_gain_per_gaussian
     from b3dgs_plugins.acquisition.info_gain import InfoGainPolicy
 
@@ -311,7 +320,8 @@ def test_information_map_is_exact_against_a_float64_brute_force():
     cand = [ring_camera("c0", 3.5, 0.2), ring_camera("c1", 4.5, 0.6)]
     pool = cand + [ring_camera(f"x{i}", a, 0.1) for i, a in enumerate([3.0, 4.0, 5.0])]
     ctx = ScoringContext([m], train, None, 1.0, 0)
-    pol = InfoGainPolicy(family="standard")
+    pol = load_policy("info_gain")[1]  # composed as the study composes it: with its SH block
+    assert isinstance(pol, InfoGainPolicy)
     score = float(pol.score(ctx, pool)[0])
     rows, gk = sh_gain_per_gaussian(pol, ctx, pool, cand[0])
     _, mp = information_map(m, cand[0], rows, gk)

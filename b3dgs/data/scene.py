@@ -36,6 +36,7 @@ import logging
 import math
 import os
 import shlex
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional, Sequence
@@ -81,6 +82,7 @@ __all__ = [
     "get_loader",
     "guess_kinds",
     "infer_data_option",
+    "infer_data_override",
     "load_scene",
     "look_at_point",
     "read_scene",
@@ -670,6 +672,43 @@ def infer_data_option(path: str | os.PathLike) -> tuple[str, str]:
     raise B3dgsError(f"data.path={path} holds no scene: no COLMAP model (sparse/0), transforms*.json or "
                      "poses_bounds.npy",
                      "pass data.path=PATH to a scene folder, or name its format with data=colmap|transforms|llff")
+
+
+def infer_data_override(prog: str, argv: list[str]) -> list[str]:
+    """``argv`` with ``data=<format>`` added when it sets ``data.path=DIR`` without ``data=`` or ``scene=``: the
+    folder's format (:func:`b3dgs.data.scene.infer_data_option`), so that a path is never silently ignored for the
+    default scene. One line on stderr says which format was read; a sweep over folders of different formats, a
+    missing folder or a folder of photos only is a :class:`B3dgsError`. Overrides Hydra cannot parse are left to it."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parser, groups, at = OverridesParser.create(), set(), None
+    for i, arg in enumerate(argv):
+        if arg.startswith("-") or "=" not in arg:
+            continue
+        try:
+            override = parser.parse_overrides([arg])[0]
+        except Exception:  # noqa: BLE001 - Hydra reports a bad override in its own words
+            return argv
+        groups.add(override.key_or_group)
+        at = i if override.key_or_group == "data.path" else at
+    if at is None or groups & {"data", "scene"}:
+        return argv
+    override = parser.parse_overrides([argv[at]])[0]
+    values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
+    if not all(isinstance(v, str) and v and "${" not in v for v in values):
+        return argv  # null or an interpolation: the data module checks what it resolves to
+    found = {v: infer_data_option(v) for v in values}
+    options = sorted({option for option, _ in found.values()})
+    if len(options) > 1:
+        raise B3dgsError("data.path sweeps folders of different formats ("
+                         + ", ".join(f"{v}: {option}" for v, (option, _) in found.items()) + ")",
+                         "sweep the folders of each format in their own command, each with its data=FORMAT")
+    option, what = found[values[0]]
+    shown = argv[at].partition("=")[2]
+    sys.stderr.write(f"{prog}: data.path={shown} holds {what}: reading it with data={option} "
+                     f"(pass data=FORMAT to choose another)\n")
+    sys.stderr.flush()
+    return [*argv[:at], f"data={option}", *argv[at:]]
 
 
 def _refuse_photos_only(p: Path) -> None:

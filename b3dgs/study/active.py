@@ -108,6 +108,8 @@ def load_policy(name: str, settings: Optional[DictConfig] = None):
     """(label, policy) for ``name`` or ``name@family`` from ``conf/acquisition/<name>.yaml`` (or a package's)."""
     from hydra.utils import instantiate
 
+    from b3dgs.confs import option_names
+
     base, _, family = str(name).partition("@")
     node = option_node("study", "acquisition", base, settings,
                        f"pass policies=[...] of conf/acquisition/<name>.yaml ({', '.join(option_names('acquisition'))})"
@@ -144,6 +146,7 @@ def load_batch(name: str, settings: Optional[DictConfig] = None):
     """The batch selector ``conf/acquisition/batch/<name>.yaml`` with ``settings[name]`` merged in."""
     from hydra.utils import instantiate
 
+    from b3dgs.confs import option_names
     from b3dgs.errors import B3dgsError
 
     node = option_node("study", "acquisition/batch", str(name), settings,

@@ -64,7 +64,10 @@ def main() -> None:
         print(usage(got), file=sys.stdout if asked else sys.stderr)
         raise SystemExit(0 if asked else 2)
     module, _, config = STUDIES[sys.argv.pop(1)]
-    run_cli("b3dgs-study", importlib.import_module(module).hydra_main, config=config)
+    from b3dgs.data.scene import infer_data_override
+
+    run_cli("b3dgs-study", importlib.import_module(module).hydra_main, config=config,
+            prepare_argv=infer_data_override if config == "study" else None)  # active: data.path alone reads its format
 
 
 if __name__ == "__main__":

@@ -214,16 +214,27 @@ class InfoGainPolicy(AcquisitionPolicy):
         geo = st["geo"]
         return self._sh_gain(st, v) + (0.0 if geo is None else self._geo_gain(geo, geo["views"][name]))
 
-    def _sh_gain(self, st: dict, v) -> float:
-        if v.idx.numel() == 0:
-            return 0.0
+    def sh_gains(self, st: dict, v) -> Tensor:
+        """The SH term of view ``v``'s score per Gaussian it sees (float64, under the current conditioning): 3 · ½
+        log(1 + s q) (params) or 3 s uᵀG u / (1 + s q) (predictive), u = P y, q = yᵀu; the score's SH term is their
+        sum (b3dgs-suggest spreads them over the pixels)."""
+        t = self._sh_terms(st, v)
+        return CHANNELS * 0.5 * t if self.objective == "params" else CHANNELS * t
+
+    def _sh_terms(self, st: dict, v) -> Tensor:
         P = self.posterior.covariance(st["post"])[v.idx]
         u = torch.einsum("nij,nj->ni", P, v.y)
         q = (u * v.y).sum(-1)
         if self.objective == "params":
-            return CHANNELS * 0.5 * float(torch.log1p(v.s * q).sum())
+            return torch.log1p(v.s * q)
         Gu = torch.einsum("nij,nj->ni", st["G"][v.idx], u)
-        return CHANNELS * float((v.s * (u * Gu).sum(-1) / (1.0 + v.s * q)).sum())
+        return v.s * (u * Gu).sum(-1) / (1.0 + v.s * q)
+
+    def _sh_gain(self, st: dict, v) -> float:
+        if v.idx.numel() == 0:
+            return 0.0
+        t = self._sh_terms(st, v)
+        return CHANNELS * 0.5 * float(t.sum()) if self.objective == "params" else CHANNELS * float(t.sum())
 
     @torch.no_grad()
     def score(self, ctx, candidates) -> Tensor:
