@@ -42,6 +42,15 @@ class B3dgsError(ValueError):
         super().__init__(self.problem if fix is None else f"{self.problem} (fix: {self.fix})")
 
 
+def field_default(owner: Any, name: str) -> Any:
+    """The declared default of the dataclass field ``name`` of ``owner`` (a dataclass or an instance of one): what a
+    fix text quotes, so that the text reads the default's one home (``e.g. the default {field_default(self, "x")}``)."""
+    import dataclasses
+
+    f = next(f for f in dataclasses.fields(owner) if f.name == name)
+    return f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
+
+
 def did_you_mean(word: str, choices: Iterable[str]) -> str:
     """``"; did you mean X?"`` for the closest of ``choices``, else ``""``."""
     close = difflib.get_close_matches(str(word), sorted(set(map(str, choices))), n=1, cutoff=0.6)
