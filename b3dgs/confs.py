@@ -76,7 +76,8 @@ def _defaults_groups(data: dict) -> set[str]:
 def known_keys(path: str, config: Optional[str] = None) -> tuple[str, ...]:
     """The keys that b3dgs's config files give the node at dotted ``path`` ("" for the top level): the primary configs'
     (only ``config``'s, e.g. ``train``, when given; at the top level with its config groups) and every option file's of
-    the group the path starts with (e.g. ``trainer`` -> ``conf/trainer/*.yaml``)."""
+    the group the path starts with (e.g. ``trainer`` -> ``conf/trainer/*.yaml``), a ``_target_`` node's with the
+    fields of its dataclass (which the config sources fill in)."""
     parts = [p for p in path.split(".") if p]
     keys: set[str] = set()
 
@@ -85,6 +86,10 @@ def known_keys(path: str, config: Optional[str] = None) -> tuple[str, ...]:
             node = node.get(p) if isinstance(node, dict) else None
         if isinstance(node, dict):
             keys.update(str(k) for k in node if k not in ("defaults", "_target_"))
+            if isinstance(node.get("_target_"), str):  # the fields the file leaves to its class's defaults
+                from b3dgs.schema import field_defaults
+
+                keys.update(field_defaults(node["_target_"]))
 
     for root in conf_roots():
         primaries = [root / f"{config}.yaml"] if config else sorted(root.glob("*.yaml"))
