@@ -19,7 +19,7 @@ import os
 import sys
 import traceback
 from contextlib import contextmanager
-from typing import Callable, Iterable, Optional
+from typing import Any, Callable, Iterable, Optional
 
 EXIT_CODE = 2
 DEBUG_KEY = "b3dgs.debug"

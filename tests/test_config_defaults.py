@@ -1,5 +1,5 @@
 """One home for each default (issue 53 §3): the dataclass field. A config file's ``_target_`` node holds only its
-deliberate deviations; the config sources fill in every other field from the class (b3dgs.schema.with_field_defaults)."""
+deliberate deviations; the config sources fill in every other field from the class (b3dgs.confs.with_field_defaults)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,7 +8,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from b3dgs import conf_dir
-from b3dgs.schema import field_defaults, with_field_defaults
+from b3dgs.confs import field_defaults, with_field_defaults
 
 CONF = Path(conf_dir())
 

@@ -58,7 +58,7 @@ def test_paper_protocol_composes_with_the_papers_numbers(model):
 def test_other_protocols_keep_their_strategy_numbers():
     """The experiment's strategy settings (conf/experiment/strategy/paper_<strategy>.yaml) reach no other protocol:
     they keep the class's defaults with the quick protocol's preset (conf/strategy/preset/quick_default.yaml)."""
-    from b3dgs.schema import field_defaults
+    from b3dgs.confs import field_defaults
 
     default = OmegaConf.load(Path(CONF_DIR) / "strategy" / "default.yaml")
     quick = OmegaConf.load(Path(CONF_DIR) / "strategy" / "preset" / "quick_default.yaml")

@@ -11,7 +11,7 @@ when the primary config is b3dgs's own (Hydra runs every installed search-path p
 
 b3dgs's conf dir and those packages' are read through the config sources below: a ``_target_`` node in their files
 holds only its deviations from the target's dataclass defaults, and the source fills in the other fields from the
-class (:func:`b3dgs.schema.with_field_defaults`), so a default has one home, the dataclass field.
+class (:func:`b3dgs.confs.with_field_defaults`), so a default has one home, the dataclass field.
 """
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ class _FieldDefaults:
     """A config source whose ``_target_`` nodes get their target's dataclass defaults where the file sets none."""
 
     def load_config(self, config_path: str) -> ConfigResult:
-        from b3dgs.schema import with_field_defaults  # only when a b3dgs app composes
+        from b3dgs.confs import with_field_defaults  # only when a b3dgs app composes
 
         result = super().load_config(config_path)  # type: ignore[misc]
         result.config = with_field_defaults(result.config)
