@@ -64,7 +64,7 @@ def top_k(scores: Tensor, budget: int) -> list[int]:
 class AcquisitionPolicy:
     """Base of the acquisition policies: score candidates, pick the top ``budget``."""
 
-    family: str = "standard"
+    family: str = "standard"  # the phase-1 model family it scores with and continues (a model= option)
     members: int = 1
     uses_ground_truth: ClassVar[bool] = False
     selects_batch: ClassVar[bool] = False  # True: ``select`` builds the batch itself (only batch=topk applies)

@@ -1,16 +1,19 @@
-"""b3dgs's config folders and the keys their option files define (for labels and "did you mean" suggestions)."""
+"""b3dgs's config folders, the keys their option files define (for labels and "did you mean" suggestions), and the
+class defaults that fill their ``_target_`` nodes (:func:`with_field_defaults`)."""
 from __future__ import annotations
 
+import dataclasses
 from functools import lru_cache
 from pathlib import Path
-from typing import Optional
+from typing import Any, Dict, Optional
 
-from omegaconf import OmegaConf
+from omegaconf import DictConfig, OmegaConf
 
 from b3dgs import conf_dir
 
-__all__ = ["added_key_problem", "conf_roots", "help_groups", "option_clashes", "known_keys", "load_option", "option_names",
-           "app_groups", "help_text", "load_primary"]
+__all__ = ["added_key_problem", "app_groups", "conf_roots", "field_defaults", "help_groups", "help_text", "known_keys",
+           "load_option", "load_primary", "option_clashes", "option_names", "register_help_resolver",
+           "with_field_defaults"]
 
 
 def conf_roots() -> list[Path]:
@@ -24,6 +27,67 @@ def conf_roots() -> list[Path]:
     except Exception:  # noqa: BLE001 - a broken extension package must not hide b3dgs's own options
         pass
     return roots
+
+
+def _config_value(v: Any) -> bool:
+    """``v`` is a value a YAML file can hold (None, bool, number, string, or lists and mappings of them)."""
+    if v is None or isinstance(v, (bool, int, float, str)):
+        return True
+    if isinstance(v, (list, tuple)):
+        return all(map(_config_value, v))
+    return isinstance(v, dict) and all(isinstance(k, str) and _config_value(x) for k, x in v.items())
+
+
+def field_defaults(target: str) -> Dict[str, Any]:
+    """The defaults of the dataclass ``target`` (a class path), field by field in declaration order: the one home of
+    a component's defaults. Fields without a default a config can hold are left out; {} when ``target`` is no
+    dataclass or does not import (the schema check reports that)."""
+    from hydra.utils import get_object
+
+    try:
+        cls = get_object(target)
+    except Exception:  # noqa: BLE001 - reported by check_node when the node is checked
+        return {}
+    if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
+        return {}
+    out = {}
+    for f in dataclasses.fields(cls):
+        d = f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
+        if f.init and d is not dataclasses.MISSING and _config_value(d):
+            out[f.name] = list(d) if isinstance(d, tuple) else d
+    return out
+
+
+def _fill(node: Any) -> bool:
+    """Give every ``_target_`` mapping in ``node`` (a plain container) the :func:`field_defaults` of its target that
+    it does not set: ``_target_``, then the fields in declaration order, then its other keys. Whether any changed."""
+    changed = False
+    if isinstance(node, dict):
+        for k, v in node.items():
+            changed |= k != "defaults" and _fill(v)
+        target = node.get("_target_")
+        fields = field_defaults(target) if isinstance(target, str) else {}
+        if any(k not in node for k in fields):
+            first = {k: node[k] for k in ("defaults", "_target_") if k in node}
+            filled = {**first, **{k: node.get(k, d) for k, d in fields.items()}}
+            filled.update({k: v for k, v in node.items() if k not in filled})
+            node.clear()
+            node.update(filled)
+            changed = True
+    elif isinstance(node, list):
+        for v in node:
+            changed |= _fill(v)
+    return changed
+
+
+def with_field_defaults(cfg: DictConfig) -> DictConfig:
+    """A config file as b3dgs's apps compose it: a ``_target_`` node holds only its deviations from the target's
+    dataclass defaults, and every other field is filled in from the class (:func:`field_defaults`), so that the
+    composed config shows every setting and ``group.field=value`` overrides any field. The fill is the node's base
+    layer within its file: a file that extends another option of its own package (its defaults list) does not repeat
+    ``_target_``. Interpolations and ``???`` stay as written."""
+    data = OmegaConf.to_container(cfg, resolve=False)
+    return OmegaConf.create(data) if _fill(data) else cfg
 
 
 def _load(f: Path) -> tuple[dict, bool]:
@@ -76,7 +140,8 @@ def _defaults_groups(data: dict) -> set[str]:
 def known_keys(path: str, config: Optional[str] = None) -> tuple[str, ...]:
     """The keys that b3dgs's config files give the node at dotted ``path`` ("" for the top level): the primary configs'
     (only ``config``'s, e.g. ``train``, when given; at the top level with its config groups) and every option file's of
-    the group the path starts with (e.g. ``trainer`` -> ``conf/trainer/*.yaml``)."""
+    the group the path starts with (e.g. ``trainer`` -> ``conf/trainer/*.yaml``), a ``_target_`` node's with the
+    fields of its dataclass (which the config sources fill in)."""
     parts = [p for p in path.split(".") if p]
     keys: set[str] = set()
 
@@ -85,6 +150,8 @@ def known_keys(path: str, config: Optional[str] = None) -> tuple[str, ...]:
             node = node.get(p) if isinstance(node, dict) else None
         if isinstance(node, dict):
             keys.update(str(k) for k in node if k not in ("defaults", "_target_"))
+            if isinstance(node.get("_target_"), str):  # the fields the file leaves to its class's defaults
+                keys.update(field_defaults(node["_target_"]))
 
     for root in conf_roots():
         primaries = [root / f"{config}.yaml"] if config else sorted(root.glob("*.yaml"))

@@ -19,7 +19,7 @@ import os
 import sys
 import traceback
 from contextlib import contextmanager
-from typing import Callable, Iterable, Optional
+from typing import Any, Callable, Iterable, Optional
 
 EXIT_CODE = 2
 DEBUG_KEY = "b3dgs.debug"
@@ -41,6 +41,15 @@ class B3dgsError(ValueError):
         self.problem = str(problem).strip()
         self.fix = None if fix is None else str(fix).strip()
         super().__init__(self.problem if fix is None else f"{self.problem} (fix: {self.fix})")
+
+
+def field_default(owner: Any, name: str) -> Any:
+    """The declared default of the dataclass field ``name`` of ``owner`` (a dataclass or an instance of one): what a
+    fix text quotes, so that the text reads the default's one home (``e.g. the default {field_default(self, "x")}``)."""
+    import dataclasses
+
+    f = next(f for f in dataclasses.fields(owner) if f.name == name)
+    return f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
 
 
 def did_you_mean(word: str, choices: Iterable[str]) -> str:

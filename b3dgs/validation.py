@@ -80,7 +80,7 @@ def _validate_plugins(nodes: list, max_steps: int) -> None:
             if e.fix is not None or "(fix:" in e.problem:
                 raise
             raise B3dgsError(e.problem if e.problem.startswith(path) else f"{path}: {e.problem}",
-                             f"correct that value (the defaults are in conf/{path.split('.')[0]}/)") from None
+                             "correct that value (the defaults are the class's fields; `--cfg job` prints the composed values)") from None
 
 
 def _hydra_choice(group: str):

@@ -56,11 +56,16 @@ def test_paper_protocol_composes_with_the_papers_numbers(model):
 
 
 def test_other_protocols_keep_their_strategy_numbers():
-    """The experiment's strategy settings (conf/experiment/strategy/paper_<strategy>.yaml) reach no other protocol."""
+    """The experiment's strategy settings (conf/experiment/strategy/paper_<strategy>.yaml) reach no other protocol:
+    they keep the class's defaults with the quick protocol's preset (conf/strategy/preset/quick_default.yaml)."""
+    from b3dgs.confs import field_defaults
+
     default = OmegaConf.load(Path(CONF_DIR) / "strategy" / "default.yaml")
+    quick = OmegaConf.load(Path(CONF_DIR) / "strategy" / "preset" / "quick_default.yaml")
+    expect = {"_target_": default._target_, **field_defaults(default._target_), **OmegaConf.to_container(quick)}
     for extra in ([], ["experiment=study"], ["experiment=smoke"]):
         cfg = compose_train(["model=dpmm", *extra])
-        assert OmegaConf.to_container(cfg.strategy) == OmegaConf.to_container(default)
+        assert OmegaConf.to_container(cfg.strategy) == expect
         assert cfg.data.images_dir is None and cfg.posterior.dp.t_dp == cfg.trainer.max_steps // 6
 
 

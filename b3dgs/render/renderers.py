@@ -128,7 +128,7 @@ class TorchRenderer(Renderer):
     """The pure-PyTorch reference (float64 ``gradcheck``-able), on the CPU or a CUDA device.
     ``device``: ``auto`` (CUDA when available), ``cpu``, ``cuda`` or ``cuda:N``."""
 
-    device_name: str = "auto"
+    device_name: str = "auto"  # auto (CUDA when available) | cpu | cuda | cuda:N
     name: ClassVar[str] = "torch"
     cpu_seconds_per_step: ClassVar[Optional[float]] = 1.0  # at 256 px on 2 cores (renderer=cpu: ~40x less)
 

@@ -8,6 +8,10 @@ declaring one entry point::
 
 Each entry point's value is appended to the search path as ``pkg://<value>``. The plugin acts only
 when the primary config is b3dgs's own (Hydra runs every installed search-path plugin for every app).
+
+b3dgs's conf dir and those packages' are read through the config sources below: a ``_target_`` node in their files
+holds only its deviations from the target's dataclass defaults, and the source fills in the other fields from the
+class (:func:`b3dgs.confs.with_field_defaults`), so a default has one home, the dataclass field.
 """
 from __future__ import annotations
 
@@ -15,7 +19,10 @@ from importlib.metadata import entry_points
 from importlib.util import find_spec
 from pathlib import Path
 
+from hydra._internal.core_plugins.file_config_source import FileConfigSource
+from hydra._internal.core_plugins.importlib_resources_config_source import ImportlibResourcesConfigSource
 from hydra.core.config_search_path import ConfigSearchPath
+from hydra.plugins.config_source import ConfigResult
 from hydra.plugins.search_path_plugin import SearchPathPlugin
 
 ENTRY_POINT_GROUP = "b3dgs.conf"
@@ -39,9 +46,40 @@ def _is_b3dgs_app(search_path: ConfigSearchPath) -> bool:
     return False
 
 
+class _FieldDefaults:
+    """A config source whose ``_target_`` nodes get their target's dataclass defaults where the file sets none."""
+
+    def load_config(self, config_path: str) -> ConfigResult:
+        from b3dgs.confs import with_field_defaults  # only when a b3dgs app composes
+
+        result = super().load_config(config_path)  # type: ignore[misc]
+        result.config = with_field_defaults(result.config)
+        return result
+
+
+class B3dgsFileConfigSource(_FieldDefaults, FileConfigSource):
+    """b3dgs's conf dir (``b3dgs-file://``)."""
+
+    @staticmethod
+    def scheme() -> str:
+        return "b3dgs-file"
+
+
+class B3dgsPkgConfigSource(_FieldDefaults, ImportlibResourcesConfigSource):
+    """An installed package's conf (``b3dgs-pkg://``, a ``b3dgs.conf`` entry point)."""
+
+    @staticmethod
+    def scheme() -> str:
+        return "b3dgs-pkg"
+
+
 class B3dgsSearchPathPlugin(SearchPathPlugin):
     def manipulate_search_path(self, search_path: ConfigSearchPath) -> None:
         if not _is_b3dgs_app(search_path):
             return
+        for element in search_path.get_path():  # b3dgs's own conf dir, read with the dataclass defaults filled in
+            path = str(element.path)
+            if element.provider == "main" and (path.startswith("file://") or "://" not in path):
+                element.path = "b3dgs-file://" + path.removeprefix("file://")
         for ep in sorted(entry_points(group=ENTRY_POINT_GROUP), key=lambda e: e.name):
-            search_path.append(provider=f"b3dgs-ext-{ep.name}", path=f"pkg://{ep.value}")
+            search_path.append(provider=f"b3dgs-ext-{ep.name}", path=f"b3dgs-pkg://{ep.value}")

@@ -47,10 +47,10 @@ class CoverPolicy(AcquisitionPolicy):
 
     selects_batch: ClassVar[bool] = True  # its select builds the batch (only batch=topk applies)
 
-    bins: int = 128
-    visibility: str = "frustum"
-    min_weight: float = 0.05
-    aggregate: str = "mean"
+    bins: int = 128  # Fibonacci directions per Gaussian that record from where it was seen (128 as released)
+    visibility: str = "frustum"  # frustum: in a training camera's frustum (the paper's) | weights: sum >= min_weight
+    min_weight: float = 0.05  # visibility=weights: Σ_p w_kp (px at the scoring size) for a Gaussian to count as seen
+    aggregate: str = "mean"  # mean: 1 - coverage averaged over what the view renders | sum: under-covered area / image
 
     def validate(self, **kwargs):
         super().validate(**kwargs)

@@ -7,7 +7,7 @@ from typing import ClassVar
 import torch
 
 from b3dgs.acquisition import AcquisitionPolicy
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, field_default
 
 
 @dataclass
@@ -23,7 +23,7 @@ class EnsemblePolicy(AcquisitionPolicy):
         super().validate(**kwargs)
         if int(self.members) < 2:
             raise B3dgsError(f"acquisition ensemble needs members >= 2, got {self.members}",
-                             fix="pass acquisition.members >= 2, e.g. the default 3")
+                             fix=f"pass acquisition.members >= 2, e.g. the default {field_default(self, 'members')}")
 
     @torch.no_grad()
     def score(self, ctx, candidates):

@@ -8,7 +8,7 @@ from typing import ClassVar
 import torch
 
 from b3dgs.acquisition import AcquisitionPolicy, Selection
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, field_default
 from b3dgs.fisher import pixel_set_grads
 
 PARAMS = ("means", "sh0", "shN", "scales", "opacities")  # scales are log-scales, opacities logits
@@ -26,7 +26,7 @@ class FisherPolicy(AcquisitionPolicy):
 
     selects_batch: ClassVar[bool] = True  # its select builds the batch (only batch=topk applies)
 
-    pixel_stride: int = 8
+    pixel_stride: int = 8  # s: per-pixel squared gradients from s*s backward passes per view (exact: s >= scoring side)
     lam: float = 1.0e-6
     params: list = field(default_factory=lambda: list(PARAMS))
 
@@ -34,7 +34,8 @@ class FisherPolicy(AcquisitionPolicy):
         super().validate(**kwargs)
         if int(self.pixel_stride) < 1:
             raise B3dgsError(f"acquisition fisher.pixel_stride must be >= 1, got {self.pixel_stride}",
-                             fix="pass acquisition.pixel_stride as an integer >= 1, e.g. the default 8")
+                             fix="pass acquisition.pixel_stride as an integer >= 1, "
+                                 f"e.g. the default {field_default(self, 'pixel_stride')}")
         bad = [p for p in self.params if p not in PARAMS + ("quats",)]
         if bad:
             raise B3dgsError(f"acquisition fisher.params: unknown parameters {bad}",

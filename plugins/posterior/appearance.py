@@ -163,7 +163,7 @@ def opacity_fisher_var(grad_sq_ema: torch.Tensor, prior_precision: Num, data_sca
     ds = _scalar_or_vec("data_scale", data_scale, K, g.device)
     if not bool((torch.isfinite(pp) & (pp > 0)).all()):
         raise B3dgsError("prior_precision must be finite and > 0",
-                         fix="pass prior_precision > 0 and finite (posterior.opacity.prior_precision, default 1.0)")
+                         fix="pass prior_precision > 0 and finite (posterior.opacity.prior_precision)")
     if not bool((torch.isfinite(ds) & (ds >= 0)).all()):
         raise B3dgsError("data_scale must be finite and >= 0",
                          fix="pass data_scale >= 0 and finite (1.0 uses the Fisher as summed)")
@@ -204,7 +204,7 @@ def color_posterior_var(
     pp = _scalar_or_vec("prior_precision", prior_precision, K, ws.device)
     if not bool((torch.isfinite(pp) & (pp > 0)).all()):
         raise B3dgsError("prior_precision must be finite and > 0",
-                         fix="pass prior_precision > 0 and finite (posterior.color.prior_precision, default 1.0)")
+                         fix="pass prior_precision > 0 and finite (posterior.color.prior_precision)")
     if space not in ("rgb", "dc"):
         raise B3dgsError(f"space must be 'rgb' or 'dc', got {space!r}", fix="pass space='rgb' or space='dc'")
     lik = ws / s2
@@ -245,7 +245,7 @@ def color_posterior_mean(
     pp = _scalar_or_vec("prior_precision", prior_precision, K, c.device)
     if not bool((torch.isfinite(pp) & (pp > 0)).all()):
         raise B3dgsError("prior_precision must be finite and > 0",
-                         fix="pass prior_precision > 0 and finite (posterior.color.prior_precision, default 1.0)")
+                         fix="pass prior_precision > 0 and finite (posterior.color.prior_precision)")
     eta = torch.as_tensor(prior_mean, dtype=_F64, device=c.device)
     prec = ws / s2 + pp
     grad = r / s2[:, None] - pp[:, None] * (c - eta)

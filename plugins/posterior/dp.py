@@ -21,7 +21,7 @@ from typing import ClassVar, Dict, Optional, Tuple, Union
 import torch
 
 from b3dgs.device import bernoulli
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, field_default
 from b3dgs.numerics import guard
 from b3dgs.plugin import PosteriorBlock
 
@@ -46,7 +46,8 @@ def _check_alpha(alpha: Union[float, torch.Tensor]) -> float:
     a = float(alpha)
     if not (math.isfinite(a) and a > 0):
         raise B3dgsError(f"alpha must be finite and > 0, got {alpha}",
-                         fix="pass alpha > 0 and finite (posterior.dp.alpha, default 5.0)")
+                         fix="pass alpha > 0 and finite "
+                             f"(posterior.dp.alpha, default {field_default(DPBlock, 'alpha')})")
     return a
 
 
@@ -192,7 +193,8 @@ def activity_posterior(
                          fix="pass usage with one entry per Gaussian, the same length as expected_log_pi")
     if not (temperature > 0):
         raise B3dgsError(f"temperature must be > 0, got {temperature}",
-                         fix="pass temperature > 0 (posterior.dp.gate_temperature, default 1.0)")
+                         fix="pass temperature > 0 "
+                             f"(posterior.dp.gate_temperature, default {field_default(DPBlock, 'gate_temperature')})")
     if not (0.0 <= evidence_weight <= 1.0):
         raise B3dgsError(f"evidence_weight must be in [0, 1], got {evidence_weight}",
                          fix="pass evidence_weight in [0, 1] (0 keeps the prior, 1 uses the usage evidence alone)")
@@ -246,9 +248,9 @@ class DPBlock(PosteriorBlock):
     alpha: float = 5.0
     cavi_every: int = 50
     t_dp: Optional[int] = None  # None: max_steps / 6
-    ema: float = 0.99
-    prune_pi: float = 0.05
-    prune_activity: float = 0.05
+    ema: float = 0.99  # usage EMA; its window (~1/(1-ema) steps) should cover an epoch of views
+    prune_pi: float = 0.05  # prune where E[pi_k] < prune_pi / K
+    prune_activity: float = 0.05  # prune where E[a_k] < prune_activity
     prior_active: float = 0.5
     gate_temperature: float = 1.0
     prune: bool = True
@@ -260,19 +262,22 @@ class DPBlock(PosteriorBlock):
 
     def validate(self, max_steps: int = 0, **kw) -> None:
         if self.alpha <= 0:
-            raise B3dgsError("posterior.dp.alpha must be > 0", fix="pass posterior.dp.alpha > 0, e.g. the default 5.0")
+            raise B3dgsError("posterior.dp.alpha must be > 0", fix=f"pass posterior.dp.alpha > 0, "
+                             f"e.g. the default {field_default(self, 'alpha')}")
         if self.cavi_every < 1:
             raise B3dgsError("posterior.dp.cavi_every must be >= 1",
-                             fix="pass posterior.dp.cavi_every as an integer >= 1, e.g. the default 50")
+                             fix="pass posterior.dp.cavi_every as an integer >= 1, "
+                                 f"e.g. the default {field_default(self, 'cavi_every')}")
         if not isinstance(self.pair_sums_every, int) or self.pair_sums_every < 1:
             raise B3dgsError(f"posterior.dp.pair_sums_every={self.pair_sums_every} must be an integer >= 1",
                              fix="pass posterior.dp.pair_sums_every as an integer >= 1 (1, the default: every step)")
         if not 0 <= self.ema < 1:
             raise B3dgsError("posterior.dp.ema must be in [0, 1)",
-                             fix="pass posterior.dp.ema in [0, 1), e.g. the default 0.99")
+                             fix=f"pass posterior.dp.ema in [0, 1), e.g. the default {field_default(self, 'ema')}")
         if not 0 < self.prior_active < 1:
             raise B3dgsError("posterior.dp.prior_active must be in (0, 1)",
-                             fix="pass posterior.dp.prior_active strictly between 0 and 1, e.g. the default 0.5")
+                             fix="pass posterior.dp.prior_active strictly between 0 and 1, "
+                                 f"e.g. the default {field_default(self, 'prior_active')}")
 
     def initialize_state(self, *, splats, scene, info):
         n, dev = splats["means"].shape[0], splats["means"].device

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from b3dgs.device import randn
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, field_default
 from b3dgs.fisher import FisherAccumulator
 from b3dgs.numerics import float_dtype as _out_dtype
 from b3dgs.numerics import guard, safe_cholesky, sym as _sym
@@ -105,10 +105,12 @@ def niw_update(
     _require_finite("S0", S0_)
     if not bool(((k0 > 0) & torch.isfinite(k0)).all()):
         raise B3dgsError("kappa0 must be finite and > 0",
-                         fix="pass kappa0 > 0 for every Gaussian (posterior.niw.kappa0, default 0.01)")
+                         fix="pass kappa0 > 0 for every Gaussian "
+                             f"(posterior.niw.kappa0, default {field_default(NIWBlock, 'kappa0')})")
     if not bool(((n0 > D - 1) & torch.isfinite(n0)).all()):
         raise B3dgsError(f"nu0 must be finite and > D-1 = {D - 1} for a proper inverse-Wishart",
-                         fix="pass nu0 > D - 1 for every Gaussian (posterior.niw.nu0, default 5.0 = D + 2 for D = 3)")
+                         fix="pass nu0 > D - 1 for every Gaussian "
+                             f"(posterior.niw.nu0, default {field_default(NIWBlock, 'nu0')})")
     bad = ~torch.isfinite(N_) | (N_ < 0)
     if guard("niw_update.invalid_count", bad):
         N_ = torch.where(bad, torch.zeros_like(N_), N_)
@@ -179,7 +181,7 @@ def prior_scale_for_expected_cov(Sigma: torch.Tensor, nu0: Scalar) -> torch.Tens
     nu = _vec("nu0", nu0, K, Sigma.device)
     if not bool((nu > D + 1).all()):
         raise B3dgsError(f"nu0 must be > D+1 = {D + 1} for E[Sigma] to exist",
-                         fix="pass nu0 > D + 1 (posterior.niw.nu0, default 5.0 = D + 2 for D = 3)")
+                         fix=f"pass nu0 > D + 1 (posterior.niw.nu0, default {field_default(NIWBlock, 'nu0')})")
     S0 = _sym(Sigma.to(_F64)) * (nu - D - 1)[:, None, None]
     return S0.to(_out_dtype(Sigma))
 
@@ -434,32 +436,34 @@ class NIWBlock(PosteriorBlock):
     label_settings: ClassVar[dict] = {"count": "paper"}  # count=fisher runs are labelled niw@fisher
 
     kappa0: float = 0.01
-    nu0: float = 5.0
-    ema: float = 0.99
-    update_every: int = 100
+    nu0: float = 5.0  # D + 2
+    ema: float = 0.99  # EMA of the count summary N̂
+    update_every: int = 100  # recompute Eq. 2-3 from the summaries every n steps (and whenever used)
     t_niw: Optional[int] = None  # None: 0 (active from the start)
-    cov_mode: str = "relative"
-    plugin_noise: bool = True
-    mse_ema: float = 0.99
-    sampler_backend: str = "auto"  # posterior draws: "cpu" (C++, one pass), "torch" (reference) or "auto"
-    count_scale: float = 1.0  # c in N̂ <- c·N̂ at the posterior refresh (Eq. 2-3); 1 = the paper
-    count: str = "paper"  # paper | weight | fisher | fisher3 (see the class docstring)
-    fisher_probes: int = 4  # Rademacher probes per training view for the Fisher counts
+    cov_mode: str = "relative"  # how a posterior sample replaces the rendered covariance: relative | absolute | none
+    plugin_noise: bool = True  # the plug-in residual MSE as the aleatoric variance (NIW rows)
+    mse_ema: float = 0.99  # EMA of that residual MSE
+    sampler_backend: str = "auto"  # posterior draws (uq=native): "cpu" (C++, one pass), "torch" (reference) or "auto"
+    count_scale: float = 1.0  # c in N̂ <- c·N̂ at the posterior refresh (Eq. 2-3); 1 = the paper, < 1 widens it
+    count: str = "paper"  # N̂: paper (the EMA) | weight | fisher | fisher3 (see the class docstring)
+    fisher_probes: int = 4  # Rademacher probes per training view for the Fisher counts (one backward pass each)
 
     def validate(self, max_steps: int = 0, **kw) -> None:
         if self.kappa0 <= 0:
             raise B3dgsError("posterior.niw.kappa0 must be > 0",
-                             fix="pass posterior.niw.kappa0 > 0, e.g. the default 0.01")
+                             fix=f"pass posterior.niw.kappa0 > 0, e.g. the default {field_default(self, 'kappa0')}")
         if self.nu0 <= D + 1:
             raise B3dgsError(f"posterior.niw.nu0 must be > D + 1 = {D + 1} for a proper prior with finite E[Σ]",
-                             fix="pass posterior.niw.nu0 > 4, e.g. the default 5.0 (D + 2)")
+                             fix=f"pass posterior.niw.nu0 > 4, e.g. the default {field_default(self, 'nu0')} (D + 2)")
         if not 0 <= self.ema < 1:
             raise B3dgsError("posterior.niw.ema must be in [0, 1)",
-                             fix="pass posterior.niw.ema in [0, 1), e.g. the default 0.99 (0 keeps only the latest "
+                             fix="pass posterior.niw.ema in [0, 1), "
+                                 f"e.g. the default {field_default(self, 'ema')} (0 keeps only the latest "
                                  "count)")
         if self.update_every < 1:
             raise B3dgsError("posterior.niw.update_every must be >= 1",
-                             fix="pass posterior.niw.update_every as an integer >= 1, e.g. the default 100")
+                             fix="pass posterior.niw.update_every as an integer >= 1, "
+                                 f"e.g. the default {field_default(self, 'update_every')}")
         if self.cov_mode not in ("relative", "absolute", "none"):
             raise B3dgsError("posterior.niw.cov_mode must be relative | absolute | none",
                              fix="pass posterior.niw.cov_mode=relative, absolute or none")
@@ -468,7 +472,8 @@ class NIWBlock(PosteriorBlock):
                              fix="pass posterior.niw.sampler_backend=auto, cpu or torch")
         if not (isinstance(self.count_scale, (int, float)) and 0 < float(self.count_scale) < float("inf")):
             raise B3dgsError(f"posterior.niw.count_scale must be a finite number > 0, got {self.count_scale}",
-                             fix="pass posterior.niw.count_scale as a finite number > 0, e.g. the default 1.0 (< 1 "
+                             fix="pass posterior.niw.count_scale as a finite number > 0, "
+                                 f"e.g. the default {field_default(self, 'count_scale')} (< 1 "
                                  "widens the posterior)")
         if self.count not in COUNTS:
             from b3dgs.errors import did_you_mean
@@ -477,7 +482,8 @@ class NIWBlock(PosteriorBlock):
                              f"pass posterior.niw.count={'|'.join(COUNTS)}")
         if isinstance(self.fisher_probes, bool) or not isinstance(self.fisher_probes, int) or self.fisher_probes < 1:
             raise B3dgsError(f"posterior.niw.fisher_probes must be an integer >= 1, got {self.fisher_probes}",
-                             fix="pass posterior.niw.fisher_probes as an integer >= 1, e.g. the default 4")
+                             fix="pass posterior.niw.fisher_probes as an integer >= 1, "
+                                 f"e.g. the default {field_default(self, 'fisher_probes')}")
 
     # ------------------------------------------------------------------ state
     def _prior_for(self, splats, rows: Optional[Tensor] = None):

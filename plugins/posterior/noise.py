@@ -17,7 +17,7 @@ from typing import ClassVar, Optional, Tuple, Union
 
 import torch
 
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, field_default
 from b3dgs.numerics import guard, guard_where, on_device_path
 from b3dgs.plugin import PosteriorBlock
 
@@ -43,7 +43,7 @@ def _check_ab(a: torch.Tensor, b: torch.Tensor) -> None:
     if not bool((torch.isfinite(a) & (a > 0)).all()) or not bool((torch.isfinite(b) & (b > 0)).all()):
         raise B3dgsError("inverse-gamma parameters a, b must be finite and > 0",
                          fix="pass inverse-gamma parameters a > 0 and b > 0, finite (posterior.noise.a0 and b0, "
-                             "defaults 2.0 and 1e-3)")
+                             f"defaults {field_default(NoiseBlock, 'a0')} and {field_default(NoiseBlock, 'b0')})")
     try:
         torch.broadcast_shapes(a.shape, b.shape)
     except RuntimeError as e:
@@ -97,7 +97,8 @@ def ig_update_ema(
     """
     if not (0.0 <= float(decay) <= 1.0):
         raise B3dgsError(f"decay must be in [0, 1], got {decay}",
-                         fix="pass decay in [0, 1] (posterior.noise.decay, default 0.99; 1 is the plain conjugate "
+                         fix=f"pass decay in [0, 1] (posterior.noise.decay, default {field_default(NoiseBlock, 'decay')}; 1 is the plain "
+                             "conjugate "
                              "update)")
     a_, b_ = _t(a), _t(b)
     _check_ab(a_, b_)
@@ -185,11 +186,12 @@ class NoiseBlock(PosteriorBlock):
     def validate(self, max_steps: int = 0, **kw) -> None:
         if self.a0 <= 0 or self.b0 <= 0:
             raise B3dgsError("posterior.noise.a0 and b0 must be > 0",
-                             fix="pass posterior.noise.a0 > 0 and posterior.noise.b0 > 0, e.g. the defaults 2.0 and "
-                                 "1e-3")
+                             fix="pass posterior.noise.a0 > 0 and posterior.noise.b0 > 0, e.g. the defaults "
+                                 f"{field_default(self, 'a0')} and {field_default(self, 'b0')}")
         if not 0 <= self.decay < 1:
             raise B3dgsError("posterior.noise.decay must be in [0, 1)",
-                             fix="pass posterior.noise.decay in [0, 1), e.g. the default 0.99")
+                             fix="pass posterior.noise.decay in [0, 1), "
+                                 f"e.g. the default {field_default(self, 'decay')}")
 
     def initialize_state(self, *, splats, scene, info):
         dev = splats["means"].device

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import torch
 
 from b3dgs.compression import PruningScore, spatial_fisher
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, field_default
 
 
 @dataclass
@@ -18,7 +18,7 @@ class PUPPruning(PruningScore):
     zero block and ranks last; clamps are counted in ``state["clamped"]``)."""
 
     rounds: int = 2
-    pixel_stride: int = 4
+    pixel_stride: int = 4  # per-pixel gradients from s*s passes per view and channel (exact when s >= scoring side)
     per_channel: bool = True
     eig_floor: float = 1.0e-30
 
@@ -26,10 +26,11 @@ class PUPPruning(PruningScore):
         super().validate(**kwargs)
         if int(self.pixel_stride) < 1:
             raise B3dgsError(f"pruning pup.pixel_stride must be >= 1, got {self.pixel_stride}",
-                             fix="pass pruning.pixel_stride as an integer >= 1, e.g. the default 4")
+                             fix="pass pruning.pixel_stride as an integer >= 1, "
+                                 f"e.g. the default {field_default(self, 'pixel_stride')}")
         if not self.eig_floor > 0:
             raise B3dgsError(f"pruning pup.eig_floor must be > 0, got {self.eig_floor}",
-                             fix="pass pruning.eig_floor > 0, e.g. the default 1e-30")
+                             fix=f"pass pruning.eig_floor > 0, e.g. the default {field_default(self, 'eig_floor')}")
 
     def score(self, *, splats, optimizers, state, step, info):
         F = spatial_fisher(info, int(self.pixel_stride), bool(self.per_channel))

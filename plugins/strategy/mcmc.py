@@ -9,7 +9,7 @@ from typing import ClassVar, Optional
 import torch
 from torch import Tensor
 
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, field_default
 from b3dgs.plugin import Plugin
 from b3dgs.render.projection import quat_to_rotmat
 
@@ -56,7 +56,7 @@ class MCMCStrategy(Plugin):
 
     per_gaussian_state: ClassVar[tuple[str, ...]] = ()
 
-    cap_max: int = 50000
+    cap_max: int = 50000  # the same budget as the standard strategy's quick-protocol max_gaussians at 256 px
     noise_lr: float = 5.0e5
     refine_start: int = 250
     refine_stop: int = 2500
@@ -69,18 +69,23 @@ class MCMCStrategy(Plugin):
     def validate(self, **kwargs) -> None:
         if self.cap_max < 1:
             raise B3dgsError(f"strategy.cap_max must be >= 1, got {self.cap_max}",
-                             fix="pass strategy.cap_max as a positive count of Gaussians, e.g. the default 50000")
+                             fix="pass strategy.cap_max as a positive count of Gaussians, "
+                                 f"e.g. the default {field_default(self, 'cap_max')}")
         if self.refine_every <= 0 or self.refine_start < 0 or self.refine_stop < self.refine_start:
             raise B3dgsError("strategy.refine_every must be > 0 and 0 <= strategy.refine_start <= strategy.refine_stop",
                              fix="pass strategy.refine_every > 0 and 0 <= strategy.refine_start <= "
-                                 "strategy.refine_stop, e.g. the defaults 100, 250 and 2500")
+                                 f"strategy.refine_stop, e.g. the defaults {field_default(self, 'refine_every')}, "
+                                 f"{field_default(self, 'refine_start')} and {field_default(self, 'refine_stop')}")
         if not 0 < self.min_opacity < 1:
             raise B3dgsError(f"strategy.min_opacity must be in (0, 1), got {self.min_opacity}",
-                             fix="pass strategy.min_opacity in (0, 1), e.g. the default 0.005")
+                             fix="pass strategy.min_opacity in (0, 1), "
+                                 f"e.g. the default {field_default(self, 'min_opacity')}")
         if self.grow_rate < 0 or self.noise_lr < 0 or self.opacity_reg < 0 or self.scale_reg < 0:
             raise B3dgsError("strategy.grow_rate, noise_lr, opacity_reg and scale_reg must be >= 0",
-                             fix="pass non-negative values, e.g. the defaults strategy.grow_rate=0.05, noise_lr=5e5, "
-                                 "opacity_reg=0.01, scale_reg=0.01 (0 turns a term off)")
+                             fix="pass non-negative values, e.g. the defaults "
+                                 + ", ".join(f"strategy.{k}={field_default(self, k)}"
+                                             for k in ("grow_rate", "noise_lr", "opacity_reg", "scale_reg"))
+                                 + " (0 turns a term off)")
 
     def initialize_state(self, *, splats, scene, info):
         dev = splats["means"].device

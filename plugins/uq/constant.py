@@ -24,7 +24,7 @@ class ConstantUQ(UQRegime):
 
     has_epistemic: ClassVar[bool] = False
     samples: int = 0  # no Monte-Carlo draws
-    max_train_views: Optional[int] = None
+    max_train_views: Optional[int] = None  # training views rendered for σ̂² (None: all)
 
     def validate(self, **kwargs):
         if self.max_train_views is not None and self.max_train_views < 1:

@@ -43,7 +43,7 @@ class NativeCalibratedUQ(_CalibratedNative):
     alone (s = 1). s > 0, so the pixel ranking (AUSE, Spearman ρ) is that of u_p."""
 
     regime_name = "native_calibrated"
-    fit_scale: bool = True
+    fit_scale: bool = True  # False: fit the aleatoric level a alone (s = 1)
 
     def fit(self, models, scene):
         super().fit(models, scene)

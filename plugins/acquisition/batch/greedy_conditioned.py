@@ -28,7 +28,7 @@ class GreedyConditioned(BatchSelector):
     ensemble, ppu, oracle, each saying why in ``no_conditioning``) is selected as ``batch=diverse`` with
     ``radius``, and the fallback and its reason are recorded in the selection's info."""
 
-    max_rescore: int = 4
+    max_rescore: int = 4  # candidates re-scored per pick at most (plus one weight render for the conditioning)
     radius: float = 1.0  # the diverse fallback's radius
 
     def validate(self, **kwargs):
