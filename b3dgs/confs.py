@@ -58,6 +58,17 @@ def field_defaults(target: str) -> Dict[str, Any]:
     return out
 
 
+def _composed_packages(defaults: Any) -> set[str]:
+    """The keys a file's defaults list composes into (``- /posterior@posterior: sh`` -> ``posterior``)."""
+    out = set()
+    for entry in defaults if isinstance(defaults, list) else []:
+        for key in entry if isinstance(entry, dict) else [entry]:
+            _, at, pkg = str(key).partition("@")
+            if at and pkg and pkg != "_global_":
+                out.add(pkg.split(".")[0])
+    return out
+
+
 def _fill(node: Any) -> bool:
     """Give every ``_target_`` mapping in ``node`` (a plain container) the :func:`field_defaults` of its target that
     it does not set: ``_target_``, then the fields in declaration order, then its other keys. Whether any changed."""
@@ -67,6 +78,8 @@ def _fill(node: Any) -> bool:
             changed |= k != "defaults" and _fill(v)
         target = node.get("_target_")
         fields = field_defaults(target) if isinstance(target, str) else {}
+        for pkg in _composed_packages(node.get("defaults")):  # set by the file's defaults list: never filled over
+            fields.pop(pkg, None)
         if any(k not in node for k in fields):
             first = {k: node[k] for k in ("defaults", "_target_") if k in node}
             filled = {**first, **{k: node.get(k, d) for k, d in fields.items()}}

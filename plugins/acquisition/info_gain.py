@@ -84,13 +84,13 @@ class InfoGainPolicy(AcquisitionPolicy):
     ``posterior: {sh: {prior_precision: 2.0}}``); ``geometry``: add the centres' term (``geometry_probes`` Hutchinson
     probes per view, prior std ``geometry_prior_scale`` × extent)."""
 
-    family: str = "niw"
-    objective: str = "predictive"
-    targets: str = "pool"
-    posterior: Any = None
-    geometry: bool = False
-    geometry_probes: int = 4
-    geometry_prior_scale: float = 0.1
+    family: str = "niw"  # the phase-1 model it scores with (the SH posterior needs no NIW: family=standard works too)
+    objective: str = "predictive"  # predictive | params
+    targets: str = "pool"  # pool | pool+train: the poses whose predictive variance counts (predictive only)
+    posterior: Any = None  # the SH block, composed by the YAML (defaults: [/posterior@posterior: sh])
+    geometry: bool = False  # also the centres' term (the fisher3 3x3 information; info_gain_geometry.yaml)
+    geometry_probes: int = 4  # Hutchinson probes per view for the centres' Fisher (one renderer backward each)
+    geometry_prior_scale: float = 0.1  # the centres' prior std / the scene extent: tau_mu = 1 / (r extent)^2
 
     def validate(self, **kwargs) -> None:
         super().validate(**kwargs)
