@@ -5,15 +5,7 @@ import PIL.PngImagePlugin  # noqa: F401
 
 __version__ = "0.1.0"
 
-
-def conf_dir() -> str:
-    """b3dgs's config directory: ``b3dgs/conf`` inside an installed wheel (``pyproject.toml`` maps the
-    repository's ``conf/`` there), else ``conf/`` beside the package in a source checkout or an editable
-    install."""
-    from pathlib import Path
-
-    here = Path(__file__).resolve().parent
-    return str(here / "conf" if (here / "conf" / "train.yaml").is_file() else here.parent / "conf")
+from b3dgs.paths import conf_dir  # noqa: E402 - b3dgs.conf_dir, the one everything imports
 
 
 def data_root_and_origin() -> tuple[str, str]:
@@ -62,6 +54,14 @@ def _register_resolvers() -> None:
         OmegaConf.register_new_resolver("b3dgs.paper_images", paper_images)
     if not OmegaConf.has_resolver("b3dgs.data_root"):
         OmegaConf.register_new_resolver("b3dgs.data_root", data_root)
+    if not OmegaConf.has_resolver("b3dgs.help"):
+        # every command's --help (hydra.help.template in conf/<app>.yaml): b3dgs.confs.help_text
+        def help_text(*args, _parent_=None):
+            from b3dgs.confs import help_text
+
+            return help_text(*args, _parent_=_parent_)
+
+        OmegaConf.register_new_resolver("b3dgs.help", help_text)
     if not OmegaConf.has_resolver("b3dgs.uid"):
         # default run dirs unique per process (conf/hydra/default.yaml): "<pid>-<4 random hex digits>", cached, so
         # resolved once per config in the launching process (joblib workers get the parent's value)

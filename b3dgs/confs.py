@@ -9,10 +9,10 @@ from typing import Any, Dict, Optional
 
 from omegaconf import DictConfig, OmegaConf
 
-from b3dgs import conf_dir
+from b3dgs.paths import conf_dir
 
 __all__ = ["added_key_problem", "app_groups", "conf_roots", "field_defaults", "help_groups", "help_text", "known_keys",
-           "load_option", "load_primary", "option_clashes", "option_names", "register_help_resolver",
+           "load_option", "load_primary", "option_clashes", "option_names",
            "with_field_defaults"]
 
 
@@ -303,13 +303,3 @@ def help_text(config: str, *hidden: str, _parent_=None) -> str:
                   groups.rstrip().replace("$", "$$"), ""]
     parts += ["== Config ==", "Override anything in the config (foo.bar=value)", "", "$CONFIG", HELP_FOOTER]
     return "\n".join(parts)
-
-
-def register_help_resolver() -> None:
-    """``${b3dgs.help:APP,...}``: every command's ``--help`` (:func:`help_text`), registered once by
-    :func:`b3dgs.errors.run_cli` before Hydra reads its config."""
-    from omegaconf import OmegaConf
-
-    if not OmegaConf.has_resolver("b3dgs.help"):
-        OmegaConf.register_new_resolver("b3dgs.help", help_text)
-

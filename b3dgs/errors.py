@@ -339,9 +339,6 @@ def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str
     os.environ[_USER_ENV] = old or ""
     os.environ["HYDRA_FULL_ERROR"] = "1"
     try:
-        from b3dgs.confs import register_help_resolver
-
-        register_help_resolver()  # ${b3dgs.help:APP} in every conf/<app>.yaml's hydra.help.template
         _refuse_option_clashes(prog)
         if prepare_argv is not None:
             try:
