@@ -89,14 +89,16 @@ RUN_DEFAULTS = {"trainer.precision": "32-true", "trainer.deterministic": False, 
                 "data.test_fraction": 0.125, "data.sector_axis": 0, "data.images_dir": None,
                 "data.undistort": None,
                 # a field the config files did not list before they were filled from the dataclass (issue 53 §3)
-                "posterior.niw.mse_ema": 0.99}
+                "posterior.niw.mse_ema": 0.99,
+                # the pair sums' cadence (issue 51 §2), every step in every run before it was a setting
+                "posterior.dp.pair_sums_every": 1, "posterior.color.pair_sums_every": 1}
 
 
 def omit_run_defaults(settings: Mapping[str, Any]) -> dict[str, Any]:
     """A run protocol (flattened ``config.yaml`` settings) comparable with runs written before ``trainer.precision``,
     ``trainer.deterministic`` and ``data.test_split``/``test_fraction``/``sector_axis`` (ab57b0a) or
     ``data.images_dir`` (bfb7523) or ``data.undistort`` were settings, or before a plugin's config node held every field
-    of its class (``posterior.niw.mse_ema``): those keys left out at the values such runs used (:data:`RUN_DEFAULTS`)."""
+    of its class (``posterior.niw.mse_ema``) or the pair sums had a cadence: those keys left out at the values such runs used (:data:`RUN_DEFAULTS`)."""
     return {k: v for k, v in settings.items() if not (k in RUN_DEFAULTS and v == RUN_DEFAULTS[k])}
 
 

@@ -1,6 +1,6 @@
 """DPMM's pair-sum cadence, paired: the paper's every-step usage and Σ w² EMAs (``every1``, the default) against
-reading the renderer's pair sums on every k-th step only (``every<k>``: ``+posterior.dp.pair_sums_every=k
-+posterior.color.pair_sums_every=k``), over the seven scenes at the quick protocol (256 px, 3000 steps), on the CPU.
+reading the renderer's pair sums on every k-th step only (``every<k>``: ``posterior.dp.pair_sums_every=k
+posterior.color.pair_sums_every=k``), over the seven scenes at the quick protocol (256 px, 3000 steps), on the CPU.
 
     python -m bench.dp_cadence                                  # 7 scenes x seeds 0 1 2, every1 and every4, 2 jobs
     python -m bench.dp_cadence --scenes fox --seeds 0 --jobs 1  # one pair
@@ -29,7 +29,7 @@ def variants(every: list[int]) -> list[str]:
         if k < 1:
             raise SystemExit(f"bench/dp_cadence.py: --every {k} is not >= 1 (fix: pass cadences such as 4 8)")
         if k > 1:
-            out.append(f"every{k}=+posterior.dp.pair_sums_every={k} +posterior.color.pair_sums_every={k}")
+            out.append(f"every{k}=posterior.dp.pair_sums_every={k} posterior.color.pair_sums_every={k}")
     return out
 
 

@@ -55,7 +55,7 @@ def test_asked_only_on_the_steps_a_block_declares(tmp_path, asked):
     assert asked == [s >= 16 for s in range(24)]
     asked.clear()
     run_train(tmp_path / "dp", TINY + ["model=standard", "posterior=[dp,color]", "posterior.color.t_post=16",
-                                       "+posterior.dp.pair_sums_every=5"])
+                                       "posterior.dp.pair_sums_every=5"])
     assert asked == [s % 5 == 0 or s >= 16 for s in range(24)]
 
 
@@ -80,9 +80,9 @@ def test_dpmm_default_cadence_is_every_step_and_keeps_its_bits(tmp_path, asked):
                    "posterior.opacity.t_post=12", "posterior.noise.t_noise=8"]
     run_train(tmp_path / "default", over)
     assert asked == [True] * 24
-    run_train(tmp_path / "explicit", over + ["+posterior.dp.pair_sums_every=1", "+posterior.color.pair_sums_every=1"])
+    run_train(tmp_path / "explicit", over + ["posterior.dp.pair_sums_every=1", "posterior.color.pair_sums_every=1"])
     assert _digest(tmp_path / "default") == _digest(tmp_path / "explicit")
-    run_train(tmp_path / "every4", over + ["+posterior.dp.pair_sums_every=4", "+posterior.color.pair_sums_every=4"])
+    run_train(tmp_path / "every4", over + ["posterior.dp.pair_sums_every=4", "posterior.color.pair_sums_every=4"])
     assert asked[48:] == [s % 4 == 0 for s in range(24)]
 
 
@@ -115,8 +115,8 @@ def test_pair_sums_every_must_be_a_positive_integer(block, bad):
 
 def test_dp_cadence_bench_grid(tmp_path):
     dp_cadence = pytest.importorskip("bench.dp_cadence")
-    assert dp_cadence.variants([4, 1]) == ["every1=", "every4=+posterior.dp.pair_sums_every=4 "
-                                                       "+posterior.color.pair_sums_every=4"]
+    assert dp_cadence.variants([4, 1]) == ["every1=", "every4=posterior.dp.pair_sums_every=4 "
+                                                       "posterior.color.pair_sums_every=4"]
     with pytest.raises(SystemExit, match="--every"):
         dp_cadence.variants([0])
     # the table of an empty grid (trains nothing): bench/schedule.py's machinery under this name and title

@@ -35,7 +35,7 @@ class ColorBlock(PosteriorBlock):
     ema: float = 0.99
     t_post: Optional[int] = None
     #: from ``t_post``, read Σ_p w² on every k-th step only (step % k == 0), the EMA then decaying by ema^k per read;
-    #: 1: every step (the runs archived). Not in conf/posterior/color.yaml: ``+posterior.color.pair_sums_every=4``
+    #: 1: every step (the runs archived; left out of a run's protocol at 1), e.g. ``posterior.color.pair_sums_every=4``
     pair_sums_every: int = 1
     needs_weights: ClassVar[bool] = True
     needs_residuals: ClassVar[bool] = True  # reads info["sq_err_sum"]

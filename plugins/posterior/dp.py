@@ -255,8 +255,8 @@ class DPBlock(PosteriorBlock):
     gate_temperature: float = 1.0
     prune: bool = True
     #: read the pair sums (Σ_p w) on every k-th step only (step % k == 0), the usage EMA then decaying by ema^k per
-    #: read; 1: every step (the paper, and the runs archived). Not in conf/posterior/dp.yaml, so a run at the
-    #: default records no new setting: ``+posterior.dp.pair_sums_every=4`` (see ``bench/dp_cadence.py``)
+    #: read; 1: every step (the paper, and the runs archived; a run's protocol leaves 1 out: upgrade.RUN_DEFAULTS),
+    #: e.g. ``posterior.dp.pair_sums_every=4`` (see ``bench/dp_cadence.py``)
     pair_sums_every: int = 1
     needs_weights: ClassVar[bool] = True
 
