@@ -23,7 +23,7 @@ class ConstantUQ(UQRegime):
     AUSE is that of a random order with ties."""
 
     has_epistemic: ClassVar[bool] = False
-    samples: int = 0  # no Monte-Carlo draws
+    samples: ClassVar[int] = 0  # no Monte-Carlo draws (not a setting: nothing to sample)
     max_train_views: Optional[int] = None  # training views rendered for σ̂² (None: all)
 
     def validate(self, **kwargs):
