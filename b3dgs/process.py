@@ -432,7 +432,10 @@ class _Run:
         opts = pycolmap.IncrementalPipelineOptions()
         opts.random_seed = int(self.cfg.seed)
         opts.min_model_size = MIN_PHOTOS
-        opts.num_threads = self.threads
+        # one thread: the mapper's bundle adjustment and triangulation sum in thread order, and under load two runs
+        # of the same photos differed by 0.26 in pose (the full suite beside other jobs); extraction and matching
+        # keep every thread (their results no longer depend on the order threads finish in)
+        opts.num_threads = 1
         if tri is not None:
             opts.mapper.init_min_tri_angle = tri
         bar = _bar(desc, len(self.names), " photos")
