@@ -92,9 +92,13 @@ def test_config_without_the_later_run_settings():
     old = _archived_cfg()
     assert "precision" not in old["trainer"] and "test_split" not in old["data"]
     new = json.loads(json.dumps(old))
-    for key, value in upgrade.RUN_DEFAULTS.items():
-        group, name = key.split(".")
-        new[group][name] = value
+    for key, value in upgrade.RUN_DEFAULTS.items():  # each setting the run's config has the node of
+        *path, name = key.split(".")
+        node = new
+        for part in path:
+            node = node.get(part) if isinstance(node, dict) else None
+        if isinstance(node, dict):
+            node[name] = value
     assert run_protocol(old) == run_protocol(new)
     new["data"]["test_split"] = "sector"
     assert run_protocol(old) != run_protocol(new)
