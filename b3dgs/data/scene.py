@@ -681,19 +681,19 @@ def infer_data_override(prog: str, argv: list[str]) -> list[str]:
     missing folder or a folder of photos only is a :class:`B3dgsError`. Overrides Hydra cannot parse are left to it."""
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
-    parser, groups, at = OverridesParser.create(), set(), None
+    parser, groups, at, override = OverridesParser.create(), set(), None, None
     for i, arg in enumerate(argv):
         if arg.startswith("-") or "=" not in arg:
             continue
         try:
-            override = parser.parse_overrides([arg])[0]
+            parsed = parser.parse_overrides([arg])[0]
         except Exception:  # noqa: BLE001 - Hydra reports a bad override in its own words
             return argv
-        groups.add(override.key_or_group)
-        at = i if override.key_or_group == "data.path" else at
+        groups.add(parsed.key_or_group)
+        if parsed.key_or_group == "data.path":
+            at, override = i, parsed
     if at is None or groups & {"data", "scene"}:
         return argv
-    override = parser.parse_overrides([argv[at]])[0]
     values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
     if not all(isinstance(v, str) and v and "${" not in v for v in values):
         return argv  # null or an interpolation: the data module checks what it resolves to
