@@ -191,11 +191,11 @@ def test_external_package_adds_an_acquisition_policy(tmp_path, monkeypatch):
             """A user's policy: the candidates in reverse name order."""
             def score(self, ctx, candidates):
                 return torch.arange(len(candidates), dtype=torch.float64)
-    ''', {"lastfirst": "_target_: b3dgs_acq_demo.pol.LastFirst\nfamily: niw\n"})
+    ''', {"lastfirst": "_target_: b3dgs_acq_demo.pol.LastFirst\nfamily: dpmm\n"})  # any model= option
     GlobalHydra.instance().clear()
     with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
         label, pol = load_policy("lastfirst")
-    assert type(pol).__name__ == "LastFirst" and pol.family == "niw" and label == "lastfirst"
+    assert type(pol).__name__ == "LastFirst" and pol.family == "dpmm" and label == "lastfirst"
     ring = _ring(5)
     assert pol.select(ScoringContext([], ring[:1]), ring[1:], 2).indices == [3, 2]
     sys.modules.pop("b3dgs_acq_demo", None)
@@ -302,10 +302,12 @@ def test_phase1_lock_serialises_jobs_that_share_a_phase1_model(tmp_path):
 @pytest.mark.parametrize("name", sorted(p.stem for p in (Path(CONF_DIR) / "acquisition").glob("*.yaml")))
 def test_every_acquisition_option_builds(name):
     from b3dgs.acquisition import AcquisitionPolicy
+    from b3dgs.confs import option_names
 
     GlobalHydra.instance().clear()
     pol = _policy(name)
-    assert isinstance(pol, AcquisitionPolicy) and pol.family in ("standard", "niw")
+    # docs/extending.md: `family` is any `model=` option (b3dgs's or a package's)
+    assert isinstance(pol, AcquisitionPolicy) and pol.family in option_names("model")
     assert pol.uses_ground_truth == (name == "oracle")
 
 
