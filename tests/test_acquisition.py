@@ -347,6 +347,34 @@ def test_study_extended_by_a_subset_keeps_every_row(tmp_path):
     assert table["ppu"]["psnr"] == pytest.approx(18.0)
 
 
+def test_study_pairs_every_policy_with_the_baselines_by_rule_and_the_pairs_asked_for(tmp_path):
+    """A new policy gets its paired rows against farthest, uniform and the ensemble without editing the core, plus
+    any ``pairs=`` the study records in meta.json; a malformed pair is a one-line error."""
+    from omegaconf import OmegaConf
+
+    from b3dgs.errors import B3dgsError
+    from b3dgs.study.active import study_pairs
+    from b3dgs.study.active_tables import summarize
+
+    pols = ["uniform", "farthest", "ensemble", "mine", "native"]
+    (tmp_path / "meta.json").write_text(json.dumps({"policies": pols, "pairs": [["native", "mine"]]}))
+    for i, pol in enumerate(pols):
+        for seed in (0, 1):
+            d = tmp_path / f"{pol}_s{seed}"
+            d.mkdir()
+            (d / "result.json").write_text(json.dumps({"policy": pol, "seed": seed, "family": "standard",
+                                                       "psnr": 20.0 + i + seed, "selected": ["a"]}))
+    paired = summarize(tmp_path)["paired"]
+    assert list(paired) == ["native-mine", "uniform-farthest", "uniform-ensemble", "farthest-ensemble",
+                            "mine-farthest", "mine-uniform", "mine-ensemble", "native-farthest", "native-uniform",
+                            "native-ensemble"]
+    assert paired["mine-uniform"]["delta_psnr"] == pytest.approx(3.0) and paired["mine-uniform"]["n"] == 2
+    assert list(summarize(tmp_path, pairs=[("native", "uniform")])["paired"]) == ["native-uniform"]
+    assert study_pairs(OmegaConf.create({"pairs": [["native", "proxy"]]})) == [["native", "proxy"]]
+    with pytest.raises(B3dgsError, match="not a pair of policies"):
+        study_pairs(OmegaConf.create({"pairs": ["native", "proxy"]}))
+
+
 def test_regime_policies_are_their_uq_regime():
     """A score policy over a UQ regime composes conf/uq/<name>.yaml (issue 45: one policy over one regime): the
     regime's own settings except the draws, overridden by name; two regimes or none is a one-line error."""

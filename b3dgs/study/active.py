@@ -273,6 +273,17 @@ def batch_names(cfg: DictConfig) -> list[str]:
     return list(dict.fromkeys(names))
 
 
+def study_pairs(cfg: DictConfig) -> list[list[str]]:
+    """``pairs``: the paired rows asked for besides the rule's (:func:`b3dgs.study.active_tables.pairs_for`)."""
+    from b3dgs.errors import B3dgsError
+
+    pairs = [p if isinstance(p, str) else list(p) for p in cfg.get("pairs") or []]
+    for p in pairs:
+        if not (isinstance(p, list) and len(p) == 2 and all(isinstance(x, str) for x in p)):
+            raise B3dgsError(f"pairs: {p!r} is not a pair of policies", "pass e.g. 'pairs=[[native,proxy]]'")
+    return pairs
+
+
 # ---------------------------------------------------------------------------------------------- views
 def pca_angles(cameras) -> np.ndarray:
     """Angle of every camera centre in the plane of the first two principal components (deterministic sign)."""
@@ -329,15 +340,16 @@ def initial_views(cfg: DictConfig, train) -> tuple[list[int], list[str]]:
 
 # ---------------------------------------------------------------------------------------------- study
 #: study keys that decide which rows exist or where they go, not what a row holds
-STUDY_IGNORED = ("policies", "family_baselines", "share_training", "oracle", "seeds", "seed", "out_dir", "plots",
+STUDY_IGNORED = ("policies", "pairs", "family_baselines", "share_training", "oracle", "seeds", "seed", "out_dir", "plots",
                  "acquisition.batch",  # batch settings (acquisition.batch_settings) do change rows
                  "family_posterior")  # recorded as the families' resolved blocks instead (study_protocol)
 
 
-def merged_policies(meta_path: Path, policies: list[str]) -> list[str]:
-    """The policies a scene folder's ``meta.json`` lists after this invocation: the earlier ones first, then this
-    invocation's new ones. A study extended by a subset of its policies (or by new ones) keeps its rows listed."""
-    earlier = (json.loads(meta_path.read_text()).get("policies") or []) if meta_path.exists() else []
+def merged_policies(meta_path: Path, policies: list, key: str = "policies") -> list:
+    """The policies (or another list, ``key``) a scene folder's ``meta.json`` lists after this invocation: the earlier
+    ones first, then this invocation's new ones. A study extended by a subset of its policies (or by new ones) keeps
+    its rows listed."""
+    earlier = (json.loads(meta_path.read_text()).get(key) or []) if meta_path.exists() else []
     return [*earlier, *[p for p in policies if p not in earlier]]
 
 
@@ -624,6 +636,7 @@ class ActiveStudy:
                 "point_filter": self.store.point_filter, "policies": [l for l, _ in self.labels_policies],
                 "pool_train_views": [c.name for c in self.pool_train]}
         meta["policies"] = merged_policies(self.out / "meta.json", meta["policies"])
+        meta["pairs"] = merged_policies(self.out / "meta.json", study_pairs(self.cfg), "pairs")
         write_json(self.out / "meta.json", meta)
         xy = pca_xy(self.pool_train)
         write_json(self.out / "layout.json", {"xy": {c.name: [float(a), float(b)] for c, (a, b) in zip(self.pool_train, xy)},

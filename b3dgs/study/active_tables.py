@@ -15,10 +15,18 @@ from b3dgs.io import atomic_path, save_figure, write_json
 from b3dgs.report.document import markdown_table
 from b3dgs.report.stats import mean_sem
 
-PAIRS = (("native", "ensemble"), ("native", "proxy"),
-         # batch selection: batch-aware native against top-k native, the ensemble and farthest (rows present only)
-         ("native+greedy_conditioned", "native"), ("native+greedy_conditioned", "ensemble"),
-         ("native+greedy_conditioned", "farthest"), ("native+diverse", "native"))
+#: every policy is paired with each of these (rows present only); the study's ``pairs=`` adds others
+BASELINES = ("farthest", "uniform", "ensemble")
+
+
+def pairs_for(policies: list[str], extra=()) -> list[tuple[str, str]]:
+    """The paired rows (a − b by scene-seed): ``extra`` (the study's ``pairs=``), then every policy against each of
+    :data:`BASELINES` by rule; each pair of policies once, in its first orientation."""
+    out = []
+    for a, b in [tuple(x) for x in extra] + [(p, b) for p in policies for b in BASELINES if p != b]:
+        if (a, b) not in out and (b, a) not in out:
+            out.append((a, b))
+    return out
 
 
 def jaccard(a, b) -> float:
@@ -51,7 +59,9 @@ def oracle_rho(scores: Optional[dict], oracle: Optional[dict]) -> Optional[float
     return spearman_rho([scores[n] for n in names], [oracle[n] for n in names], max_pixels=None)[0]
 
 
-def summarize(out: Path) -> dict:
+def summarize(out: Path, pairs=None) -> dict:
+    """The scene folder's tables; ``pairs``: the paired rows (default :func:`pairs_for` its policies and the
+    ``pairs`` its meta.json records)."""
     rows = load_rows(out)
     meta = json.loads((out / "meta.json").read_text()) if (out / "meta.json").exists() else {}
     # meta's order first (the last invocation's policies), then rows of earlier invocations with other policies:
@@ -82,7 +92,7 @@ def summarize(out: Path) -> dict:
         if vals:
             jac[f"{a}|{b}"] = float(np.mean(vals))
     paired = {}
-    for a, b in PAIRS:
+    for a, b in pairs_for(policies, meta.get("pairs", ())) if pairs is None else pairs:
         d = [by[(a, s)]["psnr"] - by[(b, s)]["psnr"] for s in seeds if (a, s) in by and (b, s) in by
              and by[(a, s)]["psnr"] is not None and by[(b, s)]["psnr"] is not None]
         if d:
@@ -141,9 +151,9 @@ def markdown(summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_report(out: Path, plots: bool = True, store=None) -> dict:
+def write_report(out: Path, plots: bool = True, store=None, pairs=None) -> dict:
     out = Path(out)
-    summary = summarize(out)
+    summary = summarize(out, pairs)
     write_json(out / "study.json", summary)
     with atomic_path(out / "study.md") as tmp:  # concurrent seed jobs each rewrite it when they finish
         tmp.write_text(markdown(summary))
