@@ -201,6 +201,63 @@ def test_external_package_adds_an_acquisition_policy(tmp_path, monkeypatch):
     sys.modules.pop("b3dgs_acq_demo", None)
 
 
+def test_external_package_adds_a_batch_selector(tmp_path, monkeypatch):
+    """docs/extending.md's batch selector from an installed package, over a policy that conditions: each pick is
+    the candidate farthest from the training and earlier picks (top-k of the first scores would take neighbours),
+    and the selector leaves the policy unconditioned."""
+    from b3dgs.study.active import load_batch
+    from tests.fake_package import install_conf_package
+
+    install_conf_package(tmp_path, monkeypatch, "b3dgs_batch_demo", "acquisition/batch", "sel", '''
+        from dataclasses import dataclass, field
+        import torch
+        from b3dgs.acquisition import AcquisitionPolicy, BatchSelector, Selection, camera_centres
+
+        @dataclass
+        class OneByOne(BatchSelector):
+            def select(self, policy, ctx, candidates, budget):
+                first = [float(v) for v in policy.score(ctx, candidates)]
+                left, picks = list(range(len(candidates))), []
+                try:
+                    while left and len(picks) < budget:
+                        s = policy.score_at(ctx, candidates, left)
+                        picks.append(left.pop(int(s.argmax())))
+                        policy.condition(ctx, candidates[picks[-1]])
+                finally:
+                    policy.reset_conditioning(ctx)
+                return Selection(picks, first, {"batch": "one_by_one"})
+
+        @dataclass
+        class Away(AcquisitionPolicy):
+            """A candidate's distance to the nearest acquired camera (training, then each conditioned pick)."""
+            acquired: list = field(default_factory=list)
+
+            def score(self, ctx, candidates):
+                have = torch.as_tensor(camera_centres([*ctx.train, *self.acquired]))
+                return torch.cdist(torch.as_tensor(camera_centres(candidates)), have).min(1).values
+
+            def condition(self, ctx, camera):
+                self.acquired.append(camera)
+                return True
+
+            def reset_conditioning(self, ctx):
+                self.acquired.clear()
+    ''', {"one_by_one": "_target_: b3dgs_batch_demo.sel.OneByOne\n"})
+    GlobalHydra.instance().clear()
+    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
+        batch = load_batch("one_by_one")
+    from b3dgs_batch_demo.sel import Away
+
+    pol, ring = Away(), _ring(8)
+    assert type(batch).__name__ == "OneByOne" and batch.applies_to(pol)
+    sel = batch.select(pol, ScoringContext([], ring[:1]), ring[1:], 3)
+    names = [ring[1:][i].name for i in sel.indices]
+    assert names[0] == "c04" and set(names[1:]) == {"c02", "c06"}  # opposite the training camera c00, then the gaps
+    assert pol.acquired == [] and sel.info == {"batch": "one_by_one"}
+    assert sel.indices[:2] != sorted(range(7), key=lambda i: -sel.scores[i])[:2]  # top-k: c04 and a neighbour
+    sys.modules.pop("b3dgs_batch_demo", None)
+
+
 # ------------------------------------------------------------------------------- the study, resumed
 STUDY = ["active", "data=synthetic", "data.max_side=32", "+data.n_views=40", "renderer=cpu", "trainer.max_steps=60",
          "trainer.checkpoint_every=10", "trainer.checkpoint_every_s=0", "strategy.refine_start=10",
