@@ -330,9 +330,11 @@ def test_study_shares_a_second_round_only_when_it_is_the_same_run(tmp_path):
     shared = run(tmp_path / "a")
     assert shared["uniform@niw"]["training_shared_with"] == "uniform"
     assert not (tmp_path / "a" / "synthetic" / "uniform@niw_s0" / "checkpoints").exists()
-    trained = run(tmp_path / "b", "share_training=false")
+    trained = run(tmp_path / "b", "share_training=false", "pairs=[[uniform,uniform@niw]]")
     assert "training_shared_with" not in trained["uniform@niw"]
     assert trained["uniform@niw"]["psnr"] == trained["uniform"]["psnr"] == shared["uniform@niw"]["psnr"]
+    paired = json.loads((tmp_path / "b" / "synthetic" / "study.json").read_text())["paired"]  # asked for: its
+    assert list(paired) == ["uniform-uniform@niw"] and paired["uniform-uniform@niw"]["delta_psnr"] == 0.0  # side
 
 
 def test_phase1_lock_serialises_jobs_that_share_a_phase1_model(tmp_path):
