@@ -67,13 +67,13 @@ def _destinations(regimes: dict, runs: list, out_dir: Optional[Path]) -> dict[st
 def check_out_dir(out_dir: Path, first) -> None:
     """``out=`` may name a new folder, one of the user's, or the run dir of the run evaluated (or a copy of it, by
     parameter digest); not another run's dir, whose ``uq.json`` holds that run's results only (issue 46 §6)."""
-    from b3dgs.rundir import run_dir_kind, run_identity
+    from b3dgs.rundir import run_dir_kind, run_dir_stamp
     from b3dgs.uq.store import run_digest
 
     out_dir = Path(out_dir)
     if not out_dir.is_dir() or run_dir_kind(out_dir) not in ("run", "legacy"):
         return
-    mine, theirs = run_digest(first.metrics), run_identity(out_dir)["params_sha256"]
+    mine, theirs = run_digest(first.metrics), run_dir_stamp(out_dir)["params_sha256"]
     if out_dir.resolve() == Path(first.path).resolve() or (mine is not None and mine == theirs):
         return
     raise B3dgsError(f"out={out_dir} is the run dir of another run: its uq.json holds that run's results, not those "
@@ -108,7 +108,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     from b3dgs.uq.metrics import epistemic_summary, epistemic_view, evaluate_view, summarize, to_jsonable
     from b3dgs.uq.plots import plot_uncertainty_panel
     from b3dgs.uq.store import check_members, merge_into, read_uq, remove_staging, run_digest
-    from b3dgs.rundir import read_manifest, remove_stale_staging, run_identity, staging_prefix
+    from b3dgs.rundir import read_manifest, remove_stale_staging, run_dir_stamp, staging_prefix
 
     if loaded:
         runs = list(loaded)
@@ -138,7 +138,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     if out_dir is not None:
         check_out_dir(out_dir, first)
     # what each folder holds now: the results are merged only into the same run (§8: overwrite=true meanwhile)
-    identity = {d: run_identity(d) for d in dict.fromkeys(dests.values())}
+    stamps = {d: run_dir_stamp(d) for d in dict.fromkeys(dests.values())}
     lpips_model, lpips_reason = get_lpips(lpips_weights)
     train_times = [float((r.metrics or {}).get("train_time_s") or 0.0) for r in runs]
     writers: dict = {}
@@ -225,7 +225,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
         meta = to_jsonable(meta)
         for dest in dict.fromkeys(dests.values()):
             merge_into(dest, {k: v for k, v in result.items() if dests[k] == dest}, meta, staging.get(dest),
-                       expect=identity[dest])
+                       expect=stamps[dest])
     finally:
         for d in staging.values():
             remove_staging(d)

@@ -12,7 +12,7 @@
 * :class:`Interrupted` / :func:`interrupt_handlers`: SIGINT and SIGTERM become a checkpoint at the next step
   boundary (:class:`b3dgs.callbacks.RunCheckpoint`) and an exit with 128 + the signal number.
 * The run manifest ``<run dir>/.b3dgs-run.json`` (:func:`write_manifest`), written when a run is accepted: what
-  marks a folder as a b3dgs run dir, its run's identity (``run_id``, :func:`run_identity`) and every file b3dgs
+  marks a folder as a b3dgs run dir, its run's identity (``run_id``, :func:`run_dir_stamp`) and every file b3dgs
   wrote there, by name (each writer lists its files before writing them, :func:`record_written`).
   ``overwrite=true`` removes exactly the files it lists (:func:`remove_run_files`), a second b3dgs-render the frames
   it lists (:func:`remove_recorded`); a non-empty folder without it is someone else's (:func:`run_dir_kind`).
@@ -462,8 +462,8 @@ def check_replace(path: Path, prog: str, overwrite: bool = False, fix: Optional[
     return owner
 
 
-def run_identity(folder: Path) -> dict:
-    """What identifies the run in ``folder`` (for b3dgs-eval to tell whether it changed while it ran): its manifest's
+def run_dir_stamp(folder: Path) -> dict:
+    """Which run ``folder`` holds now (for b3dgs-eval to tell whether it changed while it ran): its manifest's
     :func:`manifest_token` and the parameter digest of metrics.json's final checkpoint (``None`` where absent)."""
     folder = Path(folder)
     try:

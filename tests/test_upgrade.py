@@ -194,13 +194,13 @@ def test_manifest_format_1_patterns(tmp_path):
 
 def test_manifest_format_1_run_id(tmp_path):
     """A format-1 manifest had no ``run_id``: its run's identity is its creation time, kept when it is rewritten."""
-    from b3dgs.rundir import manifest_token, run_identity
+    from b3dgs.rundir import manifest_token, run_dir_stamp
 
     assert upgrade.manifest_run_id({"b3dgs_run": 2, "run_id": "abc"}) == "abc"
     assert upgrade.manifest_run_id({"b3dgs_run": 1, "created": "2025"}) == "created 2025"
     d, _, _ = _v1_dir(tmp_path, manifest=True)
     assert manifest_token(json.loads((d / ".b3dgs-run.json").read_text())) == "created 2025-01-01T00:00:00"
-    assert run_identity(d)["run_id"] == "created 2025-01-01T00:00:00"
+    assert run_dir_stamp(d)["run_id"] == "created 2025-01-01T00:00:00"
 
 
 def test_run_dir_without_a_manifest(tmp_path):

@@ -109,12 +109,12 @@ def read_uq(folder: Path) -> dict:
 
 def check_unchanged(folder: Path, new: Mapping[str, dict], expect: Optional[Mapping] = None) -> None:
     """Refuse to merge results into ``folder`` once a run changed under the evaluation: ``folder`` holds another run
-    than ``expect`` (:func:`b3dgs.rundir.run_identity` when the evaluation started: ``overwrite=true`` replaced it, or
-    a training started there), or a run an entry scored has another final checkpoint than the one evaluated."""
-    from b3dgs.rundir import run_identity
+    than ``expect`` (its :func:`b3dgs.rundir.run_dir_stamp` when the evaluation started: ``overwrite=true`` replaced
+    it, or a training started there), or a run an entry scored has another final checkpoint than the one evaluated."""
+    from b3dgs.rundir import run_dir_stamp
 
     folder = Path(folder)
-    if expect is not None and run_identity(folder) != dict(expect):
+    if expect is not None and run_dir_stamp(folder) != dict(expect):
         raise B3dgsError(f"{folder} holds another run than when this b3dgs-eval started (overwrite=true or a training "
                          f"replaced it meanwhile): its results were not merged into {folder / UQ_NAME}",
                          f"run b3dgs-eval again on the run {folder} holds now")
@@ -130,7 +130,7 @@ def merge_into(folder: Path, new: Mapping[str, dict], meta: Mapping, staging: Op
                expect: Optional[Mapping] = None) -> dict:
     """Merge the regimes ``new`` (each with its ``panels``, staged in ``staging`` with its TensorBoard events in
     ``staging/tb_uq``) into ``folder/uq.json`` under the folder's uq lock and (a run dir) its run dir lock, after
-    :func:`check_unchanged` (``expect``: the folder's run identity when the evaluation started); the files are listed
+    :func:`check_unchanged` (``expect``: the folder's run dir stamp when the evaluation started); the files are listed
     in a run dir's manifest by name before they are written. Returns the merged file."""
     from filelock import FileLock, Timeout
 
