@@ -124,6 +124,18 @@ def global_groups() -> frozenset:
     return frozenset(g for g, flags in files.items() if flags and all(flags))
 
 
+def compose_config(config_name: str, overrides: list[str]) -> DictConfig:
+    """b3dgs's config ``config_name`` (train, study, ...) composed with ``overrides``, inside a running Hydra app
+    or on its own."""
+    from hydra import compose, initialize_config_dir
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():
+        return compose(config_name=config_name, overrides=overrides)
+    with initialize_config_dir(config_dir=conf_dir(), version_base="1.3"):
+        return compose(config_name=config_name, overrides=overrides)
+
+
 @lru_cache(maxsize=None)
 def load_option(group: str, name: str):
     """The contents of option ``name`` of config ``group`` (the first root that has it), None if none has."""

@@ -108,6 +108,14 @@ def test_no_module_import_cycle():
     assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
 
+def test_b3dgs_names_no_plugin_module():
+    """docs/design.md: the core builds what the config names (the viewer's σ modes are conf/uq regimes), so no
+    module of b3dgs/ imports one of plugins/ (installed as b3dgs_plugins), lazily or not."""
+    graph = module_graph()
+    assert "b3dgs.confs" in graph["b3dgs.viewer.modes"]  # the walk saw the viewer's lazy imports
+    assert sorted((m, t) for m, ts in graph.items() if m.startswith("b3dgs") for t in ts if t.startswith("plugins")) == []
+
+
 def test_b3dgs_floors_are_a_dag():
     graph = unit_graph()
     assert "b3dgs.render" in graph and "b3dgs.metrics" in graph  # the walk saw the code

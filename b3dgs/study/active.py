@@ -28,6 +28,7 @@ from typing import Any, Optional
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
+from b3dgs.confs import compose_config  # noqa: F401 - also b3dgs.study.active's (tests, bench)
 from b3dgs.io import write_json
 from b3dgs.protocol import check_stored_protocol, check_stored_scene, scene_digest
 from b3dgs.upgrade import FAMILY_POSTERIOR_UNRECORDED, omit_study_defaults, protocol_from_meta
@@ -36,20 +37,6 @@ log = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------------------------------------- config
-def compose_config(config_name: str, overrides: list[str]) -> DictConfig:
-    """b3dgs's config ``config_name`` (train, study, ...) composed with ``overrides``, inside a running Hydra app
-    or on its own."""
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-
-    from b3dgs.train import CONF_DIR
-
-    if GlobalHydra.instance().is_initialized():
-        return compose(config_name=config_name, overrides=overrides)
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        return compose(config_name=config_name, overrides=overrides)
-
-
 def family_posterior_override(cfg: DictConfig, family: str) -> list[str]:
     """``[posterior=[...]]`` when the study pins ``family_posterior.<family>``, else ``[]`` (the model's own blocks,
     conf/model/<family>.yaml); an unknown block or a non-list is a one-line error."""

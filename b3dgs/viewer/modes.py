@@ -1,8 +1,8 @@
 """What the viewer draws: one image per render mode, with a colour map on a fixed, stated scale.
 
 Modes (:data:`MODES`): ``rgb``; ``depth`` and ``alpha`` (the renderer's own outputs); ``native_sigma`` (σ of
-S posterior re-renders, :class:`b3dgs_plugins.uq.native.NativeUQ`, for a run with posterior blocks: NIW or DPMM);
-``proxy_sigma`` (σ of S position-jittered re-renders, :class:`b3dgs_plugins.uq.proxy.ProxyUQ`, any run); ``sh_sigma``
+S posterior re-renders, ``uq=native``, for a run with posterior blocks: NIW or DPMM);
+``proxy_sigma`` (σ of S position-jittered re-renders, ``uq=proxy``, any run); ``sh_sigma``
 (σ of S re-renders drawing only the SH coefficients from the directional SH posterior, ``uq=sh``, any run rendered at
 SH degree >= 1); and three
 per-Gaussian overlays: ``dp_activity`` (E[a_k] of the DP block), ``pos_std`` (the NIW posterior's position
@@ -246,21 +246,17 @@ class ModeRenderer:
         return Frame(spec, img, values, mask, time.perf_counter() - t0, s)
 
     def regime(self, mode: str):
-        """The fitted UQ regime behind a σ mode (fitted on first use)."""
+        """The fitted UQ regime behind a σ mode ``<name>_sigma``: ``conf/uq/<name>.yaml`` (b3dgs-eval's
+        ``uq=[<name>]``) with the viewer's S, count scale (native) and jitter (proxy); fitted on first use."""
         if mode not in self._regimes:
-            if mode == "native_sigma":
-                from b3dgs_plugins.uq.native import NativeUQ
+            from hydra.utils import instantiate
 
-                reg = NativeUQ(samples=self.samples, chunk=8, count_scale=self.count_scale)
-            elif mode == "sh_sigma":  # conf/uq/sh.yaml: the SH posterior alone, from one pass over the training views
-                from b3dgs_plugins.posterior.sh import SHPosteriorBlock
-                from b3dgs_plugins.uq.native import NativeUQ
+            from b3dgs.confs import compose_config
 
-                reg = NativeUQ(samples=self.samples, chunk=8, model_blocks=False, add={"sh": SHPosteriorBlock()})
-            else:
-                from b3dgs_plugins.uq.proxy import ProxyUQ
-
-                reg = ProxyUQ(samples=self.samples, chunk=8, jitter=self.jitter)
+            name = mode.removesuffix("_sigma")
+            node = compose_config("eval", [f"uq=[{name}]", f"uq.samples={self.samples}"]).uq[name]
+            own = {"native": {"count_scale": self.count_scale}, "proxy": {"jitter": self.jitter}}.get(name, {})
+            reg = instantiate(node, chunk=8, **own)
             reg.fit([self.module], self.scene)
             self._regimes[mode] = reg
         return self._regimes[mode]
