@@ -84,7 +84,7 @@ class AcquisitionPolicy:
 
     def score(self, ctx: "ScoringContext", candidates: Sequence[Camera]) -> Tensor:
         """(K,) scores, higher = acquire first."""
-        raise NotImplementedError
+        raise NotImplementedError  # protocol: an abstract method (subclasses implement it)
 
     def select(self, ctx: "ScoringContext", candidates: Sequence[Camera], budget: int) -> Selection:
         scores = self.score(ctx, candidates)
@@ -173,7 +173,7 @@ class BatchSelector:
 
     def select(self, policy: AcquisitionPolicy, ctx: "ScoringContext", candidates: Sequence[Camera],
                budget: int) -> Selection:
-        raise NotImplementedError
+        raise NotImplementedError  # protocol: an abstract method (subclasses implement it)
 
 
 def _pool_spacing(points: np.ndarray) -> float:

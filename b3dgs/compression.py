@@ -44,7 +44,7 @@ class PruningScore(Plugin):
                                  "conf/pruning files use 2)")
 
     def score(self, *, splats, optimizers, state, step, info) -> Tensor:
-        raise NotImplementedError
+        raise NotImplementedError  # protocol: an abstract method (subclasses implement it)
 
 
 def keep_top(score: Tensor, keep: int) -> Tensor:

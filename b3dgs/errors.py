@@ -26,7 +26,7 @@ DEBUG_KEY = "b3dgs.debug"
 _APP_CONFIG: Optional[str] = None  # the running CLI's primary config (run_cli), for "did you mean"
 _PROG: Optional[str] = None  # the running CLI's name (run_cli), for fixes that repeat its command
 
-__all__ = ["B3dgsError", "EXIT_CODE", "did_you_mean", "format_error", "known_errors", "quiet_known_noise", "run_cli"]
+__all__ = ["B3dgsError", "B3dgsTypeError", "EXIT_CODE", "did_you_mean", "format_error", "known_errors", "quiet_known_noise", "run_cli"]
 
 
 class B3dgsError(ValueError):
@@ -41,6 +41,10 @@ class B3dgsError(ValueError):
         self.problem = str(problem).strip()
         self.fix = None if fix is None else str(fix).strip()
         super().__init__(self.problem if fix is None else f"{self.problem} (fix: {self.fix})")
+
+
+class B3dgsTypeError(B3dgsError, TypeError):
+    """A :class:`B3dgsError` for an argument of the wrong type; a ``TypeError`` too, as Python's own."""
 
 
 def field_default(owner: Any, name: str) -> Any:

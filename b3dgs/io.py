@@ -77,7 +77,7 @@ def _plain_leaf(o: Any) -> Any:
 def _json_default(o: Any) -> Any:
     plain = _plain_leaf(o)
     if plain is o:
-        raise TypeError(f"Object of type {type(o).__name__} is not JSON serialisable")
+        raise TypeError(f"Object of type {type(o).__name__} is not JSON serialisable")  # protocol: json's default=
     return plain
 
 

@@ -199,11 +199,11 @@ class ViewAccumulator:
     def add(self, *, camera, render, params: dict, sh_degree: int) -> None:
         """Add one view: ``render`` is the renderer's output for ``camera`` (``rgb``, ``radii``, ``weight_sum``,
         ``weight_sq_sum``), rendered from ``params``."""
-        raise NotImplementedError
+        raise NotImplementedError  # protocol: an abstract method (subclasses implement it)
 
     def result(self) -> dict[str, Tensor]:
         """The sums, by name (names must not clash with another accumulator's or the core's)."""
-        raise NotImplementedError
+        raise NotImplementedError  # protocol: an abstract method (subclasses implement it)
 
     def merge(self, other: "ViewAccumulator") -> "ViewAccumulator":
         """The accumulator to run when two blocks ask for the same ``key`` (default: the first)."""

@@ -574,13 +574,13 @@ def _read_state(out: Path) -> Optional[dict]:
     if not path.is_file():
         return None
     try:
-        state = json.loads(path.read_text())
-        if not isinstance(state, dict) or state.get("format") != FORMAT or not isinstance(state.get("stages"), dict):
-            raise ValueError("not a b3dgs-process record")
-        return state
+        state, why = json.loads(path.read_text()), "not a b3dgs-process record"
     except (OSError, ValueError) as e:
-        raise B3dgsError(f"{path} is damaged ({e})",
-                         f"delete {out} (or that file and {out / WORK}) and run again, or pass out= a new folder") from e
+        state, why = None, e
+    if isinstance(state, dict) and state.get("format") == FORMAT and isinstance(state.get("stages"), dict):
+        return state
+    raise B3dgsError(f"{path} is damaged ({why})",
+                     f"delete {out} (or that file and {out / WORK}) and run again, or pass out= a new folder")
 
 
 def _write_state(out: Path, state: dict) -> None:

@@ -18,4 +18,4 @@ def __getattr__(name: str) -> Any:  # lazy: importing lightning is slow
         from b3dgs.data.datamodule import SceneDataModule
 
         return SceneDataModule
-    raise AttributeError(f"module 'b3dgs.data' has no attribute {name!r}")
+    raise AttributeError(f"module 'b3dgs.data' has no attribute {name!r}")  # protocol: a module's __getattr__

@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 # the renderers' SSIM losses live with the renderers (metrics import render, never the reverse)
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, B3dgsTypeError
 from b3dgs.render.ssim import SSIM_SIGMA, SSIM_WINDOW, ssim_fused, ssim_separable  # noqa: F401
 
 __all__ = ["PSNR_CAP_DB", "SSIM_WINDOW", "SSIM_SIGMA", "psnr", "ssim", "ssim_separable", "ssim_fused", "check_images"]
@@ -37,7 +37,8 @@ def check_images(pred: Tensor, gt: Tensor, name: str = "metric") -> tuple[Tensor
     non-finite values.
     """
     if not isinstance(pred, Tensor) or not isinstance(gt, Tensor):
-        raise TypeError(f"{name}: pred and gt must be torch tensors, got {type(pred).__name__}, {type(gt).__name__}")
+        raise B3dgsTypeError(f"{name}: pred and gt must be torch tensors, got {type(pred).__name__}, "
+                             f"{type(gt).__name__}", "pass torch tensors (torch.as_tensor)")
     if pred.shape != gt.shape:
         raise B3dgsError(f"{name}: pred and gt shapes differ: {tuple(pred.shape)} vs {tuple(gt.shape)}",
                          fix="pass the render and the ground truth at the same size and layout, e.g. both (H, W, 3)")
@@ -49,7 +50,8 @@ def check_images(pred: Tensor, gt: Tensor, name: str = "metric") -> tuple[Tensor
         raise B3dgsError(f"{name}: empty images of shape {tuple(pred.shape)}",
                          fix="pass images with at least one pixel")
     if not pred.is_floating_point() or not gt.is_floating_point():
-        raise TypeError(f"{name}: images must be floating point in [0, 1], got {pred.dtype} and {gt.dtype}")
+        raise B3dgsTypeError(f"{name}: images must be floating point in [0, 1], got {pred.dtype} and {gt.dtype}",
+                             "pass float images in [0, 1] (e.g. uint8 / 255.0)")
     gt = gt.to(device=pred.device)
     batched = pred.dim() == 4
     if not batched:

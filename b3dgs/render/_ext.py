@@ -23,6 +23,8 @@ from typing import Optional
 
 import torch
 
+from b3dgs.errors import B3dgsError
+
 _CSRC = Path(__file__).resolve().parent / "csrc"
 _SOURCES = [_CSRC / "ext.cpp"]
 _HASHED = [_CSRC / "ext.cpp", _CSRC / "kernels.h", _CSRC / "preprocess.h", _CSRC / "ssim.h", _CSRC / "sampling.h"]
@@ -46,6 +48,12 @@ def _cflags() -> tuple[str, ...]:
     return flags + (("-DB3_LANE_STATS",) if os.environ.get(LANE_STATS_ENV) == "1" else ())
 _LDFLAGS = ("-fopenmp",)
 HINT = "use renderer=torch (pure PyTorch backend)"
+
+
+class RendererUnavailable(B3dgsError, RuntimeError):
+    """The configured renderer (or the C++ extension it needs) cannot run on this machine, with its fix; a
+    ``RuntimeError`` too."""
+
 
 _module: Optional[ModuleType] = None
 _thread_lock = threading.Lock()
@@ -117,7 +125,8 @@ def _build_locked(build_dir: Path, name: str, verbose: bool) -> ModuleType:
 
 
 def load_extension(verbose: bool = False) -> ModuleType:
-    """Build (first time only) and load the C++ extension; RuntimeError with a hint on failure."""
+    """Build (first time only) and load the C++ extension; :class:`RendererUnavailable` (a ``RuntimeError`` too)
+    with the compiler's output and a fix on failure."""
     global _module
     if _module is not None:
         return _module
@@ -132,10 +141,7 @@ def load_extension(verbose: bool = False) -> ModuleType:
             # so a half-linked .so is never imported).
             _module = _build_locked(build_dir, name, verbose)
         except Exception as e:  # noqa: BLE001 - compiler errors come as RuntimeError/OSError/...
-            raise RuntimeError(
-                f"b3dgs: could not build/load the C++ extension ({type(e).__name__}):\n{e}\n"
-                f"Hint: {HINT}."
-            ) from e
+            raise RendererUnavailable(f"could not build/load the C++ extension ({type(e).__name__}):\n{e}", HINT) from e
         return _module
 
 

@@ -25,17 +25,13 @@ import torch
 from torch import Tensor
 
 from b3dgs.errors import B3dgsError
-from b3dgs.render._ext import first_compiler_error
+from b3dgs.render._ext import RendererUnavailable, first_compiler_error
 from b3dgs.render.gsplat_backend import gsplat_emulated
 from b3dgs.render.render import RenderOutput, render
 from b3dgs.schema import is_int, is_number
 from b3dgs.types import Camera
 
 log = logging.getLogger(__name__)
-
-
-class RendererUnavailable(B3dgsError, RuntimeError):
-    """The configured renderer cannot run on this machine (with its fix); a ``RuntimeError`` too."""
 
 
 def _check_device(name: Any, options: str) -> None:
@@ -72,7 +68,7 @@ class Renderer:
 
     @property
     def device(self) -> torch.device:
-        raise NotImplementedError
+        raise NotImplementedError  # protocol: an abstract method (subclasses implement it)
 
     def check_available(self) -> None:
         """Raise :class:`RendererUnavailable` (naming the fix) if this renderer cannot run here."""
@@ -80,7 +76,7 @@ class Renderer:
     def render(self, params: Mapping[str, Tensor], camera: Camera, *, sh_degree: int = 3,
                background: Optional[Tensor] = None, return_weights: bool = False,
                retain_means2d_grad: bool = False) -> RenderOutput:
-        raise NotImplementedError
+        raise NotImplementedError  # protocol: an abstract method (subclasses implement it)
 
     def ssim(self, pred: Tensor, gt: Tensor) -> Tensor:
         from b3dgs.render.ssim import ssim_separable

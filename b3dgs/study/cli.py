@@ -62,7 +62,7 @@ def main() -> None:
         asked = len(sys.argv) >= 2 and sys.argv[1] in ("-h", "--help")
         got = f" (got {sys.argv[1]!r})" if len(sys.argv) >= 2 and not asked else ""
         print(usage(got), file=sys.stdout if asked else sys.stderr)
-        raise SystemExit(0 if asked else 2)
+        raise SystemExit(0 if asked else 2)  # protocol: exit after the usage line, as argparse does
     module, _, config = STUDIES[sys.argv.pop(1)]
     from b3dgs.data.scene import infer_data_override
 

@@ -77,7 +77,7 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, B3dgsTypeError
 from b3dgs.io import to_jsonable  # noqa: F401 - re-exported: the one JSON converter lives in b3dgs.io
 
 __all__ = [
@@ -139,7 +139,7 @@ def _validate(mean: Any, var: Any, gt: Any, mask: Any = None
     var = _to_numpy(var, "var")
     for name, a in (("mean", mean), ("gt", gt), ("var", var)):
         if not (np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer)):
-            raise TypeError(f"{name} must be a real numeric array, got dtype {a.dtype}")
+            raise B3dgsTypeError(f"{name} must be a real numeric array, got dtype {a.dtype}", f"pass {name} as floats")
     if mean.ndim != 3 or mean.shape[-1] != 3:
         raise B3dgsError(f"mean must have shape (H, W, 3), got {tuple(mean.shape)}",
                          fix="pass the rendered colour image as mean, a float array of shape (H, W, 3)")
@@ -182,7 +182,7 @@ def _validate(mean: Any, var: Any, gt: Any, mask: Any = None
     if mask is not None:
         mask = _to_numpy(mask, "mask")
         if mask.dtype != np.bool_:
-            raise TypeError(f"mask must be a bool array, got dtype {mask.dtype}")
+            raise B3dgsTypeError(f"mask must be a bool array, got dtype {mask.dtype}", "pass mask.astype(bool)")
         if mask.ndim == 3 and mask.shape[-1] == 1:
             mask = mask[..., 0]
         if mask.shape != hw:

@@ -41,8 +41,8 @@ def _curves_of(d: Mapping) -> Mapping:
     for key in ("curves", "mean_curves"):
         if isinstance(d.get(key), Mapping):
             return d[key]
-    raise KeyError("no curves found: expected an evaluate_view 'curves' dict or a summarize result "
-                   "with 'mean_curves'")
+    raise B3dgsError("no curves found", "pass an evaluate_view result (its 'curves') or a summarize result "
+                     "(its 'mean_curves')")
 
 
 def _new_figure(figsize: tuple[float, float], dpi: int) -> Figure:

@@ -61,7 +61,7 @@ class UQRegime:
         self.fit_info: dict = {}
 
     def predict(self, camera: Camera, generator: Optional[torch.Generator] = None) -> Predictive:
-        raise NotImplementedError
+        raise NotImplementedError  # protocol: an abstract method (subclasses implement it)
 
 
 def render_params(module) -> dict[str, Tensor]:
