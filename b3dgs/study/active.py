@@ -28,7 +28,8 @@ from typing import Any, Optional
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
-from b3dgs.confs import compose_config  # noqa: F401 - also b3dgs.study.active's (tests, bench)
+from b3dgs.confs import compose_config
+from b3dgs.errors import B3dgsError
 from b3dgs.io import write_json
 from b3dgs.protocol import check_stored_protocol, check_stored_scene, scene_digest
 from b3dgs.upgrade import FAMILY_POSTERIOR_UNRECORDED, omit_study_defaults, protocol_from_meta
@@ -41,7 +42,6 @@ def family_posterior_override(cfg: DictConfig, family: str) -> list[str]:
     """``[posterior=[...]]`` when the study pins ``family_posterior.<family>``, else ``[]`` (the model's own blocks,
     conf/model/<family>.yaml); an unknown block or a non-list is a one-line error."""
     from b3dgs.confs import option_names
-    from b3dgs.errors import B3dgsError
 
     pins = cfg.get("family_posterior") or {}
     if not isinstance(pins, (dict, DictConfig)):
@@ -79,8 +79,6 @@ def family_config(cfg: DictConfig, family: str, seed: int) -> DictConfig:
 def option_node(config_name: str, group: str, name: str, settings: Optional[DictConfig], fix: str) -> DictConfig:
     """``conf/<group>/<name>.yaml`` (or a package's) composed under ``config_name``'s app, with
     ``settings[name]`` merged in; an unknown option is a one-line error with ``fix``."""
-    from b3dgs.errors import B3dgsError
-
     try:
         node = compose_config(config_name, [f"+{group}@option={name}"]).option
     except Exception as e:  # noqa: BLE001 - unknown option: one line with the fix
@@ -109,8 +107,6 @@ def load_policy(name: str, settings: Optional[DictConfig] = None):
     except Exception as e:  # noqa: BLE001 - a setting the policy does not have: one line naming where it lives
         import re
 
-        from b3dgs.errors import B3dgsError
-
         bad = re.search(r"unexpected keyword argument '(\w+)'", str(e))
         if bad is None:
             raise
@@ -134,7 +130,6 @@ def load_batch(name: str, settings: Optional[DictConfig] = None):
     from hydra.utils import instantiate
 
     from b3dgs.confs import option_names
-    from b3dgs.errors import B3dgsError
 
     node = option_node("study", "acquisition/batch", str(name), settings,
                        f"pass acquisition.batch={'|'.join(option_names('acquisition/batch'))} "
@@ -166,8 +161,6 @@ class StudyRow:
     def parse(cls, entry: Any) -> "StudyRow":
         """A ``policies`` entry: a node with the fields above, or its shorthand ``policy[@family][+batch]`` (either
         order of the two suffixes); anything else is a one-line error."""
-        from b3dgs.errors import B3dgsError
-
         example = "policies=[native,{policy:native,family:niw,batch:diverse}] (shorthand: native@niw+diverse)"
         if isinstance(entry, (dict, DictConfig)):
             node = OmegaConf.to_container(entry, resolve=True) if isinstance(entry, DictConfig) else dict(entry)
@@ -217,8 +210,6 @@ def split_row(name: str) -> tuple[str, Optional[str]]:
 def study_rows(cfg: DictConfig) -> list[StudyRow]:
     """The study's rows (``policies``: nodes or their shorthand), with each row's ``blocks`` checked against the
     other rows of its family and against ``family_posterior``."""
-    from b3dgs.errors import B3dgsError
-
     rows = [StudyRow.parse(e) for e in (cfg.get("policies") or [])]
     pins = dict(cfg.get("family_posterior") or {})
     for r in rows:
@@ -250,8 +241,6 @@ def row_label(policy_label: str, batch: str) -> str:
 
 def batch_names(cfg: DictConfig) -> list[str]:
     """``acquisition.batch``: one name or a list (every score-based policy gets a row per name)."""
-    from b3dgs.errors import B3dgsError
-
     v = cfg.get("acquisition", {}).get("batch", DEFAULT_BATCH)
     names = [v] if isinstance(v, str) else list(v or [])
     if not names or not all(isinstance(n, str) and n for n in names):
@@ -262,8 +251,6 @@ def batch_names(cfg: DictConfig) -> list[str]:
 
 def study_pairs(cfg: DictConfig) -> list[list[str]]:
     """``pairs``: the paired rows asked for besides the rule's (:func:`b3dgs.study.active_tables.pairs_for`)."""
-    from b3dgs.errors import B3dgsError
-
     pairs = [p if isinstance(p, str) else list(p) for p in cfg.get("pairs") or []]
     for p in pairs:
         if not (isinstance(p, list) and len(p) == 2 and all(isinstance(x, str) for x in p)):
@@ -296,8 +283,6 @@ def initial_views(cfg: DictConfig, train) -> tuple[list[int], list[str]]:
     """(indices into the sorted train list of the initial views, names of the views in the hole)."""
     from b3dgs.data.scene import select_evenly
 
-    from b3dgs.errors import B3dgsError
-
     for key in ("initial_views", "acquire"):
         v = cfg.get(key)
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -306,8 +291,6 @@ def initial_views(cfg: DictConfig, train) -> tuple[list[int], list[str]]:
     n = len(train)
     k = int(cfg.initial_views)
     if k + int(cfg.acquire) > n:
-        from b3dgs.errors import B3dgsError
-
         raise B3dgsError(f"the scene has {n} training views, fewer than initial_views + acquire = {k + int(cfg.acquire)}",
                          "pass a smaller initial_views / acquire, or a scene with more views")
     init = select_evenly(n, k)
@@ -319,8 +302,6 @@ def initial_views(cfg: DictConfig, train) -> tuple[list[int], list[str]]:
         hole = sorted(train[i].name for i in hole_idx)
         init = [i for i in init if i not in hole_idx]
     elif cfg.variant != "standard":
-        from b3dgs.errors import B3dgsError
-
         raise B3dgsError(f"variant={cfg.variant} is unknown", "pass variant=standard or variant=support_hole")
     return init, hole
 
@@ -388,8 +369,6 @@ class ActiveStudy:
         self.total = int(cfg.trainer.max_steps)
         self.phase1 = self.total // int(cfg.phase1_divisor)
         if not 0 < self.phase1 < self.total:
-            from b3dgs.errors import B3dgsError
-
             raise B3dgsError(f"phase 1 would be {self.phase1} of {self.total} steps",
                              "pass trainer.max_steps >= 2 and phase1_divisor >= 2")
         full = data_module(cfg.data, keep_raw=True)  # the scene is read once: the pool, then its initial views
@@ -429,8 +408,6 @@ class ActiveStudy:
         """(row label, policy) of every row; ``self.batches[label]`` is the row's batch selector. A policy in
         ``policies`` without ``+batch`` gets a row per ``acquisition.batch`` option that applies to it (a policy
         that builds its batch itself gets its own selection, the topk row); ``name+batch`` asks for that row."""
-        from b3dgs.errors import B3dgsError
-
         bset = self.cfg.get("acquisition", {}).get("batch_settings")
         selectors = {b: load_batch(b, bset) for b in batch_names(self.cfg)}
         rows = []  # (policy label, policy, batch name)
