@@ -309,7 +309,7 @@ def _check_names(names: Iterable[str]) -> list[str]:
     for n in map(str, names):
         parts = n.split("/")
         if n.startswith("/") or any(p in ("", ".", "..") for p in parts) or n in (MANIFEST_NAME, LOCK_NAME):
-            raise B3dgsError(f"not a file name relative to a run dir: {n!r}", "name the file by its path in the run dir")
+            raise B3dgsError(f"not a file name relative to a run dir: {n!r}", "pass its path inside the run dir")
         out.append(n)
     return out
 

@@ -62,8 +62,7 @@ PAIRS = (("native", "ensemble"), ("native", "proxy"), ("native", "ppu"), ("nativ
          ("native+greedy_conditioned", "farthest"), ("native+greedy_conditioned", "native+diverse"),
          ("native+diverse", "native"), ("native+diverse", "farthest"), ("ensemble+diverse", "ensemble"),
          ("proxy+diverse", "proxy"), ("ppu+diverse", "ppu"), ("oracle+diverse", "oracle"), ("oracle+diverse", "farthest"))
-#: the per-scene tables' paired rows when the campaign ran (before b3dgs.study.active_tables.pairs_for)
-STUDY_PAIRS = (*PAIRS[:2], *PAIRS[8:11], PAIRS[12])
+STUDY_PAIRS = (*PAIRS[:2], *PAIRS[8:11], PAIRS[12])  # the per-scene tables' pairs when the campaign ran
 PAPER_JACCARD = {"native|proxy": 0.056, "native|ensemble": 0.059}
 ORDER = ("uniform", "farthest", "ensemble", "ppu", "fisher", "uniform@niw", "proxy", "native", "oracle")
 BATCHES = ("topk", "greedy_conditioned", "diverse")  # a policy's batch rows follow its top-k row in this order

@@ -51,8 +51,7 @@ HINT = "use renderer=torch (pure PyTorch backend)"
 
 
 class RendererUnavailable(B3dgsError, RuntimeError):
-    """The configured renderer (or the C++ extension it needs) cannot run on this machine, with its fix; a
-    ``RuntimeError`` too."""
+    """The configured renderer (or the C++ extension) cannot run on this machine, with its fix; a RuntimeError too."""
 
 
 _module: Optional[ModuleType] = None

@@ -31,10 +31,6 @@ BLUR_PX = 0.3  # low-pass filter added to the 2D covariance (3DGS)
 EXTENT_SIGMA = 3.0  # screen-space radius = 3 sigma of the major axis
 
 
-def num_sh_bases(degree: int) -> int:
-    return (degree + 1) ** 2
-
-
 def quat_to_rotmat(quats: Tensor) -> Tensor:
     """(…, 4) quaternions (w, x, y, z), normalised here, to (…, 3, 3) rotation matrices."""
     q = F.normalize(quats, dim=-1)
@@ -93,10 +89,6 @@ def eval_sh(degree: int, coeffs: Tensor, dirs: Tensor) -> Tensor:
 
 def rgb_to_sh0(rgb: Tensor) -> Tensor:
     return (rgb - 0.5) / SH_C0
-
-
-def sh0_to_rgb(sh0: Tensor) -> Tensor:
-    return sh0 * SH_C0 + 0.5
 
 
 @dataclass

@@ -60,8 +60,7 @@ def oracle_rho(scores: Optional[dict], oracle: Optional[dict]) -> Optional[float
 
 
 def summarize(out: Path, pairs=None) -> dict:
-    """The scene folder's tables; ``pairs``: the paired rows (default :func:`pairs_for` its policies and the
-    ``pairs`` its meta.json records)."""
+    """The scene folder's tables; ``pairs``: the paired rows (default :func:`pairs_for` of meta.json's lists)."""
     rows = load_rows(out)
     meta = json.loads((out / "meta.json").read_text()) if (out / "meta.json").exists() else {}
     # meta's order first (the last invocation's policies), then rows of earlier invocations with other policies:
