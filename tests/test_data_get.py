@@ -5,14 +5,12 @@ loopback ``http.server`` (127.0.0.1 only) in a thread, and the registry is point
 from __future__ import annotations
 
 import hashlib
-import http.server
 import io
 import json
 import os
 import subprocess
 import sys
 import tarfile
-import threading
 import zipfile
 from pathlib import Path
 
@@ -21,45 +19,16 @@ import yaml
 from PIL import Image
 
 from b3dgs import datasets
+from tests import loopback
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 # ---------------------------------------------------------------------------------------------- the loopback server
-class _Handler(http.server.BaseHTTPRequestHandler):
-    def do_GET(self):  # noqa: N802 - http.server's name
-        srv = self.server
-        body = srv.files.get(self.path)
-        rng = self.headers.get("Range")
-        srv.log.append((self.path, rng))
-        if body is None:
-            self.send_error(404)
-            return
-        start = int(rng.split("=")[1].split("-")[0]) if rng else 0
-        self.send_response(206 if rng else 200)
-        if rng:
-            self.send_header("Content-Range", f"bytes {start}-{len(body) - 1}/{len(body)}")
-        self.send_header("Content-Length", str(len(body) - start))
-        self.end_headers()
-        payload = body[start:]
-        if self.path in srv.cut:  # the first response stops half-way and the connection closes
-            srv.cut.discard(self.path)
-            payload = payload[:len(payload) // 2]
-        self.wfile.write(payload)
-
-    def log_message(self, *args):
-        pass
-
-
 @pytest.fixture
 def server():
-    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Handler)
-    srv.files, srv.cut, srv.log = {}, set(), []
-    threading.Thread(target=srv.serve_forever, daemon=True).start()
-    srv.url = f"http://127.0.0.1:{srv.server_address[1]}"
-    yield srv
-    srv.shutdown()
-    srv.server_close()
+    with loopback.serve() as srv:
+        yield srv
 
 
 @pytest.fixture
@@ -261,31 +230,22 @@ def test_an_unknown_name_is_one_line_with_a_suggestion(env, capsys):
 
 # ---------------------------------------------------------------------------------------------- get fox
 def _fox_fixture(server, tmp_path: Path) -> Path:
-    """The shipped registry with every source host replaced by the loopback server, which serves fox's files (67
-    small frames and a transforms.json at 4x the size) at the paths the registry names."""
-    reg = yaml.safe_load(datasets.REGISTRY_FILE.read_text())
-    fox = reg["fox"]
-    for src in fox["sources"]:
-        path = src["url"].split("://", 1)[1].partition("/")[2]
-        src["url"] = f"{server.url}/{path}"
-        for entry in src["files"]:
-            name = entry.split("->")[0].strip()
-            if name.endswith(".jpg"):
-                buf = io.BytesIO()
-                Image.new("RGB", (40, 80), (90, 120, 30)).save(buf, format="JPEG")
-                body = buf.getvalue()
-            elif name.endswith("transforms.json"):
-                frames = [{"file_path": f"images/{n.split('/')[-1]}", "transform_matrix": [
-                    [1, 0, 0, 0.1 * i], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]}
-                    for i, n in enumerate(e for e in fox["sources"][1]["files"])]
-                body = json.dumps({"fl_x": 40.0, "fl_y": 41.0, "cx": 20.0, "cy": 40.0, "w": 40.0, "h": 80.0,
-                                   "frames": frames}).encode()
-            else:
-                body = b"licence text"
-            server.files[f"/{path}{name}"] = body
-    out = tmp_path / "registry.yaml"
-    out.write_text(yaml.safe_dump(reg))
-    return out
+    """The shipped registry with fox's hosts replaced by the loopback server, which serves fox's files (67 small flat
+    frames and a transforms.json at 4x the size) at the paths the registry names."""
+    frames = loopback.frame_names()
+
+    def body(name: str) -> bytes:
+        if name.endswith(".jpg"):
+            buf = io.BytesIO()
+            Image.new("RGB", (40, 80), (90, 120, 30)).save(buf, format="JPEG")
+            return buf.getvalue()
+        if name.endswith("transforms.json"):
+            return json.dumps({"fl_x": 40.0, "fl_y": 41.0, "cx": 20.0, "cy": 40.0, "w": 40.0, "h": 80.0, "frames": [
+                {"file_path": n, "transform_matrix": [[1, 0, 0, 0.1 * i], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]}
+                for i, n in enumerate(frames)]}).encode()
+        return b"licence text"
+
+    return loopback.registry_on(server, tmp_path / "registry.yaml", body)
 
 
 def test_get_fox_runs_against_the_loopback_fixture_because_this_machine_has_no_internet(server, tmp_path):

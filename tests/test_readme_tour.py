@@ -1,13 +1,17 @@
-"""README.md's commands run as written, in order (issue 44 §6): the tour block is parsed from README.md (the README is
-the single source: a changed line there is a changed test), and every line runs in one fresh folder after the ones
-before it, on the smoke protocol. What the test adds to a line is one explicit mapping, ``SMOKE`` below: overrides
-appended for speed (Hydra's later value wins), nothing else. Every README bash block is accounted for:
+"""README.md's commands run as written, in order (issue 44 §6), on a fresh clone (issue 52): the tour block is parsed
+from README.md (the README is the single source: a changed line there is a changed test), and every line runs in one
+fresh folder after the ones before it, on the smoke protocol. What the test adds to a line is one explicit mapping,
+``SMOKE`` below: overrides appended for speed (Hydra's later value wins), nothing else. Every README bash block is
+accounted for:
 
-* "A tour": every line runs, in order, in a temporary folder that holds only ``photos/`` (ten of flower's photos at
-  200 px, without their poses, as tests/test_process.py makes them), with the shared scenes as ``scene=fox`` finds
-  them (``$B3DGS_SHARED``). ``b3dgs-view`` serves until stopped: it is started, must answer HTTP at the URL it prints,
-  and is then stopped (no browser is needed for that; tests/test_viewer.py drives one). No line needs a GPU
-  (``renderer=auto`` picks the CPU).
+* "A tour": every line runs, in order, in a temporary folder that holds only ``photos/``: ten photos the test renders
+  (tests/test_process.py's noise-textured views of b3dgs.data.synthetic's world, which SfM registers), no poses. Nothing
+  of ``../shared`` is used, as on a fresh clone: the data root (``$B3DGS_DATA``) is an empty temporary folder, and
+  ``b3dgs-data get fox`` really downloads, extracts and lays out fox, from a loopback server because this machine has
+  no internet (tests/loopback.py: the shipped registry's fox entry with only its host replaced, through
+  ``$B3DGS_DATA_REGISTRY``, serving 67 frames rendered from the synthetic world with their true poses). ``b3dgs-view``
+  serves until stopped: it is started, must answer HTTP at the URL it prints, and is then stopped (no browser is
+  needed for that; tests/test_viewer.py drives one). No line needs a GPU (``renderer=auto`` picks the CPU).
 * "Two commands": ``bash scripts/setup.sh`` is not run (it installs packages from the network; tests/test_install.py
   checks the wheel) and neither is ``python -m pytest`` (the suite this test is part of); the ``b3dgs-train`` after
   the set-up runs, first, with the same mapping.
@@ -32,9 +36,10 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-SHARED = Path(os.environ.get("B3DGS_SHARED") or ROOT.parent / "shared")
-ENV = {**{k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}, "B3DGS_SHARED": str(SHARED),
+ENV = {**{k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"},
        "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+#: a fresh clone's environment has no data root of its own: the test sets $B3DGS_DATA (and the registry) itself
+FRESH = {k: v for k, v in ENV.items() if k not in ("B3DGS_SHARED", "B3DGS_DATA", "B3DGS_DATA_REGISTRY")}
 SCRIPTS = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]  # b3dgs-x -> module:function
 
 # ---------------------------------------------------------------------------------------------- the one mapping
@@ -44,8 +49,8 @@ SCRIPTS = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scrip
 TRAIN = ["trainer.max_steps=30", "trainer.eval_every=30", "trainer.checkpoint_every=30", "data.max_side=64",
          "model.init_num_random=2000"]  # fox has no SfM points: 2000 random Gaussians instead of 20000
 SMOKE = {
-    "b3dgs-data": [],  # the scene is already in $B3DGS_SHARED/data: it says so (tests/test_data_get.py fetches one)
-    "b3dgs-process": [],  # the ten 200 px photos take seconds
+    "b3dgs-data": [],  # downloads fox from the loopback server into the empty data root
+    "b3dgs-process": [],  # the ten 160 px photos take seconds
     "b3dgs-train": TRAIN,
     "b3dgs-eval": ["uq.samples=4", "max_views=2"],
     "b3dgs-view": ["port=0"],  # any free port; started, asked over HTTP, stopped
@@ -113,12 +118,16 @@ def overrides(argv: list[str]) -> dict[str, str]:
 
 
 # ---------------------------------------------------------------------------------------------- what each line made
-def check_made(argv: list[str], cwd: Path, stdout: str) -> str:
+def check_made(argv: list[str], cwd: Path, stdout: str, env: dict) -> str:
     """What the line says it makes is there; returns a short note of it."""
     o, prog = overrides(argv), program(argv)
-    if prog == "b3dgs-data":  # CI's data root already holds the scene: it says so and the tour goes on
-        assert stdout.strip() == f"{argv[-1]}: already in {SHARED / 'data' / argv[-1]}", stdout
-        return stdout.strip()
+    if prog == "b3dgs-data":  # fetched into the empty data root, laid out as the registry says
+        from b3dgs import datasets
+
+        folder = Path(env["B3DGS_DATA"]) / argv[-1]
+        assert f"{argv[-1]}: ready in {folder}" in stdout.splitlines(), stdout
+        assert datasets.missing(datasets.load_registry(env[datasets.REGISTRY_ENV])[argv[-1]], folder) == []
+        return f"{folder}: {len(list((folder / 'images').iterdir()))} images"
     if prog == "b3dgs-process":
         out = cwd / o["out"]
         assert (out / "sparse" / "0" / "images.bin").is_file()
@@ -162,10 +171,10 @@ def check_made(argv: list[str], cwd: Path, stdout: str) -> str:
     raise AssertionError(f"no check for {prog}")
 
 
-def serve_and_stop(argv: list[str], cwd: Path) -> str:
+def serve_and_stop(argv: list[str], cwd: Path, env: dict) -> str:
     """b3dgs-view: started, it must print its URL and answer it over HTTP; then it is stopped (SIGTERM)."""
     proc = subprocess.Popen(python_argv(argv), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, cwd=cwd,
-                            env=ENV)
+                            env=env)
     lines: queue.Queue = queue.Queue()
     threading.Thread(target=lambda: [lines.put(ln) for ln in proc.stdout], daemon=True).start()
     seen, url, deadline = [], None, time.monotonic() + VIEW_TIMEOUT_S
@@ -191,21 +200,6 @@ def serve_and_stop(argv: list[str], cwd: Path) -> str:
             proc.wait()
 
 
-def photos(folder: Path, n: int = 10, side: int = 200) -> Path:
-    """``n`` evenly spaced flower photos as JPEGs with the long side ``side``: a user's folder, no poses."""
-    from PIL import Image
-
-    src = SHARED / "data" / "flower" / "images"
-    names = sorted(p.name for p in src.iterdir())
-    folder.mkdir(parents=True)
-    for i in np.linspace(0, len(names) - 1, n).round().astype(int):
-        with Image.open(src / names[i]) as im:
-            im = im.convert("RGB")
-            im.thumbnail((side, side), Image.LANCZOS)
-            im.save(folder / f"{Path(names[i]).stem}.jpg", quality=95)
-    return folder
-
-
 # ---------------------------------------------------------------------------------------------- the tests
 def test_every_readme_block_is_accounted_for():
     """Every README bash block is the tour (run), "Two commands" (the set-up and the suite not run, b3dgs-train run)
@@ -226,24 +220,35 @@ def test_every_readme_block_is_accounted_for():
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not (SHARED / "data" / "fox").is_dir() or not (SHARED / "data" / "flower").is_dir(),
-                    reason=f"no shared scenes fox and flower in {SHARED}/data")
-def test_the_tour_runs_as_written_in_order(tmp_path):
-    """Every line of the tour, in order, in one folder; each must exit 0 and leave what it says it makes."""
+def test_a_fresh_clone_gets_fox_and_runs_the_tour_as_written_in_order(tmp_path):
+    """Every line of the tour, in order, in one folder, with nothing of ../shared: an empty data root that
+    ``b3dgs-data get fox`` fills from the loopback server (this machine has no internet) and photos the test makes;
+    each line must exit 0 and leave what it says it makes."""
+    from b3dgs import datasets
+    from tests import loopback
+    from tests.test_process import synthetic_photos
+
     cwd = tmp_path / "tour"
-    photos(cwd / "photos")
+    synthetic_photos(cwd / "photos")
     lines = [ln for ln in BLOCKS["Two commands"] if ln == "b3dgs-train"] + BLOCKS["A tour"]
+    assert ["b3dgs-data", "get", "fox"] in [shlex.split(ln, comments=True)[:3] for ln in lines], "no get fox"
     times = []
-    for line in lines:
-        argv = smoke(line)
-        t0 = time.perf_counter()
-        if argv[0] == "b3dgs-view":
-            note = serve_and_stop(argv, cwd)
-        else:
-            res = subprocess.run(python_argv(argv), capture_output=True, text=True, timeout=1800, cwd=cwd, env=ENV)
-            assert res.returncode == 0, f"{line}\n-> {shlex.join(argv)}\n{res.stdout[-2000:]}\n{res.stderr[-3000:]}"
-            note = check_made(argv, cwd, res.stdout + res.stderr)
-        times.append((time.perf_counter() - t0, line, note))
+    with loopback.serve() as srv:
+        env = {**FRESH, "B3DGS_DATA": str(tmp_path / "data"),
+               datasets.REGISTRY_ENV: str(loopback.registry_on(srv, tmp_path / "registry.yaml",
+                                                               loopback.synthetic_fox().__getitem__))}
+        for line in lines:
+            argv = smoke(line)
+            t0 = time.perf_counter()
+            if argv[0] == "b3dgs-view":
+                note = serve_and_stop(argv, cwd, env)
+            else:
+                res = subprocess.run(python_argv(argv), capture_output=True, text=True, timeout=1800, cwd=cwd,
+                                     env=env)
+                assert res.returncode == 0, f"{line}\n-> {shlex.join(argv)}\n{res.stdout[-2000:]}\n{res.stderr[-3000:]}"
+                note = check_made(argv, cwd, res.stdout + res.stderr, env)
+            times.append((time.perf_counter() - t0, line, note))
+        assert sum(1 for path, _ in srv.log if path.endswith(".jpg")) == len(loopback.frame_names())
     print("\n".join(f"{s:6.1f} s  {line}   [{note}]" for s, line, note in times))
     print(f"{sum(t[0] for t in times):.1f} s in all")
 
