@@ -3,8 +3,9 @@ compression study's fine-tunes and loading a run (``b3dgs-eval``, the viewer, ex
 
 * :func:`start_run`: :func:`seed_run` (seed, guard counters, threads), the data module (:func:`data_module`: the
   scene read once per run) and the model (:func:`build_run`);
-* :func:`build_trainer` (the ``trainer`` node's ``lightning.Trainer``, :func:`build_callbacks`) and :func:`fit`
-  (``trainer.fit`` under b3dgs's warnings filters, the model back on its renderer's device);
+* :class:`Run`, one run's life: validation once, :meth:`Run.start`, :meth:`Run.fit` (the one trainer,
+  :func:`build_trainer`), ``b3dgs-train``'s run (:meth:`Run.train`), ``metrics.json`` (:meth:`Run.finish`,
+  :meth:`Run.amend_metrics`);
 * :func:`read_checkpoint` and :func:`load_checkpoint` (a checkpoint's model into a built module), and the checks of a
   resume against the run it continues (:func:`check_resume`, :func:`check_resume_renderer`);
 * the checks of a run's settings that need its components (:func:`check_devices`, :func:`warn_slow_renderer`,
@@ -36,16 +37,16 @@ log = logging.getLogger(__name__)
 
 
 # ------------------------------------------------------------------------------------------ the model
-def build_plugins(cfg: DictConfig):
-    """Instantiate the strategy and the configured posterior blocks (in their listed order)."""
+def build_plugins(cfg: DictConfig, built: Optional[dict] = None):
+    """Instantiate the strategy and the configured posterior blocks (in their listed order), but those in ``built``
+    (by path, ``strategy`` and ``posterior.<name>``: the plugins the config check built, :class:`Run`)."""
     from hydra.utils import instantiate
 
-    strategy = instantiate(cfg.strategy)
-    blocks: "OrderedDict[str, Any]" = OrderedDict()
-    post = cfg.get("posterior") or {}
-    for name, node in post.items():
-        blocks[name] = instantiate(node)
-    return strategy, blocks
+    def make(path, node):
+        return built[path] if built and path in built else instantiate(node)
+
+    strategy = make("strategy", cfg.strategy)
+    return strategy, OrderedDict((name, make(f"posterior.{name}", node)) for name, node in (cfg.get("posterior") or {}).items())
 
 
 def build_renderer(node) -> "Renderer":
@@ -62,32 +63,32 @@ def build_renderer(node) -> "Renderer":
     return renderer
 
 
-def build_module(cfg: DictConfig, strategy, blocks, renderer=None):
-    """The ``model`` node's module with the arguments the run fills itself (b3dgs.validation.MODEL_SET_BY_RUN)."""
+def build_module(cfg: DictConfig, strategy, blocks, renderer=None, schedule=None):
+    """The ``model`` node's module with the arguments the run fills itself (b3dgs.validation.MODEL_SET_BY_RUN);
+    ``schedule``: one built already, else the ``schedule`` node's."""
     from hydra.utils import instantiate
 
     from b3dgs.schedule import make_schedule
 
     return instantiate(cfg.model, _partial_=True)(
         strategy=strategy, posterior=blocks, renderer=renderer if renderer is not None else build_renderer(cfg.get("renderer")),
-        max_steps=int(cfg.trainer.max_steps), seed=int(cfg.seed), schedule=make_schedule(cfg.get("schedule")),
+        max_steps=int(cfg.trainer.max_steps), seed=int(cfg.seed),
+        schedule=make_schedule(schedule if schedule is not None else cfg.get("schedule")),
     )
 
 
-def _config_renderer(cfg: DictConfig) -> "Renderer":
-    return build_renderer(cfg.get("renderer"))
-
-
-def build_run(cfg: DictConfig, scene: "Scene", *, renderer=None, init: bool = True):
+def build_run(cfg: DictConfig, scene: "Scene", *, renderer=None, init: bool = True, plugins: Optional[dict] = None):
     """The model of a run, the one build sequence of b3dgs (training, rounds, loading a run, compression):
     :func:`build_plugins` -> :func:`build_renderer` (unless ``renderer`` is given) -> :func:`build_module` ->
     ``init_from_scene(scene)`` (the seeded initial Gaussians and every plugin's state). ``renderer``: a renderer
     plugin, or a function of the config that makes one, in place of :func:`build_renderer`. ``init=False`` only
-    attaches ``scene``, for a caller that loads the parameters itself. The renderer is ``module.renderer``."""
-    strategy, blocks = build_plugins(cfg)
+    attaches ``scene``, for a caller that loads the parameters itself. ``plugins``: those built already, by path
+    (:func:`b3dgs.validation.validate_config`'s). The renderer is ``module.renderer``."""
+    plugins = plugins or {}
+    strategy, blocks = build_plugins(cfg, plugins)
     if renderer is None or callable(renderer):
-        renderer = (renderer or _config_renderer)(cfg)
-    module = build_module(cfg, strategy, blocks, renderer)
+        renderer = renderer(cfg) if renderer else build_renderer(cfg.get("renderer"))
+    module = build_module(cfg, strategy, blocks, renderer, plugins.get("schedule"))
     if init:
         module.init_from_scene(scene)
     else:
@@ -130,13 +131,14 @@ def data_module(data, keep_raw: bool = False) -> "SceneDataModule":
 
 
 def start_run(cfg: DictConfig, data=None, *, seed: Optional[int] = None, threads: bool = True,
-              reset_guards: bool = True, init: bool = True):
+              reset_guards: bool = True, init: bool = True, plugins: Optional[dict] = None):
     """The start of every run that trains: :func:`seed_run` (``seed``, default ``cfg.seed``; ``cfg.threads`` unless
     ``threads=False``), the data module (:func:`data_module` of ``data``, default ``cfg.data``) and the model
-    (:func:`build_run` on its scene; ``init=False``: the caller sets the parameters). Returns ``(datamodule, module)``."""
+    (:func:`build_run` on its scene, from ``plugins`` where given; ``init=False``: the caller sets the parameters).
+    Returns ``(datamodule, module)``."""
     seed_run(int(cfg.seed if seed is None else seed), cfg.get("threads") if threads else None, reset_guards)
     dm = data_module(cfg.data if data is None else data)
-    return dm, build_run(cfg, dm.scene, init=init)
+    return dm, build_run(cfg, dm.scene, init=init, plugins=plugins)
 
 
 # ---------------------------------------------------------------------------------------- the trainer
@@ -214,16 +216,6 @@ def fit_on_renderer_device(trainer, module, **fit_kwargs) -> None:
     device = module.renderer.device
     if module.device.type != device.type:
         module.to(device)
-
-
-def fit(trainer, module, datamodule, ckpt_path: Optional[str] = None) -> None:
-    """Train: :func:`fit_on_renderer_device` on ``datamodule``, from ``ckpt_path`` if given (b3dgs's checkpoints
-    hold plugin states and config values, not only tensors), without Lightning's warnings about the data loader's
-    workers and ``training_step``'s return value (one camera per step, by design)."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", message=".*does not have many workers.*")
-        warnings.filterwarnings("ignore", message=".*`training_step` returns.*")
-        fit_on_renderer_device(trainer, module, datamodule=datamodule, ckpt_path=ckpt_path, weights_only=False)
 
 
 # ----------------------------------------------------------------------------------------- checkpoints
@@ -396,3 +388,193 @@ def warn_disabled_options(module) -> None:
         log.warning("strategy.max_gaussians=%d is below the %d initial Gaussians: no Gaussian is ever added "
                     "(densification by clone and split is off; only pruning changes the count) (fix: raise "
                     "strategy.max_gaussians above %d, or lower model.init_max_points)", cap, n, n)
+
+
+# ------------------------------------------------------------------------------------------------ a run
+class Run:
+    """One run's life, owned here for every command that trains (``b3dgs-train``: :meth:`train`; a study's rounds
+    and phase 1; the compression study's fine-tunes; bench's ``train_run`` through ``b3dgs-train``): the config
+    validated once (``app``, e.g. ``"train"``; ``None`` where the study that composed it validated it) with the
+    plugins that check built going into the first model, seed and build (:meth:`start`), the one place a trainer is
+    assembled and fit (:meth:`fit`), resume, the final evaluation and ``metrics.json``, the done marker
+    (:meth:`finish`, its one writer), and any later addition to a finished run (:meth:`amend_metrics`)."""
+
+    def __init__(self, cfg: Optional[DictConfig] = None, run_dir=None, app: Optional[str] = None):
+        self.cfg, self.plugins, self.dm, self.module = cfg, {}, None, None
+        self.run_dir = Path(run_dir if run_dir is not None else cfg.trainer.default_root_dir)
+        if app is None:
+            return
+        from b3dgs.validation import validate_config
+
+        try:
+            self.plugins = validate_config(cfg, app=app)
+            check_devices(cfg)
+            warn_slow_renderer(cfg)
+        except Exception:
+            try:
+                self.run_dir.rmdir()  # Hydra made it; a refused run leaves nothing
+            except OSError:
+                pass
+            raise
+
+    def start(self, data=None, **kw):
+        """:func:`start_run` of this run's config (``data``, ``kw``), its first model from the validated plugins;
+        returns the module."""
+        self.dm, self.module = start_run(self.cfg, data, plugins=self.plugins, **kw)
+        self.plugins = {}
+        return self.module
+
+    def fit(self, callbacks=(), ckpt_path: Optional[str] = None, *, claim=None, logger=False,
+            final_after_eval: bool = False, **fixed):
+        """The one place a trainer is assembled (:func:`build_trainer` with ``callbacks``, then the config's, and
+        ``fixed``) and fit (:func:`fit_on_renderer_device`) on the started model, from ``ckpt_path`` if given (b3dgs's
+        checkpoints hold plugin states: not ``weights_only``), without Lightning's warnings about the loader's workers
+        and ``training_step``'s return value (one camera per step, by design); ``claim()`` runs once the trainer is
+        built, before anything trains. Returns the trainer."""
+        from b3dgs.rundir import Interrupted
+
+        trainer = build_trainer(self.cfg.trainer, self.module.renderer,
+                                [*callbacks, *build_callbacks(self.cfg.get("callbacks"))], logger=logger,
+                                final_after_eval=final_after_eval, default_root_dir=str(self.run_dir), **fixed)
+        if claim is not None:
+            claim()
+        try:
+            with warnings.catch_warnings():
+                warnings.filterwarnings("ignore", message=".*does not have many workers.*")
+                warnings.filterwarnings("ignore", message=".*`training_step` returns.*")
+                fit_on_renderer_device(trainer, self.module, datamodule=self.dm, ckpt_path=ckpt_path,
+                                       weights_only=False)
+        except Interrupted as e:  # a signal outside the steps (e.g. once training is done): the step it is at
+            if e.step is None and trainer.global_step:
+                e.step = int(trainer.global_step)
+            raise
+        return trainer
+
+    def train(self) -> dict:
+        """``b3dgs-train``'s run into the run dir under its lock (:func:`b3dgs.train.train`'s contract)."""
+        from b3dgs.rundir import interrupt_handlers, run_dir_lock
+
+        with interrupt_handlers(), run_dir_lock(self.run_dir):
+            return self._train(self.cfg, self.cfg.trainer, self.run_dir)
+
+    def _train(self, cfg: DictConfig, tcfg, run_dir: Path) -> dict:
+        from hydra.utils import instantiate
+        from lightning.pytorch.loggers import TensorBoardLogger  # noqa: F401 - logger=tensorboard targets it
+
+        from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint, RunFiles
+        from b3dgs.rundir import Interrupted, claim_run_dir, finished_metrics, prepare_run_dir
+
+        every_s = checkpoint_every_s(tcfg)
+        ckpt_path, clear = prepare_run_dir(run_dir, cfg.get("resume"), cfg.get("overwrite", False),
+                                           check_checkpoint=lambda path: check_resume_renderer(cfg, path))
+        module = self.start()
+        scene, renderer = self.dm.scene, module.renderer
+        warn_settings(module, scene, int(tcfg.max_steps))
+        if ckpt_path is not None:
+            check_resume(module, ckpt_path)
+        done = None if clear else finished_metrics(run_dir)
+        if done is not None:  # resume=auto on a finished run of these settings: nothing to do, nothing rewritten
+            psnr = done.get("psnr")
+            log.info("%s holds a finished run (step %s, PSNR %s dB): nothing to do, nothing rewritten (overwrite=true "
+                     "trains it again)", run_dir, done.get("steps"), "n/a" if psnr is None else f"{psnr:.3f}")
+            return done
+        curve = CurveCallback(scene.test, eval_every=int(tcfg.eval_every), out_dir=run_dir,
+                              max_eval_views=tcfg.get("curve_max_views"))
+        ckpt = RunCheckpoint(run_dir / "checkpoints", every_n_steps=int(tcfg.checkpoint_every), every_s=every_s,
+                             keep=bool(tcfg.get("keep_checkpoints")))
+
+        def claim() -> None:  # every check has passed: only now is the run dir changed, manifest first
+            claim_run_dir(run_dir, cfg, clear)
+            log.info("Scene %s: %d train / %d test views, %d initial Gaussians, extent %.3f; renderer %s on %s",
+                     scene.name, len(scene.train), len(scene.test), module.num_gaussians, scene.extent, renderer.name,
+                     renderer.device)
+
+        trainer = self.fit([curve, ResumeState(), ckpt, RunFiles(run_dir)], ckpt_path, claim=claim,
+                           logger=instantiate(cfg.logger, save_dir=str(run_dir)) if cfg.get("logger") else False,
+                           final_after_eval=True)
+        try:
+            return self.finish(trainer, curve, ckpt)
+        except Interrupted as e:
+            e.step = int(trainer.global_step)
+            raise
+
+    def finish(self, trainer, curve, ckpt) -> dict:
+        """The final evaluation and outputs of the trained model (also all a resume from the final checkpoint does),
+        each written atomically: renders, PLY, curve, then ``metrics.json`` (the done marker)."""
+        import time
+
+        from b3dgs.callbacks import StepProgressBar
+        from b3dgs.checkpoint import checkpoint_record
+        from b3dgs.data.scene import scene_transform
+        from b3dgs.labels import method_label
+        from b3dgs.metrics.lpips import get_lpips
+        from b3dgs.metrics.views import evaluate_views
+        from b3dgs.numerics import guard_counts
+        from b3dgs.ply import frame_comments, write_splats
+        from b3dgs.rundir import record_written
+
+        cfg, run_dir, module, scene, renderer = self.cfg, self.run_dir, self.module, self.dm.scene, self.module.renderer
+        tcfg = cfg.trainer
+        final = checkpoint_record(read_checkpoint(ckpt.last_path, mmap=True))
+        t_pass = time.perf_counter()
+        passed = module.prepare_posterior(scene.train)  # counts from a view pass (posterior.niw.count other than paper)
+        posterior_pass_s = time.perf_counter() - t_pass if passed else 0.0
+        lpips_model, lpips_reason = get_lpips(cfg.get("lpips_weights"))
+        if tcfg.get("save_renders", True):  # listed in the run manifest before they are written
+            record_written(run_dir, [f"renders/{Path(c.name).stem}.png" for c in scene.test])
+        ev = evaluate_views(module, scene.test, lpips_model=lpips_model,
+                            render_dir=run_dir / "renders" if tcfg.get("save_renders", True) else None)
+        frame = scene_transform(scene)  # point_cloud.ply in the scene's own (COLMAP / transforms.json) frame
+        write_splats(run_dir / "point_cloud.ply", {k: v.data for k, v in module.splats.items()}, frame.inverse(),
+                     extra=module.export_extras(), comments=frame_comments(frame))
+        curve.write()
+        metrics = {
+            "method": method_label(cfg), "scene": scene.name, "seed": int(cfg.seed), "steps": int(trainer.global_step),
+            "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": ev.get("lpips"),
+            "lpips_reason": None if lpips_model is not None else lpips_reason,
+            "num_gaussians": module.num_gaussians, "train_time_s": round(curve.train_time_s, 3),
+            "render_fps": ev["render_fps"], "renderer": renderer.describe(),
+            "num_train_views": len(scene.train), "num_test_views": len(scene.test),
+            "calib_views": [c.name for c in scene.calib],
+            "removed": dict(module.ops.removed) if module.ops else {},
+            "added": dict(module.ops.added) if module.ops else {},
+            "block_time_s": {k: round(v, 4) for k, v in module.block_time_s.items()},
+            "posterior_pass_s": round(posterior_pass_s, 4),  # the blocks' pass over the training views after training
+            "schedule": module.schedule.summary(),
+            "posterior": {name: blk.summary(state=module.states[name]) for name, blk in module.posterior.items()},
+            "numerical_guards": guard_counts(),  # how often each clamp / jitter / floor fired (never silent)
+            "checkpoint": final,  # b3dgs-eval refuses a last.ckpt that is not this model
+            "scene_transform": frame.to_dict(),  # normalised frame <- the scene's own (point_cloud.ply is in the latter)
+            "per_view": ev["per_view"],
+        }
+        self._write_metrics(metrics)
+        if isinstance(trainer.progress_bar_callback, StepProgressBar):
+            trainer.progress_bar_callback.show_final(metrics)
+
+        def fmt(v, digits):
+            return "n/a" if v is None else f"{v:.{digits}f}"
+
+        log.info("Done: PSNR %s dB, SSIM %s, LPIPS %s, %d Gaussians, %.1f s training -> %s", fmt(metrics["psnr"], 3),
+                 fmt(metrics["ssim"], 4), fmt(metrics["lpips"], 4), metrics["num_gaussians"], metrics["train_time_s"],
+                 run_dir)
+        return metrics
+
+    def amend_metrics(self, update: dict, prog: str = "b3dgs") -> dict:
+        """Set ``update``'s keys in the finished run's ``metrics.json`` (e.g. LPIPS filled in later), under the run
+        dir's lock, atomically, listed in its manifest (:func:`b3dgs.rundir.record_amended`); returns the metrics."""
+        from b3dgs.rundir import finished_metrics, manifest_lock, record_amended
+
+        with manifest_lock(self.run_dir, prog):
+            metrics = finished_metrics(self.run_dir)
+            if metrics is None:
+                raise B3dgsError(f"{self.run_dir} holds no finished run to add {', '.join(update)} to",
+                                 f"finish it first: b3dgs-train ... hydra.run.dir={self.run_dir} resume=auto")
+            metrics.update(update)
+            record_amended(self.run_dir, update)
+            self._write_metrics(metrics)
+        return metrics
+
+    def _write_metrics(self, metrics: dict) -> None:
+        from b3dgs.io import write_json
+
+        write_json(self.run_dir / "metrics.json", metrics)  # the one writer of a run's done marker

@@ -19,7 +19,7 @@ from b3dgs.host_sync import scope
 from b3dgs.init import init_gaussians
 from b3dgs.numerics import on_device_path
 from b3dgs.ops import TopologyOps
-from b3dgs.plugin import Plugin, PosteriorBlock, ViewAccumulator
+from b3dgs.plugin import Plugin, PosteriorBlock, ViewAccumulator, validate_once
 from b3dgs.render.render import RenderOutput
 from b3dgs.render.renderers import Renderer, make_renderer
 from b3dgs.schedule import ConstantSchedule, TrainingSchedule
@@ -83,11 +83,9 @@ class SplatModule(L.LightningModule):
         self.renderer: Renderer = make_renderer(renderer)
         self.strategy = strategy
         self.schedule: TrainingSchedule = schedule if schedule is not None else ConstantSchedule()
-        self.schedule.validate()
         self.posterior: "OrderedDict[str, PosteriorBlock]" = OrderedDict(posterior or {})
-        self.strategy.validate()
-        for blk in self.posterior.values():
-            blk.validate(max_steps=max_steps, sh_degree=sh_degree)
+        for p in (self.schedule, self.strategy, *self.posterior.values()):  # unless the config check did
+            validate_once(p, max_steps=max_steps, sh_degree=sh_degree)
         self.splats = nn.ParameterDict()
         self.states: dict[str, dict] = {}
         self.scene: Optional[Scene] = None

@@ -208,3 +208,12 @@ class ViewAccumulator:
     def merge(self, other: "ViewAccumulator") -> "ViewAccumulator":
         """The accumulator to run when two blocks ask for the same ``key`` (default: the first)."""
         return self
+
+
+def validate_once(plugin, **run):
+    """``plugin.validate(**run)`` unless it ran already, so that each plugin of a run is validated once (the config
+    check builds and validates it, the model is built from it: :func:`b3dgs.validation.validate_config`); returns it."""
+    if not getattr(plugin, "_validated", False):
+        plugin.validate(**run)
+        plugin._validated = True
+    return plugin

@@ -282,15 +282,24 @@ def _job_logs(run_dir: Path) -> list[str]:
 
 
 def _write_manifest(run_dir: Path, files: Iterable[str], token: Optional[str], created: Optional[str],
-                    writer: Optional[str] = None) -> None:
+                    writer: Optional[str] = None, amended: Optional[list] = None) -> None:
     """The manifest of ``run_dir``; ``writer`` marks a folder that one command wrote whole (b3dgs-export's model
-    folder), not a run."""
+    folder), not a run; ``amended``: what was added to the finished run's metrics.json later (:func:`record_amended`)."""
     from b3dgs.io import write_json
 
     write_json(Path(run_dir) / MANIFEST_NAME, {
         "b3dgs_run": MANIFEST_FORMAT, "run_id": token or uuid.uuid4().hex,
         "created": created or time.strftime("%Y-%m-%dT%H:%M:%S%z"), "files": list(dict.fromkeys(map(str, files))),
-        **({"writer": writer} if writer else {})})
+        **({"writer": writer} if writer else {}), **({"amended": amended} if amended else {})})
+
+
+def record_amended(run_dir: Path, keys: Iterable[str]) -> None:
+    """List in ``run_dir``'s manifest, if it has one, that the finished run's metrics.json ``keys`` were changed now
+    (:meth:`b3dgs.lifecycle.Run.amend_metrics`, which holds the run dir's lock)."""
+    m = read_manifest(run_dir)
+    if m is not None:
+        done = [*(m.get("amended") or []), {"keys": sorted(map(str, keys)), "at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}]
+        _write_manifest(run_dir, _listed(run_dir, m), manifest_token(m), m.get("created"), m.get("writer"), done)
 
 
 def write_manifest(run_dir: Path) -> None:
@@ -301,7 +310,7 @@ def write_manifest(run_dir: Path) -> None:
     run_dir = Path(run_dir)
     old = read_manifest(run_dir)
     _write_manifest(run_dir, [*_listed(run_dir, old), *TRAIN_FILES, *_job_logs(run_dir)], manifest_token(old),
-                    (old or {}).get("created"))
+                    (old or {}).get("created"), amended=(old or {}).get("amended"))
 
 
 def _check_names(names: Iterable[str]) -> list[str]:
@@ -324,7 +333,7 @@ def record_written(folder: Path, names: Iterable[str], forget: Iterable[str] = (
     have, gone = _listed(folder, m), set(map(str, forget))
     files = [f for f in dict.fromkeys([*have, *_check_names(names)]) if f not in gone]
     if files != have or m.get("b3dgs_run") != MANIFEST_FORMAT:
-        _write_manifest(folder, files, manifest_token(m), m.get("created"), m.get("writer"))
+        _write_manifest(folder, files, manifest_token(m), m.get("created"), m.get("writer"), m.get("amended"))
 
 
 @contextmanager

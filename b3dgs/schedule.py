@@ -175,7 +175,6 @@ class DashSchedule(TrainingSchedule):
 
     # ------------------------------------------------------------------ set-up
     def initialize(self, train: Sequence[Camera], max_steps: int) -> None:
-        self.validate()
         self._cache, self._cache_level = {}, -1
         self._full_steps = int(round(float(self.full_res_at) * int(max_steps)))
         imgs = [c.image for c in train if c.image is not None]

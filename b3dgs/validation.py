@@ -66,21 +66,26 @@ def _nested_targets(node: DictConfig, path: str):
             yield from _nested_targets(child, f"{path}.{k}")
 
 
-def _validate_plugins(nodes: list, max_steps: int) -> None:
+def _validate_plugins(nodes: list, **run) -> dict:
     """Check the keys of the ``_target_`` nodes nested in each plugin's node, then build each plugin and run its
-    own ``validate``."""
+    own ``validate`` (``run``: ``max_steps``, ``sh_degree``), the one time it runs; returns the plugins by path, marked
+    validated (:func:`b3dgs.plugin.validate_once`) for the run that builds its model from them."""
     from hydra.utils import instantiate
 
+    from b3dgs.plugin import validate_once
+
+    built = {}
     for path, node in nodes:
         for sub_path, sub in _nested_targets(node, path):
             check_node(sub, sub_path)
         try:
-            instantiate(node).validate(max_steps=max_steps)
+            built[path] = validate_once(instantiate(node), **run)
         except B3dgsError as e:
             if e.fix is not None or "(fix:" in e.problem:
                 raise
             raise B3dgsError(e.problem if e.problem.startswith(path) else f"{path}: {e.problem}",
                              "correct that value (the defaults are the class's fields; `--cfg job` prints the composed values)") from None
+    return built
 
 
 def _hydra_choice(group: str):
@@ -159,7 +164,7 @@ MODEL_SET_BY_RUN = {"strategy": "strategy=<option> or strategy.<setting>=...",
                     "schedule": "schedule=<option> or schedule.<setting>=..."}
 
 
-def _check_train(cfg: DictConfig, values: dict) -> None:
+def _check_train(cfg: DictConfig, values: dict) -> dict:
     from b3dgs.data.scene import get_loader, loader_reads_files
 
     loader = get_loader(str(value(cfg.data, "kind", "data.kind")))  # one line if no format has that name
@@ -194,7 +199,7 @@ def _check_train(cfg: DictConfig, values: dict) -> None:
         raise B3dgsError(f"model.background={show(bg)} differs from data.background={show(data_bg)}: the model renders "
                          "over the first, the images are composited on the second",
                          "drop the model.background override (it follows data.background)")
-    _validate_plugins(plugins, int(values["trainer.max_steps"]))
+    return _validate_plugins(plugins, max_steps=int(values["trainer.max_steps"]), sh_degree=values.get("model.sh_degree"))
 
 
 def _check_posterior_list(cfg: DictConfig) -> None:
@@ -245,7 +250,7 @@ def _check_eval(cfg: DictConfig, values: dict) -> None:
         if len(runs) < members:
             raise B3dgsError(f"uq={path[3:]} needs >= {members} run dirs, got {len(runs)}",
                              "pass run=[RUN_S0,RUN_S1,RUN_S2] (seeded runs of one scene and model)")
-    _validate_plugins(regimes, 0)
+    _validate_plugins(regimes, max_steps=0)
     seen: dict[Path, str] = {}
     for r in runs:
         if Path(str(r)).resolve() in seen:  # one model twice is no ensemble: zero spread between "members"
@@ -259,15 +264,20 @@ def _check_eval(cfg: DictConfig, values: dict) -> None:
                          f"finish the run with `b3dgs-train ... hydra.run.dir={d} resume=auto`, or train it again")
 
 
-def validate_config(cfg: DictConfig, app: str = "train") -> None:
-    """Check every value of a composed ``b3dgs-train`` (``app="train"``) or ``b3dgs-eval`` config.
+def validate_config(cfg: DictConfig, app: str = "train") -> dict:
+    """Check every value of a composed ``b3dgs-train`` (``app="train"``) or ``b3dgs-eval`` config, once: each plugin
+    (strategy, schedule, posterior block) is built and validated here and nowhere else (a train config's plugins are
+    returned by path, ``strategy``, ``schedule``, ``posterior.<name>``: :class:`b3dgs.lifecycle.Run` builds its model
+    from them).
 
     Raises :class:`~b3dgs.errors.B3dgsError` naming the first problem and its fix; reads no images.
     """
     values: dict[str, Any] = {}
     _check_top(cfg, app, values)
     if app == "eval":
-        return _check_eval(cfg, values)
+        _check_eval(cfg, values)
+        return {}
     _check_posterior_list(cfg)
-    _check_train(cfg, values)
+    plugins = _check_train(cfg, values)
     _check_resume(cfg, values.get("resume"))
+    return plugins

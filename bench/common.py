@@ -263,12 +263,13 @@ def scene_overrides(scene: str) -> list[str]:
 
 
 def ensure_lpips(run_dir: Path, metrics: dict) -> dict:
-    """Fill in LPIPS for a finished run that was trained before the weights were available,
-    by re-rendering its test views from the checkpoint (the metrics.json is updated atomically)."""
+    """Fill in LPIPS for a finished run that was trained before the weights were available, by re-rendering its test
+    views from the checkpoint (through the run: :meth:`b3dgs.lifecycle.Run.amend_metrics`)."""
     if metrics.get("lpips") is not None:
         return metrics
-    from b3dgs.metrics.views import evaluate_views
+    from b3dgs.lifecycle import Run
     from b3dgs.metrics.lpips import get_lpips
+    from b3dgs.metrics.views import evaluate_views
     from b3dgs.runs import load_run
 
     model, reason = get_lpips()
@@ -276,11 +277,8 @@ def ensure_lpips(run_dir: Path, metrics: dict) -> dict:
         return metrics
     run = load_run(run_dir)
     ev = evaluate_views(run.module, run.scene.test, lpips_model=model, with_ssim=False)
-    metrics["lpips"] = ev["lpips"]
-    metrics["lpips_reason"] = None
-    by_name = {r["name"]: r for r in ev["per_view"]}
-    for row in metrics.get("per_view", []):
-        if row["name"] in by_name:
-            row["lpips"] = by_name[row["name"]]["lpips"]
-    write_json(run_dir / "metrics.json", metrics)
-    return metrics
+    by_name = {r["name"]: r["lpips"] for r in ev["per_view"]}
+    per_view = [{**r, "lpips": by_name[r["name"]]} if r["name"] in by_name else r for r in metrics.get("per_view", [])]
+    update = {"lpips": ev["lpips"], "lpips_reason": None, "per_view": per_view}
+    Run(run_dir=run_dir).amend_metrics(update, prog="bench")
+    return {**metrics, **update}

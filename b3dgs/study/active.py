@@ -396,10 +396,14 @@ class ActiveStudy:
         self._phase1_meta: dict[str, dict] = {}
 
     def family_cfg(self, family: str, seed: int) -> DictConfig:
-        """:func:`family_config`, composed once per family when first needed: a study never re-reads conf/
-        mid-run, so editing a config file while it runs cannot hand its rows a config the loaded code lacks."""
+        """:func:`family_config`, composed and validated (as ``b3dgs-train``'s) once per family when first needed: a
+        study never re-reads conf/ mid-run, so editing a config file while it runs cannot hand its rows a config the
+        loaded code lacks."""
         if family not in self._family_cfgs:
+            from b3dgs.validation import validate_config
+
             self._family_cfgs[family] = family_config(self.cfg, family, 0)
+            validate_config(self._family_cfgs[family], app="train")
         out = self._family_cfgs[family].copy()
         out.seed = int(seed)
         return out

@@ -99,6 +99,7 @@ class CompressionStudy:
         cfg = OmegaConf.create(OmegaConf.to_container(base_cfg, resolve=True))
         with open_dict(cfg):
             cfg.posterior = {}
+            cfg.callbacks = {}  # the base run's extra callbacks are not the fine-tune's
             cfg.trainer.max_steps = int(self.cfg.finetune_steps)
             cfg.trainer.eval_every = 10 ** 9
             cfg.merge_with(OmegaConf.from_dotlist([str(o) for o in (self.cfg.finetune_overrides or [])]))
@@ -109,15 +110,14 @@ class CompressionStudy:
     def finetune(self, cfg: DictConfig, scene, params: dict, seed: int):
         """A fresh standard module holding ``params``, trained ``cfg.trainer.max_steps`` steps (new Adam state, as
         PUP's refine stage); returns it on its renderer's device."""
-        from b3dgs.lifecycle import build_trainer, fit, start_run
+        from b3dgs.lifecycle import Run
 
+        run = Run(cfg, self.out / ".lightning")  # the base run's config, validated when it trained
         # the study's threads stay as they are; the fine-tune's guard counters are not recorded
-        dm, module = start_run(cfg, scene, seed=seed, threads=False, reset_guards=False, init=False)
+        module = run.start(scene, seed=seed, threads=False, reset_guards=False, init=False)
         module._set_params({k: v.detach().cpu().clone() for k, v in params.items()})
         module._init_states()
-        trainer = build_trainer(cfg.trainer, module.renderer, [], enable_progress_bar=False, enable_checkpointing=False,
-                                default_root_dir=str(self.out / ".lightning"))
-        fit(trainer, module, dm)
+        run.fit(enable_progress_bar=False, enable_checkpointing=False)
         module.eval()
         return module
 
@@ -143,8 +143,6 @@ class CompressionStudy:
         return s, dt, _plain(state)
 
     def run_row(self, name: str, score_fn, keep: float, loaded, base_eval: dict, lp) -> dict:
-        from b3dgs.metrics.views import evaluate_views
-
         d = self.base_dir(loaded) / f"{name}_k{int(round(keep * 100)):02d}"
         if (d / "result.json").exists():
             return json.loads((d / "result.json").read_text())
@@ -174,16 +172,24 @@ class CompressionStudy:
             per_round.append({"round": r, "kept": int(mask.sum()), "score_s": dt, "finetune_s": ft})
             log.info("%s %s keep %.2f round %d: %d Gaussians (score %.1f s, fine-tune %.1f s)",
                      d.parent.name, name, keep, r, int(mask.sum()), dt, ft)
+        return self.write_row(d, module, loaded, lp, name, keep, int(score_fn.rounds), score_s, finetune_s, per_round,
+                              {k: v for k, v in state.items() if isinstance(v, (int, float))}, base_eval)
+
+    def write_row(self, d: Path, module, loaded, lp, name: str, keep: float, rounds: int, score_s: float,
+                  finetune_s: float, per_round: list, guards: dict, base_eval: dict, **control) -> dict:
+        """A finished row: its model evaluated on the test views and kept (:func:`keep_ply`), then ``result.json``."""
+        from b3dgs.metrics.views import evaluate_views
+
         ev = evaluate_views(module, loaded.scene.test, lpips_model=lp)
         keep_ply(d, module, loaded.scene)
-        res = {"scene": str(loaded.cfg.data.name), "seed": seed, "base_run": str(loaded.path), "strategy": name,
-               "keep": keep, "rounds": int(score_fn.rounds), "finetune_steps": int(self.cfg.finetune_steps),
+        n_base = loaded.module.num_gaussians
+        res = {"scene": str(loaded.cfg.data.name), "seed": int(loaded.cfg.seed), "base_run": str(loaded.path),
+               "strategy": name, "keep": keep, "rounds": rounds, "finetune_steps": int(self.cfg.finetune_steps),
                "num_base": n_base, "num_gaussians": module.num_gaussians,
                "kept_fraction": module.num_gaussians / max(n_base, 1),
                "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": ev.get("lpips"), "render_fps": ev.get("render_fps"),
-               "score_s": score_s, "finetune_s": finetune_s, "time_s": score_s + finetune_s,
-               "per_round": per_round, "guards": {k: v for k, v in state.items() if isinstance(v, (int, float))},
-               "base": base_eval, "score_max_side": self.cfg.get("score_max_side")}
+               "score_s": score_s, "finetune_s": finetune_s, "time_s": score_s + finetune_s, "per_round": per_round,
+               "guards": guards, "base": base_eval, **control, "score_max_side": self.cfg.get("score_max_side")}
         write_json(d / "result.json", res)
         return res
 
@@ -191,8 +197,6 @@ class CompressionStudy:
         """The fine-tune-only control at keep 100 %: ``rounds`` fine-tunes of ``finetune_steps`` (fresh Adam each, as a
         pruning row with that many rounds) with nothing pruned, so a row's PSNR change splits into pruning and the
         extra training steps (row − control, control − base)."""
-        from b3dgs.metrics.views import evaluate_views
-
         name = f"finetune_only_r{rounds}"
         d = self.base_dir(loaded) / f"{name}_k100"
         if (d / "result.json").exists():
@@ -206,18 +210,8 @@ class CompressionStudy:
             ft = time.perf_counter() - t0
             finetune_s += ft
             per_round.append({"round": r, "kept": module.num_gaussians, "score_s": 0.0, "finetune_s": ft})
-        ev = evaluate_views(module, loaded.scene.test, lpips_model=lp)
-        keep_ply(d, module, loaded.scene)
-        n_base = loaded.module.num_gaussians
-        res = {"scene": str(loaded.cfg.data.name), "seed": seed, "base_run": str(loaded.path), "strategy": name,
-               "keep": 1.0, "rounds": rounds, "finetune_steps": int(self.cfg.finetune_steps), "num_base": n_base,
-               "num_gaussians": module.num_gaussians, "kept_fraction": module.num_gaussians / max(n_base, 1),
-               "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": ev.get("lpips"),
-               "render_fps": ev.get("render_fps"), "score_s": 0.0, "finetune_s": finetune_s, "time_s": finetune_s,
-               "per_round": per_round, "guards": {}, "base": base_eval, "control": True,
-               "score_max_side": self.cfg.get("score_max_side")}
-        write_json(d / "result.json", res)
-        return res
+        return self.write_row(d, module, loaded, lp, name, 1.0, rounds, 0.0, finetune_s, per_round, {}, base_eval,
+                              control=True)
 
     def control_rounds(self) -> list[int]:
         """Round counts of the fine-tune-only controls: one per distinct ``rounds`` of the scores (none when off)."""

@@ -32,22 +32,20 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
     ``cfg.trainer.checkpoint_every``), every ``trainer.checkpoint_every_s`` seconds and at the end.
     """
     from b3dgs.callbacks import ResumeState, RunCheckpoint
-    from b3dgs.lifecycle import build_callbacks, build_trainer, checkpoint_every_s, fit, start_run
+    from b3dgs.lifecycle import Run, checkpoint_every_s
 
     total = int(cfg.trainer.max_steps)
     if not 0 < int(stop_step) <= total:
         raise B3dgsError(f"a round must stop within the total budget: stop_step={stop_step}, trainer.max_steps={total}",
                          f"pass a stop step in 1..{total}, or raise trainer.max_steps")
+    run = Run(cfg, run_dir)  # validated by the study that composed it (b3dgs.study.active.family_config)
     # a round continued from a checkpoint gets the guard counters back from it
-    dm, module = start_run(cfg, scene, reset_guards=ckpt_path is None)
-    module.allow_new_views = dm.allow_new_views = bool(new_round)
-    run_dir = Path(run_dir)
-    run_dir.mkdir(parents=True, exist_ok=True)
+    module = run.start(scene, reset_guards=ckpt_path is None)
+    module.allow_new_views = run.dm.allow_new_views = bool(new_round)
+    run.run_dir.mkdir(parents=True, exist_ok=True)
     every = int(checkpoint_every if checkpoint_every is not None else cfg.trainer.checkpoint_every)
-    ckpt = RunCheckpoint(run_dir / "checkpoints", every_n_steps=every, every_s=checkpoint_every_s(cfg.trainer))
-    trainer = build_trainer(cfg.trainer, module.renderer, [ResumeState(), ckpt, *build_callbacks(cfg.get("callbacks"))],
-                            max_steps=int(stop_step), default_root_dir=str(run_dir), enable_checkpointing=True)
-    fit(trainer, module, dm, ckpt_path)
+    ckpt = RunCheckpoint(run.run_dir / "checkpoints", every_n_steps=every, every_s=checkpoint_every_s(cfg.trainer))
+    run.fit([ResumeState(), ckpt], ckpt_path, max_steps=int(stop_step), enable_checkpointing=True)
     module.allow_new_views = False
     module.last_checkpoint = str(ckpt.last_path)
     return module
