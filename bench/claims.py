@@ -58,6 +58,7 @@ class Results:
         self.uq = _read(root / "uq.json")
         self.compression = _read(root / "compression.json")
         self.report = _read(root / "report" / "report.json")
+        self.suggest = _read(root / "suggest.json")  # bench/suggest.py: policy -> scene -> seed-mean values
         self.runs: dict[tuple[str, str], list[dict]] = {}  # (scene, method) -> [{metrics, uq}] over seeds
         self.ensembles = {f.parts[-3]: _read(f).get("ensemble", {}) for f in sorted((root / "runs").glob("*/ensemble/uq.json"))}
         for m in sorted((root / "runs").glob("*/*/s*/metrics.json")):
@@ -126,6 +127,12 @@ class Results:
         if regime == "ensemble":
             return {sc: statistics.fmean(v.values()) for sc, v in out.items()}
         return out
+
+    def suggest_diff(self, field: str, a: str, b: Optional[str], j: int = 0) -> dict[str, float]:
+        """Per scene, ``b3dgs-suggest``'s ``field`` ('hit': [hit rate, chance]; 'outcome': [sector PSNR, sector LPIPS,
+        all PSNR, all LPIPS]) of policy a at index j minus policy b's (b None: a's hit rate minus its chance)."""
+        va, vb = self.suggest.get(field, {}).get(a, {}), self.suggest.get(field, {}).get(b, {}) if b else {}
+        return {s: v[j] - (vb[s][j] if b else v[1]) for s, v in va.items() if not b or s in vb}
 
     def uq_scene(self, row: str, metric: str) -> dict[str, float]:
         """bench/uq.py's per-scene means of ``row`` (e.g. 'ensemble (3)')."""
@@ -278,6 +285,19 @@ CLAIMS: list[tuple[str, str, str, str, int, str, Callable[[Results], dict[str, f
     for p in ("info_gain_geometry", "info_gain_geometry+greedy_conditioned")
     for b in ("farthest", "cover", "ensemble", "native") + (("ensemble+diverse",) if "+" in p else ())
     + (p.replace("_geometry", ""),)
+] + [  # issue 54: b3dgs-suggest on the held-out-sector split (bench/suggest.py)
+    ("suggest_info_gain_hit_vs_chance", "issue 54", "Where to capture: share of info_gain's suggestions pointing into "
+     "the held-out sector, minus chance (hypothesis: > 0; target hit rate >= 0.8)", "not in the paper", +1, "",
+     lambda R: R.suggest_diff("hit", "info_gain", None)),
+] + [
+    (f"suggest_info_gain_hit_vs_{b}", "issue 54", f"Where to capture: info_gain's sector hit rate - {b}'s "
+     "(hypothesis: > 0)", "not in the paper", +1, "", lambda R, b=b: R.suggest_diff("hit", "info_gain", b))
+    for b in ("distance", "cover")
+] + [
+    (f"suggest_info_gain_outcome_vs_{b}", "issue 54", f"Where to capture: sector-view PSNR after adding the held-out "
+     f"views nearest info_gain's suggestions - after adding {b}'s (hypothesis: > 0; target +0.3 dB vs uniform)",
+     "not in the paper", +1, "dB", lambda R, b=b: R.suggest_diff("outcome", "info_gain", b))
+    for b in ("uniform", "distance", "cover")
 ] + [
     (f"active_{p}_{which}_vs_{b}", "beyond the paper", f"Active view: Spearman ρ of the {p} score with {what}, "
      f"minus the {b} score's (hypothesis: > 0)", "not in the paper", +1, "", lambda R, which=which, p=p, b=b: R.active_rho(which, p, b))
@@ -353,6 +373,8 @@ def why(v: str, st: dict, unit: str, source: str = "the paper") -> str:
     p, floor = st.get("p_two_sided"), st.get("p_floor")
     ci = st.get("ci") or {}
     ci_txt = f"CI [{ci.get('low'):+.4g}, {ci.get('high'):+.4g}]" if ci.get("low") is not None else "no CI"
+    if p is None:
+        return f"{n} scene: no test yet ({st['wins']} win, {st['losses']} loss), {ci_txt}"
     if v == "fails":
         sig = "significantly" if p is not None and p < ALPHA else "not significantly"
         return (f"our effect has the opposite sign ({sig}: p = {p:.3g}, {ci_txt}, "
@@ -381,7 +403,7 @@ def build(root: Path, only: Optional[list[str]] = None) -> tuple[list[dict], str
     for cid, group, statement, paper, expect, unit, fn in CLAIMS:
         per_scene = keep(ood_delta(report) if cid == "ood_native_below_proxy" else fn(R))
         v, st = verdict(per_scene, expect)
-        reason = why(v, st, unit, "the hypothesis" if group == "issue 22" else "the paper")  # issue 22: ours
+        reason = why(v, st, unit, "the hypothesis" if group in ("issue 22", "issue 54") else "the paper")  # ours
         if v in ("fails", "holds in sign only") and cid in EXPLAIN and (extra := EXPLAIN[cid](R)):
             reason += f"; {extra}"
         rows.append({"id": cid, "group": group, "claim": statement, "paper": paper, "verdict": v, "unit": unit,

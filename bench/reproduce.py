@@ -90,6 +90,8 @@ REBUILDS: dict[str, Rebuild] = {
     "counts": Rebuild(("bench.counts", "--table-only", "--seeds", "0", "1", "2", "--alone", "sh", "native_plus_sh",
                        "--archive", "{res}/runs",
                        "--results-root", "{out}"), ("counts",), slow=True),
+    "suggest": Rebuild(("bench.suggest", "--table-only", "--archive", "{res}/suggest_runs", "--results-root", "{out}"),
+                        ("suggest",)),
     "ood_sector": Rebuild(("bench.ood_sector", "--table-only", "--archive", "{res}/ood_sector_runs",
                            "--results-root", "{out}"), ("ood_sector",)),
     "schedule": Rebuild((*_SCHEDULE, "--archive", "{res}/schedule_runs"), ("schedule",)),

@@ -191,7 +191,8 @@ def table(archive: Path, scenes: list[str], seeds: list[int]) -> tuple[dict, str
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", nargs="+", default=SCENES, choices=scene_names())
-    ap.add_argument("--seeds", type=int, nargs="+", default=[0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=None,
+                    help="default: 0 to run; the table: every seed in the archive")
     ap.add_argument("--n", type=int, default=8, help="suggestions per policy (and views added)")
     ap.add_argument("--policies", nargs="+", default=list(POLICIES), choices=list(POLICIES))
     ap.add_argument("--suggest-extra", nargs="*", default=[], help="extra b3dgs-suggest overrides (e.g. score_max_side=32)")
@@ -256,9 +257,10 @@ def main() -> None:
 
     if not args.table_only:
         for sc in args.scenes:
-            for s in args.seeds:
+            for s in args.seeds or [0]:
                 one(sc, s)
-    payload, text = table(archive, args.scenes, args.seeds)
+    seeds = args.seeds or sorted({int(p.name[1:]) for p in archive.glob("*/s*") if p.name[1:].isdigit()}) or [0]
+    payload, text = table(archive, args.scenes, seeds)
     write_results(args.name, payload, text, root=Path(args.results_root))
 
 
