@@ -87,7 +87,8 @@ def _type(hint: Any, default: Any) -> Any:
 
 
 def _fields(target: Callable) -> tuple[Dict[str, tuple[Any, Any]], bool]:
-    """(name -> (annotation, default or MISSING) of what ``target`` accepts, whether it takes ``**kwargs``)."""
+    """(name -> (annotation, default or MISSING) of what ``target`` accepts, whether it takes ``**kwargs``); the fields
+    of a dataclass parameter ``settings`` (``Optional[SceneSettings]``) stand for it, as flat keys."""
     try:
         hints = typing.get_type_hints(target if dataclasses.is_dataclass(target) or not isinstance(target, type)
                                       else target.__init__)
@@ -96,6 +97,10 @@ def _fields(target: Callable) -> tuple[Dict[str, tuple[Any, Any]], bool]:
     params = inspect.signature(target).parameters.values()
     fields = {p.name: (hints.get(p.name, Any), MISSING if p.default is p.empty else p.default) for p in params
               if p.kind in (p.POSITIONAL_OR_KEYWORD, p.KEYWORD_ONLY)}
+    hint = fields.get("settings", (None,))[0]
+    nested = [a for a in (hint, *typing.get_args(hint)) if isinstance(a, type) and dataclasses.is_dataclass(a)]
+    if nested:
+        fields = {**{k: f for k, f in fields.items() if k != "settings"}, **_fields(nested[0])[0]}
     return fields, any(p.kind == p.VAR_KEYWORD for p in params)
 
 

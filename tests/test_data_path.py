@@ -14,7 +14,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from b3dgs.data.images import save_png
-from b3dgs.data.scene import check_scene_settings, infer_data_option, infer_data_override
+from b3dgs.data.scene import SceneSettings, check_scene_settings, infer_data_option, infer_data_override
 from b3dgs.data.synthetic import load_synthetic
 from b3dgs.errors import B3dgsError
 
@@ -74,7 +74,7 @@ def test_a_folder_of_photos_only_names_b3dgs_process(tmp_path):
             infer_data_option(root)
         assert "photos but no camera poses" in str(e.value) and "b3dgs-process images=" in e.value.fix
         with pytest.raises(B3dgsError, match="b3dgs-process"):  # an explicit data= is checked against it too
-            check_scene_settings("colmap", root, {}, {})
+            check_scene_settings("colmap", root, SceneSettings(), {})
     with pytest.raises(B3dgsError, match="holds no scene"):
         infer_data_option(_layout(tmp_path / "empty", ["notes.txt"]))
     with pytest.raises(B3dgsError, match="does not exist"):
@@ -84,7 +84,7 @@ def test_a_folder_of_photos_only_names_b3dgs_process(tmp_path):
 def test_synthetic_with_a_path_is_refused_naming_the_folders_format(tmp_path):
     _layout(tmp_path, ["transforms.json"])
     with pytest.raises(B3dgsError) as e:
-        check_scene_settings("synthetic", tmp_path, {}, {})
+        check_scene_settings("synthetic", tmp_path, SceneSettings(), {})
     assert "reads no folder" in str(e.value) and "data=transforms" in e.value.fix
 
 

@@ -1,13 +1,14 @@
 """Lightning DataModule over a :class:`~b3dgs.types.Scene`: one camera per step."""
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any, Iterator, Optional, Sequence
 
 import lightning as L
 import torch
 from torch.utils.data import DataLoader, Dataset, Sampler
 
-from b3dgs.data.scene import NEAR_PLANE, check_scene_settings, read_raw, read_scene
+from b3dgs.data.scene import SceneSettings, check_scene_settings, read_raw, read_scene
 from b3dgs.errors import B3dgsError
 from b3dgs.types import Camera, Scene
 
@@ -115,20 +116,6 @@ class ResumableDataLoader(DataLoader):
         self.sampler.load_state_dict(state["sampler"])
 
 
-def _plain(x: Any) -> Any:
-    """OmegaConf containers -> plain Python (without importing omegaconf eagerly)."""
-    if x is None or isinstance(x, (str, int, float, bool)):
-        return x
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-
-        if isinstance(x, (DictConfig, ListConfig)):
-            return OmegaConf.to_container(x, resolve=True)
-    except ImportError:  # pragma: no cover
-        pass
-    return x
-
-
 class SceneDataModule(L.LightningDataModule):
     """Loads a scene once in :meth:`setup` and serves cameras.
 
@@ -138,79 +125,36 @@ class SceneDataModule(L.LightningDataModule):
       saved in checkpoints, so a resumed run sees the same views); batch size 1, the batch *is* the Camera.
     * ``val_dataloader`` / ``test_dataloader``: the held-out cameras in sorted order.
 
-    Arguments mirror :func:`b3dgs.data.load_scene` (``near_plane``: the renderer's, for the near-plane
-    guard; ``calib_every``: calibration views held out of training, ``scene.calib``); ``name`` (optional) overrides the scene name;
-    extra keyword arguments go to the format loader (e.g. ``n_views``, ``resolution``, ``seed``); ``images_dir``: the
-    image folder inside ``path`` of a format that has one (``colmap``, ``llff``; e.g. ``images_4``), None for its own;
-    ``undistort``: lens distortion of ``colmap`` / ``transforms`` views (True: undistorted, False: ignored, None: each
-    format's default, see :mod:`b3dgs.data.colmap` and :mod:`b3dgs.data.transforms`).
+    Arguments mirror :func:`b3dgs.data.load_scene`: ``settings`` (:class:`~b3dgs.data.scene.SceneSettings`, default its
+    defaults) and flat keyword arguments over it, its fields (``max_side=256``, as a config's ``data.*`` keys) or the
+    format loader's own (e.g. ``n_views``, ``resolution``, ``seed``); ``name`` (optional) overrides the scene name.
     A prebuilt ``scene`` may be passed instead (then nothing is loaded, and nothing is checked). ``keep_raw`` (set
     before :meth:`setup`): keep what was read, for :meth:`select_train`.
 
     The settings are checked when the data module is built (:meth:`validate`), before any scene is read.
     """
 
-    def __init__(
-        self,
-        kind: str = "synthetic",
-        path: Optional[str] = None,
-        max_side: Optional[int] = None,
-        test_every: int = 8,
-        train_indices: Optional[Sequence[int]] = None,
-        normalize: bool = True,
-        background: Sequence[float] = (0.0, 0.0, 0.0),
-        max_images: Optional[int] = None,
-        name: Optional[str] = None,
-        scene: Optional[Scene] = None,
-        near_plane: float = NEAR_PLANE,
-        calib_every: Optional[int] = None,
-        test_split: str = "interleaved",
-        test_fraction: float = 0.125,
-        sector_axis: int = 0,
-        images_dir: Optional[str] = None,
-        undistort: Optional[bool] = None,
-        **kind_kwargs: Any,
-    ):
+    def __init__(self, kind: str = "synthetic", path: Optional[str] = None, settings: Optional[SceneSettings] = None,
+                 name: Optional[str] = None, scene: Optional[Scene] = None, **keys: Any):
         super().__init__()
-        if images_dir is not None:  # the image folder inside path (colmap, llff); None: the format's own (images/)
-            kind_kwargs["images_dir"] = images_dir
-        if undistort is not None:  # colmap, transforms; None: the format's default (b3dgs.data.undistort)
-            kind_kwargs["undistort"] = undistort
         self.kind = str(kind)
         self.path = None if path is None else str(path)
         self.name = name
-        # a setting of load_scene's that the active-view study passes as an extra key, not the format loader's
-        self.init_points_from_train_only = bool(kind_kwargs.pop("init_points_from_train_only", False))
-        self.kind_kwargs = {k: _plain(v) for k, v in kind_kwargs.items()}
+        self.settings, self.kind_kwargs = SceneSettings.split(keys, settings)
         self._scene: Optional[Scene] = scene
         self._format_loader = None  # the format loader, once validate has checked the settings
         self.train_sampler: Optional[ResumableRandomSampler] = None  # made by train_dataloader()
         self.allow_new_views = False  # a new training round: the sampler may resume from fewer train views
-        self.max_side, self.test_every, self.max_images = max_side, test_every, max_images
-        self.train_indices, self.normalize, self.background = _plain(train_indices), normalize, _plain(background)
-        self.near_plane = near_plane
-        self.calib_every = calib_every  # calibration hold-out (scene.calib)
-        # the held-out split: interleaved (every test_every-th view) or a contiguous sector (b3dgs.data.scene.sector_split)
-        self.test_split, self.test_fraction, self.sector_axis = test_split, test_fraction, sector_axis
         self.keep_raw = False
         self._raw = None  # the scene as read (keep_raw)
         self.validate()
-        self.background = tuple(float(x) for x in self.background)
-        self.near_plane, self.test_fraction = float(self.near_plane), float(self.test_fraction)
-
-    def _settings(self) -> dict[str, Any]:
-        return dict(max_side=self.max_side, test_every=self.test_every, train_indices=self.train_indices,
-                    normalize=self.normalize, background=self.background, max_images=self.max_images,
-                    near_plane=self.near_plane, calib_every=self.calib_every, test_split=self.test_split,
-                    test_fraction=self.test_fraction, sector_axis=self.sector_axis,
-                    init_points_from_train_only=self.init_points_from_train_only)
 
     def validate(self, **kwargs: Any) -> None:
         """Check the data settings, the scene folder and the format loader's own keywords
         (:func:`b3dgs.data.scene.check_scene_settings`); raise :class:`B3dgsError` naming the ``data.*`` key and the
         fix. Called when the data module is built; a prebuilt ``scene`` is not checked. ``kwargs``: nothing yet."""
         if self._scene is None:
-            self._format_loader = check_scene_settings(self.kind, self.path, self._settings(), self.kind_kwargs)
+            self._format_loader = check_scene_settings(self.kind, self.path, self.settings, self.kind_kwargs)
 
     @property
     def scene(self) -> Scene:
@@ -223,8 +167,8 @@ class SceneDataModule(L.LightningDataModule):
         if self._scene is not None:
             return
         if self.keep_raw and self._raw is None:  # with the point tracks select_train(init_points_from_train_only) needs
-            self._raw = read_raw(self._format_loader, self.path, self._settings(), self.kind_kwargs, point_tracks=True)
-        scene = read_scene(self._format_loader, self.kind, self.path, self._settings(), self.kind_kwargs, raw=self._raw)
+            self._raw = read_raw(self._format_loader, self.path, self.settings, self.kind_kwargs, point_tracks=True)
+        scene = read_scene(self._format_loader, self.kind, self.path, self.settings, self.kind_kwargs, raw=self._raw)
         if self.name:
             scene.name = str(self.name)
         self._scene = scene
@@ -237,9 +181,9 @@ class SceneDataModule(L.LightningDataModule):
         if self._raw is None:
             raise B3dgsError("select_train needs the views this data module read, and it did not keep them",
                              "set keep_raw = True before setup() (b3dgs.lifecycle.data_module(node, keep_raw=True))")
-        settings = {**self._settings(), "train_indices": [int(i) for i in train_indices],
-                    "init_points_from_train_only": bool(init_points_from_train_only)}
-        out = type(self)(self.kind, self.path, name=self.name, **settings, **self.kind_kwargs)
+        settings = replace(self.settings, train_indices=[int(i) for i in train_indices],
+                           init_points_from_train_only=bool(init_points_from_train_only))
+        out = type(self)(self.kind, self.path, settings, name=self.name, **self.kind_kwargs)
         out._raw = self._raw
         out.setup()
         return out

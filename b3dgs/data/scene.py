@@ -31,6 +31,7 @@ point inside the image) in :func:`materialize`.
 """
 from __future__ import annotations
 
+import dataclasses
 import inspect
 import logging
 import math
@@ -70,6 +71,7 @@ __all__ = [
     "SCENE_KINDS",
     "FrameSpec",
     "RawScene",
+    "SceneSettings",
     "SceneTransform",
     "DATA_RULES",
     "check_images_dir",
@@ -85,7 +87,6 @@ __all__ = [
     "infer_data_override",
     "load_scene",
     "look_at_point",
-    "read_scene",
     "materialize",
     "normalize_scene",
     "preprocess",
@@ -155,6 +156,58 @@ class SceneTransform:
         """(N, 3) points mapped by this transform (float64)."""
         R = np.asarray(self.rotation, np.float64)
         return self.scale * np.asarray(points, np.float64) @ R.T + np.asarray(self.translation, np.float64)
+
+
+@dataclass(frozen=True)
+class SceneSettings:
+    """The settings common to every scene format: the ``data.*`` keys of every data config besides ``kind``, ``path``,
+    ``name`` and the format loader's own (:func:`load_scene`, :class:`~b3dgs.data.datamodule.SceneDataModule` and
+    :func:`preprocess` take them as one). Each default is declared here, once; the ranges are :data:`DATA_RULES`."""
+
+    max_side: Optional[int] = None  # downscale so the longest image side is <= max_side (K scaled); None: full size
+    test_every: int = 8  # every test_every-th view in sorted name order is held out; 0: none
+    test_split: str = "interleaved"  # interleaved | sector (a contiguous test_fraction, see sector_split) | both
+    test_fraction: float = 0.125  # test_split=sector: the share of the views held out
+    sector_axis: int = 0  # test_split=sector: which principal direction of the camera centres (0, 1, 2)
+    train_indices: Optional[Sequence[int]] = None  # indices into the sorted train list to keep; the rest: candidates
+    normalize: bool = True  # centre on the mean camera centre and scale the camera extent to 1
+    background: Sequence[float] = (0.0, 0.0, 0.0)  # RGB in [0, 1]: transparent pixels over it, stored on the Scene
+    max_images: Optional[int] = None  # keep at most this many views, spread evenly, before splitting; None: all
+    images_dir: Optional[str] = None  # the image folder inside path (colmap, llff), e.g. images_4; None: images/
+    undistort: Optional[bool] = None  # lens distortion (colmap, transforms): True undistorts, False ignores; None: the
+    # format's default (b3dgs.data.undistort)
+    calib_every: Optional[int] = None  # every calib_every-th train view becomes a calibration view (split_calibration)
+    near_plane: float = NEAR_PLANE  # the renderer's near plane, for the guard of check_near_plane
+    init_points_from_train_only: bool = False  # keep the initial points >= 2 train views saw (filter_points_to_train)
+
+    @classmethod
+    def split(cls, keys: dict, base: Optional["SceneSettings"] = None) -> tuple["SceneSettings", dict]:
+        """``(settings, kind_kwargs)`` of flat ``data.*`` keys: the fields of this class over ``base`` (default: the
+        defaults), and the rest, the format loader's own; config containers become plain lists and dicts."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        plain = {k: _plain(v) for k, v in keys.items()}
+        settings = dataclasses.replace(base or cls(), **{k: v for k, v in plain.items() if k in names})
+        return settings, {k: v for k, v in plain.items() if k not in names}
+
+    def loader_kwargs(self) -> dict:
+        """What a format loader gets of these settings: ``max_side``, ``background``, ``max_images``, and
+        ``images_dir``/``undistort`` where set."""
+        out = dict(max_side=self.max_side, background=tuple(float(x) for x in self.background),
+                   max_images=self.max_images)
+        return {**out, **{k: getattr(self, k) for k in ("images_dir", "undistort") if getattr(self, k) is not None}}
+
+
+def _plain(v: Any) -> Any:
+    """A ``data.*`` value as plain Python: config containers as lists and dicts, tuples as lists, numpy scalars as
+    Python numbers (without importing omegaconf eagerly)."""
+    if "omegaconf" in sys.modules:
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+
+        if isinstance(v, (DictConfig, ListConfig)):
+            v = OmegaConf.to_container(v, resolve=True)
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return v.item() if isinstance(v, np.generic) else v
 
 
 class IndicesOutOfRange(B3dgsError, IndexError):
@@ -442,30 +495,19 @@ def sector_split(centres: np.ndarray, fraction: float, axis: int = 0) -> tuple[l
     return [i for i in range(n) if i not in set(test)], test
 
 
-def preprocess(
-    raw: RawScene,
-    test_every: int = 8,
-    train_indices: Optional[Sequence[int]] = None,
-    normalize: bool = True,
-    background: Sequence[float] = (0.0, 0.0, 0.0),
-    near_plane: float = NEAR_PLANE,
-    calib_every: Optional[int] = None,
-    init_points_from_train_only: bool = False,
-    test_split: str = "interleaved",
-    test_fraction: float = 0.125,
-    sector_axis: int = 0,
-) -> Scene:
-    """Normalise, split and bound a :class:`RawScene` (see the module docstring). ``test_split``: ``interleaved``
-    (every ``test_every``-th view in name order), ``sector`` (:func:`sector_split`: a contiguous ``test_fraction``
-    of the cameras, held out along ``sector_axis``) or ``sector+interleaved`` (both held out from one model, the names
-    of each kind in ``scene.test_groups``: OOD views with a real support deficit beside ID views between training
-    views).
+def preprocess(raw: RawScene, settings: Optional[SceneSettings] = None) -> Scene:
+    """Normalise, split and bound a :class:`RawScene` with ``settings`` (default: :class:`SceneSettings`'s; see the
+    module docstring). ``test_split``: ``interleaved`` (every ``test_every``-th view in name order), ``sector``
+    (:func:`sector_split`: a contiguous ``test_fraction`` of the cameras, held out along ``sector_axis``) or
+    ``sector+interleaved`` (both held out from one model, the names of each kind in ``scene.test_groups``: OOD views
+    with a real support deficit beside ID views between training views).
 
     With ``train_indices``, the other train views become ``scene.candidates``: cameras without images,
     whose images go to a :class:`CandidateStore` that :func:`take_candidate_store` hands to the study
     driver. ``init_points_from_train_only`` keeps only the initial points seen by >= 2 of the selected train
     views (see :func:`filter_points_to_train`). The settings' ranges are :func:`check_scene_settings`'s (called by
     :func:`load_scene` and the data module before the scene is read), not checked again here."""
+    s = settings or SceneSettings()
     cams = sorted(raw.cameras, key=lambda c: c.name)
     if not cams:
         raise B3dgsError(f"Scene {raw.name!r} has no cameras",
@@ -493,7 +535,7 @@ def preprocess(
 
     focus = raw.extras.get("focus_depth")
     transform = SceneTransform()
-    if normalize:
+    if s.normalize:
         viewmats, points, extent, mean, scale = normalize_scene(viewmats, points)
         transform = SceneTransform.from_normalisation(mean, scale)
         focus = None if focus is None else focus * scale
@@ -505,23 +547,23 @@ def preprocess(
         _, extent = camera_extent(viewmats)
 
     test_groups = None
-    if test_split.startswith("sector"):
+    if s.test_split.startswith("sector"):
         centres = np.stack([-v[:3, :3].T @ v[:3, 3] for v in viewmats])
-        train_idx, test_idx = sector_split(centres, test_fraction, sector_axis)
-        if test_split == "sector+interleaved":  # both kinds held out from one model: OOD (sector) against ID views
+        train_idx, test_idx = sector_split(centres, s.test_fraction, s.sector_axis)
+        if s.test_split == "sector+interleaved":  # both kinds held out from one model: OOD (sector) against ID views
             sector = set(test_idx)
-            between = [i for i in split_indices(len(cams), test_every)[1] if i not in sector]
+            between = [i for i in split_indices(len(cams), s.test_every)[1] if i not in sector]
             test_idx = sorted(sector | set(between))
             train_idx = [i for i in range(len(cams)) if i not in set(test_idx)]
             test_groups = {"sector": [cams[i].name for i in sorted(sector)],
                            "interleaved": [cams[i].name for i in between]}
     else:
-        train_idx, test_idx = split_indices(len(cams), test_every)
+        train_idx, test_idx = split_indices(len(cams), s.test_every)
     train = [cams[i] for i in train_idx]
     test = [cams[i] for i in test_idx]
-    train, calib = split_calibration(train, calib_every)
-    if train_indices is not None:
-        sel = [int(i) for i in train_indices]
+    train, calib = split_calibration(train, s.calib_every)
+    if s.train_indices is not None:
+        sel = [int(i) for i in s.train_indices]
         bad = [i for i in sel if not 0 <= i < len(train)]
         if bad:
             raise IndicesOutOfRange(f"train_indices {bad} out of range for {len(train)} train views",
@@ -531,15 +573,15 @@ def preprocess(
     else:
         candidates = []
     point_filter = None
-    if init_points_from_train_only and points is not None:
+    if s.init_points_from_train_only and points is not None:
         points, colors, point_filter = filter_points_to_train(raw, points, colors, train)
     if not train:
-        raise B3dgsError(f"Scene {raw.name!r}: no train views (n={len(cams)}, test_every={test_every})",
+        raise B3dgsError(f"Scene {raw.name!r}: no train views (n={len(cams)}, test_every={s.test_every})",
                          fix="leave views to train on: pass a non-empty data.train_indices, or a larger "
                              "data.test_every (0 holds none out), or add images")
 
     lo, hi = compute_bounds(viewmats, points, fallback_depth=focus)
-    check_near_plane(raw.name, viewmats, lo, hi, normalize, near_plane)
+    check_near_plane(raw.name, viewmats, lo, hi, s.normalize, s.near_plane)
     if colors is None and points is not None:
         colors = np.full_like(points, 0.5, dtype=np.float32)
     scene = Scene(
@@ -551,7 +593,7 @@ def preprocess(
         extent=float(extent),
         bounds_min=torch.tensor(lo, dtype=torch.float32),
         bounds_max=torch.tensor(hi, dtype=torch.float32),
-        background=tuple(float(x) for x in background),
+        background=tuple(float(x) for x in s.background),
     )
     scene.calib = list(calib)  # calibration views (data.calib_every); [] when off
     scene.transform = transform  # normalised frame <- the format's own (exports go back through its inverse)
@@ -776,14 +818,15 @@ def loader_reads_files(loader) -> bool:
 DATA_RULES = {
     "data.max_side?": (lambda v: is_int(v, 1), "an integer >= 1 or null",
                        "pass data.max_side=256 (longest image side in pixels) or null for full resolution"),
-    "data.test_every": (lambda v: is_int(v, 0), "an integer >= 0", "pass data.test_every=8 (every 8th view held out) or 0"),
+    "data.test_every": (lambda v: is_int(v, 0), "an integer >= 0",
+                        f"pass data.test_every={SceneSettings.test_every} (every n-th view held out) or 0"),
     "data.test_split": (lambda v: v in TEST_SPLITS, f"one of {'|'.join(TEST_SPLITS)}",
                         "pass data.test_split=interleaved (every test_every-th view), sector (a contiguous sector) or "
                         "sector+interleaved (both, from one model)"),
     "data.test_fraction": (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and 0 < v < 1,
-                           "a fraction in (0, 1)", "pass data.test_fraction=0.125"),
+                           "a fraction in (0, 1)", f"pass data.test_fraction={SceneSettings.test_fraction}"),
     "data.sector_axis": (lambda v: v in (0, 1, 2) and not isinstance(v, bool), "0, 1 or 2",
-                         "pass data.sector_axis=0 (the camera centres' first principal direction)"),
+                         f"pass data.sector_axis={SceneSettings.sector_axis} (0: the cameras' first principal direction)"),
     "data.max_images?": (lambda v: is_int(v, 1), "an integer >= 1 or null", "pass data.max_images=N or null for all views"),
     "data.train_indices?": (lambda v: isinstance(v, list) and all(is_int(i, 0) for i in v) and len(set(v)) == len(v),
                             "null or a list of distinct indices >= 0", "pass data.train_indices=[0,3,5] or null"),
@@ -796,23 +839,21 @@ DATA_RULES = {
 }
 
 
-def _plain(v: Any) -> Any:
-    """A setting as the rules read it: tuples as lists, numpy scalars as Python numbers."""
-    if isinstance(v, (list, tuple)):
-        return [_plain(x) for x in v]
-    return v.item() if isinstance(v, np.generic) else v
-
-
-def check_scene_settings(kind: str, path: str | os.PathLike | None, settings: dict, kind_kwargs: dict):
+def check_scene_settings(kind: str, path: str | os.PathLike | None, settings: SceneSettings, kind_kwargs: dict):
     """Check the settings of a scene load before anything is read, and return the format loader of ``kind``.
 
-    ``settings``: the common keywords of :func:`load_scene` (those present are checked against :data:`DATA_RULES`);
-    ``kind_kwargs``: the format loader's own, checked by its ``validate`` when it has one. A loader that reads files
+    ``settings``: checked against :data:`DATA_RULES`; ``kind_kwargs``: the format loader's own keywords (a key it does
+    not take is refused, naming the valid ones), checked by its ``validate`` when it has one. A loader that reads files
     needs ``path`` to exist (and to hold its format, :func:`check_layout`). Raises :class:`B3dgsError` naming the
     ``data.*`` key and the fix; the data module calls it when it is built."""
     kind = str(kind) if str(kind).lower() not in LOADERS else str(kind).lower()
-    apply_rules({f"data.{k}": _plain(v) for k, v in settings.items()}, DATA_RULES)
+    apply_rules({f"data.{k}": _plain(v) for k, v in vars(settings).items()}, DATA_RULES)
     loader = get_loader(kind)
+    unknown = [k for k in kind_kwargs if k not in loader_params(loader)]
+    if unknown and not any(p.kind == p.VAR_KEYWORD for p in inspect.signature(loader).parameters.values()):
+        valid = sorted({"kind", "path", "name", *vars(settings), *loader_params(loader)} - {"point_tracks"})
+        raise B3dgsError(f"data.{unknown[0]} is not a setting of data={kind}{did_you_mean(unknown[0], valid)}",
+                         f"remove it or correct its spelling (keys of data: {', '.join(valid)})")
     if not loader_reads_files(loader) and path not in (None, ""):
         try:
             fix = f"drop data={kind}: data.path alone picks the folder's format (here data={infer_data_option(path)[0]})"
@@ -827,10 +868,10 @@ def check_scene_settings(kind: str, path: str | os.PathLike | None, settings: di
             raise B3dgsError(f"data.path={path} does not exist", "pass data.path=PATH to an existing scene folder")
         if kind_kwargs.get("sparse_dir") is None:  # a custom model folder is the loader's to find
             check_layout(kind, path)
-    if kind_kwargs.get("images_dir") is not None:
-        check_images_dir(kind, loader, path, kind_kwargs["images_dir"])
-    if kind_kwargs.get("undistort") is not None:
-        check_undistort(kind, loader, kind_kwargs["undistort"])
+    if settings.images_dir is not None:
+        check_images_dir(kind, loader, path, settings.images_dir)
+    if settings.undistort is not None:
+        check_undistort(kind, loader, settings.undistort)
     check = getattr(loader, "validate", None)
     if callable(check):
         check(**kind_kwargs)
@@ -866,30 +907,24 @@ def check_undistort(kind: str, loader, value: Any) -> None:
                          "pass data.undistort=null")
 
 
-def read_raw(loader, path: str | os.PathLike | None, settings: dict, kind_kwargs: dict,
+def read_raw(loader, path: str | os.PathLike | None, settings: SceneSettings, kind_kwargs: dict,
              point_tracks: bool = False) -> RawScene:
     """A scene as its format ``loader`` (from :func:`check_scene_settings`, which checked the settings) reads it,
     before :func:`preprocess`. ``point_tracks``: also which images observed each initial point, where the format
     records it (``init_points_from_train_only``)."""
-    s = {**_SETTINGS, **settings}
     if point_tracks and "point_tracks" in loader_params(loader):
         kind_kwargs = {**kind_kwargs, "point_tracks": True}  # which images observed each SfM point
-    common = dict(max_side=s["max_side"], background=tuple(float(x) for x in s["background"]), max_images=s["max_images"])
+    common = settings.loader_kwargs()
     return loader(path, **common, **kind_kwargs) if loader_reads_files(loader) else loader(**common, **kind_kwargs)
 
 
-def read_scene(loader, kind: str, path: str | os.PathLike | None, settings: dict, kind_kwargs: dict,
+def read_scene(loader, kind: str, path: str | os.PathLike | None, settings: SceneSettings, kind_kwargs: dict,
                raw: Optional[RawScene] = None) -> Scene:
     """Read a scene with ``loader`` (:func:`read_raw`; ``raw``: what it read before, read again otherwise) and
     preprocess it with ``settings``."""
-    s = {**_SETTINGS, **settings}
-    background = tuple(float(x) for x in s["background"])
     if raw is None:
-        raw = read_raw(loader, path, settings, kind_kwargs, point_tracks=s["init_points_from_train_only"])
-    scene = preprocess(raw, test_every=s["test_every"], train_indices=s["train_indices"], normalize=s["normalize"],
-                       background=background, near_plane=s["near_plane"], calib_every=s["calib_every"],
-                       init_points_from_train_only=s["init_points_from_train_only"], test_split=s["test_split"],
-                       test_fraction=s["test_fraction"], sector_axis=s["sector_axis"])
+        raw = read_raw(loader, path, settings, kind_kwargs, point_tracks=settings.init_points_from_train_only)
+    scene = preprocess(raw, settings)
     log.info(
         "Loaded %s scene %r: %d train / %d test%s views, %s points, extent %.4g",
         kind, scene.name, len(scene.train), len(scene.test),
@@ -899,24 +934,8 @@ def read_scene(loader, kind: str, path: str | os.PathLike | None, settings: dict
     return scene
 
 
-def load_scene(
-    kind: str,
-    path: str | os.PathLike | None,
-    max_side: Optional[int] = None,
-    test_every: int = 8,
-    train_indices: Optional[Sequence[int]] = None,
-    normalize: bool = True,
-    background: Sequence[float] = (0.0, 0.0, 0.0),
-    max_images: Optional[int] = None,
-    near_plane: float = NEAR_PLANE,
-    calib_every: Optional[int] = None,
-    init_points_from_train_only: bool = False,
-    test_split: str = "interleaved",
-    test_fraction: float = 0.125,
-    sector_axis: int = 0,
-    raw: Optional[RawScene] = None,
-    **kind_kwargs: Any,
-) -> Scene:
+def load_scene(kind: str, path: str | os.PathLike | None, settings: Optional[SceneSettings] = None,
+               raw: Optional[RawScene] = None, **keys: Any) -> Scene:
     """Load a scene of ``kind`` (``colmap``, ``transforms``, ``llff``, ``synthetic`` or a loader function
     ``package.module:function``, see :func:`get_loader`) and preprocess it: :func:`check_scene_settings`, then
     :func:`read_scene`.
@@ -925,31 +944,13 @@ def load_scene(
         kind: scene format.
         path: scene folder (or ``transforms*.json`` file); ignored (may be None) for a loader that reads no
             files ("synthetic").
-        max_side: downscale images so the longest side is ``<= max_side`` (K scaled to match).
-        test_every: every ``test_every``-th view in sorted name order is held out; 0 = none.
-        test_split, test_fraction, sector_axis: ``sector`` holds out a contiguous sector instead (:func:`sector_split`).
-        train_indices: indices into the sorted train list to keep (sparse/active-view studies).
-        normalize: centre on the mean camera centre and scale the camera extent to 1.
-        background: RGB in [0, 1]; transparent pixels are composited over it, and it is stored
-            on the Scene for rendering.
-        max_images: keep at most this many views, spread evenly over the sorted list, before
-            splitting (quick experiments); None keeps all.
-        near_plane: the renderer's near plane, for the guard of :func:`check_near_plane`.
-        calib_every: hold out every ``calib_every``-th train view as a calibration view
-            (``scene.calib``; see :func:`split_calibration`); None or 0: none.
+        settings: the common settings (default: :class:`SceneSettings`'s).
         raw: the scene as :func:`read_raw` read it with these settings (then nothing is read again; its point
             tracks are needed for ``init_points_from_train_only``).
-        **kind_kwargs: passed to the format loader (e.g. ``n_views``, ``resolution``, ``seed`` for
-            "synthetic"; ``images_dir`` for "colmap"/"llff"; ``sparse_dir`` for "colmap"; ``undistort`` (True, False
-            or None) for "colmap"/"transforms", see :mod:`b3dgs.data.undistort`).
+        **keys: fields of :class:`SceneSettings` (over ``settings``, e.g. ``max_side=256, test_every=0``) and the
+            format loader's own keywords (e.g. ``n_views``, ``resolution``, ``seed`` for "synthetic"; ``sparse_dir``
+            for "colmap").
     """
-    settings = dict(max_side=max_side, test_every=test_every, train_indices=train_indices, normalize=normalize,
-                    background=background, max_images=max_images, near_plane=near_plane, calib_every=calib_every,
-                    init_points_from_train_only=init_points_from_train_only, test_split=test_split,
-                    test_fraction=test_fraction, sector_axis=sector_axis)
+    settings, kind_kwargs = SceneSettings.split(keys, settings)
     loader = check_scene_settings(kind, path, settings, kind_kwargs)
     return read_scene(loader, kind, path, settings, kind_kwargs, raw=raw)
-
-
-#: the defaults of :func:`load_scene`'s common settings (what :func:`read_scene` uses for one not given)
-_SETTINGS = {k: p.default for k, p in inspect.signature(load_scene).parameters.items() if p.default is not p.empty}
