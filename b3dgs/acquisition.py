@@ -28,7 +28,7 @@ truth. It never gets the LightningModule, the data module or the store of candid
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Optional, Sequence
 
 import numpy as np

@@ -9,7 +9,6 @@ from typing import Any, Mapping, Optional, Sequence
 
 import lightning as L
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from b3dgs.checkpoint import check_sealed, seal_checkpoint
@@ -149,11 +148,6 @@ class SplatModule(L.LightningModule):
         # the current training set, which grows when views are acquired between rounds
         return {"scene_extent": extent, "max_steps": int(self.hparams.max_steps),
                 "num_train_views": len(self.scene.train) if self.scene is not None else None}
-
-    def set_scene(self, scene: Scene) -> None:
-        """Continue with ``scene`` (e.g. the training set plus views acquired between rounds): the Gaussians,
-        plugin states and optimizer are kept; view counts follow ``len(scene.train)`` from the next step."""
-        self.scene = scene
 
     def configure_optimizers(self):
         hp = self.hparams

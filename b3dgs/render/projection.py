@@ -5,7 +5,6 @@ Shared by both rasterizer backends. Every function accepts an optional leading s
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import ClassVar, Optional, Sequence, Tuple, Union
+from typing import ClassVar, Optional, Tuple, Union
 
 import torch
 from torch import Tensor
@@ -404,28 +404,11 @@ class NIWBlock(PosteriorBlock):
     ``plugin_noise``: track the plug-in residual MSE σ̂² (EMA) and offer it as the aleatoric
     variance, as in the paper's NIW rows; turn it off when a NoiseBlock supplies E[σ²].
 
-    ``count`` (``posterior.niw.count``) chooses N̂_k (beyond the paper, except ``paper``):
-
-    - ``paper``: the EMA above (bit for bit the paper's online path);
-    - ``weight``: Σ over the training views' pixels of the compositing weight T·α of Gaussian k (how many training
-      pixels it explains, from every view, not an EMA of one);
-    - ``fisher``: the count whose centre variance under Eq. 2-3 equals the Laplace variance of the centre under the
-      photometric likelihood, from tr F_k / σ̂², F_k = Σ_views Σ_p ∇_μk C_p ∇_μk C_pᵀ (:func:`fisher_count`);
-    - ``fisher3``: the ``fisher`` count for the IW part (Σ_k), and a centre posterior whose covariance follows the
-      information the cameras give: Cov[μ_k] = (κ0 E0[Σ_k]⁻¹ + c F_k / σ̂²)⁻¹ (the NIW prior's precision of the
-      centre plus the Laplace precision), so a Gaussian seen from one direction stays uncertain along its rays.
-
-    The three new counts come from one pass over the training views (:meth:`view_pass`: the renderer's weight sums,
-    F from :class:`FisherAccumulator` with ``fisher_probes`` Rademacher probes per view), taken when the posterior
-    is used (end of training, ``uq=native``, acquisition), so they cost nothing per training step; σ̂² is the
-    block's plug-in residual MSE. With them the per-step EMA is not computed.
-
-    ``count_scale`` (c, default 1 = the paper): the posterior refresh uses c·N̂_k in place of N̂_k in
-    Eq. 2-3 (the stored summary ``state["N"]`` is unchanged). Because N̂ is normalised to the effective
-    pixel count it is large, and the posterior concentrates as E[Σ] ≈ S0/(c N̂), Var[μ] ≈ S0/(c N̂)²
-    while c N̂ ≫ ν0; c < 1 widens the posterior (Var[μ] ∝ 1/c²) and pulls m_n towards m0 by
-    κ0/(κ0 + c N̂). A trained run's posterior can be re-evaluated at another c without retraining: set
-    ``count_scale`` on the loaded block (every use of the posterior refreshes it from the summaries).
+    ``count`` (``posterior.niw.count``) chooses N̂_k: ``paper`` (the EMA above, bit for bit), ``weight``, ``fisher``
+    (:func:`fisher_count`) or ``fisher3`` (a full 3×3 centre covariance), the last three from one pass over the
+    training views when the posterior is used (:meth:`view_pass`); docs/counts.md defines them.
+    ``count_scale`` (c, default 1 = the paper) uses c·N̂_k in Eq. 2-3 (``state["N"]`` unchanged), so a trained run's
+    posterior can be re-evaluated at another c without retraining (docs/user-guide.md).
     """
 
     per_gaussian_state: ClassVar[tuple[str, ...]] = ("m0", "S0", "N", "ediag", "m_n", "kappa_n", "nu_n", "S_n",
