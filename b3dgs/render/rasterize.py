@@ -73,10 +73,8 @@ def _shape_str(t: Tensor) -> str:
 
 
 @torch.no_grad()
-def bin_gaussians(
-    means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = 16,
-    extent: Optional[Tensor] = None, backend: str = "torch",
-) -> TileBins:
+def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = 16,
+                  extent: Optional[Tensor] = None, backend: str = "torch") -> TileBins:
     """Shared tile binning of (S, N) projected Gaussians, sorted by tile, mean depth, then id.
 
     Gaussian k goes to every tile overlapping the union over samples with ``radii > 0`` of

@@ -75,15 +75,8 @@ def _require_finite(name: str, x: torch.Tensor) -> None:
 
 
 # ----------------------------------------------------------------------------- conjugate update
-def niw_update(
-    m0: torch.Tensor,
-    kappa0: Scalar,
-    nu0: Scalar,
-    S0: torch.Tensor,
-    N: Scalar,
-    xbar: torch.Tensor,
-    C: Optional[torch.Tensor] = None,
-) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+def niw_update(m0: torch.Tensor, kappa0: Scalar, nu0: Scalar, S0: torch.Tensor, N: Scalar, xbar: torch.Tensor,
+               C: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Conjugate NIW update (Eq. 2-3) for effective count N >= 0, mean xbar and scatter C.
 
     Shapes: m0, xbar (K,D); kappa0, nu0, N (K,) or scalar; S0, C (K,D,D). C=None means C=0
@@ -314,26 +307,14 @@ def draw_niw(sampler: NIWSampler, n_samples: int, generator: Optional[torch.Gene
     return mu, X, A
 
 
-def sample_niw_factors(
-    m_n: torch.Tensor,
-    kappa_n: Scalar,
-    nu_n: Scalar,
-    S_n: torch.Tensor,
-    n_samples: int,
-    generator: Optional[torch.Generator] = None,
-) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def sample_niw_factors(m_n: torch.Tensor, kappa_n: Scalar, nu_n: Scalar, S_n: torch.Tensor, n_samples: int,
+                       generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`draw_niw` of :func:`niw_sampler` (one-off draws)."""
     return draw_niw(niw_sampler(m_n, kappa_n, nu_n, S_n), n_samples, generator)
 
 
-def sample_niw(
-    m_n: torch.Tensor,
-    kappa_n: Scalar,
-    nu_n: Scalar,
-    S_n: torch.Tensor,
-    n_samples: int,
-    generator: Optional[torch.Generator] = None,
-) -> Tuple[torch.Tensor, torch.Tensor]:
+def sample_niw(m_n: torch.Tensor, kappa_n: Scalar, nu_n: Scalar, S_n: torch.Tensor, n_samples: int,
+               generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     """Draw (mu, Sigma) ~ NIW(m_n, kappa_n, nu_n, S_n) for all K at once (samples for Eq. 4), by
     Bartlett's decomposition (see :func:`sample_niw_factors`).
     Returns mu (S,K,D), Sigma (S,K,D,D); deterministic given ``generator``.
@@ -480,13 +461,11 @@ class NIWBlock(PosteriorBlock):
     def initialize_state(self, *, splats, scene, info):
         m0, S0 = self._prior_for(splats)
         n, dev = m0.shape[0], m0.device
-        st = {
-            "m0": m0, "S0": S0, "N": torch.zeros(n, dtype=torch.float64, device=dev),
-            "ediag": torch.diagonal(S0, dim1=-2, dim2=-1) / (self.nu0 - D - 1),
-            "mse": torch.tensor(0.0, dtype=torch.float64, device=dev),
-            "mse_n": torch.tensor(0.0, dtype=torch.float64, device=dev),
-            "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0, device=dev),
-        }
+        st = {"m0": m0, "S0": S0, "N": torch.zeros(n, dtype=torch.float64, device=dev),
+              "ediag": torch.diagonal(S0, dim1=-2, dim2=-1) / (self.nu0 - D - 1),
+              "mse": torch.tensor(0.0, dtype=torch.float64, device=dev),
+              "mse_n": torch.tensor(0.0, dtype=torch.float64, device=dev),
+              "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0, device=dev)}
         self._refresh(st, splats)
         return st
 
@@ -705,16 +684,11 @@ class NIWBlock(PosteriorBlock):
         chol = state.get("mu_prec_chol") if self.count == "fisher3" else None
         if chol is not None and chol.shape[0] == var_mu.shape[0]:
             var_mu = torch.cholesky_inverse(chol)
-        return {
-            "niw_pos_var": (torch.diagonal(var_mu, dim1=-2, dim2=-1).sum(-1) / D).float(),
-            "niw_kappa": state["kappa_n"].float(),
-            "niw_nu": state["nu_n"].float(),
-        }
+        return {"niw_pos_var": (torch.diagonal(var_mu, dim1=-2, dim2=-1).sum(-1) / D).float(),
+                "niw_kappa": state["kappa_n"].float(), "niw_nu": state["nu_n"].float()}
 
     def summary(self, *, state):
         ex = self.export(splats=None, state=state)
-        return {
-            "mean_count": float(state["N"].mean()) if state["N"].numel() else 0.0,
-            "median_pos_std": float(ex["niw_pos_var"].sqrt().median()) if state["N"].numel() else 0.0,
-            "sigma2_plugin": self.aleatoric_variance(state=state),
-        }
+        return {"mean_count": float(state["N"].mean()) if state["N"].numel() else 0.0,
+                "median_pos_std": float(ex["niw_pos_var"].sqrt().median()) if state["N"].numel() else 0.0,
+                "sigma2_plugin": self.aleatoric_variance(state=state)}
