@@ -34,19 +34,14 @@ Metrics
     - ``normalize=True``: both curves are divided by the error of the full set, so ``curve[0] == 1``;
       AUSE is then scale-free. (Since both curves share that divisor, normalised AUSE = raw AUSE /
       full-set error; ``rmse`` and ``mae`` are returned so either variant can be recovered.)
-  Raw is the default because (i) its magnitudes are directly comparable to the paper's reported AUSE
-  values (order 1e-2 for [0, 1] colours), (ii) it does not blow up for near-perfect views whose full-set
-  error is tiny (a per-view ratio would let those views dominate a scene average), and (iii) raw AUSE
-  keeps the error's units, so a difference between methods is a difference in error. Codes in the
-  literature report AUSE with either convention, so always compare within one convention.
+  Raw is the default: it compares with the paper's AUSE (order 1e-2 for [0, 1] colours) and does not blow up for
+  near-perfect views; always compare within one convention.
 
 * **ECE for regression** (interval calibration). For each nominal central level ``p`` the interval is
   ``mean_pc +- z_{(1+p)/2} * sqrt(var_p)``; observed coverage is the fraction of (pixel, channel)
   residuals inside it (inclusive bounds); ECE = mean over levels of ``|observed - p|``. Default levels are
-  ``0.05, 0.10, ..., 0.95`` (19 evenly spaced levels), so ECE approximates the mean absolute gap of the
-  reliability diagram over a uniform grid; 0.99 is *not* included by default because such a tail level
-  is dominated by a handful of outlier residuals and would break the uniform spacing (pass ``levels=``
-  to change it). Coverage uses the unfloored variance: a zero variance is a zero-width interval.
+  ``0.05, 0.10, ..., 0.95`` (19 evenly spaced; a 0.99 tail level would be dominated by a few outliers; pass ``levels=``
+  to change them). Coverage uses the unfloored variance: a zero variance is a zero-width interval.
 * **Cov@95** = observed coverage of the nominal 95% interval (``z = 1.959964``), and
   ``cov95_err = |Cov@95 - 0.95|`` (the paper's headline calibration statistic).
 * **Gaussian NLL** = mean over pixels and channels of ``0.5 log(2 pi v) + 0.5 r^2 / v`` with
