@@ -1,34 +1,15 @@
 """Acquisition policies (active view selection): the base class and the scoring context a policy gets.
 
-A policy is a plugin like any other: ``plugins/acquisition/<name>.py`` (one dataclass deriving from
-:class:`AcquisitionPolicy`) plus ``conf/acquisition/<name>.yaml`` (``_target_`` and its fields); an
-installed package adds one through the ``b3dgs.conf`` entry point. The study driver reads only what
-the class declares:
-
-- ``family``: the phase-1 model family it starts from (any ``model=`` option; configurable per row);
-- ``members``: how many phase-1 models of that family (seeds s, s+1, ...) it scores with (the first one
-  continues training);
-- ``uses_ground_truth``: True only for the analysis-only ``oracle``; every other policy is refused the
-  candidates' images;
-- ``selects_batch``: True when ``select`` builds the batch itself (uniform, farthest, fisher); only the
-  ``topk`` batch option (the policy's own ``select``) applies to it.
-
-Batch selection is a component of its own, :class:`BatchSelector` (``conf/acquisition/batch/``:
-``topk``, ``diverse``, ``greedy_conditioned``), composable with every score-based policy. It reads what the
-policy declares here, never the policy's type: ``score`` / ``score_at`` (a subset, scored as the full call
-would score it), ``condition`` / ``reset_conditioning`` (score as if a picked camera had been acquired,
-without its image; the default cannot, and says why in ``no_conditioning``) and ``conditioned_ratio`` (a
-cheap estimate of what conditioning did to each score, to choose what to re-score exactly).
-
-A policy gets candidate cameras (pose and intrinsics, ``image=None``) and a :class:`ScoringContext`:
-render functions, detached parameters and fitted uncertainty regimes of the phase-1 model(s), the
-training cameras (training data, with their images) and, for the oracle alone, the candidates' ground
-truth. It never gets the LightningModule, the data module or the store of candidate images.
+A policy is a plugin like any other (``plugins/acquisition/<name>.py`` plus ``conf/acquisition/<name>.yaml``); the
+study reads only what the class declares (:class:`AcquisitionPolicy`). Batch selection is a component of its own,
+:class:`BatchSelector` (``conf/acquisition/batch/``), that reads the policy's declared methods, never its type;
+docs/extending.md documents both protocols. A policy gets candidate cameras (``image=None``) and a
+:class:`ScoringContext`, never the LightningModule, the data module or the candidates' images (the oracle aside).
 """
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Optional, Sequence
 
 import numpy as np
@@ -65,8 +46,8 @@ class AcquisitionPolicy:
     """Base of the acquisition policies: score candidates, pick the top ``budget``."""
 
     family: str = "standard"  # the phase-1 model family it scores with and continues (a model= option)
-    members: int = 1
-    uses_ground_truth: ClassVar[bool] = False
+    members: int = 1  # how many phase-1 models of that family (seeds s, s+1, ...) it scores with
+    uses_ground_truth: ClassVar[bool] = False  # True only for the analysis-only oracle
     selects_batch: ClassVar[bool] = False  # True: ``select`` builds the batch itself (only batch=topk applies)
     #: why ``condition`` cannot update this policy's score (recorded when greedy_conditioned falls back to diverse)
     no_conditioning: ClassVar[str] = "the policy declares no condition() (its score has no posterior to update)"

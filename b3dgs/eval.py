@@ -10,14 +10,13 @@ Known errors print ``b3dgs-eval: error: <problem> (fix: <what to do>)`` and exit
 from __future__ import annotations
 
 import logging
-import os
 import time
 from pathlib import Path
 from typing import Optional
 
 import hydra
 import torch
-from omegaconf import DictConfig, ListConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig
 
 from b3dgs.errors import B3dgsError
 from b3dgs.progress import progress

@@ -42,18 +42,11 @@ __all__ = ["scope", "HostSyncCounter", "CudaSyncCounter", "HostSyncCallback", "a
 
 _aten = torch.ops.aten
 #: aten ops whose output shape depends on the data, or that read a value back to the host (always a sync on CUDA)
-_SYNC_OPS = {
-    _aten._local_scalar_dense.default: "item",
-    _aten.nonzero.default: "nonzero",
-    _aten.masked_select.default: "masked_select",
-    _aten.unique_consecutive.default: "unique",
-    _aten._unique2.default: "unique",
-    _aten.unique_dim.default: "unique",
-    _aten.bincount.default: "bincount",
-    _aten.masked_scatter.default: "masked_scatter",
-    _aten.equal.default: "equal",
-    _aten._assert_async.msg: "assert",
-}
+_SYNC_OPS = {_aten._local_scalar_dense.default: "item", _aten.nonzero.default: "nonzero",
+             _aten.masked_select.default: "masked_select", _aten.unique_consecutive.default: "unique",
+             _aten._unique2.default: "unique", _aten.unique_dim.default: "unique", _aten.bincount.default: "bincount",
+             _aten.masked_scatter.default: "masked_scatter", _aten.equal.default: "equal",
+             _aten._assert_async.msg: "assert"}
 _HOST_COPIES = {"tolist", "numpy", "cpu"}
 
 _STACK: list[str] = []

@@ -9,7 +9,6 @@ from typing import Any, Mapping, Optional, Sequence
 
 import lightning as L
 import torch
-import torch.nn.functional as F
 from torch import Tensor, nn
 
 from b3dgs.checkpoint import check_sealed, seal_checkpoint
@@ -42,31 +41,14 @@ class SplatModule(L.LightningModule):
     cameras follow the module to its device.
     """
 
-    def __init__(
-        self,
-        strategy: Plugin,
-        posterior: Optional[Mapping[str, PosteriorBlock]] = None,
-        sh_degree: int = 3,
-        sh_increase_every: int = 1000,
-        lambda_dssim: float = 0.2,
-        lr_means: float = 1.6e-4,
-        lr_means_final: float = 1.6e-6,
-        lr_scales: float = 5e-3,
-        lr_quats: float = 1e-3,
-        lr_opacities: float = 5e-2,
-        lr_sh0: float = 2.5e-3,
-        lr_shN: float = 2.5e-3 / 20,
-        background: Sequence[float] = (0.0, 0.0, 0.0),
-        renderer: "Renderer | str" = "auto",
-        init_max_points: Optional[int] = None,
-        init_num_random: int = 20000,
-        init_opacity: float = 0.1,
-        init_scale: float = 1.0,
-        max_steps: int = 30000,
-        seed: int = 0,
-        name: str = "standard",
-        schedule: Optional[TrainingSchedule] = None,
-    ) -> None:
+    def __init__(self, strategy: Plugin, posterior: Optional[Mapping[str, PosteriorBlock]] = None, sh_degree: int = 3,
+                 sh_increase_every: int = 1000, lambda_dssim: float = 0.2, lr_means: float = 1.6e-4,
+                 lr_means_final: float = 1.6e-6, lr_scales: float = 5e-3, lr_quats: float = 1e-3,
+                 lr_opacities: float = 5e-2, lr_sh0: float = 2.5e-3, lr_shN: float = 2.5e-3 / 20,
+                 background: Sequence[float] = (0.0, 0.0, 0.0), renderer: "Renderer | str" = "auto",
+                 init_max_points: Optional[int] = None, init_num_random: int = 20000, init_opacity: float = 0.1,
+                 init_scale: float = 1.0, max_steps: int = 30000, seed: int = 0, name: str = "standard",
+                 schedule: Optional[TrainingSchedule] = None) -> None:
         super().__init__()
         self.automatic_optimization = False
         if not 0.0 <= lambda_dssim <= 1.0:
@@ -150,18 +132,11 @@ class SplatModule(L.LightningModule):
         return {"scene_extent": extent, "max_steps": int(self.hparams.max_steps),
                 "num_train_views": len(self.scene.train) if self.scene is not None else None}
 
-    def set_scene(self, scene: Scene) -> None:
-        """Continue with ``scene`` (e.g. the training set plus views acquired between rounds): the Gaussians,
-        plugin states and optimizer are kept; view counts follow ``len(scene.train)`` from the next step."""
-        self.scene = scene
-
     def configure_optimizers(self):
         hp = self.hparams
         extent = float(self.scene.extent) if self.scene is not None else 1.0
-        lrs = {
-            "means": hp.lr_means * extent, "scales": hp.lr_scales, "quats": hp.lr_quats,
-            "opacities": hp.lr_opacities, "sh0": hp.lr_sh0, "shN": hp.lr_shN,
-        }
+        lrs = {"means": hp.lr_means * extent, "scales": hp.lr_scales, "quats": hp.lr_quats,
+               "opacities": hp.lr_opacities, "sh0": hp.lr_sh0, "shN": hp.lr_shN}
         groups = [{"params": [self.splats[k]], "lr": lrs[k], "name": k} for k in PARAM_ORDER]
         opt = torch.optim.Adam(groups, eps=1e-15, fused=True)  # fused CPU kernel: ~3.5x faster steps
         return opt

@@ -56,14 +56,8 @@ def find_param_state(optimizer: torch.optim.Optimizer, param: Tensor):
 class TopologyOps:
     """Structural edits of a Gaussian set. One instance per training run; plugins reach it as ``info["ops"]``."""
 
-    def __init__(
-        self,
-        splats: nn.ParameterDict,
-        optimizers: dict[str, torch.optim.Optimizer],
-        states: dict[str, dict],
-        plugins: dict[str, object],
-        on_change: Optional[Callable[[], None]] = None,
-    ) -> None:
+    def __init__(self, splats: nn.ParameterDict, optimizers: dict[str, torch.optim.Optimizer], states: dict[str, dict],
+                 plugins: dict[str, object], on_change: Optional[Callable[[], None]] = None) -> None:
         self.splats = splats
         self.optimizers = optimizers
         self.states = states  # name -> plugin state (includes "core": ids, parent_ids)

@@ -69,17 +69,9 @@ def _as_f32(name: str, x, shape: tuple) -> np.ndarray:
     return a
 
 
-def write_ply(
-    path: str | os.PathLike,
-    means: Tensor,
-    scales_log: Tensor,
-    quats: Tensor,
-    opacity_logit: Tensor,
-    sh0: Tensor,
-    shN: Optional[Tensor] = None,
-    extra: Optional[Mapping[str, Tensor]] = None,
-    comments: Sequence[str] = (),
-) -> Path:
+def write_ply(path: str | os.PathLike, means: Tensor, scales_log: Tensor, quats: Tensor, opacity_logit: Tensor,
+              sh0: Tensor, shN: Optional[Tensor] = None, extra: Optional[Mapping[str, Tensor]] = None,
+              comments: Sequence[str] = ()) -> Path:
     """Write Gaussians to ``path`` (atomically) in the standard 3DGS PLY layout; return the path.
 
     Shapes: ``means`` (N, 3); ``scales_log`` (N, 3); ``quats`` (N, 4) as w, x, y, z; ``opacity_logit``
@@ -208,14 +200,10 @@ def read_ply(path: str | os.PathLike) -> dict:
             return np.zeros((n, 0), np.float32)
         return np.stack([np.asarray(arr[nm], dtype=np.float32) for nm in names], axis=1)
 
-    out = {
-        "means": cols(["x", "y", "z"]),
-        "scales_log": cols(["scale_0", "scale_1", "scale_2"]),
-        "quats": cols(["rot_0", "rot_1", "rot_2", "rot_3"]),
-        "opacity_logit": cols(["opacity"])[:, 0],
-        "sh0": cols(["f_dc_0", "f_dc_1", "f_dc_2"]),
-        "shN": cols([f"f_rest_{i}" for i in range(3 * k)]).reshape(n, 3, k).transpose(0, 2, 1),
-    }
+    out = {"means": cols(["x", "y", "z"]), "scales_log": cols(["scale_0", "scale_1", "scale_2"]),
+           "quats": cols(["rot_0", "rot_1", "rot_2", "rot_3"]), "opacity_logit": cols(["opacity"])[:, 0],
+           "sh0": cols(["f_dc_0", "f_dc_1", "f_dc_2"]),
+           "shN": cols([f"f_rest_{i}" for i in range(3 * k)]).reshape(n, 3, k).transpose(0, 2, 1)}
 
     standard = set(standard_property_names(k))
     others = [p for p in props if p not in standard]

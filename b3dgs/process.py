@@ -3,43 +3,19 @@
     b3dgs-process images=photos/ out=data/mine                     # then the printed `b3dgs-train scene=mine ...`
     b3dgs-process images=photos/ out=data/mine matcher=sequential max_side=1000
 
-Four stages, all with pycolmap on the CPU, each shown with a bar (photos or pairs done of all; pycolmap reports no
-progress inside a call, so extraction and matching run as a series of calls) and its time:
+Four stages with pycolmap on the CPU, each with a bar and its time: ``extract`` (SIFT), ``match`` (``matcher=auto``:
+exhaustive up to 200 photos, else COLMAP's sequential matcher in name order; no vocabulary tree, which needs a download),
+``map`` (incremental; the largest model kept, retried at an initial triangulation angle of 8° then 4° instead of 16°
+while fewer than ``min_registered`` photos register) and ``undistort`` (PINHOLE, long side at most ``max_side``, the
+cameras and 2D points scaled by the same per-axis ratio). ``video=clip.mp4 fps=2`` decodes frames first
+(:func:`extract_frames`). The same photos and ``seed`` give the same scene (:func:`_renumber`; RANSAC seeded).
 
-1. ``extract``: SIFT features of every photo (``camera_model``, COLMAP's SIMPLE_RADIAL by default; one camera shared
-   by all photos when they all have the same size, ``single_camera=``; photos larger than ``sift_max_side`` are seen
-   downscaled, as COLMAP does by default);
-2. ``match``: ``matcher=auto`` matches every pair (exhaustive) up to 200 photos (at most 19,900 pairs), and beyond
-   that each photo with those 1, 2, 4, ..., 512 places after it in name order (COLMAP's sequential matcher, its
-   default quadratic overlap of 10): about 10 pairs per photo instead of n/2, for a video's frames or a walk around
-   the scene photographed in order. A vocabulary tree would need a tree file fetched from the web, which b3dgs does
-   not do; a large unordered collection takes ``matcher=exhaustive`` and the time it needs;
-3. ``map``: incremental mapping; the model that registers the most photos is kept. When it has fewer than
-   ``min_registered`` of the photos (or fewer than 3), mapping is tried again with a smaller initial triangulation
-   angle (8°, then 4°, instead of COLMAP's 16°, which a small baseline such as a forward-facing capture cannot meet:
-   on nine of flower's photos at 200 px, 16° registered 3 of 9 with five of six seeds, 4° all 9 with every seed); if
-   no try is enough, the refusal says how many registered and what to try;
-4. ``undistort``: the photos undistorted to PINHOLE cameras (``pycolmap.undistort_images``), then downscaled so that
-   their long side is at most ``max_side`` (``b3dgs.types.fit_size``, PIL's Lanczos filter; the cameras and the
-   model's 2D points scaled by the same per-axis ratio, so image and camera sizes agree exactly).
-
-``video=clip.mp4 fps=2`` instead of ``images=``: the video's frames, decoded whole by imageio-ffmpeg's ffmpeg
-(:func:`extract_frames`), into ``out/.b3dgs-process/frames/``, then the same four stages. The same photos and ``seed``
-give the same scene (:func:`_renumber`; matching's RANSAC seeded). The summary names every photo left out and why.
-
-The result is the COLMAP layout that ``data=colmap`` loads: ``out/images/`` and ``out/sparse/0/`` (cameras, images,
-points3D .bin), plus ``out/conf/scene/<name>.yaml``; the last lines print the command that trains it.
-
-Resumable: each stage writes into a ``.partial`` path under ``out/.b3dgs-process/`` and renames it when done, then
-records itself in ``out/.b3dgs-process.json`` with the options it ran with and the photo listing's fingerprint (name,
-size, modification time of every photo). A rerun skips the stages recorded with the same options whose outputs are
-there, and reruns a stage whose options changed and the stages after it (``max_side`` alone reruns only
-``undistort``). A changed photo folder is refused (``overwrite=true`` starts afresh), and so is an ``out=`` that holds
-anything else. Ctrl-C and SIGTERM stop within half a second (exit codes 130 / 143 and a line naming the stage), a
-kill at once, and the rerun resumes from the last finished stage. Known problems print one line
-``b3dgs-process: error: ... (fix: ...)`` and exit with code 2. Every photo is decoded whole before anything is written
-(a truncated one is refused, naming it); the files moved into ``images/`` and ``sparse/0/`` are listed in the state
-file, and ``overwrite=true`` or a rerun removes only those (a user's file beside them stays).
+The result is the COLMAP layout ``data=colmap`` loads (``out/images/``, ``out/sparse/0/``) plus
+``out/conf/scene/<name>.yaml``. Resumable: each stage writes a ``.partial`` path under ``out/.b3dgs-process/``, renames
+it when done and records itself in ``out/.b3dgs-process.json`` with its options and the photo listing's fingerprint; a
+rerun skips recorded stages with the same options and reruns a changed one and those after it. A changed photo folder
+or a foreign ``out=`` is refused; ``overwrite=true`` removes only the files the state file lists. docs/user-guide.md
+has the user's view (progress, refusals, timings).
 """
 from __future__ import annotations
 

@@ -276,22 +276,14 @@ def _claim(out: Path, names: Sequence[str]):
     ``out`` is touched: a user's ``frame_final_edit.png`` or ``my_cut.mp4`` stays, and one of ``names`` that exists and
     is not b3dgs's (unlisted in a run dir; elsewhere any video, since no record says whose it is) is refused before
     anything goes. Nothing is written into a run's ``checkpoints/``."""
-    from b3dgs.rundir import (FRAME_NAME, holds_run, manifest_lock, read_manifest, record_written,
-                              refuse_in_checkpoints, remove_listed, remove_recorded, run_files)
+    from b3dgs.rundir import (FRAME_NAME, claim_in_run, holds_run, read_manifest, refuse_in_checkpoints,
+                              remove_listed, run_files)
 
     refuse_in_checkpoints(out, "b3dgs-render")
     q = out.resolve()
     owner = next((d for d in (q, *q.parents) if holds_run(d)), None)
     if owner is not None and read_manifest(owner, fix=_FIX_OUT) is not None:
-        folder = q.relative_to(owner).as_posix()
-        folder = "" if folder == "." else folder
-        with manifest_lock(owner, "b3dgs-render"):
-            listed = set(run_files(owner))
-            _refuse_foreign(out, [n for n in names if f"{folder}/{n}".lstrip("/") not in listed])
-            old = [f for f in listed if f.rpartition("/")[0] == folder and FRAME_NAME.fullmatch(f.rpartition("/")[2])]
-            remove_recorded(owner, old)
-            record_written(owner, [f"{folder}/{n}".lstrip("/") for n in names])
-            out.mkdir(parents=True, exist_ok=True)
+        with claim_in_run(owner, out, names, "b3dgs-render", FRAME_NAME, check=lambda new: _refuse_foreign(out, new)):
             yield
         return
     frames = [p.name for p in out.glob("frame_*.png") if FRAME_NAME.fullmatch(p.name)] if out.is_dir() else []

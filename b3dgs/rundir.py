@@ -355,6 +355,25 @@ def manifest_lock(folder: Path, prog: str, wait_s: float = 120.0) -> Iterator[No
             time.sleep(0.05)
 
 
+@contextmanager
+def claim_in_run(owner: Path, folder: Path, names: Iterable[str], prog: str, own: "re.Pattern",
+                 check: Optional[Callable[[list[str]], None]] = None) -> Iterator[None]:
+    """Make room for ``names`` in ``folder`` inside the run dir ``owner``, under its lock: the files of ``folder`` its
+    manifest lists whose names ``own`` matches go and ``names`` join the manifest before they are written (``check``
+    first gets those of ``names`` it does not list, to refuse files b3dgs did not write)."""
+    rel = Path(folder).resolve().relative_to(Path(owner).resolve()).as_posix()
+    pre, names = ("" if rel == "." else f"{rel}/"), list(names)
+    with manifest_lock(owner, prog):
+        listed = run_files(owner)
+        if check is not None:
+            check([n for n in names if pre + n not in listed])
+        remove_recorded(owner, [f for f in listed if f.startswith(pre) and "/" not in f[len(pre):]
+                                and own.fullmatch(f[len(pre):])])
+        record_written(owner, [pre + n for n in names])
+        Path(folder).mkdir(parents=True, exist_ok=True)
+        yield
+
+
 def run_files(run_dir: Path) -> list[str]:
     """The files of ``run_dir`` that b3dgs wrote and that are there: those its manifest lists (a format-1 manifest,
     or a run written before manifests: the files its patterns name, :mod:`b3dgs.upgrade`), sorted."""

@@ -103,32 +103,15 @@ def mean_spectrum(images: Sequence[Tensor]) -> Tensor:
 class DashSchedule(TrainingSchedule):
     """Resolution and primitive schedule after DashGaussian (Chen et al., CVPR 2025), written for our trainer.
 
-    Frequency criterion: downsampling by s keeps the central (H/s x W/s) band of an image's spectrum. With E(s)
-    the mean magnitude spectrum of the training views inside that band, training starts at the largest factor
-    ``s0 <= max_scale`` whose band still holds ``1 / start_energy_factor`` of the total (for every view), and the
-    band energy then rises log-linearly in the step: E(t) = E(s0) (E(1) / E(s0))^(t / T) with T = ``full_res_at``
-    x max_steps, so the resolution climbs fast through the low frequencies (where most of an image's energy is)
-    and slowly through the fine ones. The factor is quantised to ``levels`` values (geometric in s between s0
-    and 1) so that each view is resized at most ``levels`` times in a run (each level's images are cached while
-    it is in use; the schedule only ever rises).
-
-    Primitive schedule: a strategy may fill the share ``(1/s)^(2 - t/T)`` of its densification head-room
-    (``budget_fraction`` in the hooks' info; DashGaussian's primitive scheduler), so the Gaussian count grows
-    with the number of pixels it has to explain instead of densifying freely at low resolution.
-
-    Trim (beyond DashGaussian): with ``keep`` < 1, from full resolution (or from the first level whose factor is
-    <= ``keep_below``) on the hooks' info holds ``keep_fraction``;
-    the strategy then keeps that share of its Gaussians once, the ones that explain the most training pixels (Σ of
-    their compositing weights over the training views), and never grows past that count again, so the
-    full-resolution steps, the costly ones, draw fewer Gaussians.
-
-    Learning rate: the means' exponential decay starts when the factor first drops below 2 (as DashGaussian):
-    the early low-resolution steps move the centres with the initial rate.
-
-    Densification statistics need no rescaling: the strategies accumulate the 2-D mean gradients in NDC units
-    (pixel gradient x half the image size), which are resolution-independent to first order (a Gaussian covering
-    area fraction a of the view contributes ~sqrt(a) whatever the pixel count), and screen-size pruning uses the
-    radius over the image's long side; ``tests/test_schedule.py`` checks both on a trained model.
+    Resolution: training starts at the largest factor ``s0 <= max_scale`` whose central spectral band still holds
+    ``1 / start_energy_factor`` of every view's magnitude; the band energy then rises log-linearly,
+    E(t) = E(s0) (E(1) / E(s0))^(t / T) with T = ``full_res_at`` x max_steps, quantised to ``levels`` factors (each
+    level's images cached while in use; the schedule only rises). Primitive schedule: a strategy may fill the share
+    ``(1/s)^(2 - t/T)`` of its head-room (``budget_fraction``). Trim (beyond DashGaussian): with ``keep`` < 1, from full
+    resolution (or the first level with factor <= ``keep_below``) the info holds ``keep_fraction`` and the strategy
+    keeps that share of its Gaussians once, by compositing weight. The means' learning-rate decay starts when the
+    factor first drops below 2. Densification statistics are in NDC units, so need no rescaling. docs/schedule.md
+    gives the details.
 
     Defaults chosen on fox, fern, lego seed 0 (bench/results/schedule_screen.md, schedule_screen2.md) and judged on
     seven scenes x three seeds (bench/results/schedule.md); ``budget`` is off: -1.3 dB on fox, -0.0 on fern there.

@@ -489,20 +489,12 @@ def _claim(folder: Path, run_dir: Path, names: Sequence[str]):
     command names its own go. Nothing else is touched."""
     from contextlib import contextmanager
 
-    from b3dgs.rundir import manifest_lock, read_manifest, record_written, remove_listed, remove_recorded, run_files
+    from b3dgs.rundir import claim_in_run, read_manifest, remove_listed
 
     @contextmanager
     def claim():
-        base, q = run_dir.resolve(), folder.resolve()
-        if q.is_relative_to(base) and read_manifest(run_dir) is not None:
-            rel = q.relative_to(base).as_posix()
-            pre = "" if rel == "." else f"{rel}/"
-            with manifest_lock(run_dir, "b3dgs-suggest"):
-                old = [f for f in run_files(run_dir) if f.startswith(pre) and "/" not in f[len(pre):]
-                       and OWN_FILE.fullmatch(f[len(pre):])]
-                remove_recorded(run_dir, old)
-                record_written(run_dir, [f"{pre}{n}" for n in names])
-                folder.mkdir(parents=True, exist_ok=True)
+        if folder.resolve().is_relative_to(run_dir.resolve()) and read_manifest(run_dir) is not None:
+            with claim_in_run(run_dir, folder, names, "b3dgs-suggest", OWN_FILE):
                 yield
             return
         folder.mkdir(parents=True, exist_ok=True)

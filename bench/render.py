@@ -28,12 +28,10 @@ def random_gaussians(n: int, seed: int = 0) -> dict:
     means = torch.empty(n, 3)
     means[:, :2] = (torch.rand(n, 2, generator=g) - 0.5) * 2.0
     means[:, 2] = 3.0 + torch.rand(n, generator=g)
-    return {
-        "means": means, "quats": torch.randn(n, 4, generator=g),
-        "scales": torch.log(0.004 + 0.012 * torch.rand(n, 3, generator=g)),
-        "opacities": torch.logit(0.05 + 0.9 * torch.rand(n, generator=g)),
-        "sh0": torch.randn(n, 1, 3, generator=g) * 0.5, "shN": torch.zeros(n, 15, 3),
-    }
+    return {"means": means, "quats": torch.randn(n, 4, generator=g),
+            "scales": torch.log(0.004 + 0.012 * torch.rand(n, 3, generator=g)),
+            "opacities": torch.logit(0.05 + 0.9 * torch.rand(n, generator=g)),
+            "sh0": torch.randn(n, 1, 3, generator=g) * 0.5, "shN": torch.zeros(n, 15, 3)}
 
 
 def camera(width: int = 256, height: int = 256) -> Camera:

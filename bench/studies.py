@@ -6,30 +6,14 @@
     python -m bench.studies --studies sparse --scenes fox --seeds 0
     python -m bench.studies --scenes synthetic --seeds 0 --budgets 8 all --max-steps 100 --out /tmp/b --report /tmp/b/report
 
-Scenes: any configured scene (``conf/scene/<name>.yaml``, or one an installed package adds); the protocol is
-``experiment=study`` (``conf/experiment/study.yaml``). ``python -m bench.studies`` runs the same.
-
-Studies (grid defaults from conf/report.yaml):
-* canonical: standard / NIW / DPMM, ``outputs/bench/<scene>/<method>/s<seed>`` (shared with bench/posterior.py
-  and bench/uq.py); with ``--uq`` each gets a uq.json (the OOD support-deficit study reads it).
-* sparse: train-view budgets, ``data.train_indices`` = the budget's views spread evenly over the sorted train list
-  (``select_evenly``); the budget ``all`` is the canonical run. A budget not below a scene's train-view count (32 on
-  fern's 17 and flower's 21) would repeat ``all`` and is skipped for that scene.
-* initcap: ``model.init_max_points=<cap>`` for standard and NIW.
-
-The report recognises the studies from each run's config (``data.train_indices``, ``model.init_max_points``).
-
-A run of the sparse or init-cap grid that is the same training run as an earlier one (NIW and standard: NIW
-only observes training, ``changes_training = False``) is not retrained: its dir gets its own config.yaml and
-the twin's metrics with ``training_shared_with`` (``--no-share`` trains it anyway). Canonical runs are always
-trained (their NIW posterior feeds uq.json).
-
-A run dir with metrics.json is finished and reused, so an interrupted grid resumes. Each finished run's small files
-(config.yaml, metrics.json, curve.json, uq.json) are copied to ``--archive`` (default bench/results/runs/, committed):
-a run found there is finished on any machine, so a campaign spread over sessions resumes from the repository, and the
-report is built from the archive. With ``--uq`` a canonical run's uq.json is computed right after its training (in a
-subprocess), so an interrupted campaign loses at most the runs in flight. The report is written to ``--report``
-(default bench/results/report/).
+Scenes: any configured scene; the protocol is ``experiment=study``. Studies (grids from conf/report.yaml): canonical
+(standard / NIW / DPMM, ``outputs/bench/<scene>/<method>/s<seed>``, shared with bench/posterior.py and bench/uq.py;
+``--uq`` adds uq.json), sparse (``data.train_indices`` = ``select_evenly`` of the budget; a budget not below a scene's
+train-view count is skipped) and initcap (``model.init_max_points``). A sparse or init-cap run that is the same training
+run as an earlier one (NIW only observes training) is not retrained: it gets the twin's metrics with
+``training_shared_with`` (``--no-share`` trains it). A run dir with metrics.json is finished and reused; finished runs'
+small files are archived to ``--archive`` (default bench/results/runs/, committed), so a campaign resumes from the
+repository, and the report (``--report``) is built from the archive. docs/studies.md has the results.
 """
 from __future__ import annotations
 

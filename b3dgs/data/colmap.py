@@ -162,16 +162,9 @@ def _at_file_size(f: FrameSpec) -> FrameSpec:
     return replace(f, K=scale_intrinsics(f.K, w / f.width, h / f.height), width=w, height=h)
 
 
-def load_colmap(
-    path: str | os.PathLike,
-    max_side: Optional[int] = None,
-    background: Sequence[float] = (0.0, 0.0, 0.0),
-    max_images: Optional[int] = None,
-    images_dir: str = "images",
-    sparse_dir: Optional[str] = None,
-    point_tracks: bool = False,
-    undistort: Optional[bool] = None,
-) -> RawScene:
+def load_colmap(path: str | os.PathLike, max_side: Optional[int] = None, background: Sequence[float] = (0.0, 0.0, 0.0),
+                max_images: Optional[int] = None, images_dir: str = "images", sparse_dir: Optional[str] = None,
+                point_tracks: bool = False, undistort: Optional[bool] = None) -> RawScene:
     """Load a COLMAP scene: cameras (K at the loaded size, OpenCV w2c), images, SfM points.
 
     ``undistort``: None or True undistort distorted cameras, False uses their pinhole part (module docstring).

@@ -36,16 +36,8 @@ from b3dgs.types import fit_size
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".bmp", ".tif", ".tiff", ".webp")
 _MISSING_IMAGE_FIX = "restore the image, or correct the scene files that name it"
 
-__all__ = [
-    "IMAGE_EXTENSIONS",
-    "encode_png",
-    "image_folders",
-    "image_size",
-    "import_pycolmap",
-    "list_images",
-    "load_image",
-    "save_png",
-]
+__all__ = ["IMAGE_EXTENSIONS", "encode_png", "image_folders", "image_size", "import_pycolmap", "list_images",
+           "load_image", "save_png"]
 
 def image_folders(root: str | os.PathLike) -> list[str]:
     """The names of the folders directly inside ``root`` that hold image files, sorted (``images``, ``images_2``)."""
@@ -181,9 +173,7 @@ class _SizeMismatch(Exception):
     pass
 
 
-# ----------------------------------------------------------------------------------------------
-# PNG writing (PIL)
-# ----------------------------------------------------------------------------------------------
+# -------------------------------------------------------------------------------- PNG writing (PIL)
 
 
 def _to_pil_array(array: Any) -> np.ndarray:

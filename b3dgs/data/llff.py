@@ -33,9 +33,7 @@ from b3dgs.types import Camera
 __all__ = ["load_llff", "read_llff", "write_llff"]
 
 
-def read_llff(
-    path: str | os.PathLike, images_dir: str = "images"
-) -> tuple[list[FrameSpec], np.ndarray]:
+def read_llff(path: str | os.PathLike, images_dir: str = "images") -> tuple[list[FrameSpec], np.ndarray]:
     """Parse ``poses_bounds.npy``: (frames sorted by image name, bounds (N, 2) near/far)."""
     root = Path(path)
     if not root.is_dir():
@@ -105,13 +103,8 @@ def read_llff(
     return frames, pb[:, 15:17].copy()
 
 
-def load_llff(
-    path: str | os.PathLike,
-    max_side: Optional[int] = None,
-    background: Sequence[float] = (0.0, 0.0, 0.0),
-    max_images: Optional[int] = None,
-    images_dir: str = "images",
-) -> RawScene:
+def load_llff(path: str | os.PathLike, max_side: Optional[int] = None, background: Sequence[float] = (0.0, 0.0, 0.0),
+              max_images: Optional[int] = None, images_dir: str = "images") -> RawScene:
     """Load an LLFF scene: cameras (K at the loaded size, OpenCV w2c) and images; no points."""
     frames, bounds = read_llff(path, images_dir=images_dir)
     keep = select_evenly(len(frames), max_images)

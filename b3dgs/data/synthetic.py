@@ -281,17 +281,9 @@ def make_cameras(
     return out
 
 
-def load_synthetic(
-    n_views: int = 48,
-    resolution: int = 128,
-    seed: int = 0,
-    n_points: int = 4000,
-    n_objects: int = 5,
-    supersample: int = 2,
-    max_side: Optional[int] = None,
-    background: Sequence[float] = (0.0, 0.0, 0.0),
-    max_images: Optional[int] = None,
-) -> RawScene:
+def load_synthetic(n_views: int = 48, resolution: int = 128, seed: int = 0, n_points: int = 4000, n_objects: int = 5,
+                   supersample: int = 2, max_side: Optional[int] = None, background: Sequence[float] = (0.0, 0.0, 0.0),
+                   max_images: Optional[int] = None) -> RawScene:
     """Render the procedural scene: ``n_views`` square views of side ``min(resolution, max_side)``.
 
     The world frame is the generator's (z up, disk at z = 0); :func:`b3dgs.data.load_scene` then

@@ -268,13 +268,9 @@ def read_transforms(
     return frames, points, colors, distortion
 
 
-def load_transforms(
-    path: str | os.PathLike,
-    max_side: Optional[int] = None,
-    background: Sequence[float] = (0.0, 0.0, 0.0),
-    max_images: Optional[int] = None,
-    undistort: Optional[bool] = None,
-) -> RawScene:
+def load_transforms(path: str | os.PathLike, max_side: Optional[int] = None,
+                    background: Sequence[float] = (0.0, 0.0, 0.0), max_images: Optional[int] = None,
+                    undistort: Optional[bool] = None) -> RawScene:
     """Load a ``transforms.json`` scene (see the module docstring: ``undistort`` None ignores OPENCV distortion with a
     warning and undistorts OPENCV_FISHEYE, True undistorts every frame, False ignores all distortion)."""
     frames, points, colors, distortion = read_transforms(path, undistort=undistort)

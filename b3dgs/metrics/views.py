@@ -17,13 +17,8 @@ log = logging.getLogger(__name__)
 
 
 @torch.no_grad()
-def evaluate_views(
-    module,
-    cameras: Sequence[Camera],
-    lpips_model=None,
-    render_dir: Optional[Path] = None,
-    with_ssim: bool = True,
-) -> dict:
+def evaluate_views(module, cameras: Sequence[Camera], lpips_model=None, render_dir: Optional[Path] = None,
+                   with_ssim: bool = True) -> dict:
     """Render every camera and score it; returns scene means and per-view values.
 
     ``render_fps`` times the forward render alone (no metrics, no I/O) over all views.

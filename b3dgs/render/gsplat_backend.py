@@ -8,28 +8,11 @@ gsplat does not return Σ_p w_kp and Σ_p w_kp²; :func:`weight_sums` computes t
 (Gaussian, pixel) pairs that ``rasterize_to_indices_in_range`` lists front to back, with the same
 α rule as gsplat's compositing. It is plain PyTorch and runs only when a block asks for weights.
 
-Adapted here to our contract (each fix is tested on the CPU emulation of gsplat's kernels,
-``tests/gsplat_cpu.py``, used with ``renderer=gsplat renderer.device_name=cpu``):
-
-- near plane: gsplat culls z < near, ours z <= near; we pass the next float32 above ``near``;
-- zero quaternions: gsplat's unfloored rsqrt makes them NaN (culled); ours render the identity
-  rotation, so they are replaced by (1, 0, 0, 0) here (their quaternion gradient is then 0);
-- culled Gaussians: gsplat leaves their ``means2d``/``depths`` unwritten (``at::empty``); they are
-  returned as 0, and their radius as 0;
-- Jacobian clamp: our backends use gsplat's (and 3DGS's) margin, 0.3·tan(fov/2) = 0.15·W/fx beyond
-  the image edge.
-
-Left as gsplat has them (documented in docs/design.md, "Renderers"; sizes measured on the CPU emulation):
-
-- radii: gsplat ceil(min(3.33, √(2 ln(255 o)))·σ) per axis (culling o < 1/255), ours ceil(3·√λmax);
-  on the 60-Gaussian contract scene 41 of 60 radii are equal, the others within ×0.75–×1.25, and
-  the same Gaussians are visible. Densification reads radii, so Gaussian counts can drift;
-- α cap: gsplat 0.999 (not exposed by its API), ours 0.99 like 3DGS; only pixels where o·G > 0.99
-  differ (0 below opacity 0.99; max 0.0031 per pixel at o = 0.9997);
-- termination: gsplat stops at T <= 1e-4, ours T < 1e-4 (never observed to differ); gsplat also culls
-  z > 1e10 (far plane);
-- ``covars=``: gsplat reads the upper triangle of Σ, so its gradient is the symmetric gradient folded
-  onto that triangle (as our C++ backend; ``renderer=torch`` returns the full symmetric gradient).
+Adapted here to our contract (each fix tested on the CPU emulation of gsplat's kernels, ``tests/gsplat_cpu.py``):
+near plane (gsplat culls z < near, ours z <= near: we pass the next float32 above ``near``); zero quaternions
+(replaced by (1, 0, 0, 0), their gradient then 0); culled Gaussians (``means2d``/``depths``/radius returned as 0, not
+left unwritten); the Jacobian clamp (gsplat's 0.15·W/fx margin in every backend). What is left as gsplat has it
+(radii, α cap 0.999, termination, the ``covars=`` gradient on the upper triangle) is in docs/design.md, "Renderers".
 """
 from __future__ import annotations
 

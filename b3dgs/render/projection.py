@@ -5,7 +5,6 @@ Shared by both rasterizer backends. Every function accepts an optional leading s
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import torch
@@ -66,11 +65,9 @@ def sh_basis(degree: int, dirs: Tensor) -> Tensor:
         xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
         out += [SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * xz, SH_C2[4] * (xx - yy)]
     if degree >= 3:
-        out += [
-            SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * xy * z, SH_C3[2] * y * (4 * zz - xx - yy),
-            SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy),
-            SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3 * yy),
-        ]
+        out += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * xy * z, SH_C3[2] * y * (4 * zz - xx - yy),
+                SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy), SH_C3[5] * z * (xx - yy),
+                SH_C3[6] * x * (xx - 3 * yy)]
     return torch.stack(out, dim=-1)
 
 
@@ -100,16 +97,8 @@ class Projection:
     cov2d: Tensor  # (S, N, 3) 2D covariance (xx, xy, yy) incl. blur
 
 
-def project(
-    means: Tensor,
-    cov3d: Tensor,
-    viewmat: Tensor,
-    K: Tensor,
-    width: int,
-    height: int,
-    near: float = 0.01,
-    blur: float = BLUR_PX,
-) -> Projection:
+def project(means: Tensor, cov3d: Tensor, viewmat: Tensor, K: Tensor, width: int, height: int, near: float = 0.01,
+            blur: float = BLUR_PX) -> Projection:
     """EWA splatting projection (Zwicker et al. 2001) of (S, N, 3) means and (S, N, 3, 3) covariances."""
     R = viewmat[:3, :3].to(means.dtype)
     t = viewmat[:3, 3].to(means.dtype)

@@ -65,18 +65,14 @@ class RasterOutput:
     n_contrib: Optional[Tensor] = None  # (S, H, W) int32, Gaussians composited per pixel
 
 
-# --------------------------------------------------------------------------------------------
-# Binning
-# --------------------------------------------------------------------------------------------
+# ------------------------------------------------------------------------------------------ Binning
 def _shape_str(t: Tensor) -> str:
     return str(tuple(t.shape))
 
 
 @torch.no_grad()
-def bin_gaussians(
-    means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = 16,
-    extent: Optional[Tensor] = None, backend: str = "torch",
-) -> TileBins:
+def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, height: int, tile_size: int = 16,
+                  extent: Optional[Tensor] = None, backend: str = "torch") -> TileBins:
     """Shared tile binning of (S, N) projected Gaussians, sorted by tile, mean depth, then id.
 
     Gaussian k goes to every tile overlapping the union over samples with ``radii > 0`` of
@@ -183,9 +179,7 @@ def _bin_torch(means2d, radii, depths, extent, width, height, tile_size, tiles_x
 _BIN_BACKENDS = {"cpu": _bin_cpu, "torch": _bin_torch}
 
 
-# --------------------------------------------------------------------------------------------
-# Input validation
-# --------------------------------------------------------------------------------------------
+# --------------------------------------------------------------------------------- Input validation
 def _check_inputs(means2d, conics, colors, opacities, depths, bins, width, height, background, backend):
     if backend not in BACKENDS:
         raise B3dgsError(f"rasterize: backend must be one of {BACKENDS}, got {backend!r}",
@@ -278,9 +272,7 @@ def _raise_bad_inputs(flags: Tensor, n: int, **tensors: Tensor) -> None:
                              "model.lr_means) or check the data")
 
 
-# --------------------------------------------------------------------------------------------
-# Pure PyTorch backend
-# --------------------------------------------------------------------------------------------
+# ----------------------------------------------------------------------------- Pure PyTorch backend
 def _tile_pixel_centres(bins: TileBins, tiles: Tensor, width: int, height: int, dtype):
     ts = bins.tile_size
     local = torch.arange(ts * ts, device=tiles.device)
@@ -420,9 +412,7 @@ def _rasterize_torch(means2d, conics, colors, opacities, depths, bins, width, he
                         n_contrib=n_contrib)
 
 
-# --------------------------------------------------------------------------------------------
-# C++ backend
-# --------------------------------------------------------------------------------------------
+# -------------------------------------------------------------------------------------- C++ backend
 class _RasterizeCPU(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, colors, opacities, depths, background, tile_offsets, flat_ids,

@@ -15,12 +15,10 @@ __all__ = ["COLUMNS", "HIGHER_IS_BETTER", "scene_means", "uq_regimes", "uq_key",
 
 UQ = "uq"  # placeholder for the configured uq.json regime (cfg.uq_regime)
 # (name, label, source: None = metrics.json / UQ = uq.json regime)
-COLUMNS = [
-    ("psnr", "PSNR ↑", None), ("ssim", "SSIM ↑", None), ("lpips", "LPIPS ↓", None),
-    ("ause_rmse", "AUSE ↓", UQ), ("ece", "ECE ↓", UQ), ("cov95", "Cov@95", UQ),
-    ("num_gaussians", "Gauss.", None), ("render_fps", "FPS ↑", None), ("train_time_s", "Time (s) ↓", None),
-    ("block_time_pct", "Blocks % of time", None),
-]
+COLUMNS = [("psnr", "PSNR ↑", None), ("ssim", "SSIM ↑", None), ("lpips", "LPIPS ↓", None), ("ause_rmse", "AUSE ↓", UQ),
+           ("ece", "ECE ↓", UQ), ("cov95", "Cov@95", UQ), ("num_gaussians", "Gauss.", None),
+           ("render_fps", "FPS ↑", None), ("train_time_s", "Time (s) ↓", None),
+           ("block_time_pct", "Blocks % of time", None)]
 HIGHER_IS_BETTER = {"psnr": True, "ssim": True, "lpips": False, "ause_rmse": False, "ece": False,
                     "cov95_err": False, "num_gaussians": False, "render_fps": True, "train_time_s": False,
                     "block_time_pct": False}

@@ -67,16 +67,11 @@ def paired_stats(deltas: Sequence[float], higher_is_better: bool = True, confide
     n = int(d.size)
     good = d > 0 if higher_is_better else d < 0
     bad = d < 0 if higher_is_better else d > 0
-    return {
-        "n": n,
-        "mean": float(d.mean()) if n else None,
-        "ci": bootstrap_ci(d, confidence, n_resamples, bca_min_n, seed),
-        "confidence": confidence,
-        "p_two_sided": sign_flip_p(d, "two-sided"),
-        "p_one_sided": sign_flip_p(d, "greater" if higher_is_better else "less"),
-        "p_floor": p_floor(n),
-        "wins": int(good.sum()), "losses": int(bad.sum()), "ties": int(n - good.sum() - bad.sum()),
-    }
+    return {"n": n, "mean": float(d.mean()) if n else None,
+            "ci": bootstrap_ci(d, confidence, n_resamples, bca_min_n, seed), "confidence": confidence,
+            "p_two_sided": sign_flip_p(d, "two-sided"),
+            "p_one_sided": sign_flip_p(d, "greater" if higher_is_better else "less"), "p_floor": p_floor(n),
+            "wins": int(good.sum()), "losses": int(bad.sum()), "ties": int(n - good.sum() - bad.sum())}
 
 
 def mean_sem(values: Sequence[float]) -> tuple[Optional[float], Optional[float]]:

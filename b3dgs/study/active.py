@@ -393,7 +393,6 @@ class ActiveStudy:
                 "(a family's posterior blocks: family_posterior={niw:[...]})")
         self.scene_digest = check_stored_scene(
             self.out, digest_of_pool, fix=f"pass another out_dir (or remove {self.out} to start this scene over)")
-        self._phase1_meta: dict[str, dict] = {}
 
     def family_cfg(self, family: str, seed: int) -> DictConfig:
         """:func:`family_config`, composed and validated (as ``b3dgs-train``'s) once per family when first needed: a

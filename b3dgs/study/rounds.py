@@ -47,7 +47,6 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
     ckpt = RunCheckpoint(run.run_dir / "checkpoints", every_n_steps=every, every_s=checkpoint_every_s(cfg.trainer))
     run.fit([ResumeState(), ckpt], ckpt_path, max_steps=int(stop_step), enable_checkpointing=True)
     module.allow_new_views = False
-    module.last_checkpoint = str(ckpt.last_path)
     return module
 
 

@@ -15,15 +15,5 @@ from b3dgs.uq.metrics import (
     to_jsonable,
 )
 
-__all__ = [
-    "ause",
-    "calibration",
-    "coverage",
-    "evaluate_view",
-    "gaussian_nll",
-    "per_pixel_errors",
-    "sparsification",
-    "spearman_rho",
-    "summarize",
-    "to_jsonable",
-]
+__all__ = ["ause", "calibration", "coverage", "evaluate_view", "gaussian_nll", "per_pixel_errors", "sparsification",
+           "spearman_rho", "summarize", "to_jsonable"]

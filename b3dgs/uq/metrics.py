@@ -34,19 +34,14 @@ Metrics
     - ``normalize=True``: both curves are divided by the error of the full set, so ``curve[0] == 1``;
       AUSE is then scale-free. (Since both curves share that divisor, normalised AUSE = raw AUSE /
       full-set error; ``rmse`` and ``mae`` are returned so either variant can be recovered.)
-  Raw is the default because (i) its magnitudes are directly comparable to the paper's reported AUSE
-  values (order 1e-2 for [0, 1] colours), (ii) it does not blow up for near-perfect views whose full-set
-  error is tiny (a per-view ratio would let those views dominate a scene average), and (iii) raw AUSE
-  keeps the error's units, so a difference between methods is a difference in error. Codes in the
-  literature report AUSE with either convention, so always compare within one convention.
+  Raw is the default: it compares with the paper's AUSE (order 1e-2 for [0, 1] colours) and does not blow up for
+  near-perfect views; always compare within one convention.
 
 * **ECE for regression** (interval calibration). For each nominal central level ``p`` the interval is
   ``mean_pc +- z_{(1+p)/2} * sqrt(var_p)``; observed coverage is the fraction of (pixel, channel)
   residuals inside it (inclusive bounds); ECE = mean over levels of ``|observed - p|``. Default levels are
-  ``0.05, 0.10, ..., 0.95`` (19 evenly spaced levels), so ECE approximates the mean absolute gap of the
-  reliability diagram over a uniform grid; 0.99 is *not* included by default because such a tail level
-  is dominated by a handful of outlier residuals and would break the uniform spacing (pass ``levels=``
-  to change it). Coverage uses the unfloored variance: a zero variance is a zero-width interval.
+  ``0.05, 0.10, ..., 0.95`` (19 evenly spaced; a 0.99 tail level would be dominated by a few outliers; pass ``levels=``
+  to change them). Coverage uses the unfloored variance: a zero variance is a zero-width interval.
 * **Cov@95** = observed coverage of the nominal 95% interval (``z = 1.959964``), and
   ``cov95_err = |Cov@95 - 0.95|`` (the paper's headline calibration statistic).
 * **Gaussian NLL** = mean over pixels and channels of ``0.5 log(2 pi v) + 0.5 r^2 / v`` with
@@ -80,28 +75,10 @@ import numpy as np
 from b3dgs.errors import B3dgsError, B3dgsTypeError
 from b3dgs.io import to_jsonable  # noqa: F401 - re-exported: the one JSON converter lives in b3dgs.io
 
-__all__ = [
-    "DEFAULT_FRACTIONS",
-    "DEFAULT_LEVELS",
-    "DEFAULT_VAR_FLOOR",
-    "DEFAULT_MAX_SPEARMAN_PIXELS",
-    "Z95",
-    "AUSE_NORMALIZATION_RAW",
-    "AUSE_NORMALIZATION_NORMALIZED",
-    "NLL_NOTE",
-    "per_pixel_errors",
-    "sparsification",
-    "ause",
-    "coverage",
-    "calibration",
-    "gaussian_nll",
-    "spearman_rho",
-    "evaluate_view",
-    "epistemic_view",
-    "epistemic_summary",
-    "summarize",
-    "to_jsonable",
-]
+__all__ = ["DEFAULT_FRACTIONS", "DEFAULT_LEVELS", "DEFAULT_VAR_FLOOR", "DEFAULT_MAX_SPEARMAN_PIXELS", "Z95",
+           "AUSE_NORMALIZATION_RAW", "AUSE_NORMALIZATION_NORMALIZED", "NLL_NOTE", "per_pixel_errors", "sparsification",
+           "ause", "coverage", "calibration", "gaussian_nll", "spearman_rho", "evaluate_view", "epistemic_view",
+           "epistemic_summary", "summarize", "to_jsonable"]
 
 DEFAULT_FRACTIONS: np.ndarray = np.arange(100) / 100.0  # 0.00, 0.01, ..., 0.99
 DEFAULT_LEVELS: np.ndarray = np.arange(1, 20) * 0.05  # 0.05, 0.10, ..., 0.95
@@ -281,16 +258,9 @@ def sparsification(uncertainty: Any, error: Any, metric: str = "rmse",
         spars, oracle = spars / full, oracle / full
     # the oracle is the pointwise lower bound; clip round-off so the area is never negative
     gap = np.maximum(spars - oracle, 0.0)
-    return {
-        "metric": metric,
-        "fractions": f,
-        "sparsification": spars,
-        "oracle": oracle,
-        "ause": float(np.trapezoid(gap, f)),
-        "full_error": full,
-        "normalize": bool(normalize),
-        "ause_normalization": AUSE_NORMALIZATION_NORMALIZED if normalize else AUSE_NORMALIZATION_RAW,
-    }
+    return {"metric": metric, "fractions": f, "sparsification": spars, "oracle": oracle,
+            "ause": float(np.trapezoid(gap, f)), "full_error": full, "normalize": bool(normalize),
+            "ause_normalization": AUSE_NORMALIZATION_NORMALIZED if normalize else AUSE_NORMALIZATION_RAW}
 
 
 def ause(mean: Any, var: Any, gt: Any, mask: Any = None, metric: str = "rmse",
@@ -385,11 +355,9 @@ def spearman_rho(x: Any, y: Any, max_pixels: int | None = DEFAULT_MAX_SPEARMAN_P
 
 
 # -------------------------------------------------------------------------------------- driver
-def evaluate_view(mean: Any, var: Any, gt: Any, mask: Any = None, *,
-                  fractions: Iterable[float] | None = None, normalize: bool = False,
-                  levels: Iterable[float] | None = None, var_floor: float = DEFAULT_VAR_FLOOR,
-                  max_spearman_pixels: int | None = DEFAULT_MAX_SPEARMAN_PIXELS,
-                  seed: int = 0) -> dict:
+def evaluate_view(mean: Any, var: Any, gt: Any, mask: Any = None, *, fractions: Iterable[float] | None = None,
+                  normalize: bool = False, levels: Iterable[float] | None = None, var_floor: float = DEFAULT_VAR_FLOOR,
+                  max_spearman_pixels: int | None = DEFAULT_MAX_SPEARMAN_PIXELS, seed: int = 0) -> dict:
     """All uncertainty metrics of one view.
 
     Returns a dict of scalars (``n_pixels, mae, rmse, mean_var, ause_rmse, ause_mae, ece, cov95,
@@ -465,12 +433,9 @@ def epistemic_view(epistemic: Any, mean: Any, gt: Any, var: Any = None, mask: An
     ``epi_fraction`` = mean ``u_p`` / mean ``var``."""
     m, u, g = _validate(mean, epistemic, gt, mask)
     a, s = per_pixel_errors(m, g)
-    out = {
-        "epi_ause_rmse": sparsification(u, s, "rmse", fractions)["ause"],
-        "epi_ause_mae": sparsification(u, a, "mae", fractions)["ause"],
-        "mean_epistemic": float(u.mean()),
-        "mse": float(s.mean()),
-    }
+    out = {"epi_ause_rmse": sparsification(u, s, "rmse", fractions)["ause"],
+           "epi_ause_mae": sparsification(u, a, "mae", fractions)["ause"], "mean_epistemic": float(u.mean()),
+           "mse": float(s.mean())}
     out["epi_spearman_sq"], out["epi_spearman_n"] = _spearmanr(u, s, max_spearman_pixels, seed)
     if var is not None:
         _, v, _ = _validate(mean, var, gt, mask)

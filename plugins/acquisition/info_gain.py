@@ -20,20 +20,13 @@ resolution (as the SH block's pass); every view (training, candidates, targets) 
 resolution with the phase-1 model's point estimate, and only its per-Gaussian Σ_p w² enters (no image of a candidate).
 The prototype (issue 42) tried only an unexplained-pixel term (it did not help; not built).
 
-``geometry=true`` (``info_gain_geometry``, ``info_gain_params_geometry``) adds the centres' term in the same units. Per
-view v and Gaussian k, F_kv = Σ_p Σ_c ∇_μk C_pc ∇_μk C_pcᵀ (3×3, NIW ``fisher3``'s quantity; :meth:`view_fisher`:
-``FisherAccumulator``'s Hutchinson estimate, ``geometry_probes`` ±1 probes and one renderer backward each, drawn on the
-CPU from the context's seed and the view's name, so a view's F never depends on scoring order). Centre precision
-Λ^μ_k = τ_μ I + Σ_train F_kv / σ̂², a view adds J^μ_kc = F_kc / σ̂², targets G^μ_k = Σ_t F_kt / σ̂²; predictive adds
-tr((P^μ_k − (Λ^μ_k + J^μ_kc)⁻¹) G^μ_k), the drop of the targets' rendered-colour variance due to the centres to first
-order (delta method: Var[C_pc] ≈ ∇Cᵀ P^μ ∇C), params adds ½ log det(I + P^μ_k J^μ_kc). Approximations: the
-posterior is block-diagonal (the colour-centre cross terms of the joint Fisher are dropped, and so are the Gaussians'
-cross terms, as for the colour), and linear in the centre, which holds while a centre's std stays within about a
-Gaussian's size. τ_μ = 1 / (r · extent)² with ``geometry_prior_scale`` r = 0.1 (at 0.01 it barely moves the picks;
-at 0.1 it weighs about as much as the colour term, led by the centres the training views constrain least: coverage of
-the geometry in the colour term's units). ``geometry_probes`` = 4 (NIW's ``fisher_probes``; relative error √(2/4) per
-entry, averaged over the Gaussians a score sums); the cost is probes × views backward passes per scoring. Its cost and
-its verdict (it stays off by default) are in ``docs/studies.md`` (``bench/results/active_view_geo_ig.md``).
+``geometry=true`` (``info_gain_geometry``, ``info_gain_params_geometry``) adds the centres' term in the same units: per
+view v and Gaussian k the 3×3 Fisher F_kv = Σ_p Σ_c ∇_μk C_pc ∇_μk C_pcᵀ (:meth:`view_fisher`: ``geometry_probes``
+Hutchinson probes drawn on the CPU from the context's seed and the view's name, so a view's F never depends on scoring
+order); Λ^μ_k = τ_μ I + Σ_train F_kv / σ̂², J^μ_kc = F_kc / σ̂², G^μ_k = Σ_t F_kt / σ̂², and predictive adds
+tr((P^μ_k − (Λ^μ_k + J^μ_kc)⁻¹) G^μ_k) (delta method), params ½ log det(I + P^μ_k J^μ_kc); block-diagonal and linear in
+the centre. τ_μ = 1 / (r · extent)², r = ``geometry_prior_scale``. Its cost and verdict (off by default) are in
+``docs/studies.md``.
 
 ``condition`` (``batch=greedy_conditioned``) adds the picked view's J exactly (rank-one downdate of P; Λ^μ += J^μ and
 its 3×3 Cholesky redone for the Gaussians it moves), so a re-score equals recomputing the posterior with the view among

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
 
 import torch
 
@@ -16,10 +15,7 @@ class NativePolicy(RegimePolicy):
     ``native_fisher3``, ...; the acquisition files set fewer samples). The aleatoric σ̂² is left out: it is the same
     for every view, so it cannot change the ranking.
 
-    ``count_scale`` = 0.1 (uq=native's default): the posterior is drawn with N̂ ← 0.1·N̂. In
-    ``bench/uq_count_scale.py`` (seed 0, both shared scenes) that setting gave the epistemic part its best pixel-level
-    ranking (Spearman ρ with the squared error 0.51 / 0.42 against 0.41 / 0.41 at the paper's c = 1) without moving
-    the posterior-mean render.
+    ``count_scale`` = 0.1 (uq=native's default; why: docs/user-guide.md, ``bench/uq_count_scale.py``).
 
     ``condition(ctx, camera)`` (batch=greedy_conditioned): one point-estimate render of ``camera`` at the
     scoring resolution gives each Gaussian's compositing weight sum w_k = Σ_p w_kp, scaled by the pixel-count

@@ -20,20 +20,9 @@ from b3dgs.numerics import float_dtype as _dtype
 from b3dgs.numerics import guard
 from b3dgs.numerics import scalar_or_vector as _scalar_or_vec
 
-__all__ = [
-    "SH_C0",
-    "OPACITY_MAX_LOGIT",
-    "BETA_MAX_CONCENTRATION",
-    "BETA_MIN_CONCENTRATION",
-    "opacity_to_logit",
-    "logit_normal_moments",
-    "opacity_beta_moment_match",
-    "opacity_fisher_var",
-    "color_posterior_var",
-    "color_posterior_mean",
-    "rgb_var_to_dc_var",
-    "dc_var_to_rgb_var",
-]
+__all__ = ["SH_C0", "OPACITY_MAX_LOGIT", "BETA_MAX_CONCENTRATION", "BETA_MIN_CONCENTRATION", "opacity_to_logit",
+           "logit_normal_moments", "opacity_beta_moment_match", "opacity_fisher_var", "color_posterior_var",
+           "color_posterior_mean", "rgb_var_to_dc_var", "dc_var_to_rgb_var"]
 
 Num = Union[float, torch.Tensor]
 _F64 = torch.float64
@@ -213,14 +202,8 @@ def color_posterior_var(
     return (1.0 / (lik + pp)).to(_dtype(weight_sq_sum))
 
 
-def color_posterior_mean(
-    color: torch.Tensor,
-    weighted_residual_sum: torch.Tensor,
-    weight_sq_sum: torch.Tensor,
-    sigma2: Num,
-    prior_mean: Num,
-    prior_precision: Num,
-) -> torch.Tensor:
+def color_posterior_mean(color: torch.Tensor, weighted_residual_sum: torch.Tensor, weight_sq_sum: torch.Tensor,
+                         sigma2: Num, prior_mean: Num, prior_precision: Num) -> torch.Tensor:
     """Local linearised posterior mean of RGB colour (one Newton step = exact for linear C_p).
 
     color, weighted_residual_sum = sum_p w_kp (I_p - C_p): (K,3); weight_sq_sum: (K,).

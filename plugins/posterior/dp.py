@@ -140,14 +140,8 @@ def dp_posterior(
     g1, g2 = cavi_stick_update(N[perm], alpha)
     elog = expected_log_pi(g1, g2, truncate_last)
     epi = expected_pi(g1, g2, truncate_last)
-    return {
-        "gamma1": g1[inv],
-        "gamma2": g2[inv],
-        "expected_log_pi": elog[inv],
-        "expected_pi": epi[inv],
-        "perm": perm,
-        "inv_perm": inv,
-    }
+    return {"gamma1": g1[inv], "gamma2": g2[inv], "expected_log_pi": elog[inv], "expected_pi": epi[inv], "perm": perm,
+            "inv_perm": inv}
 
 
 def prune_threshold(K: int, base: float = 0.01) -> float:
@@ -163,16 +157,9 @@ def prune_threshold(K: int, base: float = 0.01) -> float:
     return float(base) / int(K)
 
 
-def activity_posterior(
-    expected_log_pi: torch.Tensor,
-    usage: torch.Tensor,
-    prior_logit: float = 0.0,
-    temperature: float = 1.0,
-    threshold: Optional[float] = None,
-    evidence_weight: float = 0.5,
-    eps: float = ACTIVITY_SHARE_EPS,
-    return_logit: bool = False,
-):
+def activity_posterior(expected_log_pi: torch.Tensor, usage: torch.Tensor, prior_logit: float = 0.0,
+                       temperature: float = 1.0, threshold: Optional[float] = None, evidence_weight: float = 0.5,
+                       eps: float = ACTIVITY_SHARE_EPS, return_logit: bool = False):
     """Approximate q(a_k = 1) = E[a_k] (Table 1 "activity: approximate fast usage gate").
 
     Approximation: "active" means the component's weight exceeds the prune threshold tau
@@ -281,14 +268,12 @@ class DPBlock(PosteriorBlock):
 
     def initialize_state(self, *, splats, scene, info):
         n, dev = splats["means"].shape[0], splats["means"].device
-        return {
-            "usage": torch.zeros(n, dtype=torch.float64, device=dev),
-            "g1": torch.ones(n, dtype=torch.float64, device=dev),
-            "g2": torch.full((n,), float(self.alpha), dtype=torch.float64, device=dev),
-            "e_pi": torch.full((n,), 1.0 / max(n, 1), dtype=torch.float64, device=dev),
-            "e_a": torch.ones(n, dtype=torch.float64, device=dev),
-            "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0, device=dev),
-        }
+        return {"usage": torch.zeros(n, dtype=torch.float64, device=dev),
+                "g1": torch.ones(n, dtype=torch.float64, device=dev),
+                "g2": torch.full((n,), float(self.alpha), dtype=torch.float64, device=dev),
+                "e_pi": torch.full((n,), 1.0 / max(n, 1), dtype=torch.float64, device=dev),
+                "e_a": torch.ones(n, dtype=torch.float64, device=dev),
+                "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0, device=dev)}
 
     @torch.no_grad()
     def step_post_backward(self, *, splats, optimizers, state, step, info):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import ClassVar, Optional, Sequence, Tuple, Union
+from typing import ClassVar, Optional, Tuple, Union
 
 import torch
 from torch import Tensor
@@ -75,15 +75,8 @@ def _require_finite(name: str, x: torch.Tensor) -> None:
 
 
 # ----------------------------------------------------------------------------- conjugate update
-def niw_update(
-    m0: torch.Tensor,
-    kappa0: Scalar,
-    nu0: Scalar,
-    S0: torch.Tensor,
-    N: Scalar,
-    xbar: torch.Tensor,
-    C: Optional[torch.Tensor] = None,
-) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+def niw_update(m0: torch.Tensor, kappa0: Scalar, nu0: Scalar, S0: torch.Tensor, N: Scalar, xbar: torch.Tensor,
+               C: Optional[torch.Tensor] = None) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """Conjugate NIW update (Eq. 2-3) for effective count N >= 0, mean xbar and scatter C.
 
     Shapes: m0, xbar (K,D); kappa0, nu0, N (K,) or scalar; S0, C (K,D,D). C=None means C=0
@@ -314,26 +307,14 @@ def draw_niw(sampler: NIWSampler, n_samples: int, generator: Optional[torch.Gene
     return mu, X, A
 
 
-def sample_niw_factors(
-    m_n: torch.Tensor,
-    kappa_n: Scalar,
-    nu_n: Scalar,
-    S_n: torch.Tensor,
-    n_samples: int,
-    generator: Optional[torch.Generator] = None,
-) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def sample_niw_factors(m_n: torch.Tensor, kappa_n: Scalar, nu_n: Scalar, S_n: torch.Tensor, n_samples: int,
+                       generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """:func:`draw_niw` of :func:`niw_sampler` (one-off draws)."""
     return draw_niw(niw_sampler(m_n, kappa_n, nu_n, S_n), n_samples, generator)
 
 
-def sample_niw(
-    m_n: torch.Tensor,
-    kappa_n: Scalar,
-    nu_n: Scalar,
-    S_n: torch.Tensor,
-    n_samples: int,
-    generator: Optional[torch.Generator] = None,
-) -> Tuple[torch.Tensor, torch.Tensor]:
+def sample_niw(m_n: torch.Tensor, kappa_n: Scalar, nu_n: Scalar, S_n: torch.Tensor, n_samples: int,
+               generator: Optional[torch.Generator] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     """Draw (mu, Sigma) ~ NIW(m_n, kappa_n, nu_n, S_n) for all K at once (samples for Eq. 4), by
     Bartlett's decomposition (see :func:`sample_niw_factors`).
     Returns mu (S,K,D), Sigma (S,K,D,D); deterministic given ``generator``.
@@ -404,28 +385,11 @@ class NIWBlock(PosteriorBlock):
     ``plugin_noise``: track the plug-in residual MSE σ̂² (EMA) and offer it as the aleatoric
     variance, as in the paper's NIW rows; turn it off when a NoiseBlock supplies E[σ²].
 
-    ``count`` (``posterior.niw.count``) chooses N̂_k (beyond the paper, except ``paper``):
-
-    - ``paper``: the EMA above (bit for bit the paper's online path);
-    - ``weight``: Σ over the training views' pixels of the compositing weight T·α of Gaussian k (how many training
-      pixels it explains, from every view, not an EMA of one);
-    - ``fisher``: the count whose centre variance under Eq. 2-3 equals the Laplace variance of the centre under the
-      photometric likelihood, from tr F_k / σ̂², F_k = Σ_views Σ_p ∇_μk C_p ∇_μk C_pᵀ (:func:`fisher_count`);
-    - ``fisher3``: the ``fisher`` count for the IW part (Σ_k), and a centre posterior whose covariance follows the
-      information the cameras give: Cov[μ_k] = (κ0 E0[Σ_k]⁻¹ + c F_k / σ̂²)⁻¹ (the NIW prior's precision of the
-      centre plus the Laplace precision), so a Gaussian seen from one direction stays uncertain along its rays.
-
-    The three new counts come from one pass over the training views (:meth:`view_pass`: the renderer's weight sums,
-    F from :class:`FisherAccumulator` with ``fisher_probes`` Rademacher probes per view), taken when the posterior
-    is used (end of training, ``uq=native``, acquisition), so they cost nothing per training step; σ̂² is the
-    block's plug-in residual MSE. With them the per-step EMA is not computed.
-
-    ``count_scale`` (c, default 1 = the paper): the posterior refresh uses c·N̂_k in place of N̂_k in
-    Eq. 2-3 (the stored summary ``state["N"]`` is unchanged). Because N̂ is normalised to the effective
-    pixel count it is large, and the posterior concentrates as E[Σ] ≈ S0/(c N̂), Var[μ] ≈ S0/(c N̂)²
-    while c N̂ ≫ ν0; c < 1 widens the posterior (Var[μ] ∝ 1/c²) and pulls m_n towards m0 by
-    κ0/(κ0 + c N̂). A trained run's posterior can be re-evaluated at another c without retraining: set
-    ``count_scale`` on the loaded block (every use of the posterior refreshes it from the summaries).
+    ``count`` (``posterior.niw.count``) chooses N̂_k: ``paper`` (the EMA above, bit for bit), ``weight``, ``fisher``
+    (:func:`fisher_count`) or ``fisher3`` (a full 3×3 centre covariance), the last three from one pass over the
+    training views when the posterior is used (:meth:`view_pass`); docs/counts.md defines them.
+    ``count_scale`` (c, default 1 = the paper) uses c·N̂_k in Eq. 2-3 (``state["N"]`` unchanged), so a trained run's
+    posterior can be re-evaluated at another c without retraining (docs/user-guide.md).
     """
 
     per_gaussian_state: ClassVar[tuple[str, ...]] = ("m0", "S0", "N", "ediag", "m_n", "kappa_n", "nu_n", "S_n",
@@ -497,13 +461,11 @@ class NIWBlock(PosteriorBlock):
     def initialize_state(self, *, splats, scene, info):
         m0, S0 = self._prior_for(splats)
         n, dev = m0.shape[0], m0.device
-        st = {
-            "m0": m0, "S0": S0, "N": torch.zeros(n, dtype=torch.float64, device=dev),
-            "ediag": torch.diagonal(S0, dim1=-2, dim2=-1) / (self.nu0 - D - 1),
-            "mse": torch.tensor(0.0, dtype=torch.float64, device=dev),
-            "mse_n": torch.tensor(0.0, dtype=torch.float64, device=dev),
-            "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0, device=dev),
-        }
+        st = {"m0": m0, "S0": S0, "N": torch.zeros(n, dtype=torch.float64, device=dev),
+              "ediag": torch.diagonal(S0, dim1=-2, dim2=-1) / (self.nu0 - D - 1),
+              "mse": torch.tensor(0.0, dtype=torch.float64, device=dev),
+              "mse_n": torch.tensor(0.0, dtype=torch.float64, device=dev),
+              "n_views": torch.tensor(float(len(scene.train)) if scene is not None else 1.0, device=dev)}
         self._refresh(st, splats)
         return st
 
@@ -722,16 +684,11 @@ class NIWBlock(PosteriorBlock):
         chol = state.get("mu_prec_chol") if self.count == "fisher3" else None
         if chol is not None and chol.shape[0] == var_mu.shape[0]:
             var_mu = torch.cholesky_inverse(chol)
-        return {
-            "niw_pos_var": (torch.diagonal(var_mu, dim1=-2, dim2=-1).sum(-1) / D).float(),
-            "niw_kappa": state["kappa_n"].float(),
-            "niw_nu": state["nu_n"].float(),
-        }
+        return {"niw_pos_var": (torch.diagonal(var_mu, dim1=-2, dim2=-1).sum(-1) / D).float(),
+                "niw_kappa": state["kappa_n"].float(), "niw_nu": state["nu_n"].float()}
 
     def summary(self, *, state):
         ex = self.export(splats=None, state=state)
-        return {
-            "mean_count": float(state["N"].mean()) if state["N"].numel() else 0.0,
-            "median_pos_std": float(ex["niw_pos_var"].sqrt().median()) if state["N"].numel() else 0.0,
-            "sigma2_plugin": self.aleatoric_variance(state=state),
-        }
+        return {"mean_count": float(state["N"].mean()) if state["N"].numel() else 0.0,
+                "median_pos_std": float(ex["niw_pos_var"].sqrt().median()) if state["N"].numel() else 0.0,
+                "sigma2_plugin": self.aleatoric_variance(state=state)}

@@ -76,15 +76,8 @@ def ig_update(a0: Num, b0: Num, sum_sq_residual: Num, n_obs: Num) -> Tuple[torch
     return a + 0.5 * n, b + 0.5 * ss
 
 
-def ig_update_ema(
-    a: Num,
-    b: Num,
-    sum_sq_residual: Num,
-    n_obs: Num,
-    decay: float,
-    a0: Optional[Num] = None,
-    b0: Optional[Num] = None,
-) -> Tuple[torch.Tensor, torch.Tensor]:
+def ig_update_ema(a: Num, b: Num, sum_sq_residual: Num, n_obs: Num, decay: float, a0: Optional[Num] = None,
+                  b0: Optional[Num] = None) -> Tuple[torch.Tensor, torch.Tensor]:
     """Online IG update with exponential forgetting (power-prior discounting of old evidence).
 
     With a prior (a0, b0): a' = a0 + decay*(a - a0) + n/2, b' = b0 + decay*(b - b0) + SS/2, i.e.
