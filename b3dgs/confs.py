@@ -38,22 +38,38 @@ def _config_value(v: Any) -> bool:
     return isinstance(v, dict) and all(isinstance(k, str) and _config_value(x) for k, x in v.items())
 
 
+def _settings_class(cls: Any) -> Optional[type]:
+    """The dataclass that a class's ``settings`` parameter is annotated with (``Optional[SceneSettings]``), else None:
+    its fields are the class's flat config keys (:func:`b3dgs.schema._fields` reads them the same way)."""
+    import typing
+
+    try:
+        hint = typing.get_type_hints(cls.__init__).get("settings")
+    except Exception:  # noqa: BLE001 - an annotation that does not evaluate here fills nothing
+        return None
+    return next((a for a in (hint, *typing.get_args(hint)) if isinstance(a, type) and dataclasses.is_dataclass(a)), None)
+
+
 def field_defaults(target: str) -> Dict[str, Any]:
     """The defaults of the dataclass ``target`` (a class path), field by field in declaration order: the one home of
-    a component's defaults. Fields without a default a config can hold are left out; {} when ``target`` is no
-    dataclass or does not import (the schema check reports that)."""
+    a component's defaults. A class that is no dataclass gives those of the dataclass its ``settings`` parameter takes
+    (the data module's :class:`~b3dgs.data.scene.SceneSettings`: ``data.max_side``, ...), as flat keys. Fields without
+    a default a config can hold, or marked ``metadata={"config": False}``, are left out; {} when ``target`` has no
+    such dataclass or does not import (the schema check reports that)."""
     from hydra.utils import get_object
 
     try:
         cls = get_object(target)
     except Exception:  # noqa: BLE001 - reported by check_node when the node is checked
         return {}
+    if isinstance(cls, type) and not dataclasses.is_dataclass(cls):
+        cls = _settings_class(cls)
     if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
         return {}
     out = {}
     for f in dataclasses.fields(cls):
         d = f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
-        if f.init and d is not dataclasses.MISSING and _config_value(d):
+        if f.init and f.metadata.get("config", True) and d is not dataclasses.MISSING and _config_value(d):
             out[f.name] = list(d) if isinstance(d, tuple) else d
     return out
 
@@ -71,7 +87,8 @@ def _composed_packages(defaults: Any) -> set[str]:
 
 def _fill(node: Any) -> bool:
     """Give every ``_target_`` mapping in ``node`` (a plain container) the :func:`field_defaults` of its target that
-    it does not set: ``_target_``, then the fields in declaration order, then its other keys. Whether any changed."""
+    it does not set: ``_target_``, then its keys that are no field (the data module's ``kind``, ``path``), then the
+    fields in declaration order. Whether any changed."""
     changed = False
     if isinstance(node, dict):
         for k, v in node.items():
@@ -82,8 +99,8 @@ def _fill(node: Any) -> bool:
             fields.pop(pkg, None)
         if any(k not in node for k in fields):
             first = {k: node[k] for k in ("defaults", "_target_") if k in node}
-            filled = {**first, **{k: node.get(k, d) for k, d in fields.items()}}
-            filled.update({k: v for k, v in node.items() if k not in filled})
+            filled = {**first, **{k: v for k, v in node.items() if k not in fields}}
+            filled.update({k: node.get(k, d) for k, d in fields.items()})
             node.clear()
             node.update(filled)
             changed = True

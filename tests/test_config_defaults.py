@@ -53,17 +53,25 @@ def test_no_yaml_repeats_a_class_default():
     assert _repeats() == []
 
 
-def test_the_check_sees_a_repeated_default(tmp_path, monkeypatch):
-    """The check above can fail: a strategy file that writes the class's refine_every is caught."""
+@pytest.mark.parametrize("group, text, expect", [
+    ("strategy", "_target_: b3dgs_plugins.strategy.default.AdaptiveDensityControl\nrefine_every: 100\n"
+                 "refine_start: 7\nprune_big_after: ${seed}\n",
+     "strategy/x.yaml: refine_every=100 repeats b3dgs_plugins.strategy.default.AdaptiveDensityControl's default"),
+    # the data module is no dataclass: its settings parameter's (SceneSettings') fields are its defaults
+    ("data", "_target_: b3dgs.data.datamodule.SceneDataModule\nkind: colmap\npath: ???\nmax_side: 256\n"
+             "test_every: 8\nnormalize: true\nnear_plane: ${renderer.near}\n",
+     "data/x.yaml: test_every=8 repeats b3dgs.data.datamodule.SceneDataModule's default|"
+     "data/x.yaml: normalize=True repeats b3dgs.data.datamodule.SceneDataModule's default"),
+])
+def test_the_check_sees_a_repeated_default(tmp_path, monkeypatch, group, text, expect):
+    """The check above can fail: a strategy file that writes the class's refine_every, a data file that writes
+    SceneSettings' test_every and normalize, are caught (a deviation or an interpolation is not)."""
     import tests.test_config_defaults as me
 
-    (tmp_path / "strategy").mkdir()
-    (tmp_path / "strategy" / "x.yaml").write_text(
-        "_target_: b3dgs_plugins.strategy.default.AdaptiveDensityControl\nrefine_every: 100\nrefine_start: 7\n"
-        "prune_big_after: ${seed}\n")
+    (tmp_path / group).mkdir()
+    (tmp_path / group / "x.yaml").write_text(text)
     monkeypatch.setattr(me, "CONF", tmp_path)
-    assert me._repeats() == ["strategy/x.yaml: refine_every=100 repeats "
-                             "b3dgs_plugins.strategy.default.AdaptiveDensityControl's default"]
+    assert me._repeats() == expect.split("|")
 
 
 def test_fill_gives_every_field_and_keeps_the_files_values():
@@ -93,3 +101,25 @@ def test_composed_strategy(overrides, expect):
     node = OmegaConf.to_container(cfg.strategy)
     assert set(field_defaults(node["_target_"])) <= set(node)
     assert {k: node[k] for k in expect} == expect
+
+
+@pytest.mark.parametrize("option", ["blender", "colmap", "llff", "synthetic", "transforms"])
+def test_composed_data_holds_every_scene_setting(option):
+    """A data file holds only its deviations, and the composed data node still has every SceneSettings field a config
+    holds, with the class default where the file sets none (users see it in --cfg job and override it without '+')."""
+    import dataclasses
+
+    from hydra import compose, initialize_config_dir
+
+    from b3dgs.data.scene import SceneSettings
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        cfg = compose("train", overrides=[f"data={option}", "data.test_every=4", "trainer.default_root_dir=."])
+    node = OmegaConf.to_container(cfg.data, resolve=False)
+    fields = {f.name for f in dataclasses.fields(SceneSettings) if f.metadata.get("config", True)}
+    assert fields <= set(node) and "init_points_from_train_only" not in node  # the study's, set by code
+    assert list(node)[:4] == ["_target_", "name", "kind", "path"]  # the module's own keys, then the settings
+    assert node["test_every"] == 4 and node["normalize"] is True and node["test_split"] == "interleaved"
+    assert node["max_side"] == (128 if option == "synthetic" else 256)  # the files' deviations
+    assert node["background"] == ([1.0, 1.0, 1.0] if option == "blender" else [0.0, 0.0, 0.0])
+    assert node["near_plane"] == "${renderer.near}"

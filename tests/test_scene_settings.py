@@ -49,12 +49,15 @@ def test_a_wrong_key_is_named_with_the_valid_ones(build):
 
 
 def test_every_data_config_lists_the_settings():
-    """The keys users override (data.max_side=256, data.test_split=sector, ...) are in every data option, and the
-    config check knows each field of the dataclass with its type."""
+    """The keys users override (data.max_side=256, data.test_split=sector, ...) are in every data option as composed
+    (the files hold only their deviations; the config sources fill in the fields, b3dgs.confs.field_defaults), and
+    the config check knows each field of the dataclass with its type."""
+    from b3dgs.confs import field_defaults, with_field_defaults
     from b3dgs.schema import _fields
 
+    assert set(field_defaults("b3dgs.data.datamodule.SceneDataModule")) == FIELDS - {"init_points_from_train_only"}
     for f in sorted(Path(conf_dir(), "data").glob("*.yaml")):
-        node = OmegaConf.to_container(OmegaConf.load(f), resolve=False)
+        node = OmegaConf.to_container(with_field_defaults(OmegaConf.load(f)), resolve=False)
         if "_target_" in node:
             assert FIELDS - {"init_points_from_train_only"} <= set(node), f.name
     fields, _ = _fields(SceneDataModule)

@@ -166,7 +166,10 @@ class SceneSettings:
 
     max_side: Optional[int] = None  # downscale so the longest image side is <= max_side (K scaled); None: full size
     test_every: int = 8  # every test_every-th view in sorted name order is held out; 0: none
-    test_split: str = "interleaved"  # interleaved | sector (a contiguous test_fraction, see sector_split) | both
+    # interleaved: every test_every-th view; sector: a contiguous test_fraction of the cameras, held out along one
+    # direction (no training camera sees from there: an OOD split); sector+interleaved: both, from one model
+    # (scene.test_groups names each kind)
+    test_split: str = "interleaved"
     test_fraction: float = 0.125  # test_split=sector: the share of the views held out
     sector_axis: int = 0  # test_split=sector: which principal direction of the camera centres (0, 1, 2)
     train_indices: Optional[Sequence[int]] = None  # indices into the sorted train list to keep; the rest: candidates
@@ -178,7 +181,9 @@ class SceneSettings:
     # format's default (b3dgs.data.undistort)
     calib_every: Optional[int] = None  # every calib_every-th train view becomes a calibration view (split_calibration)
     near_plane: float = NEAR_PLANE  # the renderer's near plane, for the guard of check_near_plane
-    init_points_from_train_only: bool = False  # keep the initial points >= 2 train views saw (filter_points_to_train)
+    # keep the initial points >= 2 train views saw (filter_points_to_train); the study sets it (its top-level key),
+    # no data config lists it (config: False, see b3dgs.confs.field_defaults)
+    init_points_from_train_only: bool = field(default=False, metadata={"config": False})
 
     @classmethod
     def split(cls, keys: dict, base: Optional["SceneSettings"] = None) -> tuple["SceneSettings", dict]:
