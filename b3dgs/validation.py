@@ -188,7 +188,10 @@ def _check_train(cfg: DictConfig, values: dict) -> dict:
         if isinstance(cfg.get("model"), DictConfig) and key in cfg.model:
             raise B3dgsError(f"model.{key} is not read: b3dgs-train builds the model's {key} from its own setting",
                              f"pass {where} instead of model.{key}")
-    plugins = [(g, cfg[g]) for g in ("strategy", "schedule") if isinstance(cfg.get(g), DictConfig)]
+    from b3dgs.upgrade import schedule_node
+
+    nodes = {"strategy": cfg.get("strategy"), "schedule": OmegaConf.create(schedule_node(cfg.get("schedule")))}
+    plugins = [(g, node) for g, node in nodes.items() if isinstance(node, DictConfig)]  # null schedule: the constant one
     plugins += _blocks(cfg, "posterior", "a posterior block", values)
     _blocks(cfg, "callbacks", "a callback", values)
     if isinstance(cfg.get("model"), DictConfig) and OmegaConf.is_interpolation(cfg.model, "background"):

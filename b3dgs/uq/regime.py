@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from b3dgs.errors import B3dgsError
+from b3dgs.plugin import validate_once
 from b3dgs.types import Camera, Scene
 
 
