@@ -190,8 +190,9 @@ def _check_train(cfg: DictConfig, values: dict) -> dict:
                              f"pass {where} instead of model.{key}")
     from b3dgs.upgrade import schedule_node
 
-    nodes = {"strategy": cfg.get("strategy"), "schedule": OmegaConf.create(schedule_node(cfg.get("schedule")))}
-    plugins = [(g, node) for g, node in nodes.items() if isinstance(node, DictConfig)]  # null schedule: the constant one
+    schedule = cfg.get("schedule") if cfg.get("schedule") is not None else OmegaConf.create(schedule_node(None))
+    plugins = [(g, node) for g, node in (("strategy", cfg.get("strategy")), ("schedule", schedule))  # null schedule:
+               if isinstance(node, DictConfig)]  # the constant one
     plugins += _blocks(cfg, "posterior", "a posterior block", values)
     _blocks(cfg, "callbacks", "a callback", values)
     if isinstance(cfg.get("model"), DictConfig) and OmegaConf.is_interpolation(cfg.model, "background"):
