@@ -250,10 +250,10 @@ def hydra_main(cfg: DictConfig) -> None:
         runs = cfg.run
         run_dirs = [str(r) for r in runs] if isinstance(runs, (ListConfig, list, tuple)) else [str(runs)]
         refuse_running(run_dirs)  # before the checks that would call a running run unfinished
-        validate_config(cfg, app="eval")
+        regimes = validate_config(cfg, app="eval")
         if cfg.get("threads"):
             torch.set_num_threads(int(cfg.threads))
-        evaluate_uq(run_dirs, regimes_from_cfg(cfg), seed=int(cfg.seed), max_views=cfg.get("max_views"),
+        evaluate_uq(run_dirs, regimes, seed=int(cfg.seed), max_views=cfg.get("max_views"),
                     panels=int(cfg.panels), out_dir=Path(cfg.out) if cfg.get("out") else None,
                     lpips_weights=cfg.get("lpips_weights"))
 

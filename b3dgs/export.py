@@ -214,6 +214,7 @@ def export(cfg: DictConfig) -> dict:
     """Export ``cfg.run`` (at ``cfg.checkpoint``, default its last) as ``cfg.format`` into ``cfg.out``."""
     from b3dgs.rundir import check_replace, manifest_lock, record_written
     from b3dgs.runs import load_run
+    from b3dgs.validation import validate_config
 
     fmt = str(cfg.get("format"))
     if fmt not in FORMATS:
@@ -221,10 +222,8 @@ def export(cfg: DictConfig) -> dict:
 
         raise B3dgsError(f"format={fmt} is not an export format{did_you_mean(fmt, FORMATS)}",
                          f"pass format={'|'.join(FORMATS)}")
+    validate_config(cfg, app="export")
     overwrite = cfg.get("overwrite", False)
-    if not isinstance(overwrite, bool):
-        raise B3dgsError(f"overwrite={overwrite} is invalid: it must be true or false",
-                         "pass overwrite=true to replace an existing out= file, or leave it out")
     run_dir = Path(str(cfg.run))
     ckpt = cfg.get("checkpoint")
     if ckpt is not None and not Path(str(ckpt)).is_file():

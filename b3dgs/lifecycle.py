@@ -394,13 +394,14 @@ def warn_disabled_options(module) -> None:
 class Run:
     """One run's life, owned here for every command that trains (``b3dgs-train``: :meth:`train`; a study's rounds
     and phase 1; the compression study's fine-tunes; bench's ``train_run`` through ``b3dgs-train``): the config
-    validated once (``app``, e.g. ``"train"``; ``None`` where the study that composed it validated it) with the
-    plugins that check built going into the first model, seed and build (:meth:`start`), the one place a trainer is
+    validated once (``app``, e.g. ``"train"``; ``None`` where the study that composed it validated it, giving
+    ``plugins``) with the plugins that check built going into the first model, seed and build (:meth:`start`), the one place a trainer is
     assembled and fit (:meth:`fit`), resume, the final evaluation and ``metrics.json``, the done marker
     (:meth:`finish`, its one writer), and any later addition to a finished run (:meth:`amend_metrics`)."""
 
-    def __init__(self, cfg: Optional[DictConfig] = None, run_dir=None, app: Optional[str] = None):
-        self.cfg, self.plugins, self.dm, self.module = cfg, {}, None, None
+    def __init__(self, cfg: Optional[DictConfig] = None, run_dir=None, app: Optional[str] = None,
+                 plugins: Optional[dict] = None):
+        self.cfg, self.plugins, self.dm, self.module = cfg, plugins or {}, None, None
         self.run_dir = Path(run_dir if run_dir is not None else cfg.trainer.default_root_dir)
         if app is None:
             return

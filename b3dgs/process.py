@@ -654,19 +654,6 @@ def _check_options(cfg: DictConfig, pycolmap) -> None:
     if str(cfg.camera_model) not in models:
         raise B3dgsError(f"camera_model={cfg.camera_model} is not a COLMAP camera model"
                          f"{did_you_mean(str(cfg.camera_model), models)}", f"pass one of {', '.join(models)}")
-    for key in ("max_side", "sift_max_side"):
-        v = cfg.get(key)
-        if isinstance(v, bool) or not isinstance(v, int) or v < 16:
-            raise B3dgsError(f"{key}={v} is not a size in pixels", f"pass {key}= an integer of at least 16")
-    mr = cfg.get("min_registered")
-    if isinstance(mr, bool) or not isinstance(mr, (int, float)) or not 0 <= mr <= 1:
-        raise B3dgsError(f"min_registered={mr} is not a share of the photos", "pass min_registered= a number in [0, 1]")
-    if cfg.get("single_camera") not in (None, True, False):
-        raise B3dgsError(f"single_camera={cfg.single_camera} is not null, true or false",
-                         "pass single_camera=null (one camera when every photo has the same size), true or false")
-    th = cfg.get("threads")
-    if th is not None and (isinstance(th, bool) or not isinstance(th, int) or th < 1):
-        raise B3dgsError(f"threads={th} is not a thread count", "pass threads= a positive integer, or null (all cores)")
 
 
 def _scene_name(cfg: DictConfig, out: Path) -> str:
@@ -743,7 +730,9 @@ def process(cfg: DictConfig) -> dict:
     ``command``, per stage ``{"skipped", "seconds", ...}``)."""
     from b3dgs.data.images import import_pycolmap
     from b3dgs.rundir import interrupt_handlers
+    from b3dgs.validation import validate_config
 
+    validate_config(cfg, app="process")
     import_pycolmap()  # first: importing pycolmap installs glog's handler (a stack trace) for SIGTERM
     with interrupt_handlers() as pending:  # SIGINT / SIGTERM: b3dgs.rundir.Interrupted, also while a stage runs
         pending.deferred = True  # recorded, and raised by _stop_if_signalled
@@ -782,7 +771,7 @@ def _process(cfg: DictConfig) -> dict:
 
 
 def _video_arg(cfg: DictConfig) -> Optional[Path]:
-    """``video=`` as an absolute path (None without it), checked: one of images= and video=, a file, ``fps`` > 0."""
+    """``video=`` as an absolute path (None without it), checked: one of images= and video=, a file."""
     given_images, given_video = cfg.get("images") is not None, cfg.get("video") is not None
     if given_images and given_video:
         raise B3dgsError(f"both images={cfg.images} and video={cfg.video} given",
@@ -795,9 +784,6 @@ def _video_arg(cfg: DictConfig) -> Optional[Path]:
     if not video.is_file():
         raise B3dgsError(f"video={video}: {'a folder, not a file' if video.is_dir() else 'no such file'}",
                          "pass video= a video file (e.g. clip.mp4), or images= a folder of photos")
-    fps = cfg.get("fps")
-    if isinstance(fps, bool) or not isinstance(fps, (int, float)) or not 0 < fps <= 120:
-        raise B3dgsError(f"fps={fps} is not a frame rate", "pass fps= frames per second to keep, e.g. fps=2")
     return video
 
 

@@ -311,19 +311,13 @@ def _refuse_foreign(out: Path, names: Sequence[str]) -> None:
 def render(cfg: DictConfig) -> dict:
     """Render ``cfg.run`` along ``cfg.path`` into ``cfg.out``; returns what was written."""
     from b3dgs.data.images import save_png
+    from b3dgs.validation import validate_config
     from b3dgs.viewer.run import open_run
 
+    validate_config(cfg, app="render")
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
-    fps = cfg.get("fps")
-    if not isinstance(fps, int) or isinstance(fps, bool) or fps < 1:
-        raise B3dgsError(f"fps={fps} is not a frame rate", "pass fps= an integer >= 1, e.g. fps=24")
-    max_side = cfg.get("max_side")
-    if max_side is not None and (not isinstance(max_side, int) or isinstance(max_side, bool) or max_side < 8):
-        raise B3dgsError(f"max_side={max_side} is too small", "pass max_side= an integer >= 8, or null")
-    panel_max = cfg.get("panel_max")
-    if panel_max is not None and not (isinstance(panel_max, (int, float)) and panel_max > 0):
-        raise B3dgsError(f"panel_max={panel_max} must be a positive number", "pass panel_max=0.05, or null (auto)")
+    fps, max_side, panel_max = cfg.fps, cfg.get("max_side"), cfg.get("panel_max")
     renderer = None
     if cfg.get("renderer"):
         from b3dgs.render.renderers import make_renderer
@@ -341,7 +335,7 @@ def render(cfg: DictConfig) -> dict:
         read_manifest(run.path, fix=_FIX_OUT)
     cams = [c.fit(max_side, upscale=True, min_side=8) for c in camera_path(run.scene, path, cfg.get("frames"))]
     frames, top = render_path(run, cams, cfg.get("panel"), panel_max, int(cfg.samples), cfg.get("count_scale"))
-    with_video = bool(cfg.get("video", True)) and len(frames) > 1
+    with_video = cfg.get("video", True) and len(frames) > 1
     names = [f"frame_{i:05d}.png" for i in range(len(frames))] + ([f"{label}.mp4"] if with_video else [])
     with _claim(out, names):
         pngs = [save_png(out / n, f) for n, f in zip(names[:len(frames)], frames)]

@@ -19,7 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from b3dgs.checkpoint import check_checkpoint
 from b3dgs.confs import conf_roots, global_groups, known_keys, load_option, option_names
 from b3dgs.errors import B3dgsError, did_you_mean
-from b3dgs.schema import UNRESOLVED, apply_rules, check_node, locate, show, value
+from b3dgs.schema import RULES, UNRESOLVED, apply_rules, check_node, is_int, is_number, locate, show, value
 
 __all__ = ["check_checkpoint", "validate_config"]
 
@@ -134,7 +134,7 @@ def _check_top(cfg: DictConfig, app: str, values: dict) -> None:
             shown = sorted(k for k in known if "/" not in k)  # not a defaults-list subgroup (experiment/strategy)
             raise B3dgsError(f"unknown config key {key}{did_you_mean(key, shown)}",
                              f"remove it or correct its spelling (top-level keys: {', '.join(shown)})")
-        if not isinstance(cfg[key], DictConfig) and key not in ("hydra", "run"):
+        if key != "hydra" and not isinstance(cfg._get_node(key), DictConfig):  # a missing run= is "run is not set"
             values[key] = value(cfg, key, key)
     extra_b3dgs = sorted(map(str, set(cfg.get("b3dgs") or {}) - {"debug"}))
     if extra_b3dgs or not isinstance(OmegaConf.select(cfg, "b3dgs.debug", default=False), bool):
@@ -188,7 +188,11 @@ def _check_train(cfg: DictConfig, values: dict) -> dict:
         if isinstance(cfg.get("model"), DictConfig) and key in cfg.model:
             raise B3dgsError(f"model.{key} is not read: b3dgs-train builds the model's {key} from its own setting",
                              f"pass {where} instead of model.{key}")
-    plugins = [(g, cfg[g]) for g in ("strategy", "schedule") if isinstance(cfg.get(g), DictConfig)]
+    from b3dgs.upgrade import schedule_node
+
+    schedule = cfg.get("schedule") if cfg.get("schedule") is not None else OmegaConf.create(schedule_node(None))
+    plugins = [(g, node) for g, node in (("strategy", cfg.get("strategy")), ("schedule", schedule))  # null schedule:
+               if isinstance(node, DictConfig)]  # the constant one
     plugins += _blocks(cfg, "posterior", "a posterior block", values)
     _blocks(cfg, "callbacks", "a callback", values)
     if isinstance(cfg.get("model"), DictConfig) and OmegaConf.is_interpolation(cfg.model, "background"):
@@ -200,6 +204,36 @@ def _check_train(cfg: DictConfig, values: dict) -> dict:
                          "over the first, the images are composited on the second",
                          "drop the model.background override (it follows data.background)")
     return _validate_plugins(plugins, max_steps=int(values["trainer.max_steps"]), sh_degree=values.get("model.sh_degree"))
+
+
+_BOOL, _POSITIVE = (lambda v: isinstance(v, bool), "true or false"), (lambda v: is_number(v) and v > 0, "a positive number")
+_SIDE = (lambda v: is_int(v, 8), "an integer >= 8 (or null: no cap)", "pass max_side=512, or max_side=null")
+#: the ranges of the values the other apps read (as :data:`b3dgs.schema.RULES`, which they get too: seed, threads),
+#: checked at each app's entry by :func:`validate_config`; the values that need the run or the files stay with their use
+APP_RULES = {
+    "render": {"fps": (lambda v: is_int(v, 1), "a frame rate, an integer >= 1", "pass fps=24"), "max_side?": _SIDE,
+               "panel_max?": (*_POSITIVE, "pass panel_max=0.05, or null (auto)"),
+               "video": (*_BOOL, "pass video=false for the frames alone")},
+    "export": {"overwrite": (*_BOOL, "pass overwrite=true to replace an existing out= file, or leave it out")},
+    "view": {"min_side": (lambda v: is_int(v, 8), "an integer >= 8", "pass min_side=32"), "max_side?": _SIDE,
+             "samples": (lambda v: is_int(v, 2), "an integer >= 2 (a spread needs two draws)", "pass samples=16"),
+             **{k: (*_BOOL, f"pass {k}=true or {k}=false") for k in ("frusta", "photos")},
+             **{k: (*_POSITIVE, f"pass {k}= a number > 0") for k in ("target_ms", "still_ms", "jitter", "duration_s?")},
+             "sigma_max?": (*_POSITIVE, "pass sigma_max=0.03, or null (auto)"),
+             "count_scale?": (*_POSITIVE, "pass count_scale=0.1 (as uq=native), or null for the model's own counts")},
+    "process": {**{k: (lambda v: is_int(v, 16), "a size in pixels, an integer >= 16", f"pass {k}=1600")
+                   for k in ("max_side", "sift_max_side")},
+                "min_registered": (lambda v: is_number(v) and 0 <= v <= 1, "a share of the photos, in [0, 1]",
+                                   "pass min_registered=0.5"),
+                "fps": (lambda v: is_number(v) and 0 < v <= 120, "a frame rate in (0, 120]", "pass fps=2"),
+                **{k: (*_BOOL, f"pass {k.rstrip('?')}=true or false") for k in ("single_camera?", "overwrite", "verbose")}},
+    "report": {"on_duplicate": (lambda v: v in ("error", "newest"), "error or newest", "pass on_duplicate=newest"),
+               "time_fractions": (lambda v: all(is_number(f) and 0 < f <= 1 for f in v), "fractions in (0, 1]",
+                                  "pass time_fractions=[0.95,0.99]"),
+               "bootstrap.confidence": (lambda v: is_number(v) and 0 < v < 1, "in (0, 1)", "pass bootstrap.confidence=0.95"),
+               **{f"bootstrap.{k}": (lambda v: is_int(v, 1), "an integer >= 1", f"pass bootstrap.{k}={d}")
+                  for k, d in (("n_resamples", 9999), ("bca_min_n", 6))}},
+}
 
 
 def _check_posterior_list(cfg: DictConfig) -> None:
@@ -231,7 +265,7 @@ def _check_resume(cfg: DictConfig, resume: Any) -> None:
         check_checkpoint(resume, fix)
 
 
-def _check_eval(cfg: DictConfig, values: dict) -> None:
+def _check_eval(cfg: DictConfig, values: dict) -> dict:
     runs = value(cfg, "run", "run")
     runs = runs if isinstance(runs, list) else [runs]
     if not runs:
@@ -250,7 +284,7 @@ def _check_eval(cfg: DictConfig, values: dict) -> None:
         if len(runs) < members:
             raise B3dgsError(f"uq={path[3:]} needs >= {members} run dirs, got {len(runs)}",
                              "pass run=[RUN_S0,RUN_S1,RUN_S2] (seeded runs of one scene and model)")
-    _validate_plugins(regimes, max_steps=0)
+    built = _validate_plugins(regimes, max_steps=0)
     seen: dict[Path, str] = {}
     for r in runs:
         if Path(str(r)).resolve() in seen:  # one model twice is no ensemble: zero spread between "members"
@@ -262,21 +296,27 @@ def _check_eval(cfg: DictConfig, values: dict) -> None:
             raise B3dgsError(f"{d} is not a b3dgs run dir (no config.yaml)", "pass run=RUN_DIR of a finished b3dgs-train run")
         check_checkpoint(d / "checkpoints" / "last.ckpt",
                          f"finish the run with `b3dgs-train ... hydra.run.dir={d} resume=auto`, or train it again")
+    return {path[len("uq."):]: regime for path, regime in built.items()}
 
 
 def validate_config(cfg: DictConfig, app: str = "train") -> dict:
-    """Check every value of a composed ``b3dgs-train`` (``app="train"``) or ``b3dgs-eval`` config, once: each plugin
-    (strategy, schedule, posterior block) is built and validated here and nowhere else (a train config's plugins are
-    returned by path, ``strategy``, ``schedule``, ``posterior.<name>``: :class:`b3dgs.lifecycle.Run` builds its model
-    from them).
+    """Check every value of a composed ``b3dgs-train`` (``app="train"``), ``b3dgs-eval`` or other app's (render,
+    export, view, process, report: :data:`APP_RULES`) config, once, at the app's entry: each plugin
+    (strategy, schedule, posterior block, UQ regime) is built and validated here and nowhere else (a train config's
+    plugins are returned by path, ``strategy``, ``schedule``, ``posterior.<name>``: :class:`b3dgs.lifecycle.Run` builds
+    its model from them; an eval config's regimes by name, which ``b3dgs-eval`` fits).
 
     Raises :class:`~b3dgs.errors.B3dgsError` naming the first problem and its fix; reads no images.
     """
     values: dict[str, Any] = {}
     _check_top(cfg, app, values)
-    if app == "eval":
-        _check_eval(cfg, values)
+    if app in APP_RULES:
+        for key in (k for k in map(str, cfg.keys()) if k not in ("hydra", "b3dgs") and isinstance(cfg.get(k), DictConfig)):
+            values.update({f"{key}.{k}": v for k, v in value(cfg, key, key).items()})  # e.g. bootstrap.confidence
+        apply_rules(values, {**RULES, **APP_RULES[app]})
         return {}
+    if app == "eval":
+        return _check_eval(cfg, values)
     _check_posterior_list(cfg)
     plugins = _check_train(cfg, values)
     _check_resume(cfg, values.get("resume"))

@@ -427,7 +427,7 @@ def test_video_frames_are_extracted_whole_and_a_broken_video_is_one_line(tmp_pat
     cases = [(dict(video=str(tmp_path / "nope.mp4")), "video=.*nope.mp4: no such file"),
              (dict(video=str(clip), images=str(tmp_path / "f")), "both images=.* and video=.* given"),
              (dict(), "no photos given"),
-             (dict(video=str(clip), fps=0), "fps=0 is not a frame rate")]
+             (dict(video=str(clip), fps=0), "fps=0 is invalid: it must be a frame rate")]
     for kw, want in cases:
         with pytest.raises(B3dgsError, match=want):
             process(_cfg(**{"out": str(tmp_path / "o2"), **kw}))

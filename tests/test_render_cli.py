@@ -97,7 +97,7 @@ def test_render_refuses_in_one_line(niw_run, tmp_path):
                         ([f"run={niw_run}", "path=spiral"], "path=spiral is not a camera path"),
                         ([f"run={niw_run}", "panel=pos"], "panel=pos is not a panel mode"),
                         ([f"run={niw_run}", "path=interpolate", "frames=1"], "frames=1 is too few"),
-                        ([f"run={niw_run}", "fps=0"], "fps=0 is not a frame rate")):
+                        ([f"run={niw_run}", "fps=0"], "fps=0 is invalid: it must be a frame rate")):
         res = cli(*args, cwd=tmp_path)
         assert res.returncode == 2, res.stderr[-2000:]
         lines = [ln for ln in res.stderr.splitlines() if ln.startswith("b3dgs-render: error:")]

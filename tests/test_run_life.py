@@ -19,12 +19,17 @@ TINY = ["data.max_side=32", "+data.n_views=8", "trainer.enable_progress_bar=fals
 
 
 def _spy_validate(monkeypatch) -> collections.Counter:
-    """Count ``validate`` calls per class over every plugin and schedule class loaded now."""
-    import b3dgs_plugins.posterior.niw  # noqa: F401 - the classes the run below builds
-    import b3dgs_plugins.strategy.default  # noqa: F401
+    """Count ``validate`` calls per class over every plugin, schedule and UQ regime class loaded now."""
+    import importlib
+    import pkgutil
+
+    import b3dgs_plugins
     from b3dgs.plugin import Plugin
     from b3dgs.schedule import TrainingSchedule
+    from b3dgs.uq.regime import UQRegime
 
+    for m in pkgutil.walk_packages(b3dgs_plugins.__path__, "b3dgs_plugins."):  # every plugin class, loaded now
+        importlib.import_module(m.name)
     counts: collections.Counter = collections.Counter()
     depth = [0]  # a subclass's validate calling super().validate() is one validation
 
@@ -33,7 +38,7 @@ def _spy_validate(monkeypatch) -> collections.Counter:
             yield s
             yield from subclasses(s)
 
-    for cls in [Plugin, TrainingSchedule, *subclasses(Plugin), *subclasses(TrainingSchedule)]:
+    for cls in [base for b in (Plugin, TrainingSchedule, UQRegime) for base in (b, *subclasses(b))]:
         if "validate" in vars(cls):
             def spy(self, *a, _orig=vars(cls)["validate"], **k):
                 depth[0] += 1

@@ -323,6 +323,8 @@ def test_view_settings_count_scale():
     from b3dgs.viewer.app import settings_from_cfg
 
     cfg = OmegaConf.load(Path(CONF_DIR) / "view.yaml")
+    cfg.pop("defaults")
+    cfg.run = "RUN"  # as b3dgs-view composes it
     assert settings_from_cfg(cfg).count_scale == 0.1
     cfg.count_scale = None
     assert settings_from_cfg(cfg).count_scale is None

@@ -13,6 +13,7 @@ from typing import Any, Optional
 import hydra
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
+from b3dgs.errors import B3dgsError
 from b3dgs.io import atomic_path, write_json
 from b3dgs.report import analysis as A
 from b3dgs.report import plots
@@ -325,6 +326,9 @@ def _group_tag(split: str) -> tuple[str, str]:
 
 def build_report(cfg: DictConfig) -> dict[str, Path]:
     """Write the report for ``cfg`` (conf/report.yaml); returns the written paths."""
+    from b3dgs.validation import validate_config
+
+    validate_config(cfg, app="report")
     patterns = _as_list(cfg.get("runs"))
     if not patterns:
         raise ReportError("runs= is empty",
@@ -407,7 +411,7 @@ def _hydra_main(cfg: DictConfig) -> None:
     existed = out.is_dir() and any(out.iterdir())
     try:
         paths = build_report(cfg)
-    except ReportError as e:
+    except B3dgsError as e:  # a ReportError, or a bad value (b3dgs.validation)
         if not existed:  # Hydra made the folder for the job log; a refused report leaves nothing
             try:
                 out.rmdir()

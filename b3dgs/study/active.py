@@ -16,6 +16,7 @@ selection is saved before its second round (``selection.json``), and an interrup
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import json
 import logging
@@ -401,11 +402,16 @@ class ActiveStudy:
         if family not in self._family_cfgs:
             from b3dgs.validation import validate_config
 
-            self._family_cfgs[family] = family_config(self.cfg, family, 0)
-            validate_config(self._family_cfgs[family], app="train")
-        out = self._family_cfgs[family].copy()
+            cfg = family_config(self.cfg, family, 0)
+            self._family_cfgs[family] = cfg, validate_config(cfg, app="train")
+        out = self._family_cfgs[family][0].copy()
         out.seed = int(seed)
         return out
+
+    def family_plugins(self, family: str) -> dict:
+        """Copies of the plugins :meth:`family_cfg` validated, for one model (a round validates nothing again)."""
+        self.family_cfg(family, 0)
+        return copy.deepcopy(self._family_cfgs[family][1])
 
     def _policies(self) -> list[tuple[str, Any]]:
         """(row label, policy) of every row; ``self.batches[label]`` is the row's batch selector. A policy in
@@ -473,7 +479,7 @@ class ActiveStudy:
         t0 = time.perf_counter()
         log.info("phase 1: %s seed %d, %d steps on %d views", family, seed, self.phase1, len(self.scene.train))
         fit_round(self.family_cfg(family, seed), self.scene, d, self.phase1,
-                  ckpt_path=str(ckpt) if ckpt.exists() else None)
+                  ckpt_path=str(ckpt) if ckpt.exists() else None, plugins=self.family_plugins(family))
         write_json(done, {"family": family, "seed": seed, "steps": self.phase1, "train_time_s": time.perf_counter() - t0,
                           "train_views": [c.name for c in self.scene.train], "scene_digest": self.scene_digest})
         return str(ckpt)
@@ -484,8 +490,8 @@ class ActiveStudy:
     def scoring_models(self, family: str, seed: int, members: int):
         from b3dgs.study.rounds import load_round
 
-        return [load_round(self.family_cfg(family, seed + i), self.scene, self.phase1_model(family, seed + i))
-                for i in range(members)]
+        return [load_round(self.family_cfg(family, seed + i), self.scene, self.phase1_model(family, seed + i),
+                           self.family_plugins(family)) for i in range(members)]
 
     def oracle_errors(self, family: str, seed: int) -> dict[str, float]:
         """The phase-1 model's current render error on every candidate (analysis only, cached)."""
@@ -548,12 +554,13 @@ class ActiveStudy:
         scene2 = dataclasses.replace(self.scene, train=list(self.scene.train) + acquired,
                                      candidates=[c for c in cands if c.name not in set(sel["selected"])])
         own = d / "checkpoints" / "last.ckpt"
-        cfg_f = self.family_cfg(policy.family, seed)
+        cfg_f, plugins = self.family_cfg(policy.family, seed), self.family_plugins(policy.family)
         t0 = time.perf_counter()
         if own.exists():  # an interrupted second round
-            module = fit_round(cfg_f, scene2, d, self.total, ckpt_path=str(own))
+            module = fit_round(cfg_f, scene2, d, self.total, ckpt_path=str(own), plugins=plugins)
         else:
-            module = fit_round(cfg_f, scene2, d, self.total, ckpt_path=self.phase1_model(policy.family, seed), new_round=True)
+            module = fit_round(cfg_f, scene2, d, self.total, ckpt_path=self.phase1_model(policy.family, seed),
+                               new_round=True, plugins=plugins)
         t_round2 = time.perf_counter() - t0
         ev = self.evaluate(module)
         res = {**sel, "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": ev.get("lpips"),

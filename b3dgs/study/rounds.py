@@ -23,12 +23,13 @@ log = logging.getLogger(__name__)
 
 
 def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt_path: Optional[str] = None,
-              new_round: bool = False, checkpoint_every: Optional[int] = None):
+              new_round: bool = False, checkpoint_every: Optional[int] = None, plugins: Optional[dict] = None):
     """Train ``cfg``'s model on ``scene.train`` up to global step ``stop_step`` and return the module.
 
     ``ckpt_path``: continue from this checkpoint (an interrupted round, or the previous round when
     ``new_round``: then the training set may hold views the checkpoint's run did not have, from the same
-    view pool). ``run_dir/checkpoints/last.ckpt`` is written every ``checkpoint_every`` steps (default
+    view pool). ``plugins``: those the study validated for ``cfg`` (by path, :func:`b3dgs.validation.validate_config`'s),
+    else the model validates its own. ``run_dir/checkpoints/last.ckpt`` is written every ``checkpoint_every`` steps (default
     ``cfg.trainer.checkpoint_every``), every ``trainer.checkpoint_every_s`` seconds and at the end.
     """
     from b3dgs.callbacks import ResumeState, RunCheckpoint
@@ -38,7 +39,7 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
     if not 0 < int(stop_step) <= total:
         raise B3dgsError(f"a round must stop within the total budget: stop_step={stop_step}, trainer.max_steps={total}",
                          f"pass a stop step in 1..{total}, or raise trainer.max_steps")
-    run = Run(cfg, run_dir)  # validated by the study that composed it (b3dgs.study.active.family_config)
+    run = Run(cfg, run_dir, plugins=plugins)  # validated by the study that composed it (ActiveStudy.family_cfg)
     # a round continued from a checkpoint gets the guard counters back from it
     module = run.start(scene, reset_guards=ckpt_path is None)
     module.allow_new_views = run.dm.allow_new_views = bool(new_round)
@@ -50,11 +51,12 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
     return module
 
 
-def load_round(cfg: DictConfig, scene: Scene, ckpt_path: str):
-    """A module holding ``ckpt_path``'s model for scoring or evaluation (no trainer; on the renderer's device)."""
+def load_round(cfg: DictConfig, scene: Scene, ckpt_path: str, plugins: Optional[dict] = None):
+    """A module holding ``ckpt_path``'s model for scoring or evaluation (no trainer; on the renderer's device), built
+    from ``plugins`` as :func:`fit_round`."""
     from b3dgs.lifecycle import build_run, load_checkpoint, read_checkpoint
 
-    return load_checkpoint(build_run(cfg, scene), read_checkpoint(ckpt_path), new_views=True)
+    return load_checkpoint(build_run(cfg, scene, plugins=plugins), read_checkpoint(ckpt_path), new_views=True)
 
 
 def training_signature(cfg: DictConfig) -> str:

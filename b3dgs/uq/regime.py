@@ -13,6 +13,7 @@ import torch
 from torch import Tensor
 
 from b3dgs.errors import B3dgsError
+from b3dgs.plugin import validate_once
 from b3dgs.types import Camera, Scene
 
 
@@ -52,7 +53,7 @@ class UQRegime:
                              fix="pass the regime's chunk >= 1 (draws rendered together, e.g. uq.native_sh.chunk=10)")
 
     def fit(self, models: Sequence, scene: Scene) -> None:
-        self.validate()
+        validate_once(self)  # b3dgs-eval's config check did it
         if not models:
             raise B3dgsError(f"{type(self).__name__} needs at least one trained model",
                              fix="pass at least one trained SplatModule, e.g. [b3dgs.runs.load_run(run_dir).module]")

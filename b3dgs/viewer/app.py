@@ -32,33 +32,20 @@ STARTS = ("orbit", "camera")
 
 
 def settings_from_cfg(cfg: DictConfig):
+    from b3dgs.validation import validate_config
     from b3dgs.viewer.modes import MODES
     from b3dgs.viewer.server import ViewerSettings
 
+    check_port(cfg.get("port", 0))
+    validate_config(cfg, app="view")
     kw = {k: cfg.get(k) for k in SETTINGS if cfg.get(k) is not None}
     if str(kw.get("mode", "rgb")) not in MODES:
         raise B3dgsError(f"unknown viewer mode {kw['mode']!r}", f"pass mode= one of {', '.join(MODES)}")
-    for key, least in (("port", 0), ("min_side", 8), ("samples", 2)):
-        if key in kw and (not isinstance(kw[key], int) or isinstance(kw[key], bool) or kw[key] < least):
-            raise B3dgsError(f"{key}={kw[key]} is not a valid {key}", f"pass {key}= an integer >= {least}")
-    check_port(kw.get("port", 0))
-    if "max_side" in kw and (not isinstance(kw["max_side"], int) or kw["max_side"] < 8):
-        raise B3dgsError(f"max_side={kw['max_side']} is too small", "pass max_side= an integer >= 8, or null")
-    if "max_side" in cfg and cfg.get("max_side") is None:
-        kw["max_side"] = None  # no cap: frames as large as the browser window
     if str(kw.get("start", "orbit")) not in STARTS:
         raise B3dgsError(f"start={kw['start']} is not a start view", f"pass start= one of {', '.join(STARTS)}")
-    for key in ("frusta", "photos"):
-        if key in kw and not isinstance(kw[key], bool):
-            raise B3dgsError(f"{key}={kw[key]} is not true or false", f"pass {key}=true or {key}=false")
-    for key in ("target_ms", "still_ms", "jitter", "sigma_max"):
-        if key in kw and not (isinstance(kw[key], (int, float)) and kw[key] > 0):
-            raise B3dgsError(f"{key}={kw[key]} must be a positive number", f"pass {key}= a number > 0")
-    if "count_scale" in cfg:  # null is a value here (the model's own posterior), not "unset"
-        c = cfg.get("count_scale")
-        if c is not None and not (isinstance(c, (int, float)) and not isinstance(c, bool) and 0 < c < float("inf")):
-            raise B3dgsError(f"count_scale={c} is not a valid count scale", "pass count_scale= a number > 0, or null")
-        kw["count_scale"] = None if c is None else float(c)
+    for key in ("max_side", "count_scale"):  # null is a value here (no cap; the model's own posterior), not "unset"
+        if key in cfg:
+            kw[key] = cfg.get(key)
     return ViewerSettings(**kw)
 
 
@@ -98,7 +85,7 @@ def serve(cfg: DictConfig, settings=None):
     """Open the run, start the viewer; returns the started :class:`~b3dgs.viewer.server.ViewerApp`."""
     if settings is None:
         settings = settings_from_cfg(cfg)
-        check_host(settings.host)
+        check_host(str(settings.host))
     import torch
 
     try:
@@ -130,9 +117,8 @@ def hydra_main(cfg: DictConfig) -> None:
     from b3dgs.errors import known_errors, quiet_known_noise
 
     with known_errors("b3dgs-view", cfg):
-        check_port(cfg.get("port", 8080))  # an address it cannot serve on is refused first, within a second or two
-        check_host(str(cfg.get("host", "127.0.0.1")))
-        settings = settings_from_cfg(cfg)
+        settings = settings_from_cfg(cfg)  # a bad value or an address it cannot serve on: refused within a second or two
+        check_host(str(settings.host))
         quiet_known_noise()
         logging.getLogger("websockets").setLevel(logging.WARNING)
         from b3dgs.rundir import interrupt_handlers
