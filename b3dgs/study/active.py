@@ -447,9 +447,12 @@ class ActiveStudy:
         # a label names the family when the policy's default family differs, e.g. uniform@niw
         out = []
         self.batches = {}
+        default_family: dict[str, str] = {}  # base policy -> its default family (each base built once to read it)
         for label, p, b in rows:
             base = label.partition("@")[0]
-            default = load_policy(base)[1].family
+            if base not in default_family:
+                default_family[base] = load_policy(base)[1].family
+            default = default_family[base]
             lab = row_label(base if p.family == default else f"{base}@{p.family}", b)
             if lab not in self.batches:
                 out.append((lab, p))
