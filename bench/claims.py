@@ -377,7 +377,8 @@ def why(v: str, st: dict, unit: str, source: str = "the paper") -> str:
         return f"{n} scene: no test yet ({st['wins']} win, {st['losses']} loss), {ci_txt}"
     if v == "fails":
         sig = "significantly" if p is not None and p < ALPHA else "not significantly"
-        return (f"our effect has the opposite sign ({sig}: p = {p:.3g}, {ci_txt}, "
+        effect = "no effect on average" if st["mean"] == 0 else "our effect has the opposite sign"
+        return (f"{effect} ({sig}: p = {p:.3g}, {ci_txt}, "
                 f"{st['wins']} of {n} scenes in {direction})")
     if v == "holds in sign only":
         return (f"{direction} ({st['wins']}/{n} scenes) but p = {p:.3g} (floor {floor:.3g} with {n} "
