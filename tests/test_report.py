@@ -279,19 +279,18 @@ def test_report_from_synthetic_runs(tmp_path):
 # ------------------------------------------------------------------------------------------ slow
 @pytest.mark.slow
 def test_report_on_real_short_training_runs(tmp_path):
-    for m in ("standard", "niw"):
-        res = subprocess.run([sys.executable, "-m", "b3dgs.train", "trainer=quick", "trainer.max_steps=60",
-                              "trainer.eval_every=20", "logger=none", "trainer.enable_progress_bar=false",
-                              "trainer.save_renders=false", "data.max_side=48", f"model={m}",
-                              f"hydra.run.dir={tmp_path / 'runs' / m}"], capture_output=True, text=True, cwd=ROOT,
-                             timeout=600)
-        assert res.returncode == 0, res.stderr[-2000:]
+    res = subprocess.run([sys.executable, "-m", "b3dgs.train", "-m", "trainer=quick", "trainer.max_steps=30",
+                          "trainer.eval_every=10", "logger=none", "trainer.enable_progress_bar=false",
+                          "trainer.save_renders=false", "data.max_side=48", "model=standard,niw",
+                          f"hydra.sweep.dir={tmp_path / 'runs'}", "hydra.sweep.subdir=${model.name}"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=600)  # both runs in one process
+    assert res.returncode == 0, res.stderr[-2000:]
     res = subprocess.run([sys.executable, "-m", "b3dgs.report.app", f"runs={tmp_path / 'runs'}/**",
                           f"out={tmp_path / 'rep'}"], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     data = json.loads((tmp_path / "rep" / "report.json").read_text())
     assert set(data["canonical"]["table"]) == {"standard", "niw"}
-    assert data["canonical"]["curves"]["psnr"]["synthetic"]["niw"]["step"] == [20, 40, 60]
+    assert data["canonical"]["curves"]["psnr"]["synthetic"]["niw"]["step"] == [10, 20, 30]
 
 
 CHECK_JS = """<script>window.addEventListener('load', () => {
