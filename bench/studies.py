@@ -284,10 +284,13 @@ def main() -> None:
     if args.archive is None:  # smoke runs elsewhere never write into the committed archive
         args.archive = str(RESULTS / "runs") if args.out == ap.get_default("out") else str(Path(args.out) / "archive")
     jobs = plan(args)
-    shared = twins(jobs) if args.share else {}
+    # twins composes every run's config (most of a --report-only's time): a report trains nothing, so shares nothing
+    sharing = args.share and (args.dry_run or not args.report_only)
+    shared = twins(jobs) if sharing else {}
     todo = [j for j in jobs if not archived(args, j[0], j[2])]
-    print(f"{len(jobs)} runs, {len(jobs) - len(todo)} finished, {len(todo)} to do "
-          f"({len([j for j in todo if j[0] in shared])} of them the same training run as another: shared)", flush=True)
+    print(f"{len(jobs)} runs, {len(jobs) - len(todo)} finished, {len(todo)} to do" + (
+        f" ({len([j for j in todo if j[0] in shared])} of them the same training run as another: shared)"
+        if sharing else ""), flush=True)
     if args.dry_run:
         for run_dir, _, study in jobs:
             print(("done " if archived(args, run_dir, study) else "todo ") + str(run_dir)

@@ -279,19 +279,18 @@ def test_report_from_synthetic_runs(tmp_path):
 # ------------------------------------------------------------------------------------------ slow
 @pytest.mark.slow
 def test_report_on_real_short_training_runs(tmp_path):
-    for m in ("standard", "niw"):
-        res = subprocess.run([sys.executable, "-m", "b3dgs.train", "trainer=quick", "trainer.max_steps=60",
-                              "trainer.eval_every=20", "logger=none", "trainer.enable_progress_bar=false",
-                              "trainer.save_renders=false", "data.max_side=48", f"model={m}",
-                              f"hydra.run.dir={tmp_path / 'runs' / m}"], capture_output=True, text=True, cwd=ROOT,
-                             timeout=600)
-        assert res.returncode == 0, res.stderr[-2000:]
+    res = subprocess.run([sys.executable, "-m", "b3dgs.train", "-m", "trainer=quick", "trainer.max_steps=30",
+                          "trainer.eval_every=10", "logger=none", "trainer.enable_progress_bar=false",
+                          "trainer.save_renders=false", "data.max_side=48", "model=standard,niw",
+                          f"hydra.sweep.dir={tmp_path / 'runs'}", "hydra.sweep.subdir=${model.name}"],
+                         capture_output=True, text=True, cwd=ROOT, timeout=600)  # both runs in one process
+    assert res.returncode == 0, res.stderr[-2000:]
     res = subprocess.run([sys.executable, "-m", "b3dgs.report.app", f"runs={tmp_path / 'runs'}/**",
                           f"out={tmp_path / 'rep'}"], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
     data = json.loads((tmp_path / "rep" / "report.json").read_text())
     assert set(data["canonical"]["table"]) == {"standard", "niw"}
-    assert data["canonical"]["curves"]["psnr"]["synthetic"]["niw"]["step"] == [20, 40, 60]
+    assert data["canonical"]["curves"]["psnr"]["synthetic"]["niw"]["step"] == [10, 20, 30]
 
 
 CHECK_JS = """<script>window.addEventListener('load', () => {
@@ -359,8 +358,9 @@ def test_canonical_grid_uq_regimes_ensemble_and_merge(tmp_path):
     were)."""
     out, rep = tmp_path / "b", tmp_path / "rep"
     cmd = [sys.executable, "-m", "bench.studies", "--studies", "canonical", "--uq", "--uq-samples", "4", "--scenes",
-           "synthetic", "--seeds", "0", "1", "2", "--methods", "standard", "niw", "--max-steps", "40", "--out", str(out),
-           "--report", str(rep), "--jobs", "2", "--threads", "1", "--extra", "data.max_side=32", "renderer=cpu"]
+           "synthetic", "--seeds", "0", "1", "2", "--methods", "standard", "niw", "--max-steps", "20", "--out", str(out),
+           "--report", str(rep), "--jobs", "2", "--threads", "1", "--extra", "data.max_side=32", "renderer=cpu",
+           "trainer.eval_every=20"]  # one curve point, not one every max_steps // 12 (changes no result)
     res = subprocess.run(cmd, capture_output=True, text=True, cwd=ROOT, timeout=900)
     assert res.returncode == 0, res.stderr[-3000:]
     arch = out / "archive" / "synthetic"
