@@ -5,7 +5,8 @@ compression study's fine-tunes and loading a run (``b3dgs-eval``, the viewer, ex
   scene read once per run) and the model (:func:`build_run`);
 * :class:`Run`, one run's life: validation once, :meth:`Run.start`, :meth:`Run.fit` (the one trainer,
   :func:`build_trainer`), ``b3dgs-train``'s run (:meth:`Run.train`), ``metrics.json`` (:meth:`Run.finish`,
-  :meth:`Run.amend_metrics`);
+  :meth:`Run.amend_metrics`, :meth:`Run.share_training`) and a study's records of a run (:meth:`Run.record`: a row's
+  ``result.json``, phase 1's ``phase1.json``);
 * :func:`read_checkpoint` and :func:`load_checkpoint` (a checkpoint's model into a built module), and the checks of a
   resume against the run it continues (:func:`check_resume`, :func:`check_resume_renderer`);
 * the checks of a run's settings that need its components (:func:`check_devices`, :func:`warn_slow_renderer`,
@@ -15,6 +16,8 @@ The run dir (lock, claim, resume and overwrite) is :mod:`b3dgs.rundir`'s.
 """
 from __future__ import annotations
 
+import contextlib
+import json
 import logging
 import os
 import warnings
@@ -397,7 +400,8 @@ class Run:
     validated once (``app``, e.g. ``"train"``; ``None`` where the study that composed it validated it, giving
     ``plugins``) with the plugins that check built going into the first model, seed and build (:meth:`start`), the one place a trainer is
     assembled and fit (:meth:`fit`), resume, the final evaluation and ``metrics.json``, the done marker
-    (:meth:`finish`, its one writer), and any later addition to a finished run (:meth:`amend_metrics`)."""
+    (:meth:`finish`, its one writer), any later addition to a finished run (:meth:`amend_metrics`), and a study's
+    records of a run it trained (:meth:`record`; a study row is such a run, its ``result.json`` the done marker)."""
 
     def __init__(self, cfg: Optional[DictConfig] = None, run_dir=None, app: Optional[str] = None,
                  plugins: Optional[dict] = None):
@@ -579,3 +583,52 @@ class Run:
         from b3dgs.io import write_json
 
         write_json(self.run_dir / "metrics.json", metrics)  # the one writer of a run's done marker
+
+    def record(self, name: str, payload: dict, prog: str = "b3dgs-study") -> dict:
+        """Write a study's record of this run (a row's ``selection.json`` and ``result.json``, its done marker; phase 1's
+        ``phase1.json``; a compression row's ``result.json``) atomically, under the run dir's lock, listed in its
+        manifest (made by the first record); returns ``payload``."""
+        from b3dgs.io import write_json
+        from b3dgs.rundir import manifest_lock, record_written, start_manifest
+
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        with manifest_lock(self.run_dir, prog):
+            start_manifest(self.run_dir)
+            record_written(self.run_dir, [name])
+            write_json(self.run_dir / name, payload)
+        return payload
+
+    def recorded(self, name: str) -> Optional[dict]:
+        """This run's study record ``name`` (:meth:`record`), or None before it is written."""
+        path = self.run_dir / name
+        return json.loads(path.read_text()) if path.is_file() else None
+
+    @contextlib.contextmanager
+    def exclusive(self):
+        """This run for one process at a time (parallel seeds of a study share phase-1 models): a lock beside the run
+        dir (:mod:`b3dgs.locks`), released when its holder exits, also when it is killed."""
+        from b3dgs.locks import process_lock
+
+        self.run_dir.parent.mkdir(parents=True, exist_ok=True)
+        with process_lock(self.run_dir.parent / f".{self.run_dir.name}.lock"):
+            yield
+
+    def share_training(self, twin) -> dict:
+        """This run is the finished run ``twin``'s training (an equal training config: bench's training twins): its
+        manifest and config.yaml, ``twin``'s curve, and ``twin``'s metrics with ``training_shared_with`` naming it
+        (the done marker, last); no checkpoint. Returns the metrics."""
+        import shutil
+
+        from b3dgs.rundir import run_dir_lock, save_config, write_manifest
+
+        twin = Path(twin)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        with run_dir_lock(self.run_dir):
+            write_manifest(self.run_dir)
+            save_config(self.cfg, self.run_dir / "config.yaml")
+            if (twin / "curve.json").exists():
+                shutil.copy2(twin / "curve.json", self.run_dir / "curve.json")
+            metrics = json.loads((twin / "metrics.json").read_text())
+            metrics.update({"method": str(self.cfg.model.name), "training_shared_with": str(twin)})
+            self._write_metrics(metrics)
+        return metrics

@@ -313,6 +313,13 @@ def write_manifest(run_dir: Path) -> None:
                     (old or {}).get("created"), amended=(old or {}).get("amended"))
 
 
+def start_manifest(folder: Path) -> None:
+    """Give ``folder`` an empty run manifest if it has none (a study row's run dir, :meth:`b3dgs.lifecycle.Run.record`);
+    the caller holds its lock."""
+    if read_manifest(folder) is None:
+        _write_manifest(folder, [], None, None)
+
+
 def _check_names(names: Iterable[str]) -> list[str]:
     out = []
     for n in map(str, names):

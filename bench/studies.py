@@ -100,22 +100,11 @@ def twins(jobs, studies=("sparse", "initcap")) -> dict[Path, Path]:
 
 
 def write_shared(run_dir: Path, overrides: list[str], twin: Path) -> dict:
-    """A run dir for a run that is the same training run as ``twin``: its own composed config.yaml and
-    twin's metrics (and curve) with ``training_shared_with`` naming the twin. No checkpoint is written."""
-    import shutil
+    """A run dir for a run that is the same training run as ``twin`` (:meth:`b3dgs.lifecycle.Run.share_training`):
+    its own composed config, twin's curve and metrics with ``training_shared_with`` naming the twin; no checkpoint."""
+    from b3dgs.lifecycle import Run
 
-    from b3dgs.io import write_json
-    from b3dgs.rundir import save_config
-
-    cfg = _compose_train([*overrides, f"trainer.default_root_dir={run_dir}"])
-    run_dir.mkdir(parents=True, exist_ok=True)
-    save_config(cfg, run_dir / "config.yaml")
-    if (twin / "curve.json").exists():
-        shutil.copy2(twin / "curve.json", run_dir / "curve.json")
-    m = json.loads((twin / "metrics.json").read_text())
-    m.update({"method": str(cfg.model.name), "training_shared_with": str(twin)})
-    write_json(run_dir / "metrics.json", m)  # last: the done marker
-    return m
+    return Run(_compose_train([*overrides, f"trainer.default_root_dir={run_dir}"]), run_dir).share_training(twin)
 
 
 def uq_regimes(names: list[str], samples: int, seed: int) -> dict:

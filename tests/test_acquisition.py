@@ -281,6 +281,10 @@ def test_study_resumes_after_interruption_between_and_within_rounds(tmp_path):
     sc = cut / "synthetic"
     assert (sc / "phase1" / "standard_s0" / "phase1.json").exists()
     assert (sc / "farthest_s0" / "selection.json").exists() and not (sc / "farthest_s0" / "result.json").exists()
+    # a row is a run: its records are listed in its manifest as they are written (b3dgs.lifecycle.Run.record)
+    from b3dgs.rundir import run_files
+    assert run_files(sc / "farthest_s0") == ["selection.json"]
+    assert run_files(sc / "phase1" / "standard_s0") == ["phase1.json"]
     p1 = (sc / "phase1" / "standard_s0" / "phase1.json").stat().st_mtime_ns
     r = _study(cut)
     assert r.returncode == 0, r.stderr[-3000:]
@@ -291,6 +295,7 @@ def test_study_resumes_after_interruption_between_and_within_rounds(tmp_path):
     done = (sc / "native_s0" / "result.json").stat().st_mtime_ns
     r = _study(cut)  # everything finished: nothing is retrained
     assert r.returncode == 0 and (sc / "native_s0" / "result.json").stat().st_mtime_ns == done
+    assert run_files(sc / "native_s0") == ["result.json", "selection.json"]
     meta = json.loads((sc / "meta.json").read_text())
     assert meta["hole"] and not set(meta["hole"]) & set(meta["initial_views"])
     assert (sc / "study.md").read_text().count("|") > 10
@@ -340,11 +345,11 @@ def test_study_shares_a_second_round_only_when_it_is_the_same_run(tmp_path):
 def test_phase1_lock_serialises_jobs_that_share_a_phase1_model(tmp_path):
     """Parallel seed jobs (``-m`` with a parallel launcher) share the ensemble's phase-1 members: the second
     job waits for the first instead of training the same model into the same directory."""
-    from b3dgs.study.active import phase1_lock
+    from b3dgs.lifecycle import Run
 
     d = tmp_path / "phase1" / "standard_s1"
-    code = ("import sys, time; from pathlib import Path; from b3dgs.study.active import phase1_lock\n"
-            f"with phase1_lock(Path({str(d)!r})):\n"
+    code = ("import sys, time; from pathlib import Path; from b3dgs.lifecycle import Run\n"
+            f"with Run(run_dir=Path({str(d)!r})).exclusive():\n"
             f"    Path({str(tmp_path / 'held')!r}).write_text('1'); time.sleep(1.5)\n"
             f"    Path({str(tmp_path / 'child_end')!r}).write_text(repr(time.time()))\n")
     child = subprocess.Popen([sys.executable, "-c", code])
@@ -352,7 +357,7 @@ def test_phase1_lock_serialises_jobs_that_share_a_phase1_model(tmp_path):
     while not (tmp_path / "held").exists():
         assert time.time() < deadline and child.poll() is None, "the child never took the lock"
         time.sleep(0.02)
-    with phase1_lock(d):
+    with Run(run_dir=d).exclusive():
         got = time.time()
     child.wait(timeout=60)
     assert got >= float((tmp_path / "child_end").read_text())

@@ -8,14 +8,13 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import open_dict
 
 from b3dgs.errors import format_error
-from b3dgs.lifecycle import build_plugins, build_renderer
-from b3dgs.train import CONF_DIR, train
+from b3dgs.lifecycle import build_renderer
+from b3dgs.train import CONF_DIR
 from b3dgs.validation import validate_config
 from tests.fake_package import install_conf_package
+from tests.inproc import train_here
 
 TINY = ["data.max_side=16", "+data.n_views=6", "trainer.enable_progress_bar=false", "logger=none",
         "trainer.eval_every=100", "trainer.save_renders=false", "threads=1"]
@@ -45,11 +44,7 @@ def _compose(config_name, overrides):
 
 
 def _train(tmp_path, overrides):
-    cfg = _compose("train", [f"hydra.run.dir={tmp_path}", *TINY, *overrides])
-    HydraConfig.instance().set_config(cfg)
-    with open_dict(cfg):
-        cfg.trainer.default_root_dir = str(tmp_path)
-    return train(cfg)
+    return train_here(tmp_path, [*TINY, *overrides])
 
 
 def test_outside_package_adds_a_posterior_block(package, tmp_path):

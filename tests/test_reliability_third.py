@@ -16,11 +16,10 @@ import torch
 import yaml
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import open_dict
 
 from b3dgs.errors import B3dgsError, format_error
-from b3dgs.train import CONF_DIR, train
+from b3dgs.train import CONF_DIR
+from tests.inproc import train_here
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = ["data=synthetic", "+data.n_views=8", "data.max_side=32", "trainer.max_steps=4", "trainer.eval_every=100",
@@ -28,14 +27,7 @@ TINY = ["data=synthetic", "+data.n_views=8", "data.max_side=32", "trainer.max_st
 
 
 def run_train(run_dir: Path, overrides: list[str]) -> dict:
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="train", overrides=[f"hydra.run.dir={run_dir}", *TINY, *overrides],
-                      return_hydra_config=True)
-        HydraConfig.instance().set_config(cfg)
-        with open_dict(cfg):
-            cfg.trainer.default_root_dir = str(run_dir)
-        return train(cfg)
+    return train_here(run_dir, [*TINY, *overrides])
 
 
 def snapshot(d: Path) -> dict:

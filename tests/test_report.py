@@ -344,6 +344,8 @@ def test_study_grid_shares_runs_that_are_the_same_training_run(tmp_path):
     m = json.loads((niw / "metrics.json").read_text())
     assert m["training_shared_with"] == str(std) and m["method"] == "niw"
     assert not (niw / "checkpoints").exists() and (std / "checkpoints").exists()
+    from b3dgs.rundir import read_manifest
+    assert "metrics.json" in read_manifest(niw)["files"]  # a run of its own (b3dgs.lifecycle.Run.share_training)
     assert "model:\n" in (niw / "config.yaml").read_text() and "name: niw" in (niw / "config.yaml").read_text()
     assert "same training run as another" in (rep / "report.md").read_text()
     # a run outside the default --out is archived beside it, never into the committed bench/results/runs

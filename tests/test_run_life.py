@@ -6,13 +6,10 @@ import json
 from types import SimpleNamespace
 
 import pytest
-from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import open_dict
 
 from b3dgs.errors import B3dgsError
-from b3dgs.train import CONF_DIR, train
+from tests.inproc import train_here
 
 TINY = ["data.max_side=32", "+data.n_views=8", "trainer.enable_progress_bar=false", "logger=none",
         "trainer.max_steps=4", "trainer.eval_every=4", "trainer.save_renders=false"]
@@ -52,14 +49,7 @@ def _spy_validate(monkeypatch) -> collections.Counter:
 
 
 def _train(tmp_path, over):
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="train", overrides=[f"hydra.run.dir={tmp_path}", *TINY, *over],
-                      return_hydra_config=True)
-        HydraConfig.instance().set_config(cfg)
-        with open_dict(cfg):
-            cfg.trainer.default_root_dir = str(tmp_path)
-        return train(cfg)
+    return train_here(tmp_path, [*TINY, *over])
 
 
 def test_train_validates_each_plugin_once_and_amends_through_the_run(tmp_path, monkeypatch):

@@ -7,24 +7,14 @@ from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
-from hydra.core.global_hydra import GlobalHydra
-from hydra.core.hydra_config import HydraConfig
-from omegaconf import open_dict
 
-from b3dgs.train import CONF_DIR, train
+from tests.inproc import train_here
 
 QUICK = ["data.max_side=64", "+data.n_views=24", "trainer.enable_progress_bar=false", "logger=none"]
 
 
 def run_train(tmp_path: Path, overrides: list[str]) -> dict:
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="train", overrides=[f"hydra.run.dir={tmp_path}", *overrides], return_hydra_config=True)
-        HydraConfig.instance().set_config(cfg)
-        with open_dict(cfg):
-            cfg.trainer.default_root_dir = str(tmp_path)
-        return train(cfg)
+    return train_here(tmp_path, overrides)
 
 
 def test_short_training_improves_and_writes_run_dir(tmp_path):

@@ -243,24 +243,13 @@ def test_calib_run_trains_without_its_calibration_views_and_uq_json_reports_them
     epistemic decomposition for the regimes that have one (none for uq=constant)."""
     import json
 
-    from hydra import compose, initialize_config_dir
-    from hydra.core.global_hydra import GlobalHydra
-    from hydra.core.hydra_config import HydraConfig
-    from omegaconf import open_dict
-
     from b3dgs.eval import evaluate_uq
-    from b3dgs.train import CONF_DIR, train
     from b3dgs_plugins.uq.constant import ConstantUQ
+    from tests.inproc import train_here
 
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="train", return_hydra_config=True, overrides=[
-            f"hydra.run.dir={tmp_path}", "model=niw", "data.max_side=32", "+data.n_views=24", "data.calib_every=4",
-            "trainer.max_steps=30", "trainer.enable_progress_bar=false", "logger=none", "trainer.save_renders=false"])
-        HydraConfig.instance().set_config(cfg)
-        with open_dict(cfg):
-            cfg.trainer.default_root_dir = str(tmp_path)
-        metrics = train(cfg)
+    metrics = train_here(tmp_path, ["model=niw", "data.max_side=32", "+data.n_views=24", "data.calib_every=4",
+                                    "trainer.max_steps=30", "trainer.enable_progress_bar=false", "logger=none",
+                                    "trainer.save_renders=false"])
     full = load_scene("synthetic", None, max_side=32, n_views=24)
     assert metrics["num_train_views"] == len(full.train) - len(full.train) // 4
     res = evaluate_uq([str(tmp_path)], {"constant": ConstantUQ(), "native": NativeUQ(samples=3),

@@ -5,29 +5,22 @@ import collections
 from pathlib import Path
 
 import pytest
-from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf, open_dict
 
 from b3dgs.errors import B3dgsError
 from b3dgs.train import CONF_DIR
+from tests.inproc import compose_app
 from tests.test_run_life import _spy_validate, _train
 
 
 def test_eval_validates_each_regime_and_each_loaded_plugin_once(tmp_path, monkeypatch):
-    from hydra import compose, initialize_config_dir
-    from hydra.core.hydra_config import HydraConfig
-
     from b3dgs.eval import hydra_main
 
     run = tmp_path / "run"
     _train(run, ["model=niw"])
     counts = _spy_validate(monkeypatch)
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="eval", overrides=[f"run={run}", "uq=[native,proxy]", "uq.samples=2", "max_views=1",
-                                                     "panels=0", f"out={tmp_path / 'uq'}"], return_hydra_config=True)
-        HydraConfig.instance().set_config(cfg)
-        hydra_main(cfg)
+    hydra_main(compose_app("eval", [f"run={run}", "uq=[native,proxy]", "uq.samples=2", "max_views=1", "panels=0",
+                                    f"out={tmp_path / 'uq'}"]))
     assert (tmp_path / "uq" / "uq.json").is_file()
     # before issue 53: each regime twice (the config check, then fit); the loaded run's plugins: once, as it is built
     assert dict(counts) == {"NativeUQ": 1, "ProxyUQ": 1, "AdaptiveDensityControl": 1, "NIWBlock": 1,
@@ -35,9 +28,6 @@ def test_eval_validates_each_regime_and_each_loaded_plugin_once(tmp_path, monkey
 
 
 def test_the_study_validates_each_composed_config_once_not_per_round(tmp_path, monkeypatch):
-    from hydra import compose, initialize_config_dir
-    from hydra.core.hydra_config import HydraConfig
-
     from b3dgs.study import rounds
     from b3dgs.study.active import ActiveStudy
 
@@ -45,18 +35,15 @@ def test_the_study_validates_each_composed_config_once_not_per_round(tmp_path, m
     fits = []
     fit_round = rounds.fit_round
     monkeypatch.setattr(rounds, "fit_round", lambda *a, **k: fits.append(a[3]) or fit_round(*a, **k))
-    GlobalHydra.instance().clear()
-    with initialize_config_dir(config_dir=CONF_DIR, version_base="1.3"):
-        cfg = compose(config_name="study", return_hydra_config=True, overrides=[
-            "data=synthetic", "data.max_side=24", "+data.n_views=24", "renderer=cpu", "trainer.max_steps=20",
-            "trainer.checkpoint_every_s=0", "strategy.refine_start=4", "strategy.refine_every=4", "strategy.refine_stop=16",
-            "initial_views=6", "acquire=2", "seeds=[0]", "policies=[farthest,uniform@niw]", "family_baselines=[]",
-            "threads=1", "plots=false", "share_training=false", f"out_dir={tmp_path}", f"hydra.run.dir={tmp_path}"])
-        HydraConfig.instance().set_config(cfg)
-        with open_dict(cfg):
-            cfg.pop("hydra")  # as the app's task gets it
-        study = ActiveStudy(cfg)
-        study.run()
+    cfg = compose_app("study", [
+        "data=synthetic", "data.max_side=24", "+data.n_views=24", "renderer=cpu", "trainer.max_steps=20",
+        "trainer.checkpoint_every_s=0", "strategy.refine_start=4", "strategy.refine_every=4", "strategy.refine_stop=16",
+        "initial_views=6", "acquire=2", "seeds=[0]", "policies=[farthest,uniform@niw]", "family_baselines=[]",
+        "threads=1", "plots=false", "share_training=false", f"out_dir={tmp_path}"], tmp_path)
+    with open_dict(cfg):
+        cfg.pop("hydra")  # as the app's task gets it
+    study = ActiveStudy(cfg)
+    study.run()
     assert len(fits) == 4  # phase 1 and a row's second round, of each family
     want = collections.Counter(type(p).__name__ for _, plugins in study._family_cfgs.values() for p in plugins.values())
     assert want["NIWBlock"] >= 1 and want["AdaptiveDensityControl"] == len(study._family_cfgs) >= 2

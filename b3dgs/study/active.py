@@ -15,7 +15,6 @@ selection is saved before its second round (``selection.json``), and an interrup
 """
 from __future__ import annotations
 
-import contextlib
 import copy
 import dataclasses
 import json
@@ -36,6 +35,10 @@ from b3dgs.protocol import check_stored_protocol, check_stored_scene, scene_dige
 from b3dgs.upgrade import FAMILY_POSTERIOR_UNRECORDED, omit_study_defaults, protocol_from_meta
 
 log = logging.getLogger(__name__)
+
+#: a study row's records (:meth:`b3dgs.lifecycle.Run.record`): the done marker, the picks saved before round 2, and
+#: the done marker of a phase-1 model
+ROW_DONE, ROW_SELECTION, PHASE1_DONE = "result.json", "selection.json", "phase1.json"
 
 
 # ---------------------------------------------------------------------------------------------- config
@@ -343,17 +346,6 @@ def legacy_protocol(out: Path) -> Optional[dict]:
     return protocol_from_meta(meta)
 
 
-@contextlib.contextmanager
-def phase1_lock(run_dir: Path):
-    """An exclusive lock on ``run_dir`` across processes (:mod:`b3dgs.locks`: released when the holder exits,
-    also when it is killed), so two jobs never train the same phase-1 model."""
-    from b3dgs.locks import process_lock
-
-    run_dir.parent.mkdir(parents=True, exist_ok=True)
-    with process_lock(run_dir.parent / f".{run_dir.name}.lock"):
-        yield
-
-
 class ActiveStudy:
     """One scene: phase-1 models, rows (policy × seed), results; see the module docstring."""
 
@@ -466,29 +458,33 @@ class ActiveStudy:
     def phase1_model(self, family: str, seed: int) -> str:
         """The phase-1 checkpoint of ``family`` and ``seed`` (trained once; an interrupted one resumes; one whose
         record was restored from an archive without its checkpoint is trained again, bit for bit the same)."""
-        d = self.phase1_dir(family, seed)
-        done = d / "phase1.json"
-        ckpt = d / "checkpoints" / "last.ckpt"
-        if done.exists() and ckpt.exists():
-            return str(ckpt)
-        with phase1_lock(d):  # seeds run as parallel jobs share phase-1 models (the ensemble's members)
-            if done.exists() and ckpt.exists():  # another job trained it while this one waited
-                return str(ckpt)
-            return self._train_phase1(family, seed, d, done, ckpt)
+        from b3dgs.lifecycle import Run
 
-    def _train_phase1(self, family: str, seed: int, d: Path, done: Path, ckpt: Path) -> str:
+        run = Run(run_dir=self.phase1_dir(family, seed))
+        ckpt = run.run_dir / "checkpoints" / "last.ckpt"
+        if (run.run_dir / PHASE1_DONE).exists() and ckpt.exists():
+            return str(ckpt)
+        with run.exclusive():  # seeds run as parallel jobs share phase-1 models (the ensemble's members)
+            if (run.run_dir / PHASE1_DONE).exists() and ckpt.exists():  # another job trained it while this one waited
+                return str(ckpt)
+            return self._train_phase1(family, seed, run, ckpt)
+
+    def _train_phase1(self, family: str, seed: int, run, ckpt: Path) -> str:
         from b3dgs.study.rounds import fit_round
 
         t0 = time.perf_counter()
         log.info("phase 1: %s seed %d, %d steps on %d views", family, seed, self.phase1, len(self.scene.train))
-        fit_round(self.family_cfg(family, seed), self.scene, d, self.phase1,
+        fit_round(self.family_cfg(family, seed), self.scene, run.run_dir, self.phase1,
                   ckpt_path=str(ckpt) if ckpt.exists() else None, plugins=self.family_plugins(family))
-        write_json(done, {"family": family, "seed": seed, "steps": self.phase1, "train_time_s": time.perf_counter() - t0,
-                          "train_views": [c.name for c in self.scene.train], "scene_digest": self.scene_digest})
+        run.record(PHASE1_DONE, {"family": family, "seed": seed, "steps": self.phase1,
+                                 "train_time_s": time.perf_counter() - t0,
+                                 "train_views": [c.name for c in self.scene.train], "scene_digest": self.scene_digest})
         return str(ckpt)
 
     def phase1_time(self, family: str, seed: int) -> float:
-        return float(json.loads((self.phase1_dir(family, seed) / "phase1.json").read_text())["train_time_s"])
+        from b3dgs.lifecycle import Run
+
+        return float(Run(run_dir=self.phase1_dir(family, seed)).recorded(PHASE1_DONE)["train_time_s"])
 
     def scoring_models(self, family: str, seed: int, members: int):
         from b3dgs.study.rounds import load_round
@@ -519,18 +515,16 @@ class ActiveStudy:
 
     # ------------------------------------------------------------------ rows
     def run_row(self, label: str, policy, seed: int) -> dict:
+        from b3dgs.lifecycle import Run
         from b3dgs.study.rounds import fit_round
 
-        d = self.out / f"{label}_s{seed}"
-        res_path = d / "result.json"
-        if res_path.exists():  # a finished row is never retrained
-            return json.loads(res_path.read_text())
-        d.mkdir(parents=True, exist_ok=True)
-        sel_path = d / "selection.json"
+        row = Run(run_dir=self.out / f"{label}_s{seed}")  # a row is a run; result.json its done marker
+        d, res = row.run_dir, row.recorded(ROW_DONE)
+        if res is not None:  # a finished row is never retrained
+            return res
         cands = self.scene.candidates
-        if sel_path.exists():
-            sel = json.loads(sel_path.read_text())
-        else:
+        sel = row.recorded(ROW_SELECTION)
+        if sel is None:
             models = self.scoring_models(policy.family, seed, int(policy.members))
             ctx = self.context(models, policy, seed)
             t0 = time.perf_counter()
@@ -542,7 +536,7 @@ class ActiveStudy:
                    "scores": scores, "top10": top, "scoring_time_s": dt, "members": int(policy.members),
                    "uses_ground_truth": bool(policy.uses_ground_truth), "batch": split_row(label)[1] or DEFAULT_BATCH,
                    "batch_info": s.info}
-            write_json(sel_path, sel)
+            row.record(ROW_SELECTION, sel)
             del models, ctx
         twin = self.training_twin(label, policy.family, seed, sel["selected"])
         if twin is not None:  # the same training run exists: share it, never retrain it
@@ -550,8 +544,7 @@ class ActiveStudy:
                                                   "num_gaussians", "steps")},
                    "training_shared_with": twin["policy"],
                    "hole_hits": sum(1 for n in sel["selected"] if n in set(self.hole)) if self.hole else None}
-            write_json(res_path, res)
-            return res
+            return row.record(ROW_DONE, res)
         by_name = {c.name: c for c in cands}
         acquired = [self.store.acquire(by_name[n]) for n in sel["selected"]]
         scene2 = dataclasses.replace(self.scene, train=list(self.scene.train) + acquired,
@@ -571,8 +564,7 @@ class ActiveStudy:
                "num_gaussians": module.num_gaussians, "steps": int(module.global_step),
                "hole_hits": sum(1 for n in sel["selected"] if n in set(self.hole)) if self.hole else None,
                "scene_digest": self.scene_digest}
-        write_json(res_path, res)
-        return res
+        return row.record(ROW_DONE, res)
 
     def training_signature(self, family: str, seed: int) -> str:
         from b3dgs.study.rounds import training_signature
@@ -585,12 +577,13 @@ class ActiveStudy:
         ``uniform``, since NIW only observes training). None when ``share_training`` is off."""
         if not self.cfg.get("share_training", True):
             return None
+        from b3dgs.lifecycle import Run
+
         mine = self.training_signature(family, seed)
         for other, pol in self.labels_policies:
-            path = self.out / f"{other}_s{seed}" / "result.json"
-            if other == label or not path.exists():
+            res = None if other == label else Run(run_dir=self.out / f"{other}_s{seed}").recorded(ROW_DONE)
+            if res is None:
                 continue
-            res = json.loads(path.read_text())
             if res.get("training_shared_with") is None and res["selected"] == list(selected) \
                     and self.training_signature(pol.family, seed) == mine:
                 return res

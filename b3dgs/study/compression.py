@@ -30,11 +30,15 @@ from b3dgs.compression import keep_top
 from b3dgs.errors import B3dgsError
 from b3dgs.io import atomic_path, save_figure, write_json
 from b3dgs.labels import method_label
+from b3dgs.lifecycle import Run
 from b3dgs.protocol import check_stored_protocol, check_stored_scene, flatten
 from b3dgs.report.document import markdown_table
 from b3dgs.report.stats import mean_sem, paired_stats
 
 log = logging.getLogger(__name__)
+
+#: a row's done marker (:meth:`b3dgs.lifecycle.Run.record`)
+ROW_DONE = "result.json"
 
 #: settings that change a row or a cached score (conf/compress.yaml)
 PROTOCOL_KEYS = ("finetune_steps", "finetune_overrides", "strategy_settings", "score_max_side")
@@ -110,8 +114,6 @@ class CompressionStudy:
     def finetune(self, cfg: DictConfig, scene, params: dict, seed: int):
         """A fresh standard module holding ``params``, trained ``cfg.trainer.max_steps`` steps (new Adam state, as
         PUP's refine stage); returns it on its renderer's device."""
-        from b3dgs.lifecycle import Run
-
         run = Run(cfg, self.out / ".lightning")  # the base run's config, validated when it trained
         # the study's threads stay as they are; the fine-tune's guard counters are not recorded
         module = run.start(scene, seed=seed, threads=False, reset_guards=False, init=False)
@@ -144,8 +146,9 @@ class CompressionStudy:
 
     def run_row(self, name: str, score_fn, keep: float, loaded, base_eval: dict, lp) -> dict:
         d = self.base_dir(loaded) / f"{name}_k{int(round(keep * 100)):02d}"
-        if (d / "result.json").exists():
-            return json.loads((d / "result.json").read_text())
+        done = Run(run_dir=d).recorded(ROW_DONE)
+        if done is not None:  # a finished row is never recomputed
+            return done
         seed = int(loaded.cfg.seed)
         n_base = loaded.module.num_gaussians
         targets = round_targets(n_base, keep, int(score_fn.rounds))
@@ -177,7 +180,8 @@ class CompressionStudy:
 
     def write_row(self, d: Path, module, loaded, lp, name: str, keep: float, rounds: int, score_s: float,
                   finetune_s: float, per_round: list, guards: dict, base_eval: dict, **control) -> dict:
-        """A finished row: its model evaluated on the test views and kept (:func:`keep_ply`), then ``result.json``."""
+        """A finished row: its model evaluated on the test views and kept (:func:`keep_ply`), then ``result.json`` (the
+        row's done marker, :meth:`b3dgs.lifecycle.Run.record`)."""
         from b3dgs.metrics.views import evaluate_views
 
         ev = evaluate_views(module, loaded.scene.test, lpips_model=lp)
@@ -190,8 +194,7 @@ class CompressionStudy:
                "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": ev.get("lpips"), "render_fps": ev.get("render_fps"),
                "score_s": score_s, "finetune_s": finetune_s, "time_s": score_s + finetune_s, "per_round": per_round,
                "guards": guards, "base": base_eval, **control, "score_max_side": self.cfg.get("score_max_side")}
-        write_json(d / "result.json", res)
-        return res
+        return Run(run_dir=d).record(ROW_DONE, res)
 
     def control_row(self, rounds: int, loaded, base_eval: dict, lp) -> dict:
         """The fine-tune-only control at keep 100 %: ``rounds`` fine-tunes of ``finetune_steps`` (fresh Adam each, as a
@@ -199,8 +202,9 @@ class CompressionStudy:
         extra training steps (row − control, control − base)."""
         name = f"finetune_only_r{rounds}"
         d = self.base_dir(loaded) / f"{name}_k100"
-        if (d / "result.json").exists():
-            return json.loads((d / "result.json").read_text())
+        done = Run(run_dir=d).recorded(ROW_DONE)
+        if done is not None:
+            return done
         seed, module, per_round, finetune_s = int(loaded.cfg.seed), loaded.module, [], 0.0
         ft_cfg = self.finetune_cfg(loaded.cfg)
         for r in range(rounds):
