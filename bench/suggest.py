@@ -13,10 +13,12 @@ distance (farthest) and uniform, from the same generated candidates.
 - **Hit rate**: the share of a policy's suggestions whose direction from the scene centre falls in the sector's angular
   range, i.e. whose nearest camera direction (over the training and held-out cameras, seen from the centre) is a sector
   camera's; **chance**: the same share over every candidate that was scored (those kept after the drops).
-- **Outcome**: each suggestion, in rank order, is snapped to the nearest (camera centre) real held-out camera not yet
-  taken, so every policy adds N real views; the run is retrained from scratch on the training views plus those, and
-  PSNR / LPIPS are taken on the sector views and on all held-out views that no policy added (one evaluation set for
-  every policy of a scene and seed). ``none`` is the run without added views on the same sets.
+- **Outcome**: a policy's first K suggestions, in rank order, are snapped to the nearest (camera centre) real held-out
+  camera not yet taken, so every policy adds K real views; the run is retrained from scratch on the training views plus
+  those, and PSNR / LPIPS are taken on the sector views and on all held-out views that no policy added (one evaluation
+  set for every policy of a scene and seed). ``none`` is the run without added views on the same sets. K is N, or fewer
+  where the held-out views are few (:func:`views_added`: all policies' added views together take at most half of
+  them, so the rest can score them); a scene and seed where no sector view is left is recorded as skipped.
 
 Per policy: macro means over scenes (seed means), and paired over scenes (``b3dgs.report.stats.paired_stats``: exact
 sign-flip p): info_gain hit rate − chance, − distance, − cover; outcome deltas info_gain − uniform, − distance, − cover.
@@ -74,6 +76,12 @@ def hits(rec: dict, scene) -> dict:
             "chance": float(in_sector(cand, centre, scene).mean()), "candidates": len(cand)}
 
 
+def views_added(n: int, held_out: int, policies: int) -> int:
+    """The views each policy adds (K): ``n``, or fewer so that the ``policies``' added views together take at most half
+    of the ``held_out`` views; at least 1."""
+    return max(1, min(n, held_out // (2 * policies)))
+
+
 def snap(rec: dict, scene, n: int) -> list[str]:
     """The held-out cameras nearest (camera centre) to the suggestions in rank order, each taken once."""
     test = list(scene.test)
@@ -129,17 +137,20 @@ def retrain(overrides: list[str], added: list[str], eval_sets: dict, run_dir: Pa
 def table(archive: Path, scenes: list[str], seeds: list[int]) -> tuple[dict, str]:
     from b3dgs.report.stats import paired_stats
 
-    hit, out = {}, {}  # policy -> scene -> seed mean
+    hit, out, shape, skipped = {}, {}, {}, []  # policy -> scene -> seed mean; scene -> (K, sector, all) per seed
     for sc in scenes:
         acc_h: dict = {}
         acc_o: dict = {}
         for s in seeds:
             for pol, h in (_json(archive / sc / f"s{s}" / "hits.json") or {}).items():
                 acc_h.setdefault(pol, []).append((h["hit_rate"], h["chance"]))
+            if (archive / sc / f"s{s}" / "outcome_skipped.json").is_file():
+                skipped.append(f"{sc} s{s}")
             for pol in [*POLICIES, "none"]:
                 r = _json(archive / sc / f"s{s}" / f"outcome_{pol}.json")
-                if r is not None:
+                if r is not None and "views_added" in r:  # records of the K rule (views_added); older ones superseded
                     acc_o.setdefault(pol, []).append([r[k][m] for k in ("sector", "all") for m in ("psnr", "lpips")])
+                    shape.setdefault(sc, {})[s] = (r["views_added"], len(r["eval_sector"]), len(r["eval_all"]))
         for pol, v in acc_h.items():
             hit.setdefault(pol, {})[sc] = np.mean(np.asarray(v), axis=0).tolist()
         for pol, v in acc_o.items():
@@ -168,8 +179,10 @@ def table(archive: Path, scenes: list[str], seeds: list[int]) -> tuple[dict, str
             payload["paired"][f"info_gain − {base} (hit rate)"] = st
             lines.append(f"| info_gain − {base} | {st['n']} | {st['mean']:+.3f} | {st['wins']}/{st['losses']} | "
                          f"{st['p_two_sided']:.3g} |")
-    lines += ["", "Outcome: each policy's suggestions snapped to the nearest unused held-out camera, added, retrained from "
-              "scratch; metrics on the sector views and on all held-out views no policy added (`none`: nothing added).",
+    lines += ["", "Outcome: each policy's first K suggestions snapped to the nearest unused held-out camera, added, retrained "
+              "from scratch; metrics on the sector views and on all held-out views no policy added (`none`: nothing "
+              "added). K is N, or fewer where the held-out views are few (all policies' added views take at most half "
+              "of them); per scene below.",
               "", "| policy | scenes | sector PSNR | sector LPIPS | all PSNR | all LPIPS |", "|---|---|---|---|---|---|"]
     for pol in [p for p in [*POLICIES, "none"] if p in out]:
         m = np.mean(np.asarray(list(out[pol].values())), axis=0)
@@ -185,6 +198,17 @@ def table(archive: Path, scenes: list[str], seeds: list[int]) -> tuple[dict, str
             payload["paired"][f"info_gain − {base} ({metric})"] = st
             lines.append(f"| info_gain − {base} | {metric} | {st['n']} | {st['mean']:+.4f} | {st['wins']}/{st['losses']} "
                          f"| {st['p_two_sided']:.3g} |")
+    if shape:  # per scene: what was added and what scored it, and each policy's sector PSNR
+        pols = [p for p in [*POLICIES, "none"] if p in out]
+        lines += ["", "| scene | views added (K) | sector views scored | all views scored | sector PSNR: "
+                  + " | ".join(pols) + " |", "|---|---|---|---|---" + "|---" * (len(pols) - 1) + "|"]
+        for sc, per in shape.items():
+            k, ns, na = (" / ".join(str(v[i]) for v in per.values()) for i in range(3))
+            lines.append(f"| {sc} | {k} | {ns} | {na} | "
+                         + " | ".join("" if sc not in out[p] else f"{out[p][sc][0]:.2f}" for p in pols) + " |")
+    payload["outcome_shape"], payload["outcome_skipped"] = shape, skipped
+    if skipped:
+        lines += ["", "Outcome skipped (no sector view left to score): " + ", ".join(skipped) + "."]
     return payload, "\n".join(lines)
 
 
@@ -240,10 +264,16 @@ def main() -> None:
               flush=True)
         if args.no_outcome:
             return
-        added = {pol: snap(r, scene, args.n) for pol, r in recs.items()}
+        k = views_added(args.n, len(scene.test), len(recs))
+        added = {pol: snap(r, scene, k) for pol, r in recs.items()}
         used = set().union(*added.values())
         sector = [n for n in scene.test_groups["sector"] if n not in used]
         every = [c.name for c in scene.test if c.name not in used]
+        if not sector:
+            write_json(arch / "outcome_skipped.json", {"views_added": k, "added": added, "reason": (
+                f"the {k} view(s) each policy adds take every sector view ({len(scene.test_groups['sector'])})")})
+            print(f"{sc} s{seed}: outcome skipped, no sector view left to score", flush=True)
+            return
         for pol in [*args.policies, "none"]:
             f = arch / f"outcome_{pol}.json"
             prev = _json(f)
@@ -252,7 +282,7 @@ def main() -> None:
             sets = {"sector": sector, "all": every}
             r = evaluate(base, sets) if pol == "none" else retrain(overrides, added[pol], sets,
                                                                    out / sc / f"s{seed}" / f"train_{pol}")
-            write_json(f, {**r, "eval_sector": sector, "eval_all": every})
+            write_json(f, {**r, "views_added": k, "eval_sector": sector, "eval_all": every})
             print(f"{sc} s{seed} {pol}: sector PSNR {r['sector']['psnr']:.3f}, all {r['all']['psnr']:.3f}", flush=True)
 
     if not args.table_only:

@@ -55,6 +55,14 @@ def test_hit_rate_against_chance_and_snapping():
     assert snap(rec, scene, 2) == ["v00", "v01"]
 
 
+def test_views_added_leave_half_the_held_out_views_to_score():
+    """K: N where the held-out views are many; fewer (at least 1) so 4 policies' added views take at most half."""
+    from bench.suggest import views_added
+
+    assert views_added(8, 100, 4) == 8
+    assert views_added(8, 16, 4) == 2 and views_added(8, 13, 4) == 1 and views_added(8, 6, 4) == 1
+
+
 def test_table_pairs_over_scenes(tmp_path):
     from bench.suggest import table
 
@@ -66,8 +74,17 @@ def test_table_pairs_over_scenes(tmp_path):
             "cover": {"hit_rate": 0.4, "chance": 0.1}, "uniform": {"hit_rate": 0.1, "chance": 0.1}}))
         for pol, psnr in (("info_gain", 20.0 + k), ("uniform", 19.0 + k), ("distance", 19.5 + k), ("none", 18.0)):
             (d / f"outcome_{pol}.json").write_text(json.dumps({
-                "sector": {"psnr": psnr, "lpips": 0.2}, "all": {"psnr": psnr + 1, "lpips": 0.1}}))
-    payload, text = table(tmp_path, ["a", "b", "c"], [0])
+                "sector": {"psnr": psnr, "lpips": 0.2}, "all": {"psnr": psnr + 1, "lpips": 0.1}, "views_added": 2,
+                "eval_sector": ["x", "y"], "eval_all": ["x", "y", "z"]}))
+    stale = tmp_path / "d" / "s0"  # a record from before the K rule (no views_added) is superseded, never counted
+    stale.mkdir(parents=True)
+    (stale / "outcome_info_gain.json").write_text(json.dumps({"sector": {"psnr": 99.0, "lpips": 0.0},
+                                                              "all": {"psnr": 99.0, "lpips": 0.0}}))
+    (tmp_path / "e" / "s0").mkdir(parents=True)
+    (tmp_path / "e" / "s0" / "outcome_skipped.json").write_text("{}")
+    payload, text = table(tmp_path, ["a", "b", "c", "d", "e"], [0])
+    assert "d" not in payload["outcome"]["info_gain"] and payload["outcome_skipped"] == ["e s0"]
+    assert "| a | 2 | 2 | 3 | 20.00 | 19.50 | 19.00 | 18.00 |" in text
     p = payload["paired"]
     assert abs(p["info_gain hit − chance"]["mean"] - 0.75) < 1e-9 and p["info_gain hit − chance"]["wins"] == 3
     assert abs(p["info_gain − distance (hit rate)"]["mean"] - 0.35) < 1e-9
