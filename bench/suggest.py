@@ -129,7 +129,15 @@ def retrain(overrides: list[str], added: list[str], eval_sets: dict, run_dir: Pa
     by = {c.name: c for c in scene.test}
     grown = replace(scene, train=list(scene.train) + [by[n] for n in added],
                     test=[c for c in scene.test if c.name not in set(added)])
-    last = run_dir / "checkpoints" / "last.ckpt"
+    import shutil
+
+    from b3dgs.io import write_json
+
+    last, tag = run_dir / "checkpoints" / "last.ckpt", run_dir / "added.json"
+    if run_dir.exists() and _json(tag) != list(added):  # a run of other added views: never resumed, trained again
+        shutil.rmtree(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    write_json(tag, list(added))
     module = fit_round(cfg, grown, run_dir, int(cfg.trainer.max_steps), ckpt_path=str(last) if last.is_file() else None)
     return {"added": list(added), **_metrics(module, by, eval_sets)}
 
