@@ -38,14 +38,13 @@ import numpy as np
 
 from omegaconf import OmegaConf
 
-from b3dgs.io import save_figure
+from b3dgs.io import save_figure, write_json
 from b3dgs.report.document import markdown_table
 from b3dgs.report.stats import mean_sem, p_floor, sign_flip_p
 
-from bench.common import (ARCHIVED_FAMILY_POSTERIOR, RESULTS, compose, machine, n_train_views, PeriodicSync,
-                          scene_names, scene_overrides, sync_results, write_results)
+from bench.common import (ARCHIVED_FAMILY_POSTERIOR, RESULTS, ROOT, compose, machine, n_train_views, PeriodicSync,
+                          pyplot, read_json, restore, scene_names, scene_overrides, sync_results, write_results)
 
-ROOT = Path(__file__).resolve().parents[1]
 STUDY_SCENES = list(OmegaConf.load(ROOT / "conf" / "report.yaml").studies.scenes)
 NAME = "active_view"
 
@@ -241,11 +240,7 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict, scene_args: dict 
                 f = study_out / scene / "phase1" / f"{r['family']}_s{int(r['seed']) + i}" / "phase1.json"
                 p1 += float(json.loads(f.read_text())["train_time_s"]) if f.exists() else 0.0
             r["cost_s"] = p1 + float(r.get("round2_time_s") or 0) + float(r.get("scoring_time_s") or 0)
-    policies = []
-    for s in per_scene.values():
-        for p in s["table"]:
-            if p not in policies:
-                policies.append(p)
+    policies = list(dict.fromkeys(p for s in per_scene.values() for p in s["table"]))
     table = {}
     for p in policies:
         ents = [s["table"][p] for s in per_scene.values() if p in s["table"]]
@@ -258,15 +253,10 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict, scene_args: dict 
               if (v := [r["spearman_vs_support"] for r in s["runs"] if r["policy"] == p
                         and r.get("spearman_vs_support") is not None])]
         e["spearman_vs_support"] = float(np.mean(rs)) if rs else None  # macro over scenes of seed means
-        sup = [float(np.mean([r["support_distance"] for r in s["runs"] if r["policy"] == p]))
-               for s in per_scene.values() if any(r["policy"] == p for r in s["runs"])]
-        e["support_distance"] = float(np.mean(sup)) if sup else None
-        spc = [float(np.mean([r["pick_spacing"] for r in s["runs"] if r["policy"] == p]))
-               for s in per_scene.values() if any(r["policy"] == p for r in s["runs"])]
-        e["pick_spacing"] = float(np.mean(spc)) if spc else None
-        cost = [float(np.mean([r["cost_s"] for r in s["runs"] if r["policy"] == p]))
-                for s in per_scene.values() if any(r["policy"] == p for r in s["runs"])]
-        e["cost_s"] = float(np.mean(cost)) if cost else None
+        for k in ("support_distance", "pick_spacing", "cost_s"):  # macro over scenes of the policy's row means
+            v = [float(np.mean([r[k] for r in s["runs"] if r["policy"] == p]))
+                 for s in per_scene.values() if any(r["policy"] == p for r in s["runs"])]
+            e[k] = float(np.mean(v)) if v else None
         # the batch selector's own time (beyond the policy's first scoring) and its exact re-scores per pick
         infos = [r.get("batch_info") or {} for s in per_scene.values() for r in s["runs"] if r["policy"] == p]
         bt = [i["batch_time_s"] for i in infos if i.get("batch_time_s") is not None]
@@ -309,12 +299,8 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict, scene_args: dict 
     for k in ("native|proxy", "native|ensemble", "proxy|ensemble", "native|fisher", "native|oracle", "ensemble|oracle",
               "native|native+greedy_conditioned", "native|native+diverse", "native+greedy_conditioned|farthest",
               "native+diverse|farthest"):
-        vals = []
-        for s in per_scene.values():
-            a, b = k.split("|")
-            v = s["jaccard"].get(f"{a}|{b}", s["jaccard"].get(f"{b}|{a}"))
-            if v is not None:
-                vals.append(v)
+        a, b = k.split("|")
+        vals = [v for s in per_scene.values() if (v := s["jaccard"].get(k, s["jaccard"].get(f"{b}|{a}"))) is not None]
         if vals:
             jac[k] = {"mean": float(np.mean(vals)), "paper": PAPER_JACCARD.get(k)}
     compute = {f"{sc}/s{sd}": c for sc, s in per_scene.items() for sd, c in compute_per_seed(study_out / sc, s).items()}
@@ -449,11 +435,7 @@ def markdown(res: dict) -> str:
 
 
 def plots(res: dict, d: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     t = res["table"]
     names = [p for p in row_order(t) if t[p]["psnr"] is not None]
     d.mkdir(parents=True, exist_ok=True)
@@ -531,9 +513,7 @@ def main() -> None:
         args.archive = str(out / "archive") if (args.study_out or args.smoke) else str(RESULTS / "active_view_runs")
     archive = Path(args.archive)
     refuse_committed(archive, args.extra)
-    restored = sync_results(archive, out, ARCHIVED, only_missing=True) if archive.is_dir() else 0
-    if restored:
-        print(f"restored {restored} files of finished rows from {archive}", flush=True)
+    restore(archive, out, ARCHIVED)
     scenes, scene_args, extra = args.scenes, None, list(args.extra)
     extra.append(f"acquisition.batch=[{','.join(args.batches)}]")
     ladders: dict[str, str] = {}
@@ -545,7 +525,7 @@ def main() -> None:
         for sc, lad in ladders.items():
             print(f"{sc}: ladder {LADDERS[lad][0]} -> {sum(LADDERS[lad])}", flush=True)
     walls_path = out / "walls.json"
-    walls = json.loads(walls_path.read_text()) if walls_path.exists() else {}
+    walls = read_json(walls_path, {})
     if not args.aggregate_only:
         with PeriodicSync(out, archive, ARCHIVED), ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:
             # one job per scene-seed (seed-major: every scene's seed 0 first); seeds of one scene share its phase-1
@@ -558,18 +538,11 @@ def main() -> None:
             for (sc, _), f in futs.items():
                 for sd, w in f.result().items():
                     walls[f"{sc}/s{sd}"] = walls.get(f"{sc}/s{sd}", 0.0) + w  # summed over the sessions it took
-        from b3dgs.io import write_json
-
         write_json(walls_path, walls)
         sync_results(out, archive, ARCHIVED)
     if args.smoke:  # never over the committed results
         res = aggregate(scenes, out, walls, scene_args, results=out / "tables")
-        from b3dgs.io import write_json
-
-        write_json(out / "active_view_smoke.json", res)
-        text = markdown(res)
-        (out / "active_view_smoke.md").write_text(text)
-        print(text)
+        write_results("active_view_smoke", res, markdown(res).rstrip("\n"), root=out)
         return
     results = {}
     # rows with --extra are another study: tables stay with it

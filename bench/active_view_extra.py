@@ -21,16 +21,12 @@ from typing import Optional
 
 import numpy as np
 
-from bench.common import RESULTS
+from bench.common import RESULTS, read_json as _read, write_results
 
 # oracle: analysis only (its ρₛ is the error's own ρ with the support deficit); the diverse rows pair a new policy's
 # diverse batch with the committed scores' diverse batches
 AGAINST = ["native", "ensemble", "farthest", "uniform", "fisher", "proxy", "ppu", "oracle", "native+diverse",
            "ensemble+diverse"]
-
-
-def _read(p: Path) -> Optional[dict]:
-    return json.loads(p.read_text()) if p.is_file() else None
 
 
 def _rho(row: dict, oracle: Optional[dict]) -> Optional[float]:
@@ -76,21 +72,16 @@ def collect(new: Path, archive: Path, policies: list[str], against: list[str], s
                    "lpips": r.get("lpips"),
                    "rho": _rho(r, o_new), "rho_support": oracle_rho(r.get("scores"), deficit),
                    "scoring_time_s": r.get("scoring_time_s"), "round2_time_s": r.get("round2_time_s")}
-            for b in within:  # new rows paired with each other (same phase-1 models, same new study)
-                other = _read(scene_dir / f"{b}_s{seed}" / "result.json") if b != label else None
+            # new rows paired with each other (same phase-1 models, same new study), then with the committed ones
+            for b, d in [(b, scene_dir) for b in within if b != label] + [(b, archive / scene) for b in against]:
+                other = _read(d / f"{b}_s{seed}" / "result.json")
                 if other is not None:
-                    o_b = _read(scene_dir / "phase1" / f"{other['family']}_s{seed}" / "oracle.json")
+                    o_b = _read(d / "phase1" / f"{other['family']}_s{seed}" / "oracle.json")
                     row[f"psnr_{b}"], row[f"rho_{b}"] = other["psnr"], _rho(other, o_b)
                     row[f"rho_support_{b}"] = oracle_rho(other.get("scores"), deficit)
+                    if d != scene_dir:
+                        row[f"scoring_time_s_{b}"] = other.get("scoring_time_s")
                     row[f"lpips_{b}"] = other.get("lpips")
-            for b in against:
-                old = _read(archive / scene / f"{b}_s{seed}" / "result.json")
-                if old is not None:
-                    o_b = _read(archive / scene / "phase1" / f"{old['family']}_s{seed}" / "oracle.json")
-                    row[f"psnr_{b}"], row[f"rho_{b}"] = old["psnr"], _rho(old, o_b)
-                    row[f"rho_support_{b}"] = oracle_rho(old.get("scores"), deficit)
-                    row[f"scoring_time_s_{b}"] = old.get("scoring_time_s")
-                    row[f"lpips_{b}"] = old.get("lpips")
             rows.append(row)
     return {"rows": rows, "problems": problems}
 
@@ -167,8 +158,6 @@ def cost(rows: list[dict], policies: list[str], against: list[str]) -> list[dict
 
 
 def write(res: dict, name: str, policies: list[str], against: list[str], root: Path = RESULTS) -> None:
-    from b3dgs.io import atomic_path, write_json
-
     lines = [f"# Active view: {', '.join(policies)} against the committed campaign", "",
              "New rows trained later from the same phase-1 models (checked: identical oracle errors), quick protocol, "
              "topk batches; paired over scenes (each scene's seed mean one unit). ρ: Spearman of the candidate scores "
@@ -219,10 +208,7 @@ def write(res: dict, name: str, policies: list[str], against: list[str], root: P
                          f"{c['min_s']:.1f}–{c['max_s']:.1f} | {share} |")
     if res["problems"]:
         lines += ["", "## Left out", ""] + [f"- {x}" for x in res["problems"]]
-    write_json(root / f"{name}.json", res)
-    with atomic_path(root / f"{name}.md") as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_results(name, res, "\n".join(lines), root)
 
 
 def main() -> None:
@@ -245,9 +231,7 @@ def main() -> None:
     res["paired_lpips"] = pair(res["rows"], args.policies, against, key="lpips")
     res["paired_rho"] = pair_rho(res["rows"], args.policies, against)
     res["cost"] = cost(res["rows"], args.policies, against)
-    root = Path(args.results_root)
-    root.mkdir(parents=True, exist_ok=True)
-    write(res, args.name, args.policies, against, root)
+    write(res, args.name, args.policies, against, Path(args.results_root))
 
 
 if __name__ == "__main__":

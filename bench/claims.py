@@ -26,13 +26,12 @@ written by ``bench/studies.py``), ``bench/results/active_view.json`` and ``activ
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import statistics
 from pathlib import Path
 from typing import Callable, Optional
 
-from bench.common import RESULTS, write_results
+from bench.common import RESULTS, read_json, write_results
 
 from b3dgs.report.stats import paired_stats  # noqa: E402
 
@@ -40,31 +39,28 @@ ALPHA = 0.05
 EARLIER_SCENES = ("ethiopian_head", "fox")  # the two scenes of the conclusions before the seven-scene campaign
 
 
-def _read(path: Path) -> dict:
-    return json.loads(path.read_text()) if path.is_file() else {}
-
-
 class Results:
     """The committed results the claims read, loaded once."""
 
     def __init__(self, root: Path):
         self.root = root
-        self.active = _read(root / "active_view.json")  # 16 -> 32 scenes
-        self.active_small = _read(root / "active_view_8to16.json")  # 8 -> 16 scenes (fewer than 40 train views)
+        self.active = read_json(root / "active_view.json", {})  # 16 -> 32 scenes
+        self.active_small = read_json(root / "active_view_8to16.json", {})  # 8 -> 16 scenes (fewer than 40 train views)
         # later policies paired with the campaign by bench/active_view_extra.py (e.g. active_view_sh.json): their
         # "paired" is a list of {a, b, ladder, per_scene}
         self.active_extra = [d for f in sorted(root.glob("active_view_*.json"))
-                             if isinstance((d := _read(f)).get("paired"), list)]
-        self.uq = _read(root / "uq.json")
-        self.compression = _read(root / "compression.json")
-        self.report = _read(root / "report" / "report.json")
-        self.suggest = _read(root / "suggest.json")  # bench/suggest.py: policy -> scene -> seed-mean values
+                             if isinstance((d := read_json(f, {})).get("paired"), list)]
+        self.uq = read_json(root / "uq.json", {})
+        self.compression = read_json(root / "compression.json", {})
+        self.report = read_json(root / "report" / "report.json", {})
+        self.suggest = read_json(root / "suggest.json", {})  # bench/suggest.py: policy -> scene -> seed-mean values
         self.runs: dict[tuple[str, str], list[dict]] = {}  # (scene, method) -> [{metrics, uq}] over seeds
-        self.ensembles = {f.parts[-3]: _read(f).get("ensemble", {}) for f in sorted((root / "runs").glob("*/ensemble/uq.json"))}
+        self.ensembles = {f.parts[-3]: read_json(f, {}).get("ensemble", {})
+                          for f in sorted((root / "runs").glob("*/ensemble/uq.json"))}
         for m in sorted((root / "runs").glob("*/*/s*/metrics.json")):
             scene, method = m.parts[-4], m.parts[-3]
             self.runs.setdefault((scene, method), []).append(
-                {"metrics": _read(m), "uq": _read(m.parent / "uq.json")})
+                {"metrics": read_json(m, {}), "uq": read_json(m.parent / "uq.json", {})})
 
     def scenes(self) -> list[str]:
         return sorted({s for s, _ in self.runs})
@@ -199,7 +195,7 @@ CLAIMS: list[tuple[str, str, str, str, int, str, Callable[[Results], dict[str, f
      +1, "dB", lambda R: compression_delta(R, "pup", "posterior_importance", 0.1)),
     ("ood_native_below_proxy", "claim scope", "Not claimed: strongest OOD detector. NIW proxy AUROC above NIW "
      "native (support-deficit OOD; proxy - native)", "native below proxy (App. OOD table): No", +1, "",
-     lambda R: {}),  # filled from the report's OOD rows by ood_delta (needs report.json)
+     lambda R: ood_delta(R.report)),
     ("dpmm_psnr_cost", "Table 4", "DPMM - standard PSNR (DPMM trades quality for compactness)",
      "26.643 - 27.303 = -0.660 dB", -1, "dB",
      lambda R: diff(R.per_scene("dpmm", metric("psnr")), R.per_scene("standard", metric("psnr")))),
@@ -398,11 +394,10 @@ def build(root: Path, only: Optional[list[str]] = None) -> tuple[list[dict], str
     from scipy.stats import spearmanr
 
     R = Results(root)
-    report = _read(root / "report" / "report.json")
     keep = (lambda d: {s: v for s, v in d.items() if s in only}) if only else (lambda d: d)  # noqa: E731
     rows = []
     for cid, group, statement, paper, expect, unit, fn in CLAIMS:
-        per_scene = keep(ood_delta(report) if cid == "ood_native_below_proxy" else fn(R))
+        per_scene = keep(fn(R))
         v, st = verdict(per_scene, expect)
         reason = why(v, st, unit, "the hypothesis" if group in ("issue 22", "issue 54") else "the paper")  # ours
         if v in ("fails", "holds in sign only") and cid in EXPLAIN and (extra := EXPLAIN[cid](R)):

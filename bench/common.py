@@ -54,20 +54,49 @@ def table(rows: Sequence[dict], cols: Sequence[str]) -> str:
     return "\n".join(markdown_table(cols, [[fmt(r.get(c, "")) for c in cols] for r in rows]))
 
 
-def write_results(name: str, payload: dict, text: str, root: Path = RESULTS) -> Path:
-    """``<root>/<name>.json`` and ``.md``, written atomically (default root: bench/results)."""
+def write_results(name: str, payload: dict, text: str, root: Path = RESULTS, echo: bool = True) -> Path:
+    """``<root>/<name>.json`` and ``.md``, written atomically (default root: bench/results); prints the text."""
+    root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     write_json(root / f"{name}.json", payload)
     with atomic_path(root / f"{name}.md") as tmp:
         tmp.write_text(text + "\n")
-    print(text)
+    if echo:
+        print(text)
     return root / f"{name}.json"
+
+
+def read_json(path: Path, default=None):
+    """The JSON in file ``path``, or ``default`` where there is no such file."""
+    return json.loads(Path(path).read_text()) if Path(path).is_file() else default
+
+
+def pyplot():
+    """matplotlib.pyplot on the Agg backend (files only, no display)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def steps_overrides(max_steps: int | None, evals: int = 4) -> list[str]:
+    """``trainer.max_steps`` (smoke tests) with ``evals`` evaluations along it; nothing for None."""
+    return [f"trainer.max_steps={max_steps}", f"trainer.eval_every={max(1, max_steps // evals)}"] if max_steps else []
+
+
+def threads_overrides(threads: int | None) -> list[str]:
+    return [f"threads={threads}"] if threads else []
 
 
 # The benchmark scenes are b3dgs's named scenes, conf/scene/<name>.yaml (loader + folder under the data root, see
 # b3dgs.data_root), plus those of installed packages (b3dgs.conf entry points): a scene is added with one YAML file.
 # The study protocol is conf/experiment/study.yaml (256 px, 3000 steps, no logger, progress bar or renders).
 QUICK = ["experiment=study"]
+SEVEN = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]  # conf/report.yaml's scenes
+#: the held-out-sector split (bench.ood_sector, bench.suggest): a contiguous 1/8 of the cameras and every 8th of the rest
+SECTOR_SPLIT = ["data.test_split=sector+interleaved", "data.test_fraction=0.125"]
 # The posterior blocks each model had when the committed benchmarks and studies ran: conf/experiment/archived_posterior.yaml
 # (the study's table of them). The scripts that extend them pass these explicitly (model_overrides), so a later change
 # of a model's default blocks (conf/model/<name>.yaml) cannot change what an archived row means; the active-view study
@@ -141,6 +170,14 @@ def load_file(path: Path):
     return module
 
 
+def restore(archive: Path, out: Path, patterns: Sequence[str], what: str = "files of finished rows") -> int:
+    """Copies the archive's files that ``out`` lacks into it (:func:`sync_results`): archived rows count as finished."""
+    n = sync_results(archive, out, patterns, only_missing=True) if Path(archive).is_dir() else 0
+    if n:
+        print(f"restored {n} {what} from {archive}", flush=True)
+    return n
+
+
 def archived_files(root: Path, patterns: Sequence[str]) -> list[Path]:
     """The files under root matching the glob patterns, relative to root, sorted."""
     return sorted({p.relative_to(root) for pat in patterns for p in root.glob(pat) if p.is_file()})
@@ -211,7 +248,17 @@ def bench_child(name: str, *argv: str) -> tuple[list[str], dict[str, str]]:
 def shared_dir() -> Path:
     import os
 
-    return Path(os.environ.get("B3DGS_SHARED", Path(__file__).resolve().parents[1].parent / "shared"))
+    return Path(os.environ.get("B3DGS_SHARED", ROOT.parent / "shared"))
+
+
+def fresh_dir(d: Path) -> Path:
+    """``d`` emptied: removed with what it holds, made again."""
+    import shutil
+
+    if d.exists():
+        shutil.rmtree(d)
+    d.mkdir(parents=True)
+    return d
 
 
 def archive_files(run_dir: Path, dest: Path, names: Sequence[str]) -> None:

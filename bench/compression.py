@@ -22,9 +22,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
-from bench.common import RESULTS, machine, sync_results, write_results
+from bench.common import RESULTS, ROOT, machine, restore, sync_results, write_results
 
-ROOT = Path(__file__).resolve().parents[1]
 NAME = "compression"
 
 # The paper's keep-ratio table (13 scenes x 3 seeds, 30k base + 2k fine-tune per round, GPU): PSNR.
@@ -105,9 +104,7 @@ def main() -> None:
     if args.archive is None:  # smoke runs elsewhere never write into the committed archive
         args.archive = str(RESULTS / "compression_runs") if args.out == ap.get_default("out") else str(out / "archive")
     archive = Path(args.archive)
-    restored = sync_results(archive, out, ARCHIVED, only_missing=True) if archive.is_dir() else 0
-    if restored:
-        print(f"restored {restored} finished rows and bases from {archive}", flush=True)
+    restore(archive, out, ARCHIVED, "finished rows and bases")
     if not args.aggregate_only:
         bases = [Path(args.bench) / sc / "standard" / f"s{sd}" for sd in args.seeds for sc in args.scenes]
         missing = [str(b) for b in bases if not (b / "metrics.json").exists()]

@@ -30,9 +30,8 @@ from typing import Optional
 
 import numpy as np
 
-from bench.common import QUICK, RESULTS, bench_child, model_overrides, scene_overrides, train_run
-
-SEVEN = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
+from bench.common import (QUICK, RESULTS, SEVEN, bench_child, model_overrides, read_json, scene_overrides, train_run,
+                          write_results)
 COUNTS = ["weight", "fisher", "fisher3", "sh"]  # scored as the uq regimes native_<name>
 ALONE = ["sh"]  # --alone: uq regimes scored under their own name (sh: the SH posterior without the NIW geometry)
 #: every regime --alone accepts (native_plus_sh: uq=native's c = 0.1 plus the SH posterior)
@@ -49,31 +48,19 @@ def regime_names(args) -> list[str]:
 
 
 def new_regimes(archive_dir: Path, names: list[str]) -> list[str]:
-    have = json.loads((archive_dir / "uq.json").read_text()) if (archive_dir / "uq.json").is_file() else {}
-    return [n for n in names if n not in have]
-
-
-def regimes(names: list[str], samples: int, seed: int) -> dict:
-    from hydra.utils import instantiate
-    from omegaconf import OmegaConf
-
-    from b3dgs.train import CONF_DIR
-
-    cfg = OmegaConf.create({"uq": {"samples": samples}, "seed": seed})
-    for n in names:
-        cfg = OmegaConf.merge(cfg, OmegaConf.load(Path(CONF_DIR) / "uq" / f"{n}.yaml"))
-    return {n: instantiate(cfg[n]) for n in names}
+    return [n for n in names if n not in read_json(archive_dir / "uq.json", {})]
 
 
 def score_one(run_dir: Path, archive_dir: Path, names: list[str], samples: int) -> None:
     """Score ``names`` on the trained run and merge them into the archived uq.json (views and seed checked)."""
     from b3dgs.eval import evaluate_uq
     from b3dgs.io import write_json
+    from bench.studies import uq_regimes  # conf/report.yaml's uq_settings set none of the regimes scored here
 
     have = json.loads((archive_dir / "uq.json").read_text())
     seed = int(have.get("_meta", {}).get("seed", 0))
     with tempfile.TemporaryDirectory(prefix=".uq.", dir=run_dir) as tmp:
-        res = evaluate_uq([str(run_dir)], regimes(names, samples, seed), seed=seed, panels=0, out_dir=Path(tmp))
+        res = evaluate_uq([str(run_dir)], uq_regimes(names, samples, seed), seed=seed, panels=0, out_dir=Path(tmp))
     views_old, views_new = have.get("_meta", {}).get("views"), res.get("_meta", {}).get("views")
     if views_old is not None and views_new is not None and views_old != views_new:
         raise RuntimeError(f"{run_dir}: the new regimes score other views than {archive_dir / 'uq.json'}")
@@ -170,8 +157,6 @@ def table(args) -> dict:
 
 
 def write(args, res: dict, problems: list[str]) -> None:
-    from b3dgs.io import atomic_path, write_json
-
     names = {"auroc": "OOD AUROC ↑", "ause_rmse": "AUSE ↓", "cov95_err": "\\|Cov@95 − 0.95\\| ↓", "nll": "NLL ↓",
              "epi_spearman_sq": "ρ(u, err²) ↑"}
     lines = ["# NIW counts on the canonical grid", "",
@@ -202,13 +187,8 @@ def write(args, res: dict, problems: list[str]) -> None:
         lines += [f"- {reg}: {', '.join(v)}" for reg, v in res["missing"].items()]
     if problems:
         lines += ["", "## Rows not merged", ""] + [f"- {x}" for x in problems]
-    root = Path(args.results_root)
-    root.mkdir(parents=True, exist_ok=True)
-    write_json(root / "counts.json", {**res, "problems": problems, "samples": args.samples})
-    with atomic_path(root / "counts.md") as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
-    print(f"wrote {root / 'counts.md'}")
+    write_results("counts", {**res, "problems": problems, "samples": args.samples}, "\n".join(lines), args.results_root)
+    print(f"wrote {Path(args.results_root) / 'counts.md'}")
 
 
 def main() -> None:

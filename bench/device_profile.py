@@ -21,7 +21,7 @@ from pathlib import Path
 
 import lightning as L
 
-from bench.common import RESULTS, model_overrides, scene_overrides, table, write_results
+from bench.common import RESULTS, model_overrides, read_json, scene_overrides, table, write_results
 
 
 def _ms(ev, *names: str) -> float:
@@ -109,7 +109,7 @@ def profile(args) -> None:
     from b3dgs.io import write_json
 
     out = Path(args.results) / f"step_profile_{args.device}.json"
-    done = json.loads(out.read_text()) if out.exists() else {}
+    done = read_json(out, {})
     renderer = {"cpu": "cpu", "cuda": "gsplat"}[args.device]
     for model in args.models:
         if model in done:
@@ -129,10 +129,6 @@ def profile(args) -> None:
         done[model] = json.loads(one.read_text())
         write_json(out, done)
         print(model, json.dumps(done[model], indent=1)[:3000], flush=True)
-
-
-def _load(path: Path):
-    return json.loads(path.read_text()) if path.exists() else None
 
 
 def parity_ratios(rows: list[dict]) -> list[dict]:
@@ -173,9 +169,9 @@ PARITY_COLUMNS = ["scene", "model", "seeds", "standard_s", "model_s", "x_standar
 
 def report(args) -> None:
     res = Path(args.results)
-    train = _load(res / "train_cuda.json")
-    syncs = _load(res / "host_syncs_cuda.json")
-    prof = _load(res / "step_profile_cuda.json")
+    train = read_json(res / "train_cuda.json")
+    syncs = read_json(res / "host_syncs_cuda.json")
+    prof = read_json(res / "step_profile_cuda.json")
     lines = [f"# GPU parity on an NVIDIA {args.card.upper()} (issue 43)", ""]
     payload: dict = {"card": args.card}
     if train:

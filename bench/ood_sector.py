@@ -28,18 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import (QUICK, RESULTS, archive_files, model_overrides, scene_names, scene_overrides, train_run,
-                          write_results)
+from bench.common import (QUICK, RESULTS, SECTOR_SPLIT, SEVEN, archive_files, model_overrides, read_json,
+                          scene_names, scene_overrides, steps_overrides, threads_overrides, train_run, write_results)
 
-SPLIT = ["data.test_split=sector+interleaved", "data.test_fraction=0.125"]
-SCENES = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
 REGIMES = ["proxy", "constant", "ppu", "native", "sh"]
 SCORES = ["info_gain_params", "info_gain_predictive", "cover", "distance"]  # per held-out view, from the NIW run
 ARCHIVED = ("config.yaml", "metrics.json", "curve.json", "uq.json")
-
-
-def _json(p: Path):
-    return json.loads(p.read_text()) if p.is_file() else None
 
 
 def view_scores(run_dir: Path, score_max_side: int = 64) -> dict:
@@ -84,7 +78,7 @@ def _auroc(pos: list[float], neg: list[float]):
 
 def scene_aurocs(archive: Path, scene: str, seed: int) -> dict:
     """{detector: AUROC of sector against interleaved views} for one scene and seed, from the archive."""
-    views = _json(archive / scene / f"views_s{seed}.json")
+    views = read_json(archive / scene / f"views_s{seed}.json")
     if views is None:
         return {}
     kind = {v["name"]: v["kind"] for v in views["views"]}
@@ -95,7 +89,7 @@ def scene_aurocs(archive: Path, scene: str, seed: int) -> dict:
     uq_files = {f"niw ({r})": (archive / scene / "niw" / f"s{seed}" / "uq.json", r) for r in REGIMES}
     uq_files["standard (ensemble)"] = (archive / scene / "ensemble" / "uq.json", "ensemble")
     for label, (path, regime) in uq_files.items():
-        entry = (_json(path) or {}).get(regime)
+        entry = (read_json(path) or {}).get(regime)
         if not entry:
             continue
         pv = {v["name"]: v["mean_var"] for v in entry.get("per_view") or [] if isinstance(v.get("mean_var"), (int, float))}
@@ -106,7 +100,7 @@ def scene_aurocs(archive: Path, scene: str, seed: int) -> dict:
 
 def interleaved_aurocs(report_json: Path, seeds: list[int]) -> dict:
     """{(scene, row): mean AUROC over ``seeds``} of the canonical runs' support-deficit study (interleaved split)."""
-    rep = _json(report_json) or {}
+    rep = read_json(report_json) or {}
     acc: dict = {}
     for r in (rep.get("ood") or {}).get("runs", []):
         if r.get("seed") in seeds and r.get("auroc") is not None:
@@ -167,7 +161,7 @@ def table(archive: Path, scenes: list[str], seeds: list[int]) -> tuple[dict, str
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", nargs="+", default=SCENES, choices=scene_names())
+    ap.add_argument("--scenes", nargs="+", default=SEVEN, choices=scene_names())
     ap.add_argument("--seeds", type=int, nargs="+", default=[0])
     ap.add_argument("--ensemble-seeds", type=int, nargs="+", default=[0, 1, 2],
                     help="the seeds of the standard runs forming each scene's deep ensemble")
@@ -184,9 +178,7 @@ def main() -> None:
     ap.add_argument("--table-only", action="store_true")
     args = ap.parse_args()
     out, archive = Path(args.out), Path(args.archive)
-    protocol = list(QUICK) + SPLIT + ([f"trainer.max_steps={args.max_steps}",
-                                       f"trainer.eval_every={max(1, args.max_steps // 4)}"] if args.max_steps else [])
-    threads = [f"threads={args.threads}"] if args.threads else []
+    protocol, threads = list(QUICK) + SECTOR_SPLIT + steps_overrides(args.max_steps), threads_overrides(args.threads)
 
     def run_dir(scene, method, seed):
         return out / scene / method / f"s{seed}"

@@ -35,10 +35,7 @@ from typing import Optional
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-from b3dgs.io import atomic_path, write_json
-
-from bench.common import RESULTS, load_file, shared_dir
+from bench.common import RESULTS, ROOT, fresh_dir, load_file, read_json, shared_dir, write_results
 # the test callback that kills a run at a chosen point (children run from the checkout's root and import it)
 kill_args = load_file(ROOT / "tests" / "kill_hooks.py").kill_args
 
@@ -56,10 +53,7 @@ def _fox_meta() -> dict:
 
 def _fox_variant(name: str, edit) -> Path:
     """A copy of the fox scene's transforms.json (images linked, not copied) changed by ``edit(meta, dir)``."""
-    d = FIX / name
-    if d.exists():
-        shutil.rmtree(d)
-    d.mkdir(parents=True)
+    d = fresh_dir(FIX / name)
     (d / "images").symlink_to(shared_dir() / "data" / "fox" / "images")
     meta = _fox_meta()
     edit(meta, d)
@@ -107,11 +101,8 @@ def _tiny_scene(meta, d):
 
 
 def _colmap_variant(name: str, file: str, keep) -> Path:
-    d = FIX / name
-    if d.exists():
-        shutil.rmtree(d)
-    head = shared_dir() / "data" / "ethiopian_head"
-    (d / "sparse").mkdir(parents=True)
+    d, head = fresh_dir(FIX / name), shared_dir() / "data" / "ethiopian_head"
+    (d / "sparse").mkdir()
     shutil.copytree(head / "sparse" / "0", d / "sparse" / "0")
     (d / "images").symlink_to(head / "images")
     p = d / "sparse" / "0" / file
@@ -123,10 +114,8 @@ def _colmap_variant(name: str, file: str, keep) -> Path:
 
 def _run_dir(name: str, ckpt: bytes | None) -> Path:
     """A run dir holding a config.yaml and, if given, a checkpoints/last.ckpt with these bytes."""
-    d = FIX / name
-    if d.exists():
-        shutil.rmtree(d)
-    (d / "checkpoints").mkdir(parents=True)
+    d = fresh_dir(FIX / name)
+    (d / "checkpoints").mkdir()
     (d / "config.yaml").write_text("seed: 0\n")
     if ckpt is not None:
         (d / "checkpoints" / "last.ckpt").write_bytes(ckpt)
@@ -151,20 +140,27 @@ def _env(**kw) -> dict:
     return env
 
 
-def _popen(module: str, args: list[str], env: Optional[dict] = None, cwd: Path = ROOT, limit=True) -> subprocess.Popen:
+def _popen(module: str, args: list[str], env: Optional[dict] = None, cwd: Path = ROOT,
+           limit=True) -> subprocess.Popen:
+    """``python -m module args`` with its output captured, in its own process group under the memory limit (``limit``:
+    True, or the function to run in the child before it starts; False: neither)."""
     return subprocess.Popen([sys.executable, "-m", module, *args], cwd=cwd, env=env or _env(), stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, preexec_fn=_limit if limit else None)
+                            stderr=subprocess.PIPE, text=True, preexec_fn=_limit if limit is True else limit or None)
 
 
-def _run(module: str, args: list[str], timeout: int = 300, **kw) -> tuple[int, str, str]:
-    proc = _popen(module, args, **kw)
+def _wait(proc: subprocess.Popen, timeout: int) -> tuple[Optional[int], str, str]:
+    """(exit code, stdout, stderr) of ``proc``; exit code None when it ran past ``timeout`` s (its group killed)."""
     try:
         out, err = proc.communicate(timeout=timeout)
     except subprocess.TimeoutExpired:
         os.killpg(proc.pid, signal.SIGKILL)
-        out, err = proc.communicate()
-        return -1, out, err + f"\nTIMEOUT after {timeout} s"
+        return None, *proc.communicate()
     return proc.returncode, out, err
+
+
+def _run(module: str, args: list[str], timeout: int = 300, **kw) -> tuple[int, str, str]:
+    rc, out, err = _wait(_popen(module, args, **kw), timeout)
+    return (-1, out, err + f"\nTIMEOUT after {timeout} s") if rc is None else (rc, out, err)
 
 
 def _line(prog: str, rc: int, out: str, err: str) -> str:
@@ -172,11 +168,7 @@ def _line(prog: str, rc: int, out: str, err: str) -> str:
 
 
 def _fresh(name: str) -> Path:
-    d = WORK / "scenarios" / name
-    if d.exists():
-        shutil.rmtree(d)
-    d.mkdir(parents=True)
-    return d
+    return fresh_dir(WORK / "scenarios" / name)
 
 
 def _files(d: Path) -> dict:
@@ -390,7 +382,7 @@ def _eval(args: list[str], where: Path) -> tuple[int, str, str]:
 
 
 def _regimes(path: Path) -> list[str]:
-    return sorted(k for k in json.loads(path.read_text()) if not k.startswith("_")) if path.is_file() else []
+    return sorted(k for k in read_json(path, {}) if not k.startswith("_"))
 
 
 def _last_line(out: str, err: str) -> str:
@@ -721,23 +713,12 @@ def run_row(row: dict, timeout: int) -> dict:
     run_dir = WORK / "runs" / row["id"]
     if run_dir.exists():
         shutil.rmtree(run_dir)
-    given = any(a.startswith("hydra.run.dir=") for a in args)
-    cmd = [sys.executable, "-m", f"b3dgs.{row['app']}", *args, *([] if given else [f"hydra.run.dir={run_dir}"])]
-    if row["app"].startswith("study"):
-        cmd = [sys.executable, "-m", f"b3dgs.{row['app']}", *args, f"out_dir={run_dir}"]
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    t0 = time.perf_counter()
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            preexec_fn=preexec)
-    try:
-        out, err = proc.communicate(timeout=timeout)
-        rc = proc.returncode
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        out, err = proc.communicate()
-        rc = None
-    secs = time.perf_counter() - t0
     app = "study" if row["app"].startswith("study") else row["app"]
+    given = any(a.startswith("hydra.run.dir=") for a in args)
+    where = [f"out_dir={run_dir}"] if app == "study" else [] if given else [f"hydra.run.dir={run_dir}"]
+    t0 = time.perf_counter()
+    rc, out, err = _wait(_popen(f"b3dgs.{row['app']}", [*args, *where], limit=preexec), timeout)
+    secs = time.perf_counter() - t0
     msg = f"TIMEOUT after {timeout} s" if rc is None else _message(app, rc, out, err)
     ok = (rc == 2 and msg.startswith(f"b3dgs-{app}: error:")) if row["expect"] == "refused" else rc == 0
     shown = [a.replace(str(ROOT) + "/", "").replace(str(shared_dir()), "shared") for a in args]
@@ -749,7 +730,6 @@ def run_row(row: dict, timeout: int) -> dict:
 def write(results: dict) -> None:
     order = [r["id"] for r in rows()]
     done = [results[i] for i in order if i in results]
-    write_json(RESULTS / "reliability.json", {"rows": done, "n": len(done), "n_ok": sum(r["ok"] for r in done)})
     from b3dgs.report.document import markdown_table
 
     lines = ["# Reliability: bad inputs and what b3dgs now says", "",
@@ -760,9 +740,8 @@ def write(results: dict) -> None:
     lines += markdown_table(["#", "input", "exit", "one-line message", "s"],
                             [[str(k), r["input"], f"{r['exit_code']}{'' if r['ok'] else ' **(unexpected)**'}",
                               r["message"], str(r["seconds"])] for k, r in enumerate(done, 1)])
-    RESULTS.mkdir(parents=True, exist_ok=True)
-    with atomic_path(RESULTS / "reliability.md") as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
+    write_results("reliability", {"rows": done, "n": len(done), "n_ok": sum(r["ok"] for r in done)}, "\n".join(lines),
+                  echo=False)
 
 
 def main() -> None:

@@ -27,17 +27,15 @@ models under dash against the standard model's dash rows of the grid, and agains
 from __future__ import annotations
 
 import argparse
-import json
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from bench.common import (QUICK, RESULTS, machine, model_overrides, scene_overrides, sync_results,
-                          train_run)
+from bench.common import (QUICK, RESULTS, SEVEN, machine, model_overrides, pyplot, read_json, restore, scene_overrides,
+                          sync_results, train_run, write_results)
 
-SEVEN = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
 #: load.json: the --jobs/--threads a row was trained under (its time is paired only with rows of the same scene-seed)
 ARCHIVED = ["*/*/*/s*/config.yaml", "*/*/*/s*/metrics.json", "*/*/*/s*/curve.json", "*/*/*/s*/load.json"]
 METRICS = [("psnr", True), ("ssim", True), ("lpips", False), ("num_gaussians", False), ("train_time_s", False)]
@@ -94,10 +92,8 @@ def read_row(d: Path, scene: str, model: str, variant: str, seed: int, source: s
     """One finished run dir as a table row and its test curve; None if it has no metrics.json."""
     if not (d / "metrics.json").is_file():
         return None
-    m = json.loads((d / "metrics.json").read_text())
-    pts = json.loads((d / "curve.json").read_text())["points"] if (d / "curve.json").is_file() else []
-    bt = m.get("block_time_s") or {}
-    load = json.loads((d / "load.json").read_text()) if (d / "load.json").is_file() else {}
+    m, load = read_json(d / "metrics.json"), read_json(d / "load.json", {})
+    pts, bt = read_json(d / "curve.json", {}).get("points", []), m.get("block_time_s") or {}
     return ({"scene": scene, "model": model, "variant": variant, "seed": seed, "source": source, "psnr": m["psnr"],
              "jobs": load.get("jobs"), "ssim": m["ssim"], "lpips": m["lpips"], "num_gaussians": m["num_gaussians"],
              "train_time_s": m["train_time_s"],
@@ -133,12 +129,9 @@ def macro(rows: list[dict], variant: str, key: str, model: str) -> Optional[floa
 
 
 def plot(curves: dict, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from b3dgs.io import atomic_path
+
+    plt = pyplot()
 
     scenes = sorted({k[0] for k in curves})
     n = len(scenes)
@@ -277,7 +270,7 @@ def main(argv: Optional[list[str]] = None) -> None:
     ap.add_argument("--extra", nargs="*", default=[], help="overrides for every run")
     ap.add_argument("--title", default="Training schedules side by side", help="the table's heading")
     args = ap.parse_args(argv)
-    from b3dgs.io import atomic_path, write_json
+    from b3dgs.io import write_json
 
     variants = parse_variants(args.variant or ["constant=schedule=constant", "dash=schedule=dash"])
     imports = parse_imports(args.imports)
@@ -289,7 +282,7 @@ def main(argv: Optional[list[str]] = None) -> None:
     if args.base_model and args.base_model not in args.models:
         raise SystemExit(f"bench/schedule.py: --base-model {args.base_model!r} is not in --models (fix: add it)")
     out, archive = Path(args.out), Path(args.archive)
-    sync_results(archive, out, ARCHIVED, only_missing=True)  # rows finished in earlier sessions count as finished
+    restore(archive, out, ARCHIVED)
     jobs = [(scene, model, name, seed) for seed in args.seeds for scene in args.scenes for model in args.models
             for name in variants]
 
@@ -332,12 +325,9 @@ def main(argv: Optional[list[str]] = None) -> None:
     summary = summarize(rows, curves, names, ref, args.models, args.base_model)
     lines = markdown(rows, summary, names, ref, args.threads, imports, args.title)
     root = Path(args.results_root)
-    root.mkdir(parents=True, exist_ok=True)
-    write_json(root / f"{args.name}.json", {"machine": machine(), "variants": variants, "imports": imports,
-                                               "reference": ref, "jobs": args.jobs, "threads": args.threads,
-                                               "rows": rows, "summary": summary})
-    with atomic_path(root / f"{args.name}.md") as tmp:
-        tmp.write_text("\n".join(lines) + "\n")
+    write_results(args.name, {"machine": machine(), "variants": variants, "imports": imports, "reference": ref,
+                              "jobs": args.jobs, "threads": args.threads, "rows": rows, "summary": summary},
+                  "\n".join(lines), root, echo=False)
     if curves:
         plot(curves, root / f"{args.name}.png")
     print("\n".join(lines[:40]))

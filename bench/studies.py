@@ -25,10 +25,9 @@ from pathlib import Path
 
 from omegaconf import OmegaConf
 
-from bench.common import (QUICK, RESULTS, archive_files, bench_child, compose, model_overrides, n_train_views,
-                          scene_names, scene_overrides, train_run)
+from bench.common import (QUICK, RESULTS, ROOT, archive_files, bench_child, compose, model_overrides, n_train_views,
+                          read_json, scene_names, scene_overrides, steps_overrides, threads_overrides, train_run)
 
-ROOT = Path(__file__).resolve().parents[1]
 STUDIES = OmegaConf.load(ROOT / "conf" / "report.yaml").studies
 
 
@@ -36,8 +35,7 @@ def plan(args) -> list[tuple[Path, list[str], str]]:
     """(run dir, overrides, study) for every run of the requested studies."""
     from b3dgs.data.scene import select_evenly
 
-    protocol = QUICK + [f"trainer.max_steps={args.max_steps}", f"trainer.eval_every={max(1, args.max_steps // 12)}"] \
-        if args.max_steps else list(QUICK)
+    protocol = QUICK + steps_overrides(args.max_steps, evals=12)
     out = Path(args.out)
     jobs = []
     for scene in args.scenes:
@@ -63,23 +61,17 @@ def plan(args) -> list[tuple[Path, list[str], str]]:
                     jobs.append((out / "initcap" / f"c{args.cap}" / scene / m / f"s{seed}",
                                  common + [*model_overrides(m), f"model.init_max_points={args.cap}"],
                                  "initcap"))
-    seen, unique = set(), []
+    unique: dict = {}
     for j in jobs:
-        if j[0] not in seen:
-            seen.add(j[0])
-            unique.append(j)
-    return unique
-
-
-def _compose_train(overrides: list[str]):
-    return compose("train", overrides)
+        unique.setdefault(j[0], j)
+    return list(unique.values())
 
 
 def training_signature(overrides: list[str]) -> str:
     """:func:`b3dgs.study.rounds.training_signature` of the run these overrides compose."""
     from b3dgs.study.rounds import training_signature as signature
 
-    return signature(_compose_train([*overrides, "trainer.default_root_dir=."]))
+    return signature(compose("train", [*overrides, "trainer.default_root_dir=."]))
 
 
 def twins(jobs, studies=("sparse", "initcap")) -> dict[Path, Path]:
@@ -104,7 +96,7 @@ def write_shared(run_dir: Path, overrides: list[str], twin: Path) -> dict:
     its own composed config, twin's curve and metrics with ``training_shared_with`` naming the twin; no checkpoint."""
     from b3dgs.lifecycle import Run
 
-    return Run(_compose_train([*overrides, f"trainer.default_root_dir={run_dir}"]), run_dir).share_training(twin)
+    return Run(compose("train", [*overrides, f"trainer.default_root_dir={run_dir}"]), run_dir).share_training(twin)
 
 
 def uq_regimes(names: list[str], samples: int, seed: int) -> dict:
@@ -125,7 +117,7 @@ def merge_uq(path: Path, new: dict) -> dict:
     """uq.json at path with the regimes of ``new`` added (atomically); both must score the same views."""
     from b3dgs.io import write_json
 
-    have = json.loads(path.read_text()) if path.is_file() else {}
+    have = read_json(path, {})
     old_meta, new_meta = have.get("_meta", {}), new.get("_meta", {})
     for key in ("views", "seed"):
         if key in old_meta and old_meta[key] != new_meta.get(key):
@@ -149,8 +141,7 @@ def ensure_regimes(run_dir: Path, names: list[str], samples: int, seed: int) -> 
 
     from b3dgs.eval import evaluate_uq
 
-    have = json.loads((run_dir / "uq.json").read_text()) if (run_dir / "uq.json").is_file() else {}
-    todo = [n for n in names if n not in have]
+    todo = [n for n in names if n not in read_json(run_dir / "uq.json", {})]
     if not todo:
         return
     with tempfile.TemporaryDirectory(dir=run_dir, prefix=".uq.") as tmp:  # its plots and TensorBoard files: dropped
@@ -160,9 +151,8 @@ def ensure_regimes(run_dir: Path, names: list[str], samples: int, seed: int) -> 
 
 def missing_regimes(run_dir: Path, method: str) -> list[str]:
     """The regimes conf/report.yaml asks of method that run_dir's uq.json lacks (all of them without one)."""
-    names = list(STUDIES.uq_regimes.get(method, ["proxy"]))
-    have = json.loads((run_dir / "uq.json").read_text()) if (run_dir / "uq.json").is_file() else {}
-    return [n for n in names if n not in have]
+    have = read_json(run_dir / "uq.json", {})
+    return [n for n in STUDIES.uq_regimes.get(method, ["proxy"]) if n not in have]
 
 
 def ensemble_members(args, scene: str) -> list[Path]:
@@ -285,7 +275,7 @@ def main() -> None:
             print(("done " if archived(args, run_dir, study) else "todo ") + str(run_dir)
                   + (f" (shares {shared[run_dir]})" if run_dir in shared else ""))
         return
-    threads = [f"threads={args.threads}"] if args.threads else []
+    threads = threads_overrides(args.threads)
     if args.report_only:
         jobs = [j for j in jobs if archived(args, j[0], j[2])]
         print(f"report of the {len(jobs)} archived runs", flush=True)

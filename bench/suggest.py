@@ -36,17 +36,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import QUICK, RESULTS, archive_files, model_overrides, scene_names, scene_overrides, train_run, \
-    write_results
+from bench.common import (QUICK, RESULTS, SECTOR_SPLIT, SEVEN, archive_files, model_overrides, read_json,
+                          scene_names, scene_overrides, steps_overrides, threads_overrides, train_run, write_results)
 
-SPLIT = ["data.test_split=sector+interleaved", "data.test_fraction=0.125"]
-SCENES = ["ethiopian_head", "fox", "lego", "fern", "flower", "dtu_scan24", "dtu_scan65"]
 POLICIES = {"info_gain": "info_gain", "cover": "cover", "distance": "farthest", "uniform": "uniform"}
 ARCHIVED = ("config.yaml", "metrics.json")
-
-
-def _json(p: Path):
-    return json.loads(p.read_text()) if p.is_file() else None
 
 
 def _centres(cams) -> np.ndarray:
@@ -134,7 +128,7 @@ def retrain(overrides: list[str], added: list[str], eval_sets: dict, run_dir: Pa
     from b3dgs.io import write_json
 
     last, tag = run_dir / "checkpoints" / "last.ckpt", run_dir / "added.json"
-    if run_dir.exists() and _json(tag) != list(added):  # a run of other added views: never resumed, trained again
+    if run_dir.exists() and read_json(tag) != list(added):  # a run of other added views: never resumed, trained again
         shutil.rmtree(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     write_json(tag, list(added))
@@ -150,12 +144,12 @@ def table(archive: Path, scenes: list[str], seeds: list[int]) -> tuple[dict, str
         acc_h: dict = {}
         acc_o: dict = {}
         for s in seeds:
-            for pol, h in (_json(archive / sc / f"s{s}" / "hits.json") or {}).items():
+            for pol, h in (read_json(archive / sc / f"s{s}" / "hits.json") or {}).items():
                 acc_h.setdefault(pol, []).append((h["hit_rate"], h["chance"]))
             if (archive / sc / f"s{s}" / "outcome_skipped.json").is_file():
                 skipped.append(f"{sc} s{s}")
             for pol in [*POLICIES, "none"]:
-                r = _json(archive / sc / f"s{s}" / f"outcome_{pol}.json")
+                r = read_json(archive / sc / f"s{s}" / f"outcome_{pol}.json")
                 if r is not None and "views_added" in r:  # records of the K rule (views_added); older ones superseded
                     acc_o.setdefault(pol, []).append([r[k][m] for k in ("sector", "all") for m in ("psnr", "lpips")])
                     shape.setdefault(sc, {})[s] = (r["views_added"], len(r["eval_sector"]), len(r["eval_all"]))
@@ -222,7 +216,7 @@ def table(archive: Path, scenes: list[str], seeds: list[int]) -> tuple[dict, str
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--scenes", nargs="+", default=SCENES, choices=scene_names())
+    ap.add_argument("--scenes", nargs="+", default=SEVEN, choices=scene_names())
     ap.add_argument("--seeds", type=int, nargs="+", default=None,
                     help="default: 0 to run; the table: every seed in the archive")
     ap.add_argument("--n", type=int, default=8, help="suggestions per policy (and views added)")
@@ -239,15 +233,13 @@ def main() -> None:
     ap.add_argument("--table-only", action="store_true")
     args = ap.parse_args()
     out, archive = Path(args.out), Path(args.archive)
-    steps = [f"trainer.max_steps={args.max_steps}", f"trainer.eval_every={max(1, args.max_steps // 4)}"] \
-        if args.max_steps else []
-    threads = [f"threads={args.threads}"] if args.threads else []
+    steps, threads = steps_overrides(args.max_steps), threads_overrides(args.threads)
 
     def one(sc: str, seed: int) -> None:
         from b3dgs.io import write_json
         from b3dgs.runs import load_run
 
-        overrides = scene_overrides(sc) + list(QUICK) + SPLIT + model_overrides("standard") + steps + \
+        overrides = scene_overrides(sc) + list(QUICK) + SECTOR_SPLIT + model_overrides("standard") + steps + \
             [f"seed={seed}"] + args.extra + threads
         base = out / sc / "base" / f"s{seed}"
         arch = archive / sc / f"s{seed}"
@@ -284,7 +276,7 @@ def main() -> None:
             return
         for pol in [*args.policies, "none"]:
             f = arch / f"outcome_{pol}.json"
-            prev = _json(f)
+            prev = read_json(f)
             if prev is not None and prev.get("eval_sector") == sector and prev.get("eval_all") == every:
                 continue
             sets = {"sector": sector, "all": every}

@@ -28,12 +28,11 @@ the checks of issue 10.
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 from pathlib import Path
 
-from bench.common import QUICK, machine, model_overrides, scene_overrides, table, train_run, write_results
+from bench.common import QUICK, machine, model_overrides, read_json, scene_overrides, table, train_run, write_results
 
 VERSION = 2  # bump when what an evaluation measures changes: cached uq.json files are then recomputed
 PAPER = {  # Table 3 of the paper (13 scenes, 30k steps, GPU): for side-by-side reading
@@ -88,12 +87,8 @@ def merge_overrides(*lists: list[str]) -> list[str]:
 
 def cached_eval(out_dir: Path, key: dict, compute) -> dict:
     """``out_dir/uq.json`` when it was written with the settings ``key``, else ``compute()`` (which writes it)."""
-    path = out_dir / "uq.json"
-    if path.exists():
-        res = json.loads(path.read_text())
-        if (res.get("_meta") or {}).get("bench_key") == key:
-            return res
-    return compute()
+    res = read_json(out_dir / "uq.json", {})
+    return res if (res.get("_meta") or {}).get("bench_key") == key else compute()
 
 
 def main() -> None:
@@ -222,10 +217,7 @@ def main() -> None:
         macro.append({"row": name, **{k: mean([r.get(k) for r in sel]) for k in keys}})
 
     def get(scene, row, key):
-        for r in scene_means:
-            if r["scene"] == scene and r["row"] == row:
-                return r.get(key)
-        return None
+        return next((r.get(key) for r in scene_means if r["scene"] == scene and r["row"] == row), None)
 
     checks = []
     for scene in args.scenes:

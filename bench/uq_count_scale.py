@@ -33,7 +33,7 @@ import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 
-from bench.common import machine, table, write_results
+from bench.common import machine, read_json, table, write_results
 
 VERSION = 1  # bump when the measurement changes, so cached settings are recomputed
 COLS = ["mean_epistemic", "epistemic_fraction", "epi_ause_rmse", "epi_spearman_sq", "epi_view_spearman",
@@ -119,11 +119,8 @@ def main() -> None:
             out_dir = Path(args.out) / scene_name / f"{run_dir.parent.name}_{run_dir.name}" / tag
             setting = {"version": VERSION, "run": str(run_dir), "count_scale": c, "cov_mode": mode, "scatter": sc,
                        "samples": args.samples, "max_views": args.max_views, "seed": args.seed}
-            res = None
-            if (out_dir / "uq.json").exists():
-                res = json.loads((out_dir / "uq.json").read_text())
-                if (res.get("_meta") or {}).get("setting") != setting:
-                    res = None
+            res = read_json(out_dir / "uq.json", {})
+            res = res if (res.get("_meta") or {}).get("setting") == setting else None
             t0 = time.perf_counter()
             if res is None:
                 if run is None:
