@@ -56,6 +56,14 @@ def field_default(owner: Any, name: str) -> Any:
     return f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
 
 
+def check_field(owner: Any, key: str, ok: bool, rule: str, how: Optional[str] = None, note: str = "") -> None:
+    """Refuse the field ``key`` (``group.name``) of the dataclass ``owner`` unless ``ok``, in one line: ``<key> must be
+    <rule>`` (fix: ``pass <key> <how or rule>, e.g. the default <its default><note>``)."""
+    if not ok:
+        raise B3dgsError(f"{key} must be {rule}", fix=f"pass {key} {how or rule}, "
+                         f"e.g. the default {field_default(owner, key.rsplit('.', 1)[-1])}{note}")
+
+
 def did_you_mean(word: str, choices: Iterable[str]) -> str:
     """``"; did you mean X?"`` for the closest of ``choices``, else ``""``."""
     close = difflib.get_close_matches(str(word), sorted(set(map(str, choices))), n=1, cutoff=0.6)
@@ -367,6 +375,15 @@ def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str
         else:
             os.environ["HYDRA_FULL_ERROR"] = old
 
+
+
+def cli_main(prog: str, hydra_main: Callable[[], object], config: str, **kw) -> Callable[[], None]:
+    """The console entry point of ``prog`` (pyproject's ``[project.scripts]``): :func:`run_cli` on ``hydra_main``."""
+    def main() -> None:
+        run_cli(prog, hydra_main, config=config, **kw)
+
+    main.__doc__ = f"``{prog}``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."
+    return main
 
 # ---------------------------------------------------------------------------------------------- quiet log
 

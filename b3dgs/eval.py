@@ -18,7 +18,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, ListConfig
 
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, cli_main
 from b3dgs.progress import progress
 from b3dgs.train import CONF_DIR
 
@@ -258,11 +258,7 @@ def hydra_main(cfg: DictConfig) -> None:
                     lpips_weights=cfg.get("lpips_weights"))
 
 
-def main() -> None:
-    """``b3dgs-eval``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
-    from b3dgs.errors import run_cli
-
-    run_cli("b3dgs-eval", hydra_main, config="eval")
+main = cli_main("b3dgs-eval", hydra_main, "eval")
 
 
 if __name__ == "__main__":

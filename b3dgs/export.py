@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, cli_main
 from b3dgs.train import CONF_DIR
 
 log = logging.getLogger(__name__)
@@ -263,11 +263,7 @@ def hydra_main(cfg: DictConfig) -> None:
               flush=True)
 
 
-def main() -> None:
-    """``b3dgs-export``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
-    from b3dgs.errors import run_cli
-
-    run_cli("b3dgs-export", hydra_main, config="export")
+main = cli_main("b3dgs-export", hydra_main, "export")
 
 
 if __name__ == "__main__":

@@ -37,7 +37,7 @@ import hydra
 from omegaconf import DictConfig
 
 from b3dgs import conf_dir, data_root
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, cli_main
 
 __all__ = ["EXHAUSTIVE_UP_TO", "STAGES", "extract_frames", "list_photos", "main", "process"]
 
@@ -987,11 +987,7 @@ def hydra_main(cfg: DictConfig) -> None:
             os._exit(e.exit_code)  # at once: the stage's pycolmap call may still run in its thread
 
 
-def main() -> None:
-    """``b3dgs-process``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
-    from b3dgs.errors import run_cli
-
-    run_cli("b3dgs-process", hydra_main, config="process")
+main = cli_main("b3dgs-process", hydra_main, "process")
 
 
 if __name__ == "__main__":

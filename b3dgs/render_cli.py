@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, cli_main
 from b3dgs.train import CONF_DIR
 from b3dgs.types import Camera
 
@@ -358,11 +358,7 @@ def hydra_main(cfg: DictConfig) -> None:
         print(f"b3dgs-render: wrote {len(w['frames'])} frames to {where}/frame_*.png{video}", flush=True)
 
 
-def main() -> None:
-    """``b3dgs-render``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
-    from b3dgs.errors import run_cli
-
-    run_cli("b3dgs-render", hydra_main, config="render")
+main = cli_main("b3dgs-render", hydra_main, "render")
 
 
 if __name__ == "__main__":

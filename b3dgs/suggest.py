@@ -38,7 +38,7 @@ from omegaconf import DictConfig
 from torch import Tensor
 
 from b3dgs.acquisition import AcquisitionPolicy, Selection
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, cli_main
 from b3dgs.train import CONF_DIR
 from b3dgs.types import Camera
 
@@ -654,11 +654,7 @@ def hydra_main(cfg: DictConfig) -> None:
               f"plot.png, preview_*.png", flush=True)
 
 
-def main() -> None:
-    """``b3dgs-suggest``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
-    from b3dgs.errors import run_cli
-
-    run_cli("b3dgs-suggest", hydra_main, config="suggest")
+main = cli_main("b3dgs-suggest", hydra_main, "suggest")
 
 
 if __name__ == "__main__":
