@@ -105,6 +105,12 @@ class _Counting:
     def per_step(self) -> dict[int, dict[str, int]]:
         return {s: dict(c) for s, c in sorted(self.counts.items())}
 
+    def __enter__(self):
+        return self.install()
+
+    def __exit__(self, *exc) -> None:
+        self.remove()
+
 
 def _site() -> str:
     """The innermost frame outside torch and this module: where the sync was asked for."""
@@ -184,12 +190,6 @@ class HostSyncCounter(_Counting):
         self._modes = []
         _COUNTER = None
 
-    def __enter__(self) -> "HostSyncCounter":
-        return self.install()
-
-    def __exit__(self, *exc) -> None:
-        self.remove()
-
 
 class CudaSyncCounter(_Counting):
     """Counts the synchronisations the CUDA runtime really performs (``torch.cuda.set_sync_debug_mode("warn")``)."""
@@ -227,12 +227,6 @@ class CudaSyncCounter(_Counting):
             self._catch.__exit__(None, None, None)
             self._catch = None
         _COUNTER = None
-
-    def __enter__(self) -> "CudaSyncCounter":
-        return self.install()
-
-    def __exit__(self, *exc) -> None:
-        self.remove()
 
 
 class HostSyncCallback(L.Callback):

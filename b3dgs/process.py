@@ -29,7 +29,7 @@ import shutil
 import sys
 import threading
 import time
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from pathlib import Path
 from typing import Any, Callable, Iterator, Optional
 
@@ -211,9 +211,7 @@ def _renumber(pycolmap, src: Path, dst: Path, names: list[str]) -> None:
     id to the larger, which changes RANSAC's samples; the mapper breaks ties by id): with these ids, the same photos
     give the same scene whatever the thread count or timing."""
     _remove(dst)
-    old = pycolmap.Database.open(str(src))
-    new = pycolmap.Database.open(str(dst))
-    try:
+    with closing(pycolmap.Database.open(str(src))) as old, closing(pycolmap.Database.open(str(dst))) as new:
         images = {im.name: im for im in old.read_all_images()}
         cameras = {c.camera_id: c for c in old.read_all_cameras()}
         priors = {}
@@ -243,11 +241,6 @@ def _renumber(pycolmap, src: Path, dst: Path, names: list[str]) -> None:
             new.write_image(im, use_image_id=True)
             new.write_keypoints(i, keypoints)
             new.write_descriptors(i, descriptors)
-    finally:
-        old.close()
-        new.close()
-
-
 
 
 class _Run:
@@ -302,21 +295,15 @@ class _Run:
                                                     reader_options=reader, extraction_options=opts,
                                                     device=pycolmap.Device.cpu))
             if self.single and camera < 0 and part.is_file():
-                db = pycolmap.Database.open(str(part))
-                try:
+                with closing(pycolmap.Database.open(str(part))) as db:
                     camera = min((c.camera_id for c in db.read_all_cameras()), default=-1)
-                finally:
-                    db.close()
             bar.update(len(names))
         bar.close()
         if not part.is_file():
             raise B3dgsError(f"pycolmap extracted no features from the photos in {self.images}",
                              "check that the photos open in an image viewer; verbose=true shows COLMAP's log")
-        db = pycolmap.Database.open(str(part))
-        try:
+        with closing(pycolmap.Database.open(str(part))) as db:
             rows = {im.name: int(db.num_keypoints_for_image(im.image_id)) for im in db.read_all_images()}
-        finally:
-            db.close()
         _renumber(pycolmap, part, self.work / "features.db.sorted", self.names)
         os.replace(self.work / "features.db.sorted", self.work / "features.db")
         _remove(part)
@@ -341,13 +328,10 @@ class _Run:
             n, b = len(self.names), 50
             return [(self.names[i], self.names[j]) for s1 in range(0, n, b) for s2 in range(s1, n, b)
                     for i in range(s1, min(s1 + b, n)) for j in range(max(s2, i + 1), min(s2 + b, n))]
-        db = pycolmap.Database.open(str(db_path))
-        try:
+        with closing(pycolmap.Database.open(str(db_path))) as db:
             names = {im.image_id: im.name for im in db.read_all_images()}
             gen = pycolmap.SequentialPairGenerator(self._sequential(pycolmap), db)
             return [(names[a], names[b]) for a, b in gen.all_pairs()]
-        finally:
-            db.close()
 
     def match(self, pycolmap) -> dict:
         part, listing = self.work / "matches.db.partial", self.work / "pairs.partial.txt"
@@ -378,15 +362,12 @@ class _Run:
                 bar.update(len(chunk))
         bar.close()
         _remove(listing)
-        db = pycolmap.Database.open(str(part))
-        try:
+        with closing(pycolmap.Database.open(str(part))) as db:
             ids = {im.image_id: im.name for im in db.read_all_images()}
             pair_ids, inliers = db.read_two_view_geometry_num_inliers()
             matched = {ids.get(int(i)) for p, k in zip(pair_ids, inliers) if k > 0
                        for i in pycolmap.pair_id_to_image_pair(p)}
             verified = sum(1 for k in inliers if k > 0)
-        finally:
-            db.close()
         os.replace(part, self.work / "matches.db")
         return {"pairs": len(pairs), "verified_pairs": verified,
                 "photos_without_matches": [n for n in self.names if n not in matched],

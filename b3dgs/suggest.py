@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -483,25 +484,20 @@ def _check_cfg(cfg: DictConfig) -> None:
             raise B3dgsError(f"{key}={v!r} is too small", f"pass {key}= an integer >= 8, or null")
 
 
+@contextmanager
 def _claim(folder: Path, run_dir: Path, names: Sequence[str]):
     """Make room for ``names`` in ``folder``: in the run dir (under its lock) the files an earlier b3dgs-suggest
     recorded there go and ``names`` join the manifest before they are written; elsewhere the files named as this
     command names its own go. Nothing else is touched."""
-    from contextlib import contextmanager
-
     from b3dgs.rundir import claim_in_run, read_manifest, remove_listed
 
-    @contextmanager
-    def claim():
-        if folder.resolve().is_relative_to(run_dir.resolve()) and read_manifest(run_dir) is not None:
-            with claim_in_run(run_dir, folder, names, "b3dgs-suggest", OWN_FILE):
-                yield
-            return
-        folder.mkdir(parents=True, exist_ok=True)
-        remove_listed(folder, [p.name for p in folder.iterdir() if p.is_file() and OWN_FILE.fullmatch(p.name)])
-        yield
-
-    return claim()
+    if folder.resolve().is_relative_to(run_dir.resolve()) and read_manifest(run_dir) is not None:
+        with claim_in_run(run_dir, folder, names, "b3dgs-suggest", OWN_FILE):
+            yield
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    remove_listed(folder, [p.name for p in folder.iterdir() if p.is_file() and OWN_FILE.fullmatch(p.name)])
+    yield
 
 
 def suggest(cfg: DictConfig) -> dict:

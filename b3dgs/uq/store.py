@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Mapping, Optional, Sequence
 
 from b3dgs.errors import B3dgsError
+from b3dgs.io import read_json_dict
 from b3dgs.upgrade import uq_panels
 
 UQ_NAME = "uq.json"
@@ -53,11 +54,7 @@ def _read_config(run_dir: Path) -> Optional[dict]:
 
 
 def _read_metrics(run_dir: Path) -> dict:
-    try:
-        m = json.loads((Path(run_dir) / "metrics.json").read_text())
-    except (OSError, ValueError):
-        return {}
-    return m if isinstance(m, dict) else {}
+    return read_json_dict(Path(run_dir) / "metrics.json") or {}
 
 
 def check_members(run_dirs: Sequence[str | Path]) -> None:
