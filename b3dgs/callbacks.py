@@ -157,7 +157,6 @@ class RunCheckpoint(Checkpoint):
         self._saved_step = step  # the step this process last saved
         trainer.save_checkpoint(self.last_path, weights_only=False)
         if self.keep and self.every_n_steps and step % self.every_n_steps == 0:
-            from b3dgs.io import atomic_path
             from b3dgs.rundir import record_written
 
             # listed in the run manifest before it exists (a run dir's ``checkpoints/``; elsewhere nothing to list)

@@ -18,7 +18,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, ListConfig
 
-from b3dgs.errors import B3dgsError, cli_main
+from b3dgs.errors import B3dgsError, cli_main, known_errors, quiet_known_noise
 from b3dgs.progress import progress
 from b3dgs.train import CONF_DIR
 
@@ -41,7 +41,6 @@ def regimes_from_cfg(cfg: DictConfig) -> dict:
 
 def refuse_running(run_dirs) -> None:
     """Refuse a run dir that a ``b3dgs-train`` is still writing (its lock is held by a live process)."""
-    from b3dgs.errors import B3dgsError
     from b3dgs.rundir import run_dir_busy
 
     for r in run_dirs:
@@ -242,7 +241,6 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="eval")
 def hydra_main(cfg: DictConfig) -> None:
-    from b3dgs.errors import known_errors, quiet_known_noise
     from b3dgs.validation import validate_config
 
     with known_errors("b3dgs-eval", cfg):

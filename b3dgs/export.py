@@ -33,7 +33,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from b3dgs.errors import B3dgsError, cli_main
+from b3dgs.errors import B3dgsError, cli_main, did_you_mean, known_errors, quiet_known_noise
+from b3dgs.io import atomic_path, write_json
 from b3dgs.train import CONF_DIR
 
 log = logging.getLogger(__name__)
@@ -83,8 +84,6 @@ def splat_records(splats: dict, inv) -> np.ndarray:
 
 
 def export_splat(run, path: Path) -> Path:
-    from b3dgs.io import atomic_path
-
     splats, _, inv = _own_frame(run)
     rec = splat_records(splats, inv)
     with atomic_path(path) as tmp:
@@ -111,8 +110,6 @@ def camera_entries(cameras, inv) -> list[dict]:
 def export_3dgs(run, folder: Path, step: int, model_path: Optional[Path] = None) -> Path:
     """The official 3DGS model folder of ``run`` at ``step`` in ``folder`` (``cfg_args`` names ``model_path``, default
     ``folder``: the folder it will have once staged into place)."""
-    from b3dgs.io import atomic_path, write_json
-
     _, _, inv = _own_frame(run)
     export_ply(run, folder / "point_cloud" / f"iteration_{step}" / "point_cloud.ply", extras=False)
     cams = list(run.scene.train) + list(run.scene.test)
@@ -218,8 +215,6 @@ def export(cfg: DictConfig) -> dict:
 
     fmt = str(cfg.get("format"))
     if fmt not in FORMATS:
-        from b3dgs.errors import did_you_mean
-
         raise B3dgsError(f"format={fmt} is not an export format{did_you_mean(fmt, FORMATS)}",
                          f"pass format={'|'.join(FORMATS)}")
     validate_config(cfg, app="export")
@@ -254,8 +249,6 @@ def export(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="export")
 def hydra_main(cfg: DictConfig) -> None:
-    from b3dgs.errors import known_errors, quiet_known_noise
-
     with known_errors("b3dgs-export", cfg):
         quiet_known_noise()
         w = export(cfg)

@@ -28,8 +28,9 @@ from typing import TYPE_CHECKING, Any, Optional
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from b3dgs.checkpoint import check_sealed
+from b3dgs.checkpoint import check_sealed, checkpoint_record, renderer_identity, renderer_mismatch
 from b3dgs.errors import B3dgsError
+from b3dgs.io import write_json
 
 if TYPE_CHECKING:
     from b3dgs.data.datamodule import SceneDataModule
@@ -247,8 +248,6 @@ def check_resume_renderer(cfg: DictConfig, ckpt_path: str) -> None:
     """Refuse to resume with another renderer (backend, device or setting) than the checkpoint's run used: the
     identity of the renderer in the checkpoint, or (checkpoints written before it was recorded) the ``renderer``
     node of its run dir's config.yaml. A damaged checkpoint passes here (:func:`check_resume` names it)."""
-    from b3dgs.checkpoint import renderer_identity, renderer_mismatch
-
     try:
         saved = ((read_checkpoint(ckpt_path, mmap=True).get("b3dgs") or {}).get("identity") or {}).get("renderer")
     except Exception:  # noqa: BLE001
@@ -509,7 +508,6 @@ class Run:
         import time
 
         from b3dgs.callbacks import StepProgressBar
-        from b3dgs.checkpoint import checkpoint_record
         from b3dgs.data.scene import scene_transform
         from b3dgs.labels import method_label
         from b3dgs.metrics.lpips import get_lpips
@@ -580,15 +578,12 @@ class Run:
         return metrics
 
     def _write_metrics(self, metrics: dict) -> None:
-        from b3dgs.io import write_json
-
         write_json(self.run_dir / "metrics.json", metrics)  # the one writer of a run's done marker
 
     def record(self, name: str, payload: dict, prog: str = "b3dgs-study") -> dict:
         """Write a study's record of this run (a row's ``selection.json`` and ``result.json``, its done marker; phase 1's
         ``phase1.json``; a compression row's ``result.json``) atomically, under the run dir's lock, listed in its
         manifest (made by the first record); returns ``payload``."""
-        from b3dgs.io import write_json
         from b3dgs.rundir import manifest_lock, record_written, start_manifest
 
         self.run_dir.mkdir(parents=True, exist_ok=True)

@@ -37,7 +37,8 @@ import hydra
 from omegaconf import DictConfig
 
 from b3dgs import conf_dir, data_root
-from b3dgs.errors import B3dgsError, cli_main
+from b3dgs.errors import B3dgsError, cli_main, did_you_mean, known_errors
+from b3dgs.io import atomic_path, write_json
 
 __all__ = ["EXHAUSTIVE_UP_TO", "STAGES", "extract_frames", "list_photos", "main", "process"]
 
@@ -541,8 +542,6 @@ def _read_state(out: Path) -> Optional[dict]:
 
 
 def _write_state(out: Path, state: dict) -> None:
-    from b3dgs.io import write_json
-
     write_json(out / STATE, state)
 
 
@@ -625,8 +624,6 @@ def _remove_ours(out: Path, state: dict) -> None:
 
 
 def _check_options(cfg: DictConfig, pycolmap) -> None:
-    from b3dgs.errors import did_you_mean
-
     matcher = str(cfg.matcher)
     if matcher not in MATCHERS:
         raise B3dgsError(f"matcher={matcher} is not a matcher{did_you_mean(matcher, MATCHERS)}",
@@ -924,8 +921,6 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, vide
     old = state.get("scene_file")
     if old and old != scene_file:
         _remove(out / old)
-    from b3dgs.io import atomic_path
-
     target = out / scene_file
     if not target.is_file() or target.read_text() != text:
         with atomic_path(target) as tmp:
@@ -952,8 +947,6 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, vide
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="process")
 def hydra_main(cfg: DictConfig) -> None:
-    from b3dgs.errors import known_errors
-
     from b3dgs.rundir import Interrupted
 
     with known_errors("b3dgs-process", cfg):

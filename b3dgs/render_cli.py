@@ -23,7 +23,8 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from b3dgs.errors import B3dgsError, cli_main
+from b3dgs.errors import B3dgsError, cli_main, known_errors, quiet_known_noise
+from b3dgs.io import atomic_path
 from b3dgs.train import CONF_DIR
 from b3dgs.types import Camera
 
@@ -252,8 +253,6 @@ def write_video(path: Path, frames: Sequence[np.ndarray], fps: int) -> Path:
     except ImportError:
         raise B3dgsError("writing the MP4 needs imageio-ffmpeg, which is not installed",
                          "pip install imageio-ffmpeg, or pass video=false") from None
-    from b3dgs.io import atomic_path
-
     h, w = frames[0].shape[:2]
     H, W = h + h % 2, w + w % 2
     with atomic_path(path) as tmp:
@@ -348,8 +347,6 @@ def render(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="render")
 def hydra_main(cfg: DictConfig) -> None:
-    from b3dgs.errors import known_errors, quiet_known_noise
-
     with known_errors("b3dgs-render", cfg):
         quiet_known_noise()
         w = render(cfg)

@@ -38,8 +38,9 @@ import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
-from b3dgs.acquisition import AcquisitionPolicy, Selection
-from b3dgs.errors import B3dgsError, cli_main
+from b3dgs.acquisition import AcquisitionPolicy, ScoringContext, Selection
+from b3dgs.errors import B3dgsError, cli_main, known_errors, quiet_known_noise
+from b3dgs.io import save_figure, write_json
 from b3dgs.train import CONF_DIR
 from b3dgs.types import Camera
 
@@ -412,8 +413,6 @@ def _plot(path: Path, fr: dict, train: Sequence[Camera], cands: Sequence[Camera]
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from b3dgs.io import save_figure
-
     def coords(cams):
         rel = np.stack([c.center.double().cpu().numpy() for c in cams]) - fr["centre"] if cams else np.zeros((0, 3))
         return rel @ fr["a"], rel @ fr["b"], rel @ fr["up"]
@@ -504,11 +503,9 @@ def suggest(cfg: DictConfig) -> dict:
     """Suggest ``cfg.n`` poses for ``cfg.run`` (module doc); returns what ``suggest.json`` holds."""
     import time
 
-    from b3dgs.acquisition import ScoringContext
     from b3dgs.data.images import save_png
     from b3dgs.data.scene import scene_transform
     from b3dgs.export import camera_entries
-    from b3dgs.io import write_json
     from b3dgs.viewer.run import open_run
 
     t0 = time.perf_counter()
@@ -641,8 +638,6 @@ def suggest(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="suggest")
 def hydra_main(cfg: DictConfig) -> None:
-    from b3dgs.errors import known_errors, quiet_known_noise
-
     with known_errors("b3dgs-suggest", cfg):
         quiet_known_noise()
         w = suggest(cfg)

@@ -28,10 +28,10 @@ from typing import Any, Optional
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
-from b3dgs.confs import compose_config
-from b3dgs.errors import B3dgsError
+from b3dgs.confs import compose_config, option_names
+from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.io import write_json
-from b3dgs.protocol import check_stored_protocol, check_stored_scene, scene_digest
+from b3dgs.protocol import RUN_IGNORED, check_stored_protocol, check_stored_scene, run_protocol, scene_digest
 from b3dgs.upgrade import FAMILY_POSTERIOR_UNRECORDED, omit_study_defaults, protocol_from_meta
 
 log = logging.getLogger(__name__)
@@ -45,8 +45,6 @@ ROW_DONE, ROW_SELECTION, PHASE1_DONE = "result.json", "selection.json", "phase1.
 def family_posterior_override(cfg: DictConfig, family: str) -> list[str]:
     """``[posterior=[...]]`` when the study pins ``family_posterior.<family>``, else ``[]`` (the model's own blocks,
     conf/model/<family>.yaml); an unknown block or a non-list is a one-line error."""
-    from b3dgs.confs import option_names
-
     pins = cfg.get("family_posterior") or {}
     if not isinstance(pins, (dict, DictConfig)):
         raise B3dgsError(f"family_posterior must map a family to its posterior blocks, got {pins!r}",
@@ -97,8 +95,6 @@ def load_policy(name: str, settings: Optional[DictConfig] = None):
     """(label, policy) for ``name`` or ``name@family`` from ``conf/acquisition/<name>.yaml`` (or a package's)."""
     from hydra.utils import instantiate
 
-    from b3dgs.confs import option_names
-
     base, _, family = str(name).partition("@")
     node = option_node("study", "acquisition", base, settings,
                        f"pass policies=[...] of conf/acquisition/<name>.yaml ({', '.join(option_names('acquisition'))})"
@@ -132,8 +128,6 @@ DEFAULT_BATCH = "topk"
 def load_batch(name: str, settings: Optional[DictConfig] = None):
     """The batch selector ``conf/acquisition/batch/<name>.yaml`` with ``settings[name]`` merged in."""
     from hydra.utils import instantiate
-
-    from b3dgs.confs import option_names
 
     node = option_node("study", "acquisition/batch", str(name), settings,
                        f"pass acquisition.batch={'|'.join(option_names('acquisition/batch'))} "
@@ -171,8 +165,6 @@ class StudyRow:
             fields = [f.name for f in dataclasses.fields(cls)]
             unknown = [k for k in node if k not in fields]
             if unknown:
-                from b3dgs.errors import did_you_mean
-
                 raise B3dgsError(f"a study row has no field {unknown[0]!r}{did_you_mean(unknown[0], fields)}",
                                  f"a row holds {', '.join(fields)}, e.g. {example}")
             if not isinstance(node.get("policy"), str) or not node["policy"]:
@@ -330,8 +322,6 @@ def study_protocol(cfg: DictConfig, family_posteriors: Optional[dict] = None) ->
     ``family_posterior.<family>``: the posterior blocks of each family's model as composed (``family_posteriors``:
     the families of :data:`b3dgs.upgrade.FAMILY_POSTERIOR_UNRECORDED` and the pinned ones), where they differ from that
     table (:func:`b3dgs.upgrade.omit_study_defaults`)."""
-    from b3dgs.protocol import RUN_IGNORED, run_protocol
-
     out = run_protocol(OmegaConf.to_container(cfg, resolve=True), ignore=RUN_IGNORED + STUDY_IGNORED)
     return omit_study_defaults(out, family_posteriors)
 

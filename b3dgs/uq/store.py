@@ -21,8 +21,8 @@ from pathlib import Path
 from typing import Mapping, Optional, Sequence
 
 from b3dgs.errors import B3dgsError
-from b3dgs.io import read_json_dict
-from b3dgs.upgrade import uq_panels
+from b3dgs.io import read_json_dict, write_json
+from b3dgs.upgrade import upgrade_targets, uq_panels
 
 UQ_NAME = "uq.json"
 LOCK_NAME = ".uq.json.lock"
@@ -44,8 +44,6 @@ def ensemble_dir(members: Sequence[Path]) -> Path:
 
 def _read_config(run_dir: Path) -> Optional[dict]:
     from omegaconf import OmegaConf
-
-    from b3dgs.upgrade import upgrade_targets
 
     try:
         return upgrade_targets(OmegaConf.to_container(OmegaConf.load(Path(run_dir) / "config.yaml"), resolve=False))
@@ -131,7 +129,6 @@ def merge_into(folder: Path, new: Mapping[str, dict], meta: Mapping, staging: Op
     in a run dir's manifest by name before they are written. Returns the merged file."""
     from filelock import FileLock, Timeout
 
-    from b3dgs.io import write_json
     from b3dgs.rundir import manifest_lock, read_manifest, record_written, remove_listed
 
     folder = Path(folder)

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from b3dgs.device import randn
-from b3dgs.errors import B3dgsError, check_field, field_default
+from b3dgs.errors import B3dgsError, check_field, did_you_mean, field_default
 from b3dgs.fisher import FisherAccumulator
 from b3dgs.numerics import float_dtype as _out_dtype
 from b3dgs.numerics import guard, safe_cholesky, sym as _sym
@@ -431,8 +431,6 @@ class NIWBlock(PosteriorBlock):
                                  f"e.g. the default {field_default(self, 'count_scale')} (< 1 "
                                  "widens the posterior)")
         if self.count not in COUNTS:
-            from b3dgs.errors import did_you_mean
-
             raise B3dgsError(f"posterior.niw.count={self.count} is not a count{did_you_mean(str(self.count), COUNTS)}",
                              f"pass posterior.niw.count={'|'.join(COUNTS)}")
         if isinstance(self.fisher_probes, bool) or not isinstance(self.fisher_probes, int) or self.fisher_probes < 1:
