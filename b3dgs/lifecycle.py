@@ -31,6 +31,7 @@ from omegaconf import DictConfig, OmegaConf
 from b3dgs.checkpoint import check_sealed, checkpoint_record, renderer_identity, renderer_mismatch
 from b3dgs.errors import B3dgsError
 from b3dgs.io import write_json
+from b3dgs.upgrade import renderer_option, trainer_arg
 
 if TYPE_CHECKING:
     from b3dgs.data.datamodule import SceneDataModule
@@ -59,7 +60,6 @@ def build_renderer(node) -> "Renderer":
     from hydra.utils import instantiate
 
     from b3dgs.render.renderers import make_renderer
-    from b3dgs.upgrade import renderer_option
 
     option = renderer_option(node)
     renderer = instantiate(node) if option is None else make_renderer(option)
@@ -182,7 +182,6 @@ def build_trainer(tcfg, renderer, callbacks: list, logger=False, final_after_eva
     from lightning.pytorch.callbacks import ProgressBar
 
     from b3dgs.callbacks import AtomicCheckpointIO, StepProgressBar
-    from b3dgs.upgrade import trainer_arg
 
     keys = [str(k) for k in tcfg.keys() if k not in RUN_KEYS and trainer_arg(k) not in fixed]
     # resolved one by one in place (interpolations may point anywhere in the config; fixed ones are never read)
