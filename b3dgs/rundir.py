@@ -39,7 +39,7 @@ from typing import Callable, Iterable, Iterator, Optional
 
 from b3dgs.errors import B3dgsError
 from b3dgs.io import atomic_path, read_json_dict, write_json
-from b3dgs.locks import LockHeld, lock_holder, process_lock
+from b3dgs.locks import LockHeld, lock_holder, pid_alive, process_lock
 from b3dgs.upgrade import manifest_run_id, manifest_v1_files, old_temp_target, premanifest_files
 
 log = logging.getLogger(__name__)
@@ -122,16 +122,6 @@ def staging_prefix() -> str:
     return f"{STAGING_PREFIX}{socket.gethostname()}.{os.getpid()}."
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def remove_stale_staging(folder: Path, owned: bool = False) -> list[Path]:
     """Remove the staging folders a killed b3dgs-eval left in ``folder``: those of this host whose process is gone.
     ``owned`` (the caller holds the run dir, e.g. ``overwrite=true``): also those with no host and pid in their name
@@ -146,7 +136,7 @@ def remove_stale_staging(folder: Path, owned: bool = False) -> list[Path]:
             continue
         parts = p.name[len(STAGING_PREFIX):].rsplit(".", 2)
         if len(parts) == 3 and parts[1].isdigit():
-            stale = parts[0] == host and not _pid_alive(int(parts[1]))
+            stale = parts[0] == host and not pid_alive(int(parts[1]))
         else:
             stale = owned
         if stale:
