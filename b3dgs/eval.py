@@ -20,6 +20,7 @@ from omegaconf import DictConfig, ListConfig
 
 from b3dgs.errors import B3dgsError, cli_main, known_errors, quiet_known_noise
 from b3dgs.progress import progress
+from b3dgs.rundir import read_manifest, remove_stale_staging, run_dir_busy, run_dir_kind, run_dir_stamp, staging_prefix
 from b3dgs.train import CONF_DIR
 
 log = logging.getLogger(__name__)
@@ -41,8 +42,6 @@ def regimes_from_cfg(cfg: DictConfig) -> dict:
 
 def refuse_running(run_dirs) -> None:
     """Refuse a run dir that a ``b3dgs-train`` is still writing (its lock is held by a live process)."""
-    from b3dgs.rundir import run_dir_busy
-
     for r in run_dirs:
         pid = run_dir_busy(Path(str(r)))
         if pid is not None:
@@ -65,7 +64,6 @@ def _destinations(regimes: dict, runs: list, out_dir: Optional[Path]) -> dict[st
 def check_out_dir(out_dir: Path, first) -> None:
     """``out=`` may name a new folder, one of the user's, or the run dir of the run evaluated (or a copy of it, by
     parameter digest); not another run's dir, whose ``uq.json`` holds that run's results only (issue 46 §6)."""
-    from b3dgs.rundir import run_dir_kind, run_dir_stamp
     from b3dgs.uq.store import run_digest
 
     out_dir = Path(out_dir)
@@ -106,7 +104,6 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     from b3dgs.uq.metrics import epistemic_summary, epistemic_view, evaluate_view, summarize, to_jsonable
     from b3dgs.uq.plots import plot_uncertainty_panel
     from b3dgs.uq.store import check_members, merge_into, read_uq, remove_staging, run_digest
-    from b3dgs.rundir import read_manifest, remove_stale_staging, run_dir_stamp, staging_prefix
 
     if loaded:
         runs = list(loaded)

@@ -35,6 +35,8 @@ from omegaconf import DictConfig
 
 from b3dgs.errors import B3dgsError, cli_main, did_you_mean, known_errors, quiet_known_noise
 from b3dgs.io import atomic_path, write_json
+from b3dgs.rundir import (LOCK_NAME, MANIFEST_NAME, _iter_files, _write_manifest, check_replace, manifest_lock,
+                          owning_run_dir, read_manifest, record_written, refuse_in_checkpoints, run_files)
 from b3dgs.train import CONF_DIR
 
 log = logging.getLogger(__name__)
@@ -130,8 +132,6 @@ _MODEL_PLY = re.compile(r"point_cloud/iteration_\d+/point_cloud\.ply")
 
 def _model_files(folder: Path) -> list[str]:
     """The files of ``folder`` (symlinks as entries), relative to it."""
-    from b3dgs.rundir import _iter_files
-
     return list(_iter_files(folder))
 
 
@@ -139,8 +139,6 @@ def _not_ours(folder: Path) -> list[str]:
     """The files of ``folder`` that are not part of a model folder b3dgs-export wrote: those its own manifest does not
     list (a folder exported before it carried one: unless it has the layout alone, in a run dir whose manifest lists
     every file); every file for a folder without such a manifest."""
-    from b3dgs.rundir import LOCK_NAME, MANIFEST_NAME, owning_run_dir, read_manifest, run_files
-
     files = [f for f in _model_files(folder) if f != LOCK_NAME]
     try:
         m = read_manifest(folder)
@@ -160,8 +158,6 @@ def _check_folder(out: Path) -> Optional[Path]:
     """Whether a model folder may be written at ``out`` (new, empty, or one b3dgs-export wrote: replaced whole); the run
     dir whose manifest lists it, or ``None``. A folder that holds anything else (a user's model, its other iterations)
     is refused: a model folder is never merged into one."""
-    from b3dgs.rundir import owning_run_dir, read_manifest, refuse_in_checkpoints
-
     refuse_in_checkpoints(out, "b3dgs-export")
     files = _not_ours(out) if out.is_dir() else []
     if files:
@@ -182,8 +178,6 @@ def write_model_folder(run, out: Path, step: int, owner: Optional[Path]) -> Path
     import os
     import shutil
     import tempfile
-
-    from b3dgs.rundir import MANIFEST_NAME, _write_manifest, record_written, run_files
 
     out.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.b3dgs-stage-", dir=out.parent))
@@ -209,7 +203,6 @@ def write_model_folder(run, out: Path, step: int, owner: Optional[Path]) -> Path
 
 def export(cfg: DictConfig) -> dict:
     """Export ``cfg.run`` (at ``cfg.checkpoint``, default its last) as ``cfg.format`` into ``cfg.out``."""
-    from b3dgs.rundir import check_replace, manifest_lock, record_written
     from b3dgs.runs import load_run
     from b3dgs.validation import validate_config
 

@@ -31,6 +31,9 @@ from omegaconf import DictConfig, OmegaConf
 from b3dgs.checkpoint import check_sealed, checkpoint_record, renderer_identity, renderer_mismatch
 from b3dgs.errors import B3dgsError
 from b3dgs.io import write_json
+from b3dgs.rundir import (Interrupted, claim_run_dir, finished_metrics, interrupt_handlers, manifest_lock,
+                          prepare_run_dir, record_amended, record_written, run_dir_lock, save_config, start_manifest,
+                          write_manifest)
 from b3dgs.upgrade import renderer_option, trainer_arg
 
 if TYPE_CHECKING:
@@ -434,8 +437,6 @@ class Run:
         checkpoints hold plugin states: not ``weights_only``), without Lightning's warnings about the loader's workers
         and ``training_step``'s return value (one camera per step, by design); ``claim()`` runs once the trainer is
         built, before anything trains. Returns the trainer."""
-        from b3dgs.rundir import Interrupted
-
         trainer = build_trainer(self.cfg.trainer, self.module.renderer,
                                 [*callbacks, *build_callbacks(self.cfg.get("callbacks"))], logger=logger,
                                 final_after_eval=final_after_eval, default_root_dir=str(self.run_dir), **fixed)
@@ -455,8 +456,6 @@ class Run:
 
     def train(self) -> dict:
         """``b3dgs-train``'s run into the run dir under its lock (:func:`b3dgs.train.train`'s contract)."""
-        from b3dgs.rundir import interrupt_handlers, run_dir_lock
-
         with interrupt_handlers(), run_dir_lock(self.run_dir):
             return self._train(self.cfg, self.cfg.trainer, self.run_dir)
 
@@ -465,7 +464,6 @@ class Run:
         from lightning.pytorch.loggers import TensorBoardLogger  # noqa: F401 - logger=tensorboard targets it
 
         from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint, RunFiles
-        from b3dgs.rundir import Interrupted, claim_run_dir, finished_metrics, prepare_run_dir
 
         every_s = checkpoint_every_s(tcfg)
         ckpt_path, clear = prepare_run_dir(run_dir, cfg.get("resume"), cfg.get("overwrite", False),
@@ -513,7 +511,6 @@ class Run:
         from b3dgs.metrics.views import evaluate_views
         from b3dgs.numerics import guard_counts
         from b3dgs.ply import frame_comments, write_splats
-        from b3dgs.rundir import record_written
 
         cfg, run_dir, module, scene, renderer = self.cfg, self.run_dir, self.module, self.dm.scene, self.module.renderer
         tcfg = cfg.trainer
@@ -564,8 +561,6 @@ class Run:
     def amend_metrics(self, update: dict, prog: str = "b3dgs") -> dict:
         """Set ``update``'s keys in the finished run's ``metrics.json`` (e.g. LPIPS filled in later), under the run
         dir's lock, atomically, listed in its manifest (:func:`b3dgs.rundir.record_amended`); returns the metrics."""
-        from b3dgs.rundir import finished_metrics, manifest_lock, record_amended
-
         with manifest_lock(self.run_dir, prog):
             metrics = finished_metrics(self.run_dir)
             if metrics is None:
@@ -583,8 +578,6 @@ class Run:
         """Write a study's record of this run (a row's ``selection.json`` and ``result.json``, its done marker; phase 1's
         ``phase1.json``; a compression row's ``result.json``) atomically, under the run dir's lock, listed in its
         manifest (made by the first record); returns ``payload``."""
-        from b3dgs.rundir import manifest_lock, record_written, start_manifest
-
         self.run_dir.mkdir(parents=True, exist_ok=True)
         with manifest_lock(self.run_dir, prog):
             start_manifest(self.run_dir)
@@ -612,8 +605,6 @@ class Run:
         manifest and config.yaml, ``twin``'s curve, and ``twin``'s metrics with ``training_shared_with`` naming it
         (the done marker, last); no checkpoint. Returns the metrics."""
         import shutil
-
-        from b3dgs.rundir import run_dir_lock, save_config, write_manifest
 
         twin = Path(twin)
         self.run_dir.mkdir(parents=True, exist_ok=True)

@@ -39,6 +39,7 @@ from omegaconf import DictConfig
 from b3dgs import conf_dir, data_root
 from b3dgs.errors import B3dgsError, cli_main, did_you_mean, known_errors
 from b3dgs.io import atomic_path, write_json
+from b3dgs.rundir import PENDING, Interrupted, interrupt_handlers, remove_listed
 
 __all__ = ["EXHAUSTIVE_UP_TO", "STAGES", "extract_frames", "list_photos", "main", "process"]
 
@@ -148,8 +149,6 @@ def _stop_if_signalled() -> None:
     """Raise :class:`b3dgs.rundir.Interrupted` for a SIGINT / SIGTERM recorded since :func:`process` began. The
     handlers only record (``deferred``): an exception raised wherever the signal lands could be swallowed by a
     library's ``except Exception`` (tqdm's monitor thread start is one), so it is raised here, at known points."""
-    from b3dgs.rundir import PENDING, Interrupted
-
     if PENDING.signum is not None:
         raise Interrupted(PENDING.signum)
 
@@ -459,8 +458,6 @@ class _Run:
         wrote there (:func:`_owned`): a user's file in ``images/`` or ``sparse/0/`` stays, and one that a new file
         would replace is refused. The names are recorded before they are moved; the earlier ones not written again
         go. A kill in between leaves the stage unrecorded, and the rerun does it again."""
-        from b3dgs.rundir import remove_listed
-
         owned = _owned(self.out, self.state)
         clash = [f for f in new if (self.out / f).exists() and f not in owned]
         if clash:
@@ -615,8 +612,6 @@ def _owned(out: Path, state: dict) -> list[str]:
 def _remove_ours(out: Path, state: dict) -> None:
     """``overwrite=true``: what b3dgs-process wrote into ``out``, by name (:func:`_owned`, its work folder, the scene
     file and the state file), and the folders that this leaves empty; a user's file beside them stays."""
-    from b3dgs.rundir import remove_listed
-
     scene_file = state.get("scene_file")
     remove_listed(out, [*_owned(out, state), *([scene_file] if isinstance(scene_file, str) else [])])
     _remove(out / WORK)
@@ -707,7 +702,6 @@ def process(cfg: DictConfig) -> dict:
     """Run (or resume) the stages for ``cfg`` (``conf/process.yaml``); returns a summary (``out``, ``name``,
     ``command``, per stage ``{"skipped", "seconds", ...}``)."""
     from b3dgs.data.images import import_pycolmap
-    from b3dgs.rundir import interrupt_handlers
     from b3dgs.validation import validate_config
 
     validate_config(cfg, app="process")
@@ -849,8 +843,6 @@ def extract_frames(video: Path, folder: Path, fps: float, quality: int = 2) -> i
 
 
 def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, video=None) -> dict:
-    from b3dgs.rundir import Interrupted
-
     t_start = time.perf_counter()
     listing = _listing(photos)
     fp = _fingerprint(listing)
@@ -947,8 +939,6 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, vide
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="process")
 def hydra_main(cfg: DictConfig) -> None:
-    from b3dgs.rundir import Interrupted
-
     with known_errors("b3dgs-process", cfg):
         try:
             process(cfg)
