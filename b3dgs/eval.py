@@ -22,6 +22,7 @@ from b3dgs.errors import B3dgsError, cli_main, known_errors, quiet_known_noise
 from b3dgs.progress import progress
 from b3dgs.rundir import read_manifest, remove_stale_staging, run_dir_busy, run_dir_kind, run_dir_stamp, staging_prefix
 from b3dgs.train import CONF_DIR
+from b3dgs.uq.store import check_members, ensemble_dir, merge_into, read_uq, remove_staging, run_digest
 
 log = logging.getLogger(__name__)
 
@@ -52,8 +53,6 @@ def refuse_running(run_dirs) -> None:
 def _destinations(regimes: dict, runs: list, out_dir: Optional[Path]) -> dict[str, Path]:
     """Where each regime's results go: ``out_dir`` when given; else a regime that combines several runs (an
     ensemble) into its own folder (:func:`b3dgs.uq.store.ensemble_dir`), the others into the first run's dir."""
-    from b3dgs.uq.store import ensemble_dir
-
     out = {}
     for name, regime in regimes.items():
         multi = bool(getattr(regime, "min_members", 0)) and len(runs) > 1
@@ -64,8 +63,6 @@ def _destinations(regimes: dict, runs: list, out_dir: Optional[Path]) -> dict[st
 def check_out_dir(out_dir: Path, first) -> None:
     """``out=`` may name a new folder, one of the user's, or the run dir of the run evaluated (or a copy of it, by
     parameter digest); not another run's dir, whose ``uq.json`` holds that run's results only (issue 46 §6)."""
-    from b3dgs.uq.store import run_digest
-
     out_dir = Path(out_dir)
     if not out_dir.is_dir() or run_dir_kind(out_dir) not in ("run", "legacy"):
         return
@@ -103,7 +100,6 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     from b3dgs.runs import load_run
     from b3dgs.uq.metrics import epistemic_summary, epistemic_view, evaluate_view, summarize, to_jsonable
     from b3dgs.uq.plots import plot_uncertainty_panel
-    from b3dgs.uq.store import check_members, merge_into, read_uq, remove_staging, run_digest
 
     if loaded:
         runs = list(loaded)

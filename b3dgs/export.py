@@ -35,6 +35,7 @@ from omegaconf import DictConfig
 
 from b3dgs.errors import B3dgsError, cli_main, did_you_mean, known_errors, quiet_known_noise
 from b3dgs.io import atomic_path, write_json
+from b3dgs.ply import frame_comments, transform_gaussians, write_splats
 from b3dgs.rundir import (LOCK_NAME, MANIFEST_NAME, _iter_files, _write_manifest, check_replace, manifest_lock,
                           owning_run_dir, read_manifest, record_written, refuse_in_checkpoints, run_files)
 from b3dgs.train import CONF_DIR
@@ -55,8 +56,6 @@ def _own_frame(run) -> tuple[dict, object, object]:
 
 def export_ply(run, path: Path, extras: bool = True) -> Path:
     """The run's Gaussians as a 3DGS-layout PLY in the scene's frame (with the posterior summaries when ``extras``)."""
-    from b3dgs.ply import frame_comments, write_splats
-
     splats, frame, inv = _own_frame(run)
     extra = {k: v.detach().cpu() for k, v in run.module.export_extras().items()} if extras else None
     return write_splats(path, splats, inv, extra=extra or None, comments=frame_comments(frame))
@@ -65,8 +64,6 @@ def export_ply(run, path: Path, extras: bool = True) -> Path:
 def splat_records(splats: dict, inv) -> np.ndarray:
     """(N, 32) uint8: per Gaussian, position (3 float32), linear scale (3 float32), RGBA (4 uint8), rotation (4 uint8,
     (q / |q|) · 128 + 128), in ``inv``'s frame, sorted by exp(Σ log-scale) · opacity, largest first (ties by index)."""
-    from b3dgs.ply import transform_gaussians
-
     means, log_scales, quats = transform_gaussians(splats["means"], splats["scales"], splats["quats"],
                                                    float(inv.scale), np.asarray(inv.rotation), inv.translation)
     means, log_scales, quats = means.double(), log_scales.double(), quats.double()

@@ -38,6 +38,9 @@ import torch
 from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
 
+from b3dgs.errors import B3dgsError
+from b3dgs.io import write_json
+
 __all__ = ["scope", "HostSyncCounter", "CudaSyncCounter", "HostSyncCallback", "active_counter"]
 
 _aten = torch.ops.aten
@@ -159,8 +162,6 @@ class _FunctionCounter(TorchFunctionMode):
 
 
 def _already_installed() -> None:
-    from b3dgs.errors import B3dgsError
-
     raise B3dgsError("a host-sync counter is already installed: one counts at a time",
                      "add one HostSyncCallback (+callbacks.host_sync._target_=b3dgs.host_sync.HostSyncCallback), or "
                      "remove the counter installed first")
@@ -239,8 +240,6 @@ class HostSyncCallback(L.Callback):
                  max_steps: Optional[int] = None, device_path: bool = False) -> None:
         super().__init__()
         if backend not in ("auto", "ops", "cuda"):
-            from b3dgs.errors import B3dgsError
-
             raise B3dgsError(f"host_sync backend={backend} is not one of auto|ops|cuda",
                              "pass +callbacks.host_sync.backend=auto (CUDA's own count on a CUDA model), ops or cuda")
         self.out, self.backend, self.keep_stacks, self.max_steps = out, backend, keep_stacks, max_steps
@@ -304,8 +303,6 @@ class HostSyncCallback(L.Callback):
                 "sites": {k: dict(v.most_common(40)) for k, v in c.sites.items()}}
 
     def write(self) -> None:
-        from b3dgs.io import write_json
-
         path = Path(self.out)
         path.parent.mkdir(parents=True, exist_ok=True)
         write_json(path, self.result())

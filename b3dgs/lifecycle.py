@@ -28,18 +28,20 @@ from typing import TYPE_CHECKING, Any, Optional
 import torch
 from omegaconf import DictConfig, OmegaConf
 
+from b3dgs.callbacks import AtomicCheckpointIO, CurveCallback, ResumeState, RunCheckpoint, RunFiles, StepProgressBar
 from b3dgs.checkpoint import check_sealed, checkpoint_record, renderer_identity, renderer_mismatch
 from b3dgs.errors import B3dgsError
 from b3dgs.io import write_json
+from b3dgs.numerics import guard_counts, reset_guards as _reset
+from b3dgs.render.renderers import Renderer, make_renderer
 from b3dgs.rundir import (Interrupted, claim_run_dir, finished_metrics, interrupt_handlers, manifest_lock,
                           prepare_run_dir, record_amended, record_written, run_dir_lock, save_config, start_manifest,
                           write_manifest)
+from b3dgs.types import Scene
 from b3dgs.upgrade import renderer_option, trainer_arg
 
 if TYPE_CHECKING:
     from b3dgs.data.datamodule import SceneDataModule
-    from b3dgs.render.renderers import Renderer
-    from b3dgs.types import Scene
 
 log = logging.getLogger(__name__)
 
@@ -61,8 +63,6 @@ def build_renderer(node) -> "Renderer":
     """The renderer plugin of a config's ``renderer`` node (an older node: the option it names,
     :func:`b3dgs.upgrade.renderer_option`), checked to run on this machine."""
     from hydra.utils import instantiate
-
-    from b3dgs.render.renderers import make_renderer
 
     option = renderer_option(node)
     renderer = instantiate(node) if option is None else make_renderer(option)
@@ -110,8 +110,6 @@ def seed_run(seed: int, threads: Optional[int] = None, reset_guards: bool = True
     continued from a checkpoint gets its counters back from it) and set torch's CPU threads (``threads``)."""
     import lightning as L
 
-    from b3dgs.numerics import reset_guards as _reset
-
     os.environ.pop("PL_GLOBAL_SEED", None)
     L.seed_everything(int(seed), workers=True, verbose=False)
     if reset_guards:
@@ -127,7 +125,6 @@ def data_module(data, keep_raw: bool = False) -> "SceneDataModule":
     from hydra.utils import instantiate
 
     from b3dgs.data.datamodule import SceneDataModule
-    from b3dgs.types import Scene
 
     if isinstance(data, Scene):
         return SceneDataModule(scene=data)
@@ -183,8 +180,6 @@ def build_trainer(tcfg, renderer, callbacks: list, logger=False, final_after_eva
     ``final_after_eval``: its last line waits for the final evaluation (``StepProgressBar.show_final``)."""
     from hydra.utils import instantiate
     from lightning.pytorch.callbacks import ProgressBar
-
-    from b3dgs.callbacks import AtomicCheckpointIO, StepProgressBar
 
     keys = [str(k) for k in tcfg.keys() if k not in RUN_KEYS and trainer_arg(k) not in fixed]
     # resolved one by one in place (interpolations may point anywhere in the config; fixed ones are never read)
@@ -463,8 +458,6 @@ class Run:
         from hydra.utils import instantiate
         from lightning.pytorch.loggers import TensorBoardLogger  # noqa: F401 - logger=tensorboard targets it
 
-        from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint, RunFiles
-
         every_s = checkpoint_every_s(tcfg)
         ckpt_path, clear = prepare_run_dir(run_dir, cfg.get("resume"), cfg.get("overwrite", False),
                                            check_checkpoint=lambda path: check_resume_renderer(cfg, path))
@@ -504,12 +497,10 @@ class Run:
         each written atomically: renders, PLY, curve, then ``metrics.json`` (the done marker)."""
         import time
 
-        from b3dgs.callbacks import StepProgressBar
         from b3dgs.data.scene import scene_transform
         from b3dgs.labels import method_label
         from b3dgs.metrics.lpips import get_lpips
         from b3dgs.metrics.views import evaluate_views
-        from b3dgs.numerics import guard_counts
         from b3dgs.ply import frame_comments, write_splats
 
         cfg, run_dir, module, scene, renderer = self.cfg, self.run_dir, self.module, self.dm.scene, self.module.renderer

@@ -22,6 +22,7 @@ from typing import Mapping, Optional, Sequence
 
 from b3dgs.errors import B3dgsError
 from b3dgs.io import read_json_dict, write_json
+from b3dgs.rundir import manifest_lock, read_manifest, record_written, remove_listed, run_dir_stamp
 from b3dgs.upgrade import upgrade_targets, uq_panels
 
 UQ_NAME = "uq.json"
@@ -106,8 +107,6 @@ def check_unchanged(folder: Path, new: Mapping[str, dict], expect: Optional[Mapp
     """Refuse to merge results into ``folder`` once a run changed under the evaluation: ``folder`` holds another run
     than ``expect`` (its :func:`b3dgs.rundir.run_dir_stamp` when the evaluation started: ``overwrite=true`` replaced
     it, or a training started there), or a run an entry scored has another final checkpoint than the one evaluated."""
-    from b3dgs.rundir import run_dir_stamp
-
     folder = Path(folder)
     if expect is not None and run_dir_stamp(folder) != dict(expect):
         raise B3dgsError(f"{folder} holds another run than when this b3dgs-eval started (overwrite=true or a training "
@@ -128,8 +127,6 @@ def merge_into(folder: Path, new: Mapping[str, dict], meta: Mapping, staging: Op
     :func:`check_unchanged` (``expect``: the folder's run dir stamp when the evaluation started); the files are listed
     in a run dir's manifest by name before they are written. Returns the merged file."""
     from filelock import FileLock, Timeout
-
-    from b3dgs.rundir import manifest_lock, read_manifest, record_written, remove_listed
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -19,6 +19,7 @@ from omegaconf import DictConfig
 
 from b3dgs.errors import B3dgsError, known_errors, quiet_known_noise, run_cli
 from b3dgs import conf_dir
+from b3dgs.viewer.server import ViewerApp, ViewerSettings
 
 CONF_DIR = conf_dir()
 
@@ -34,7 +35,6 @@ STARTS = ("orbit", "camera")
 def settings_from_cfg(cfg: DictConfig):
     from b3dgs.validation import validate_config
     from b3dgs.viewer.modes import MODES
-    from b3dgs.viewer.server import ViewerSettings
 
     check_port(cfg.get("port", 0))
     validate_config(cfg, app="view")
@@ -93,7 +93,6 @@ def serve(cfg: DictConfig, settings=None):
     except ImportError:
         raise B3dgsError("the viewer needs viser, which is not installed", 'pip install -e ".[viewer]"') from None
     from b3dgs.viewer.run import open_run
-    from b3dgs.viewer.server import ViewerApp
 
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
