@@ -18,7 +18,7 @@ import hydra
 import torch
 from omegaconf import DictConfig, ListConfig
 
-from b3dgs.errors import B3dgsError, cli_main, known_errors, quiet_known_noise
+from b3dgs.errors import B3dgsError, cli_main, known_errors
 from b3dgs.progress import progress
 from b3dgs.rundir import read_manifest, remove_stale_staging, run_dir_busy, run_dir_kind, run_dir_stamp, staging_prefix
 from b3dgs.train import CONF_DIR
@@ -236,8 +236,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
 def hydra_main(cfg: DictConfig) -> None:
     from b3dgs.validation import validate_config
 
-    with known_errors("b3dgs-eval", cfg):
-        quiet_known_noise()
+    with known_errors("b3dgs-eval", cfg, quiet=True):
         runs = cfg.run
         run_dirs = [str(r) for r in runs] if isinstance(runs, (ListConfig, list, tuple)) else [str(runs)]
         refuse_running(run_dirs)  # before the checks that would call a running run unfinished

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from b3dgs.errors import B3dgsError, cli_main, did_you_mean, known_errors, quiet_known_noise
+from b3dgs.errors import B3dgsError, cli_main, did_you_mean, known_errors
 from b3dgs.io import atomic_path, write_json
 from b3dgs.ply import frame_comments, transform_gaussians, write_splats
 from b3dgs.rundir import (LOCK_NAME, MANIFEST_NAME, _iter_files, _write_manifest, check_replace, manifest_lock,
@@ -239,8 +239,7 @@ def export(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="export")
 def hydra_main(cfg: DictConfig) -> None:
-    with known_errors("b3dgs-export", cfg):
-        quiet_known_noise()
+    with known_errors("b3dgs-export", cfg, quiet=True):
         w = export(cfg)
         print(f"b3dgs-export: {w['num_gaussians']} Gaussians (step {w['step']}) as {w['format']} -> {w['out']}",
               flush=True)

@@ -24,7 +24,7 @@ import torch
 from omegaconf import DictConfig
 
 from b3dgs.data.scene import SceneTransform, look_at_point
-from b3dgs.errors import B3dgsError, cli_main, known_errors, quiet_known_noise
+from b3dgs.errors import B3dgsError, cli_main, known_errors
 from b3dgs.io import atomic_path
 from b3dgs.train import CONF_DIR
 from b3dgs.types import Camera
@@ -341,8 +341,7 @@ def render(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="render")
 def hydra_main(cfg: DictConfig) -> None:
-    with known_errors("b3dgs-render", cfg):
-        quiet_known_noise()
+    with known_errors("b3dgs-render", cfg, quiet=True):
         w = render(cfg)
         where = Path(w["frames"][0]).parent
         video = f" and {w['video']}" if w["video"] else ""

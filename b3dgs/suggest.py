@@ -40,7 +40,7 @@ from torch import Tensor
 
 from b3dgs.acquisition import AcquisitionPolicy, ScoringContext, Selection
 from b3dgs.data.scene import infer_data_option, load_scene, look_at_point, scene_transform
-from b3dgs.errors import B3dgsError, cli_main, known_errors, quiet_known_noise
+from b3dgs.errors import B3dgsError, cli_main, known_errors
 from b3dgs.io import save_figure, write_json
 from b3dgs.render_cli import _caption, _look_at as look_at_view, nerfstudio_path
 from b3dgs.rundir import claim_in_run, read_manifest, remove_listed
@@ -622,8 +622,7 @@ def suggest(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="suggest")
 def hydra_main(cfg: DictConfig) -> None:
-    with known_errors("b3dgs-suggest", cfg):
-        quiet_known_noise()
+    with known_errors("b3dgs-suggest", cfg, quiet=True):
         w = suggest(cfg)
         print(f"b3dgs-suggest: {w['returned']} suggestions by {w['policy']} -> {w['out']}/cameras.json, path.json, "
               f"plot.png, preview_*.png", flush=True)

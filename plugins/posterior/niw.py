@@ -425,18 +425,15 @@ class NIWBlock(PosteriorBlock):
         if self.sampler_backend not in ("auto", "cpu", "torch"):
             raise B3dgsError("posterior.niw.sampler_backend must be auto | cpu | torch",
                              fix="pass posterior.niw.sampler_backend=auto, cpu or torch")
-        if not (isinstance(self.count_scale, (int, float)) and 0 < float(self.count_scale) < float("inf")):
-            raise B3dgsError(f"posterior.niw.count_scale must be a finite number > 0, got {self.count_scale}",
-                             fix="pass posterior.niw.count_scale as a finite number > 0, "
-                                 f"e.g. the default {field_default(self, 'count_scale')} (< 1 "
-                                 "widens the posterior)")
+        check_field(self, "posterior.niw.count_scale",
+                    isinstance(self.count_scale, (int, float)) and 0 < float(self.count_scale) < float("inf"),
+                    "a finite number > 0", "as a finite number > 0", " (< 1 widens the posterior)", got=True)
         if self.count not in COUNTS:
             raise B3dgsError(f"posterior.niw.count={self.count} is not a count{did_you_mean(str(self.count), COUNTS)}",
                              f"pass posterior.niw.count={'|'.join(COUNTS)}")
-        if isinstance(self.fisher_probes, bool) or not isinstance(self.fisher_probes, int) or self.fisher_probes < 1:
-            raise B3dgsError(f"posterior.niw.fisher_probes must be an integer >= 1, got {self.fisher_probes}",
-                             fix="pass posterior.niw.fisher_probes as an integer >= 1, "
-                                 f"e.g. the default {field_default(self, 'fisher_probes')}")
+        p = self.fisher_probes
+        check_field(self, "posterior.niw.fisher_probes", not isinstance(p, bool) and isinstance(p, int) and p >= 1,
+                    "an integer >= 1", "as an integer >= 1", got=True)
 
     # ------------------------------------------------------------------ state
     def _prior_for(self, splats, rows: Optional[Tensor] = None):
