@@ -41,6 +41,7 @@ from tqdm.std import tqdm as std_tqdm
 from b3dgs.device import timed_clock
 from b3dgs.io import atomic_path, save_figure, write_json
 from b3dgs.progress import LINE_EVERY_S, is_terminal
+from b3dgs.rundir import LOCK_NAME, MANIFEST_NAME, PENDING, Interrupted, record_written
 
 log = logging.getLogger(__name__)
 
@@ -157,9 +158,6 @@ class RunCheckpoint(Checkpoint):
         self._saved_step = step  # the step this process last saved
         trainer.save_checkpoint(self.last_path, weights_only=False)
         if self.keep and self.every_n_steps and step % self.every_n_steps == 0:
-            from b3dgs.io import atomic_path
-            from b3dgs.rundir import record_written
-
             # listed in the run manifest before it exists (a run dir's ``checkpoints/``; elsewhere nothing to list)
             record_written(self.dirpath.parent, [f"{self.dirpath.name}/step{step}.ckpt"])
             with atomic_path(self.dirpath / f"step{step}.ckpt") as tmp:
@@ -175,8 +173,6 @@ class RunCheckpoint(Checkpoint):
             checkpoint["scene_transform"] = scene_transform(pl_module.scene).to_dict()
 
     def on_train_start(self, trainer, pl_module) -> None:
-        from b3dgs.rundir import PENDING
-
         self._t_last = time.monotonic()
         PENDING.deferred = True  # a signal now stops training at the next step boundary
 
@@ -187,8 +183,6 @@ class RunCheckpoint(Checkpoint):
             due = time.monotonic() - self._t_last >= self.every_s
         if due and step != self._saved_step:
             self.save(trainer)
-        from b3dgs.rundir import PENDING, Interrupted
-
         if PENDING.signum is not None:
             if step != self._saved_step:
                 self.save(trainer)
@@ -196,8 +190,6 @@ class RunCheckpoint(Checkpoint):
             raise Interrupted(PENDING.signum, step)
 
     def on_train_end(self, trainer, pl_module) -> None:
-        from b3dgs.rundir import PENDING, Interrupted
-
         PENDING.deferred = False
         if int(trainer.global_step) != self._saved_step:
             self.save(trainer)
@@ -205,8 +197,6 @@ class RunCheckpoint(Checkpoint):
             raise Interrupted(PENDING.signum, int(trainer.global_step))
 
     def on_exception(self, trainer, pl_module, exception) -> None:
-        from b3dgs.rundir import PENDING
-
         PENDING.deferred = False
 
 
@@ -234,8 +224,6 @@ class RunFiles(L.Callback):
         return out
 
     def _record(self, trainer, planned: bool = False) -> None:
-        from b3dgs.rundir import LOCK_NAME, MANIFEST_NAME, record_written
-
         root = self.run_dir.resolve()
         names = []
         for logger in trainer.loggers:

@@ -201,9 +201,7 @@ def params_digest(tensors: Mapping[str, torch.Tensor], prefix: str = "") -> str:
     """sha256 (16 hex digits) of the Gaussian parameters' dtypes, shapes and bytes."""
     h = hashlib.sha256()
     for k in PARAM_ORDER:
-        t = tensors[prefix + k].detach().to("cpu").contiguous()
-        h.update(f"{k}:{t.dtype}:{tuple(t.shape)};".encode())
-        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+        _feed(h, k, tensors[prefix + k])
     return h.hexdigest()[:16]
 
 

@@ -69,58 +69,52 @@ def cached(info: dict, key: str, fn):
     return cache[key]
 
 
+def view_sum(info: dict, key: str, per_view) -> Tensor:
+    """Σ over the training views of ``per_view(ctx, camera)``, in view order, once per model state (:func:`cached`)."""
+    ctx = info["ctx"]
+
+    def run():
+        total = None
+        for cam in ctx.train:
+            x = per_view(ctx, cam)
+            total = x if total is None else total + x
+        return total
+
+    return cached(info, key, run)
+
+
 @torch.no_grad()
 def usage_counts(info: dict) -> Tensor:
     """(N,) float64 expected pixel responsibilities Σ_v Σ_p w_kp over the training views (the DP block's usage
     counts at a fixed model state: the limit of its per-step EMA × number of views)."""
-    ctx = info["ctx"]
-
-    def run():
-        total = None
-        for cam in ctx.train:
-            ws = ctx.render(cam, return_weights=True).weight_sum
-            w = ws.reshape(-1).double()
-            total = w if total is None else total + w
-        return total
-
-    return cached(info, "usage_counts", run)
+    return view_sum(info, "usage_counts",
+                    lambda ctx, cam: ctx.render(cam, return_weights=True).weight_sum.reshape(-1).double())
 
 
 def position_grad_norm(info: dict) -> Tensor:
     """(N,) Σ_v ‖∂ MSE_v / ∂μ_k‖ over the training views (the paper's 'gradient' compression baseline)."""
-    ctx = info["ctx"]
+    def grad_norm(ctx, cam):
+        p = ctx.params(requires_grad=False)
+        p["means"].requires_grad_(True)
+        rgb = ctx.render(cam, params=p, grad=True).rgb
+        loss = (rgb - cam.image.to(rgb.device)).square().mean()
+        (g,) = torch.autograd.grad(loss, [p["means"]])
+        return g.double().norm(dim=-1)
 
-    def run():
-        total = None
-        for cam in ctx.train:
-            p = ctx.params(requires_grad=False)
-            p["means"].requires_grad_(True)
-            rgb = ctx.render(cam, params=p, grad=True).rgb
-            loss = (rgb - cam.image.to(rgb.device)).square().mean()
-            (g,) = torch.autograd.grad(loss, [p["means"]])
-            n = g.double().norm(dim=-1)
-            total = n if total is None else total + n
-        return total
-
-    return cached(info, "position_grad_norm", run)
+    return view_sum(info, "position_grad_norm", grad_norm)
 
 
 def spatial_fisher(info: dict, stride: int, per_channel: bool = True) -> Tensor:
     """(N, 6, 6) float64 Fisher blocks Σ_v Σ_p (Σ_c) ∇I ∇Iᵀ over each Gaussian's mean and log-scale (the PUP
     sensitivity, Hanson et al. 2025), from :func:`b3dgs.fisher.pixel_set_grads` per view."""
-    ctx = info["ctx"]
+    def fisher(ctx, cam):
+        p = ctx.params(requires_grad=False)
+        leaves = [p["means"].requires_grad_(True), p["scales"].requires_grad_(True)]
+        rgb = ctx.render(cam, params=p, grad=True).rgb
+        acc = torch.zeros(leaves[0].shape[0], 6, 6, dtype=torch.float64, device=rgb.device)
+        for gm, gs in pixel_set_grads(rgb, leaves, stride, per_channel=per_channel):
+            g = torch.cat([gm, gs], dim=-1).double()
+            acc += g.unsqueeze(-1) * g.unsqueeze(-2)
+        return acc
 
-    def run():
-        total = None
-        for cam in ctx.train:
-            p = ctx.params(requires_grad=False)
-            leaves = [p["means"].requires_grad_(True), p["scales"].requires_grad_(True)]
-            rgb = ctx.render(cam, params=p, grad=True).rgb
-            acc = torch.zeros(leaves[0].shape[0], 6, 6, dtype=torch.float64, device=rgb.device)
-            for gm, gs in pixel_set_grads(rgb, leaves, stride, per_channel=per_channel):
-                g = torch.cat([gm, gs], dim=-1).double()
-                acc += g.unsqueeze(-1) * g.unsqueeze(-2)
-            total = acc if total is None else total + acc
-        return total
-
-    return cached(info, f"spatial_fisher_s{int(stride)}_c{int(per_channel)}", run)
+    return view_sum(info, f"spatial_fisher_s{int(stride)}_c{int(per_channel)}", fisher)

@@ -32,7 +32,8 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Any, Callable, Iterator, Optional
 
-from b3dgs.errors import B3dgsError, did_you_mean
+from b3dgs.errors import EXIT_CODE, B3dgsError, did_you_mean, format_error
+from b3dgs.io import atomic_path, write_json
 
 PROG = "b3dgs-data"
 REGISTRY_ENV = "B3DGS_DATA_REGISTRY"
@@ -342,8 +343,6 @@ def _resize(folder: Path, step: dict) -> None:
 
     from PIL import Image
 
-    from b3dgs.io import atomic_path, write_json
-
     scale = None
     for p in sorted((folder / step["folder"]).iterdir()):
         if p.suffix.lower() not in (".jpg", ".jpeg", ".png"):
@@ -513,7 +512,6 @@ def list_lines(scenes: dict[str, Scene], root: Path, origin: str) -> list[str]:
 def main(argv: Optional[list[str]] = None) -> int:
     """Console entry point ``b3dgs-data``: one-line errors, exit code 2 (:mod:`b3dgs.errors`)."""
     from b3dgs import data_root_and_origin
-    from b3dgs.errors import EXIT_CODE, format_error
 
     args = _parser().parse_args(argv)
     root_s, origin = data_root_and_origin()

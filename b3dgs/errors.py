@@ -56,6 +56,16 @@ def field_default(owner: Any, name: str) -> Any:
     return f.default if f.default_factory is dataclasses.MISSING else f.default_factory()
 
 
+def check_field(owner: Any, key: str, ok: bool, rule: str, how: Optional[str] = None, note: str = "",
+                got: bool = False) -> None:
+    """Refuse the field ``key`` (``group.name``) of the dataclass ``owner`` unless ``ok``, in one line: ``<key> must be
+    <rule>[, got <value>]`` (fix: ``pass <key> <how or rule>, e.g. the default <its default><note>``)."""
+    name = key.rsplit(".", 1)[-1]
+    if not ok:
+        raise B3dgsError(f"{key} must be {rule}" + (f", got {getattr(owner, name)}" if got else ""),
+                         fix=f"pass {key} {how or rule}, e.g. the default {field_default(owner, name)}{note}")
+
+
 def did_you_mean(word: str, choices: Iterable[str]) -> str:
     """``"; did you mean X?"`` for the closest of ``choices``, else ``""``."""
     close = difflib.get_close_matches(str(word), sorted(set(map(str, choices))), n=1, cutoff=0.6)
@@ -256,9 +266,10 @@ def _report(prog: str, e: BaseException) -> None:
 
 
 @contextmanager
-def known_errors(prog: str, cfg=None):
+def known_errors(prog: str, cfg=None, quiet: bool = False):
     """Inside a Hydra task: a known error becomes one line on stderr and ``SystemExit(2)`` (which Hydra
-    passes on untouched); unknown errors and debug mode (``b3dgs.debug=true``) re-raise."""
+    passes on untouched); unknown errors and debug mode (``b3dgs.debug=true``) re-raise. ``quiet``: first
+    :func:`quiet_known_noise`."""
     debug = _debug_requested(sys.argv[1:])
     if cfg is not None and not debug:
         try:
@@ -266,6 +277,8 @@ def known_errors(prog: str, cfg=None):
         except Exception:  # noqa: BLE001
             debug = False
     try:
+        if quiet:
+            quiet_known_noise()
         yield
     except Exception as e:  # noqa: BLE001
         if debug or format_error(e) is None:
@@ -367,6 +380,15 @@ def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str
         else:
             os.environ["HYDRA_FULL_ERROR"] = old
 
+
+
+def cli_main(prog: str, hydra_main: Callable[[], object], config: str, **kw) -> Callable[[], None]:
+    """The console entry point of ``prog`` (pyproject's ``[project.scripts]``): :func:`run_cli` on ``hydra_main``."""
+    def main() -> None:
+        run_cli(prog, hydra_main, config=config, **kw)
+
+    main.__doc__ = f"``{prog}``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."
+    return main
 
 # ---------------------------------------------------------------------------------------------- quiet log
 

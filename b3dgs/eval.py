@@ -18,9 +18,11 @@ import hydra
 import torch
 from omegaconf import DictConfig, ListConfig
 
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, cli_main, known_errors
 from b3dgs.progress import progress
+from b3dgs.rundir import read_manifest, remove_stale_staging, run_dir_busy, run_dir_kind, run_dir_stamp, staging_prefix
 from b3dgs.train import CONF_DIR
+from b3dgs.uq.store import check_members, ensemble_dir, merge_into, read_uq, remove_staging, run_digest
 
 log = logging.getLogger(__name__)
 
@@ -41,9 +43,6 @@ def regimes_from_cfg(cfg: DictConfig) -> dict:
 
 def refuse_running(run_dirs) -> None:
     """Refuse a run dir that a ``b3dgs-train`` is still writing (its lock is held by a live process)."""
-    from b3dgs.errors import B3dgsError
-    from b3dgs.rundir import run_dir_busy
-
     for r in run_dirs:
         pid = run_dir_busy(Path(str(r)))
         if pid is not None:
@@ -54,8 +53,6 @@ def refuse_running(run_dirs) -> None:
 def _destinations(regimes: dict, runs: list, out_dir: Optional[Path]) -> dict[str, Path]:
     """Where each regime's results go: ``out_dir`` when given; else a regime that combines several runs (an
     ensemble) into its own folder (:func:`b3dgs.uq.store.ensemble_dir`), the others into the first run's dir."""
-    from b3dgs.uq.store import ensemble_dir
-
     out = {}
     for name, regime in regimes.items():
         multi = bool(getattr(regime, "min_members", 0)) and len(runs) > 1
@@ -66,9 +63,6 @@ def _destinations(regimes: dict, runs: list, out_dir: Optional[Path]) -> dict[st
 def check_out_dir(out_dir: Path, first) -> None:
     """``out=`` may name a new folder, one of the user's, or the run dir of the run evaluated (or a copy of it, by
     parameter digest); not another run's dir, whose ``uq.json`` holds that run's results only (issue 46 §6)."""
-    from b3dgs.rundir import run_dir_kind, run_dir_stamp
-    from b3dgs.uq.store import run_digest
-
     out_dir = Path(out_dir)
     if not out_dir.is_dir() or run_dir_kind(out_dir) not in ("run", "legacy"):
         return
@@ -106,8 +100,6 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     from b3dgs.runs import load_run
     from b3dgs.uq.metrics import epistemic_summary, epistemic_view, evaluate_view, summarize, to_jsonable
     from b3dgs.uq.plots import plot_uncertainty_panel
-    from b3dgs.uq.store import check_members, merge_into, read_uq, remove_staging, run_digest
-    from b3dgs.rundir import read_manifest, remove_stale_staging, run_dir_stamp, staging_prefix
 
     if loaded:
         runs = list(loaded)
@@ -242,11 +234,9 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="eval")
 def hydra_main(cfg: DictConfig) -> None:
-    from b3dgs.errors import known_errors, quiet_known_noise
     from b3dgs.validation import validate_config
 
-    with known_errors("b3dgs-eval", cfg):
-        quiet_known_noise()
+    with known_errors("b3dgs-eval", cfg, quiet=True):
         runs = cfg.run
         run_dirs = [str(r) for r in runs] if isinstance(runs, (ListConfig, list, tuple)) else [str(runs)]
         refuse_running(run_dirs)  # before the checks that would call a running run unfinished
@@ -258,11 +248,7 @@ def hydra_main(cfg: DictConfig) -> None:
                     lpips_weights=cfg.get("lpips_weights"))
 
 
-def main() -> None:
-    """``b3dgs-eval``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
-    from b3dgs.errors import run_cli
-
-    run_cli("b3dgs-eval", hydra_main, config="eval")
+main = cli_main("b3dgs-eval", hydra_main, "eval")
 
 
 if __name__ == "__main__":

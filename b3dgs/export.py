@@ -33,7 +33,11 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, cli_main, did_you_mean, known_errors
+from b3dgs.io import atomic_path, write_json
+from b3dgs.ply import frame_comments, transform_gaussians, write_splats
+from b3dgs.rundir import (LOCK_NAME, MANIFEST_NAME, _iter_files, _write_manifest, check_replace, manifest_lock,
+                          owning_run_dir, read_manifest, record_written, refuse_in_checkpoints, run_files)
 from b3dgs.train import CONF_DIR
 
 log = logging.getLogger(__name__)
@@ -52,8 +56,6 @@ def _own_frame(run) -> tuple[dict, object, object]:
 
 def export_ply(run, path: Path, extras: bool = True) -> Path:
     """The run's Gaussians as a 3DGS-layout PLY in the scene's frame (with the posterior summaries when ``extras``)."""
-    from b3dgs.ply import frame_comments, write_splats
-
     splats, frame, inv = _own_frame(run)
     extra = {k: v.detach().cpu() for k, v in run.module.export_extras().items()} if extras else None
     return write_splats(path, splats, inv, extra=extra or None, comments=frame_comments(frame))
@@ -62,8 +64,6 @@ def export_ply(run, path: Path, extras: bool = True) -> Path:
 def splat_records(splats: dict, inv) -> np.ndarray:
     """(N, 32) uint8: per Gaussian, position (3 float32), linear scale (3 float32), RGBA (4 uint8), rotation (4 uint8,
     (q / |q|) · 128 + 128), in ``inv``'s frame, sorted by exp(Σ log-scale) · opacity, largest first (ties by index)."""
-    from b3dgs.ply import transform_gaussians
-
     means, log_scales, quats = transform_gaussians(splats["means"], splats["scales"], splats["quats"],
                                                    float(inv.scale), np.asarray(inv.rotation), inv.translation)
     means, log_scales, quats = means.double(), log_scales.double(), quats.double()
@@ -83,8 +83,6 @@ def splat_records(splats: dict, inv) -> np.ndarray:
 
 
 def export_splat(run, path: Path) -> Path:
-    from b3dgs.io import atomic_path
-
     splats, _, inv = _own_frame(run)
     rec = splat_records(splats, inv)
     with atomic_path(path) as tmp:
@@ -111,8 +109,6 @@ def camera_entries(cameras, inv) -> list[dict]:
 def export_3dgs(run, folder: Path, step: int, model_path: Optional[Path] = None) -> Path:
     """The official 3DGS model folder of ``run`` at ``step`` in ``folder`` (``cfg_args`` names ``model_path``, default
     ``folder``: the folder it will have once staged into place)."""
-    from b3dgs.io import atomic_path, write_json
-
     _, _, inv = _own_frame(run)
     export_ply(run, folder / "point_cloud" / f"iteration_{step}" / "point_cloud.ply", extras=False)
     cams = list(run.scene.train) + list(run.scene.test)
@@ -133,8 +129,6 @@ _MODEL_PLY = re.compile(r"point_cloud/iteration_\d+/point_cloud\.ply")
 
 def _model_files(folder: Path) -> list[str]:
     """The files of ``folder`` (symlinks as entries), relative to it."""
-    from b3dgs.rundir import _iter_files
-
     return list(_iter_files(folder))
 
 
@@ -142,8 +136,6 @@ def _not_ours(folder: Path) -> list[str]:
     """The files of ``folder`` that are not part of a model folder b3dgs-export wrote: those its own manifest does not
     list (a folder exported before it carried one: unless it has the layout alone, in a run dir whose manifest lists
     every file); every file for a folder without such a manifest."""
-    from b3dgs.rundir import LOCK_NAME, MANIFEST_NAME, owning_run_dir, read_manifest, run_files
-
     files = [f for f in _model_files(folder) if f != LOCK_NAME]
     try:
         m = read_manifest(folder)
@@ -163,8 +155,6 @@ def _check_folder(out: Path) -> Optional[Path]:
     """Whether a model folder may be written at ``out`` (new, empty, or one b3dgs-export wrote: replaced whole); the run
     dir whose manifest lists it, or ``None``. A folder that holds anything else (a user's model, its other iterations)
     is refused: a model folder is never merged into one."""
-    from b3dgs.rundir import owning_run_dir, read_manifest, refuse_in_checkpoints
-
     refuse_in_checkpoints(out, "b3dgs-export")
     files = _not_ours(out) if out.is_dir() else []
     if files:
@@ -185,8 +175,6 @@ def write_model_folder(run, out: Path, step: int, owner: Optional[Path]) -> Path
     import os
     import shutil
     import tempfile
-
-    from b3dgs.rundir import MANIFEST_NAME, _write_manifest, record_written, run_files
 
     out.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.b3dgs-stage-", dir=out.parent))
@@ -212,14 +200,11 @@ def write_model_folder(run, out: Path, step: int, owner: Optional[Path]) -> Path
 
 def export(cfg: DictConfig) -> dict:
     """Export ``cfg.run`` (at ``cfg.checkpoint``, default its last) as ``cfg.format`` into ``cfg.out``."""
-    from b3dgs.rundir import check_replace, manifest_lock, record_written
     from b3dgs.runs import load_run
     from b3dgs.validation import validate_config
 
     fmt = str(cfg.get("format"))
     if fmt not in FORMATS:
-        from b3dgs.errors import did_you_mean
-
         raise B3dgsError(f"format={fmt} is not an export format{did_you_mean(fmt, FORMATS)}",
                          f"pass format={'|'.join(FORMATS)}")
     validate_config(cfg, app="export")
@@ -254,20 +239,13 @@ def export(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="export")
 def hydra_main(cfg: DictConfig) -> None:
-    from b3dgs.errors import known_errors, quiet_known_noise
-
-    with known_errors("b3dgs-export", cfg):
-        quiet_known_noise()
+    with known_errors("b3dgs-export", cfg, quiet=True):
         w = export(cfg)
         print(f"b3dgs-export: {w['num_gaussians']} Gaussians (step {w['step']}) as {w['format']} -> {w['out']}",
               flush=True)
 
 
-def main() -> None:
-    """``b3dgs-export``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
-    from b3dgs.errors import run_cli
-
-    run_cli("b3dgs-export", hydra_main, config="export")
+main = cli_main("b3dgs-export", hydra_main, "export")
 
 
 if __name__ == "__main__":

@@ -38,6 +38,9 @@ import torch
 from torch.overrides import TorchFunctionMode
 from torch.utils._python_dispatch import TorchDispatchMode
 
+from b3dgs.errors import B3dgsError
+from b3dgs.io import write_json
+
 __all__ = ["scope", "HostSyncCounter", "CudaSyncCounter", "HostSyncCallback", "active_counter"]
 
 _aten = torch.ops.aten
@@ -105,6 +108,12 @@ class _Counting:
     def per_step(self) -> dict[int, dict[str, int]]:
         return {s: dict(c) for s, c in sorted(self.counts.items())}
 
+    def __enter__(self):
+        return self.install()
+
+    def __exit__(self, *exc) -> None:
+        self.remove()
+
 
 def _site() -> str:
     """The innermost frame outside torch and this module: where the sync was asked for."""
@@ -153,8 +162,6 @@ class _FunctionCounter(TorchFunctionMode):
 
 
 def _already_installed() -> None:
-    from b3dgs.errors import B3dgsError
-
     raise B3dgsError("a host-sync counter is already installed: one counts at a time",
                      "add one HostSyncCallback (+callbacks.host_sync._target_=b3dgs.host_sync.HostSyncCallback), or "
                      "remove the counter installed first")
@@ -183,12 +190,6 @@ class HostSyncCounter(_Counting):
             m.__exit__(None, None, None)
         self._modes = []
         _COUNTER = None
-
-    def __enter__(self) -> "HostSyncCounter":
-        return self.install()
-
-    def __exit__(self, *exc) -> None:
-        self.remove()
 
 
 class CudaSyncCounter(_Counting):
@@ -228,12 +229,6 @@ class CudaSyncCounter(_Counting):
             self._catch = None
         _COUNTER = None
 
-    def __enter__(self) -> "CudaSyncCounter":
-        return self.install()
-
-    def __exit__(self, *exc) -> None:
-        self.remove()
-
 
 class HostSyncCallback(L.Callback):
     """Count host syncs over a training run and write them to ``out`` (JSON): per step, the count of each scope and the
@@ -245,8 +240,6 @@ class HostSyncCallback(L.Callback):
                  max_steps: Optional[int] = None, device_path: bool = False) -> None:
         super().__init__()
         if backend not in ("auto", "ops", "cuda"):
-            from b3dgs.errors import B3dgsError
-
             raise B3dgsError(f"host_sync backend={backend} is not one of auto|ops|cuda",
                              "pass +callbacks.host_sync.backend=auto (CUDA's own count on a CUDA model), ops or cuda")
         self.out, self.backend, self.keep_stacks, self.max_steps = out, backend, keep_stacks, max_steps
@@ -310,8 +303,6 @@ class HostSyncCallback(L.Callback):
                 "sites": {k: dict(v.most_common(40)) for k, v in c.sites.items()}}
 
     def write(self) -> None:
-        from b3dgs.io import write_json
-
         path = Path(self.out)
         path.parent.mkdir(parents=True, exist_ok=True)
         write_json(path, self.result())

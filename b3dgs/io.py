@@ -42,6 +42,15 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int = 2) -> None:
         tmp.write_text(text + "\n")
 
 
+
+def read_json_dict(path: str | os.PathLike) -> dict | None:
+    """The JSON object in ``path``; None when it is missing, unreadable, or not an object."""
+    try:
+        d = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    return d if isinstance(d, dict) else None
+
 def save_figure(fig: Any, path: str | os.PathLike, dpi: Any = None) -> Path:
     """Write a matplotlib figure to ``path`` as PNG, atomically (``dpi``: matplotlib's, default the figure's), and
     close it if pyplot manages it; the one way b3dgs saves a figure. Returns ``path``."""

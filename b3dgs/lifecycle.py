@@ -28,13 +28,20 @@ from typing import TYPE_CHECKING, Any, Optional
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from b3dgs.checkpoint import check_sealed
+from b3dgs.callbacks import AtomicCheckpointIO, CurveCallback, ResumeState, RunCheckpoint, RunFiles, StepProgressBar
+from b3dgs.checkpoint import check_sealed, checkpoint_record, renderer_identity, renderer_mismatch
 from b3dgs.errors import B3dgsError
+from b3dgs.io import write_json
+from b3dgs.numerics import guard_counts, reset_guards as _reset
+from b3dgs.render.renderers import Renderer, make_renderer
+from b3dgs.rundir import (Interrupted, claim_run_dir, finished_metrics, interrupt_handlers, manifest_lock,
+                          prepare_run_dir, record_amended, record_written, run_dir_lock, save_config, start_manifest,
+                          write_manifest)
+from b3dgs.types import Scene
+from b3dgs.upgrade import renderer_option, trainer_arg
 
 if TYPE_CHECKING:
     from b3dgs.data.datamodule import SceneDataModule
-    from b3dgs.render.renderers import Renderer
-    from b3dgs.types import Scene
 
 log = logging.getLogger(__name__)
 
@@ -56,9 +63,6 @@ def build_renderer(node) -> "Renderer":
     """The renderer plugin of a config's ``renderer`` node (an older node: the option it names,
     :func:`b3dgs.upgrade.renderer_option`), checked to run on this machine."""
     from hydra.utils import instantiate
-
-    from b3dgs.render.renderers import make_renderer
-    from b3dgs.upgrade import renderer_option
 
     option = renderer_option(node)
     renderer = instantiate(node) if option is None else make_renderer(option)
@@ -106,8 +110,6 @@ def seed_run(seed: int, threads: Optional[int] = None, reset_guards: bool = True
     continued from a checkpoint gets its counters back from it) and set torch's CPU threads (``threads``)."""
     import lightning as L
 
-    from b3dgs.numerics import reset_guards as _reset
-
     os.environ.pop("PL_GLOBAL_SEED", None)
     L.seed_everything(int(seed), workers=True, verbose=False)
     if reset_guards:
@@ -123,7 +125,6 @@ def data_module(data, keep_raw: bool = False) -> "SceneDataModule":
     from hydra.utils import instantiate
 
     from b3dgs.data.datamodule import SceneDataModule
-    from b3dgs.types import Scene
 
     if isinstance(data, Scene):
         return SceneDataModule(scene=data)
@@ -179,9 +180,6 @@ def build_trainer(tcfg, renderer, callbacks: list, logger=False, final_after_eva
     ``final_after_eval``: its last line waits for the final evaluation (``StepProgressBar.show_final``)."""
     from hydra.utils import instantiate
     from lightning.pytorch.callbacks import ProgressBar
-
-    from b3dgs.callbacks import AtomicCheckpointIO, StepProgressBar
-    from b3dgs.upgrade import trainer_arg
 
     keys = [str(k) for k in tcfg.keys() if k not in RUN_KEYS and trainer_arg(k) not in fixed]
     # resolved one by one in place (interpolations may point anywhere in the config; fixed ones are never read)
@@ -247,8 +245,6 @@ def check_resume_renderer(cfg: DictConfig, ckpt_path: str) -> None:
     """Refuse to resume with another renderer (backend, device or setting) than the checkpoint's run used: the
     identity of the renderer in the checkpoint, or (checkpoints written before it was recorded) the ``renderer``
     node of its run dir's config.yaml. A damaged checkpoint passes here (:func:`check_resume` names it)."""
-    from b3dgs.checkpoint import renderer_identity, renderer_mismatch
-
     try:
         saved = ((read_checkpoint(ckpt_path, mmap=True).get("b3dgs") or {}).get("identity") or {}).get("renderer")
     except Exception:  # noqa: BLE001
@@ -436,8 +432,6 @@ class Run:
         checkpoints hold plugin states: not ``weights_only``), without Lightning's warnings about the loader's workers
         and ``training_step``'s return value (one camera per step, by design); ``claim()`` runs once the trainer is
         built, before anything trains. Returns the trainer."""
-        from b3dgs.rundir import Interrupted
-
         trainer = build_trainer(self.cfg.trainer, self.module.renderer,
                                 [*callbacks, *build_callbacks(self.cfg.get("callbacks"))], logger=logger,
                                 final_after_eval=final_after_eval, default_root_dir=str(self.run_dir), **fixed)
@@ -457,17 +451,12 @@ class Run:
 
     def train(self) -> dict:
         """``b3dgs-train``'s run into the run dir under its lock (:func:`b3dgs.train.train`'s contract)."""
-        from b3dgs.rundir import interrupt_handlers, run_dir_lock
-
         with interrupt_handlers(), run_dir_lock(self.run_dir):
             return self._train(self.cfg, self.cfg.trainer, self.run_dir)
 
     def _train(self, cfg: DictConfig, tcfg, run_dir: Path) -> dict:
         from hydra.utils import instantiate
         from lightning.pytorch.loggers import TensorBoardLogger  # noqa: F401 - logger=tensorboard targets it
-
-        from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint, RunFiles
-        from b3dgs.rundir import Interrupted, claim_run_dir, finished_metrics, prepare_run_dir
 
         every_s = checkpoint_every_s(tcfg)
         ckpt_path, clear = prepare_run_dir(run_dir, cfg.get("resume"), cfg.get("overwrite", False),
@@ -508,15 +497,11 @@ class Run:
         each written atomically: renders, PLY, curve, then ``metrics.json`` (the done marker)."""
         import time
 
-        from b3dgs.callbacks import StepProgressBar
-        from b3dgs.checkpoint import checkpoint_record
         from b3dgs.data.scene import scene_transform
         from b3dgs.labels import method_label
         from b3dgs.metrics.lpips import get_lpips
         from b3dgs.metrics.views import evaluate_views
-        from b3dgs.numerics import guard_counts
         from b3dgs.ply import frame_comments, write_splats
-        from b3dgs.rundir import record_written
 
         cfg, run_dir, module, scene, renderer = self.cfg, self.run_dir, self.module, self.dm.scene, self.module.renderer
         tcfg = cfg.trainer
@@ -567,8 +552,6 @@ class Run:
     def amend_metrics(self, update: dict, prog: str = "b3dgs") -> dict:
         """Set ``update``'s keys in the finished run's ``metrics.json`` (e.g. LPIPS filled in later), under the run
         dir's lock, atomically, listed in its manifest (:func:`b3dgs.rundir.record_amended`); returns the metrics."""
-        from b3dgs.rundir import finished_metrics, manifest_lock, record_amended
-
         with manifest_lock(self.run_dir, prog):
             metrics = finished_metrics(self.run_dir)
             if metrics is None:
@@ -580,17 +563,12 @@ class Run:
         return metrics
 
     def _write_metrics(self, metrics: dict) -> None:
-        from b3dgs.io import write_json
-
         write_json(self.run_dir / "metrics.json", metrics)  # the one writer of a run's done marker
 
     def record(self, name: str, payload: dict, prog: str = "b3dgs-study") -> dict:
         """Write a study's record of this run (a row's ``selection.json`` and ``result.json``, its done marker; phase 1's
         ``phase1.json``; a compression row's ``result.json``) atomically, under the run dir's lock, listed in its
         manifest (made by the first record); returns ``payload``."""
-        from b3dgs.io import write_json
-        from b3dgs.rundir import manifest_lock, record_written, start_manifest
-
         self.run_dir.mkdir(parents=True, exist_ok=True)
         with manifest_lock(self.run_dir, prog):
             start_manifest(self.run_dir)
@@ -618,8 +596,6 @@ class Run:
         manifest and config.yaml, ``twin``'s curve, and ``twin``'s metrics with ``training_shared_with`` naming it
         (the done marker, last); no checkpoint. Returns the metrics."""
         import shutil
-
-        from b3dgs.rundir import run_dir_lock, save_config, write_manifest
 
         twin = Path(twin)
         self.run_dir.mkdir(parents=True, exist_ok=True)

@@ -34,7 +34,8 @@ def _read_pid(fd: int) -> str:
         return ""
 
 
-def _alive(pid: str) -> bool:
+def pid_alive(pid) -> bool:
+    """Whether the process ``pid`` (an int or its text) is alive (another user's counts)."""
     try:
         os.kill(int(pid), 0)
     except (ValueError, ProcessLookupError, OverflowError):
@@ -101,7 +102,7 @@ def lock_holder(path: Path) -> Optional[str]:
             pid = _read_pid(fd)
         finally:
             os.close(fd)
-        if _alive(pid):
+        if pid_alive(pid):
             return pid
         time.sleep(0.01 * (attempt + 1))
     return pid or "?"

@@ -11,7 +11,7 @@ import lightning as L
 import torch
 from torch import Tensor, nn
 
-from b3dgs.checkpoint import check_sealed, seal_checkpoint
+from b3dgs.checkpoint import check_sealed, identity_mismatch, run_identity, scene_fingerprint, seal_checkpoint
 from b3dgs.device import move_tree
 from b3dgs.errors import B3dgsError
 from b3dgs.host_sync import scope
@@ -321,8 +321,6 @@ class SplatModule(L.LightningModule):
     def run_identity(self) -> dict:
         """Model, posterior blocks, strategy, scene fingerprint and renderer: what a checkpoint must share with
         the run that resumes or evaluates it (:mod:`b3dgs.checkpoint`; the renderer for resumes only)."""
-        from b3dgs.checkpoint import run_identity
-
         return run_identity(self.hparams, self.strategy, self.posterior, self.scene, self.schedule, self.renderer)
 
     def check_checkpoint_identity(self, checkpoint: Mapping[str, Any], what: str, fix: str,
@@ -330,8 +328,6 @@ class SplatModule(L.LightningModule):
         """Refuse a checkpoint of another model, posterior, strategy, scene or schedule with a one-line
         ``ValueError`` ``"<what> does not match: <reason> (fix: pass <key=value> or <fix>)"``; ``suggest=False``
         (a command that takes no training options, e.g. b3dgs-export): ``fix`` alone."""
-        from b3dgs.checkpoint import identity_mismatch
-
         extra = checkpoint.get("b3dgs") or {}
         saved, current = extra.get("identity"), self.run_identity()
         if self.allow_new_views and saved:
@@ -348,8 +344,6 @@ class SplatModule(L.LightningModule):
     def pool_fingerprint(self) -> Optional[str]:
         """Fingerprint of the whole view pool (train + candidates, and test): what training rounds share."""
         from types import SimpleNamespace
-
-        from b3dgs.checkpoint import scene_fingerprint
 
         sc = self.scene
         if sc is None:

@@ -29,7 +29,7 @@ import shutil
 import sys
 import threading
 import time
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from pathlib import Path
 from typing import Any, Callable, Iterator, Optional
 
@@ -37,7 +37,9 @@ import hydra
 from omegaconf import DictConfig
 
 from b3dgs import conf_dir, data_root
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, cli_main, did_you_mean, known_errors
+from b3dgs.io import atomic_path, write_json
+from b3dgs.rundir import PENDING, Interrupted, interrupt_handlers, remove_listed
 
 __all__ = ["EXHAUSTIVE_UP_TO", "STAGES", "extract_frames", "list_photos", "main", "process"]
 
@@ -147,8 +149,6 @@ def _stop_if_signalled() -> None:
     """Raise :class:`b3dgs.rundir.Interrupted` for a SIGINT / SIGTERM recorded since :func:`process` began. The
     handlers only record (``deferred``): an exception raised wherever the signal lands could be swallowed by a
     library's ``except Exception`` (tqdm's monitor thread start is one), so it is raised here, at known points."""
-    from b3dgs.rundir import PENDING, Interrupted
-
     if PENDING.signum is not None:
         raise Interrupted(PENDING.signum)
 
@@ -211,9 +211,7 @@ def _renumber(pycolmap, src: Path, dst: Path, names: list[str]) -> None:
     id to the larger, which changes RANSAC's samples; the mapper breaks ties by id): with these ids, the same photos
     give the same scene whatever the thread count or timing."""
     _remove(dst)
-    old = pycolmap.Database.open(str(src))
-    new = pycolmap.Database.open(str(dst))
-    try:
+    with closing(pycolmap.Database.open(str(src))) as old, closing(pycolmap.Database.open(str(dst))) as new:
         images = {im.name: im for im in old.read_all_images()}
         cameras = {c.camera_id: c for c in old.read_all_cameras()}
         priors = {}
@@ -243,11 +241,6 @@ def _renumber(pycolmap, src: Path, dst: Path, names: list[str]) -> None:
             new.write_image(im, use_image_id=True)
             new.write_keypoints(i, keypoints)
             new.write_descriptors(i, descriptors)
-    finally:
-        old.close()
-        new.close()
-
-
 
 
 class _Run:
@@ -302,21 +295,15 @@ class _Run:
                                                     reader_options=reader, extraction_options=opts,
                                                     device=pycolmap.Device.cpu))
             if self.single and camera < 0 and part.is_file():
-                db = pycolmap.Database.open(str(part))
-                try:
+                with closing(pycolmap.Database.open(str(part))) as db:
                     camera = min((c.camera_id for c in db.read_all_cameras()), default=-1)
-                finally:
-                    db.close()
             bar.update(len(names))
         bar.close()
         if not part.is_file():
             raise B3dgsError(f"pycolmap extracted no features from the photos in {self.images}",
                              "check that the photos open in an image viewer; verbose=true shows COLMAP's log")
-        db = pycolmap.Database.open(str(part))
-        try:
+        with closing(pycolmap.Database.open(str(part))) as db:
             rows = {im.name: int(db.num_keypoints_for_image(im.image_id)) for im in db.read_all_images()}
-        finally:
-            db.close()
         _renumber(pycolmap, part, self.work / "features.db.sorted", self.names)
         os.replace(self.work / "features.db.sorted", self.work / "features.db")
         _remove(part)
@@ -341,13 +328,10 @@ class _Run:
             n, b = len(self.names), 50
             return [(self.names[i], self.names[j]) for s1 in range(0, n, b) for s2 in range(s1, n, b)
                     for i in range(s1, min(s1 + b, n)) for j in range(max(s2, i + 1), min(s2 + b, n))]
-        db = pycolmap.Database.open(str(db_path))
-        try:
+        with closing(pycolmap.Database.open(str(db_path))) as db:
             names = {im.image_id: im.name for im in db.read_all_images()}
             gen = pycolmap.SequentialPairGenerator(self._sequential(pycolmap), db)
             return [(names[a], names[b]) for a, b in gen.all_pairs()]
-        finally:
-            db.close()
 
     def match(self, pycolmap) -> dict:
         part, listing = self.work / "matches.db.partial", self.work / "pairs.partial.txt"
@@ -378,15 +362,12 @@ class _Run:
                 bar.update(len(chunk))
         bar.close()
         _remove(listing)
-        db = pycolmap.Database.open(str(part))
-        try:
+        with closing(pycolmap.Database.open(str(part))) as db:
             ids = {im.image_id: im.name for im in db.read_all_images()}
             pair_ids, inliers = db.read_two_view_geometry_num_inliers()
             matched = {ids.get(int(i)) for p, k in zip(pair_ids, inliers) if k > 0
                        for i in pycolmap.pair_id_to_image_pair(p)}
             verified = sum(1 for k in inliers if k > 0)
-        finally:
-            db.close()
         os.replace(part, self.work / "matches.db")
         return {"pairs": len(pairs), "verified_pairs": verified,
                 "photos_without_matches": [n for n in self.names if n not in matched],
@@ -477,8 +458,6 @@ class _Run:
         wrote there (:func:`_owned`): a user's file in ``images/`` or ``sparse/0/`` stays, and one that a new file
         would replace is refused. The names are recorded before they are moved; the earlier ones not written again
         go. A kill in between leaves the stage unrecorded, and the rerun does it again."""
-        from b3dgs.rundir import remove_listed
-
         owned = _owned(self.out, self.state)
         clash = [f for f in new if (self.out / f).exists() and f not in owned]
         if clash:
@@ -560,8 +539,6 @@ def _read_state(out: Path) -> Optional[dict]:
 
 
 def _write_state(out: Path, state: dict) -> None:
-    from b3dgs.io import write_json
-
     write_json(out / STATE, state)
 
 
@@ -635,8 +612,6 @@ def _owned(out: Path, state: dict) -> list[str]:
 def _remove_ours(out: Path, state: dict) -> None:
     """``overwrite=true``: what b3dgs-process wrote into ``out``, by name (:func:`_owned`, its work folder, the scene
     file and the state file), and the folders that this leaves empty; a user's file beside them stays."""
-    from b3dgs.rundir import remove_listed
-
     scene_file = state.get("scene_file")
     remove_listed(out, [*_owned(out, state), *([scene_file] if isinstance(scene_file, str) else [])])
     _remove(out / WORK)
@@ -644,8 +619,6 @@ def _remove_ours(out: Path, state: dict) -> None:
 
 
 def _check_options(cfg: DictConfig, pycolmap) -> None:
-    from b3dgs.errors import did_you_mean
-
     matcher = str(cfg.matcher)
     if matcher not in MATCHERS:
         raise B3dgsError(f"matcher={matcher} is not a matcher{did_you_mean(matcher, MATCHERS)}",
@@ -729,7 +702,6 @@ def process(cfg: DictConfig) -> dict:
     """Run (or resume) the stages for ``cfg`` (``conf/process.yaml``); returns a summary (``out``, ``name``,
     ``command``, per stage ``{"skipped", "seconds", ...}``)."""
     from b3dgs.data.images import import_pycolmap
-    from b3dgs.rundir import interrupt_handlers
     from b3dgs.validation import validate_config
 
     validate_config(cfg, app="process")
@@ -871,8 +843,6 @@ def extract_frames(video: Path, folder: Path, fps: float, quality: int = 2) -> i
 
 
 def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, video=None) -> dict:
-    from b3dgs.rundir import Interrupted
-
     t_start = time.perf_counter()
     listing = _listing(photos)
     fp = _fingerprint(listing)
@@ -943,8 +913,6 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, vide
     old = state.get("scene_file")
     if old and old != scene_file:
         _remove(out / old)
-    from b3dgs.io import atomic_path
-
     target = out / scene_file
     if not target.is_file() or target.read_text() != text:
         with atomic_path(target) as tmp:
@@ -971,10 +939,6 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, vide
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="process")
 def hydra_main(cfg: DictConfig) -> None:
-    from b3dgs.errors import known_errors
-
-    from b3dgs.rundir import Interrupted
-
     with known_errors("b3dgs-process", cfg):
         try:
             process(cfg)
@@ -987,11 +951,7 @@ def hydra_main(cfg: DictConfig) -> None:
             os._exit(e.exit_code)  # at once: the stage's pycolmap call may still run in its thread
 
 
-def main() -> None:
-    """``b3dgs-process``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
-    from b3dgs.errors import run_cli
-
-    run_cli("b3dgs-process", hydra_main, config="process")
+main = cli_main("b3dgs-process", hydra_main, "process")
 
 
 if __name__ == "__main__":

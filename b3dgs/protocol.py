@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any, Mapping, Optional
 
 from b3dgs.errors import B3dgsError
+from b3dgs.io import write_json
 from b3dgs.upgrade import omit_run_defaults
 
 #: keys of a b3dgs-train config that do not change a run's results (bookkeeping, logging, where it ran)
@@ -75,8 +76,6 @@ def check_stored_protocol(folder: Path, settings: Mapping, fix: str,
     ``folder/protocol.json`` holds the settings and their digest. ``legacy``: the settings a folder written
     before protocol files is known to hold (compared on the keys it has), or None when it holds nothing yet.
     Returns the digest."""
-    from b3dgs.io import write_json
-
     settings = json.loads(json.dumps(dict(settings), default=str))
     path = Path(folder) / "protocol.json"
     if path.exists():
@@ -123,8 +122,6 @@ def check_stored_scene(folder: Path, scene: Any, fix: str) -> dict[str, str]:
     """Refuse to add to ``folder`` rows made from other data: ``folder/scene.json`` holds :func:`scene_digest` of the
     scene its rows were made from (recorded on first use; a folder from before it gets the current one). ``scene``: a
     scene or its :func:`scene_digest`. Returns the digests."""
-    from b3dgs.io import write_json
-
     current = dict(scene) if isinstance(scene, Mapping) else scene_digest(scene)
     path = Path(folder) / "scene.json"
     if path.exists():

@@ -23,9 +23,12 @@ import numpy as np
 import torch
 from omegaconf import DictConfig
 
-from b3dgs.errors import B3dgsError
+from b3dgs.data.scene import SceneTransform, look_at_point
+from b3dgs.errors import B3dgsError, cli_main, known_errors
+from b3dgs.io import atomic_path
 from b3dgs.train import CONF_DIR
 from b3dgs.types import Camera
+from b3dgs.viewer.modes import MODES, ModeRenderer, colorize, colormap_lut, normalise, robust_max
 
 log = logging.getLogger(__name__)
 
@@ -77,8 +80,6 @@ def orbit_cameras(cams: Sequence[Camera], frames: int) -> list[Camera]:
     :func:`b3dgs.data.scene.look_at_point`; their mean centre when the axes are parallel), in the plane orthogonal to
     their mean up direction, at their mean distance from that axis and mean height along it, all looking at the point;
     the first camera's intrinsics and size."""
-    from b3dgs.data.scene import look_at_point
-
     cams = list(cams)
     c2w = np.stack([c.camtoworld.double().cpu().numpy() for c in cams])
     centres = c2w[:, :3, 3]
@@ -111,8 +112,6 @@ def nerfstudio_path(file: Path, scene) -> list[Camera]:
     are read in the scene's own frame (COLMAP's or transforms.json's: the frame of ``point_cloud.ply`` and of
     ``b3dgs-export``'s ``cameras.json``) and mapped into the run's normalised frame with ``scene.transform``."""
     import json
-
-    from b3dgs.data.scene import SceneTransform
 
     fix = ("pass a camera-path JSON as nerfstudio's viewer exports it (camera_path with camera_to_world and fov, "
            "render_height), or path=test|train|interpolate|orbit")
@@ -179,8 +178,6 @@ def _legend(width: int, cmap: str, lo: float, hi: float, unit: str) -> np.ndarra
     """A colour bar ``width`` px wide with its two ends written under it (uint8, (28, width, 3))."""
     from PIL import Image, ImageDraw
 
-    from b3dgs.viewer.modes import colormap_lut
-
     bar = colormap_lut(cmap)[np.linspace(0, 255, width).round().astype(int)]
     img = np.full((28, width, 3), 255, np.uint8)
     img[2:12] = bar[None]
@@ -208,8 +205,6 @@ def render_path(run, cams: Sequence[Camera], panel: Optional[str] = None, panel_
     with the ``panel`` mode beside it on one colour scale for the path (and its colour bar under it). Returns the
     frames and the panel's scale top (None without a panel)."""
     from b3dgs.progress import progress
-
-    from b3dgs.viewer.modes import MODES, ModeRenderer, colorize, normalise, robust_max
 
     modes = None
     if panel:
@@ -252,8 +247,6 @@ def write_video(path: Path, frames: Sequence[np.ndarray], fps: int) -> Path:
     except ImportError:
         raise B3dgsError("writing the MP4 needs imageio-ffmpeg, which is not installed",
                          "pip install imageio-ffmpeg, or pass video=false") from None
-    from b3dgs.io import atomic_path
-
     h, w = frames[0].shape[:2]
     H, W = h + h % 2, w + w % 2
     with atomic_path(path) as tmp:
@@ -348,21 +341,14 @@ def render(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="render")
 def hydra_main(cfg: DictConfig) -> None:
-    from b3dgs.errors import known_errors, quiet_known_noise
-
-    with known_errors("b3dgs-render", cfg):
-        quiet_known_noise()
+    with known_errors("b3dgs-render", cfg, quiet=True):
         w = render(cfg)
         where = Path(w["frames"][0]).parent
         video = f" and {w['video']}" if w["video"] else ""
         print(f"b3dgs-render: wrote {len(w['frames'])} frames to {where}/frame_*.png{video}", flush=True)
 
 
-def main() -> None:
-    """``b3dgs-render``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
-    from b3dgs.errors import run_cli
-
-    run_cli("b3dgs-render", hydra_main, config="render")
+main = cli_main("b3dgs-render", hydra_main, "render")
 
 
 if __name__ == "__main__":

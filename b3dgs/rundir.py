@@ -26,7 +26,6 @@
 from __future__ import annotations
 
 import fnmatch
-import json
 import logging
 import os
 import re
@@ -39,7 +38,8 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator, Optional
 
 from b3dgs.errors import B3dgsError
-from b3dgs.locks import LockHeld, lock_holder, process_lock
+from b3dgs.io import atomic_path, read_json_dict, write_json
+from b3dgs.locks import LockHeld, lock_holder, pid_alive, process_lock
 from b3dgs.upgrade import manifest_run_id, manifest_v1_files, old_temp_target, premanifest_files
 
 log = logging.getLogger(__name__)
@@ -122,16 +122,6 @@ def staging_prefix() -> str:
     return f"{STAGING_PREFIX}{socket.gethostname()}.{os.getpid()}."
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def remove_stale_staging(folder: Path, owned: bool = False) -> list[Path]:
     """Remove the staging folders a killed b3dgs-eval left in ``folder``: those of this host whose process is gone.
     ``owned`` (the caller holds the run dir, e.g. ``overwrite=true``): also those with no host and pid in their name
@@ -146,7 +136,7 @@ def remove_stale_staging(folder: Path, owned: bool = False) -> list[Path]:
             continue
         parts = p.name[len(STAGING_PREFIX):].rsplit(".", 2)
         if len(parts) == 3 and parts[1].isdigit():
-            stale = parts[0] == host and not _pid_alive(int(parts[1]))
+            stale = parts[0] == host and not pid_alive(int(parts[1]))
         else:
             stale = owned
         if stale:
@@ -187,21 +177,13 @@ def _matches(rel: str, pattern: str) -> bool:
     return len(a) == len(b) and all(fnmatch.fnmatchcase(x, y) for x, y in zip(a, b))
 
 
-def _read_json(path: Path) -> Optional[dict]:
-    try:
-        d = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    return d if isinstance(d, dict) else None
-
-
 def read_manifest(run_dir: Path, fix: Optional[str] = None) -> Optional[dict]:
     """The run manifest of ``run_dir`` (format 2: ``files``; format 1: ``writes``), ``None`` without one; a damaged
     one is refused in one line (``fix``: what the calling command's user can do instead; default: a training's)."""
     path = Path(run_dir) / MANIFEST_NAME
     if not path.exists() and not path.is_symlink():
         return None
-    m = _read_json(path)
+    m = read_json_dict(path)
     key = "files" if m is not None and m.get("b3dgs_run") == MANIFEST_FORMAT else "writes"
     if m is None or not isinstance(m.get(key), list) or not all(isinstance(f, str) for f in m[key]):
         raise B3dgsError(f"the run manifest {path} is damaged",
@@ -222,7 +204,7 @@ def is_legacy_run(run_dir: Path) -> bool:
         return False
     if not isinstance(cfg, DictConfig) or not all(k in cfg for k in ("data", "model", "seed")):
         return False
-    m = _read_json(run_dir / "metrics.json")
+    m = read_json_dict(run_dir / "metrics.json")
     return (m is not None and "checkpoint" in m) or (run_dir / "checkpoints" / "last.ckpt").is_file()
 
 
@@ -259,7 +241,8 @@ def _listed(run_dir: Path, m: Optional[dict]) -> list[str]:
         return list(dict.fromkeys(m["files"]))
     if m is None and not is_legacy_run(run_dir):
         return []
-    files, metrics, uq = _iter_files(run_dir), _read_json(run_dir / "metrics.json"), _read_json(run_dir / "uq.json")
+    files, metrics = _iter_files(run_dir), read_json_dict(run_dir / "metrics.json")
+    uq = read_json_dict(run_dir / "uq.json")
     return premanifest_files(files, metrics, uq) if m is None else manifest_v1_files(files, m["writes"], metrics, uq)
 
 
@@ -285,8 +268,6 @@ def _write_manifest(run_dir: Path, files: Iterable[str], token: Optional[str], c
                     writer: Optional[str] = None, amended: Optional[list] = None) -> None:
     """The manifest of ``run_dir``; ``writer`` marks a folder that one command wrote whole (b3dgs-export's model
     folder), not a run; ``amended``: what was added to the finished run's metrics.json later (:func:`record_amended`)."""
-    from b3dgs.io import write_json
-
     write_json(Path(run_dir) / MANIFEST_NAME, {
         "b3dgs_run": MANIFEST_FORMAT, "run_id": token or uuid.uuid4().hex,
         "created": created or time.strftime("%Y-%m-%dT%H:%M:%S%z"), "files": list(dict.fromkeys(map(str, files))),
@@ -505,7 +486,7 @@ def run_dir_stamp(folder: Path) -> dict:
         token = manifest_token(read_manifest(folder))
     except B3dgsError:
         token = "damaged"
-    metrics = _read_json(folder / "metrics.json") or {}
+    metrics = read_json_dict(folder / "metrics.json") or {}
     return {"run_id": token, "params_sha256": (metrics.get("checkpoint") or {}).get("params_sha256")}
 
 
@@ -545,8 +526,6 @@ def write_hydra_files(run_dir: Path, cfg) -> None:
     (:func:`claim_run_dir`)."""
     from hydra.core.hydra_config import HydraConfig
     from omegaconf import OmegaConf, open_dict
-
-    from b3dgs.io import atomic_path
 
     if not HydraConfig.initialized():
         return
@@ -588,7 +567,7 @@ def resolve_resume(resume, run_dir: Path) -> Optional[str]:
 
 def finished_metrics(run_dir: Path) -> Optional[dict]:
     """The complete ``metrics.json`` of a finished run in ``run_dir``, else ``None``."""
-    m = _read_json(Path(run_dir) / "metrics.json")
+    m = read_json_dict(Path(run_dir) / "metrics.json")
     return m if m is not None and "checkpoint" in m else None
 
 
@@ -651,8 +630,6 @@ def save_config(cfg, path: Path) -> None:
     """The composed config (without Hydra's own node), resolved, ``data.path`` made absolute (``b3dgs-eval``
     works from any folder), written atomically."""
     from omegaconf import OmegaConf, open_dict
-
-    from b3dgs.io import atomic_path
 
     c = cfg.copy()
     with open_dict(c):

@@ -9,6 +9,7 @@ from typing import Optional
 from omegaconf import DictConfig, OmegaConf
 
 from b3dgs.errors import B3dgsError
+from b3dgs.lifecycle import build_renderer, build_run, data_module, load_checkpoint, read_checkpoint
 from b3dgs.types import Scene
 
 log = logging.getLogger(__name__)
@@ -16,7 +17,6 @@ log = logging.getLogger(__name__)
 
 def _run_renderer(cfg: DictConfig):
     """The run's own renderer when it runs on this machine, else ``renderer=auto`` (said in the log)."""
-    from b3dgs.lifecycle import build_renderer
     from b3dgs.render.renderers import RendererUnavailable, auto_renderer
 
     try:
@@ -46,7 +46,6 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
     import json
 
     from b3dgs.upgrade import upgrade_targets
-    from b3dgs.lifecycle import build_run, data_module, load_checkpoint, read_checkpoint
 
     run_dir = Path(run_dir)
     cfg_path = run_dir / "config.yaml"

@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import math
 import re
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional, Sequence
 
@@ -37,8 +38,13 @@ import torch
 from omegaconf import DictConfig
 from torch import Tensor
 
-from b3dgs.acquisition import AcquisitionPolicy, Selection
-from b3dgs.errors import B3dgsError
+from b3dgs.acquisition import AcquisitionPolicy, ScoringContext, Selection
+from b3dgs.data.scene import infer_data_option, load_scene, look_at_point, scene_transform
+from b3dgs.errors import B3dgsError, cli_main, known_errors
+from b3dgs.io import save_figure, write_json
+from b3dgs.render_cli import _caption, _look_at as look_at_view, nerfstudio_path
+from b3dgs.rundir import claim_in_run, read_manifest, remove_listed
+from b3dgs.study.active import load_batch, load_policy
 from b3dgs.train import CONF_DIR
 from b3dgs.types import Camera
 
@@ -68,8 +74,6 @@ def scene_frame(train: Sequence[Camera], margin_deg: float = 10.0) -> dict:
     distances and elevations from the centre, and whether they are forward-facing: all within 90° of their mean
     direction from the centre (``axis``) and that mean's length at least :data:`FORWARD_RESULTANT` (a low orbit all
     around is not); ``cos_limit``: a candidate direction d is frontal when d · axis >= it."""
-    from b3dgs.data.scene import look_at_point
-
     if not train:
         raise B3dgsError("the run's scene has no training cameras", "pass run=DIR of a run trained on a scene")
     vms = np.stack([c.viewmat.double().cpu().numpy() for c in train])
@@ -98,8 +102,6 @@ def scene_frame(train: Sequence[Camera], margin_deg: float = 10.0) -> dict:
 
 def _look_at(name: str, pos: np.ndarray, target: np.ndarray, up: np.ndarray, ref: Camera) -> Camera:
     """A camera at ``pos`` looking at ``target`` (``up`` roughly up), with ``ref``'s intrinsics and size."""
-    from b3dgs.render_cli import _look_at as look_at_view
-
     f = _unit(target - pos)
     if abs(float(f @ up)) > 0.999:  # looking straight along up: any other up will do
         up = np.array([1.0, 0.0, 0.0]) if abs(f[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
@@ -205,8 +207,6 @@ def read_candidates(path: str, scene) -> list[Camera]:
     into the run's normalised frame. Names are made unique."""
     import json
 
-    from b3dgs.data.scene import scene_transform
-
     p = Path(str(path)).expanduser()
     fix = ("pass candidates= a 3DGS cameras.json, a nerfstudio camera-path .json or a scene folder (colmap, "
            "transforms, llff), or null to generate them")
@@ -214,8 +214,6 @@ def read_candidates(path: str, scene) -> list[Camera]:
         raise B3dgsError(f"candidates={path}: no such file or folder", fix)
     T = scene_transform(scene)
     if p.is_dir():
-        from b3dgs.data.scene import infer_data_option, load_scene
-
         kind, _ = infer_data_option(p)
         other = load_scene("transforms" if kind == "blender" else kind, str(p), test_every=0, normalize=False)
         cams = _move([c.with_image(None) for c in list(other.train) + list(other.test)], T)
@@ -225,8 +223,6 @@ def read_candidates(path: str, scene) -> list[Camera]:
         except (OSError, ValueError) as e:
             raise B3dgsError(f"candidates={path} is not a readable JSON file ({type(e).__name__}: {e})", fix) from None
         if isinstance(data, dict) and "camera_path" in data:
-            from b3dgs.render_cli import nerfstudio_path
-
             cams = nerfstudio_path(p, scene)
         elif isinstance(data, list) and data:
             try:
@@ -314,8 +310,6 @@ def uses_targets(policy) -> bool:
 
 def load_scoring(cfg: DictConfig):
     """(policy, batch selector or None for the policy's own rule, batch name) of ``cfg.policy`` / ``cfg.batch``."""
-    from b3dgs.study.active import load_batch, load_policy
-
     name = str(cfg.policy)
     _, policy = load_policy(name, cfg.get("policy_settings"))
     if policy.uses_ground_truth:
@@ -411,8 +405,6 @@ def _plot(path: Path, fr: dict, train: Sequence[Camera], cands: Sequence[Camera]
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from b3dgs.io import save_figure
-
     def coords(cams):
         rel = np.stack([c.center.double().cpu().numpy() for c in cams]) - fr["centre"] if cams else np.zeros((0, 3))
         return rel @ fr["a"], rel @ fr["b"], rel @ fr["up"]
@@ -447,7 +439,6 @@ def _plot(path: Path, fr: dict, train: Sequence[Camera], cands: Sequence[Camera]
 
 def _preview(rgb: Tensor, m: Tensor, rank: int, score: Optional[float]) -> np.ndarray:
     """The render beside its information map (inferno, 0 to its maximum), a caption under them."""
-    from b3dgs.render_cli import _caption
     from b3dgs.viewer.modes import colormap_lut
 
     a = (rgb.numpy() * 255.0 + 0.5).astype(np.uint8)
@@ -483,36 +474,26 @@ def _check_cfg(cfg: DictConfig) -> None:
             raise B3dgsError(f"{key}={v!r} is too small", f"pass {key}= an integer >= 8, or null")
 
 
+@contextmanager
 def _claim(folder: Path, run_dir: Path, names: Sequence[str]):
     """Make room for ``names`` in ``folder``: in the run dir (under its lock) the files an earlier b3dgs-suggest
     recorded there go and ``names`` join the manifest before they are written; elsewhere the files named as this
     command names its own go. Nothing else is touched."""
-    from contextlib import contextmanager
-
-    from b3dgs.rundir import claim_in_run, read_manifest, remove_listed
-
-    @contextmanager
-    def claim():
-        if folder.resolve().is_relative_to(run_dir.resolve()) and read_manifest(run_dir) is not None:
-            with claim_in_run(run_dir, folder, names, "b3dgs-suggest", OWN_FILE):
-                yield
-            return
-        folder.mkdir(parents=True, exist_ok=True)
-        remove_listed(folder, [p.name for p in folder.iterdir() if p.is_file() and OWN_FILE.fullmatch(p.name)])
-        yield
-
-    return claim()
+    if folder.resolve().is_relative_to(run_dir.resolve()) and read_manifest(run_dir) is not None:
+        with claim_in_run(run_dir, folder, names, "b3dgs-suggest", OWN_FILE):
+            yield
+        return
+    folder.mkdir(parents=True, exist_ok=True)
+    remove_listed(folder, [p.name for p in folder.iterdir() if p.is_file() and OWN_FILE.fullmatch(p.name)])
+    yield
 
 
 def suggest(cfg: DictConfig) -> dict:
     """Suggest ``cfg.n`` poses for ``cfg.run`` (module doc); returns what ``suggest.json`` holds."""
     import time
 
-    from b3dgs.acquisition import ScoringContext
     from b3dgs.data.images import save_png
-    from b3dgs.data.scene import scene_transform
     from b3dgs.export import camera_entries
-    from b3dgs.io import write_json
     from b3dgs.viewer.run import open_run
 
     t0 = time.perf_counter()
@@ -531,8 +512,6 @@ def suggest(cfg: DictConfig) -> dict:
     if out.exists() and not out.is_dir():
         raise B3dgsError(f"out={out} is a file", "pass out= a folder path")
     if out.resolve().is_relative_to(run.path.resolve()):
-        from b3dgs.rundir import read_manifest
-
         read_manifest(run.path, fix="pass out=DIR to write the suggestions into another folder")
     scene, module = run.scene, run.module
     if hasattr(policy, "sh_gains") and module.active_sh_degree() < 1:
@@ -570,8 +549,6 @@ def suggest(cfg: DictConfig) -> dict:
     map_policy, pool = (policy, list(cands) + list(targets)) if hasattr(policy, "sh_gains") else (None, None)
     map_note = None
     if map_policy is None:
-        from b3dgs.study.active import load_policy
-
         try:
             _, map_policy = load_policy("info_gain")
             targets = targets or target_ring(fr, train, cfg.targets)
@@ -645,20 +622,13 @@ def suggest(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="suggest")
 def hydra_main(cfg: DictConfig) -> None:
-    from b3dgs.errors import known_errors, quiet_known_noise
-
-    with known_errors("b3dgs-suggest", cfg):
-        quiet_known_noise()
+    with known_errors("b3dgs-suggest", cfg, quiet=True):
         w = suggest(cfg)
         print(f"b3dgs-suggest: {w['returned']} suggestions by {w['policy']} -> {w['out']}/cameras.json, path.json, "
               f"plot.png, preview_*.png", flush=True)
 
 
-def main() -> None:
-    """``b3dgs-suggest``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`)."""
-    from b3dgs.errors import run_cli
-
-    run_cli("b3dgs-suggest", hydra_main, config="suggest")
+main = cli_main("b3dgs-suggest", hydra_main, "suggest")
 
 
 if __name__ == "__main__":

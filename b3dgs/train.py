@@ -42,11 +42,10 @@ def train(cfg: DictConfig) -> dict:
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="train")
 def hydra_main(cfg: DictConfig) -> Optional[float]:
-    from b3dgs.errors import known_errors, quiet_known_noise
+    from b3dgs.errors import known_errors
     from b3dgs.rundir import Interrupted
 
-    with known_errors("b3dgs-train", cfg):
-        quiet_known_noise()
+    with known_errors("b3dgs-train", cfg, quiet=True):
         try:
             metrics = train(cfg)
         except Interrupted as e:

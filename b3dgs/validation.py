@@ -20,6 +20,7 @@ from b3dgs.checkpoint import check_checkpoint
 from b3dgs.confs import conf_roots, global_groups, known_keys, load_option, option_names
 from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.schema import RULES, UNRESOLVED, apply_rules, check_node, is_int, is_number, locate, show, value
+from b3dgs.upgrade import schedule_node
 
 __all__ = ["check_checkpoint", "validate_config"]
 
@@ -188,8 +189,6 @@ def _check_train(cfg: DictConfig, values: dict) -> dict:
         if isinstance(cfg.get("model"), DictConfig) and key in cfg.model:
             raise B3dgsError(f"model.{key} is not read: b3dgs-train builds the model's {key} from its own setting",
                              f"pass {where} instead of model.{key}")
-    from b3dgs.upgrade import schedule_node
-
     schedule = cfg.get("schedule") if cfg.get("schedule") is not None else OmegaConf.create(schedule_node(None))
     plugins = [(g, node) for g, node in (("strategy", cfg.get("strategy")), ("schedule", schedule))  # null schedule:
                if isinstance(node, DictConfig)]  # the constant one

@@ -45,7 +45,7 @@ from typing import Any, Optional, Sequence
 import numpy as np
 import torch
 
-from b3dgs.data.images import load_image
+from b3dgs.data.images import IMAGE_EXTENSIONS, image_folders, load_image
 from b3dgs.data.undistort import undistort_image
 from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.schema import RGB_RULE, apply_rules, is_int, positive_rule
@@ -761,8 +761,6 @@ def infer_data_override(prog: str, argv: list[str]) -> list[str]:
 def _refuse_photos_only(p: Path) -> None:
     """Refuse a folder that holds photos (directly or in image folders) and no camera poses: b3dgs-process makes a
     scene of it."""
-    from b3dgs.data.images import IMAGE_EXTENSIONS, image_folders
-
     if p.is_dir() and (image_folders(p) or any(f.suffix in IMAGE_EXTENSIONS for f in p.iterdir() if f.is_file())):
         raise B3dgsError(f"data.path={p} holds photos but no camera poses (no COLMAP model, transforms*.json or "
                          "poses_bounds.npy)",
@@ -886,8 +884,6 @@ def check_scene_settings(kind: str, path: str | os.PathLike | None, settings: Sc
 def check_images_dir(kind: str, loader, path: str | os.PathLike | None, folder: Any) -> None:
     """Refuse a ``data.images_dir`` that is no folder name, that the format ``loader`` does not take (its images are
     named in its own files), or that ``path`` does not hold (naming the image folders it does hold)."""
-    from b3dgs.data.images import image_folders
-
     if not isinstance(folder, str) or not folder.strip() or Path(folder).is_absolute() or ".." in Path(folder).parts:
         raise B3dgsError(f"data.images_dir={folder} is invalid: it must be the name of a folder inside data.path, or null",
                          "pass data.images_dir=images_4 (a folder of the scene), or null for the format's own images/")

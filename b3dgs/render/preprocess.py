@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from b3dgs.errors import B3dgsError
+from b3dgs.numerics import guard, guard_deferred, guard_where
 from b3dgs.render.projection import covariance_3d, eval_sh, project
 from b3dgs.types import Camera
 
@@ -67,8 +68,6 @@ def _guarded_quats(quats: Tensor) -> Tensor:
     """Quaternions whose norm the kernels can take: rescale rows of extreme norm (exact, counted as
     ``render.quat_rescale``); zero rows keep the kernels' floor max(|q|, 1e-12), i.e. the identity
     rotation, counted as ``render.quat_zero``."""
-    from b3dgs.numerics import guard_deferred, guard_where
-
     with torch.no_grad():
         amax = quats.detach().abs().amax(-1, keepdim=True)
         zero = amax == 0
@@ -94,8 +93,6 @@ def _guarded_log_scales(params: Mapping[str, Tensor], camera: Camera, near: floa
     the 2-D covariance below A and their determinant finite. Only Gaussians tens of orders of magnitude
     larger than their distance to the camera are touched; ordinary inputs pass unchanged.
     """
-    from b3dgs.numerics import guard_where
-
     log_scales, means = params["scales"], params["means"]
     with torch.no_grad():
         vm = camera.viewmat.to(means.device, means.dtype)
@@ -234,8 +231,6 @@ def preprocess(params: Mapping[str, Tensor], camera: Camera, S: int, sh_degree: 
     if backend == "cpu":
         pre, (quat_zero, quat_extreme, scale_over) = _preprocess_cpu(params, camera, S, deg, near)
         if not (quat_extreme or scale_over):
-            from b3dgs.numerics import guard
-
             guard("render.quat_zero", quat_zero)
             return pre
         return _preprocess_cpu(guarded_params(params, camera, near), camera, S, deg, near)[0]

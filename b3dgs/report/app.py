@@ -13,7 +13,7 @@ from typing import Any, Optional
 import hydra
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, cli_main
 from b3dgs.io import atomic_path, write_json
 from b3dgs.report import analysis as A
 from b3dgs.report import plots
@@ -423,11 +423,7 @@ def _hydra_main(cfg: DictConfig) -> None:
     print(f"b3dgs-report: wrote {paths['md']}, {paths['html']}, {paths['json']}")
 
 
-def main() -> None:
-    """``b3dgs-report``: composition errors (a bad override) as one line with exit code 2 too."""
-    from b3dgs.errors import run_cli
-
-    run_cli("b3dgs-report", _hydra_main, config="report")
+main = cli_main("b3dgs-report", _hydra_main, "report")  # composition errors as one line, exit code 2
 
 
 if __name__ == "__main__":

@@ -32,6 +32,7 @@ from b3dgs.errors import B3dgsError
 from b3dgs.protocol import describe_diff, differing_keys, flatten, run_protocol
 from b3dgs.labels import method_label
 from b3dgs.upgrade import posterior_pass_s, upgrade_targets
+from b3dgs.uq.store import run_digest
 
 log = logging.getLogger(__name__)
 
@@ -201,10 +202,6 @@ def read_run(path: Path) -> Run:
     return Run(path, cfg, metrics, curve, uq, study, level, scene, method, seed)
 
 
-def _digest(metrics: Optional[dict]) -> Optional[str]:
-    return ((metrics or {}).get("checkpoint") or {}).get("params_sha256")
-
-
 def uq_scores_other_run(path: Path, metrics: dict, entry: dict) -> Optional[str]:
     """The run a uq.json regime entry scores when that is not the run at ``path`` (else ``None``): its first
     member's parameter digest (``run_checkpoints``) against the run's metrics.json; for entries written before
@@ -212,7 +209,7 @@ def uq_scores_other_run(path: Path, metrics: dict, entry: dict) -> Optional[str]
     runs = entry.get("runs") or []
     if not runs:
         return None
-    mine = _digest(metrics)
+    mine = run_digest(metrics)
     theirs = (entry.get("run_checkpoints") or [None])[0]
     if theirs and mine:
         return None if theirs == mine else str(runs[0])
@@ -226,7 +223,7 @@ def uq_scores_other_run(path: Path, metrics: dict, entry: dict) -> Optional[str]
         other = json.loads((named / "metrics.json").read_text())
     except (OSError, ValueError):
         other = None
-    return None if mine and _digest(other) == mine else str(runs[0])
+    return None if mine and run_digest(other) == mine else str(runs[0])
 
 
 def _own_uq(path: Path, metrics: dict) -> dict:
@@ -245,7 +242,7 @@ def _attach_uq(runs: list[Run], uq_files: Sequence[Path]) -> None:
     """uq.json files outside run dirs (e.g. a deep ensemble's) join the run they name first (found by its path,
     or by its parameter digest where it was moved), when that run's digest matches."""
     by_path = {r.path: r for r in runs}
-    by_digest = {_digest(r.metrics): r for r in runs if _digest(r.metrics)}
+    by_digest = {run_digest(r.metrics): r for r in runs if run_digest(r.metrics)}
     for f in uq_files:
         for regime, summ in _read_json(f).items():
             if regime.startswith("_") or not isinstance(summ, dict):

@@ -28,10 +28,14 @@ from typing import Any, Optional
 import numpy as np
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
-from b3dgs.confs import compose_config
-from b3dgs.errors import B3dgsError
+from b3dgs.confs import compose_config, option_names
+from b3dgs.data.scene import select_evenly, take_candidate_store
+from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.io import write_json
-from b3dgs.protocol import check_stored_protocol, check_stored_scene, scene_digest
+from b3dgs.lifecycle import Run, data_module
+from b3dgs.protocol import RUN_IGNORED, check_stored_protocol, check_stored_scene, run_protocol, scene_digest
+from b3dgs.study.cli import main as cli_main, study_app
+from b3dgs.study.rounds import load_round, training_signature
 from b3dgs.upgrade import FAMILY_POSTERIOR_UNRECORDED, omit_study_defaults, protocol_from_meta
 
 log = logging.getLogger(__name__)
@@ -45,8 +49,6 @@ ROW_DONE, ROW_SELECTION, PHASE1_DONE = "result.json", "selection.json", "phase1.
 def family_posterior_override(cfg: DictConfig, family: str) -> list[str]:
     """``[posterior=[...]]`` when the study pins ``family_posterior.<family>``, else ``[]`` (the model's own blocks,
     conf/model/<family>.yaml); an unknown block or a non-list is a one-line error."""
-    from b3dgs.confs import option_names
-
     pins = cfg.get("family_posterior") or {}
     if not isinstance(pins, (dict, DictConfig)):
         raise B3dgsError(f"family_posterior must map a family to its posterior blocks, got {pins!r}",
@@ -97,8 +99,6 @@ def load_policy(name: str, settings: Optional[DictConfig] = None):
     """(label, policy) for ``name`` or ``name@family`` from ``conf/acquisition/<name>.yaml`` (or a package's)."""
     from hydra.utils import instantiate
 
-    from b3dgs.confs import option_names
-
     base, _, family = str(name).partition("@")
     node = option_node("study", "acquisition", base, settings,
                        f"pass policies=[...] of conf/acquisition/<name>.yaml ({', '.join(option_names('acquisition'))})"
@@ -132,8 +132,6 @@ DEFAULT_BATCH = "topk"
 def load_batch(name: str, settings: Optional[DictConfig] = None):
     """The batch selector ``conf/acquisition/batch/<name>.yaml`` with ``settings[name]`` merged in."""
     from hydra.utils import instantiate
-
-    from b3dgs.confs import option_names
 
     node = option_node("study", "acquisition/batch", str(name), settings,
                        f"pass acquisition.batch={'|'.join(option_names('acquisition/batch'))} "
@@ -171,8 +169,6 @@ class StudyRow:
             fields = [f.name for f in dataclasses.fields(cls)]
             unknown = [k for k in node if k not in fields]
             if unknown:
-                from b3dgs.errors import did_you_mean
-
                 raise B3dgsError(f"a study row has no field {unknown[0]!r}{did_you_mean(unknown[0], fields)}",
                                  f"a row holds {', '.join(fields)}, e.g. {example}")
             if not isinstance(node.get("policy"), str) or not node["policy"]:
@@ -285,8 +281,6 @@ def pca_xy(cameras) -> np.ndarray:
 
 def initial_views(cfg: DictConfig, train) -> tuple[list[int], list[str]]:
     """(indices into the sorted train list of the initial views, names of the views in the hole)."""
-    from b3dgs.data.scene import select_evenly
-
     for key in ("initial_views", "acquire"):
         v = cfg.get(key)
         if isinstance(v, bool) or not isinstance(v, int) or v < 1:
@@ -330,8 +324,6 @@ def study_protocol(cfg: DictConfig, family_posteriors: Optional[dict] = None) ->
     ``family_posterior.<family>``: the posterior blocks of each family's model as composed (``family_posteriors``:
     the families of :data:`b3dgs.upgrade.FAMILY_POSTERIOR_UNRECORDED` and the pinned ones), where they differ from that
     table (:func:`b3dgs.upgrade.omit_study_defaults`)."""
-    from b3dgs.protocol import RUN_IGNORED, run_protocol
-
     out = run_protocol(OmegaConf.to_container(cfg, resolve=True), ignore=RUN_IGNORED + STUDY_IGNORED)
     return omit_study_defaults(out, family_posteriors)
 
@@ -350,9 +342,6 @@ class ActiveStudy:
     """One scene: phase-1 models, rows (policy × seed), results; see the module docstring."""
 
     def __init__(self, cfg: DictConfig):
-        from b3dgs.data.scene import take_candidate_store
-        from b3dgs.lifecycle import data_module
-
         pins = row_pins(cfg)  # rows' blocks are their families' pins (one phase-1 model per family)
         if pins != {k: list(v) for k, v in (cfg.get("family_posterior") or {}).items()}:
             cfg = cfg.copy()
@@ -458,8 +447,6 @@ class ActiveStudy:
     def phase1_model(self, family: str, seed: int) -> str:
         """The phase-1 checkpoint of ``family`` and ``seed`` (trained once; an interrupted one resumes; one whose
         record was restored from an archive without its checkpoint is trained again, bit for bit the same)."""
-        from b3dgs.lifecycle import Run
-
         run = Run(run_dir=self.phase1_dir(family, seed))
         ckpt = run.run_dir / "checkpoints" / "last.ckpt"
         if (run.run_dir / PHASE1_DONE).exists() and ckpt.exists():
@@ -482,13 +469,9 @@ class ActiveStudy:
         return str(ckpt)
 
     def phase1_time(self, family: str, seed: int) -> float:
-        from b3dgs.lifecycle import Run
-
         return float(Run(run_dir=self.phase1_dir(family, seed)).recorded(PHASE1_DONE)["train_time_s"])
 
     def scoring_models(self, family: str, seed: int, members: int):
-        from b3dgs.study.rounds import load_round
-
         return [load_round(self.family_cfg(family, seed + i), self.scene, self.phase1_model(family, seed + i),
                            self.family_plugins(family)) for i in range(members)]
 
@@ -515,7 +498,6 @@ class ActiveStudy:
 
     # ------------------------------------------------------------------ rows
     def run_row(self, label: str, policy, seed: int) -> dict:
-        from b3dgs.lifecycle import Run
         from b3dgs.study.rounds import fit_round
 
         row = Run(run_dir=self.out / f"{label}_s{seed}")  # a row is a run; result.json its done marker
@@ -567,8 +549,6 @@ class ActiveStudy:
         return row.record(ROW_DONE, res)
 
     def training_signature(self, family: str, seed: int) -> str:
-        from b3dgs.study.rounds import training_signature
-
         return training_signature(self.family_cfg(family, seed))
 
     def training_twin(self, label: str, family: str, seed: int, selected: list[str]) -> Optional[dict]:
@@ -577,8 +557,6 @@ class ActiveStudy:
         ``uniform``, since NIW only observes training). None when ``share_training`` is off."""
         if not self.cfg.get("share_training", True):
             return None
-        from b3dgs.lifecycle import Run
-
         mine = self.training_signature(family, seed)
         for other, pol in self.labels_policies:
             res = None if other == label else Run(run_dir=self.out / f"{other}_s{seed}").recorded(ROW_DONE)
@@ -625,15 +603,11 @@ class ActiveStudy:
 
 def hydra_main() -> None:
     """Run the study from the command line (``b3dgs-study active ...``)."""
-    from b3dgs.study.cli import study_app
-
     study_app("study", ActiveStudy)()
 
 
 def main() -> None:
     """``b3dgs-study active ...`` (see :mod:`b3dgs.study.cli`)."""
-    from b3dgs.study.cli import main as cli_main
-
     if sys.argv[1:2] != ["active"]:
         sys.argv.insert(1, "active")
     cli_main()

@@ -22,10 +22,9 @@ def study_app(config_name: str, study_cls):
 
     @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name=config_name)
     def app(cfg) -> None:
-        from b3dgs.errors import known_errors, quiet_known_noise
+        from b3dgs.errors import known_errors
 
-        with known_errors("b3dgs-study", cfg):
-            quiet_known_noise()
+        with known_errors("b3dgs-study", cfg, quiet=True):
             if cfg.get("threads"):
                 torch.set_num_threads(int(cfg.threads))
             study = study_cls(cfg)

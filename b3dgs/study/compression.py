@@ -73,8 +73,6 @@ def _atomic_save(obj: Any, path: Path) -> None:
 
 class CompressionStudy:
     def __init__(self, cfg: DictConfig):
-        from b3dgs.errors import B3dgsError
-
         self.cfg = cfg
         self.out = Path(str(cfg.out_dir))
         self.keeps = [float(k) for k in cfg.keep]
@@ -226,8 +224,6 @@ class CompressionStudy:
     def base_row(self, loaded, lp) -> dict:
         from b3dgs.metrics.views import evaluate_views
 
-        from b3dgs.errors import B3dgsError
-
         p = self.base_dir(loaded) / "base.json"
         if p.exists():
             old = json.loads(p.read_text())
@@ -259,8 +255,6 @@ class CompressionStudy:
             cfg = OmegaConf.load(run / "config.yaml")
             ident = (str(cfg.data.name), int(cfg.seed))
             if ident in seen:
-                from b3dgs.errors import B3dgsError
-
                 raise B3dgsError(f"base runs {seen[ident]} and {run} are both scene {ident[0]!r} seed {ident[1]}",
                                  "pass one base run per scene and seed (e.g. only the standard runs)")
             seen[ident] = run

@@ -17,6 +17,7 @@ from typing import Optional
 from omegaconf import DictConfig
 
 from b3dgs.errors import B3dgsError
+from b3dgs.lifecycle import Run, build_run, checkpoint_every_s, load_checkpoint, read_checkpoint
 from b3dgs.types import Scene
 
 log = logging.getLogger(__name__)
@@ -33,7 +34,6 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
     ``cfg.trainer.checkpoint_every``), every ``trainer.checkpoint_every_s`` seconds and at the end.
     """
     from b3dgs.callbacks import ResumeState, RunCheckpoint
-    from b3dgs.lifecycle import Run, checkpoint_every_s
 
     total = int(cfg.trainer.max_steps)
     if not 0 < int(stop_step) <= total:
@@ -54,7 +54,6 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
 def load_round(cfg: DictConfig, scene: Scene, ckpt_path: str, plugins: Optional[dict] = None):
     """A module holding ``ckpt_path``'s model for scoring or evaluation (no trainer; on the renderer's device), built
     from ``plugins`` as :func:`fit_round`."""
-    from b3dgs.lifecycle import build_run, load_checkpoint, read_checkpoint
 
     return load_checkpoint(build_run(cfg, scene, plugins=plugins), read_checkpoint(ckpt_path), new_views=True)
 

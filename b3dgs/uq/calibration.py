@@ -26,8 +26,6 @@ __all__ = ["calibration_views", "conformal_scale", "fit_scale_and_level", "gauss
 def calibration_views(scene: Any, regime: str) -> list:
     """The scene's calibration cameras (``scene.calib``, made by ``data.calib_every``); refuses, in one
     line naming the fix, a scene that has none."""
-    from b3dgs.errors import B3dgsError
-
     calib = list(getattr(scene, "calib", None) or [])
     if not calib:
         raise B3dgsError(f"uq={regime} fits on calibration views and this run has none (it was trained on all its "

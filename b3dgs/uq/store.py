@@ -21,7 +21,9 @@ from pathlib import Path
 from typing import Mapping, Optional, Sequence
 
 from b3dgs.errors import B3dgsError
-from b3dgs.upgrade import uq_panels
+from b3dgs.io import read_json_dict, write_json
+from b3dgs.rundir import manifest_lock, read_manifest, record_written, remove_listed, run_dir_stamp
+from b3dgs.upgrade import upgrade_targets, uq_panels
 
 UQ_NAME = "uq.json"
 LOCK_NAME = ".uq.json.lock"
@@ -44,8 +46,6 @@ def ensemble_dir(members: Sequence[Path]) -> Path:
 def _read_config(run_dir: Path) -> Optional[dict]:
     from omegaconf import OmegaConf
 
-    from b3dgs.upgrade import upgrade_targets
-
     try:
         return upgrade_targets(OmegaConf.to_container(OmegaConf.load(Path(run_dir) / "config.yaml"), resolve=False))
     except Exception:  # noqa: BLE001 - load_run names a damaged config itself
@@ -53,11 +53,7 @@ def _read_config(run_dir: Path) -> Optional[dict]:
 
 
 def _read_metrics(run_dir: Path) -> dict:
-    try:
-        m = json.loads((Path(run_dir) / "metrics.json").read_text())
-    except (OSError, ValueError):
-        return {}
-    return m if isinstance(m, dict) else {}
+    return read_json_dict(Path(run_dir) / "metrics.json") or {}
 
 
 def check_members(run_dirs: Sequence[str | Path]) -> None:
@@ -111,8 +107,6 @@ def check_unchanged(folder: Path, new: Mapping[str, dict], expect: Optional[Mapp
     """Refuse to merge results into ``folder`` once a run changed under the evaluation: ``folder`` holds another run
     than ``expect`` (its :func:`b3dgs.rundir.run_dir_stamp` when the evaluation started: ``overwrite=true`` replaced
     it, or a training started there), or a run an entry scored has another final checkpoint than the one evaluated."""
-    from b3dgs.rundir import run_dir_stamp
-
     folder = Path(folder)
     if expect is not None and run_dir_stamp(folder) != dict(expect):
         raise B3dgsError(f"{folder} holds another run than when this b3dgs-eval started (overwrite=true or a training "
@@ -133,9 +127,6 @@ def merge_into(folder: Path, new: Mapping[str, dict], meta: Mapping, staging: Op
     :func:`check_unchanged` (``expect``: the folder's run dir stamp when the evaluation started); the files are listed
     in a run dir's manifest by name before they are written. Returns the merged file."""
     from filelock import FileLock, Timeout
-
-    from b3dgs.io import write_json
-    from b3dgs.rundir import manifest_lock, read_manifest, record_written, remove_listed
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -17,8 +17,9 @@ from pathlib import Path
 import hydra
 from omegaconf import DictConfig
 
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, known_errors, quiet_known_noise, run_cli
 from b3dgs import conf_dir
+from b3dgs.viewer.server import ViewerApp, ViewerSettings
 
 CONF_DIR = conf_dir()
 
@@ -34,7 +35,6 @@ STARTS = ("orbit", "camera")
 def settings_from_cfg(cfg: DictConfig):
     from b3dgs.validation import validate_config
     from b3dgs.viewer.modes import MODES
-    from b3dgs.viewer.server import ViewerSettings
 
     check_port(cfg.get("port", 0))
     validate_config(cfg, app="view")
@@ -93,7 +93,6 @@ def serve(cfg: DictConfig, settings=None):
     except ImportError:
         raise B3dgsError("the viewer needs viser, which is not installed", 'pip install -e ".[viewer]"') from None
     from b3dgs.viewer.run import open_run
-    from b3dgs.viewer.server import ViewerApp
 
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
@@ -114,8 +113,6 @@ def serve(cfg: DictConfig, settings=None):
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="view")
 def hydra_main(cfg: DictConfig) -> None:
-    from b3dgs.errors import known_errors, quiet_known_noise
-
     with known_errors("b3dgs-view", cfg):
         settings = settings_from_cfg(cfg)  # a bad value or an address it cannot serve on: refused within a second or two
         check_host(str(settings.host))
@@ -166,8 +163,6 @@ def help_text() -> str:
 
 def main() -> None:
     """``b3dgs-view``: one-line errors with exit code 2 (see :mod:`b3dgs.errors`); ``--help`` lists modes and options."""
-    from b3dgs.errors import run_cli
-
     if any(a in ("--help", "-h") for a in sys.argv[1:]):
         print(help_text())
         return

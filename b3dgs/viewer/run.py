@@ -37,13 +37,6 @@ class ViewedRun:
         return self.loaded.scene
 
 
-def _training_pid(run_dir: Path) -> Optional[str]:
-    """The pid of a live process holding the run dir's lock (``b3dgs.rundir.run_dir_lock``), else None."""
-    from b3dgs.rundir import run_dir_busy
-
-    return run_dir_busy(run_dir)
-
-
 def acquired_views(path: Optional[Path]) -> list[str]:
     """The acquired views in pick order from an active-view study row's ``selection.json`` (``path``: the
     file or its row dir); [] when there is none."""
@@ -83,6 +76,7 @@ def open_run(run_dir, acquired: Optional[str] = None, renderer=None) -> ViewedRu
     """Check and load ``run_dir`` (see the module doc for what is refused)."""
     from hydra.errors import InstantiationException
 
+    from b3dgs.rundir import run_dir_busy
     from b3dgs.runs import load_run
 
     run_dir = Path(str(run_dir)).expanduser()
@@ -94,7 +88,7 @@ def open_run(run_dir, acquired: Optional[str] = None, renderer=None) -> ViewedRu
     if not (run_dir / "config.yaml").is_file():
         raise B3dgsError(f"{run_dir} is not a b3dgs run dir: no config.yaml",
                          "pass run=DIR of a finished b3dgs-train run (outputs/train/...)")
-    pid = _training_pid(run_dir)
+    pid = run_dir_busy(run_dir)  # a live process holding the run dir's lock
     if pid is not None:
         raise B3dgsError(f"{run_dir} is still training (b3dgs-train pid {pid}); it has no final model yet",
                          "wait for it to finish: b3dgs-view opens finished runs (their checkpoints/last.ckpt and "

@@ -7,7 +7,7 @@ from typing import ClassVar, Optional
 import torch
 
 from b3dgs.device import randn
-from b3dgs.errors import B3dgsError, field_default
+from b3dgs.errors import B3dgsError, check_field
 from b3dgs.numerics import on_device_path
 from b3dgs.plugin import PosteriorBlock
 from b3dgs_plugins.posterior import appearance as app
@@ -41,10 +41,7 @@ class ColorBlock(PosteriorBlock):
     needs_residuals: ClassVar[bool] = True  # reads info["sq_err_sum"]
 
     def validate(self, max_steps: int = 0, **kw) -> None:
-        if self.prior_precision <= 0:
-            raise B3dgsError("posterior.color.prior_precision must be > 0",
-                             fix="pass posterior.color.prior_precision > 0, "
-                                 f"e.g. the default {field_default(self, 'prior_precision')}")
+        check_field(self, "posterior.color.prior_precision", not self.prior_precision <= 0, "> 0")
         if not isinstance(self.pair_sums_every, int) or self.pair_sums_every < 1:
             raise B3dgsError(f"posterior.color.pair_sums_every={self.pair_sums_every} must be an integer >= 1",
                              fix="pass posterior.color.pair_sums_every as an integer >= 1 (1, the default: every step)")

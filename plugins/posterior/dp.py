@@ -21,7 +21,7 @@ from typing import ClassVar, Dict, Optional, Tuple, Union
 import torch
 
 from b3dgs.device import bernoulli
-from b3dgs.errors import B3dgsError, field_default
+from b3dgs.errors import B3dgsError, check_field, field_default
 from b3dgs.numerics import guard
 from b3dgs.plugin import PosteriorBlock
 
@@ -248,23 +248,14 @@ class DPBlock(PosteriorBlock):
     needs_weights: ClassVar[bool] = True
 
     def validate(self, max_steps: int = 0, **kw) -> None:
-        if self.alpha <= 0:
-            raise B3dgsError("posterior.dp.alpha must be > 0", fix=f"pass posterior.dp.alpha > 0, "
-                             f"e.g. the default {field_default(self, 'alpha')}")
-        if self.cavi_every < 1:
-            raise B3dgsError("posterior.dp.cavi_every must be >= 1",
-                             fix="pass posterior.dp.cavi_every as an integer >= 1, "
-                                 f"e.g. the default {field_default(self, 'cavi_every')}")
+        check_field(self, "posterior.dp.alpha", not self.alpha <= 0, "> 0")
+        check_field(self, "posterior.dp.cavi_every", not self.cavi_every < 1, ">= 1", "as an integer >= 1")
         if not isinstance(self.pair_sums_every, int) or self.pair_sums_every < 1:
             raise B3dgsError(f"posterior.dp.pair_sums_every={self.pair_sums_every} must be an integer >= 1",
                              fix="pass posterior.dp.pair_sums_every as an integer >= 1 (1, the default: every step)")
-        if not 0 <= self.ema < 1:
-            raise B3dgsError("posterior.dp.ema must be in [0, 1)",
-                             fix=f"pass posterior.dp.ema in [0, 1), e.g. the default {field_default(self, 'ema')}")
-        if not 0 < self.prior_active < 1:
-            raise B3dgsError("posterior.dp.prior_active must be in (0, 1)",
-                             fix="pass posterior.dp.prior_active strictly between 0 and 1, "
-                                 f"e.g. the default {field_default(self, 'prior_active')}")
+        check_field(self, "posterior.dp.ema", 0 <= self.ema < 1, "in [0, 1)")
+        check_field(self, "posterior.dp.prior_active", 0 < self.prior_active < 1, "in (0, 1)",
+                    "strictly between 0 and 1")
 
     def initialize_state(self, *, splats, scene, info):
         n, dev = splats["means"].shape[0], splats["means"].device

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from b3dgs.device import randn
-from b3dgs.errors import B3dgsError, field_default
+from b3dgs.errors import B3dgsError, check_field, did_you_mean, field_default
 from b3dgs.fisher import FisherAccumulator
 from b3dgs.numerics import float_dtype as _out_dtype
 from b3dgs.numerics import guard, safe_cholesky, sym as _sym
@@ -413,41 +413,27 @@ class NIWBlock(PosteriorBlock):
     fisher_probes: int = 4  # Rademacher probes per training view for the Fisher counts (one backward pass each)
 
     def validate(self, max_steps: int = 0, **kw) -> None:
-        if self.kappa0 <= 0:
-            raise B3dgsError("posterior.niw.kappa0 must be > 0",
-                             fix=f"pass posterior.niw.kappa0 > 0, e.g. the default {field_default(self, 'kappa0')}")
+        check_field(self, "posterior.niw.kappa0", not self.kappa0 <= 0, "> 0")
         if self.nu0 <= D + 1:
             raise B3dgsError(f"posterior.niw.nu0 must be > D + 1 = {D + 1} for a proper prior with finite E[Σ]",
                              fix=f"pass posterior.niw.nu0 > 4, e.g. the default {field_default(self, 'nu0')} (D + 2)")
-        if not 0 <= self.ema < 1:
-            raise B3dgsError("posterior.niw.ema must be in [0, 1)",
-                             fix="pass posterior.niw.ema in [0, 1), "
-                                 f"e.g. the default {field_default(self, 'ema')} (0 keeps only the latest "
-                                 "count)")
-        if self.update_every < 1:
-            raise B3dgsError("posterior.niw.update_every must be >= 1",
-                             fix="pass posterior.niw.update_every as an integer >= 1, "
-                                 f"e.g. the default {field_default(self, 'update_every')}")
+        check_field(self, "posterior.niw.ema", 0 <= self.ema < 1, "in [0, 1)", None, " (0 keeps only the latest count)")
+        check_field(self, "posterior.niw.update_every", not self.update_every < 1, ">= 1", "as an integer >= 1")
         if self.cov_mode not in ("relative", "absolute", "none"):
             raise B3dgsError("posterior.niw.cov_mode must be relative | absolute | none",
                              fix="pass posterior.niw.cov_mode=relative, absolute or none")
         if self.sampler_backend not in ("auto", "cpu", "torch"):
             raise B3dgsError("posterior.niw.sampler_backend must be auto | cpu | torch",
                              fix="pass posterior.niw.sampler_backend=auto, cpu or torch")
-        if not (isinstance(self.count_scale, (int, float)) and 0 < float(self.count_scale) < float("inf")):
-            raise B3dgsError(f"posterior.niw.count_scale must be a finite number > 0, got {self.count_scale}",
-                             fix="pass posterior.niw.count_scale as a finite number > 0, "
-                                 f"e.g. the default {field_default(self, 'count_scale')} (< 1 "
-                                 "widens the posterior)")
+        check_field(self, "posterior.niw.count_scale",
+                    isinstance(self.count_scale, (int, float)) and 0 < float(self.count_scale) < float("inf"),
+                    "a finite number > 0", "as a finite number > 0", " (< 1 widens the posterior)", got=True)
         if self.count not in COUNTS:
-            from b3dgs.errors import did_you_mean
-
             raise B3dgsError(f"posterior.niw.count={self.count} is not a count{did_you_mean(str(self.count), COUNTS)}",
                              f"pass posterior.niw.count={'|'.join(COUNTS)}")
-        if isinstance(self.fisher_probes, bool) or not isinstance(self.fisher_probes, int) or self.fisher_probes < 1:
-            raise B3dgsError(f"posterior.niw.fisher_probes must be an integer >= 1, got {self.fisher_probes}",
-                             fix="pass posterior.niw.fisher_probes as an integer >= 1, "
-                                 f"e.g. the default {field_default(self, 'fisher_probes')}")
+        p = self.fisher_probes
+        check_field(self, "posterior.niw.fisher_probes", not isinstance(p, bool) and isinstance(p, int) and p >= 1,
+                    "an integer >= 1", "as an integer >= 1", got=True)
 
     # ------------------------------------------------------------------ state
     def _prior_for(self, splats, rows: Optional[Tensor] = None):

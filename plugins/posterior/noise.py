@@ -17,7 +17,7 @@ from typing import ClassVar, Optional, Tuple, Union
 
 import torch
 
-from b3dgs.errors import B3dgsError, field_default
+from b3dgs.errors import B3dgsError, check_field, field_default
 from b3dgs.numerics import guard, guard_where, on_device_path
 from b3dgs.plugin import PosteriorBlock
 
@@ -181,10 +181,7 @@ class NoiseBlock(PosteriorBlock):
             raise B3dgsError("posterior.noise.a0 and b0 must be > 0",
                              fix="pass posterior.noise.a0 > 0 and posterior.noise.b0 > 0, e.g. the defaults "
                                  f"{field_default(self, 'a0')} and {field_default(self, 'b0')}")
-        if not 0 <= self.decay < 1:
-            raise B3dgsError("posterior.noise.decay must be in [0, 1)",
-                             fix="pass posterior.noise.decay in [0, 1), "
-                                 f"e.g. the default {field_default(self, 'decay')}")
+        check_field(self, "posterior.noise.decay", 0 <= self.decay < 1, "in [0, 1)")
 
     def initialize_state(self, *, splats, scene, info):
         dev = splats["means"].device

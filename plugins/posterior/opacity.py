@@ -7,7 +7,7 @@ from typing import ClassVar, Optional
 import torch
 
 from b3dgs.device import randn
-from b3dgs.errors import B3dgsError, field_default
+from b3dgs.errors import check_field
 from b3dgs.numerics import on_device_path
 from b3dgs.plugin import PosteriorBlock
 from b3dgs_plugins.posterior import appearance as app
@@ -33,13 +33,8 @@ class OpacityBlock(PosteriorBlock):
     t_post: Optional[int] = None
 
     def validate(self, max_steps: int = 0, **kw) -> None:
-        if self.prior_precision <= 0:
-            raise B3dgsError("posterior.opacity.prior_precision must be > 0",
-                             fix="pass posterior.opacity.prior_precision > 0, "
-                                 f"e.g. the default {field_default(self, 'prior_precision')}")
-        if not 0 <= self.ema < 1:
-            raise B3dgsError("posterior.opacity.ema must be in [0, 1)",
-                             fix=f"pass posterior.opacity.ema in [0, 1), e.g. the default {field_default(self, 'ema')}")
+        check_field(self, "posterior.opacity.prior_precision", not self.prior_precision <= 0, "> 0")
+        check_field(self, "posterior.opacity.ema", 0 <= self.ema < 1, "in [0, 1)")
 
     def initialize_state(self, *, splats, scene, info):
         n, dev = splats["means"].shape[0], splats["means"].device

@@ -6,7 +6,7 @@ from typing import ClassVar, Optional
 
 import torch
 
-from b3dgs.errors import B3dgsError, field_default
+from b3dgs.errors import B3dgsError, check_field, field_default
 from b3dgs.plugin import Plugin
 
 
@@ -39,25 +39,16 @@ class AdaptiveDensityControl(Plugin):
     prune_big_after: Optional[int] = None  # step after which huge Gaussians are pruned (None: reset_every, as 3DGS)
 
     def validate(self, **kwargs) -> None:
-        if self.refine_every <= 0:
-            raise B3dgsError("strategy.refine_every must be > 0",
-                             fix="pass strategy.refine_every as a positive number of steps, "
-                                 f"e.g. the default {field_default(self, 'refine_every')}")
+        check_field(self, "strategy.refine_every", not self.refine_every <= 0, "> 0", "as a positive number of steps")
         if self.refine_start < 0 or self.refine_stop < self.refine_start:
             raise B3dgsError("strategy.refine_start must be >= 0 and <= strategy.refine_stop",
                              fix="pass 0 <= strategy.refine_start <= strategy.refine_stop, e.g. the defaults "
                                  f"{field_default(self, 'refine_start')} and {field_default(self, 'refine_stop')}")
-        if self.grad_threshold <= 0:
-            raise B3dgsError("strategy.grad_threshold must be > 0",
-                             fix="pass strategy.grad_threshold > 0, "
-                                 f"e.g. the default {field_default(self, 'grad_threshold')}")
+        check_field(self, "strategy.grad_threshold", not self.grad_threshold <= 0, "> 0")
         if not 0 < self.percent_dense <= 1:
             raise B3dgsError(f"strategy.percent_dense={self.percent_dense} is invalid: it must be a fraction of the scene "
                              "extent in (0, 1]", f"pass strategy.percent_dense={field_default(self, 'percent_dense')}")
-        if not 0 < self.prune_opacity < 1:
-            raise B3dgsError("strategy.prune_opacity must be in (0, 1)",
-                             fix="pass strategy.prune_opacity in (0, 1), "
-                                 f"e.g. the default {field_default(self, 'prune_opacity')}")
+        check_field(self, "strategy.prune_opacity", 0 < self.prune_opacity < 1, "in (0, 1)")
         if self.max_gaussians is not None and self.max_gaussians < 1:
             raise B3dgsError("strategy.max_gaussians must be >= 1 or null",
                              fix="pass strategy.max_gaussians as a positive count (the default is "

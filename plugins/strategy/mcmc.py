@@ -9,7 +9,7 @@ from typing import ClassVar, Optional
 import torch
 from torch import Tensor
 
-from b3dgs.errors import B3dgsError, field_default
+from b3dgs.errors import B3dgsError, check_field, field_default
 from b3dgs.plugin import Plugin
 from b3dgs.render.projection import quat_to_rotmat
 
@@ -67,19 +67,14 @@ class MCMCStrategy(Plugin):
     scale_reg: float = 0.01
 
     def validate(self, **kwargs) -> None:
-        if self.cap_max < 1:
-            raise B3dgsError(f"strategy.cap_max must be >= 1, got {self.cap_max}",
-                             fix="pass strategy.cap_max as a positive count of Gaussians, "
-                                 f"e.g. the default {field_default(self, 'cap_max')}")
+        check_field(self, "strategy.cap_max", not self.cap_max < 1, ">= 1", "as a positive count of Gaussians",
+                    got=True)
         if self.refine_every <= 0 or self.refine_start < 0 or self.refine_stop < self.refine_start:
             raise B3dgsError("strategy.refine_every must be > 0 and 0 <= strategy.refine_start <= strategy.refine_stop",
                              fix="pass strategy.refine_every > 0 and 0 <= strategy.refine_start <= "
                                  f"strategy.refine_stop, e.g. the defaults {field_default(self, 'refine_every')}, "
                                  f"{field_default(self, 'refine_start')} and {field_default(self, 'refine_stop')}")
-        if not 0 < self.min_opacity < 1:
-            raise B3dgsError(f"strategy.min_opacity must be in (0, 1), got {self.min_opacity}",
-                             fix="pass strategy.min_opacity in (0, 1), "
-                                 f"e.g. the default {field_default(self, 'min_opacity')}")
+        check_field(self, "strategy.min_opacity", 0 < self.min_opacity < 1, "in (0, 1)", got=True)
         if self.grow_rate < 0 or self.noise_lr < 0 or self.opacity_reg < 0 or self.scale_reg < 0:
             raise B3dgsError("strategy.grow_rate, noise_lr, opacity_reg and scale_reg must be >= 0",
                              fix="pass non-negative values, e.g. the defaults "

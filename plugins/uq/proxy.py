@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import torch
 
 from b3dgs.device import randn
-from b3dgs.errors import B3dgsError, field_default
+from b3dgs.errors import check_field
 from b3dgs.uq.regime import Predictive, UQRegime, render_params, sample_spread
 
 
@@ -21,10 +21,7 @@ class ProxyUQ(UQRegime):
 
     def validate(self, **kwargs):
         super().validate(**kwargs)
-        if not self.jitter > 0:
-            raise B3dgsError(f"uq.proxy.jitter must be > 0, got {self.jitter}",
-                             fix="pass uq.proxy.jitter > 0 (a fraction of the scene extent), "
-                                 f"e.g. the default {field_default(self, 'jitter')}")
+        check_field(self, "uq.proxy.jitter", self.jitter > 0, "> 0", "> 0 (a fraction of the scene extent)", got=True)
 
     @torch.no_grad()
     def predict(self, camera, generator=None):
