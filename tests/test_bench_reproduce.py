@@ -55,8 +55,10 @@ def _check_all_identical(res: subprocess.CompletedProcess, names: list[str]) -> 
 
 def test_the_quick_tables_reproduce_from_the_committed_archive():
     """The rebuilds not marked slow (about a minute on two cores): each table identical to the committed one."""
-    res = reproduce("--skip-slow")
+    res = reproduce("--skip-slow", "--jobs", "2")  # two at once: the tables do not depend on it
     _check_all_identical(res, [t for rb in REBUILDS.values() if not rb.slow for t in rb.tables])
+    order = [ln.split(":")[0].strip() for ln in res.stdout.splitlines() if ln.startswith("  ") and "identical" in ln]
+    assert order == [t for rb in REBUILDS.values() if not rb.slow for t in rb.tables]  # reported in the listed order
 
 
 @pytest.mark.slow
@@ -65,7 +67,7 @@ def test_the_slow_tables_reproduce_from_the_committed_archive():
     slow = {n: rb for n, rb in REBUILDS.items() if rb.slow and not (rb.scenes and missing_scenes())}
     if not slow:
         pytest.skip(missing_scenes())
-    res = reproduce("--only", *slow, timeout=3600)
+    res = reproduce("--only", *slow, "--jobs", "2", timeout=3600)
     _check_all_identical(res, [t for rb in slow.values() for t in rb.tables])
 
 
@@ -81,7 +83,7 @@ def test_an_altered_archived_record_fails_the_check_with_its_difference(tmp_path
     for f in ("schedule_screen3.md", "schedule_screen3.json", "count_cost.md", "count_cost.json"):
         shutil.copy2(RESULTS / f, res_dir / f)
     before = _snapshot(res_dir)
-    res = reproduce("--only", "schedule_screen3", "count_cost", "--results", str(res_dir))
+    res = reproduce("--only", "schedule_screen3", "count_cost", "--results", str(res_dir), "--jobs", "2")
     _check_all_identical(res, ["schedule_screen3", "count_cost"])
     assert _snapshot(res_dir) == before  # the rebuilds wrote under their temporary root only
 
@@ -90,7 +92,8 @@ def test_an_altered_archived_record_fails_the_check_with_its_difference(tmp_path
     assert round(rec["psnr"], 3) == 25.539  # the committed table's row
     m.write_text(json.dumps({**rec, "psnr": 31.25}))
     out = tmp_path / "out"
-    res = reproduce("--only", "schedule_screen3", "count_cost", "--results", str(res_dir), "--out", str(out))
+    res = reproduce("--only", "schedule_screen3", "count_cost", "--results", str(res_dir), "--out", str(out), "--jobs",
+                    "2")
     assert res.returncode == 1, res.stdout[-3000:]
     assert "  count_cost: identical" in res.stdout
     assert "1 of 2 tables differ from the committed ones: schedule_screen3" in res.stderr
