@@ -413,14 +413,29 @@ class _HarmlessInfoFilter:
 
 def quiet_known_noise() -> None:
     """Silence known-harmless warnings and Lightning INFO lines, and stop Lightning's own console
-    handler from printing every line a second time (call after Hydra has configured logging)."""
+    handler from printing every line a second time (call after Hydra has configured logging). Lightning adds that
+    handler when it is imported: it is removed now if Lightning is loaded, else right after its import
+    (:class:`_AfterImport`), so that a command that ends before it trains or loads a model does not pay for importing
+    Lightning (seconds)."""
     import logging
     import warnings
 
-    import lightning  # noqa: F401  (its package logger installs a console handler on import)
-
     for pattern in HARMLESS_WARNINGS:
         warnings.filterwarnings("ignore", message=pattern)
+    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
+        lg = logging.getLogger(name)
+        if not any(isinstance(f, _HarmlessInfoFilter) for f in lg.filters):
+            lg.addFilter(_HarmlessInfoFilter())
+    if "lightning" in sys.modules:
+        _one_lightning_log()
+    elif not any(isinstance(f, _AfterImport) for f in sys.meta_path):
+        sys.meta_path.insert(0, _AfterImport("lightning", _one_lightning_log))
+
+
+def _one_lightning_log() -> None:
+    """Lightning's records go to Hydra's handlers only (once), not also to the console handler of its package."""
+    import logging
+
     if logging.getLogger().handlers:  # Hydra's handlers print (and file) every record once
         for name in ("lightning", "lightning.pytorch", "lightning.fabric"):
             lg = logging.getLogger(name)
@@ -428,7 +443,28 @@ def quiet_known_noise() -> None:
                 if type(h) is logging.StreamHandler:
                     lg.removeHandler(h)
             lg.propagate = True
-    for name in ("lightning.pytorch.utilities.rank_zero", "lightning.fabric.utilities.rank_zero"):
-        lg = logging.getLogger(name)
-        if not any(isinstance(f, _HarmlessInfoFilter) for f in lg.filters):
-            lg.addFilter(_HarmlessInfoFilter())
+
+
+class _AfterImport:
+    """A finder on ``sys.meta_path`` that runs ``then()`` once, right after the module ``name`` is first imported
+    (Python has no post-import hook of its own); it takes itself off the path at that import."""
+
+    def __init__(self, name: str, then: Callable[[], None]):
+        self.name, self.then = name, then
+
+    def find_spec(self, fullname: str, path=None, target=None):
+        if fullname != self.name:
+            return None
+        import importlib.util
+
+        sys.meta_path.remove(self)
+        spec = importlib.util.find_spec(fullname)
+        if spec is not None and spec.loader is not None:
+            run, then = spec.loader.exec_module, self.then
+
+            def exec_module(module) -> None:
+                run(module)
+                then()
+
+            spec.loader.exec_module = exec_module
+        return spec

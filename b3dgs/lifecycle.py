@@ -28,7 +28,6 @@ from typing import TYPE_CHECKING, Any, Optional
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from b3dgs.callbacks import AtomicCheckpointIO, CurveCallback, ResumeState, RunCheckpoint, RunFiles, StepProgressBar
 from b3dgs.checkpoint import check_sealed, checkpoint_record, renderer_identity, renderer_mismatch
 from b3dgs.errors import B3dgsError
 from b3dgs.io import write_json
@@ -180,6 +179,8 @@ def build_trainer(tcfg, renderer, callbacks: list, logger=False, final_after_eva
     ``final_after_eval``: its last line waits for the final evaluation (``StepProgressBar.show_final``)."""
     from hydra.utils import instantiate
     from lightning.pytorch.callbacks import ProgressBar
+
+    from b3dgs.callbacks import AtomicCheckpointIO, StepProgressBar
 
     keys = [str(k) for k in tcfg.keys() if k not in RUN_KEYS and trainer_arg(k) not in fixed]
     # resolved one by one in place (interpolations may point anywhere in the config; fixed ones are never read)
@@ -458,6 +459,8 @@ class Run:
         from hydra.utils import instantiate
         from lightning.pytorch.loggers import TensorBoardLogger  # noqa: F401 - logger=tensorboard targets it
 
+        from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint, RunFiles
+
         every_s = checkpoint_every_s(tcfg)
         ckpt_path, clear = prepare_run_dir(run_dir, cfg.get("resume"), cfg.get("overwrite", False),
                                            check_checkpoint=lambda path: check_resume_renderer(cfg, path))
@@ -497,6 +500,7 @@ class Run:
         each written atomically: renders, PLY, curve, then ``metrics.json`` (the done marker)."""
         import time
 
+        from b3dgs.callbacks import StepProgressBar
         from b3dgs.data.scene import scene_transform
         from b3dgs.labels import method_label
         from b3dgs.metrics.lpips import get_lpips

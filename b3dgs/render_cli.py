@@ -142,21 +142,35 @@ def nerfstudio_path(file: Path, scene) -> list[Camera]:
         raise B3dgsError(f"path={file} is not a readable nerfstudio camera path ({type(e).__name__}: {e})", fix) from None
 
 
-def camera_path(scene, path: str, frames: int) -> list[Camera]:
-    """The cameras of ``path`` (see the module doc), without images."""
+def check_path(path: str, frames) -> None:
+    """``path`` names a camera path (or is a .json file) and, for a path it makes, ``frames`` is enough."""
     if str(path).endswith(".json"):
-        return nerfstudio_path(Path(path), scene)
+        return
     if path not in PATHS:
         raise B3dgsError(f"path={path} is not a camera path",
                          f"pass path= one of {', '.join(PATHS)}, or a nerfstudio camera-path .json file")
+    if path in ("interpolate", "orbit") and (not isinstance(frames, int) or isinstance(frames, bool) or frames < 2):
+        raise B3dgsError(f"frames={frames} is too few for a path", "pass frames= an integer >= 2, e.g. frames=120")
+
+
+def check_panel(panel: Optional[str]) -> None:
+    """``panel`` is null or a mode drawn beside the RGB."""
+    if panel and (panel not in MODES or panel == "rgb"):
+        raise B3dgsError(f"panel={panel} is not a panel mode",
+                         f"pass panel= one of {', '.join(k for k in MODES if k != 'rgb')}, or null")
+
+
+def camera_path(scene, path: str, frames: int) -> list[Camera]:
+    """The cameras of ``path`` (see the module doc), without images."""
+    check_path(path, frames)
+    if str(path).endswith(".json"):
+        return nerfstudio_path(Path(path), scene)
     source = scene.train if path == "train" else (scene.test or scene.train)
     cams = [c.with_image(None) for c in sorted(source, key=lambda c: c.name)]
     if not cams:
         raise B3dgsError(f"the run's scene has no {path} cameras", "pass path=train")
     if path not in ("interpolate", "orbit"):
         return cams
-    if not isinstance(frames, int) or isinstance(frames, bool) or frames < 2:
-        raise B3dgsError(f"frames={frames} is too few for a path", "pass frames= an integer >= 2, e.g. frames=120")
     return interpolate_cameras(cams, frames) if path == "interpolate" else orbit_cameras(cams, frames)
 
 
@@ -207,10 +221,8 @@ def render_path(run, cams: Sequence[Camera], panel: Optional[str] = None, panel_
     from b3dgs.progress import progress
 
     modes = None
+    check_panel(panel)
     if panel:
-        if panel not in MODES or panel == "rgb":
-            raise B3dgsError(f"panel={panel} is not a panel mode",
-                             f"pass panel= one of {', '.join(k for k in MODES if k != 'rgb')}, or null")
         modes = ModeRenderer(run.module, run.scene, samples=samples, count_scale=count_scale)
         why = modes.unavailable().get(panel)
         if why is not None:
@@ -308,6 +320,8 @@ def render(cfg: DictConfig) -> dict:
     from b3dgs.viewer.run import open_run
 
     validate_config(cfg, app="render")
+    check_path(str(cfg.path), cfg.get("frames"))  # what needs no run: refused before it loads
+    check_panel(cfg.get("panel"))
     if cfg.get("threads"):
         torch.set_num_threads(int(cfg.threads))
     fps, max_side, panel_max = cfg.fps, cfg.get("max_side"), cfg.get("panel_max")

@@ -143,10 +143,12 @@ def compute_per_seed(out: Path, scene_summary: dict) -> dict:
 def camera_geometry(scene: str, scene_args: list[str] | None = None) -> tuple[dict, float]:
     """{view name: camera centre} for the scene's train and test views, and the scene extent."""
     from b3dgs.acquisition import camera_centres
+    from b3dgs.data.scene import poses_only
     from b3dgs.lifecycle import data_module
 
     cfg = compose("study", scene_args or scene_overrides(scene))
-    dm = data_module(cfg.data)
+    with poses_only():
+        dm = data_module(cfg.data)
     cams = list(dm.scene.train) + list(dm.scene.test)
     return dict(zip([c.name for c in cams], camera_centres(cams))), float(dm.scene.extent)
 

@@ -129,10 +129,13 @@ def compose(config_name: str, overrides: Sequence[str]):
 
 
 def n_train_views(overrides: Sequence[str]) -> int:
-    """Train views of the scene these overrides select (loads the scene once)."""
+    """Train views of the scene these overrides select (reads the scene's cameras once)."""
+    from b3dgs.data.scene import poses_only
     from b3dgs.lifecycle import data_module
 
-    return len(data_module(compose("train", [o for o in overrides if o.startswith(("data", "scene="))]).data).scene.train)
+    with poses_only():
+        return len(data_module(compose("train", [o for o in overrides if o.startswith(("data", "scene="))]).data)
+                   .scene.train)
 
 
 def plain_overrides(overrides: Sequence[str]) -> list[str]:

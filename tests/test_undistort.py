@@ -258,3 +258,25 @@ def test_colmap_non_finite_coefficients_are_refused_unless_ignored(tmp_path):
         load_scene("colmap", str(tmp_path), test_every=0)
     assert "\n" not in str(e.value)
     assert load_scene("colmap", str(tmp_path), test_every=0, undistort=False).train[0].K[0, 0] == 50.0
+
+
+def test_poses_only_reads_the_cameras_a_full_read_gives_without_a_pixel(tmp_path, monkeypatch):
+    """Within poses_only no image is decoded; names, poses, sizes, the split and the extent equal a full read's
+    (a fisheye scene: the full read undistorts, so K is the one thing that differs); outside it reads are full."""
+    from b3dgs.data import images
+    from b3dgs.data.scene import poses_only
+
+    _write_transforms(tmp_path / "f", {}, {"camera_model": "OPENCV_FISHEYE", "k1": 0.05, "k2": -0.01})
+    full = load_scene("transforms", tmp_path / "f", test_every=2)
+    decoded = []
+    real = images.load_image
+    monkeypatch.setattr("b3dgs.data.scene.load_image", lambda *a, **k: decoded.append(a[0]) or real(*a, **k))
+    with poses_only():
+        light = load_scene("transforms", tmp_path / "f", test_every=2)
+    assert decoded == []
+    for a, b in zip(full.train + full.test, light.train + light.test, strict=True):
+        assert (a.name, a.width, a.height) == (b.name, b.width, b.height) and torch.equal(a.viewmat, b.viewmat)
+        assert b.image is None and a.image is not None
+    assert light.extent == full.extent and [c.name for c in light.test] == [c.name for c in full.test]
+    load_scene("transforms", tmp_path / "f")
+    assert len(decoded) == 2  # the context ended: the next read decodes

@@ -162,6 +162,22 @@ def test_harmless_lightning_info_dropped():
     assert f.filter(rec("Restoring states from the checkpoint path at x.ckpt"))
 
 
+def test_quiet_log_leaves_lightning_unimported_and_its_lines_printed_once():
+    """quiet_known_noise before Lightning is imported (a command that refuses before it trains): it does not import
+    Lightning; when Lightning is imported later its console handler is removed then, so a Lightning line reaches
+    stderr once (through the root handler), not twice."""
+    code = ("import logging, sys\n"
+            "logging.basicConfig(format='root: %(message)s')\n"
+            "from b3dgs.errors import quiet_known_noise\n"
+            "quiet_known_noise()\n"
+            "assert 'lightning' not in sys.modules\n"
+            "import lightning\n"
+            "logging.getLogger('lightning.pytorch.core').warning('a lightning line')\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert [ln for ln in res.stderr.splitlines() if "a lightning line" in ln] == ["root: a lightning line"], res.stderr
+
+
 def _cli(*args):
     import os
 

@@ -31,6 +31,8 @@ point inside the image) in :func:`materialize`.
 """
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import inspect
 import logging
@@ -311,6 +313,21 @@ def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     return K
 
 
+_POSES_ONLY = contextvars.ContextVar("b3dgs_poses_only", default=False)
+
+
+@contextlib.contextmanager
+def poses_only():
+    """Within it, scenes are read without decoding a pixel: each camera's pose, size and name as a full read gives
+    them, its ``image`` None and its ``K`` before any undistortion. For what needs the cameras' geometry only (camera
+    centres, the extent, the test split): decoding a scene's images is most of the time of reading it."""
+    token = _POSES_ONLY.set(True)
+    try:
+        yield
+    finally:
+        _POSES_ONLY.reset(token)
+
+
 def materialize(
     frames: Sequence[FrameSpec],
     max_side: Optional[int] = None,
@@ -323,14 +340,16 @@ def materialize(
     size (:func:`b3dgs.data.undistort.undistort_image`: resize first, then remap with the resized ``K``; the
     coefficients act on normalised coordinates), its ``K`` replaced by the pinhole ``K'``; frames sharing a lens, ``K``
     and size share one sampling grid. The frames are not changed (a second call reads and undistorts the files again).
+    Within :func:`poses_only` no file is read.
     """
-    cams, grids = [], {}
+    cams, grids, pixels = [], {}, not _POSES_ONLY.get()
     for f in frames:
         check_intrinsics(f.name, f.K, f.width, f.height)
         w2, h2 = fit_size(f.width, f.height, max_side)
-        img = load_image(f.path, size=(w2, h2), expected_size=(f.width, f.height), background=background)
+        img = load_image(f.path, size=(w2, h2), expected_size=(f.width, f.height), background=background) \
+            if pixels else None
         K = scale_intrinsics(f.K, w2 / f.width, h2 / f.height)
-        if f.distortion is not None:
+        if f.distortion is not None and pixels:
             img, K = undistort_image(img, K, f.distortion, cache=grids)
         cams.append(
             Camera(
@@ -339,7 +358,7 @@ def materialize(
                 viewmat=torch.tensor(check_pose(f.name, f.viewmat), dtype=torch.float32),
                 width=w2,
                 height=h2,
-                image=torch.from_numpy(img),
+                image=None if img is None else torch.from_numpy(img),
             )
         )
     return cams

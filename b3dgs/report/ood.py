@@ -41,10 +41,12 @@ def support_scores(data_cfg: dict) -> dict[str, float]:
     if key not in _SCENES:
         from omegaconf import OmegaConf
 
+        from b3dgs.data.scene import poses_only
         from b3dgs.lifecycle import data_module
 
         try:
-            dm = data_module(OmegaConf.create(data_cfg))
+            with poses_only():  # the cameras' centres and the extent only
+                dm = data_module(OmegaConf.create(data_cfg))
         except Exception as e:  # missing scene files, changed paths
             raise ReportError(f"OOD study: cannot reload the scene of data={data_cfg.get('name')} "
                               f"(path={data_cfg.get('path')}): {e}",
