@@ -50,6 +50,17 @@ def _settings_class(cls: Any) -> Optional[type]:
     return next((a for a in (hint, *typing.get_args(hint)) if isinstance(a, type) and dataclasses.is_dataclass(a)), None)
 
 
+#: targets whose modules import Lightning (seconds at start-up), by what :func:`field_defaults` gives for them: the
+#: dataclass whose fields they take (``"module:Class"``) or None (no fields). So composing a config (``--help``, a
+#: misspelt key or option) does not import Lightning. ``tests/test_config_defaults.py`` checks each against the class.
+LIGHTNING_TARGETS: Dict[str, Optional[str]] = {
+    "lightning.Trainer": None,
+    "lightning.pytorch.loggers.TensorBoardLogger": None,
+    "b3dgs.module.SplatModule": None,
+    "b3dgs.data.datamodule.SceneDataModule": "b3dgs.data.scene:SceneSettings",
+}
+
+
 def field_defaults(target: str) -> Dict[str, Any]:
     """The defaults of the dataclass ``target`` (a class path), field by field in declaration order: the one home of
     a component's defaults. A class that is no dataclass gives those of the dataclass its ``settings`` parameter takes
@@ -59,7 +70,10 @@ def field_defaults(target: str) -> Dict[str, Any]:
     from hydra.utils import get_object
 
     try:
-        cls = get_object(target)
+        if target in LIGHTNING_TARGETS:
+            cls = LIGHTNING_TARGETS[target] and get_object(LIGHTNING_TARGETS[target].replace(":", "."))
+        else:
+            cls = get_object(target)
     except Exception:  # noqa: BLE001 - reported by check_node when the node is checked
         return {}
     if isinstance(cls, type) and not dataclasses.is_dataclass(cls):

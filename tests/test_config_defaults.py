@@ -85,6 +85,28 @@ def test_fill_gives_every_field_and_keeps_the_files_values():
     assert with_field_defaults(plain) is plain
 
 
+def test_lightning_targets_fill_as_their_classes_and_composing_imports_no_lightning(monkeypatch):
+    """Each target confs.LIGHTNING_TARGETS lists fills exactly what importing its class gives; composing b3dgs-train's
+    config (what --help and a misspelt key need) in a fresh interpreter does not import Lightning."""
+    import subprocess
+    import sys
+
+    import b3dgs.confs as confs
+
+    table = dict(confs.LIGHTNING_TARGETS)
+    got = {t: field_defaults(t) for t in table}
+    monkeypatch.setattr(confs, "LIGHTNING_TARGETS", {})  # the fill as it is without the table: imports the class
+    assert got == {t: field_defaults(t) for t in table}
+    assert {"max_side", "test_every"} <= set(got["b3dgs.data.datamodule.SceneDataModule"])  # not vacuous
+    code = ("import sys\nfrom hydra import compose, initialize_config_dir\nfrom b3dgs import conf_dir\n"
+            "with initialize_config_dir(config_dir=conf_dir(), version_base='1.3'):\n"
+            "    cfg = compose('train', overrides=['trainer.default_root_dir=.'])\n"
+            "assert 'test_every' in cfg.data and cfg.trainer._target_ == 'lightning.Trainer'\n"
+            "print(sorted(m for m in sys.modules if m == 'lightning' or m.startswith('lightning.')))\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0 and res.stdout.strip() == "[]", res.stdout[-500:] + res.stderr[-2000:]
+
+
 @pytest.mark.parametrize("overrides, expect", [
     ([], {"refine_start": 250, "refine_stop": 1500, "max_gaussians": 50000, "refine_every": 100}),
     (["experiment=study"], {"refine_start": 250, "refine_stop": 1500, "max_gaussians": 50000}),
