@@ -145,6 +145,8 @@ def test_study_end_to_end_resumes_and_writes_tables(tmp_path):
     n_base = json.loads((run / "metrics.json").read_text())["num_gaussians"]
     rows = sorted(p for p in (out / "synthetic" / "s0").glob("*_k*/result.json") if "finetune_only" not in str(p))
     assert len(rows) == 6
+    from b3dgs.rundir import run_files  # the base run's evaluation is a record of the scene-seed folder (Run.record)
+    assert run_files(out / "synthetic" / "s0") == ["base.json"]
     # the fine-tune-only control: the rounds of fine-tuning the scores get (all 2 here), nothing pruned
     ctl = json.loads((out / "synthetic" / "s0" / "finetune_only_r2_k100" / "result.json").read_text())
     assert ctl["keep"] == 1.0 and ctl["num_gaussians"] == n_base and len(ctl["per_round"]) == 2 and ctl["control"]

@@ -224,11 +224,11 @@ class CompressionStudy:
     def base_row(self, loaded, lp) -> dict:
         from b3dgs.metrics.views import evaluate_views
 
-        p = self.base_dir(loaded) / "base.json"
-        if p.exists():
-            old = json.loads(p.read_text())
+        base = Run(run_dir=self.base_dir(loaded))  # the scene-seed's folder: its record of the base run's evaluation
+        old = base.recorded("base.json")
+        if old is not None:
             if Path(old["base_run"]).resolve() != Path(loaded.path).resolve():
-                raise B3dgsError(f"{p.parent} holds rows of base run {old['base_run']}, not {loaded.path}",
+                raise B3dgsError(f"{base.run_dir} holds rows of base run {old['base_run']}, not {loaded.path}",
                                  "pass another out_dir, or remove that directory to recompute it")
             return old
         ev = evaluate_views(loaded.module, loaded.scene.test, lpips_model=lp)
@@ -237,8 +237,7 @@ class CompressionStudy:
                "num_gaussians": loaded.module.num_gaussians, "psnr": ev.get("psnr"), "ssim": ev.get("ssim"),
                "lpips": ev.get("lpips"), "render_fps": ev.get("render_fps"), "train_time_s": m.get("train_time_s"),
                "model": method_label(loaded.cfg)}
-        write_json(p, res)
-        return res
+        return base.record("base.json", res)
 
     # ------------------------------------------------------------------ all
     def run(self) -> dict:
