@@ -8,6 +8,7 @@ docs/extending.md documents both protocols. A policy gets candidate cameras (``i
 """
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, Callable, ClassVar, Optional, Sequence
@@ -184,6 +185,13 @@ def diverse_picks(scores: Sequence[float], cand: np.ndarray, train: np.ndarray, 
             return s * np.where(np.isinf(d), 1.0, -np.expm1(-np.square(d) / scale2) if scale2 > 0 else (d > 0) * 1.0)
 
     return greedy_spread(cand, train, budget, value)[0], h
+
+
+def check_radius(radius, option: str) -> None:
+    """Refuse a ``batch=<option>`` radius that is not a finite number > 0 (diverse and its fallback)."""
+    if isinstance(radius, bool) or not isinstance(radius, (int, float)) or not (0 < float(radius) < math.inf):
+        raise B3dgsError(f"acquisition batch {option}: radius={radius!r} must be a finite number > 0",
+                         f"pass +acquisition.batch_settings.{option}.radius=1.0 (in units of the pool's median camera spacing)")
 
 
 def greedy_spread(cand: np.ndarray, train: np.ndarray, budget: int,

@@ -21,7 +21,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from b3dgs.errors import B3dgsError
+from b3dgs.dp import dp_cavi
+from b3dgs.errors import B3dgsError, check_field
 from b3dgs.fisher import pixel_set_grads
 from b3dgs.plugin import Plugin
 
@@ -90,6 +91,34 @@ def usage_counts(info: dict) -> Tensor:
     return view_sum(info, "usage_counts",
                     lambda ctx, cam: ctx.render(cam, return_weights=True).weight_sum.reshape(-1).double())
 
+
+
+@dataclass
+class DPPruningScore(PruningScore):
+    """Base of the scores read from the DP posterior (paper Eq. 5) fitted by CAVI (:func:`b3dgs.dp.dp_cavi`) to the
+    model's usage counts on the fixed structure (:func:`usage_counts`). The DP settings mirror
+    ``conf/posterior/dp.yaml``; the fit is shared through the cache by every score with the same settings."""
+
+    rounds: int = 2
+    alpha: float = 5.0
+    prior_active: float = 0.5
+    prune_pi: float = 0.05
+    gate_temperature: float = 1.0
+
+    def validate(self, **kwargs) -> None:
+        super().validate(**kwargs)
+        check_field(self, "posterior.dp.alpha", not self.alpha <= 0, "> 0")
+        check_field(self, "posterior.dp.prior_active", 0 < self.prior_active < 1, "in (0, 1)",
+                    "strictly between 0 and 1")
+
+    def fit(self, info) -> dict:
+        """{usage, g1, g2, e_pi, e_a} of the DP posterior at the current model state (cached per state)."""
+        def fit():
+            state = {"usage": usage_counts(info).clone()}
+            dp_cavi(state, self.alpha, self.prior_active, self.prune_pi, self.gate_temperature)
+            return state
+
+        return cached(info, f"dp_fit_{self.alpha}_{self.prior_active}_{self.prune_pi}_{self.gate_temperature}", fit)
 
 def position_grad_norm(info: dict) -> Tensor:
     """(N,) Σ_v ‖∂ MSE_v / ∂μ_k‖ over the training views (the paper's 'gradient' compression baseline)."""

@@ -136,16 +136,9 @@ def test_the_check_finds_a_lazy_cycle(tmp_path, monkeypatch):
     assert find_cycle(module_graph()) in (["b3dgs.a", "b3dgs.b", "b3dgs.a"], ["b3dgs.b", "b3dgs.a", "b3dgs.b"])
 
 
-#: plugin modules that import another plugin's module today, each with why; the list only shrinks (move the shared
-#: code into b3dgs/ and delete the entry)
-CROSS_PLUGIN_ALLOWED = {
-    ("plugins.acquisition.batch.greedy_conditioned", "plugins.acquisition.batch.diverse"): "its fallback is diverse",
-    ("plugins.posterior.color", "plugins.posterior.appearance"): "the appearance blocks' shared math",
-    ("plugins.posterior.opacity", "plugins.posterior.appearance"): "the appearance blocks' shared math",
-    ("plugins.pruning.dp_mass", "plugins.posterior.dp"): "reads the DP block's state",
-    ("plugins.pruning.posterior_importance", "plugins.pruning.dp_mass"): "reuses dp_mass's scoring",
-    ("plugins.uq.native_calibrated", "plugins.uq.native"): "a subclass of the native regime",
-}
+#: plugin modules that import another plugin's module, each with why; empty since issue 53 moved the shared code
+#: (check_radius, the appearance math, the DP CAVI and scores, the native regime) into b3dgs/, and it only shrinks
+CROSS_PLUGIN_ALLOWED: dict[tuple[str, str], str] = {}
 
 
 def plugin_cross_imports() -> list[tuple[str, str]]:

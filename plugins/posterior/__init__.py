@@ -1,12 +1,12 @@
 """Posterior blocks of Bayesian 3DGS, each module holding its block and the pure, batched math it uses.
 
 Modules: niw (NIWBlock; Eq. 1-3 and samples for Eq. 4), noise (NoiseBlock; inverse-gamma sigma^2), dp
-(DPBlock; stick-breaking Eq. 5 and activity gate), appearance (the math of the opacity and color blocks:
-approximate opacity/colour refinements). The math is re-exported here; numerical guards are counted in
-:mod:`b3dgs.numerics`.
+(DPBlock; stick-breaking Eq. 5 and activity gate), opacity and color (their shared math, approximate
+opacity/colour refinements, lives in :mod:`b3dgs.appearance`). The math is re-exported here; numerical guards are
+counted in :mod:`b3dgs.numerics`.
 """
 
-from .appearance import (
+from b3dgs.appearance import (
     SH_C0,
     color_posterior_mean,
     color_posterior_var,
@@ -17,7 +17,7 @@ from .appearance import (
     opacity_to_logit,
     rgb_var_to_dc_var,
 )
-from .dp import (
+from b3dgs.dp import (
     activity_posterior,
     cavi_stick_update,
     dp_posterior,

@@ -6,11 +6,11 @@ from typing import ClassVar, Optional
 
 import torch
 
+from b3dgs import appearance as app
 from b3dgs.device import randn
 from b3dgs.errors import B3dgsError, check_field
 from b3dgs.numerics import on_device_path
 from b3dgs.plugin import PosteriorBlock
-from b3dgs_plugins.posterior import appearance as app
 from b3dgs.render.projection import SH_C0
 
 

@@ -5,14 +5,15 @@ from dataclasses import dataclass
 
 import torch
 
-from b3dgs_plugins.pruning.dp_mass import DPMassPruning
+from b3dgs.compression import DPPruningScore
 
 
 @dataclass
-class PosteriorImportancePruning(DPMassPruning):
+class PosteriorImportancePruning(DPPruningScore):
     """Score E[π_k] · E[a_k] · E[o_k] · n̂_k (paper appendix, 'dp_posterior_importance'): DP weight, expected
     activity, opacity (σ of the point estimate: the base model has no opacity posterior) and the usage count
-    normalised by its maximum, all from the DP fit of :class:`DPMassPruning` (shared through the cache)."""
+    normalised by its maximum, all from the DP fit of
+    :class:`b3dgs.compression.DPPruningScore` (shared with ``dp_mass`` through the cache)."""
 
     def score(self, *, splats, optimizers, state, step, info):
         fit = self.fit(info)

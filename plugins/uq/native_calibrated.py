@@ -14,12 +14,12 @@ import torch
 
 from b3dgs.errors import B3dgsError
 from b3dgs.uq.calibration import calibration_views, conformal_scale, fit_scale_and_level
+from b3dgs.uq.native import NativeRegime
 from b3dgs.uq.regime import Predictive
-from b3dgs_plugins.uq.native import NativeUQ
 
 
 @dataclass
-class _CalibratedNative(NativeUQ):
+class _CalibratedNative(NativeRegime):
     seed: int = 0  # the calibration views' posterior draws use their own generator, seeded with this
 
     def _calibration_data(self):

@@ -1,18 +1,10 @@
 """diverse: policy-agnostic greedy with diminishing returns near the training and already picked cameras."""
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 
-from b3dgs.acquisition import BatchSelector, Selection, camera_centres, diverse_picks
-from b3dgs.errors import B3dgsError
-
-
-def check_radius(radius, option: str) -> None:
-    if isinstance(radius, bool) or not isinstance(radius, (int, float)) or not (0 < float(radius) < math.inf):
-        raise B3dgsError(f"acquisition batch {option}: radius={radius!r} must be a finite number > 0",
-                         f"pass +acquisition.batch_settings.{option}.radius=1.0 (in units of the pool's median camera spacing)")
+from b3dgs.acquisition import BatchSelector, Selection, camera_centres, check_radius, diverse_picks
 
 
 @dataclass

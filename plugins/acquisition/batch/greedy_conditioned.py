@@ -7,9 +7,8 @@ from dataclasses import dataclass
 
 import torch
 
-from b3dgs.acquisition import BatchSelector, Selection, camera_centres, diverse_picks
+from b3dgs.acquisition import BatchSelector, Selection, camera_centres, check_radius, diverse_picks
 from b3dgs.errors import B3dgsError
-from b3dgs_plugins.acquisition.batch.diverse import check_radius
 
 
 @dataclass
