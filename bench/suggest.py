@@ -148,9 +148,11 @@ def table(archive: Path, scenes: list[str], seeds: list[int]) -> tuple[dict, str
                 acc_h.setdefault(pol, []).append((h["hit_rate"], h["chance"]))
             if (archive / sc / f"s{s}" / "outcome_skipped.json").is_file():
                 skipped.append(f"{sc} s{s}")
-            for pol in [*POLICIES, "none"]:
-                r = read_json(archive / sc / f"s{s}" / f"outcome_{pol}.json")
-                if r is not None and "views_added" in r:  # records of the K rule (views_added); older ones superseded
+            recs = {pol: read_json(archive / sc / f"s{s}" / f"outcome_{pol}.json") for pol in [*POLICIES, "none"]}
+            # a scene-seed's outcome counts once every policy's record of the K rule (views_added; older ones
+            # superseded) is in, so that the policies are compared on the same seeds while a campaign runs
+            if all(r is not None and "views_added" in r for r in recs.values()):
+                for pol, r in recs.items():
                     acc_o.setdefault(pol, []).append([r[k][m] for k in ("sector", "all") for m in ("psnr", "lpips")])
                     shape.setdefault(sc, {})[s] = (r["views_added"], len(r["eval_sector"]), len(r["eval_all"]))
         for pol, v in acc_h.items():

@@ -72,7 +72,8 @@ def test_table_pairs_over_scenes(tmp_path):
         (d / "hits.json").write_text(json.dumps({
             "info_gain": {"hit_rate": 0.8 + 0.05 * k, "chance": 0.1}, "distance": {"hit_rate": 0.5, "chance": 0.1},
             "cover": {"hit_rate": 0.4, "chance": 0.1}, "uniform": {"hit_rate": 0.1, "chance": 0.1}}))
-        for pol, psnr in (("info_gain", 20.0 + k), ("uniform", 19.0 + k), ("distance", 19.5 + k), ("none", 18.0)):
+        for pol, psnr in (("info_gain", 20.0 + k), ("uniform", 19.0 + k), ("distance", 19.5 + k), ("cover", 19.2 + k),
+                          ("none", 18.0)):
             (d / f"outcome_{pol}.json").write_text(json.dumps({
                 "sector": {"psnr": psnr, "lpips": 0.2}, "all": {"psnr": psnr + 1, "lpips": 0.1}, "views_added": 2,
                 "eval_sector": ["x", "y"], "eval_all": ["x", "y", "z"]}))
@@ -82,12 +83,18 @@ def test_table_pairs_over_scenes(tmp_path):
                                                               "all": {"psnr": 99.0, "lpips": 0.0}}))
     (tmp_path / "e" / "s0").mkdir(parents=True)
     (tmp_path / "e" / "s0" / "outcome_skipped.json").write_text("{}")
-    payload, text = table(tmp_path, ["a", "b", "c", "d", "e"], [0])
+    running = tmp_path / "a" / "s1"  # a scene-seed whose other policies are still training: not counted yet
+    running.mkdir(parents=True)
+    (running / "outcome_info_gain.json").write_text(json.dumps({
+        "sector": {"psnr": 99.0, "lpips": 0.0}, "all": {"psnr": 99.0, "lpips": 0.0}, "views_added": 2,
+        "eval_sector": ["x"], "eval_all": ["x"]}))
+    payload, text = table(tmp_path, ["a", "b", "c", "d", "e"], [0, 1])
     assert "d" not in payload["outcome"]["info_gain"] and payload["outcome_skipped"] == ["e s0"]
-    assert "| a | 2 | 2 | 3 | 20.00 | 19.50 | 19.00 | 18.00 |" in text
+    assert payload["outcome"]["info_gain"]["a"][0] == 20.0  # seed 1's lone row left out
+    assert "| a | 2 | 2 | 3 | 20.00 | 19.20 | 19.50 | 19.00 | 18.00 |" in text
     p = payload["paired"]
     assert abs(p["info_gain hit − chance"]["mean"] - 0.75) < 1e-9 and p["info_gain hit − chance"]["wins"] == 3
     assert abs(p["info_gain − distance (hit rate)"]["mean"] - 0.35) < 1e-9
     assert abs(p["info_gain − uniform (sector PSNR)"]["mean"] - 1.0) < 1e-9
-    assert "info_gain − cover (sector PSNR)" not in p  # cover has no outcome rows
+    assert abs(p["info_gain − cover (sector PSNR)"]["mean"] - 0.8) < 1e-9
     assert "| info_gain − uniform | sector PSNR | 3 | +1.0000 | 3/0 |" in text
