@@ -174,6 +174,15 @@ def _sigma2(sigma2: Num, K: int, device, where: str) -> torch.Tensor:
     return s2
 
 
+def _color_prior_precision(prior_precision: Num, K: int, device) -> torch.Tensor:
+    """(K,) float64 colour prior precision, refused unless finite and > 0."""
+    pp = _scalar_or_vec("prior_precision", prior_precision, K, device)
+    if not bool((torch.isfinite(pp) & (pp > 0)).all()):
+        raise B3dgsError("prior_precision must be finite and > 0",
+                         fix="pass prior_precision > 0 and finite (posterior.color.prior_precision)")
+    return pp
+
+
 def color_posterior_var(
     weight_sq_sum: torch.Tensor, sigma2: Num, prior_precision: Num, space: str = "rgb"
 ) -> torch.Tensor:
@@ -190,10 +199,7 @@ def color_posterior_var(
     K = ws.numel()
     ws = _clean_nonneg("weight_sq_sum", ws, "color_posterior_var")
     s2 = _sigma2(sigma2, K, ws.device, "color_posterior_var")
-    pp = _scalar_or_vec("prior_precision", prior_precision, K, ws.device)
-    if not bool((torch.isfinite(pp) & (pp > 0)).all()):
-        raise B3dgsError("prior_precision must be finite and > 0",
-                         fix="pass prior_precision > 0 and finite (posterior.color.prior_precision)")
+    pp = _color_prior_precision(prior_precision, K, ws.device)
     if space not in ("rgb", "dc"):
         raise B3dgsError(f"space must be 'rgb' or 'dc', got {space!r}", fix="pass space='rgb' or space='dc'")
     lik = ws / s2
@@ -225,10 +231,7 @@ def color_posterior_mean(color: torch.Tensor, weighted_residual_sum: torch.Tenso
                          fix=f"pass weight_sq_sum with one entry per Gaussian, shape ({K},)")
     ws = _clean_nonneg("weight_sq_sum", ws, "color_posterior_mean")
     s2 = _sigma2(sigma2, K, c.device, "color_posterior_mean")
-    pp = _scalar_or_vec("prior_precision", prior_precision, K, c.device)
-    if not bool((torch.isfinite(pp) & (pp > 0)).all()):
-        raise B3dgsError("prior_precision must be finite and > 0",
-                         fix="pass prior_precision > 0 and finite (posterior.color.prior_precision)")
+    pp = _color_prior_precision(prior_precision, K, c.device)
     eta = torch.as_tensor(prior_mean, dtype=_F64, device=c.device)
     prec = ws / s2 + pp
     grad = r / s2[:, None] - pp[:, None] * (c - eta)

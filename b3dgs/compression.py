@@ -21,8 +21,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from b3dgs.dp import dp_cavi
-from b3dgs.errors import B3dgsError, check_field
+from b3dgs.dp import check_dp_prior, dp_cavi
+from b3dgs.errors import B3dgsError
 from b3dgs.fisher import pixel_set_grads
 from b3dgs.plugin import Plugin
 
@@ -107,9 +107,7 @@ class DPPruningScore(PruningScore):
 
     def validate(self, **kwargs) -> None:
         super().validate(**kwargs)
-        check_field(self, "posterior.dp.alpha", not self.alpha <= 0, "> 0")
-        check_field(self, "posterior.dp.prior_active", 0 < self.prior_active < 1, "in (0, 1)",
-                    "strictly between 0 and 1")
+        check_dp_prior(self)
 
     def fit(self, info) -> dict:
         """{usage, g1, g2, e_pi, e_a} of the DP posterior at the current model state (cached per state)."""

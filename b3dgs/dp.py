@@ -17,7 +17,7 @@ from typing import Dict, Optional, Tuple, Union
 
 import torch
 
-from b3dgs.errors import B3dgsError
+from b3dgs.errors import B3dgsError, check_field
 from b3dgs.numerics import guard
 
 
@@ -216,3 +216,10 @@ def dp_cavi(state: dict, alpha: float, prior_active: float, prune_pi: float, gat
     e_a = activity_posterior(elog, counts[perm], prior_logit, gate_temperature, threshold=tau)
     state["g1"], state["g2"] = g1[inv], g2[inv]
     state["e_pi"], state["e_a"] = e_pi[inv], e_a[inv]
+
+
+def check_dp_prior(owner) -> None:
+    """The DP prior's settings of the dataclass ``owner`` (``alpha`` > 0, ``prior_active`` in (0, 1)), refused in one
+    line as ``posterior.dp``'s: the DP block's and the DP pruning scores' one check."""
+    check_field(owner, "posterior.dp.alpha", not owner.alpha <= 0, "> 0")
+    check_field(owner, "posterior.dp.prior_active", 0 < owner.prior_active < 1, "in (0, 1)", "strictly between 0 and 1")

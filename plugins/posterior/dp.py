@@ -8,7 +8,7 @@ from typing import ClassVar, Optional
 import torch
 
 from b3dgs.device import bernoulli
-from b3dgs.dp import dp_cavi, prune_threshold
+from b3dgs.dp import check_dp_prior, dp_cavi, prune_threshold
 from b3dgs.errors import B3dgsError, check_field
 from b3dgs.plugin import PosteriorBlock
 
@@ -52,14 +52,12 @@ class DPBlock(PosteriorBlock):
     needs_weights: ClassVar[bool] = True
 
     def validate(self, max_steps: int = 0, **kw) -> None:
-        check_field(self, "posterior.dp.alpha", not self.alpha <= 0, "> 0")
+        check_dp_prior(self)
         check_field(self, "posterior.dp.cavi_every", not self.cavi_every < 1, ">= 1", "as an integer >= 1")
         if not isinstance(self.pair_sums_every, int) or self.pair_sums_every < 1:
             raise B3dgsError(f"posterior.dp.pair_sums_every={self.pair_sums_every} must be an integer >= 1",
                              fix="pass posterior.dp.pair_sums_every as an integer >= 1 (1, the default: every step)")
         check_field(self, "posterior.dp.ema", 0 <= self.ema < 1, "in [0, 1)")
-        check_field(self, "posterior.dp.prior_active", 0 < self.prior_active < 1, "in (0, 1)",
-                    "strictly between 0 and 1")
 
     def initialize_state(self, *, splats, scene, info):
         n, dev = splats["means"].shape[0], splats["means"].device
