@@ -16,9 +16,8 @@ import numpy as np
 import torch
 
 from b3dgs.errors import B3dgsError
-from b3dgs.numerics import float_dtype as _dtype
-from b3dgs.numerics import guard
-from b3dgs.numerics import scalar_or_vector as _scalar_or_vec
+from b3dgs.numerics import float_dtype as _dtype, guard, guard_fill, scalar_or_vector as _scalar_or_vec, zero_invalid
+from b3dgs.numerics import vector as _vec
 
 __all__ = ["SH_C0", "OPACITY_MAX_LOGIT", "BETA_MAX_CONCENTRATION", "BETA_MIN_CONCENTRATION", "opacity_to_logit",
            "logit_normal_moments", "opacity_beta_moment_match", "opacity_fisher_var", "color_posterior_var",
@@ -37,20 +36,6 @@ BETA_MAX_CONCENTRATION = 1e12
 BETA_MIN_CONCENTRATION = 1e-6
 _GH_NODES = 48
 _SIGMA2_FLOOR = 1e-12
-
-
-def _vec(name: str, x: torch.Tensor) -> torch.Tensor:
-    if not isinstance(x, torch.Tensor) or x.ndim != 1:
-        raise B3dgsError(f"{name}: expected a 1-D (K,) tensor, got {getattr(x, 'shape', type(x).__name__)}",
-                         fix=f"pass {name} as a 1-D torch tensor with one entry per Gaussian, shape (K,)")
-    return x.to(_F64)
-
-
-def _clean_nonneg(name: str, x: torch.Tensor, where: str) -> torch.Tensor:
-    bad = ~torch.isfinite(x) | (x < 0)
-    if guard(f"{where}.invalid_{name}", bad):
-        x = torch.where(bad, torch.zeros_like(x), x)
-    return x
 
 
 @lru_cache(maxsize=4)
@@ -95,7 +80,7 @@ def _ln_moments(m: torch.Tensor, logit_var: torch.Tensor) -> Tuple[torch.Tensor,
     if v.shape != m.shape:
         raise B3dgsError(f"logit_var shape {tuple(v.shape)} != logit shape {tuple(m.shape)}",
                          fix="pass logit_var with one entry per Gaussian, the same shape (K,) as the logits")
-    v = _clean_nonneg("logit_var", v, "logit_normal_moments")
+    v = zero_invalid("logit_normal_moments.invalid_logit_var", v)
     t, w = _gauss_hermite(_GH_NODES)
     t = torch.as_tensor(t, dtype=_F64, device=m.device)
     w = torch.as_tensor(w, dtype=_F64, device=m.device)
@@ -121,17 +106,11 @@ def opacity_beta_moment_match(logit: torch.Tensor, logit_var: torch.Tensor) -> T
     mean, var = _ln_moments(m, logit_var)
     # mirror to the small side: Beta(a, b) for sigmoid(x) <-> Beta(b, a) for sigmoid(-x)
     mu = torch.where(m > 0, 1.0 - mean, mean)
-    tiny = ~(mu > 0)
-    if guard("opacity_beta.mean_floor", tiny):
-        mu = torch.where(tiny, torch.full_like(mu, 1e-300), mu)
+    mu = guard_fill("opacity_beta.mean_floor", ~(mu > 0), mu, 1e-300)
     pq = mu * (1.0 - mu)
     conc = torch.where(var > 0, pq / var.clamp_min(1e-300) - 1.0, torch.full_like(var, float("inf")))
-    hi = ~(conc <= BETA_MAX_CONCENTRATION)
-    if guard("opacity_beta.concentration_cap", hi):
-        conc = torch.where(hi, torch.full_like(conc, BETA_MAX_CONCENTRATION), conc)
-    lo = conc < BETA_MIN_CONCENTRATION
-    if guard("opacity_beta.concentration_floor", lo):
-        conc = torch.where(lo, torch.full_like(conc, BETA_MIN_CONCENTRATION), conc)
+    conc = guard_fill("opacity_beta.concentration_cap", ~(conc <= BETA_MAX_CONCENTRATION), conc, BETA_MAX_CONCENTRATION)
+    conc = guard_fill("opacity_beta.concentration_floor", conc < BETA_MIN_CONCENTRATION, conc, BETA_MIN_CONCENTRATION)
     a_small, b_big = mu * conc, (1.0 - mu) * conc
     a = torch.where(m > 0, b_big, a_small)
     b = torch.where(m > 0, a_small, b_big)
@@ -156,7 +135,7 @@ def opacity_fisher_var(grad_sq_ema: torch.Tensor, prior_precision: Num, data_sca
     if not bool((torch.isfinite(ds) & (ds >= 0)).all()):
         raise B3dgsError("data_scale must be finite and >= 0",
                          fix="pass data_scale >= 0 and finite (1.0 uses the Fisher as summed)")
-    g = _clean_nonneg("grad_sq_ema", g, "opacity_fisher_var")
+    g = zero_invalid("opacity_fisher_var.invalid_grad_sq_ema", g)
     prec = ds * g + pp
     return (1.0 / prec).to(_dtype(grad_sq_ema))
 
@@ -168,9 +147,7 @@ def _sigma2(sigma2: Num, K: int, device, where: str) -> torch.Tensor:
         raise B3dgsError("sigma2 contains NaN",
                          fix="pass a finite sigma2 (the NoiseBlock's E[sigma^2]); NaN means the noise posterior "
                              "diverged: check posterior.noise")
-    low = ~(s2 >= _SIGMA2_FLOOR)
-    if guard(f"{where}.sigma2_floor", low):
-        s2 = torch.where(low, torch.full_like(s2, _SIGMA2_FLOOR), s2)
+    s2 = guard_fill(f"{where}.sigma2_floor", ~(s2 >= _SIGMA2_FLOOR), s2, _SIGMA2_FLOOR)
     return s2
 
 
@@ -197,7 +174,7 @@ def color_posterior_var(
     """
     ws = _vec("weight_sq_sum", weight_sq_sum)
     K = ws.numel()
-    ws = _clean_nonneg("weight_sq_sum", ws, "color_posterior_var")
+    ws = zero_invalid("color_posterior_var.invalid_weight_sq_sum", ws)
     s2 = _sigma2(sigma2, K, ws.device, "color_posterior_var")
     pp = _color_prior_precision(prior_precision, K, ws.device)
     if space not in ("rgb", "dc"):
@@ -229,7 +206,7 @@ def color_posterior_mean(color: torch.Tensor, weighted_residual_sum: torch.Tenso
     if ws.numel() != K:
         raise B3dgsError(f"weight_sq_sum: expected ({K},), got {tuple(ws.shape)}",
                          fix=f"pass weight_sq_sum with one entry per Gaussian, shape ({K},)")
-    ws = _clean_nonneg("weight_sq_sum", ws, "color_posterior_mean")
+    ws = zero_invalid("color_posterior_mean.invalid_weight_sq_sum", ws)
     s2 = _sigma2(sigma2, K, c.device, "color_posterior_mean")
     pp = _color_prior_precision(prior_precision, K, c.device)
     eta = torch.as_tensor(prior_mean, dtype=_F64, device=c.device)

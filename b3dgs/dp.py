@@ -18,23 +18,20 @@ from typing import Dict, Optional, Tuple, Union
 import torch
 
 from b3dgs.errors import B3dgsError, check_field
-from b3dgs.numerics import guard
+from b3dgs.numerics import guard_fill, vector, zero_invalid
 
 
-_F64 = torch.float64
 #: Relative floor on the usage share in activity_posterior (share + eps / K).
 ACTIVITY_SHARE_EPS = 1e-6
 _MAX_LOGIT = 80.0
 
 
 def _vec(name: str, x: torch.Tensor) -> torch.Tensor:
-    if not isinstance(x, torch.Tensor) or x.ndim != 1:
-        raise B3dgsError(f"{name}: expected a 1-D (K,) tensor, got {getattr(x, 'shape', type(x).__name__)}",
-                         fix=f"pass {name} as a 1-D torch tensor with one entry per Gaussian, shape (K,)")
-    if x.numel() == 0:
+    v = vector(name, x)
+    if v.numel() == 0:
         raise B3dgsError(f"{name}: K must be >= 1",
                          fix=f"pass {name} with at least one entry (one per Gaussian; K >= 1)")
-    return x.to(_F64)
+    return v
 
 
 def _check_alpha(alpha: Union[float, torch.Tensor]) -> float:
@@ -46,11 +43,7 @@ def _check_alpha(alpha: Union[float, torch.Tensor]) -> float:
 
 
 def _clean_counts(counts: torch.Tensor, where: str) -> torch.Tensor:
-    N = _vec("counts", counts)
-    bad = ~torch.isfinite(N) | (N < 0)
-    if guard(f"{where}.invalid_count", bad):
-        N = torch.where(bad, torch.zeros_like(N), N)
-    return N
+    return zero_invalid(f"{where}.invalid_count", _vec("counts", counts))
 
 
 def cavi_stick_update(counts: torch.Tensor, alpha: Union[float, torch.Tensor]) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -184,12 +177,8 @@ def activity_posterior(expected_log_pi: torch.Tensor, usage: torch.Tensor, prior
     if not (tau > 0):
         raise B3dgsError(f"threshold must be > 0, got {threshold}",
                          fix="pass threshold > 0, or threshold=None for prune_threshold(K)")
-    bad = ~torch.isfinite(u) | (u < 0)
-    if guard("activity_posterior.invalid_usage", bad):
-        u = torch.where(bad, torch.zeros_like(u), u)
-    badp = torch.isnan(elp)
-    if guard("activity_posterior.nan_expected_log_pi", badp):
-        elp = torch.where(badp, torch.full_like(elp, math.log(tau)), elp)
+    u = zero_invalid("activity_posterior.invalid_usage", u)
+    elp = guard_fill("activity_posterior.nan_expected_log_pi", torch.isnan(elp), elp, math.log(tau))
     total = u.sum()
     if not bool(torch.isfinite(total)):  # overflow of a sum of huge usages: rescale first
         u = u / u.max()

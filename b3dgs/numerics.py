@@ -12,14 +12,15 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
-from typing import Iterator, Union
+from typing import Iterator, Sequence, Union
 
 import torch
 
 from b3dgs.errors import B3dgsError
 
 __all__ = ["guard", "guard_counts", "guard_calls", "reset_guards", "LOG_EVERY", "float_dtype", "scalar_or_vector",
-           "on_device_path", "forced_device_path", "guard_deferred", "guard_where", "safe_cholesky", "sym"]
+           "on_device_path", "forced_device_path", "guard_deferred", "guard_where", "safe_cholesky", "sym", "vector",
+           "guard_fill", "zero_invalid"]
 
 log = logging.getLogger(__name__)
 
@@ -169,6 +170,24 @@ def scalar_or_vector(name: str, x, K: int, device) -> torch.Tensor:
         raise B3dgsError(f"{name}: expected shape ({K},) or a scalar, got {tuple(t.shape)}",
                          fix=f"pass {name} as a scalar or as a ({K},) tensor with one value per Gaussian")
     return t
+
+
+def vector(name: str, x) -> torch.Tensor:
+    """``x`` in float64, refused unless a 1-D (K,) tensor; ``name`` is the value's name in the error."""
+    if not isinstance(x, torch.Tensor) or x.ndim != 1:
+        raise B3dgsError(f"{name}: expected a 1-D (K,) tensor, got {getattr(x, 'shape', type(x).__name__)}",
+                         fix=f"pass {name} as a 1-D torch tensor with one entry per Gaussian, shape (K,)")
+    return x.to(torch.float64)
+
+
+def guard_fill(name: str, mask: torch.Tensor, x: torch.Tensor, value: float) -> torch.Tensor:
+    """``x`` set to ``value`` where ``mask``, counted as guard ``name`` (``x`` itself where the guard does not fire)."""
+    return torch.where(mask, torch.full_like(x, value), x) if guard(name, mask) else x
+
+
+def zero_invalid(name: str, x: torch.Tensor) -> torch.Tensor:
+    """``x`` with its non-finite and negative entries set to 0, counted as guard ``name``."""
+    return guard_fill(name, ~torch.isfinite(x) | (x < 0), x, 0.0)
 
 
 def sym(A: torch.Tensor) -> torch.Tensor:

@@ -16,6 +16,7 @@ What the core reads from a schedule (the trainer never asks which one it holds):
 """
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 from typing import Any, ClassVar, Optional, Sequence
@@ -198,11 +199,7 @@ class DashSchedule(TrainingSchedule):
 
     # ------------------------------------------------------------------ per step
     def level(self, step: int) -> int:
-        lv = 0
-        for i, st in enumerate(self._starts):
-            if step >= st:
-                lv = i
-        return lv
+        return max(bisect.bisect_right(self._starts, step) - 1, 0)  # the last level started (starts ascend)
 
     def scale(self, step: int) -> float:
         return float(self._scales[self.level(step)]) if self._scales else 1.0

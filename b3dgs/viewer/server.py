@@ -63,7 +63,6 @@ class _ClientState:
         self.client = client
         self.version = 0  # bumped by every camera move or setting change
         self.shown_version = -1
-        self.shown_full = True
         self.shown_side = 0  # long side of the frame shown now
         self.last_move = 0.0
         self.frusta: dict = {}  # camera name -> this browser's frustum handle
@@ -93,8 +92,6 @@ class ViewerApp:
         self.lock = threading.Lock()
         self.wake = threading.Event()
         self.stopping = False
-        self.frames = 0
-        self.last_frame: Optional[dict] = None
         self.server = viser.ViserServer(host=settings.host, port=settings.port, label="b3dgs-view", verbose=False)
         self.up = self._up_direction()
         self.server.scene.set_up_direction(tuple(self.up))
@@ -190,10 +187,12 @@ class ViewerApp:
                 self.ranged.discard(self.mode_key)
                 self._mode_changed()
 
+        def targets(event) -> list:
+            return [event.client] if event.client is not None else [st.client for st in self.clients.values()]
+
         @home.on_click
         def _(event) -> None:
-            targets = [event.client] if event.client is not None else [st.client for st in self.clients.values()]
-            for client in targets:
+            for client in targets(event):
                 self.go_home(client)
 
         @self.samples_in.on_update
@@ -209,10 +208,8 @@ class ViewerApp:
         @go.on_click
         def _(event) -> None:
             hit = [cam for lbl, cam, _ in self._cameras if lbl == self.cam_dd.value]
-            targets = [event.client] if event.client is not None else [st.client for st in self.clients.values()]
-            for client in targets:
-                if hit:
-                    self.jump(client, hit[0])
+            for client in targets(event) if hit else []:
+                self.jump(client, hit[0])
 
     def _mode_changed(self) -> None:
         spec = self.modes.specs[self.mode_key]
@@ -473,14 +470,12 @@ class ViewerApp:
             per_px = frame.seconds / (w * h)
             self.cost[mode] = per_px if mode not in self.cost else 0.5 * (self.cost[mode] + per_px)
         st.client.scene.set_background_image(frame.image, format="jpeg", jpeg_quality=self.s.jpeg_quality)
-        st.shown_version, st.shown_full, st.shown_side = version, full, side
-        self.frames += 1
+        st.shown_version, st.shown_side = version, side
         self._report(frame, w, h, full, still, full_side)
         self.wake.set()
 
     def _report(self, frame: Frame, w: int, h: int, full: bool, still: bool, full_side: int) -> None:
         s = f", S = {frame.samples}" if frame.samples else ""
-        self.last_frame = {"mode": frame.mode.key, "width": w, "height": h, "ms": frame.seconds * 1000.0, "full": full}
         state = ("full resolution (camera still)" if full else
                  "refining (camera still)" if still else "low resolution (camera moving)")
         self.frame_md.content = (f"Frame: **{frame.seconds * 1000.0:.0f} ms** ({frame.mode.label}{s}) at {w}×{h} px, "

@@ -47,7 +47,7 @@ from torch import Tensor
 from b3dgs.acquisition import AcquisitionPolicy, Selection, composed, top_k
 from b3dgs.errors import B3dgsError
 from b3dgs.fisher import FisherAccumulator
-from b3dgs.numerics import guard, safe_cholesky
+from b3dgs.numerics import guard_fill, safe_cholesky
 
 OBJECTIVES = ("predictive", "params")
 TARGETS = ("pool", "pool+train")
@@ -133,9 +133,7 @@ class InfoGainPolicy(AcquisitionPolicy):
 
     def _geo_view(self, ctx, camera, sigma2: float) -> _GeoView:
         F = self.view_fisher(ctx, camera).double()
-        bad = ~torch.isfinite(F).all(-1).all(-1)
-        if guard("info_gain.geometry_nonfinite", bad):
-            F = torch.where(bad[:, None, None], torch.zeros_like(F), F)
+        F = guard_fill("info_gain.geometry_nonfinite", ~torch.isfinite(F).all(-1).all(-1)[:, None, None], F, 0.0)
         F = 0.5 * (F + F.transpose(-1, -2))
         idx = torch.nonzero(F.diagonal(dim1=-2, dim2=-1).sum(-1) > 0).squeeze(-1)
         return _GeoView(idx, F[idx] / sigma2)
@@ -203,10 +201,6 @@ class InfoGainPolicy(AcquisitionPolicy):
         return self._state
 
     # ---------------------------------------------------------------- scores
-    def _gain(self, st: dict, v, name: str) -> float:
-        geo = st["geo"]
-        return self._sh_gain(st, v) + (0.0 if geo is None else self._geo_gain(geo, geo["views"][name]))
-
     def sh_gains(self, st: dict, v) -> Tensor:
         """The SH term of view ``v``'s score per Gaussian it sees (float64, under the current conditioning): 3 · ½
         log(1 + s q) (params) or 3 s uᵀG u / (1 + s q) (predictive), u = P y, q = yᵀu; the score's SH term is their
@@ -237,7 +231,10 @@ class InfoGainPolicy(AcquisitionPolicy):
     def score_at(self, ctx, candidates, positions) -> Tensor:
         st = self.prepare(ctx, candidates)
         names = [candidates[i].name for i in positions]
-        out = torch.tensor([self._gain(st, st["views"][n], n) for n in names], dtype=torch.float64)
+        geo = st["geo"]
+        out = torch.tensor([self._sh_gain(st, st["views"][n])
+                            + (0.0 if geo is None else self._geo_gain(geo, geo["views"][n])) for n in names],
+                           dtype=torch.float64)
         if st["post"] is st["fitted"] and st["first"] is None and len(out) == len(candidates):
             st["first"] = out.clone()  # the unconditioned scores, for conditioned_ratio
         return out

@@ -18,7 +18,7 @@ from b3dgs.device import randn
 from b3dgs.errors import B3dgsError, check_field, did_you_mean, field_default
 from b3dgs.fisher import FisherAccumulator
 from b3dgs.numerics import float_dtype as _out_dtype
-from b3dgs.numerics import guard, safe_cholesky, sym as _sym
+from b3dgs.numerics import guard, guard_fill, safe_cholesky, sym as _sym, zero_invalid
 from b3dgs.numerics import scalar_or_vector as _vec
 from b3dgs.plugin import PosteriorBlock, ViewAccumulator
 from b3dgs.render.projection import covariance_3d
@@ -104,9 +104,7 @@ def niw_update(m0: torch.Tensor, kappa0: Scalar, nu0: Scalar, S0: torch.Tensor, 
         raise B3dgsError(f"nu0 must be finite and > D-1 = {D - 1} for a proper inverse-Wishart",
                          fix="pass nu0 > D - 1 for every Gaussian "
                              f"(posterior.niw.nu0, default {field_default(NIWBlock, 'nu0')})")
-    bad = ~torch.isfinite(N_) | (N_ < 0)
-    if guard("niw_update.invalid_count", bad):
-        N_ = torch.where(bad, torch.zeros_like(N_), N_)
+    N_ = zero_invalid("niw_update.invalid_count", N_)
     has = N_ > 0
     xb = torch.where(has[:, None], xb, m0_)
     C_ = torch.where(has[:, None, None], C_, torch.zeros_like(C_))
@@ -190,9 +188,7 @@ def expected_cov(S_n: torch.Tensor, nu_n: Scalar, eps: float = EXPECTED_COV_DENO
                              "(niw_update's S_n)")
     K, D = int(S_n.shape[0]), int(S_n.shape[-1])
     denom = _vec("nu_n", nu_n, K, S_n.device) - D - 1
-    small = ~(denom >= eps)
-    if guard("niw.expected_cov_denom_floor", small):
-        denom = torch.where(small, torch.full_like(denom, eps), denom)
+    denom = guard_fill("niw.expected_cov_denom_floor", ~(denom >= eps), denom, eps)
     return (_sym(S_n.to(_F64)) / denom[:, None, None]).to(_out_dtype(S_n))
 
 
@@ -202,9 +198,7 @@ def mean_variance(
     """Var[mu] = E[Sigma] / kappa_n as a (K,D,D) covariance (Sec. 2, after Eq. 3)."""
     E = expected_cov(S_n, nu_n, eps).to(_F64)
     k = _vec("kappa_n", kappa_n, E.shape[0], E.device)
-    small = ~(k >= KAPPA_FLOOR)
-    if guard("niw.kappa_floor", small):
-        k = torch.where(small, torch.full_like(k, KAPPA_FLOOR), k)
+    k = guard_fill("niw.kappa_floor", ~(k >= KAPPA_FLOOR), k, KAPPA_FLOOR)
     return (E / k[:, None, None]).to(_out_dtype(S_n))
 
 
@@ -248,9 +242,7 @@ def bartlett_factor(nu: torch.Tensor, n_samples: int, D: int, generator: Optiona
     shape_g = (0.5 * df).expand(n_samples, K, D).contiguous()
     gdev = generator.device if generator is not None else nu.device  # draws on the generator's device
     chi2 = 2.0 * torch._standard_gamma(shape_g.to(gdev), generator=generator).to(nu.device)
-    low = ~(chi2 >= BARTLETT_CHI2_FLOOR)
-    if guard("sample_niw.bartlett_chi2_floor", low):
-        chi2 = torch.where(low, torch.full_like(chi2, BARTLETT_CHI2_FLOOR), chi2)
+    chi2 = guard_fill("sample_niw.bartlett_chi2_floor", ~(chi2 >= BARTLETT_CHI2_FLOOR), chi2, BARTLETT_CHI2_FLOOR)
     rows, cols = torch.tril_indices(D, D, offset=-1, device=nu.device)
     A = torch.diag_embed(torch.sqrt(chi2))
     # only the D(D-1)/2 strictly-lower entries are drawn
@@ -281,9 +273,7 @@ def niw_sampler(m_n: torch.Tensor, kappa_n: Scalar, nu_n: Scalar, S_n: torch.Ten
         raise B3dgsError(f"nu_n must be finite and > D-1 = {D - 1}",
                          fix="pass nu_n > D - 1 for every Gaussian, as niw_update returns it from a prior with nu0 > "
                              "D + 1")
-    small = ~(kap >= KAPPA_FLOOR)
-    if guard("niw.kappa_floor", small):
-        kap = torch.where(small, torch.full_like(kap, KAPPA_FLOOR), kap)
+    kap = guard_fill("niw.kappa_floor", ~(kap >= KAPPA_FLOOR), kap, KAPPA_FLOOR)
     return NIWSampler(m, kap, nu, safe_cholesky(S))  # S is float64 here, so L is float64
 
 
@@ -347,9 +337,7 @@ def fisher_count(fisher_trace: Tensor, S0: Tensor, kappa0: float, nu0: float) ->
     b = float(kappa0) + a
     disc = (b * b - 4.0 * c).clamp_min(0.0)
     n = (0.5 * (torch.sqrt(disc) - b)).clamp_min(0.0)
-    bad = ~torch.isfinite(n)
-    if guard("niw.count_nonfinite", bad):
-        n = torch.where(bad, torch.zeros_like(n), n)
+    n = guard_fill("niw.count_nonfinite", ~torch.isfinite(n), n, 0.0)
     return n
 
 
@@ -455,9 +443,6 @@ class NIWBlock(PosteriorBlock):
         self._refresh(st, splats)
         return st
 
-    def _t_niw(self, info) -> int:
-        return int(self.t_niw) if self.t_niw is not None else 0
-
     # ------------------------------------------------------------------ updates
     @torch.no_grad()
     def step_post_backward(self, *, splats, optimizers, state, step, info):
@@ -466,7 +451,7 @@ class NIWBlock(PosteriorBlock):
             mse = info["sq_err_sum"].double() / max(int(info["num_values"]), 1)
             state["mse"] = self.mse_ema * state["mse"] + (1 - self.mse_ema) * mse
             state["mse_n"] = self.mse_ema * state["mse_n"] + (1 - self.mse_ema)
-        if step < self._t_niw(info) or self.count != "paper":  # the other counts come from a view pass
+        if step < (self.t_niw or 0) or self.count != "paper":  # the other counts come from a view pass
             return
         vis = info["per_gaussian"]["radii"][0] > 0
         o = torch.sigmoid(splats["opacities"].detach()).double() * vis
@@ -485,7 +470,7 @@ class NIWBlock(PosteriorBlock):
 
     def periodic(self, step: int, info: dict) -> tuple[str, ...]:
         """``refresh`` (Eq. 2-3 from the running counts) every ``update_every`` steps from ``t_niw`` (paper count)."""
-        if self.count == "paper" and step >= self._t_niw(info) and step % self.update_every == 0:
+        if self.count == "paper" and step >= (self.t_niw or 0) and step % self.update_every == 0:
             return ("refresh",)
         return ()
 
@@ -494,12 +479,8 @@ class NIWBlock(PosteriorBlock):
         """Eq. 2-3 with N̂ ← count_scale·N̂, x̄ = current centre and C = 0."""
         xbar = splats["means"].detach().double()
         n = xbar.shape[0]
-        dev = xbar.device
-        k0 = torch.full((n,), float(self.kappa0), dtype=torch.float64, device=dev)
-        nu0 = torch.full((n,), float(self.nu0), dtype=torch.float64, device=dev)
-        C = torch.zeros(n, D, D, dtype=torch.float64, device=dev)
-        m_n, k_n, nu_n, S_n = niw_update(state["m0"], k0, nu0, state["S0"],
-                                                 state["N"] * float(self.count_scale), xbar, C)
+        m_n, k_n, nu_n, S_n = niw_update(state["m0"], float(self.kappa0), float(self.nu0), state["S0"],
+                                         state["N"] * float(self.count_scale), xbar)  # C = 0
         state["m_n"], state["kappa_n"], state["nu_n"], state["S_n"] = m_n, k_n, nu_n, S_n
         state["ediag"] = torch.diagonal(expected_cov(S_n, nu_n), dim1=-2, dim2=-1).clone()
         if self.count == "fisher3" and "F" in state and state["F"].shape[0] == n:
@@ -549,13 +530,9 @@ class NIWBlock(PosteriorBlock):
             P = _sym(F) / float(s2)
             count = fisher_count(torch.diagonal(P, dim1=-2, dim2=-1).sum(-1), state["S0"], self.kappa0, self.nu0)
             if self.count == "fisher3":
-                bad = ~torch.isfinite(P).all(-1).all(-1)
-                if guard("niw.count_nonfinite", bad):
-                    P = torch.where(bad[:, None, None], torch.zeros_like(P), P)
+                P = guard_fill("niw.count_nonfinite", ~torch.isfinite(P).all(-1).all(-1)[:, None, None], P, 0.0)
                 state["F"] = P
-        bad = ~(torch.isfinite(count) & (count >= 0))
-        if guard("niw.count_nonfinite", bad):
-            count = torch.where(bad, torch.zeros_like(count), count)
+        count = guard_fill("niw.count_nonfinite", ~(torch.isfinite(count) & (count >= 0)), count, 0.0)
         state["N"] = count.to(state["N"].dtype)
         self._refresh(state, splats)
 

@@ -18,7 +18,7 @@ from typing import ClassVar, Optional, Tuple, Union
 import torch
 
 from b3dgs.errors import B3dgsError, check_field, field_default
-from b3dgs.numerics import guard, guard_where, on_device_path
+from b3dgs.numerics import guard_fill, guard_where, on_device_path
 from b3dgs.plugin import PosteriorBlock
 
 
@@ -61,10 +61,7 @@ def _check_evidence(ss: torch.Tensor, n: torch.Tensor, where: str) -> torch.Tens
         raise B3dgsError(f"{where}: sum_sq_residual must be finite",
                          fix=f"pass a finite sum_sq_residual to {where}; a NaN residual means the render diverged: "
                              "lower the learning rates (e.g. model.lr_means)")
-    neg = ss < 0
-    if guard(f"{where}.negative_ss", neg):  # tiny negative values from cancellation upstream
-        ss = torch.where(neg, torch.zeros_like(ss), ss)
-    return ss
+    return guard_fill(f"{where}.negative_ss", ss < 0, ss, 0.0)  # tiny negative values from cancellation upstream
 
 
 def ig_update(a0: Num, b0: Num, sum_sq_residual: Num, n_obs: Num) -> Tuple[torch.Tensor, torch.Tensor]:
@@ -130,9 +127,7 @@ def ig_var(a: Num, b: Num, eps: float = IG_MEAN_DENOM_EPS) -> torch.Tensor:
     _check_ab(a_, b_)
     d1 = (a_ - 1.0).clamp_min(eps)
     d2 = a_ - 2.0
-    small = d2 < eps
-    if guard("ig_var.a_le_2", small):
-        d2 = torch.where(small, torch.full_like(d2, eps), d2)
+    d2 = guard_fill("ig_var.a_le_2", d2 < eps, d2, eps)
     return b_ * b_ / (d1 * d1 * d2)
 
 
@@ -146,13 +141,9 @@ def ig_sample(a: Num, b: Num, n_samples: int, generator: Optional[torch.Generato
     shape = torch.broadcast_shapes(a_.shape, b_.shape)
     conc = a_.expand(shape).unsqueeze(0).expand(n_samples, *shape).contiguous()
     g = torch._standard_gamma(conc, generator=generator)
-    low = ~(g >= IG_GAMMA_FLOOR)
-    if guard("ig_sample.gamma_floor", low):
-        g = torch.where(low, torch.full_like(g, IG_GAMMA_FLOOR), g)
+    g = guard_fill("ig_sample.gamma_floor", ~(g >= IG_GAMMA_FLOOR), g, IG_GAMMA_FLOOR)
     out = b_.expand(shape) / g
-    big = ~torch.isfinite(out)
-    if guard("ig_sample.overflow", big):
-        out = torch.where(big, torch.full_like(out, torch.finfo(_F64).max), out)
+    out = guard_fill("ig_sample.overflow", ~torch.isfinite(out), out, torch.finfo(_F64).max)
     return out
 
 

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from b3dgs.device import randn
 from b3dgs.errors import B3dgsError
-from b3dgs.numerics import guard, safe_cholesky
+from b3dgs.numerics import guard, safe_cholesky, zero_invalid
 from b3dgs.plugin import PosteriorBlock, ViewAccumulator
 from b3dgs.render.projection import sh_basis
 
@@ -67,9 +67,7 @@ def seen_weights(render) -> tuple[Tensor, Tensor]:
         raise B3dgsError("posterior.sh: the renderer gave no per-Gaussian Σ w² (weight_sq_sum)",
                          "use a renderer that returns weights (cpu, torch or gsplat)")
     wsq = render.weight_sq_sum.detach().reshape(-1).double()
-    bad = ~torch.isfinite(wsq) | (wsq < 0)
-    if guard("sh.invalid_weights", bad):
-        wsq = torch.where(bad, torch.zeros_like(wsq), wsq)
+    wsq = zero_invalid("sh.invalid_weights", wsq)
     idx = torch.nonzero(wsq > 0).squeeze(-1)
     guard("sh.empty_view", int(idx.numel() == 0))
     return idx, wsq[idx]
