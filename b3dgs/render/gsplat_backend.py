@@ -107,10 +107,6 @@ def gsplat_emulated() -> bool:
     return bool(getattr(getattr(backend, "_C", None), "CPU_EMULATION", False))
 
 
-def _emulated(dev: torch.device) -> bool:
-    return dev.type == "cpu" and gsplat_emulated()
-
-
 def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: int = 3,
                   background: Optional[Tensor] = None, return_weights: bool = False,
                   retain_means2d_grad: bool = False, near: float = 0.01, tile_size: int = 16,
@@ -124,7 +120,7 @@ def render_gsplat(params: Mapping[str, Tensor], camera: Camera, *, sh_degree: in
     params = guarded_params(params, camera, near)  # the same counted quaternion / scale guards as our backends
     means = expand_samples(params["means"], S, 1)
     dev, dtype = means.device, means.dtype
-    if (dev.type != "cuda" and not _emulated(dev)) or dtype != torch.float32:
+    if (dev.type != "cuda" and not (dev.type == "cpu" and gsplat_emulated())) or dtype != torch.float32:
         raise B3dgsError(f"renderer=gsplat needs float32 CUDA tensors, got {dtype} on {dev}",
                          "let the trainer move the model, or use renderer=torch on this device")
     deg = effective_sh_degree(sh_degree, params.get("shN"))

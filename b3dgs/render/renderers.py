@@ -110,7 +110,7 @@ class CPURenderer(Renderer):
 
     def render(self, params, camera, *, sh_degree=3, background=None, return_weights=False,
                retain_means2d_grad=False) -> RenderOutput:
-        return render(params, camera, sh_degree=sh_degree, background=background, backend=self.name,
+        return render(params, camera, sh_degree=sh_degree, background=background, backend="cpu",
                       return_weights=return_weights, retain_means2d_grad=retain_means2d_grad, near=self.near)
 
     def ssim(self, pred: Tensor, gt: Tensor) -> Tensor:
@@ -144,7 +144,10 @@ class TorchRenderer(Renderer):
             raise RendererUnavailable(f"renderer=torch: device {self.device_name} requested but CUDA is not available",
                                       "renderer.device_name=cpu or auto")
 
-    render = CPURenderer.render  # the same call with backend=self.name
+    def render(self, params, camera, *, sh_degree=3, background=None, return_weights=False,
+               retain_means2d_grad=False) -> RenderOutput:
+        return render(params, camera, sh_degree=sh_degree, background=background, backend="torch",
+                      return_weights=return_weights, retain_means2d_grad=retain_means2d_grad, near=self.near)
 
 
 def gsplat_available() -> bool:

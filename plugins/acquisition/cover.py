@@ -117,9 +117,7 @@ class CoverPolicy(AcquisitionPolicy):
             k = sees.nonzero().squeeze(1)
             seen[k, (self._dirs(means[k], o) @ U.T).argmax(1)] = True
         views = [self._view(ctx, c, means) for c in candidates]
-        O = torch.stack([v[0] for v in views])  # (K, 3) centres
-        W = torch.stack([v[1] for v in views])  # (K, N)
-        sees = torch.stack([v[2] for v in views])
+        O, W, sees = (torch.stack(t) for t in list(zip(*views))[:3])  # (K, 3) centres, (K, N) weights, (K, N) seen
         area = torch.tensor([float(v[3]) for v in views], dtype=torch.float64, device=dev)
         C = torch.zeros(len(candidates), N, dtype=torch.float32, device=dev)  # C_k(v), needed where W_vk > 0
         for v in range(len(candidates)):

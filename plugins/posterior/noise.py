@@ -1,9 +1,5 @@
-"""Inverse-gamma posterior on the pixel noise variance σ² (paper Table 1, "closed-form IG step").
-
-The block (:class:`NoiseBlock`) follows its math, the pure batched functions below
-(tested against textbook formulas in tests/test_posterior_math.py):
-
-Inverse-gamma posterior on the pixel noise variance sigma^2 (Algorithm 1 "noise update").
+"""Inverse-gamma posterior on the pixel noise variance σ² (paper Table 1, "closed-form IG step"; Algorithm 1
+"noise update"): the block (:class:`NoiseBlock`) and its pure batched math (tested in tests/test_posterior_math.py).
 
 Observation model I_p ~ N(C_p, sigma^2 I_3) with the render C_p treated as known: for n scalar
 residual entries with sum of squares SS the conjugate update of IG(a, b) is
@@ -87,9 +83,8 @@ def ig_update_ema(a: Num, b: Num, sum_sq_residual: Num, n_obs: Num, decay: float
     """
     if not (0.0 <= float(decay) <= 1.0):
         raise B3dgsError(f"decay must be in [0, 1], got {decay}",
-                         fix=f"pass decay in [0, 1] (posterior.noise.decay, default {field_default(NoiseBlock, 'decay')}; 1 is the plain "
-                             "conjugate "
-                             "update)")
+                         fix=f"pass decay in [0, 1] (posterior.noise.decay, default {field_default(NoiseBlock, 'decay')}; "
+                             "1 is the plain conjugate update)")
     a_, b_ = _t(a), _t(b)
     _check_ab(a_, b_)
     n = _t(n_obs)
