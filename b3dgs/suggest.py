@@ -424,9 +424,7 @@ def _plot(path: Path, fr: dict, train: Sequence[Camera], cands: Sequence[Camera]
     if scores is not None:
         fig.colorbar(sc, ax=axes, shrink=0.8, label=f"{policy} score")
     fig.suptitle(f"b3dgs-suggest: {len(picks)} suggestions by {policy} among {len(cands)} candidates")
-    save_figure(fig, path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def _preview(rgb: Tensor, m: Tensor, rank: int, score: Optional[float]) -> np.ndarray:

@@ -82,12 +82,6 @@ def parse_imports(items: list[str]) -> dict[str, list[str]]:
     return out
 
 
-def import_source(pattern: str) -> str:
-    """The archive an imported row comes from (the pattern's fixed prefix): rows of one archive were trained side
-    by side, so their times pair."""
-    return pattern.split("{", 1)[0]
-
-
 def read_row(d: Path, scene: str, model: str, variant: str, seed: int, source: str) -> Optional[tuple[dict, list]]:
     """One finished run dir as a table row and its test curve; None if it has no metrics.json."""
     if not (d / "metrics.json").is_file():
@@ -129,10 +123,9 @@ def macro(rows: list[dict], variant: str, key: str, model: str) -> Optional[floa
 
 
 def plot(curves: dict, path: Path) -> None:
-    from b3dgs.io import atomic_path
+    from b3dgs.io import save_figure
 
     plt = pyplot()
-
     scenes = sorted({k[0] for k in curves})
     n = len(scenes)
     cols = min(4, n)
@@ -156,9 +149,7 @@ def plot(curves: dict, path: Path) -> None:
     axes[0][0].legend(fontsize=7)
     fig.suptitle("Test PSNR against training time (one line per seed)", fontsize=10)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def load_text(rows: list[dict]) -> str:
@@ -184,15 +175,13 @@ def summarize(rows: list[dict], curves: dict, names: list[str], ref: str, models
             r["t95_ref"] = time_to_target(pts, target)
     metrics = METRICS + [("block_pct", False)]
 
-    def one_source(model: str, variants: tuple[str, ...]) -> bool:
-        return len({r.get("source") for r in rows if r["model"] == model and r["variant"] in variants}) == 1
-
     summary = []
     for model in models:
         for name in names:
             if name == ref or not any(r["model"] == model and r["variant"] == name for r in rows):
                 continue
-            timed = one_source(model, (name, ref))
+            # time ratios only from rows of one source
+            timed = len({r.get("source") for r in rows if r["model"] == model and r["variant"] in (name, ref)}) == 1
             t_ref, t95_ref = macro(rows, ref, "train_time_s", model), macro(rows, ref, "t95_ref", model)
             t, t95 = macro(rows, name, "train_time_s", model), macro(rows, name, "t95_ref", model)
             summary.append({
@@ -317,7 +306,9 @@ def main(argv: Optional[list[str]] = None) -> None:
                            if name in variants else None)
                     for pattern in imports.get(name, []) if got is None else []:
                         d = Path(pattern.format(scene=scene, model=model, seed=seed))
-                        if (got := read_row(d, scene, model, name, seed, import_source(pattern))) is not None:
+                        # its source: the archive it comes from (the pattern's fixed prefix), whose rows were
+                        # trained side by side, so their times pair
+                        if (got := read_row(d, scene, model, name, seed, pattern.split("{", 1)[0])) is not None:
                             break
                     if got is not None:
                         rows.append(got[0])

@@ -347,19 +347,8 @@ def spearman_rho(x: Any, y: Any, max_pixels: int | None = DEFAULT_MAX_SPEARMAN_P
 def evaluate_view(mean: Any, var: Any, gt: Any, mask: Any = None, *, fractions: Iterable[float] | None = None,
                   normalize: bool = False, levels: Iterable[float] | None = None, var_floor: float = DEFAULT_VAR_FLOOR,
                   max_spearman_pixels: int | None = DEFAULT_MAX_SPEARMAN_PIXELS, seed: int = 0) -> dict:
-    """All uncertainty metrics of one view.
-
-    Returns a dict of scalars (``n_pixels, mae, rmse, mean_var, ause_rmse, ause_mae, ece, cov95,
-    cov95_err, nll, nll_n_floored, spearman_rho, spearman_n``), descriptive fields
-    (``ause_normalization, nll_var_floor``) and ``"curves"``::
-
-        {"fractions": [...], "rmse": {"sparsification": [...], "oracle": [...]},
-         "mae": {"sparsification": [...], "oracle": [...]},
-         "calibration": {"levels": [...], "observed": [...]}}
-
-    ``rmse``/``mae`` are the full-set errors (the raw curves' first points). ``normalize`` selects the
-    AUSE convention (default raw; see module docstring).
-    """
+    """All uncertainty metrics of one view (the module docstring's), and their ``"curves"``; ``rmse``/``mae`` are the
+    full-set errors (the raw curves' first points), ``normalize`` the AUSE convention (default raw)."""
     m, v, g = _validate(mean, var, gt, mask)
     a, s = per_pixel_errors(m, g)
     sp_r = sparsification(v, s, "rmse", fractions, normalize)
@@ -470,16 +459,10 @@ def _mean_curves(curves: Sequence[dict]) -> dict | None:
 
 
 def summarize(per_view: Sequence[dict], keep_curves: bool = False) -> dict:
-    """Scene summary of :func:`evaluate_view` results.
-
-    Top level: the mean over views of every numeric per-view scalar (a macro average -- AUSE and ECE
-    are per-view values averaged, never recomputed on pooled pixels). Non-finite values (e.g. an
-    undefined Spearman rho) are skipped, and ``n_finite`` records how many views entered each mean
-    where that is fewer than all. Also: ``n_views``, ``ause_normalization``, ``nll_note``,
-    ``aggregation_note``, ``mean_curves`` (element-wise mean of the per-view curves, for plotting; None
-    when grids differ) and ``per_view`` (scalars only; per-view curves are kept under ``"curves"`` only
-    if ``keep_curves``).
-    """
+    """Scene summary of :func:`evaluate_view` results: the mean over views of every numeric per-view scalar (a macro
+    average; non-finite values skipped, ``n_finite`` counting the views of each mean that has fewer than all), the
+    element-wise mean of the per-view curves (``mean_curves``; None when grids differ) and ``per_view`` (their
+    ``"curves"`` only with ``keep_curves``)."""
     per_view = list(per_view)
     if not per_view:
         raise B3dgsError("summarize needs at least one per-view result",
