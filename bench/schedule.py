@@ -82,6 +82,12 @@ def parse_imports(items: list[str]) -> dict[str, list[str]]:
     return out
 
 
+def import_source(pattern: str) -> str:
+    """The archive an imported row comes from (the pattern's fixed prefix): rows of one archive were trained side
+    by side, so their times pair."""
+    return pattern.split("{", 1)[0]
+
+
 def read_row(d: Path, scene: str, model: str, variant: str, seed: int, source: str) -> Optional[tuple[dict, list]]:
     """One finished run dir as a table row and its test curve; None if it has no metrics.json."""
     if not (d / "metrics.json").is_file():
@@ -306,9 +312,7 @@ def main(argv: Optional[list[str]] = None) -> None:
                            if name in variants else None)
                     for pattern in imports.get(name, []) if got is None else []:
                         d = Path(pattern.format(scene=scene, model=model, seed=seed))
-                        # its source: the archive it comes from (the pattern's fixed prefix), whose rows were
-                        # trained side by side, so their times pair
-                        if (got := read_row(d, scene, model, name, seed, pattern.split("{", 1)[0])) is not None:
+                        if (got := read_row(d, scene, model, name, seed, import_source(pattern))) is not None:
                             break
                     if got is not None:
                         rows.append(got[0])
