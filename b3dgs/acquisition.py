@@ -227,7 +227,7 @@ class ScoringContext:
         self.score_max_side = score_max_side
         self.extent = float(extent)
         self.seed = int(seed)
-        self.train = [self._small_train(c) for c in train]
+        self.train = [c.fit(score_max_side or None) for c in train]
         self._regimes: dict[Any, Any] = {}  # fitted regimes and posterior block states
 
     # ---------------------------------------------------------------- cameras and renders
@@ -242,9 +242,6 @@ class ScoringContext:
     def camera(self, camera: Camera) -> Camera:
         """``camera`` at the scoring resolution (never with an image)."""
         return camera.with_image(None).fit(self.score_max_side or None)
-
-    def _small_train(self, c: Camera) -> Camera:
-        return c.fit(self.score_max_side or None)
 
     def generator(self, salt: int = 0) -> torch.Generator:
         return torch.Generator(device="cpu").manual_seed(self.seed * 1000003 + salt)

@@ -92,7 +92,6 @@ def usage_counts(info: dict) -> Tensor:
                     lambda ctx, cam: ctx.render(cam, return_weights=True).weight_sum.reshape(-1).double())
 
 
-
 @dataclass
 class DPPruningScore(PruningScore):
     """Base of the scores read from the DP posterior (paper Eq. 5) fitted by CAVI (:func:`b3dgs.dp.dp_cavi`) to the
@@ -117,6 +116,7 @@ class DPPruningScore(PruningScore):
             return state
 
         return cached(info, f"dp_fit_{self.alpha}_{self.prior_active}_{self.prune_pi}_{self.gate_temperature}", fit)
+
 
 def position_grad_norm(info: dict) -> Tensor:
     """(N,) Σ_v ‖∂ MSE_v / ∂μ_k‖ over the training views (the paper's 'gradient' compression baseline)."""

@@ -109,10 +109,6 @@ def _look_at(name: str, pos: np.ndarray, target: np.ndarray, up: np.ndarray, ref
     return Camera(name, ref.K.detach().float().cpu().clone(), torch.from_numpy(view).float(), ref.width, ref.height)
 
 
-def _frontal(fr: dict, pos: np.ndarray) -> bool:
-    return float(_unit(pos - fr["centre"]) @ fr["axis"]) >= fr["cos_limit"]
-
-
 def _rings(fr: dict, ref: Camera, azimuths: int, elevations: int, distances: Sequence[float], margin_deg: float,
            prefix: str) -> list[Camera]:
     """Poses on rings around the centre (azimuths × elevations spanning the training ones widened by ``margin_deg``,
@@ -161,7 +157,8 @@ def generate_candidates(train: Sequence[Camera], gen, seed: int = 0) -> tuple[li
 def frontal(cams: Sequence[Camera], fr: dict) -> list[Camera]:
     """Those of ``cams`` in the frontal half-space of a forward-facing capture widened by the margin (all of them for
     another capture)."""
-    return [c for c in cams if _frontal(fr, c.center.double().cpu().numpy())]
+    return [c for c in cams
+            if float(_unit(c.center.double().cpu().numpy() - fr["centre"]) @ fr["axis"]) >= fr["cos_limit"]]
 
 
 def target_ring(fr: dict, train: Sequence[Camera], targets) -> list[Camera]:
@@ -191,15 +188,6 @@ def _move(cams: Sequence[Camera], T) -> list[Camera]:
     return out
 
 
-def _read_3dgs_cameras(data: list, T) -> list[Camera]:
-    """The entries of an official 3DGS ``cameras.json`` (position, camera-to-world rotation in OpenCV axes, fx, fy,
-    width, height; the scene's own frame), mapped into the run's frame by ``T``."""
-    own = [_camera_from_c2w(f"{e.get('img_name', e.get('id', i))}", np.asarray(e["rotation"], np.float64).reshape(3, 3),
-                            np.asarray(e["position"], np.float64).reshape(3), float(e["fx"]), float(e["fy"]),
-                            int(e["width"]), int(e["height"])) for i, e in enumerate(data)]
-    return _move(own, T)
-
-
 def read_candidates(path: str, scene) -> list[Camera]:
     """``candidates=PATH``: a 3DGS ``cameras.json`` (a list of camera entries), a nerfstudio camera path (an object with
     ``camera_path``: :func:`b3dgs.render_cli.nerfstudio_path`), or a scene folder (colmap, transforms, llff: its
@@ -225,8 +213,12 @@ def read_candidates(path: str, scene) -> list[Camera]:
         if isinstance(data, dict) and "camera_path" in data:
             cams = nerfstudio_path(p, scene)
         elif isinstance(data, list) and data:
-            try:
-                cams = _read_3dgs_cameras(data, T)
+            try:  # position, camera-to-world rotation in OpenCV axes, fx, fy, width, height; the scene's own frame
+                cams = _move([_camera_from_c2w(f"{e.get('img_name', e.get('id', i))}",
+                                               np.asarray(e["rotation"], np.float64).reshape(3, 3),
+                                               np.asarray(e["position"], np.float64).reshape(3), float(e["fx"]),
+                                               float(e["fy"]), int(e["width"]), int(e["height"]))
+                              for i, e in enumerate(data)], T)
             except (KeyError, TypeError, ValueError) as e:
                 raise B3dgsError(f"candidates={path} is not a 3DGS cameras.json ({type(e).__name__}: {e})", fix) from None
         else:
@@ -432,9 +424,7 @@ def _plot(path: Path, fr: dict, train: Sequence[Camera], cands: Sequence[Camera]
     if scores is not None:
         fig.colorbar(sc, ax=axes, shrink=0.8, label=f"{policy} score")
     fig.suptitle(f"b3dgs-suggest: {len(picks)} suggestions by {policy} among {len(cands)} candidates")
-    save_figure(fig, path)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def _preview(rgb: Tensor, m: Tensor, rank: int, score: Optional[float]) -> np.ndarray:

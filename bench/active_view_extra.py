@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 
@@ -27,12 +26,6 @@ from bench.common import RESULTS, read_json as _read, write_results
 # diverse batch with the committed scores' diverse batches
 AGAINST = ["native", "ensemble", "farthest", "uniform", "fisher", "proxy", "ppu", "oracle", "native+diverse",
            "ensemble+diverse"]
-
-
-def _rho(row: dict, oracle: Optional[dict]) -> Optional[float]:
-    from b3dgs.study.active_tables import oracle_rho
-
-    return oracle_rho(row.get("scores"), oracle)
 
 
 def _deficits(scene: str, meta: dict) -> dict:
@@ -70,14 +63,14 @@ def collect(new: Path, archive: Path, policies: list[str], against: list[str], s
                 continue
             row = {"scene": scene, "seed": int(seed), "ladder": ladder, "policy": label, "psnr": r["psnr"],
                    "lpips": r.get("lpips"),
-                   "rho": _rho(r, o_new), "rho_support": oracle_rho(r.get("scores"), deficit),
+                   "rho": oracle_rho(r.get("scores"), o_new), "rho_support": oracle_rho(r.get("scores"), deficit),
                    "scoring_time_s": r.get("scoring_time_s"), "round2_time_s": r.get("round2_time_s")}
             # new rows paired with each other (same phase-1 models, same new study), then with the committed ones
             for b, d in [(b, scene_dir) for b in within if b != label] + [(b, archive / scene) for b in against]:
                 other = _read(d / f"{b}_s{seed}" / "result.json")
                 if other is not None:
                     o_b = _read(d / "phase1" / f"{other['family']}_s{seed}" / "oracle.json")
-                    row[f"psnr_{b}"], row[f"rho_{b}"] = other["psnr"], _rho(other, o_b)
+                    row[f"psnr_{b}"], row[f"rho_{b}"] = other["psnr"], oracle_rho(other.get("scores"), o_b)
                     row[f"rho_support_{b}"] = oracle_rho(other.get("scores"), deficit)
                     if d != scene_dir:
                         row[f"scoring_time_s_{b}"] = other.get("scoring_time_s")

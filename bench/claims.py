@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import math
+from collections import Counter
 import statistics
 from pathlib import Path
 from typing import Callable, Optional
@@ -83,7 +84,8 @@ class Results:
         has none."""
         if self.ensembles:
             return {s: float(e[metric]) for s, e in self.ensembles.items() if e.get(metric) is not None}
-        return self.uq_scene("ensemble (3)", metric)
+        return {r["scene"]: r[metric] for r in self.uq.get("scene_means", [])
+                if r["row"] == "ensemble (3)" and r.get(metric) is not None}
 
     def active_paired(self, key: str) -> dict[str, float]:
         """Per scene, the active-view study's seed-mean paired PSNR difference ``key`` (e.g. 'native-ensemble'),
@@ -95,12 +97,6 @@ class Results:
             a, _, b = key.partition("-")
             per = self._extra("paired", a=a, b=b)
         return per
-
-    def active_rho(self, which: str, a: str, b: str) -> dict[str, float]:
-        """Per scene, policy a's Spearman ρ minus policy b's (``which``: 'rho', with the phase-1 model's error on
-        each candidate; 'rho_support', with the candidate's distance to the nearest initial camera), from
-        bench/active_view_extra.py's paired ρ over both ladders."""
-        return self._extra("paired_rho", rho=which, a=a, b=b)
 
     def _extra(self, field: str, **match) -> dict[str, float]:
         """The per-scene differences of the bench/active_view_extra.py entries in ``field`` matching ``match``,
@@ -130,10 +126,6 @@ class Results:
         va, vb = self.suggest.get(field, {}).get(a, {}), self.suggest.get(field, {}).get(b, {}) if b else {}
         return {s: v[j] - (vb[s][j] if b else v[1]) for s, v in va.items() if not b or s in vb}
 
-    def uq_scene(self, row: str, metric: str) -> dict[str, float]:
-        """bench/uq.py's per-scene means of ``row`` (e.g. 'ensemble (3)')."""
-        return {r["scene"]: r[metric] for r in self.uq.get("scene_means", [])
-                if r["row"] == row and r.get(metric) is not None}
 
 
 def metric(name: str) -> Callable[[dict], Optional[float]]:
@@ -296,7 +288,10 @@ CLAIMS: list[tuple[str, str, str, str, int, str, Callable[[Results], dict[str, f
     for b in ("uniform", "distance", "cover")
 ] + [
     (f"active_{p}_{which}_vs_{b}", "beyond the paper", f"Active view: Spearman ρ of the {p} score with {what}, "
-     f"minus the {b} score's (hypothesis: > 0)", "not in the paper", +1, "", lambda R, which=which, p=p, b=b: R.active_rho(which, p, b))
+     f"minus the {b} score's (hypothesis: > 0)", "not in the paper", +1, "",
+     # bench/active_view_extra.py's paired ρ (which: 'rho', with the phase-1 model's error on each candidate;
+     # 'rho_support', with the candidate's distance to the nearest initial camera), both ladders pooled
+     lambda R, which=which, p=p, b=b: R._extra("paired_rho", rho=which, a=p, b=b))
     for which, what in (("rho", "the phase-1 model's error on the candidate"),
                         ("rho_support", "the candidate's distance to the nearest training camera"))
     for p in ("native_sh", "sh", "native_plus_sh", "info_gain", "info_gain_params", "cover")
@@ -372,7 +367,7 @@ def why(v: str, st: dict, unit: str, source: str = "the paper") -> str:
     if p is None:
         return f"{n} scene: no test yet ({st['wins']} win, {st['losses']} loss), {ci_txt}"
     if v == "fails":
-        sig = "significantly" if p is not None and p < ALPHA else "not significantly"
+        sig = "significantly" if p < ALPHA else "not significantly"
         effect = "no effect on average" if st["mean"] == 0 else "our effect has the opposite sign"
         return (f"{effect} ({sig}: p = {p:.3g}, {ci_txt}, "
                 f"{st['wins']} of {n} scenes in {direction})")
@@ -449,9 +444,7 @@ def table_md(rows: list[dict], scenes: list[str]) -> str:
         p = r.get("p_two_sided")
         lines.append(f"| {md_cell(r['claim'])} | {r['group']} | {md_cell(r['paper'])} | {ours_text(r)} | {ci_txt} | "
                      f"{'-' if p is None else f'{p:.3g}'} | {r['n_scenes']} | **{r['verdict']}** | {md_cell(r['why'])} |")
-    counts = {}
-    for r in rows:
-        counts[r["verdict"]] = counts.get(r["verdict"], 0) + 1
+    counts = Counter(r["verdict"] for r in rows)
     lines += ["", "Verdicts: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items()))]
     return "\n".join(lines)
 

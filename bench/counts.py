@@ -47,10 +47,6 @@ def regime_names(args) -> list[str]:
     return [f"native_{c}" for c in args.counts] + list(args.alone)
 
 
-def new_regimes(archive_dir: Path, names: list[str]) -> list[str]:
-    return [n for n in names if n not in read_json(archive_dir / "uq.json", {})]
-
-
 def score_one(run_dir: Path, archive_dir: Path, names: list[str], samples: int) -> None:
     """Score ``names`` on the trained run and merge them into the archived uq.json (views and seed checked)."""
     from b3dgs.eval import evaluate_uq
@@ -74,7 +70,7 @@ def score_one(run_dir: Path, archive_dir: Path, names: list[str], samples: int) 
 
 def run_row(args, scene: str, seed: int) -> Optional[str]:
     archive_dir = Path(args.archive) / scene / "niw" / f"s{seed}"
-    names = new_regimes(archive_dir, regime_names(args))
+    names = [n for n in regime_names(args) if n not in read_json(archive_dir / "uq.json", {})]
     if not names:
         return None
     run_dir = Path(args.out) / scene / "niw" / f"s{seed}"

@@ -47,15 +47,11 @@ SHORT = ["trainer.max_steps=2", "trainer.eval_every=1", "trainer.checkpoint_ever
          "logger=none", "trainer.save_renders=false", "data.max_side=64"]
 
 
-def _fox_meta() -> dict:
-    return json.loads((shared_dir() / "data" / "fox" / "transforms.json").read_text())
-
-
 def _fox_variant(name: str, edit) -> Path:
     """A copy of the fox scene's transforms.json (images linked, not copied) changed by ``edit(meta, dir)``."""
     d = fresh_dir(FIX / name)
     (d / "images").symlink_to(shared_dir() / "data" / "fox" / "images")
-    meta = _fox_meta()
+    meta = json.loads((shared_dir() / "data" / "fox" / "transforms.json").read_text())
     edit(meta, d)
     (d / "transforms.json").write_text(json.dumps(meta))
     return d
@@ -134,17 +130,12 @@ TINY = ["+data.n_views=8", "data.max_side=16", "trainer.max_steps=4", "trainer.e
         "trainer.checkpoint_every_s=0", "trainer.enable_progress_bar=false", "logger=none", "threads=1"]
 
 
-def _env(**kw) -> dict:
-    env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
-    env.update({k: str(v) for k, v in kw.items()})
-    return env
-
-
 def _popen(module: str, args: list[str], env: Optional[dict] = None, cwd: Path = ROOT,
            limit=True) -> subprocess.Popen:
     """``python -m module args`` with its output captured, in its own process group under the memory limit (``limit``:
     True, or the function to run in the child before it starts; False: neither)."""
-    return subprocess.Popen([sys.executable, "-m", module, *args], cwd=cwd, env=env or _env(), stdout=subprocess.PIPE,
+    env = env or {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+    return subprocess.Popen([sys.executable, "-m", module, *args], cwd=cwd, env=env, stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True, preexec_fn=_limit if limit is True else limit or None)
 
 
@@ -161,10 +152,6 @@ def _wait(proc: subprocess.Popen, timeout: int) -> tuple[Optional[int], str, str
 def _run(module: str, args: list[str], timeout: int = 300, **kw) -> tuple[int, str, str]:
     rc, out, err = _wait(_popen(module, args, **kw), timeout)
     return (-1, out, err + f"\nTIMEOUT after {timeout} s") if rc is None else (rc, out, err)
-
-
-def _line(prog: str, rc: int, out: str, err: str) -> str:
-    return _message(prog.removeprefix("b3dgs-"), rc, out, err)
 
 
 def _fresh(name: str) -> Path:
@@ -196,7 +183,7 @@ def sc_concurrent() -> dict:
         os.kill(first.pid, signal.SIGCONT)
     first.communicate(timeout=300)
     ok = rc == 2 and untouched and first.returncode == 0 and (d / "metrics.json").exists()
-    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err), "ok": ok,
+    return {"exit_code": rc, "message": _message("train", rc, out, err), "ok": ok,
             "checked": f"the first run finished (exit {first.returncode}), the refused one changed nothing"}
 
 
@@ -207,7 +194,7 @@ def sc_default_dirs() -> dict:
     res = [(p.wait(timeout=300), *p.communicate()) for p in procs]
     runs = sorted(d.glob("outputs/train/*/metrics.json"))
     rc = max(r[0] for r in res)
-    return {"exit_code": rc, "message": _line("b3dgs-train", res[-1][0], res[-1][1], res[-1][2]),
+    return {"exit_code": rc, "message": _message("train", res[-1][0], res[-1][1], res[-1][2]),
             "ok": rc == 0 and len(runs) == 2, "checked": f"{len(runs)} run dirs with metrics.json"}
 
 
@@ -246,7 +233,7 @@ def sc_kill_final_write(point: str) -> dict:
     timing = ("train_time_s", "render_fps", "block_time_s")
     same = {k: v for k, v in a.items() if k not in timing} == {k: v for k, v in b.items() if k not in timing}
     ok = rc0 == -9 and bool(stale) and rc == 0 and same and not list(d.rglob("*.tmp")) and bool(b.get("added"))
-    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err), "ok": ok,
+    return {"exit_code": rc, "message": _message("train", rc, out, err), "ok": ok,
             "checked": f"killed (exit {rc0}) leaving {stale}; after resume metrics.json equal to an uninterrupted "
                        f"run's (timings aside): {same}; temp files removed; added={b.get('added')}"}
 
@@ -256,7 +243,7 @@ def sc_finished_resume() -> dict:
     before = _files(d)
     rc, out, err = _run("b3dgs.train", [*TINY, "resume=auto", f"hydra.run.dir={d}"])
     lines = [ln.split("] - ", 1)[-1] for ln in (out + err).splitlines() if "finished run" in ln]
-    return {"exit_code": rc, "message": lines[0] if lines else _line("b3dgs-train", rc, out, err),
+    return {"exit_code": rc, "message": lines[0] if lines else _message("train", rc, out, err),
             "ok": rc == 0 and _files(d) == before, "checked": "no file of the run dir rewritten"}
 
 
@@ -266,7 +253,7 @@ def sc_refused_leaves_nothing() -> dict:
     (d / "config.yaml").write_text("seed: 0\n")
     rc, out, err = _run("b3dgs.train", [*TINY, f"hydra.run.dir={d}"])
     left = sorted(p.name for p in d.iterdir())
-    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err), "ok": rc == 2 and left == ["config.yaml"],
+    return {"exit_code": rc, "message": _message("train", rc, out, err), "ok": rc == 2 and left == ["config.yaml"],
             "checked": f"run dir holds {left} (no .hydra/, no train.log)"}
 
 
@@ -283,7 +270,7 @@ def sc_multirun_bad_seed() -> dict:
     d = _fresh("multirun_bad_seed")
     rc, out, err = _run("b3dgs.train", ["-m", "seed=-1,1", *TINY, f"hydra.sweep.dir={d}"])
     runs = sorted(d.glob("*/metrics.json"))
-    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err), "ok": rc == 2 and len(runs) == 1,
+    return {"exit_code": rc, "message": _message("train", rc, out, err), "ok": rc == 2 and len(runs) == 1,
             "checked": f"the job after it ran: {[r.parent.name for r in runs]}"}
 
 
@@ -294,7 +281,7 @@ def sc_study_reuse() -> dict:
              "family_baselines=[]", "threads=1", "plots=false", "oracle=false", f"out_dir={d}"]
     rc0, _, err0 = _run("b3dgs.study.active", study)
     rc, out, err = _run("b3dgs.study.active", study + ["initial_views=3", "trainer.max_steps=9"])
-    return {"exit_code": rc, "message": _line("b3dgs-study", rc, out, err), "ok": rc0 == 0 and rc == 2,
+    return {"exit_code": rc, "message": _message("study", rc, out, err), "ok": rc0 == 0 and rc == 2,
             "checked": f"first study exit {rc0}"}
 
 
@@ -304,18 +291,20 @@ def sc_report_pool() -> dict:
     _finished_run(d / "b", "seed=1", "trainer.max_steps=6")
     rc, out, err = _run("b3dgs.report.app", [f"runs={d}/*", f"out={d / 'report'}"])
     rc2, _, err2 = _run("b3dgs.report.app", [f"runs={d}/*", f"out={d / 'report'}", "group_by=[trainer.max_steps]"])
-    return {"exit_code": rc, "message": _line("b3dgs-report", rc, out, err), "ok": rc == 2 and rc2 == 0,
+    return {"exit_code": rc, "message": _message("report", rc, out, err), "ok": rc == 2 and rc2 == 0,
             "checked": f"with group_by=[trainer.max_steps]: exit {rc2}"}
 
 
 def sc_eval_twice() -> dict:
     d = _finished_run(_fresh("eval_twice") / "run")
     rc, out, err = _run("b3dgs.eval", [f"run=[{d},{d}/.]", "uq=[ensemble]", f"hydra.run.dir={d.parent / 'eval'}"])
-    return {"exit_code": rc, "message": _line("b3dgs-eval", rc, out, err), "ok": rc == 2, "checked": ""}
+    return {"exit_code": rc, "message": _message("eval", rc, out, err), "ok": rc == 2, "checked": ""}
 
 
 def sc_eval_elsewhere() -> dict:
     """b3dgs-eval from another folder on a run trained with a relative data.path."""
+    from omegaconf import OmegaConf
+
     base = _fresh("eval_elsewhere")
     scene = base / "scene"
     shutil.copytree(_fox_variant("eval_elsewhere_fox", _set()), scene, symlinks=True)
@@ -327,15 +316,10 @@ def sc_eval_elsewhere() -> dict:
     rc, out, err = _run("b3dgs.eval", [f"run={base / 'run'}", "uq=[proxy]", "max_views=1", "panels=0",
                                        f"hydra.run.dir={base / 'eval'}"], cwd=base)
     wrote = (base / "run" / "uq.json").exists()
-    msg = f"uq.json written: {wrote}" if rc == 0 else _line("b3dgs-eval", rc, out, err)
+    data_path = str(OmegaConf.load(base / "run" / "config.yaml").data.path).replace(str(ROOT) + "/", "")
+    msg = f"uq.json written: {wrote}" if rc == 0 else _message("eval", rc, out, err)
     return {"exit_code": rc, "message": msg, "ok": rc0 == 0 and rc == 0 and wrote,
-            "checked": f"config.yaml data.path = {json.dumps(str(_cfg_path(base / 'run')))}"}
-
-
-def _cfg_path(run: Path) -> str:
-    from omegaconf import OmegaConf
-
-    return str(OmegaConf.load(run / "config.yaml").data.path).replace(str(ROOT) + "/", "")
+            "checked": f"config.yaml data.path = {json.dumps(data_path)}"}
 
 
 def sc_png16() -> dict:
@@ -366,10 +350,6 @@ def _eval_run_with(name: str, file: str, text: str) -> Path:
     _finished_run(d)
     (d / file).write_text(text)
     return d
-
-
-def _non_numeric(meta, d):
-    meta["frames"][3]["fl_x"] = "abc"
 
 
 # ------------------------------------------------------------------------- third pass: results, run dirs
@@ -425,7 +405,7 @@ def sc_eval_other_run() -> dict:
     rows = json.loads((base / "report" / "report.json").read_text())["runs"] if rc == 0 else []
     flagged = [ln.split("] - ", 1)[-1] for ln in (out + err).splitlines() if "left out of the report" in ln]
     ok = rc0 == 0 and rc == 0 and bool(flagged) and all(not r["uq_regimes"] for r in rows)
-    return {"exit_code": rc, "message": flagged[0] if flagged else _line("b3dgs-report", rc, out, err), "ok": ok,
+    return {"exit_code": rc, "message": flagged[0] if flagged else _message("report", rc, out, err), "ok": ok,
             "checked": f"B's report row has uq regimes {[r['uq_regimes'] for r in rows]}"}
 
 
@@ -439,7 +419,7 @@ def sc_eval_running() -> dict:
     finally:
         os.kill(first.pid, signal.SIGCONT)
     first.communicate(timeout=300)
-    return {"exit_code": rc, "message": _line("b3dgs-eval", rc, out, err), "ok": rc == 2 and "still training" in err,
+    return {"exit_code": rc, "message": _message("eval", rc, out, err), "ok": rc == 2 and "still training" in err,
             "checked": f"the training then finished (exit {first.returncode})"}
 
 
@@ -447,7 +427,7 @@ def sc_ensemble_mismatch(extra: list[str]) -> dict:
     base = _fresh("ensemble_mismatch_" + extra[0].split("=")[0].replace(".", "_"))
     a, b = _finished_run(base / "A", *EVAL_SIDE), _finished_run(base / "B", *EVAL_SIDE, "seed=1", *extra)
     rc, out, err = _eval([f"run=[{a},{b}]", "uq=[ensemble]"], base / "ev")
-    return {"exit_code": rc, "message": _line("b3dgs-eval", rc, out, err), "ok": rc == 2 and not (a / "uq.json").exists()
+    return {"exit_code": rc, "message": _message("eval", rc, out, err), "ok": rc == 2 and not (a / "uq.json").exists()
             and not list(base.glob("ensemble_*")), "checked": "nothing written"}
 
 
@@ -472,7 +452,7 @@ def sc_overwrite_foreign() -> dict:
     _user_files(d)
     before = _all_bytes(d)
     rc, out, err = _run("b3dgs.train", [*TINY, "overwrite=true", f"hydra.run.dir={d}"])
-    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err), "ok": rc == 2 and _all_bytes(d) == before,
+    return {"exit_code": rc, "message": _message("train", rc, out, err), "ok": rc == 2 and _all_bytes(d) == before,
             "checked": "every file byte for byte"}
 
 
@@ -483,7 +463,7 @@ def sc_overwrite_user_files() -> dict:
     rc, out, err = _run("b3dgs.train", [*TINY, "overwrite=true", "seed=1", f"hydra.run.dir={d}"])
     kept = {k: (d / k).read_bytes() for k in mine if (d / k).exists()} == mine
     seed = json.loads((d / "metrics.json").read_text())["seed"] if (d / "metrics.json").exists() else None
-    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err), "ok": rc == 0 and kept and seed == 1,
+    return {"exit_code": rc, "message": _message("train", rc, out, err), "ok": rc == 0 and kept and seed == 1,
             "checked": f"the user's files byte for byte: {kept}; metrics.json of the new run (seed {seed})"}
 
 
@@ -493,7 +473,7 @@ def sc_run_dir_dot() -> dict:
     _user_files(d, {"renders/figure1.png": USER_FILES["renders/figure1.png"]})
     before = _all_bytes(d)
     rc, out, err = _run("b3dgs.train", [*TINY, "hydra.run.dir=."], cwd=d)
-    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err).replace(str(d), "<folder>"),
+    return {"exit_code": rc, "message": _message("train", rc, out, err).replace(str(d), "<folder>"),
             "ok": rc == 2 and _all_bytes(d) == before, "checked": "the folder byte for byte"}
 
 
@@ -505,7 +485,7 @@ def sc_resume_renderer() -> dict:
     rc, out, err = _run("b3dgs.train", [*TINY, "resume=auto", "renderer=torch", f"hydra.run.dir={d}"])
     same = config is not None and (d / "config.yaml").read_text() == config
     rc2, _, _ = _run("b3dgs.train", [*TINY, "resume=auto", "renderer=cpu", f"hydra.run.dir={d}"])
-    return {"exit_code": rc, "message": _line("b3dgs-train", rc, out, err),
+    return {"exit_code": rc, "message": _message("train", rc, out, err),
             "ok": rc0 == 143 and rc == 2 and same and rc2 == 0 and (d / "metrics.json").exists(),
             "checked": f"stopped with exit {rc0}; config.yaml kept the C++ renderer; resume=auto renderer=cpu then "
                        f"finished (exit {rc2})"}
@@ -595,7 +575,7 @@ def rows() -> list[dict]:
     add("huge_resolution", "`+data.resolution=30000` synthetic (MemoryError)", ["+data.n_views=8", "+data.resolution=30000",
                                                                                  "data.max_side=null"])
     add("transforms_non_numeric", "`fl_x: \"abc\"` in one frame of transforms.json",
-        lambda: fox + [f"data.path={_fox_variant('non_numeric', _non_numeric)}"])
+        lambda: fox + [f"data.path={_fox_variant('non_numeric', lambda m, d: m['frames'][3].update(fl_x='abc'))}"])
     add("eval_metrics_truncated", "`b3dgs-eval` on a run whose metrics.json is truncated",
         lambda: [f"run={_eval_run_with('run_trunc_metrics', 'metrics.json', TRUNCATED_METRICS)}", "uq=[proxy]"], app="eval")
     add("eval_config_corrupt", "`b3dgs-eval` on a run whose config.yaml is corrupt",

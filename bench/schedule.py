@@ -129,10 +129,9 @@ def macro(rows: list[dict], variant: str, key: str, model: str) -> Optional[floa
 
 
 def plot(curves: dict, path: Path) -> None:
-    from b3dgs.io import atomic_path
+    from b3dgs.io import save_figure
 
     plt = pyplot()
-
     scenes = sorted({k[0] for k in curves})
     n = len(scenes)
     cols = min(4, n)
@@ -156,9 +155,7 @@ def plot(curves: dict, path: Path) -> None:
     axes[0][0].legend(fontsize=7)
     fig.suptitle("Test PSNR against training time (one line per seed)", fontsize=10)
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
-    plt.close(fig)
+    save_figure(fig, path)
 
 
 def load_text(rows: list[dict]) -> str:
@@ -184,15 +181,13 @@ def summarize(rows: list[dict], curves: dict, names: list[str], ref: str, models
             r["t95_ref"] = time_to_target(pts, target)
     metrics = METRICS + [("block_pct", False)]
 
-    def one_source(model: str, variants: tuple[str, ...]) -> bool:
-        return len({r.get("source") for r in rows if r["model"] == model and r["variant"] in variants}) == 1
-
     summary = []
     for model in models:
         for name in names:
             if name == ref or not any(r["model"] == model and r["variant"] == name for r in rows):
                 continue
-            timed = one_source(model, (name, ref))
+            # time ratios only from rows of one source
+            timed = len({r.get("source") for r in rows if r["model"] == model and r["variant"] in (name, ref)}) == 1
             t_ref, t95_ref = macro(rows, ref, "train_time_s", model), macro(rows, ref, "t95_ref", model)
             t, t95 = macro(rows, name, "train_time_s", model), macro(rows, name, "t95_ref", model)
             summary.append({

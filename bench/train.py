@@ -13,8 +13,8 @@ import argparse
 import json
 from pathlib import Path
 
-from bench.common import (QUICK, RESULTS, ensure_lpips, machine, model_overrides, scene_overrides, table, train_run,
-                          write_results)
+from bench.common import (QUICK, RESULTS, ensure_lpips, machine, model_overrides, pyplot, scene_overrides, table,
+                          train_run, write_results)
 
 
 def main() -> None:
@@ -57,11 +57,7 @@ def write(args, rows: list[dict], curves: dict, suffix: str) -> None:
     for r in rows:
         b = base.get((r["scene"], r["seed"]))
         r["time_vs_standard"] = round(r["train_time_s"] / b, 4) if b else None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 3.5), dpi=110)
     for key, pts in curves.items():
         ax.plot([p["train_time_s"] for p in pts], [p["psnr"] for p in pts], "o-", label=key, ms=3)

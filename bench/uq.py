@@ -85,12 +85,6 @@ def merge_overrides(*lists: list[str]) -> list[str]:
     return list(out.values())
 
 
-def cached_eval(out_dir: Path, key: dict, compute) -> dict:
-    """``out_dir/uq.json`` when it was written with the settings ``key``, else ``compute()`` (which writes it)."""
-    res = read_json(out_dir / "uq.json", {})
-    return res if (res.get("_meta") or {}).get("bench_key") == key else compute()
-
-
 def main() -> None:
     from hydra.utils import instantiate
     from omegaconf import OmegaConf
@@ -141,15 +135,15 @@ def main() -> None:
         key = {"version": VERSION, "runs": [str(r) for r in run_dirs], "regimes": list(names), "seed": seed,
                "samples": args.samples, "jitter": jitter or args.jitter, "max_views": args.max_views}
 
-        def compute():
-            t0 = time.perf_counter()
-            print(f"  evaluating {', '.join(names)} on {', '.join(map(str, run_dirs))} ...", flush=True)
-            res = evaluate_uq([str(r) for r in run_dirs], regimes(names, jitter), seed=seed, max_views=args.max_views,
-                              out_dir=out_dir, panels=panels, meta={"bench_key": key})
-            print(f"  done in {time.perf_counter() - t0:.0f} s -> {out_dir / 'uq.json'}", flush=True)
+        res = read_json(out_dir / "uq.json", {})
+        if (res.get("_meta") or {}).get("bench_key") == key:  # written with these settings
             return res
-
-        return cached_eval(out_dir, key, compute)
+        t0 = time.perf_counter()
+        print(f"  evaluating {', '.join(names)} on {', '.join(map(str, run_dirs))} ...", flush=True)
+        res = evaluate_uq([str(r) for r in run_dirs], regimes(names, jitter), seed=seed, max_views=args.max_views,
+                          out_dir=out_dir, panels=panels, meta={"bench_key": key})
+        print(f"  done in {time.perf_counter() - t0:.0f} s -> {out_dir / 'uq.json'}", flush=True)
+        return res
 
     def train(scene, group, seed):
         method, extra, _ = GROUPS[group]

@@ -201,12 +201,6 @@ class StudyRow:
         return self.policy if self.family is None else f"{self.policy}@{self.family}"
 
 
-def split_row(name: str) -> tuple[str, Optional[str]]:
-    """``policy[@family][+batch]`` -> (``policy[@family]``, batch or None) (:meth:`StudyRow.parse`)."""
-    row = StudyRow.parse(name)
-    return row.policy_name, row.batch
-
-
 def study_rows(cfg: DictConfig) -> list[StudyRow]:
     """The study's rows (``policies``: nodes or their shorthand), with each row's ``blocks`` checked against the
     other rows of its family and against ``family_posterior``."""
@@ -232,11 +226,6 @@ def row_pins(cfg: DictConfig) -> dict:
         if r.blocks is not None:
             pins[r.family or load_policy(r.policy)[1].family] = list(r.blocks)
     return pins
-
-
-def row_label(policy_label: str, batch: str) -> str:
-    """``native`` for top-k (the label rows always had), ``native+diverse`` / ``uniform@niw+diverse`` else."""
-    return policy_label if batch == DEFAULT_BATCH else f"{policy_label}+{batch}"
 
 
 def batch_names(cfg: DictConfig) -> list[str]:
@@ -414,10 +403,7 @@ class ActiveStudy:
                 raise B3dgsError(f"policy {pname} builds its batch itself, so batch {batch} does not apply to it",
                                  f"pass {pname} (its own selection) or a score-based policy with +{batch}")
             rows.append((label, p, batch))
-        families = []
-        for _, p, _ in rows:
-            if p.family not in families:
-                families.append(p.family)
+        families = list(dict.fromkeys(p.family for _, p, _ in rows))
         have = {(type(p), p.family, b) for _, p, b in rows}
         for base in self.cfg.get("family_baselines") or []:
             for fam in families:
@@ -434,7 +420,8 @@ class ActiveStudy:
             if base not in default_family:
                 default_family[base] = load_policy(base)[1].family
             default = default_family[base]
-            lab = row_label(base if p.family == default else f"{base}@{p.family}", b)
+            lab = base if p.family == default else f"{base}@{p.family}"
+            lab = lab if b == DEFAULT_BATCH else f"{lab}+{b}"  # top-k rows keep the label rows always had
             if lab not in self.batches:
                 out.append((lab, p))
                 self.batches[lab] = selectors.get(b) or load_batch(b, bset)
@@ -467,9 +454,6 @@ class ActiveStudy:
                                  "train_time_s": time.perf_counter() - t0,
                                  "train_views": [c.name for c in self.scene.train], "scene_digest": self.scene_digest})
         return str(ckpt)
-
-    def phase1_time(self, family: str, seed: int) -> float:
-        return float(Run(run_dir=self.phase1_dir(family, seed)).recorded(PHASE1_DONE)["train_time_s"])
 
     def scoring_models(self, family: str, seed: int, members: int):
         return [load_round(self.family_cfg(family, seed + i), self.scene, self.phase1_model(family, seed + i),
@@ -516,7 +500,7 @@ class ActiveStudy:
             top = None if scores is None else sorted(scores.items(), key=lambda kv: (-kv[1], kv[0]))[:10]
             sel = {"policy": label, "seed": seed, "family": policy.family, "selected": [cands[i].name for i in s.indices],
                    "scores": scores, "top10": top, "scoring_time_s": dt, "members": int(policy.members),
-                   "uses_ground_truth": bool(policy.uses_ground_truth), "batch": split_row(label)[1] or DEFAULT_BATCH,
+                   "uses_ground_truth": bool(policy.uses_ground_truth), "batch": StudyRow.parse(label).batch or DEFAULT_BATCH,
                    "batch_info": s.info}
             row.record(ROW_SELECTION, sel)
             del models, ctx
@@ -540,9 +524,10 @@ class ActiveStudy:
             module = fit_round(cfg_f, scene2, d, self.total, ckpt_path=self.phase1_model(policy.family, seed),
                                new_round=True, plugins=plugins)
         t_round2 = time.perf_counter() - t0
+        t_phase1 = float(Run(run_dir=self.phase1_dir(policy.family, seed)).recorded(PHASE1_DONE)["train_time_s"])
         ev = self.evaluate(module)
         res = {**sel, "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": ev.get("lpips"),
-               "train_time_s": self.phase1_time(policy.family, seed) + t_round2, "round2_time_s": t_round2,
+               "train_time_s": t_phase1 + t_round2, "round2_time_s": t_round2,
                "num_gaussians": module.num_gaussians, "steps": int(module.global_step),
                "hole_hits": sum(1 for n in sel["selected"] if n in set(self.hole)) if self.hole else None,
                "scene_digest": self.scene_digest}

@@ -34,13 +34,6 @@ def jaccard(a, b) -> float:
     return len(a & b) / len(a | b) if a | b else 1.0
 
 
-def load_rows(out: Path) -> list[dict]:
-    rows = []
-    for p in sorted(out.glob("*_s*/result.json")):
-        rows.append(json.loads(p.read_text()))
-    return rows
-
-
 def oracle_for(out: Path, family: str, seed: int) -> Optional[dict]:
     p = out / "phase1" / f"{family}_s{seed}" / "oracle.json"
     return json.loads(p.read_text()) if p.exists() else None
@@ -61,7 +54,7 @@ def oracle_rho(scores: Optional[dict], oracle: Optional[dict]) -> Optional[float
 
 def summarize(out: Path, pairs=None) -> dict:
     """The scene folder's tables; ``pairs``: the paired rows (default :func:`pairs_for` of meta.json's lists)."""
-    rows = load_rows(out)
+    rows = [json.loads(p.read_text()) for p in sorted(out.glob("*_s*/result.json"))]
     meta = json.loads((out / "meta.json").read_text()) if (out / "meta.json").exists() else {}
     # meta's order first (the last invocation's policies), then rows of earlier invocations with other policies:
     # a study extended by a subset of its policies (or by new ones) keeps every finished row in its tables
@@ -108,10 +101,6 @@ def _fmt(m, s=None, nd=3):
     return f"{m:.{nd}f}" if s is None else f"{m:.{nd}f} ± {s:.{nd}f}"
 
 
-def _scoring(side) -> str:
-    return f"{side} px (longest side)" if side else "the training resolution"
-
-
 def _points(pf) -> str:
     if not isinstance(pf, dict):
         return "all (not filtered)"
@@ -120,10 +109,12 @@ def _points(pf) -> str:
 
 def markdown(summary: dict) -> str:
     meta = summary["meta"]
+    side = meta.get("score_max_side")
+    side = f"{side} px (longest side)" if side else "the training resolution"
     lines = [f"# Active view selection: {summary['scene']}", "",
              f"{len(meta.get('initial_views', []))} initial views → +{meta.get('acquire')} views; phase 1 "
              f"{meta.get('phase1_steps')} of {meta.get('total_steps')} steps; variant {meta.get('variant')}; seeds "
-             f"{summary['seeds']}; scoring at {_scoring(meta.get('score_max_side'))}; initial points: "
+             f"{summary['seeds']}; scoring at {side}; initial points: "
              f"{_points(meta.get('point_filter'))}.", ""]
     rows = []
     for pol, e in sorted(summary["table"].items(), key=lambda kv: (kv[1]["family"] != "standard", kv[1]["family"])):
@@ -196,7 +187,7 @@ def make_plots(out: Path, summary: dict, store=None) -> None:
         k = len(runs)
         cols = min(4, max(k, 1))
         rows_n = int(math.ceil(k / cols)) or 1
-        xy = {n: v for n, v in lay["xy"].items()}
+        xy = lay["xy"]
         pts = np.asarray(list(xy.values()), dtype=float).reshape(-1, 2)
         span = np.ptp(pts, axis=0) if len(pts) else np.ones(2)
         aspect = float(np.clip(span[1] / max(span[0], 1e-9), 0.2, 1.5))  # panel height follows the layout's shape

@@ -66,11 +66,6 @@ def round_targets(n_base: int, keep: float, rounds: int) -> list[int]:
     return out
 
 
-def _atomic_save(obj: Any, path: Path) -> None:
-    with atomic_path(path) as tmp:
-        torch.save(obj, tmp)
-
-
 class CompressionStudy:
     def __init__(self, cfg: DictConfig):
         self.cfg = cfg
@@ -139,7 +134,8 @@ class CompressionStudy:
         dt = time.perf_counter() - t0
         s = s.detach().cpu()
         _check_score(name, s, loaded.module.num_gaussians)
-        _atomic_save({"score": s, "time_s": dt, "state": _plain(state)}, path)
+        with atomic_path(path) as tmp:
+            torch.save({"score": s, "time_s": dt, "state": _plain(state)}, tmp)
         return s, dt, _plain(state)
 
     def run_row(self, name: str, score_fn, keep: float, loaded, base_eval: dict, lp) -> dict:

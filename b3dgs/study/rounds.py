@@ -54,7 +54,6 @@ def fit_round(cfg: DictConfig, scene: Scene, run_dir: Path, stop_step: int, ckpt
 def load_round(cfg: DictConfig, scene: Scene, ckpt_path: str, plugins: Optional[dict] = None):
     """A module holding ``ckpt_path``'s model for scoring or evaluation (no trainer; on the renderer's device), built
     from ``plugins`` as :func:`fit_round`."""
-
     return load_checkpoint(build_run(cfg, scene, plugins=plugins), read_checkpoint(ckpt_path), new_views=True)
 
 

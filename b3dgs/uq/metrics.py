@@ -97,14 +97,11 @@ AGGREGATION_NOTE = ("All scalars (AUSE and ECE included) are computed per view a
 def _to_numpy(x: Any, name: str) -> np.ndarray:
     if x is None:
         raise B3dgsError(f"{name} is None", fix=f"pass {name} as a numpy array or torch tensor")
-    try:
-        import torch
+    import torch
 
-        if isinstance(x, torch.Tensor):
-            x = x.detach().cpu()
-            x = x.numpy() if x.dtype == torch.bool else x.double().numpy()
-    except ImportError:  # pragma: no cover
-        pass
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu()
+        x = x.numpy() if x.dtype == torch.bool else x.double().numpy()
     return np.asarray(x)
 
 
@@ -133,29 +130,21 @@ def _validate(mean: Any, var: Any, gt: Any, mask: Any = None
                              "variance with .mean(-1)")
     if mean.shape[0] * mean.shape[1] == 0:
         raise B3dgsError("empty image", fix="pass a view with at least one pixel (H, W >= 1)")
-    mean = mean.astype(np.float64, copy=False)
-    gt = gt.astype(np.float64, copy=False)
-    var = var.astype(np.float64, copy=False)
-    if not np.all(np.isfinite(mean)):
-        raise B3dgsError("mean contains NaN or Inf",
-                         fix="the render is not finite: check the model (retrain, or lower the optimiser's learning "
-                             "rates) before scoring it")
-    if not np.all(np.isfinite(gt)):
-        raise B3dgsError("gt contains NaN or Inf",
-                         fix="load the ground-truth image as finite floats in [0, 1] (b3dgs.data.images.load_image "
-                             "does)")
-    if not np.all(np.isfinite(var)):
-        raise B3dgsError("var contains NaN or Inf",
-                         fix="the UQ regime's predict returned a non-finite variance: check that regime (uq=...) and "
-                             "its posterior block")
+    mean, gt, var = (a.astype(np.float64, copy=False) for a in (mean, gt, var))
+    for name, a, fix in (
+            ("mean", mean, "the render is not finite: check the model (retrain, or lower the optimiser's learning "
+                           "rates) before scoring it"),
+            ("gt", gt, "load the ground-truth image as finite floats in [0, 1] (b3dgs.data.images.load_image does)"),
+            ("var", var, "the UQ regime's predict returned a non-finite variance: check that regime (uq=...) and its "
+                         "posterior block")):
+        if not np.all(np.isfinite(a)):
+            raise B3dgsError(f"{name} contains NaN or Inf", fix=fix)
     if np.any(var < 0):
         raise B3dgsError(f"var must be >= 0 (min is {float(var.min())})",
                          fix="pass variances >= 0 (a standard deviation squared); clip tiny negative rounding errors "
                              "with numpy.clip(var, 0, None)")
     hw = tuple(int(d) for d in mean.shape[:2])
-    mean = mean.reshape(-1, 3)
-    gt = gt.reshape(-1, 3)
-    var = var.reshape(-1)
+    mean, gt, var = mean.reshape(-1, 3), gt.reshape(-1, 3), var.reshape(-1)
     if mask is not None:
         mask = _to_numpy(mask, "mask")
         if mask.dtype != np.bool_:
@@ -358,19 +347,8 @@ def spearman_rho(x: Any, y: Any, max_pixels: int | None = DEFAULT_MAX_SPEARMAN_P
 def evaluate_view(mean: Any, var: Any, gt: Any, mask: Any = None, *, fractions: Iterable[float] | None = None,
                   normalize: bool = False, levels: Iterable[float] | None = None, var_floor: float = DEFAULT_VAR_FLOOR,
                   max_spearman_pixels: int | None = DEFAULT_MAX_SPEARMAN_PIXELS, seed: int = 0) -> dict:
-    """All uncertainty metrics of one view.
-
-    Returns a dict of scalars (``n_pixels, mae, rmse, mean_var, ause_rmse, ause_mae, ece, cov95,
-    cov95_err, nll, nll_n_floored, spearman_rho, spearman_n``), descriptive fields
-    (``ause_normalization, nll_var_floor``) and ``"curves"``::
-
-        {"fractions": [...], "rmse": {"sparsification": [...], "oracle": [...]},
-         "mae": {"sparsification": [...], "oracle": [...]},
-         "calibration": {"levels": [...], "observed": [...]}}
-
-    ``rmse``/``mae`` are the full-set errors (the raw curves' first points). ``normalize`` selects the
-    AUSE convention (default raw; see module docstring).
-    """
+    """All uncertainty metrics of one view (the module docstring's), and their ``"curves"``; ``rmse``/``mae`` are the
+    full-set errors (the raw curves' first points), ``normalize`` the AUSE convention (default raw)."""
     m, v, g = _validate(mean, var, gt, mask)
     a, s = per_pixel_errors(m, g)
     sp_r = sparsification(v, s, "rmse", fractions, normalize)
@@ -392,9 +370,7 @@ def evaluate_view(mean: Any, var: Any, gt: Any, mask: Any = None, *, fractions: 
         "ece": float(np.mean(np.abs(obs - p))),
         "cov95": cov95,
         "cov95_err": abs(cov95 - 0.95),
-        "nll": nll["nll"],
-        "nll_var_floor": nll["nll_var_floor"],
-        "nll_n_floored": nll["nll_n_floored"],
+        **nll,  # nll, nll_var_floor, nll_n_floored
         "spearman_rho": rho,
         "spearman_n": n_rho,
         "curves": {
@@ -483,16 +459,10 @@ def _mean_curves(curves: Sequence[dict]) -> dict | None:
 
 
 def summarize(per_view: Sequence[dict], keep_curves: bool = False) -> dict:
-    """Scene summary of :func:`evaluate_view` results.
-
-    Top level: the mean over views of every numeric per-view scalar (a macro average -- AUSE and ECE
-    are per-view values averaged, never recomputed on pooled pixels). Non-finite values (e.g. an
-    undefined Spearman rho) are skipped, and ``n_finite`` records how many views entered each mean
-    where that is fewer than all. Also: ``n_views``, ``ause_normalization``, ``nll_note``,
-    ``aggregation_note``, ``mean_curves`` (element-wise mean of the per-view curves, for plotting; None
-    when grids differ) and ``per_view`` (scalars only; per-view curves are kept under ``"curves"`` only
-    if ``keep_curves``).
-    """
+    """Scene summary of :func:`evaluate_view` results: the mean over views of every numeric per-view scalar (a macro
+    average; non-finite values skipped, ``n_finite`` counting the views of each mean that has fewer than all), the
+    element-wise mean of the per-view curves (``mean_curves``; None when grids differ) and ``per_view`` (their
+    ``"curves"`` only with ``keep_curves``)."""
     per_view = list(per_view)
     if not per_view:
         raise B3dgsError("summarize needs at least one per-view result",
@@ -502,8 +472,7 @@ def summarize(per_view: Sequence[dict], keep_curves: bool = False) -> dict:
     if len(norms) > 1:
         raise B3dgsError(f"per-view results mix AUSE normalisations: {sorted(map(str, norms))}",
                          fix="compute every view with the same normalize= setting before summarising them")
-    keys = [k for k, x in per_view[0].items() if _is_scalar(x)]
-    keys = [k for k in keys if all(_is_scalar(d.get(k)) for d in per_view)]
+    keys = [k for k, x in per_view[0].items() if _is_scalar(x) and all(_is_scalar(d.get(k)) for d in per_view)]
     out: dict[str, Any] = {"n_views": len(per_view)}
     n_finite: dict[str, int] = {}
     for k in keys:
@@ -523,11 +492,6 @@ def summarize(per_view: Sequence[dict], keep_curves: bool = False) -> dict:
     out["aggregation_note"] = AGGREGATION_NOTE
     curves = [d["curves"] for d in per_view if isinstance(d.get("curves"), dict)]
     out["mean_curves"] = _mean_curves(curves) if len(curves) == len(per_view) else None
-    pv = []
-    for d in per_view:
-        row = {k: x for k, x in d.items() if k != "curves"}
-        if keep_curves and "curves" in d:
-            row["curves"] = d["curves"]
-        pv.append(row)
-    out["per_view"] = pv
+    out["per_view"] = [{**{k: x for k, x in d.items() if k != "curves"},
+                        **({"curves": d["curves"]} if keep_curves and "curves" in d else {})} for d in per_view]
     return out

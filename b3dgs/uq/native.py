@@ -82,11 +82,7 @@ class NativeRegime(UQRegime):
                 blk.validate()
             out.append((name, blk, st))
         for name, blk in (self.add or {}).items():
-            blk = self._block(name, blk)
-            if not isinstance(blk, PosteriorBlock):
-                raise B3dgsError(f"uq.{name}: add.{name} must be a posterior block (a _target_ to a PosteriorBlock "
-                                 f"class such as b3dgs_plugins.posterior.sh.SHPosteriorBlock), got {type(blk).__name__}",
-                                 f"remove add.{name}, or give it a _target_")
+            blk = self._block(name, blk)  # a posterior block: validate() checked it
             if self.model_blocks and name in m.posterior:
                 own = m.posterior[name]
                 if own == blk:  # posterior=[niw,sh] under uq=[native_plus_sh]: the model's own block is the same one
@@ -110,7 +106,6 @@ class NativeRegime(UQRegime):
             raise B3dgsError("uq=native needs a model trained with posterior blocks (model=niw or model=dpmm) or blocks "
                              "added at evaluation (uq=[native_sh])",
                              fix="use uq=proxy (or uq=[native_sh]) for a standard model, or train with model=niw")
-        self.sigma2 = 0.0
         # one prepared draw function per block: posterior set-up once, not per chunk or view
         blocks = self._blocks(m)
         m.prepare_posterior(scene.train if scene is not None else None, blocks=blocks)  # counts from a view pass
@@ -122,7 +117,6 @@ class NativeRegime(UQRegime):
         if own is None:  # only added blocks (a standard model, or model_blocks=false): their σ̂²
             own = _sigma2(self._fitted[n_own:])
         self.sigma2 = own if own is not None else 0.0
-
         self.fit_info["sigma2_plugin"] = self.sigma2
 
     def condition(self, weight_sums) -> bool:
@@ -145,10 +139,7 @@ class NativeRegime(UQRegime):
         calls (e.g. before and after :meth:`condition`) share their random numbers. (On the test scene, weight
         sums · this spread predicted the conditioned / unconditioned native score within ~0.05, Spearman 0.68
         over candidates; a saturating 1 − exp(−‖Δμ‖² / tr Σ) ranked as well but predicted ratios near 1.)"""
-        g = torch.Generator(device="cpu").manual_seed(int(seed))
-        p = dict(self.base)
-        for sampler in self.samplers:
-            p = sampler(int(samples), g, p)
+        p = self._draw(int(samples), torch.Generator(device="cpu").manual_seed(int(seed)))
         d2 = (p["means"].double() - self.base["means"].double()).square().sum(-1)
         size2 = torch.exp(2.0 * self.base["scales"].double()).sum(-1).clamp_min(1e-30)
         return (d2 / size2).sqrt().mean(0)
@@ -158,18 +149,18 @@ class NativeRegime(UQRegime):
         self._current = list(self._fitted)
         self.samplers = [blk.sampler(splats=m.splats, state=st) for blk, st in self._current]
 
+    def _draw(self, n: int, generator) -> dict:
+        """The point-estimate parameters with ``n`` draws of the current posterior (every block in turn)."""
+        p = dict(self.base)
+        for sampler in self.samplers:
+            p = sampler(n, generator, p)
+        return p
+
     @torch.no_grad()
     def spread(self, camera, generator=None):
         """(point-estimate render (H, W, 3), u_p (H, W)) of one view: Eq. 4 over ``samples`` draws."""
         m = self.models[0]
-
-        def draw(n):
-            p = dict(self.base)
-            for sampler in self.samplers:
-                p = sampler(n, generator, p)
-            return p
-
-        _, u = sample_spread(m, camera, draw, self.samples, self.chunk)
+        _, u = sample_spread(m, camera, lambda n: self._draw(n, generator), self.samples, self.chunk)
         return m.render_eval(camera), u
 
     @torch.no_grad()

@@ -24,13 +24,10 @@ __all__ = ["plot_sparsification", "plot_reliability", "plot_uncertainty_panel", 
 
 
 def _np(x: Any) -> np.ndarray:
-    try:
-        import torch
+    import torch
 
-        if isinstance(x, torch.Tensor):
-            return x.detach().cpu().double().numpy()
-    except ImportError:  # pragma: no cover
-        pass
+    if isinstance(x, torch.Tensor):
+        return x.detach().cpu().double().numpy()
     return np.asarray(x, dtype=np.float64)
 
 

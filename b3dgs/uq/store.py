@@ -29,6 +29,8 @@ UQ_NAME = "uq.json"
 LOCK_NAME = ".uq.json.lock"
 #: seconds an evaluation waits for another one writing the same uq.json
 LOCK_TIMEOUT_S = 600.0
+#: the plots :func:`_plot_all` writes (where some regime kept its mean curves)
+PLOTS = ("uq/sparsification.png", "uq/reliability.png")
 
 
 def ensemble_dir(members: Sequence[Path]) -> Path:
@@ -148,7 +150,8 @@ def merge_into(folder: Path, new: Mapping[str, dict], meta: Mapping, staging: Op
                     stale += sorted(set(uq_panels(name, old, old_meta)) - set(entry.get("panels") or []))
             events = sorted((Path(staging) / "tb_uq").glob("*")) if staging is not None else []
             merged = {**{k: v for k, v in have.items() if k != "_meta"}, **new, "_meta": {**old_meta, **meta}}
-            record_written(folder, [UQ_NAME, LOCK_NAME, *_plot_names(merged), *(f"tb_uq/{e.name}" for e in events),
+            record_written(folder, [UQ_NAME, LOCK_NAME, *(PLOTS if _curves(merged) else ()),
+                                    *(f"tb_uq/{e.name}" for e in events),
                                     *(p for e in new.values() for p in e.get("panels") or [])], forget=stale)
             remove_listed(folder, stale)
             for name, entry in new.items():
@@ -172,19 +175,14 @@ def _curves(merged: Mapping) -> dict:
             if not k.startswith("_") and isinstance(v, dict) and isinstance(v.get("curves"), dict)}
 
 
-def _plot_names(merged: Mapping) -> list[str]:
-    """The plots :func:`_plot_all` writes for ``merged``."""
-    return ["uq/sparsification.png", "uq/reliability.png"] if _curves(merged) else []
-
-
 def _plot_all(folder: Path, merged: Mapping) -> None:
     """The sparsification and reliability plots of every regime in ``merged`` that kept its mean curves."""
     from b3dgs.uq.plots import plot_reliability, plot_sparsification
 
     curves = _curves(merged)
     if curves:
-        plot_sparsification(curves, folder / "uq" / "sparsification.png")
-        plot_reliability(curves, folder / "uq" / "reliability.png")
+        plot_sparsification(curves, folder / PLOTS[0])
+        plot_reliability(curves, folder / PLOTS[1])
 
 
 def remove_staging(staging: Optional[Path]) -> None:
