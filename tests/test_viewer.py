@@ -249,15 +249,14 @@ def test_cli_refuses_in_one_line(tiny_runs, tmp_path):
 @pytest.mark.parametrize("arg, match", [("port=70000", "port=70000 is not a TCP port (0-65535)"),
                                         ("host=10.255.255.1", "cannot serve on host=10.255.255.1"),
                                         ("host=no-such-host.invalid", "host=no-such-host.invalid is not a known host")])
-def test_an_address_it_cannot_serve_on_ends_the_viewer_at_once(tiny_runs, tmp_path, arg, match):
-    """Refused before the run is loaded or anything is served: one line, exit code 2, within 5 s (not a hang)."""
-    t0 = time.time()
-    res = subprocess.run([sys.executable, "-m", "b3dgs.viewer.app", f"run={tiny_runs['standard']}", arg],
+def test_an_address_it_cannot_serve_on_ends_the_viewer_at_once(tmp_path, arg, match):
+    """Refused before the run is opened or anything is served: one line, exit code 2. The run is an empty folder,
+    so a refusal that came after opening it would name the run instead; the subprocess timeout catches a hang."""
+    (tmp_path / "not_a_run").mkdir()
+    res = subprocess.run([sys.executable, "-m", "b3dgs.viewer.app", f"run={tmp_path / 'not_a_run'}", arg],
                          capture_output=True, text=True, timeout=60, cwd=tmp_path, env=ENV)
-    took = time.time() - t0
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert res.returncode == 2 and len(lines) == 1 and match in lines[0] and "(fix: " in lines[0], res.stderr[-2000:]
-    assert took < 5.0, f"took {took:.1f} s"
 
 
 def test_duration_s_ends_the_viewer(tiny_runs, tmp_path):
