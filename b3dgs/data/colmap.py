@@ -38,18 +38,11 @@ PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 __all__ = ["check_colmap_binary", "find_sparse_dir", "load_colmap", "read_colmap"]
 
 
-def _has_model(d: Path) -> bool:
-    return model_format(d) is not None
-
-
 def find_sparse_dir(root: Path, sparse_dir: Optional[str] = None) -> Path:
     """The model folder: ``root/sparse_dir`` if given, else the first of ``sparse/0``, ``sparse``, ``root``."""
-    if sparse_dir is not None:
-        cand = [root / sparse_dir]
-    else:
-        cand = [root / "sparse" / "0", root / "sparse", root]
+    cand = [root / sparse_dir] if sparse_dir is not None else [root / "sparse" / "0", root / "sparse", root]
     for d in cand:
-        if d.is_dir() and _has_model(d):
+        if d.is_dir() and model_format(d) is not None:
             return d
     raise B3dgsError(f"no COLMAP model (cameras/images/points3D .bin or .txt) found in "
                      f"{', '.join(str(c) for c in cand)}",

@@ -31,6 +31,7 @@ from b3dgs.io import atomic_path
 from b3dgs.types import Camera
 
 __all__ = ["load_llff", "read_llff", "write_llff"]
+_REGENERATE = "regenerate poses_bounds.npy (LLFF's imgs2poses) or load the scene's COLMAP model (data=colmap)"
 
 
 def read_llff(path: str | os.PathLike, images_dir: str = "images") -> tuple[list[FrameSpec], np.ndarray]:
@@ -45,9 +46,7 @@ def read_llff(path: str | os.PathLike, images_dir: str = "images") -> tuple[list
     try:
         pb = np.load(pb_path, allow_pickle=False)
     except (OSError, ValueError) as e:
-        raise B3dgsError(f"Cannot read {pb_path}: {e}",
-                         fix="regenerate poses_bounds.npy (LLFF's imgs2poses) or load the scene's COLMAP "
-                             "model (data=colmap)") from e
+        raise B3dgsError(f"Cannot read {pb_path}: {e}", _REGENERATE) from e
     if pb.ndim != 2 or pb.shape[1] != 17:
         raise B3dgsError(f"{pb_path} must be (N, 17), got {pb.shape}",
                          fix="regenerate poses_bounds.npy (LLFF's imgs2poses): each row holds a 3x5 pose+hwf matrix "
@@ -55,13 +54,10 @@ def read_llff(path: str | os.PathLike, images_dir: str = "images") -> tuple[list
     pb = pb.astype(np.float64)
     if not np.isfinite(pb).all():
         bad = np.where(~np.isfinite(pb).all(axis=1))[0].tolist()
-        raise B3dgsError(f"{pb_path}: non-finite values in rows {bad}",
-                         fix="regenerate poses_bounds.npy (LLFF's imgs2poses) or load the scene's COLMAP model "
-                             "(data=colmap)")
+        raise B3dgsError(f"{pb_path}: non-finite values in rows {bad}", _REGENERATE)
     bad = np.where(~((pb[:, 15] > 0) & (pb[:, 16] > pb[:, 15])))[0].tolist()
     if bad:
-        raise B3dgsError(f"{pb_path}: rows {bad[:5]} have near/far bounds that are not 0 < near < far",
-                         "regenerate poses_bounds.npy (LLFF's imgs2poses) or load the scene's COLMAP model (data=colmap)")
+        raise B3dgsError(f"{pb_path}: rows {bad[:5]} have near/far bounds that are not 0 < near < far", _REGENERATE)
     files = list_images(root / images_dir)
     if len(files) != len(pb):
         raise B3dgsError(f"{pb_path} has {len(pb)} poses but {root / images_dir} has {len(files)} images",
@@ -83,20 +79,15 @@ def read_llff(path: str | os.PathLike, images_dir: str = "images") -> tuple[list
         try:
             viewmat = np.linalg.inv(c2w)
         except np.linalg.LinAlgError as e:
-            raise B3dgsError(f"{pb_path}: singular pose for {f.name}",
-                             fix="regenerate poses_bounds.npy (LLFF's imgs2poses) or load the scene's COLMAP "
-                                 "model (data=colmap)") from e
+            raise B3dgsError(f"{pb_path}: singular pose for {f.name}", _REGENERATE) from e
         W0, H0 = int(round(W)), int(round(H))
         w, h = image_size(f)
         if (w, h) != (W0, H0):
             s = w / W0
             if abs(H0 * s - h) > 1.0 or s > 1.0:
-                raise B3dgsError(
-                    f"Image {f} is {w}x{h} but poses_bounds.npy says {W0}x{H0} (w x h), "
-                    f"which is not a uniform downscale"
-,
-                          fix="point data.images_dir at the images the poses were computed for, or at copies "
-                              "downscaled by one factor in both axes (e.g. images_4)")
+                raise B3dgsError(f"Image {f} is {w}x{h} but poses_bounds.npy says {W0}x{H0} (w x h), which is not "
+                                 "a uniform downscale", fix="point data.images_dir at the images the poses were "
+                                 "computed for, or at copies downscaled by one factor in both axes (e.g. images_4)")
         sx, sy = w / W, h / H
         K = np.array([[focal * sx, 0.0, w / 2.0], [0.0, focal * sy, h / 2.0], [0.0, 0.0, 1.0]])
         frames.append(FrameSpec(f.name, f, K, viewmat, w, h))

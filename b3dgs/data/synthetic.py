@@ -118,8 +118,7 @@ class SyntheticWorld:
             closer = t < t_best
             t_best[closer] = t[closer]
             who[closer] = k
-        rgb = np.empty((n, 3))
-        rgb[:] = np.asarray(background, dtype=np.float64)
+        rgb = np.full((n, 3), np.asarray(background, dtype=np.float64))
         p = o[None] + np.where(np.isfinite(t_best), t_best, 0.0)[:, None] * d
         m = who == -1
         if m.any():
@@ -217,9 +216,7 @@ def make_world(seed: int = 0, n_objects: int = 5) -> SyntheticWorld:
         for _ in range(1000):
             if floating:
                 axes = np.full(3, rng.uniform(0.22, 0.3))
-                xy = rng.uniform(-0.4, 0.4, size=2)
-                z = rng.uniform(0.85, 1.0)
-                center = np.array([xy[0], xy[1], z])
+                center = np.array([*rng.uniform(-0.4, 0.4, size=2), rng.uniform(0.85, 1.0)])
                 ok = True
             else:
                 axes = np.array([rng.uniform(0.22, 0.42), rng.uniform(0.22, 0.42), rng.uniform(0.2, 0.5)])

@@ -87,8 +87,7 @@ def _resolve_json(path: Path) -> list[Path]:
                          "pass data.path=PATH to an existing scene folder (or its transforms*.json file)")
     if (path / "transforms.json").is_file():
         return [path / "transforms.json"]
-    split = [path / f"transforms_{s}.json" for s in ("train", "val", "test")]
-    split = [p for p in split if p.is_file()]
+    split = [p for p in (path / f"transforms_{s}.json" for s in ("train", "val", "test")) if p.is_file()]
     if split:
         return split
     raise B3dgsError(f"{path} has no transforms.json (nor transforms_train.json)",

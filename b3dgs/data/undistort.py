@@ -212,13 +212,10 @@ def undistort_image(image: np.ndarray, K: np.ndarray, d: Distortion,
         return image, np.asarray(K, np.float64)
     h, w = image.shape[:2]
     K = np.asarray(K, np.float64)
-    key = (d, K.tobytes(), w, h)
-    if cache is not None and key in cache:
-        Kp, grid = cache[key]
-    else:
-        Kp, grid = sampling_grid(d, K, w, h)
-        if cache is not None:
-            cache[key] = (Kp, grid)
+    cache, key = {} if cache is None else cache, (d, K.tobytes(), w, h)
+    if key not in cache:
+        cache[key] = sampling_grid(d, K, w, h)
+    Kp, grid = cache[key]
     src = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)[None]
     out = torch.nn.functional.grid_sample(src, grid, mode="bilinear", padding_mode="border", align_corners=False)
     return np.ascontiguousarray(out[0].permute(1, 2, 0).clamp_(0.0, 1.0).numpy()), Kp.copy()
