@@ -5,9 +5,7 @@ licence, checksum where one is published, layout steps and the files the finishe
 downloads into ``<data_root>/.downloads`` (a ``.part`` file resumed with an HTTP Range request), checks the sum,
 extracts into a staging folder beside the scene (refusing members that would land outside it), runs the layout
 steps, checks the required files and renames the staging folder onto ``<data_root>/<name>``: a scene folder is
-complete or absent. ``data_root`` is :func:`b3dgs.data_root` (``$B3DGS_DATA``; ``$B3DGS_SHARED/data``;
-``../shared/data`` beside the checkout when it exists; else ``~/.cache/b3dgs/data``), the folder ``scene=NAME``
-reads.
+complete or absent. ``data_root`` is :func:`b3dgs.data_root` (see :data:`EXAMPLES`), the folder ``scene=NAME`` reads.
 """
 from __future__ import annotations
 
@@ -174,10 +172,7 @@ def _fetch_once(url: str, part: Path, bar_desc: str) -> None:
         total = have + int(length) if length is not None else None
         with open(part, "ab" if have else "wb") as f, progress(total=total, initial=have, unit="B", unit_scale=True,
                                                                unit_divisor=1024, desc=bar_desc) as bar:
-            while True:
-                block = res.read(CHUNK)
-                if not block:
-                    break
+            for block in iter(lambda: res.read(CHUNK), b""):
                 f.write(block)
                 bar.update(len(block))
     if total is not None and part.stat().st_size < total:

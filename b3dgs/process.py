@@ -257,8 +257,8 @@ class _Run:
         extract = {"camera_model": str(c.camera_model), "single_camera": self.single,
                    "sift_max_side": int(c.sift_max_side)}
         match = {**extract, "matcher": self.matcher, "seed": int(c.seed)}
-        mapping = dict(match)
-        return {"extract": extract, "match": match, "map": mapping, "undistort": {**mapping, "max_side": int(c.max_side)}}
+        return {"extract": extract, "match": match, "map": dict(match),
+                "undistort": {**match, "max_side": int(c.max_side)}}
 
     def outputs(self, stage: str) -> list[Path]:
         return {"extract": [self.work / "features.db"], "match": [self.work / "matches.db"],

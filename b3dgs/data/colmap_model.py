@@ -238,17 +238,10 @@ def _lines(path: Path, keep_next: bool = False) -> Iterator[tuple[int, str, Opti
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:
         raise B3dgsError(f"COLMAP file {path} is not UTF-8 text ({e.reason} at byte {e.start})", _FIX) from None
-    rows = text.splitlines()
-    i = 0
-    while i < len(rows):
-        n, line = i + 1, rows[i].strip()
-        i += 1
-        if not line or line.startswith("#"):
-            continue
-        nxt = None
-        if keep_next and i < len(rows):
-            nxt, i = (i + 1, rows[i].strip()), i + 1
-        yield n, line, nxt
+    rows = enumerate((row.strip() for row in text.splitlines()), start=1)
+    for n, line in rows:
+        if line and not line.startswith("#"):
+            yield n, line, next(rows, None) if keep_next else None
 
 
 def _numbers(path: Path, line: int, fields: list[str], kind, what: str) -> list:

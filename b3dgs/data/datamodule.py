@@ -27,23 +27,18 @@ def camera_collate(batch: list[Camera]) -> Camera:
 class ResumableRandomSampler(Sampler[int]):
     """Each index once per epoch in a random order, reshuffled every epoch, resumable mid-epoch.
 
-    The order comes from the sampler's own ``torch.Generator`` (seeded from torch's global RNG when the
-    sampler is made, so ``seed_everything`` makes it reproducible), never from the global RNG during
-    training. :meth:`state_dict` holds the generator, the current epoch's permutation and the position
-    in it; an iterator started after :meth:`load_state_dict` yields the rest of that epoch, and the next
-    one draws the next permutation, exactly as the uninterrupted sampler would.
-
-    The position is the number of indices *consumed*: a loader that fetches ahead (Lightning prefetches
-    one batch) reports consumption with :meth:`mark_consumed` (``b3dgs.callbacks.ResumeState`` does, from
-    the batch index); without such reports it is the number of indices yielded.
-    """
+    The order comes from the sampler's own ``torch.Generator`` (seeded from torch's global RNG when the sampler is made,
+    so ``seed_everything`` makes it reproducible; never drawn from that RNG during training). :meth:`state_dict` holds
+    the generator, the epoch's permutation and the position in it: the indices *consumed*, as a loader that fetches
+    ahead (Lightning prefetches one batch) reports them with :meth:`mark_consumed` (``b3dgs.callbacks.ResumeState``
+    does), else those yielded. An iterator started after :meth:`load_state_dict` yields the rest of that epoch, and
+    the next one the next permutation, exactly as the uninterrupted sampler would."""
 
     def __init__(self, n: int, seed: Optional[int] = None):
         self.n = int(n)
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_().item())
-        self.generator = torch.Generator()
-        self.generator.manual_seed(int(seed))
+        self.generator = torch.Generator().manual_seed(int(seed))
         self.perm: Optional[list[int]] = None
         self.epoch = 0  # permutations drawn so far
         self._yielded = 0
@@ -78,18 +73,14 @@ class ResumableRandomSampler(Sampler[int]):
                 "position": self.position}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        if int(state["n"]) != self.n and self.allow_resize:
-            # a new training round with more views: keep the generator's stream, start a fresh epoch
-            self.generator.set_state(state["generator"])
-            self.perm, self.epoch, self._yielded, self._consumed = None, int(state["epoch"]), 0, None
-            return
-        if int(state["n"]) != self.n:
+        resized = int(state["n"]) != self.n  # allowed for a new training round with more views: a fresh epoch
+        if resized and not self.allow_resize:
             raise B3dgsError(f"the checkpoint's view sampler has {state['n']} train views, this scene {self.n}",
                              "resume with the data settings of the checkpoint's run")
-        self.generator.set_state(state["generator"])
-        self.perm = None if state["perm"] is None else [int(i) for i in state["perm"]]
+        self.generator.set_state(state["generator"])  # the generator's stream goes on in any case
+        self.perm = None if resized or state["perm"] is None else [int(i) for i in state["perm"]]
         self.epoch = int(state["epoch"])
-        self._yielded, self._consumed = int(state["position"]), None
+        self._yielded, self._consumed = 0 if resized else int(state["position"]), None
 
 
 class ResumableDataLoader(DataLoader):

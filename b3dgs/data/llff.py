@@ -1,20 +1,16 @@
 """LLFF scenes: ``poses_bounds.npy`` + ``images/``.
 
-``poses_bounds.npy`` is (N, 17): a row-major 3x5 matrix ``[R | t | hwf]`` then ``near, far``. ``R``'s
-columns are the camera's axes in world coordinates in LLFF's ``[down, right, back]`` order, ``t`` the
-camera centre (camera-to-world), ``hwf = (height, width, focal)`` in pixels of the full-resolution
-images. Rows correspond to the image files of ``images/`` in sorted name order.
-
-OpenCV camera-to-world is ``[right, down, forward] = [col1, col0, -col2]``.
-
-The images may be a uniformly downscaled copy of the resolution in ``hwf`` (e.g. ``images_4``):
-the focal length is then scaled by the actual per-axis ratio; any other size mismatch raises.
-The principal point is the image centre.
+``poses_bounds.npy`` is (N, 17), one row per image file of ``images/`` in sorted name order: a row-major 3x5 matrix
+``[R | t | hwf]`` then ``near, far``. ``R``'s columns are the camera's axes in world coordinates in LLFF's ``[down,
+right, back]`` order (OpenCV's camera-to-world is ``[col1, col0, -col2]``), ``t`` the camera centre, ``hwf = (height,
+width, focal)`` in pixels of the full-resolution images. Images that are a uniformly downscaled copy (e.g.
+``images_4``) get the focal length scaled by the per-axis ratio; any other size mismatch raises. The principal point
+is the image centre.
 
 No NDC: the cameras are used as they are (perspective rasterisation in the normalised frame of
-:func:`b3dgs.data.scene.preprocess`, as 3DGS does); ``near, far`` (which must satisfy 0 < near < far) only
-set LLFF's focus depth, the centre of the random-initialisation box when the optical axes do not meet.
-There are no points: for 3DGS's initialisation load the scene's COLMAP model (``data=colmap``).
+:func:`b3dgs.data.scene.preprocess`, as 3DGS does); ``near, far`` (which must satisfy 0 < near < far) only set LLFF's
+focus depth, the centre of the random-initialisation box when the optical axes do not meet. There are no points: for
+3DGS's initialisation load the scene's COLMAP model (``data=colmap``).
 """
 from __future__ import annotations
 
@@ -72,10 +68,7 @@ def read_llff(path: str | os.PathLike, images_dir: str = "images") -> tuple[list
                              fix="regenerate poses_bounds.npy (LLFF's imgs2poses): height, width and focal must all "
                                  "be > 0")
         c2w = np.eye(4)
-        c2w[:3, 0] = m[:, 1]  # right
-        c2w[:3, 1] = m[:, 0]  # down
-        c2w[:3, 2] = -m[:, 2]  # forward = -back
-        c2w[:3, 3] = m[:, 3]
+        c2w[:3] = np.stack([m[:, 1], m[:, 0], -m[:, 2], m[:, 3]], axis=1)  # right, down, forward = -back, centre
         try:
             viewmat = np.linalg.inv(c2w)
         except np.linalg.LinAlgError as e:
@@ -113,21 +106,14 @@ def write_llff(
     cameras: Sequence[Camera],
     near_far: Sequence[float] | np.ndarray = (0.1, 100.0),
 ) -> Path:
-    """Write ``poses_bounds.npy`` for ``cameras`` (square pixels, centred principal point assumed).
-
-    Rows follow the cameras' order; the caller names the image files so that they sort the same
-    way. ``near_far`` is one (near, far) pair or an (N, 2) array.
-    """
+    """Write ``poses_bounds.npy`` for ``cameras`` (square pixels, centred principal point assumed), one row per camera
+    in their order (name the image files so that they sort the same way); ``near_far``: one pair or an (N, 2) array."""
     rows = []
     nf = np.broadcast_to(np.asarray(near_far, dtype=np.float64), (len(cameras), 2))
     for cam, b in zip(cameras, nf):
         c2w = np.linalg.inv(cam.viewmat.double().numpy())
-        m = np.zeros((3, 5))
-        m[:, 0] = c2w[:3, 1]  # down
-        m[:, 1] = c2w[:3, 0]  # right
-        m[:, 2] = -c2w[:3, 2]  # back
-        m[:, 3] = c2w[:3, 3]
-        m[:, 4] = (cam.height, cam.width, float(cam.K[0, 0]))
+        m = np.stack([c2w[:3, 1], c2w[:3, 0], -c2w[:3, 2], c2w[:3, 3],  # down, right, back, centre, hwf
+                      np.array([cam.height, cam.width, float(cam.K[0, 0])], dtype=np.float64)], axis=1)
         rows.append(np.concatenate([m.reshape(-1), b]))
     out = Path(path) / "poses_bounds.npy"
     with atomic_path(out) as tmp:

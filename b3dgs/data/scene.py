@@ -333,16 +333,9 @@ def materialize(
         K = scale_intrinsics(f.K, w2 / f.width, h2 / f.height)
         if f.distortion is not None and pixels:
             img, K = undistort_image(img, K, f.distortion, cache=grids)
-        cams.append(
-            Camera(
-                name=f.name,
-                K=torch.tensor(K, dtype=torch.float32),
-                viewmat=torch.tensor(check_pose(f.name, f.viewmat), dtype=torch.float32),
-                width=w2,
-                height=h2,
-                image=None if img is None else torch.from_numpy(img),
-            )
-        )
+        cams.append(Camera(f.name, torch.tensor(K, dtype=torch.float32),
+                           torch.tensor(check_pose(f.name, f.viewmat), dtype=torch.float32), w2, h2,
+                           None if img is None else torch.from_numpy(img)))
     return cams
 
 
@@ -384,13 +377,9 @@ def check_camera_spread(name: str, viewmats: np.ndarray, rel_tol: float = 1e-6) 
 def normalize_scene(
     viewmats: np.ndarray, points: Optional[np.ndarray]
 ) -> tuple[np.ndarray, Optional[np.ndarray], float, np.ndarray, float]:
-    """Apply x' = s (x - m) to all poses and points.
-
-    Returns (viewmats', points', extent', m, s): m = mean camera centre, s = 1 / raw extent
-    (s = 1 when all cameras coincide), so the new extent is 1 (0 for coincident cameras).
-    A world-to-camera [R | t] becomes [R | s (R m + t)], which keeps the camera frame metric
-    consistent with the scaled world.
-    """
+    """Apply x' = s (x - m) to all poses and points: (viewmats', points', extent', m, s), m the mean camera centre,
+    s = 1 / raw extent (1 when all cameras coincide), so the new extent is 1 (0 for coincident cameras). A
+    world-to-camera [R | t] becomes [R | s (R m + t)], which keeps the camera frame metric consistent with the world."""
     mean, extent = camera_extent(viewmats)
     s = 1.0 / extent if extent > 1e-12 else 1.0
     out = viewmats.copy()
@@ -403,12 +392,10 @@ def normalize_scene(
 def look_at_point(viewmats: np.ndarray, fallback_depth: Optional[float] = None) -> tuple[np.ndarray, bool]:
     """Least-squares point closest to all optical axes: argmin_p sum_i |(I - d_i d_i^T)(p - c_i)|^2.
 
-    Returns (point, well_posed). It is not well posed when the axes are (nearly) parallel (smallest
-    eigenvalue of the mean projector < 1e-3) or when the solution lies behind most cameras
-    (diverging axes of a forward-facing capture). Then the fallback is the mean centre moved along
-    the mean viewing direction by ``fallback_depth`` if given (e.g. LLFF's focus depth from its
-    near/far bounds), else by the rig's radius (1 if all centres coincide).
-    """
+    Returns (point, well_posed). It is not well posed when the axes are (nearly) parallel (smallest eigenvalue of the
+    mean projector < 1e-3) or when the solution lies behind most cameras (diverging axes of a forward-facing capture);
+    then the point is the mean centre moved along the mean viewing direction by ``fallback_depth`` if given (e.g.
+    LLFF's focus depth from its near/far bounds), else by the rig's radius (1 if all centres coincide)."""
     centres, dirs = _centres_dirs(viewmats)
     A = np.zeros((3, 3))
     b = np.zeros(3)
@@ -598,12 +585,9 @@ def preprocess(raw: RawScene, settings: Optional[SceneSettings] = None) -> Scene
 
 
 class CandidateStore:
-    """The images of the candidate views of an active-view study, by view name.
-
-    Only the study driver holds it (:func:`take_candidate_store` removes it from the scene before any model
-    or policy sees the scene): it reads an image when a view is acquired, and for the analysis-only
-    ``oracle``. ``reads`` counts every access (the leak test checks it).
-    """
+    """The images of the candidate views of an active-view study, by view name. Only the study driver holds it
+    (:func:`take_candidate_store` removes it from the scene before any model or policy sees the scene): it reads an
+    image when a view is acquired, and for the analysis-only ``oracle``. ``reads`` counts every access (leak test)."""
 
     def __init__(self, images: dict):
         self._images = dict(images)
@@ -629,12 +613,10 @@ def take_candidate_store(scene: Scene) -> CandidateStore:
 
 
 def filter_points_to_train(raw: RawScene, points: np.ndarray, colors: Optional[np.ndarray], train: Sequence[Camera]):
-    """Keep the initial points observed by at least two of the ``train`` views, so that a sparse start does
-    not inherit geometry only the candidate views saw. COLMAP scenes (``raw.extras["point_views"]``: the
-    image names of each point's track, from pycolmap) use the tracks. Scenes without tracks (synthetic,
-    transforms with a PLY) use visibility instead: a point counts as observed by a view when it projects
-    inside the image in front of the camera (no occlusion test, so this keeps slightly more).
-    Returns (points, colors, report)."""
+    """Keep the initial points observed by at least two of the ``train`` views, so that a sparse start does not inherit
+    geometry only the candidate views saw: by the tracks of a COLMAP scene (``raw.extras["point_views"]``: the image
+    names of each point's track), else by visibility (a point projecting inside the image in front of the camera; no
+    occlusion test, so this keeps slightly more). Returns (points, colors, report)."""
     names = {c.name for c in train}
     total = len(points)
     tracks = raw.extras.get("point_views")
