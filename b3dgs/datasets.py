@@ -5,9 +5,7 @@ licence, checksum where one is published, layout steps and the files the finishe
 downloads into ``<data_root>/.downloads`` (a ``.part`` file resumed with an HTTP Range request), checks the sum,
 extracts into a staging folder beside the scene (refusing members that would land outside it), runs the layout
 steps, checks the required files and renames the staging folder onto ``<data_root>/<name>``: a scene folder is
-complete or absent. ``data_root`` is :func:`b3dgs.data_root` (``$B3DGS_DATA``; ``$B3DGS_SHARED/data``;
-``../shared/data`` beside the checkout when it exists; else ``~/.cache/b3dgs/data``), the folder ``scene=NAME``
-reads.
+complete or absent. ``data_root`` is :func:`b3dgs.data_root` (see :data:`EXAMPLES`), the folder ``scene=NAME`` reads.
 """
 from __future__ import annotations
 
@@ -45,6 +43,7 @@ RETRY_WAIT_S = 1.0
 TIMEOUT_S = 60.0
 CHUNK = 1 << 20
 ARCHIVES = (".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tar.xz")
+_BAD_ARCHIVE = "the archive is not the one the registry names; delete it and download it again"
 
 
 @dataclass(frozen=True)
@@ -173,10 +172,7 @@ def _fetch_once(url: str, part: Path, bar_desc: str) -> None:
         total = have + int(length) if length is not None else None
         with open(part, "ab" if have else "wb") as f, progress(total=total, initial=have, unit="B", unit_scale=True,
                                                                unit_divisor=1024, desc=bar_desc) as bar:
-            while True:
-                block = res.read(CHUNK)
-                if not block:
-                    break
+            for block in iter(lambda: res.read(CHUNK), b""):
                 f.write(block)
                 bar.update(len(block))
     if total is not None and part.stat().st_size < total:
@@ -190,17 +186,15 @@ def download(url: str, dest: Path, sha256: Optional[str], scene: str, attempts: 
     if not dest.is_file():
         part = dest.with_name(dest.name + ".part")
         dest.parent.mkdir(parents=True, exist_ok=True)
-        error: Optional[BaseException] = None
         for attempt in range(attempts):
             try:
                 _fetch_once(url, part, dest.name)
-                error = None
                 break
             except (OSError, http.client.HTTPException, ValueError) as e:  # URLError, a cut or refused connection
                 error = e
             if attempt + 1 < attempts:
                 time.sleep(RETRY_WAIT_S)
-        if error is not None:
+        else:  # every attempt failed
             reason = getattr(error, "reason", None) or error
             raise B3dgsError(f"cannot download {url}: {' '.join(str(reason).split())}",
                              f"check the connection and rerun (the download resumes), or {_manual(url, dest, scene)}")
@@ -220,7 +214,7 @@ def _member_path(name: str, archive: Path) -> PurePosixPath:
     p = PurePosixPath(name.replace("\\", "/"))
     if p.is_absolute() or name.startswith(("/", "\\")) or ".." in p.parts or (p.parts and ":" in p.parts[0]):
         raise B3dgsError(f"the archive {archive.name} holds {name!r}, which would be written outside the scene folder",
-                         "the archive is not the one the registry names; delete it and download it again")
+                         _BAD_ARCHIVE)
     return p
 
 
@@ -280,45 +274,38 @@ def _subdir_prefix(paths: list[PurePosixPath], subdir: str) -> PurePosixPath:
     for prefix in (want, *(PurePosixPath(t) / want for t in tops)):
         if any(p.parts[:len(prefix.parts)] == prefix.parts and len(p.parts) > len(prefix.parts) for p in paths):
             return prefix
-    raise B3dgsError(f"the archive holds no folder {subdir}", "the archive is not the one the registry names; delete it "
-                     "and download it again")
+    raise B3dgsError(f"the archive holds no folder {subdir}", _BAD_ARCHIVE)
 
 
 def extract(archive: Path, subdir: str, dest: Path) -> None:
     """``subdir`` of a zip or tar archive into ``dest``. Every member is checked first: an absolute path, a ``..``
     or a link pointing out of the folder refuses the whole archive before anything is written."""
     with _members(archive) as members:
-        _extract(archive, members, subdir, dest)
-
-
-def _extract(archive: Path, members: list[_Member], subdir: str, dest: Path) -> None:
-    for m in members:
-        if m.kind == "link" and _link_escapes(m.path, m.target):
-            raise B3dgsError(f"the archive {archive.name} holds the link {m.path} -> {m.target}, which points outside "
-                             "the scene folder", "the archive is not the one the registry names; delete it and "
-                             "download it again")
-    prefix = _subdir_prefix([m.path for m in members], subdir)
-    root = dest.resolve()
-    for m in members:
-        if m.path.parts[:len(prefix.parts)] != prefix.parts or len(m.path.parts) == len(prefix.parts):
-            continue
-        rel = PurePosixPath(*m.path.parts[len(prefix.parts):])
-        out = dest.joinpath(*rel.parts)
-        if root not in (out.parent.resolve(), *out.parent.resolve().parents):  # through a link extracted before
-            raise B3dgsError(f"the archive {archive.name} writes {m.path} through a link out of the scene folder",
-                             "the archive is not the one the registry names; delete it and download it again")
-        if m.kind == "dir":
-            out.mkdir(parents=True, exist_ok=True)
-        elif m.kind == "link":
-            out.parent.mkdir(parents=True, exist_ok=True)
-            if _link_escapes(rel, m.target):
-                raise B3dgsError(f"the link {m.path} -> {m.target} points outside the scene folder",
-                                 "the archive is not the one the registry names; delete it and download it again")
-            out.symlink_to(m.target)
-        else:
-            out.parent.mkdir(parents=True, exist_ok=True)
-            with m.open() as src, open(out, "wb") as f:
-                shutil.copyfileobj(src, f, CHUNK)
+        for m in members:
+            if m.kind == "link" and _link_escapes(m.path, m.target):
+                raise B3dgsError(f"the archive {archive.name} holds the link {m.path} -> {m.target}, which points "
+                                 "outside the scene folder", _BAD_ARCHIVE)
+        prefix = _subdir_prefix([m.path for m in members], subdir)
+        root = dest.resolve()
+        for m in members:
+            if m.path.parts[:len(prefix.parts)] != prefix.parts or len(m.path.parts) == len(prefix.parts):
+                continue
+            rel = PurePosixPath(*m.path.parts[len(prefix.parts):])
+            out = dest.joinpath(*rel.parts)
+            if root not in (out.parent.resolve(), *out.parent.resolve().parents):  # through a link extracted before
+                raise B3dgsError(f"the archive {archive.name} writes {m.path} through a link out of the scene folder",
+                                 _BAD_ARCHIVE)
+            if m.kind == "dir":
+                out.mkdir(parents=True, exist_ok=True)
+            elif m.kind == "link":
+                out.parent.mkdir(parents=True, exist_ok=True)
+                if _link_escapes(rel, m.target):
+                    raise B3dgsError(f"the link {m.path} -> {m.target} points outside the scene folder", _BAD_ARCHIVE)
+                out.symlink_to(m.target)
+            else:
+                out.parent.mkdir(parents=True, exist_ok=True)
+                with m.open() as src, open(out, "wb") as f:
+                    shutil.copyfileobj(src, f, CHUNK)
 
 
 def is_archive(source: Source) -> bool:
@@ -434,7 +421,6 @@ def get(scene: Scene, root: Path, scenes: Optional[dict[str, Scene]] = None) -> 
     staging = Path(tempfile.mkdtemp(prefix=f".{scene.name}{STAGING_MARK}", dir=root))
     folder = staging / "scene"
     folder.mkdir()
-    done = False
     try:
         archives = []
         for source in scene.sources:
@@ -455,23 +441,21 @@ def get(scene: Scene, root: Path, scenes: Optional[dict[str, Scene]] = None) -> 
                              "the source changed since the registry was written; report it, or place the scene by "
                              f"hand in {target}")
         os.replace(folder, target)
-        done = True
     finally:
         shutil.rmtree(staging, ignore_errors=True)
         for p in (downloads / scene.name, downloads):
             if p.is_dir() and not any(p.iterdir()):
                 p.rmdir()
-    kept = []
-    if done:
-        shutil.rmtree(downloads / scene.name, ignore_errors=True)
-        for source in archives:
-            others = _still_needed(source, scenes or {}, root, {scene.name})
-            if others:
-                kept.append(f"{source.name} kept for {', '.join(others)}")
-            else:
-                (downloads / source.name).unlink(missing_ok=True)
-        if downloads.is_dir() and not any(downloads.iterdir()):
-            downloads.rmdir()
+    kept = []  # reached only when the scene is in place
+    shutil.rmtree(downloads / scene.name, ignore_errors=True)
+    for source in archives:
+        others = _still_needed(source, scenes or {}, root, {scene.name})
+        if others:
+            kept.append(f"{source.name} kept for {', '.join(others)}")
+        else:
+            (downloads / source.name).unlink(missing_ok=True)
+    if downloads.is_dir() and not any(downloads.iterdir()):
+        downloads.rmdir()
     return f"{scene.name}: ready in {target}" + (f" ({'; '.join(kept)})" if kept else "")
 
 
@@ -521,8 +505,7 @@ def main(argv: Optional[list[str]] = None) -> int:
         if args.command == "list":
             _say("\n".join(list_lines(scenes, root, origin)))
             return 0
-        todo = resolve(args.names, scenes)
-        for scene in todo:
+        for scene in resolve(args.names, scenes):
             _say(get(scene, root, scenes))
         return 0
     except KeyboardInterrupt:

@@ -94,11 +94,7 @@ def list_photos(folder: Path) -> list[Path]:
 
 
 def _listing(photos: list[Path]) -> list[list]:
-    out = []
-    for p in photos:
-        st = p.stat()
-        out.append([p.name, int(st.st_size), int(st.st_mtime_ns)])
-    return out
+    return [[p.name, int((st := p.stat()).st_size), int(st.st_mtime_ns)] for p in photos]
 
 
 def _fingerprint(listing: list[list]) -> str:
@@ -261,8 +257,8 @@ class _Run:
         extract = {"camera_model": str(c.camera_model), "single_camera": self.single,
                    "sift_max_side": int(c.sift_max_side)}
         match = {**extract, "matcher": self.matcher, "seed": int(c.seed)}
-        mapping = dict(match)
-        return {"extract": extract, "match": match, "map": mapping, "undistort": {**mapping, "max_side": int(c.max_side)}}
+        return {"extract": extract, "match": match, "map": dict(match),
+                "undistort": {**match, "max_side": int(c.max_side)}}
 
     def outputs(self, stage: str) -> list[Path]:
         return {"extract": [self.work / "features.db"], "match": [self.work / "matches.db"],
@@ -398,17 +394,13 @@ class _Run:
         bar = _bar(desc, len(self.names), " photos")
         started = [0, 0]  # models started (2 photos each), photos added after their first pair
 
-        def pair() -> None:
-            started[0] += 1
-            _advance(bar, 2 * started[0] + started[1])
-
-        def image() -> None:
-            started[1] += 1
+        def step(k: int) -> None:
+            started[k] += 1
             _advance(bar, 2 * started[0] + started[1])
 
         recs = _call(lambda: pycolmap.incremental_mapping(self.work / "matches.db", self.images, part, options=opts,
-                                                          initial_image_pair_callback=pair,
-                                                          next_image_callback=image))
+                                                          initial_image_pair_callback=lambda: step(0),
+                                                          next_image_callback=lambda: step(1)))
         bar.close()
         if not recs:
             return 0, None, 0
@@ -545,12 +537,7 @@ def _write_state(out: Path, state: dict) -> None:
 def _check_out(out: Path, images: Path, state: Optional[dict], key: str = "images") -> None:
     if out.exists() and not out.is_dir():
         raise B3dgsError(f"out={out} is a file", "pass out= a new or empty folder")
-    try:
-        images.resolve().relative_to(out.resolve())
-        inside = True
-    except ValueError:
-        inside = False
-    if inside:
+    if images.resolve().is_relative_to(out.resolve()):
         raise B3dgsError(f"{key}={images} is inside out={out}, where the undistorted images are written",
                          f"pass out= a folder outside the photos' folder, e.g. out={out.parent / (out.name + '_scene')}")
     if state is None and out.is_dir():
@@ -563,19 +550,12 @@ def _check_out(out: Path, images: Path, state: Optional[dict], key: str = "image
 
 def _left_out(state: dict, names: list[str]) -> dict[str, str]:
     """Every photo the scene does not hold, by name, with why (the first that applies, in stage order)."""
-    stages = state["stages"]
-    no_features = set(stages["extract"].get("photos_without_features", []))
-    no_matches = set(stages["match"].get("photos_without_matches", []))
-    unregistered = set(stages["map"].get("unregistered", []))
-    out = {}
-    for n in names:
-        if n in no_features:
-            out[n] = "no SIFT features found"
-        elif n in no_matches:
-            out[n] = "no verified matches with any other photo"
-        elif n in unregistered:
-            out[n] = "not registered by the mapper"
-    return out
+    reasons = [(set(state["stages"][stage].get(key, [])), why) for stage, key, why in (
+        ("extract", "photos_without_features", "no SIFT features found"),
+        ("match", "photos_without_matches", "no verified matches with any other photo"),
+        ("map", "unregistered", "not registered by the mapper"))]
+    whys = {n: next((why for left, why in reasons if n in left), None) for n in names}
+    return {n: why for n, why in whys.items() if why is not None}
 
 
 def _not_photos(folder: Path) -> list[str]:

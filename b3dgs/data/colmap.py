@@ -1,19 +1,16 @@
 """COLMAP scenes (``images/`` + ``sparse/0``).
 
 Pinhole models (PINHOLE, SIMPLE_PINHOLE) are loaded as they are. A camera with lens distortion (SIMPLE_RADIAL,
-COLMAP's default, RADIAL, OPENCV, FULL_OPENCV, OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE,
-THIN_PRISM_FISHEYE) is undistorted on load (``data.undistort`` null, the default, or true): each image is resampled,
-at the loaded size, into a pinhole view of the same size whose focal lengths are scaled so that no border is blank
-(:mod:`b3dgs.data.undistort`). ``data.undistort=false`` uses such cameras as their pinhole part (fx, fy, cx, cy),
-with one warning listing the distortion ignored. Other models (FOV, the division models, equirectangular, ...) are
-refused with a one-line error: undistort those with ``colmap image_undistorter`` (or b3dgs-process) first.
+COLMAP's default, and the other COLMAP models of :data:`b3dgs.data.undistort.MODELS`) is undistorted on load
+(``data.undistort`` null, the default, or true) into a pinhole view of the same size at the loaded size, with no blank
+border; ``data.undistort=false`` uses such cameras as their pinhole part (fx, fy, cx, cy), with one warning listing
+the distortion ignored. Other models (FOV, the division models, equirectangular, ...) are refused with a one-line
+error: undistort those with ``colmap image_undistorter`` (or b3dgs-process) first.
 
-The model (``.bin`` or ``.txt``) is read by :mod:`b3dgs.data.colmap_model` (NumPy, no pycolmap), which checks
-each file as it parses it: a truncated or inconsistent file is one line naming it (``check_colmap_binary`` walks a
-binary model the same way). Loading, training and evaluating a COLMAP scene therefore never import pycolmap; only
-``b3dgs-process`` (SfM) does. The loaded scene is the one pycolmap gave: the same frames, bit for bit the same poses
-(:func:`~b3dgs.data.colmap_model.qvec_to_rotmat`) and the 3D points in the same order
-(:func:`~b3dgs.data.colmap_model.unordered_map_order`).
+The model (``.bin`` or ``.txt``) is read and checked by :mod:`b3dgs.data.colmap_model` (NumPy, no pycolmap: only
+``b3dgs-process`` imports it), which names a truncated or inconsistent file in one line. The loaded scene is the one
+pycolmap gave: the same frames, bit for bit the same poses (:func:`~b3dgs.data.colmap_model.qvec_to_rotmat`) and the
+3D points in the same order (:func:`~b3dgs.data.colmap_model.unordered_map_order`).
 """
 from __future__ import annotations
 
@@ -38,18 +35,11 @@ PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 __all__ = ["check_colmap_binary", "find_sparse_dir", "load_colmap", "read_colmap"]
 
 
-def _has_model(d: Path) -> bool:
-    return model_format(d) is not None
-
-
 def find_sparse_dir(root: Path, sparse_dir: Optional[str] = None) -> Path:
     """The model folder: ``root/sparse_dir`` if given, else the first of ``sparse/0``, ``sparse``, ``root``."""
-    if sparse_dir is not None:
-        cand = [root / sparse_dir]
-    else:
-        cand = [root / "sparse" / "0", root / "sparse", root]
+    cand = [root / sparse_dir] if sparse_dir is not None else [root / "sparse" / "0", root / "sparse", root]
     for d in cand:
-        if d.is_dir() and _has_model(d):
+        if d.is_dir() and model_format(d) is not None:
             return d
     raise B3dgsError(f"no COLMAP model (cameras/images/points3D .bin or .txt) found in "
                      f"{', '.join(str(c) for c in cand)}",
@@ -144,9 +134,7 @@ def read_colmap(
             names = {i: im.name for i, im in model.images.items()}
             ids, s = model.track["image_id"].tolist(), model.track_start
             tracks = [sorted({names[k] for k in ids[s[i]:s[i + 1]]}) for i in order.tolist()]
-    if point_tracks:
-        return frames, points, colors, tracks
-    return frames, points, colors
+    return (frames, points, colors, tracks) if point_tracks else (frames, points, colors)
 
 
 def _at_file_size(f: FrameSpec) -> FrameSpec:
@@ -165,12 +153,8 @@ def _at_file_size(f: FrameSpec) -> FrameSpec:
 def load_colmap(path: str | os.PathLike, max_side: Optional[int] = None, background: Sequence[float] = (0.0, 0.0, 0.0),
                 max_images: Optional[int] = None, images_dir: str = "images", sparse_dir: Optional[str] = None,
                 point_tracks: bool = False, undistort: Optional[bool] = None) -> RawScene:
-    """Load a COLMAP scene: cameras (K at the loaded size, OpenCV w2c), images, SfM points.
-
-    ``undistort``: None or True undistort distorted cameras, False uses their pinhole part (module docstring).
-    Raises :class:`B3dgsError` for camera models it cannot undistort, size mismatches between an image file and its
-    camera, unreadable images, missing folders/files.
-    """
+    """Load a COLMAP scene: cameras (K at the loaded size, OpenCV w2c), images, SfM points. ``undistort``: None or
+    True undistort distorted cameras, False uses their pinhole part (module docstring)."""
     out = read_colmap(path, images_dir=images_dir, sparse_dir=sparse_dir, point_tracks=point_tracks,
                       undistort=undistort)
     frames, points, colors = out[:3]

@@ -130,20 +130,18 @@ class _Reader:
     def bad(self, what: str) -> B3dgsError:
         return B3dgsError(f"COLMAP file {self.path} is damaged: {what} (at byte {self.pos} of {len(self.buf)})", _FIX)
 
-    def unpack(self, st: struct.Struct, what: str) -> tuple:
-        if st.size > self.remaining():
-            raise self.bad(f"truncated inside {what}")
-        out = st.unpack_from(self.buf, self.pos)
-        self.pos += st.size
-        return out
-
-    def array(self, dtype: np.dtype, n: int, what: str) -> np.ndarray:
-        size = n * dtype.itemsize
+    def take(self, size: int, what: str) -> int:
+        """The position of the next ``size`` bytes, which the reader moves past."""
         if size > self.remaining():
             raise self.bad(f"truncated inside {what}")
-        out = np.frombuffer(self.buf, dtype=dtype, count=n, offset=self.pos).copy()  # a copy: the map is closed after
         self.pos += size
-        return out
+        return self.pos - size
+
+    def unpack(self, st: struct.Struct, what: str) -> tuple:
+        return st.unpack_from(self.buf, self.take(st.size, what))
+
+    def array(self, dtype: np.dtype, n: int, what: str) -> np.ndarray:  # a copy: the map is closed after
+        return np.frombuffer(self.buf, dtype=dtype, count=n, offset=self.take(n * dtype.itemsize, what)).copy()
 
     def count(self, min_record: int, what: str) -> int:
         (n,) = self.unpack(_U64, f"the {what} count")
@@ -213,14 +211,9 @@ def _points_bin(r: _Reader) -> tuple:
     n = r.count(_POINT_SIZE, "3D points")
     buf, fixed, tracks, starts = r.buf, [], [], np.zeros(n + 1, np.int64)
     for i in range(n):
-        if _POINT_SIZE > r.remaining():
-            raise r.bad(f"truncated inside 3D point {i}")
-        pos = r.pos
+        pos = r.take(_POINT_SIZE, f"3D point {i}")
         (length,) = _U64.unpack_from(buf, pos + _POINT.itemsize)
-        r.pos = pos + _POINT_SIZE
-        if length * _TRACK.itemsize > r.remaining():
-            raise r.bad(f"truncated inside the track of 3D point {i}")
-        r.pos += length * _TRACK.itemsize
+        r.take(length * _TRACK.itemsize, f"the track of 3D point {i}")
         fixed.append(buf[pos:pos + _POINT.itemsize])
         tracks.append(buf[pos + _POINT_SIZE:r.pos])
         starts[i + 1] = starts[i] + length
@@ -245,17 +238,10 @@ def _lines(path: Path, keep_next: bool = False) -> Iterator[tuple[int, str, Opti
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as e:
         raise B3dgsError(f"COLMAP file {path} is not UTF-8 text ({e.reason} at byte {e.start})", _FIX) from None
-    rows = text.splitlines()
-    i = 0
-    while i < len(rows):
-        n, line = i + 1, rows[i].strip()
-        i += 1
-        if not line or line.startswith("#"):
-            continue
-        nxt = None
-        if keep_next and i < len(rows):
-            nxt, i = (i + 1, rows[i].strip()), i + 1
-        yield n, line, nxt
+    rows = enumerate((row.strip() for row in text.splitlines()), start=1)
+    for n, line in rows:
+        if line and not line.startswith("#"):
+            yield n, line, next(rows, None) if keep_next else None
 
 
 def _numbers(path: Path, line: int, fields: list[str], kind, what: str) -> list:

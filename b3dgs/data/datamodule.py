@@ -6,26 +6,13 @@ from typing import Any, Iterator, Optional, Sequence
 
 import lightning as L
 import torch
-from torch.utils.data import DataLoader, Dataset, Sampler
+from torch.utils.data import DataLoader, Sampler
 
 from b3dgs.data.scene import SceneSettings, check_scene_settings, read_raw, read_scene
 from b3dgs.errors import B3dgsError
 from b3dgs.types import Camera, Scene
 
-__all__ = ["CameraDataset", "ResumableDataLoader", "ResumableRandomSampler", "SceneDataModule", "camera_collate"]
-
-
-class CameraDataset(Dataset):
-    """A list of cameras as a map-style dataset."""
-
-    def __init__(self, cameras: Sequence[Camera]):
-        self.cameras = list(cameras)
-
-    def __len__(self) -> int:
-        return len(self.cameras)
-
-    def __getitem__(self, i: int) -> Camera:
-        return self.cameras[i]
+__all__ = ["ResumableDataLoader", "ResumableRandomSampler", "SceneDataModule", "camera_collate"]
 
 
 def camera_collate(batch: list[Camera]) -> Camera:
@@ -40,23 +27,18 @@ def camera_collate(batch: list[Camera]) -> Camera:
 class ResumableRandomSampler(Sampler[int]):
     """Each index once per epoch in a random order, reshuffled every epoch, resumable mid-epoch.
 
-    The order comes from the sampler's own ``torch.Generator`` (seeded from torch's global RNG when the
-    sampler is made, so ``seed_everything`` makes it reproducible), never from the global RNG during
-    training. :meth:`state_dict` holds the generator, the current epoch's permutation and the position
-    in it; an iterator started after :meth:`load_state_dict` yields the rest of that epoch, and the next
-    one draws the next permutation, exactly as the uninterrupted sampler would.
-
-    The position is the number of indices *consumed*: a loader that fetches ahead (Lightning prefetches
-    one batch) reports consumption with :meth:`mark_consumed` (``b3dgs.callbacks.ResumeState`` does, from
-    the batch index); without such reports it is the number of indices yielded.
-    """
+    The order comes from the sampler's own ``torch.Generator`` (seeded from torch's global RNG when the sampler is made,
+    so ``seed_everything`` makes it reproducible; never drawn from that RNG during training). :meth:`state_dict` holds
+    the generator, the epoch's permutation and the position in it: the indices *consumed*, as a loader that fetches
+    ahead (Lightning prefetches one batch) reports them with :meth:`mark_consumed` (``b3dgs.callbacks.ResumeState``
+    does), else those yielded. An iterator started after :meth:`load_state_dict` yields the rest of that epoch, and
+    the next one the next permutation, exactly as the uninterrupted sampler would."""
 
     def __init__(self, n: int, seed: Optional[int] = None):
         self.n = int(n)
         if seed is None:
             seed = int(torch.empty((), dtype=torch.int64).random_().item())
-        self.generator = torch.Generator()
-        self.generator.manual_seed(int(seed))
+        self.generator = torch.Generator().manual_seed(int(seed))
         self.perm: Optional[list[int]] = None
         self.epoch = 0  # permutations drawn so far
         self._yielded = 0
@@ -91,18 +73,14 @@ class ResumableRandomSampler(Sampler[int]):
                 "position": self.position}
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        if int(state["n"]) != self.n and self.allow_resize:
-            # a new training round with more views: keep the generator's stream, start a fresh epoch
-            self.generator.set_state(state["generator"])
-            self.perm, self.epoch, self._yielded, self._consumed = None, int(state["epoch"]), 0, None
-            return
-        if int(state["n"]) != self.n:
+        resized = int(state["n"]) != self.n  # allowed for a new training round with more views: a fresh epoch
+        if resized and not self.allow_resize:
             raise B3dgsError(f"the checkpoint's view sampler has {state['n']} train views, this scene {self.n}",
                              "resume with the data settings of the checkpoint's run")
-        self.generator.set_state(state["generator"])
-        self.perm = None if state["perm"] is None else [int(i) for i in state["perm"]]
+        self.generator.set_state(state["generator"])  # the generator's stream goes on in any case
+        self.perm = None if resized or state["perm"] is None else [int(i) for i in state["perm"]]
         self.epoch = int(state["epoch"])
-        self._yielded, self._consumed = int(state["position"]), None
+        self._yielded, self._consumed = 0 if resized else int(state["position"]), None
 
 
 class ResumableDataLoader(DataLoader):
@@ -117,22 +95,15 @@ class ResumableDataLoader(DataLoader):
 
 
 class SceneDataModule(L.LightningDataModule):
-    """Loads a scene once in :meth:`setup` and serves cameras.
+    """Loads a scene once in :meth:`setup` and serves cameras, one per batch (the batch *is* the Camera): the train
+    cameras each once per epoch in an order reshuffled every epoch (a :class:`ResumableRandomSampler`: reproducible
+    under ``lightning.seed_everything``, its position saved in checkpoints, so a resumed run sees the same views), the
+    held-out cameras in sorted order for validation and test.
 
-    * ``train_dataloader``: each train camera once per epoch, in a random order reshuffled every
-      epoch (a :class:`ResumableRandomSampler`, seeded from torch's global RNG, so
-      ``lightning.seed_everything`` / ``torch.manual_seed`` makes the order reproducible; its position is
-      saved in checkpoints, so a resumed run sees the same views); batch size 1, the batch *is* the Camera.
-    * ``val_dataloader`` / ``test_dataloader``: the held-out cameras in sorted order.
-
-    Arguments mirror :func:`b3dgs.data.load_scene`: ``settings`` (:class:`~b3dgs.data.scene.SceneSettings`, default its
-    defaults) and flat keyword arguments over it, its fields (``max_side=256``, as a config's ``data.*`` keys) or the
-    format loader's own (e.g. ``n_views``, ``resolution``, ``seed``); ``name`` (optional) overrides the scene name.
-    A prebuilt ``scene`` may be passed instead (then nothing is loaded, and nothing is checked). ``keep_raw`` (set
-    before :meth:`setup`): keep what was read, for :meth:`select_train`.
-
-    The settings are checked when the data module is built (:meth:`validate`), before any scene is read.
-    """
+    Arguments mirror :func:`b3dgs.data.load_scene` (``settings`` and flat ``data.*`` keys over it); ``name`` overrides
+    the scene name; a prebuilt ``scene`` is served as it is (nothing loaded or checked); ``keep_raw`` (set before
+    :meth:`setup`) keeps what was read, for :meth:`select_train`. The settings are checked when the data module is
+    built (:meth:`validate`), before any scene is read."""
 
     def __init__(self, kind: str = "synthetic", path: Optional[str] = None, settings: Optional[SceneSettings] = None,
                  name: Optional[str] = None, scene: Optional[Scene] = None, **keys: Any):
@@ -188,25 +159,16 @@ class SceneDataModule(L.LightningDataModule):
         out.setup()
         return out
 
-    def _loader(self, cameras: Sequence[Camera], shuffle: bool) -> DataLoader:
-        return DataLoader(
-            CameraDataset(cameras),
-            batch_size=1,
-            shuffle=shuffle,
-            num_workers=0,
-            collate_fn=camera_collate,
-        )
-
     def train_dataloader(self) -> DataLoader:
         self.train_sampler = ResumableRandomSampler(len(self.scene.train))
         self.train_sampler.allow_resize = self.allow_new_views
         # every iter() of a DataLoader draws a worker base seed from its ``generator`` (the global RNG if
         # none): a private one keeps epoch starts off the global RNG, which a resumed run restores exactly
-        return ResumableDataLoader(CameraDataset(self.scene.train), batch_size=1, sampler=self.train_sampler,
+        return ResumableDataLoader(list(self.scene.train), batch_size=1, sampler=self.train_sampler,
                                    num_workers=0, collate_fn=camera_collate, generator=torch.Generator())
 
-    def val_dataloader(self) -> DataLoader:
-        return self._loader(self.scene.test, shuffle=False)
+    def val_dataloader(self) -> DataLoader:  # a list of cameras is a map-style dataset
+        return DataLoader(list(self.scene.test), batch_size=1, num_workers=0, collate_fn=camera_collate)
 
     def test_dataloader(self) -> DataLoader:
-        return self._loader(self.scene.test, shuffle=False)
+        return self.val_dataloader()

@@ -24,7 +24,6 @@ from typing import Any, Optional, Sequence
 import numpy as np
 
 # Import PIL (and its C core) eagerly, before anything can import pycolmap through b3dgs.
-import PIL.Image  # noqa: E402
 import PIL.PngImagePlugin  # noqa: F401,E402
 from PIL import _imaging  # noqa: F401,E402
 from PIL import Image, UnidentifiedImageError
@@ -35,6 +34,7 @@ from b3dgs.types import fit_size
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG", ".bmp", ".tif", ".tiff", ".webp")
 _MISSING_IMAGE_FIX = "restore the image, or correct the scene files that name it"
+_UNREADABLE_FIX = "replace the file with a readable image (PNG or JPEG), or remove it and its camera from the scene"
 
 __all__ = ["IMAGE_EXTENSIONS", "encode_png", "image_folders", "image_size", "import_pycolmap", "list_images",
            "load_image", "save_png"]
@@ -49,10 +49,7 @@ def image_folders(root: str | os.PathLike) -> list[str]:
 
 
 def import_pycolmap() -> Any:
-    """Import and return ``pycolmap``, making sure PIL (and its PNG plugin) is loaded first."""
-    import PIL.Image  # noqa: F401  (already imported above; explicit for clarity)
-    import PIL.PngImagePlugin  # noqa: F401
-
+    """Import and return ``pycolmap``; PIL (and its PNG plugin) is loaded first, by this module's imports."""
     try:
         import pycolmap
     except ImportError as e:  # pragma: no cover - pycolmap is a dependency (for b3dgs-process)
@@ -81,23 +78,16 @@ def image_size(path: str | os.PathLike) -> tuple[int, int]:
         with Image.open(path) as im:
             return int(im.width), int(im.height)
     except (UnidentifiedImageError, OSError, ValueError) as e:
-        raise B3dgsError(f"Cannot read image {path}: {e}",
-                         fix="replace the file with a readable image (PNG or JPEG), or remove it and its "
-                             "camera from the scene") from e
+        raise B3dgsError(f"Cannot read image {path}: {e}", _UNREADABLE_FIX) from e
 
 
 def _to_float_rgb(im: Image.Image, background: Sequence[float]) -> np.ndarray:
     """Decode a PIL image to float32 (H, W, 3) in [0, 1], compositing alpha over ``background``."""
     mode = im.mode
-    if mode in ("I;16", "I;16B", "I;16L", "I"):
-        a = np.asarray(im, dtype=np.float32)
-        a = a / 65535.0  # 16-bit: by the bit depth, never by the image's own maximum
+    if mode in ("I;16", "I;16B", "I;16L", "I", "F"):  # gray; 16-bit by the bit depth, never by the image's maximum
+        a = np.asarray(im, dtype=np.float32) / (1.0 if mode == "F" else 65535.0)
         return np.repeat(np.clip(a, 0, 1)[..., None], 3, axis=2)
-    if mode == "F":
-        a = np.clip(np.asarray(im, dtype=np.float32), 0, 1)
-        return np.repeat(a[..., None], 3, axis=2)
-    has_alpha = mode in ("RGBA", "LA", "PA", "RGBa", "La") or (mode == "P" and "transparency" in im.info)
-    if has_alpha:
+    if mode in ("RGBA", "LA", "PA", "RGBa", "La") or (mode == "P" and "transparency" in im.info):
         a = np.asarray(im.convert("RGBA"), dtype=np.float32) / 255.0
         rgb, alpha = a[..., :3], a[..., 3:4]
         bg = np.asarray(background, dtype=np.float32).reshape(1, 1, 3)
@@ -124,19 +114,10 @@ def load_image(
     expected_size: Optional[tuple[int, int]] = None,
     background: Sequence[float] = (0.0, 0.0, 0.0),
 ) -> np.ndarray:
-    """Decode an image once to float32 (H, W, 3) in [0, 1] at the target resolution.
-
-    Args:
-        path: image file.
-        max_side: downscale (area filter) so the longest side is ``<= max_side``; never upscales.
-        size: explicit output size (w, h), overrides ``max_side``.
-        expected_size: if given, the file's native (w, h) must equal it (else :class:`B3dgsError`).
-        background: RGB in [0, 1] that transparent pixels (RGBA, LA, P+transparency) are composited over.
-
-    Raises:
-        B3dgsError: the file does not exist, is unreadable/corrupt, or its native size differs from
-            ``expected_size`` (the message names the file).
-    """
+    """Decode an image once to float32 (H, W, 3) in [0, 1] at the target resolution: ``size`` (w, h), else downscaled
+    (area filter, never up) so that the longest side is <= ``max_side``; transparent pixels (RGBA, LA, P+transparency)
+    composited over ``background`` (RGB in [0, 1]). Raises :class:`B3dgsError` naming the file when it is missing or
+    unreadable, or when its native (w, h) is not ``expected_size``."""
     path = Path(path)
     if not path.is_file():
         raise B3dgsError(f"image file {path} does not exist", _MISSING_IMAGE_FIX)
@@ -144,10 +125,10 @@ def load_image(
         with Image.open(path) as im:
             native = (int(im.width), int(im.height))
             if expected_size is not None and tuple(int(v) for v in expected_size) != native:
-                raise _SizeMismatch(
-                    f"Image {path} is {native[0]}x{native[1]} but its camera says "
-                    f"{int(expected_size[0])}x{int(expected_size[1])} (w x h)"
-                )
+                raise B3dgsError(f"Image {path} is {native[0]}x{native[1]} but its camera says "
+                                 f"{int(expected_size[0])}x{int(expected_size[1])} (w x h)",
+                                 fix="restore the image at the size its camera was calibrated for, or recompute "
+                                     "the poses on the images as they are (b3dgs-process)")
             im.load()
             out_size = tuple(size) if size is not None else fit_size(native[0], native[1], max_side)
             if out_size == native and im.mode == "RGB":
@@ -156,21 +137,13 @@ def load_image(
                 # Area filter on 8-bit data, then convert (fast path for the common case).
                 return np.asarray(im.resize(out_size, Image.Resampling.BOX), dtype=np.float32) / 255.0
             img = _to_float_rgb(im, background)
-    except _SizeMismatch as e:
-        raise B3dgsError(str(e),
-                         fix="restore the image at the size its camera was calibrated for, or recompute "
-                             "the poses on the images as they are (b3dgs-process)") from None
+    except B3dgsError:  # a ValueError, not to be reported as an unreadable file
+        raise
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError) as e:
-        raise B3dgsError(f"Cannot read image {path}: {type(e).__name__}: {e}",
-                         fix="replace the file with a readable image (PNG or JPEG), or remove it and its "
-                             "camera from the scene") from e
+        raise B3dgsError(f"Cannot read image {path}: {type(e).__name__}: {e}", _UNREADABLE_FIX) from e
     if out_size != native:
         img = _resize_float(img, out_size)
     return np.ascontiguousarray(img, dtype=np.float32)
-
-
-class _SizeMismatch(Exception):
-    pass
 
 
 # -------------------------------------------------------------------------------- PNG writing (PIL)

@@ -1,33 +1,21 @@
 """Shared scene preprocessing and the :func:`load_scene` dispatcher.
 
-Every format loader (COLMAP, ``transforms.json``, LLFF, synthetic) produces a :class:`RawScene`:
-cameras sorted by name, intrinsics at the loaded resolution, OpenCV world-to-camera poses in the
-format's own world frame, float32 images, optional initial points. :func:`load_scene` then applies
-the steps common to all formats:
+Every format loader (COLMAP, ``transforms.json``, LLFF, synthetic) produces a :class:`RawScene`: cameras sorted by
+name, intrinsics at the loaded resolution (checked by :func:`check_intrinsics` in :func:`materialize`), OpenCV
+world-to-camera poses in the format's own world frame, float32 images, optional initial points. :func:`preprocess`
+then applies the steps common to all formats, in this order:
 
-1. **normalisation** (``normalize=True``): translate so the mean camera centre is the origin, and
-   scale so ``extent`` = 1.1 x (max distance of a camera centre from that mean), i.e. the 3DGS
-   ``cameras_extent``, equals 1. Computed over *all* loaded cameras (train and test), so the world
-   frame does not depend on the split or on ``train_indices``. Poses and points get the same
-   similarity transform, recorded as ``scene.transform`` (:class:`SceneTransform`, identity with
-   ``normalize=False``), so that exports can go back to the format's own frame. ``normalize=False`` keeps
-   the raw frame and reports the raw extent.
-2. **held-out split**: cameras sorted by name; index ``i`` is a test view iff ``i % test_every == 0``
-   (``test_every=0``: no test views).
-3. **calibration split** (``calib_every``, off by default): the ``calib_every``-th, 2·``calib_every``-th,
-   ... view of the sorted *train* list (train positions ``j`` with ``(j + 1) % calib_every == 0``) is
-   moved to ``scene.calib`` (cameras with images, never trained on and never a test view), see
-   :func:`split_calibration`; then the **train subset**: ``train_indices`` index into the remaining
-   sorted train list.
-4. **bounds** for random initialisation, see :func:`compute_bounds`.
-5. **near-plane guard**: the renderer drops everything closer than ``NEAR_PLANE`` to a camera; a scene
-   whose content lies that close (e.g. a raw scene of extent 4e-4 with ``normalize=False``) is refused,
-   and one within ``NEAR_WARN`` x ``NEAR_PLANE`` gets a warning (see :func:`check_near_plane`).
+1. **normalisation** (``normalize=True``, :func:`normalize_scene`): the mean camera centre to the origin and the 3DGS
+   ``cameras_extent`` (:func:`camera_extent`) to 1, over *all* loaded cameras (train and test, so the world frame does
+   not depend on the split), recorded as ``scene.transform`` (:class:`SceneTransform`, the identity with
+   ``normalize=False``, which reports the raw extent) so that exports can go back to the format's own frame;
+2. the **held-out split** (:func:`split_indices` or :func:`sector_split`), the **calibration split**
+   (:func:`split_calibration`), then the **train subset**: ``train_indices`` index into the remaining sorted train list;
+3. the **bounds** for random initialisation (:func:`compute_bounds`) and the **near-plane guard**
+   (:func:`check_near_plane`).
 
 Before anything is read, :func:`check_scene_settings` checks the settings (:data:`DATA_RULES`), the scene folder and
 the format loader's own keywords (its ``validate``); the data module calls it when it is built.
-Every loader's intrinsics pass :func:`check_intrinsics` (positive finite focal lengths, principal
-point inside the image) in :func:`materialize`.
 """
 from __future__ import annotations
 
@@ -258,10 +246,9 @@ def check_pose(name: str, viewmat: np.ndarray, tol: float = 1e-2) -> np.ndarray:
     det = np.linalg.det(R)
     if err > tol or det <= 0:
         raise B3dgsError(
-            f"Pose of {name!r} is not a rigid transform (|R^T R - I|max = {err:.3g}, det(R) = {det:.3g})"
-,
-                  fix="repair that camera's pose in the scene's poses file: its rotation must be orthonormal with "
-                      "det +1 (no scaling or mirroring)")
+            f"Pose of {name!r} is not a rigid transform (|R^T R - I|max = {err:.3g}, det(R) = {det:.3g})",
+            fix="repair that camera's pose in the scene's poses file: its rotation must be orthonormal with det +1 (no "
+                "scaling or mirroring)")
     u, _, vt = np.linalg.svd(R)
     out = v.copy()
     out[:3, :3] = u @ vt
@@ -333,15 +320,10 @@ def materialize(
     max_side: Optional[int] = None,
     background: Sequence[float] = (0.0, 0.0, 0.0),
 ) -> list[Camera]:
-    """Decode each frame's image once, at the target size, and build :class:`Camera` objects.
-
-    The image file's native size must equal the frame's (width, height). ``K`` is scaled by the
-    actual per-axis ratio ``new_w / w`` and ``new_h / h``. A frame with a ``distortion`` is then undistorted at that
-    size (:func:`b3dgs.data.undistort.undistort_image`: resize first, then remap with the resized ``K``; the
-    coefficients act on normalised coordinates), its ``K`` replaced by the pinhole ``K'``; frames sharing a lens, ``K``
-    and size share one sampling grid. The frames are not changed (a second call reads and undistorts the files again).
-    Within :func:`poses_only` no file is read.
-    """
+    """Decode each frame's image once, at the target size (the file's native size must be the frame's), into a
+    :class:`Camera` with ``K`` scaled by the per-axis ratio; a frame with a ``distortion`` is then undistorted at that
+    size (:func:`b3dgs.data.undistort.undistort_image`), frames sharing a lens, ``K`` and size sharing one sampling
+    grid. The frames are not changed. Within :func:`poses_only` no file is read."""
     cams, grids, pixels = [], {}, not _POSES_ONLY.get()
     for f in frames:
         check_intrinsics(f.name, f.K, f.width, f.height)
@@ -351,16 +333,9 @@ def materialize(
         K = scale_intrinsics(f.K, w2 / f.width, h2 / f.height)
         if f.distortion is not None and pixels:
             img, K = undistort_image(img, K, f.distortion, cache=grids)
-        cams.append(
-            Camera(
-                name=f.name,
-                K=torch.tensor(K, dtype=torch.float32),
-                viewmat=torch.tensor(check_pose(f.name, f.viewmat), dtype=torch.float32),
-                width=w2,
-                height=h2,
-                image=None if img is None else torch.from_numpy(img),
-            )
-        )
+        cams.append(Camera(f.name, torch.tensor(K, dtype=torch.float32),
+                           torch.tensor(check_pose(f.name, f.viewmat), dtype=torch.float32), w2, h2,
+                           None if img is None else torch.from_numpy(img)))
     return cams
 
 
@@ -402,13 +377,9 @@ def check_camera_spread(name: str, viewmats: np.ndarray, rel_tol: float = 1e-6) 
 def normalize_scene(
     viewmats: np.ndarray, points: Optional[np.ndarray]
 ) -> tuple[np.ndarray, Optional[np.ndarray], float, np.ndarray, float]:
-    """Apply x' = s (x - m) to all poses and points.
-
-    Returns (viewmats', points', extent', m, s): m = mean camera centre, s = 1 / raw extent
-    (s = 1 when all cameras coincide), so the new extent is 1 (0 for coincident cameras).
-    A world-to-camera [R | t] becomes [R | s (R m + t)], which keeps the camera frame metric
-    consistent with the scaled world.
-    """
+    """Apply x' = s (x - m) to all poses and points: (viewmats', points', extent', m, s), m the mean camera centre,
+    s = 1 / raw extent (1 when all cameras coincide), so the new extent is 1 (0 for coincident cameras). A
+    world-to-camera [R | t] becomes [R | s (R m + t)], which keeps the camera frame metric consistent with the world."""
     mean, extent = camera_extent(viewmats)
     s = 1.0 / extent if extent > 1e-12 else 1.0
     out = viewmats.copy()
@@ -421,12 +392,10 @@ def normalize_scene(
 def look_at_point(viewmats: np.ndarray, fallback_depth: Optional[float] = None) -> tuple[np.ndarray, bool]:
     """Least-squares point closest to all optical axes: argmin_p sum_i |(I - d_i d_i^T)(p - c_i)|^2.
 
-    Returns (point, well_posed). It is not well posed when the axes are (nearly) parallel (smallest
-    eigenvalue of the mean projector < 1e-3) or when the solution lies behind most cameras
-    (diverging axes of a forward-facing capture). Then the fallback is the mean centre moved along
-    the mean viewing direction by ``fallback_depth`` if given (e.g. LLFF's focus depth from its
-    near/far bounds), else by the rig's radius (1 if all centres coincide).
-    """
+    Returns (point, well_posed). It is not well posed when the axes are (nearly) parallel (smallest eigenvalue of the
+    mean projector < 1e-3) or when the solution lies behind most cameras (diverging axes of a forward-facing capture);
+    then the point is the mean centre moved along the mean viewing direction by ``fallback_depth`` if given (e.g.
+    LLFF's focus depth from its near/far bounds), else by the rig's radius (1 if all centres coincide)."""
     centres, dirs = _centres_dirs(viewmats)
     A = np.zeros((3, 3))
     b = np.zeros(3)
@@ -456,17 +425,10 @@ def compute_bounds(
     camera_box_scale: float = 0.5,
     fallback_depth: Optional[float] = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Axis-aligned box for random initialisation.
-
-    * With points (>= 10): per-axis 1st-99th percentiles of the points, widened on each side by
-      ``margin`` x (their span) (outliers of SfM are ignored).
-    * Without points: centred on the :func:`look_at_point` ``p`` of the optical axes, a cube of
-      half-size ``camera_box_scale`` x median_i |c_i - p| (half the typical viewing distance, 0.5 by
-      default): the subject the cameras look at, and whatever is within half the viewing distance
-      of it, lies inside; the cameras themselves stay outside. For the forward-facing ``fox``
-      capture this box holds the fox, in front of every camera. ``fallback_depth``: see
-      :func:`look_at_point`.
-    """
+    """Axis-aligned box for random initialisation: with >= 10 points, their per-axis ``percentiles`` widened on each
+    side by ``margin`` x their span (SfM outliers ignored); without, a cube centred on the :func:`look_at_point` ``p``
+    of the optical axes (``fallback_depth``: see there) of half-size ``camera_box_scale`` x median_i |c_i - p|, half
+    the typical viewing distance: the subject the cameras look at lies inside, the cameras outside."""
     if points is not None and len(points) >= 10:
         lo = np.percentile(points, percentiles[0], axis=0)
         hi = np.percentile(points, percentiles[1], axis=0)
@@ -485,9 +447,7 @@ def split_indices(n: int, test_every: int) -> tuple[list[int], list[int]]:
     (``test_every >= 0``: :data:`DATA_RULES`)."""
     if test_every == 0:
         return list(range(n)), []
-    test = [i for i in range(n) if i % test_every == 0]
-    train = [i for i in range(n) if i % test_every != 0]
-    return train, test
+    return [i for i in range(n) if i % test_every != 0], list(range(0, n, test_every))
 
 
 def split_calibration(train: Sequence[Camera], calib_every: Optional[int]) -> tuple[list[Camera], list[Camera]]:
@@ -520,17 +480,11 @@ def sector_split(centres: np.ndarray, fraction: float, axis: int = 0) -> tuple[l
 
 
 def preprocess(raw: RawScene, settings: Optional[SceneSettings] = None) -> Scene:
-    """Normalise, split and bound a :class:`RawScene` with ``settings`` (default: :class:`SceneSettings`'s; see the
-    module docstring). ``test_split``: ``interleaved`` (every ``test_every``-th view in name order), ``sector``
-    (:func:`sector_split`: a contiguous ``test_fraction`` of the cameras, held out along ``sector_axis``) or
-    ``sector+interleaved`` (both held out from one model, the names of each kind in ``scene.test_groups``: OOD views
-    with a real support deficit beside ID views between training views).
-
-    With ``train_indices``, the other train views become ``scene.candidates``: cameras without images,
-    whose images go to a :class:`CandidateStore` that :func:`take_candidate_store` hands to the study
-    driver. ``init_points_from_train_only`` keeps only the initial points seen by >= 2 of the selected train
-    views (see :func:`filter_points_to_train`). The settings' ranges are :func:`check_scene_settings`'s (called by
-    :func:`load_scene` and the data module before the scene is read), not checked again here."""
+    """Normalise, split and bound a :class:`RawScene` with ``settings`` (default: :class:`SceneSettings`'s, whose
+    fields say what each does; see the module docstring); ``sector+interleaved`` names the test views of each kind in
+    ``scene.test_groups``. With ``train_indices``, the other train views become ``scene.candidates``: cameras without
+    images, whose images go to a :class:`CandidateStore` that :func:`take_candidate_store` hands to the study driver.
+    The settings' ranges are :func:`check_scene_settings`'s (checked before the scene is read), not checked here."""
     s = settings or SceneSettings()
     cams = sorted(raw.cameras, key=lambda c: c.name)
     if not cams:
@@ -586,6 +540,7 @@ def preprocess(raw: RawScene, settings: Optional[SceneSettings] = None) -> Scene
     train = [cams[i] for i in train_idx]
     test = [cams[i] for i in test_idx]
     train, calib = split_calibration(train, s.calib_every)
+    candidates = []
     if s.train_indices is not None:
         sel = [int(i) for i in s.train_indices]
         bad = [i for i in sel if not 0 <= i < len(train)]
@@ -594,8 +549,6 @@ def preprocess(raw: RawScene, settings: Optional[SceneSettings] = None) -> Scene
                                     f"pass data.train_indices with indices below {len(train)}")
         pool, train = train, [train[i] for i in sel]
         candidates = [c for i, c in enumerate(pool) if i not in set(sel)]
-    else:
-        candidates = []
     point_filter = None
     if s.init_points_from_train_only and points is not None:
         points, colors, point_filter = filter_points_to_train(raw, points, colors, train)
@@ -632,12 +585,9 @@ def preprocess(raw: RawScene, settings: Optional[SceneSettings] = None) -> Scene
 
 
 class CandidateStore:
-    """The images of the candidate views of an active-view study, by view name.
-
-    Only the study driver holds it (:func:`take_candidate_store` removes it from the scene before any model
-    or policy sees the scene): it reads an image when a view is acquired, and for the analysis-only
-    ``oracle``. ``reads`` counts every access (the leak test checks it).
-    """
+    """The images of the candidate views of an active-view study, by view name. Only the study driver holds it
+    (:func:`take_candidate_store` removes it from the scene before any model or policy sees the scene): it reads an
+    image when a view is acquired, and for the analysis-only ``oracle``. ``reads`` counts every access (leak test)."""
 
     def __init__(self, images: dict):
         self._images = dict(images)
@@ -663,12 +613,10 @@ def take_candidate_store(scene: Scene) -> CandidateStore:
 
 
 def filter_points_to_train(raw: RawScene, points: np.ndarray, colors: Optional[np.ndarray], train: Sequence[Camera]):
-    """Keep the initial points observed by at least two of the ``train`` views, so that a sparse start does
-    not inherit geometry only the candidate views saw. COLMAP scenes (``raw.extras["point_views"]``: the
-    image names of each point's track, from pycolmap) use the tracks. Scenes without tracks (synthetic,
-    transforms with a PLY) use visibility instead: a point counts as observed by a view when it projects
-    inside the image in front of the camera (no occlusion test, so this keeps slightly more).
-    Returns (points, colors, report)."""
+    """Keep the initial points observed by at least two of the ``train`` views, so that a sparse start does not inherit
+    geometry only the candidate views saw: by the tracks of a COLMAP scene (``raw.extras["point_views"]``: the image
+    names of each point's track), else by visibility (a point projecting inside the image in front of the camera; no
+    occlusion test, so this keeps slightly more). Returns (points, colors, report)."""
     names = {c.name for c in train}
     total = len(points)
     tracks = raw.extras.get("point_views")
@@ -793,11 +741,10 @@ def check_layout(kind: str, path: str | os.PathLike) -> None:
         return
     others = [k for k in guess_kinds(path) if k != kind]
     if not others:
-        _refuse_photos_only(Path(path))
-    if others:
-        blender = " (data=blender for a NeRF-synthetic one: alpha on white)" if others[0] == "transforms" else ""
-        raise B3dgsError(f"data={kind}: {path} has no {_MARKERS[kind][0]} but holds a {others[0]} scene",
-                         f"pass data={others[0]}{blender}")
+        return _refuse_photos_only(Path(path))
+    blender = " (data=blender for a NeRF-synthetic one: alpha on white)" if others[0] == "transforms" else ""
+    raise B3dgsError(f"data={kind}: {path} has no {_MARKERS[kind][0]} but holds a {others[0]} scene",
+                     f"pass data={others[0]}{blender}")
 
 
 def get_loader(kind: str):
@@ -957,20 +904,12 @@ def read_scene(loader, kind: str, path: str | os.PathLike | None, settings: Scen
 def load_scene(kind: str, path: str | os.PathLike | None, settings: Optional[SceneSettings] = None,
                raw: Optional[RawScene] = None, **keys: Any) -> Scene:
     """Load a scene of ``kind`` (``colmap``, ``transforms``, ``llff``, ``synthetic`` or a loader function
-    ``package.module:function``, see :func:`get_loader`) and preprocess it: :func:`check_scene_settings`, then
-    :func:`read_scene`.
-
-    Args:
-        kind: scene format.
-        path: scene folder (or ``transforms*.json`` file); ignored (may be None) for a loader that reads no
-            files ("synthetic").
-        settings: the common settings (default: :class:`SceneSettings`'s).
-        raw: the scene as :func:`read_raw` read it with these settings (then nothing is read again; its point
-            tracks are needed for ``init_points_from_train_only``).
-        **keys: fields of :class:`SceneSettings` (over ``settings``, e.g. ``max_side=256, test_every=0``) and the
-            format loader's own keywords (e.g. ``n_views``, ``resolution``, ``seed`` for "synthetic"; ``sparse_dir``
-            for "colmap").
-    """
+    ``package.module:function``, see :func:`get_loader`) from ``path`` (a folder or ``transforms*.json`` file; None for
+    a loader that reads no files) and preprocess it: :func:`check_scene_settings`, then :func:`read_scene`.
+    ``keys``: fields of :class:`SceneSettings` over ``settings`` (default its defaults), e.g. ``max_side=256``, and the
+    format loader's own keywords (``n_views`` for "synthetic", ``sparse_dir`` for "colmap"). ``raw``: the scene as
+    :func:`read_raw` read it with these settings (nothing is read again; its point tracks serve
+    ``init_points_from_train_only``)."""
     settings, kind_kwargs = SceneSettings.split(keys, settings)
     loader = check_scene_settings(kind, path, settings, kind_kwargs)
     return read_scene(loader, kind, path, settings, kind_kwargs, raw=raw)

@@ -1,19 +1,15 @@
-"""Procedural synthetic scene: an analytic ground truth generated in code (no files).
+"""Procedural synthetic scene: an analytic ground truth generated in code (no files), a deterministic function of
+``seed``.
 
-The world (z up) holds a smooth-coloured ground disk (radius 1.5 at z = 0) and a few ellipsoids
-(spheroids resting on the disk, rotated about z, plus one floating sphere), each with a smooth,
-spatially varying albedo (low-frequency sinusoids, no sharp texture). Shading is Lambertian under a
-fixed directional light plus ambient, so the colour of a surface point does not depend on the
-viewpoint (exactly representable by view-independent 3DGS colours). Images are ray-cast in numpy
-with 2x2 supersampling per pixel over the background colour (black by default).
+The world (z up) holds a smooth-coloured ground disk (radius 1.5 at z = 0) and a few ellipsoids (spheroids resting on
+the disk, rotated about z, plus one floating sphere), each with a smooth, spatially varying albedo (low-frequency
+sinusoids). Shading is Lambertian under a fixed directional light plus ambient, so a surface point's colour does not
+depend on the viewpoint (exactly representable by view-independent 3DGS colours). Images are ray-cast in numpy with
+2x2 supersampling per pixel over the background colour (black by default).
 
-Cameras: ``n_views`` on the upper hemisphere (radius 3.5, elevations 15-65 degrees, a Fibonacci
-spiral with a seed-dependent azimuth offset), looking at (0, 0, 0.35), 50 degree field of view.
-
-Initial points: ``n_points`` samples on the visible-side surfaces (the disk top, ellipsoid surfaces
-above the disk and outside the other ellipsoids) with their shaded colours, a "perfect SfM".
-
-Everything is a deterministic function of ``seed``.
+Cameras: ``n_views`` on the upper hemisphere (radius 3.5, elevations 15-65 degrees, a Fibonacci spiral with a
+seed-dependent azimuth offset), looking at (0, 0, 0.35), 50 degree field of view. Initial points: ``n_points``
+samples on the visible-side surfaces with their shaded colours, a "perfect SfM".
 """
 from __future__ import annotations
 
@@ -118,8 +114,7 @@ class SyntheticWorld:
             closer = t < t_best
             t_best[closer] = t[closer]
             who[closer] = k
-        rgb = np.empty((n, 3))
-        rgb[:] = np.asarray(background, dtype=np.float64)
+        rgb = np.full((n, 3), np.asarray(background, dtype=np.float64))
         p = o[None] + np.where(np.isfinite(t_best), t_best, 0.0)[:, None] * d
         m = who == -1
         if m.any():
@@ -217,9 +212,7 @@ def make_world(seed: int = 0, n_objects: int = 5) -> SyntheticWorld:
         for _ in range(1000):
             if floating:
                 axes = np.full(3, rng.uniform(0.22, 0.3))
-                xy = rng.uniform(-0.4, 0.4, size=2)
-                z = rng.uniform(0.85, 1.0)
-                center = np.array([xy[0], xy[1], z])
+                center = np.array([*rng.uniform(-0.4, 0.4, size=2), rng.uniform(0.85, 1.0)])
                 ok = True
             else:
                 axes = np.array([rng.uniform(0.22, 0.42), rng.uniform(0.22, 0.42), rng.uniform(0.2, 0.5)])
@@ -284,12 +277,9 @@ def make_cameras(
 def load_synthetic(n_views: int = 48, resolution: int = 128, seed: int = 0, n_points: int = 4000, n_objects: int = 5,
                    supersample: int = 2, max_side: Optional[int] = None, background: Sequence[float] = (0.0, 0.0, 0.0),
                    max_images: Optional[int] = None) -> RawScene:
-    """Render the procedural scene: ``n_views`` square views of side ``min(resolution, max_side)``.
-
-    The world frame is the generator's (z up, disk at z = 0); :func:`b3dgs.data.load_scene` then
-    normalises it like any other scene. ``extras["world"]`` holds the :class:`SyntheticWorld`. The keywords' ranges
-    are :func:`validate_synthetic`'s (``load_synthetic.validate``, run by ``load_scene`` and the data module).
-    """
+    """Render the procedural scene: ``n_views`` square views of side ``min(resolution, max_side)``, in the generator's
+    world frame (z up, disk at z = 0; :func:`b3dgs.data.load_scene` normalises it), ``extras["world"]`` the
+    :class:`SyntheticWorld`. The keywords' ranges are :func:`validate_synthetic`'s (``load_synthetic.validate``)."""
     res = min(resolution, max_side) if max_side else resolution
     world = make_world(seed, n_objects)
     rigs = make_cameras(n_views, res, seed)
@@ -297,24 +287,10 @@ def load_synthetic(n_views: int = 48, resolution: int = 128, seed: int = 0, n_po
     for i in select_evenly(len(rigs), max_images):
         K, V = rigs[i]
         img, _ = world.render(K, V, res, res, supersample=supersample, background=background, depth=False)
-        cams.append(
-            Camera(
-                name=f"view_{i:03d}",
-                K=torch.tensor(K, dtype=torch.float32),
-                viewmat=torch.tensor(V, dtype=torch.float32),
-                width=res,
-                height=res,
-                image=torch.from_numpy(img),
-            )
-        )
+        cams.append(Camera(f"view_{i:03d}", torch.tensor(K, dtype=torch.float32), torch.tensor(V, dtype=torch.float32),
+                           res, res, torch.from_numpy(img)))
     pts, cols = world.sample_points(n_points, np.random.default_rng(seed + 104729))
-    return RawScene(
-        name=f"synthetic_s{seed}",
-        cameras=cams,
-        points=pts,
-        point_colors=cols.astype(np.float32),
-        extras={"world": world},
-    )
+    return RawScene(f"synthetic_s{seed}", cams, pts, cols.astype(np.float32), extras={"world": world})
 
 
 def validate_synthetic(*, n_views: Any = 48, resolution: Any = 128, seed: Any = 0, n_points: Any = 4000,

@@ -1,28 +1,24 @@
 """instant-ngp / nerfstudio / Blender-synthetic ``transforms.json`` scenes.
 
-* Intrinsics: global keys, overridden per frame: ``fl_x, fl_y, cx, cy, w, h`` (instant-ngp,
-  nerfstudio) or Blender's ``camera_angle_x`` (``fx = w / 2 / tan(camera_angle_x / 2)``, ``fy`` from
-  ``camera_angle_y`` if present else ``fy = fx``; principal point at the image centre by default).
-  Missing ``w``/``h`` are read from the image header. Shared (top-level) ``fl_x``/``cx``... without
-  ``w``/``h`` over images of *different* sizes are taken to refer to the image size whose centre is
-  nearest to ``(cx, cy)``, and scaled to each other size of the same aspect ratio (with a warning);
-  any other mix is refused (add ``w`` and ``h``). :func:`b3dgs.data.scene.check_intrinsics` then
-  refuses non-positive focal lengths and principal points outside the image.
-* Poses: ``transform_matrix`` is an OpenGL/NeRF camera-to-world (x right, y up, z backwards); it is
-  converted to OpenCV by flipping the camera's y and z axes (``c2w[:3, 1:3] *= -1``), then inverted.
-* ``file_path`` is relative to the JSON file's folder, with or without an extension.
+* Intrinsics: ``fl_x, fl_y, cx, cy, w, h`` (instant-ngp, nerfstudio) or Blender's ``camera_angle_x`` (``fx = w / 2 /
+  tan(camera_angle_x / 2)``; ``fy`` from ``camera_angle_y``, else ``fx``), top-level and overridden per frame; the
+  principal point defaults to the image centre, missing ``w``/``h`` are read from the image header. Top-level
+  ``fl_x``/``cx``... without ``w``/``h`` over images of *different* sizes are taken for the size whose centre is
+  nearest ``(cx, cy)`` and scaled to each other size of the same aspect ratio (with a warning); any other mix is
+  refused (add ``w`` and ``h``). :func:`b3dgs.data.scene.check_intrinsics` then checks them.
+* Poses: ``transform_matrix`` is an OpenGL/NeRF camera-to-world (x right, y up, z backwards), made OpenCV by flipping
+  the camera's y and z axes (``c2w[:3, 1:3] *= -1``), then inverted. ``file_path`` is relative to the JSON file's
+  folder, with or without an extension.
 * **Lens distortion** (``data.undistort``, :mod:`b3dgs.data.undistort`): ``camera_model`` OPENCV (the default;
-  nerfstudio's and instant-ngp's ``k1, k2, k3, k4`` radial on r^2..r^8, ``p1, p2`` tangential) or OPENCV_FISHEYE
-  (equidistant, ``k1..k4`` on theta). With ``undistort=None`` (the default) OPENCV coefficients are *ignored*, as
-  before this option existed (archived runs on fox reproduce bit for bit; the images are used as if pinhole, never
-  touched): a single ``logging.warning`` reports that they are ignored, their largest magnitudes, and that
-  ``data.undistort=true`` undistorts them; OPENCV_FISHEYE frames (once refused) are undistorted. ``undistort=True``
-  undistorts every frame into a pinhole view of the same size (focal lengths scaled, no blank border);
-  ``undistort=False`` ignores all distortion, with the warning. FISHEYE, EQUIRECTANGULAR and FISHEYE624 are refused.
-* RGBA images are composited over the scene ``background`` (before undistortion, which commutes with it).
-* Optional ``ply_file_path`` (nerfstudio) gives initial points (xyz, and colours if present).
-* If ``path`` is a folder without ``transforms.json`` but with Blender's ``transforms_{train,val,test}.json``,
-  their frames are merged (the held-out split is then re-made by :func:`b3dgs.data.load_scene`).
+  ``k1..k4`` radial on r^2..r^8, ``p1, p2`` tangential) or OPENCV_FISHEYE (equidistant, ``k1..k4`` on theta); FISHEYE,
+  EQUIRECTANGULAR and FISHEYE624 are refused. ``undistort=None`` (the default) *ignores* OPENCV coefficients as before
+  this option existed (archived runs on fox reproduce bit for bit), with one warning naming their largest magnitudes,
+  and undistorts OPENCV_FISHEYE; ``True`` undistorts every frame into a pinhole view of the same size (focal lengths
+  scaled, no blank border); ``False`` ignores all distortion, with the warning.
+* RGBA images are composited over the scene ``background`` (before undistortion, which commutes with it). An optional
+  ``ply_file_path`` (nerfstudio) gives initial points (xyz, and colours if present).
+* A folder without ``transforms.json`` but with Blender's ``transforms_{train,val,test}.json``: their frames are merged
+  (the held-out split is then re-made by :func:`b3dgs.data.load_scene`).
 """
 from __future__ import annotations
 
@@ -87,8 +83,7 @@ def _resolve_json(path: Path) -> list[Path]:
                          "pass data.path=PATH to an existing scene folder (or its transforms*.json file)")
     if (path / "transforms.json").is_file():
         return [path / "transforms.json"]
-    split = [path / f"transforms_{s}.json" for s in ("train", "val", "test")]
-    split = [p for p in split if p.is_file()]
+    split = [p for p in (path / f"transforms_{s}.json" for s in ("train", "val", "test")) if p.is_file()]
     if split:
         return split
     raise B3dgsError(f"{path} has no transforms.json (nor transforms_train.json)",
@@ -116,10 +111,8 @@ def _resolve_image(root: Path, file_path: str) -> Path:
 
 
 def _read_ply(path: Path) -> tuple[np.ndarray, Optional[np.ndarray]]:
-    try:
-        from plyfile import PlyData
-    except ImportError as e:  # pragma: no cover
-        raise B3dgsError("reading ply_file_path needs plyfile, which is not installed", "pip install plyfile") from e
+    from plyfile import PlyData  # a dependency of b3dgs
+
     try:
         v = PlyData.read(str(path))["vertex"]
     except Exception as e:

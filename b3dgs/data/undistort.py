@@ -1,32 +1,24 @@
 """Lens undistortion of the views a format loader reads (``data.undistort``): the distorted image is resampled into a
-pinhole view of the same size.
+pinhole view of the same size. Not with a library: OpenCV is no dependency of b3dgs, and pycolmap's undistorter works
+on files (model and image folders, written anew) while the loaders hold decoded images in memory; the math is small, a
+closed-form forward distortion per output pixel and one bilinear ``grid_sample``, on the CPU, once per load.
 
-Why here and not with a library: OpenCV is no dependency of b3dgs, and pycolmap's undistorter works on files (a model
-folder and an image folder, written anew), while the loaders hold decoded images in memory at the loaded size. The math
-is small: a closed-form forward distortion per output pixel, one bilinear ``grid_sample``, on the CPU, once per load.
+The map, for a frame at the size the loader resized it to (``K`` scaled to that size; the coefficients act on
+normalised coordinates, so resizing first is exact up to the resize's own filtering, and cheaper than the other order):
 
-The map, for a frame at the size the loader resized it to (``K`` already scaled to that size; the coefficients act on
-normalised coordinates, so a resize leaves them unchanged, and resizing first then undistorting with the resized ``K``
-is exact up to the resize's own filtering and cheaper than the other order):
-
-1. ``K' = K`` with both focal lengths times one factor ``s``, principal point kept (:func:`pinhole_scale`): the smallest
-   ``s`` in [:data:`S_MIN`, :data:`S_MAX`] for which every output pixel centre samples inside the hull of the source
-   pixel centres (``[0.5, w - 0.5] x [0.5, h - 0.5]``), checked on every border pixel and on rays from the principal
-   point to the border (a map that folds back is refused); no blank border, like COLMAP's undistorter with
-   ``blank_pixels=0``. A perspective model with zero coefficients gives ``s = 1`` (``K' = K``, the image returned as it
-   is); a fisheye model with zero coefficients is an equidistant lens, and is undistorted.
-2. Output pixel centre ``(i + 0.5, j + 0.5)`` -> ``x = (u - cx) / fx'`` -> the model's forward distortion
-   (:func:`distort`, float64) -> ``K`` -> the source pixel, sampled bilinearly (float32, ``align_corners=False``:
-   coordinate ``0`` is the left edge of the first pixel, the pixel-centre-at-0.5 convention of
+1. ``K' = K`` with both focal lengths times the smallest ``s`` in [:data:`S_MIN`, :data:`S_MAX`] for which every output
+   pixel centre samples inside the hull of the source pixel centres and the map does not fold back
+   (:func:`pinhole_scale`): no blank border, like COLMAP's undistorter with ``blank_pixels=0``. A perspective model
+   with zero coefficients gives ``s = 1`` (the image returned as it is); a fisheye one is equidistant, and undistorted.
+2. Output pixel centre ``(i + 0.5, j + 0.5)`` -> ``x = (u - cx) / fx'`` -> :func:`distort` (float64) -> ``K`` -> the
+   source pixel, sampled bilinearly (float32, ``align_corners=False``: the pixel-centre-at-0.5 convention of
    :func:`b3dgs.data.scene.scale_intrinsics`).
 
-Models (:data:`MODELS`, coefficient names in each format's order): COLMAP's SIMPLE_RADIAL, RADIAL, OPENCV,
-FULL_OPENCV, OPENCV_FISHEYE, SIMPLE_RADIAL_FISHEYE, RADIAL_FISHEYE, THIN_PRISM_FISHEYE (``colmap/sensor/models.h``),
-and ``NERFSTUDIO_OPENCV``: transforms.json's OPENCV (nerfstudio / instant-ngp: radial ``1 + k1 r^2 + k2 r^4 + k3 r^6 +
-k4 r^8``, tangential ``p1, p2``). Every one is written as an optional fisheye angle map (``x -> x atan(r) / r``) followed
-by a rational radial term, tangential and thin-prism terms (:class:`Distortion`). Images with alpha are composited over
-the background by :func:`b3dgs.data.images.load_image` first and remapped after: compositing over a constant colour is
-affine in (premultiplied colour, alpha) and bilinear weights sum to 1, so that equals remapping RGBA then compositing.
+Models (:data:`MODELS`): COLMAP's (``colmap/sensor/models.h``) and ``NERFSTUDIO_OPENCV``, transforms.json's OPENCV
+(nerfstudio / instant-ngp: radial ``1 + k1 r^2 + ... + k4 r^8``, tangential ``p1, p2``), each an optional fisheye angle
+map (``x -> x atan(r) / r``) then rational radial, tangential and thin-prism terms (:class:`Distortion`). Images with
+alpha are composited over the background by :func:`b3dgs.data.images.load_image` first and remapped after, which equals
+remapping RGBA then compositing (compositing is affine in premultiplied colour and alpha; bilinear weights sum to 1).
 """
 from __future__ import annotations
 
@@ -188,8 +180,7 @@ def sampling_grid(d: Distortion, K: np.ndarray, w: int, h: int) -> tuple[np.ndar
     K = np.asarray(K, np.float64)
     s = pinhole_scale(d, K, w, h)
     Kp = K.copy()
-    Kp[0, 0] *= s
-    Kp[1, 1] *= s
+    Kp[[0, 1], [0, 1]] *= s  # both focal lengths
     grid = np.empty((h, w, 2), np.float32)
     step = max(1, 2**20 // w)  # rows per block: float64 temporaries of about 1M pixels
     for r in range(0, h, step):
@@ -212,13 +203,10 @@ def undistort_image(image: np.ndarray, K: np.ndarray, d: Distortion,
         return image, np.asarray(K, np.float64)
     h, w = image.shape[:2]
     K = np.asarray(K, np.float64)
-    key = (d, K.tobytes(), w, h)
-    if cache is not None and key in cache:
-        Kp, grid = cache[key]
-    else:
-        Kp, grid = sampling_grid(d, K, w, h)
-        if cache is not None:
-            cache[key] = (Kp, grid)
+    cache, key = {} if cache is None else cache, (d, K.tobytes(), w, h)
+    if key not in cache:
+        cache[key] = sampling_grid(d, K, w, h)
+    Kp, grid = cache[key]
     src = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32)).permute(2, 0, 1)[None]
     out = torch.nn.functional.grid_sample(src, grid, mode="bilinear", padding_mode="border", align_corners=False)
     return np.ascontiguousarray(out[0].permute(1, 2, 0).clamp_(0.0, 1.0).numpy()), Kp.copy()
