@@ -116,13 +116,11 @@ def write_ply(path: str | os.PathLike, means: Tensor, scales_log: Tensor, quats:
         else:
             raise B3dgsError(f"write_ply: extra[{key!r}] must have shape (N,) or (N, d), got {tuple(np.shape(val))}",
                              fix=f"pass extra[{key!r}] with one row per Gaussian: shape (N,) or (N, d)")
-    seen: set[str] = set()
-    for nm in names:
-        if nm in seen:
-            raise B3dgsError(f"write_ply: property name {nm!r} would appear twice (extra names clash)",
-                             fix="rename the extra property so it differs from the 3DGS fields (x, opacity, f_dc_0, "
-                                 "...) and from the other extras")
-        seen.add(nm)
+    twice = [nm for i, nm in enumerate(names) if nm in names[:i]]
+    if twice:
+        raise B3dgsError(f"write_ply: property name {twice[0]!r} would appear twice (extra names clash)",
+                         fix="rename the extra property so it differs from the 3DGS fields (x, opacity, f_dc_0, "
+                             "...) and from the other extras")
 
     from plyfile import PlyData, PlyElement
 
