@@ -1,24 +1,13 @@
 """Lightning callbacks: training clock, PSNR-vs-time curve, checkpoints and exact resume.
 
 * :class:`CurveCallback`: training wall-clock time and the test PSNR / #Gaussians curve.
-* :class:`ResumeState`: every RNG (torch CPU and CUDA, numpy, python ``random``), the numerical-guard
-  counters and the train view sampler's position go into each checkpoint and are restored right before
-  the first step after a resume, so that a resumed run is bit-identical to an uninterrupted one.
-* :class:`RunCheckpoint`: ``checkpoints/last.ckpt`` (always that name, overwritten atomically) every
-  ``every_n_steps`` steps, every ``every_s`` seconds of training wall-clock, and at the end; each holds the
-  scene's normalisation (``scene_transform``).
-
-Signals: while training, SIGINT / SIGTERM (recorded by :func:`b3dgs.rundir.interrupt_handlers`) make
-:class:`RunCheckpoint` save ``last.ckpt`` after the current step and raise :class:`b3dgs.rundir.Interrupted`.
-
-* :class:`RunFiles`: the files the trainer's loggers write into the run dir (TensorBoard's event file and
-  ``hparams.yaml``) join the run manifest (:mod:`b3dgs.rundir`) as they appear; :class:`RunCheckpoint` lists each
-  ``step<N>.ckpt`` before writing it.
-* :class:`StepProgressBar`: one bar over the run's global steps (``step/max_steps``, rate, ETA) with the Gaussian
-  count, the loss and the last test PSNR; the trainer uses it whenever ``trainer.enable_progress_bar`` is true.
-
-The trainer runs these with the configured extra callbacks (``callbacks:`` in the config; the tests' kill
-points are one, ``tests/kill_hooks.py``).
+* :class:`ResumeState`: every RNG, the numerical-guard counters and the view sampler's position go into each
+  checkpoint and come back right before the first step after a resume (a resumed run is bit-identical).
+* :class:`RunCheckpoint`: ``checkpoints/last.ckpt`` (overwritten atomically) every ``every_n_steps`` steps, every
+  ``every_s`` seconds and at the end; after a SIGINT / SIGTERM (:func:`b3dgs.rundir.interrupt_handlers`) at the next
+  step boundary, then it raises :class:`b3dgs.rundir.Interrupted`.
+* :class:`RunFiles`: the files the trainer's loggers write join the run manifest (:mod:`b3dgs.rundir`).
+* :class:`StepProgressBar`: one bar over the run's global steps with the Gaussian count, loss and last test PSNR.
 """
 from __future__ import annotations
 
@@ -130,18 +119,12 @@ class ResumeState(L.Callback):
 
 
 class RunCheckpoint(Checkpoint):
-    """``dirpath/last.ckpt`` every ``every_n_steps`` steps, every ``every_s`` seconds of wall-clock
-    (``None`` / 0: off) and at the end of training; with ``keep``, also ``step<N>.ckpt`` at each multiple of
-    ``every_n_steps``. Files are overwritten in place (written atomically by :class:`AtomicCheckpointIO`):
-    there is never a ``last-v1.ckpt``. Runs after the other callbacks (Lightning orders checkpoint
-    callbacks last), so a checkpoint holds the curve point and guard counts of its own step.
+    """``dirpath/last.ckpt`` every ``every_n_steps`` steps, every ``every_s`` seconds of wall-clock (``None`` / 0: off)
+    and at the end of training, overwritten atomically (never a ``last-v1.ckpt``); with ``keep``, also ``step<N>.ckpt``
+    at each multiple of ``every_n_steps``. Runs after the other callbacks: a checkpoint holds their state at its step.
 
-    Why not ``ModelCheckpoint``: it accepts only one of ``every_n_train_steps`` / ``train_time_interval``
-    (they are mutually exclusive there; a run here needs both, so a kill loses at most N steps or S
-    seconds), it versions a clashing name (``last-v1.ckpt``) where a resume needs one fixed file, and it
-    cannot save at the step boundary where a SIGTERM / SIGINT recorded by :mod:`b3dgs.rundir` is acted on.
-    Everything else (atomic writes, the checkpoint's contents) goes through Lightning's own
-    ``trainer.save_checkpoint`` and checkpoint IO."""
+    Not ``ModelCheckpoint``: that takes only one of ``every_n_train_steps`` / ``train_time_interval``, versions a
+    clashing name, and cannot save at the step boundary where a signal is acted on."""
 
     def __init__(self, dirpath: Path, every_n_steps: Optional[int] = None, every_s: Optional[float] = None,
                  keep: bool = False):
@@ -355,16 +338,9 @@ class _Sink:
 
 class StepProgressBar(TQDMProgressBar):
     """Lightning's tqdm bar over global steps instead of epochs: ``train 12%|██ | 360/3000 steps [01:02<07:40 ETA,
-    5.7 steps/s, gaussians=12,345, loss=0.0831, test PSNR=24.12 dB]``. A resumed run starts the bar at its step
-    (the rate and ETA count only the steps of this process); the test PSNR is :class:`CurveCallback`'s last point.
-
-    When stdout is not a terminal (a cluster's log file, a pipe), the bar is printed as whole lines instead of being
-    redrawn every step: the first step, then every ``line_every_s`` seconds (default 30), and the last step, so a long
-    run's log stays readable and small.
-
-    With ``final_after_eval`` (``b3dgs-train`` sets it) the bar's last line waits for the run's final evaluation:
-    :meth:`show_final` prints it with the final metrics (test PSNR over every test view, SSIM, LPIPS) in place of the
-    last periodic evaluation's PSNR; a terminal's bar is cleared at the end of training until then."""
+    5.7 steps/s, gaussians=12,345, loss=0.0831, test PSNR=24.12 dB]`` (a resumed run starts at its step). Outside a
+    terminal it prints whole lines: the first step, then every ``line_every_s`` seconds, and the last. With
+    ``final_after_eval`` the last line waits for the final evaluation's metrics (:meth:`show_final`)."""
 
     BAR_FORMAT = "{desc} {percentage:3.0f}%|{bar:16}| {n_fmt}/{total_fmt} steps [{elapsed}<{remaining} ETA, {rate_fmt}{postfix}]"
 

@@ -1,15 +1,9 @@
 """What a checkpoint says about its run, so that a resume or an evaluation can refuse a mismatch.
 
-A b3dgs checkpoint holds, under ``checkpoint["b3dgs"]["identity"]`` (:func:`run_identity`): the model
-name and hyper-parameters (``trainer.max_steps`` and ``seed`` among them), the posterior blocks (names
-and settings), the strategy's settings and a scene fingerprint (:func:`scene_fingerprint`). A resume
-(``b3dgs-train resume=...``) and ``b3dgs-eval``'s ``load_run`` compare it with the run being built
-(:func:`identity_mismatch`) and refuse any difference with a one-line reason. The identity also records the
-renderer (:func:`renderer_identity`), which only a resume must keep (:func:`renderer_mismatch`).
-
-``metrics.json`` records the final checkpoint's global step, Gaussian count and a digest of the Gaussian
-parameters (:func:`params_digest`), so that a run dir whose ``last.ckpt`` is not the model its metrics
-describe is refused too.
+``checkpoint["b3dgs"]["identity"]`` (:func:`run_identity`): the model name and hyper-parameters, the posterior blocks,
+the strategy, the schedule, a scene fingerprint and the renderer (which only a resume must keep); a resume and
+``b3dgs-eval`` refuse any difference in one line (:func:`identity_mismatch`, :func:`renderer_mismatch`).
+``metrics.json`` records the final checkpoint's step, Gaussian count and parameter digest (:func:`params_digest`).
 """
 from __future__ import annotations
 
@@ -126,24 +120,22 @@ def renderer_mismatch(saved: Optional[Mapping], current: Optional[Mapping],
     if resolved and saved.get("device") != current.get("device"):
         return (f"its renderer ran on {saved.get('device')}, this run's on {current.get('device')}",
                 f"renderer.device_name={saved.get('device')}")
-    keys = [k for k in sorted(set(saved) & set(current)) if k not in ("_target_", "device")]
-    for k in keys:
-        if (k not in _RENDERER_IGNORED or not resolved) and saved[k] != current[k]:
-            return f"its renderer.{k} is {_show(saved[k])}, this run's {_show(current[k])}", f"renderer.{k}={_show(saved[k])}"
-    return None
+    skip = ("_target_", "device", *(_RENDERER_IGNORED if resolved else ()))
+    kept = [{k: v for k, v in d.items() if k not in skip} for d in (saved, current)]
+    return _field_diff(lambda k: f"renderer.{k}", *kept)
 
 
 def _hp_path(key: str) -> str:
     return {"max_steps": "trainer.max_steps", "seed": "seed", "name": "model.name"}.get(key, f"model.{key}")
 
 
-def _first_diff(a: Mapping, b: Mapping) -> Optional[str]:
-    """The first key both hold with different values (a key only one side has is a field added or removed
-    by a code change since the checkpoint was written, not a different setting)."""
-    for k in sorted(set(a) & set(b)):
-        if a[k] != b[k]:
-            return k
-    return None
+def _field_diff(path, a: Mapping, b: Mapping) -> Optional[tuple[str, str]]:
+    """``(problem, key=value to pass)`` for the first key both hold with different values, named ``path(key)`` (a key
+    only one side has is a field added or removed by a code change since the checkpoint was written, not a setting)."""
+    k = next((k for k in sorted(set(a) & set(b)) if a[k] != b[k]), None)
+    if k is None:
+        return None
+    return f"its {path(k)} is {_show(a[k])}, this run's {_show(b[k])}", f"{path(k)}={_show(a[k])}"
 
 
 def _show(v: Any) -> str:
@@ -176,25 +168,11 @@ def identity_mismatch(saved: Optional[Mapping], current: Mapping) -> Optional[tu
         name = str(sc.get("_target_", "")).rsplit(".", 1)[-1].replace("Schedule", "").lower() or "constant"
         return (f"it was trained with the {sc.get('_target_')} schedule, this run uses {cc.get('_target_')}",
                 f"schedule={name}")
-    k = _first_diff(sc, cc)
-    if k is not None:
-        return (f"its schedule.{k} is {_show(sc.get(k))}, this run's {_show(cc.get(k))}", f"schedule.{k}={_show(sc.get(k))}")
-    ss, cs = saved.get("strategy") or {}, current.get("strategy") or {}
-    k = _first_diff(ss, cs)
-    if k is not None:
-        path = "strategy" if k == "_target_" else f"strategy.{k}"
-        return (f"its {path} is {_show(ss.get(k))}, this run's {_show(cs.get(k))}", f"{path}={_show(ss.get(k))}")
-    for name in sp:
-        k = _first_diff(sp[name], cp[name])
-        if k is not None:
-            path = f"posterior.{name}.{k}"
-            return (f"its {path} is {_show(sp[name].get(k))}, this run's {_show(cp[name].get(k))}",
-                    f"{path}={_show(sp[name].get(k))}")
-    k = _first_diff(sh, ch)
-    if k is not None:
-        return (f"its {_hp_path(k)} is {_show(sh.get(k))}, this run's {_show(ch.get(k))}",
-                f"{_hp_path(k)}={_show(sh.get(k))}")
-    return None
+    fields = [(lambda k: f"schedule.{k}", sc, cc),
+              (lambda k: "strategy" if k == "_target_" else f"strategy.{k}", saved.get("strategy") or {},
+               current.get("strategy") or {}),
+              *((lambda k, n=name: f"posterior.{n}.{k}", sp[name], cp[name]) for name in sp), (_hp_path, sh, ch)]
+    return next((bad for bad in (_field_diff(*f) for f in fields) if bad is not None), None)
 
 
 def params_digest(tensors: Mapping[str, torch.Tensor], prefix: str = "") -> str:

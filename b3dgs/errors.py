@@ -1,15 +1,10 @@
 """One-line errors and a quiet log for b3dgs's commands.
 
 A known problem raises :class:`B3dgsError` ``(problem, fix)``; the console entry points print it as
-``<prog>: error: <problem> (fix: <fix>)`` and exit with code 2. The full traceback is printed only
-with ``HYDRA_FULL_ERROR=1`` or ``b3dgs.debug=true`` on the command line.
-
-Besides :class:`B3dgsError` (every error b3dgs and its plugins raise on purpose, also
-:class:`~b3dgs.render.renderers.RendererUnavailable`), "known" errors are Hydra's composition errors (bad override,
-unknown option), OmegaConf's missing values, missing files, full disks and running out of memory: their messages
-already name the problem. Anything else is a bug and keeps its traceback.
-
-:func:`quiet_known_noise` silences known-harmless library warnings and Lightning INFO lines by name.
+``<prog>: error: <problem> (fix: <fix>)`` and exit with code 2 (the traceback only with ``HYDRA_FULL_ERROR=1`` or
+``b3dgs.debug=true``). Hydra's composition errors, OmegaConf's missing values, missing files, full disks and running
+out of memory are known too; anything else is a bug and keeps its traceback. :func:`quiet_known_noise` silences
+known-harmless library warnings and Lightning INFO lines by name.
 """
 from __future__ import annotations
 
@@ -230,11 +225,8 @@ _USER_ENV = "B3DGS_USER_HYDRA_FULL_ERROR"  # the user's HYDRA_FULL_ERROR while r
 def _debug_requested(argv: list[str]) -> bool:
     if os.environ.get(_USER_ENV, os.environ.get("HYDRA_FULL_ERROR", "")) not in ("", "0"):
         return True
-    for a in argv:
-        k, _, v = a.lstrip("+~").partition("=")
-        if k == DEBUG_KEY and v.strip().lower() in ("true", "1", "yes", "on"):
-            return True
-    return False
+    flags = (a.lstrip("+~").partition("=") for a in argv)
+    return any(k == DEBUG_KEY and v.strip().lower() in ("true", "1", "yes", "on") for k, _, v in flags)
 
 
 class ReportedError(Exception):
@@ -336,15 +328,10 @@ def multirun_first(argv: list[str]) -> list[str]:
 def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str]] = None,
             config: Optional[str] = None,
             prepare_argv: Optional[Callable[[str, list[str]], list[str]]] = None) -> None:
-    """Call a ``@hydra.main`` function; print known composition errors (bad override, unknown option)
-    as one line and exit with code 2. Errors inside the task are handled by :func:`known_errors`.
-    ``config``: the app's primary config (``train``, ``eval``, ...), whose keys "did you mean" suggests first.
-    ``prepare_argv(prog, argv)``: the overrides as the app reads them (e.g. :func:`b3dgs.data.scene.infer_data_override`
-    adds ``data=FORMAT`` for a ``data.path`` given alone); its :class:`B3dgsError` is reported as one line.
-
-    Hydra is asked (through its own ``HYDRA_FULL_ERROR`` switch) to pass exceptions on, so that they
-    reach this handler instead of Hydra's multi-line report.
-    """
+    """Call a ``@hydra.main`` function (with ``HYDRA_FULL_ERROR=1``, so Hydra passes exceptions on); print known
+    composition errors as one line and exit with code 2 (errors inside the task: :func:`known_errors`). ``config``: the
+    app's primary config, whose keys "did you mean" suggests first; ``prepare_argv(prog, argv)``: the overrides as the
+    app reads them (e.g. :func:`b3dgs.data.scene.infer_data_override`)."""
     global _APP_CONFIG, _PROG
     _APP_CONFIG, _PROG = config, prog
     argv = sys.argv[1:] if argv is None else argv
@@ -366,13 +353,12 @@ def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str
                 sys.argv[1:] = argv = prepared
         if config not in (None, *_VALIDATED_APPS):
             _refuse_unread_additions(prog, argv, config)
-        if debug:
-            hydra_main()  # HYDRA_FULL_ERROR=1 or b3dgs.debug=true: Hydra passes the full traceback on
-        else:
-            try:
-                hydra_main()
-            except Exception as e:  # noqa: BLE001 - composition errors; task errors end in known_errors
-                _report(prog, e)
+        try:
+            hydra_main()
+        except Exception as e:  # noqa: BLE001 - composition errors; task errors end in known_errors
+            if debug:  # HYDRA_FULL_ERROR=1 or b3dgs.debug=true: Hydra passes the full traceback on
+                raise
+            _report(prog, e)
     finally:
         os.environ.pop(_USER_ENV, None)
         if old is None:
@@ -412,11 +398,9 @@ class _HarmlessInfoFilter:
 
 
 def quiet_known_noise() -> None:
-    """Silence known-harmless warnings and Lightning INFO lines, and stop Lightning's own console
-    handler from printing every line a second time (call after Hydra has configured logging). Lightning adds that
-    handler when it is imported: it is removed now if Lightning is loaded, else right after its import
-    (:class:`_AfterImport`), so that a command that ends before it trains or loads a model does not pay for importing
-    Lightning (seconds)."""
+    """Silence known-harmless warnings and Lightning INFO lines, and stop Lightning's own console handler from printing
+    every line a second time (call after Hydra has configured logging): now, or right after Lightning is imported
+    (:class:`_AfterImport`, so a command that never needs Lightning does not pay seconds to import it)."""
     import logging
     import warnings
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import time
+from contextlib import suppress
 from pathlib import Path
 from typing import Optional
 
@@ -77,21 +78,14 @@ def check_out_dir(out_dir: Path, first) -> None:
 def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Optional[int] = None,
                 panels: int = 3, out_dir: Optional[Path] = None, loaded: Optional[list] = None,
                 meta: Optional[dict] = None, lpips_weights: Optional[str] = None) -> dict:
-    """Fit every regime on the loaded run(s), score it on the test views and add it to a ``uq.json``.
+    """Fit every regime on the loaded run(s), score it on the test views and add it to a ``uq.json``; returns this
+    evaluation's regimes and ``_meta``.
 
-    Regimes with an epistemic part (``has_epistemic``) are also scored on that part alone
-    (:func:`b3dgs.uq.metrics.epistemic_view`: ``epi_ause_rmse``, ``epi_spearman_sq``, ...; over the views
-    ``epi_view_spearman`` and ``epistemic_fraction``); what a regime's ``fit`` estimated goes under
-    ``fit``. ``loaded``: already loaded runs (:class:`b3dgs.runs.LoadedRun`, e.g. with a posterior
-    setting changed after loading) used instead of loading ``run_dirs``; ``meta``: extra ``_meta`` entries.
-
-    Results go to ``out_dir``, or by default an ensemble's into its own folder and the others into the first
-    run's dir; each regime is merged into the folder's ``uq.json`` with its panels (:func:`b3dgs.uq.store.merge_into`),
-    keeping the regimes already there, and only if neither the folder's run nor a scored run changed since this
-    evaluation started (:func:`b3dgs.uq.store.check_unchanged`). Each entry records its runs (paths, and
-    ``run_checkpoints``: the parameter digests of their final checkpoints, which the report matches), views, seed,
-    panels and mean curves.
-    Returns this evaluation's regimes and ``_meta``.
+    Regimes with an epistemic part are also scored on that part alone (:func:`b3dgs.uq.metrics.epistemic_view`).
+    ``loaded``: already loaded runs (:class:`b3dgs.runs.LoadedRun`) used instead of ``run_dirs``; ``meta``: extra
+    ``_meta`` entries. Results go to ``out_dir`` (default: :func:`_destinations`), merged into its ``uq.json`` only if
+    neither its run nor a scored run changed meanwhile (:func:`b3dgs.uq.store.merge_into`); each entry records its runs
+    and their parameter digests (``run_checkpoints``), views, seed, panels and mean curves.
     """
     import tempfile
 
@@ -221,10 +215,8 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
         for d in staging.values():
             remove_staging(d)
         for d in made:
-            try:
+            with suppress(OSError):
                 d.rmdir()  # a folder made for an evaluation that failed
-            except OSError:
-                pass
     wrote = "; ".join(f"{', '.join(k for k in result if dests[k] == d)} to {d / 'uq.json'} (plots in {d / 'uq'})"
                       for d in dict.fromkeys(dests.values()))
     log.info("Wrote %s", wrote)

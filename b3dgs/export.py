@@ -127,16 +127,11 @@ MODEL_FILES = ("cameras.json", "cfg_args", ".b3dgs-run.json")
 _MODEL_PLY = re.compile(r"point_cloud/iteration_\d+/point_cloud\.ply")
 
 
-def _model_files(folder: Path) -> list[str]:
-    """The files of ``folder`` (symlinks as entries), relative to it."""
-    return list(_iter_files(folder))
-
-
 def _not_ours(folder: Path) -> list[str]:
     """The files of ``folder`` that are not part of a model folder b3dgs-export wrote: those its own manifest does not
     list (a folder exported before it carried one: unless it has the layout alone, in a run dir whose manifest lists
     every file); every file for a folder without such a manifest."""
-    files = [f for f in _model_files(folder) if f != LOCK_NAME]
+    files = [f for f in _iter_files(folder) if f != LOCK_NAME]
     try:
         m = read_manifest(folder)
     except B3dgsError:
@@ -181,7 +176,7 @@ def write_model_folder(run, out: Path, step: int, owner: Optional[Path]) -> Path
     old = None
     try:
         export_3dgs(run, stage, step, model_path=out.resolve())
-        files = _model_files(stage)
+        files = list(_iter_files(stage))
         _write_manifest(stage, files, None, None, writer="b3dgs-export")
         if owner is not None:
             pre = out.resolve().relative_to(owner).as_posix()

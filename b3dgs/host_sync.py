@@ -1,33 +1,22 @@
 """Count the operations of a training step that force a device→host round-trip on a GPU, per scope.
 
-On CUDA every ``Tensor.item``, ``bool``/``float``/``int`` of a tensor, ``.tolist``/``.cpu``/``.numpy``, ``nonzero``,
-boolean-mask indexing and other data-dependent shapes (``unique``, ``masked_select``, ``repeat_interleave`` without
-``output_size``, ``bincount``) waits for the GPU's queue to drain: the host stops issuing kernels, and a step made of
-small launches pays the launch latency again after each one. Counting them needs no GPU:
+On CUDA every ``Tensor.item``, ``.tolist``/``.cpu``/``.numpy``, ``nonzero``, boolean-mask indexing and other
+data-dependent shapes wait for the GPU's queue to drain. Counting them needs no GPU:
 
-* :class:`HostSyncCounter` (any device) counts them at torch's own hooks: a ``TorchDispatchMode`` sees
-  ``aten._local_scalar_dense`` (what ``item``/``bool``/``float``/``int`` call), ``aten.nonzero``, boolean
-  ``aten.index``/``index_put_`` and the other data-dependent ops, and a ``TorchFunctionMode`` sees ``tolist``,
-  ``numpy`` and ``cpu``, which do not reach the dispatcher on a CPU tensor. On the CPU every tensor stands for one
-  on the device, so the count is what the step would pay there (the CPU renderer's own scalar reads included,
-  under the scope ``render``).
-* :class:`CudaSyncCounter` counts what the GPU really synchronises, from ``torch.cuda.set_sync_debug_mode("warn")``
-  (each synchronising call warns; the warnings are counted, not shown).
+* :class:`HostSyncCounter` (any device) counts them at torch's hooks: a ``TorchDispatchMode`` sees
+  ``aten._local_scalar_dense`` (``item``/``bool``/``float``), ``aten.nonzero``, boolean indexing and the other
+  data-dependent ops, a ``TorchFunctionMode`` sees ``tolist``, ``numpy`` and ``cpu``. On the CPU every tensor stands
+  for one on the device, so the count is what the step would pay there.
+* :class:`CudaSyncCounter` counts what the GPU really synchronises (``torch.cuda.set_sync_debug_mode("warn")``).
 
-Both attribute each event to the innermost :func:`scope` open when it happened. The training step opens ``core``
-around its own code, ``render`` around the renderer, and one scope per plugin hook (the block's name, ``strategy``);
-topology changes run each plugin's ``on_topology`` under that plugin's name; :class:`HostSyncCallback` opens ``loop``
-for what Lightning does between steps (progress bar, logging, callbacks). ``scope`` costs one global read when no
-counter is installed, so the training step keeps it always on.
-
-``HostSyncCallback`` (``+callbacks.host_sync._target_=b3dgs.host_sync.HostSyncCallback``) installs a counter for a
-whole training run and writes, per step, the count of each scope and the periodic work the plugins declared for that
-step (:meth:`b3dgs.plugin.Plugin.periodic`), to a JSON file: ``bench/host_syncs.py`` turns it into a table.
+Both attribute each event to the innermost :func:`scope` open (``core``, ``render``, a plugin's name, ``loop``);
+``scope`` costs one global read when no counter is installed. :class:`HostSyncCallback`
+(``+callbacks.host_sync._target_=b3dgs.host_sync.HostSyncCallback``) counts a whole run and writes, per step, the count
+of each scope and the plugins' periodic work (:meth:`b3dgs.plugin.Plugin.periodic`) to JSON (``bench/host_syncs.py``).
 """
 from __future__ import annotations
 
 import contextlib
-import json
 import warnings
 from collections import Counter, defaultdict
 from pathlib import Path
@@ -41,7 +30,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from b3dgs.errors import B3dgsError
 from b3dgs.io import write_json
 
-__all__ = ["scope", "HostSyncCounter", "CudaSyncCounter", "HostSyncCallback", "active_counter"]
+__all__ = ["scope", "HostSyncCounter", "CudaSyncCounter", "HostSyncCallback"]
 
 _aten = torch.ops.aten
 #: aten ops whose output shape depends on the data, or that read a value back to the host (always a sync on CUDA)
@@ -54,11 +43,6 @@ _HOST_COPIES = {"tolist", "numpy", "cpu"}
 
 _STACK: list[str] = []
 _COUNTER: Optional["_Counting"] = None
-
-
-def active_counter() -> Optional["_Counting"]:
-    """The installed counter, or None."""
-    return _COUNTER
 
 
 @contextlib.contextmanager
@@ -108,8 +92,23 @@ class _Counting:
     def per_step(self) -> dict[int, dict[str, int]]:
         return {s: dict(c) for s, c in sorted(self.counts.items())}
 
-    def __enter__(self):
-        return self.install()
+    def install(self) -> "_Counting":
+        """Start counting (one counter at a time)."""
+        global _COUNTER
+        if _COUNTER is not None:
+            raise B3dgsError("a host-sync counter is already installed: one counts at a time", "add one "
+                             "HostSyncCallback (+callbacks.host_sync._target_=b3dgs.host_sync.HostSyncCallback), or "
+                             "remove the counter installed first")
+        self._start()
+        _COUNTER = self
+        return self
+
+    def remove(self) -> None:
+        global _COUNTER
+        self._stop()
+        _COUNTER = None
+
+    __enter__ = install
 
     def __exit__(self, *exc) -> None:
         self.remove()
@@ -123,9 +122,7 @@ def _site() -> str:
     while f is not None:
         fn = f.f_code.co_filename
         if "/torch/" not in fn and fn != __file__ and "contextlib" not in fn:
-            parts = Path(fn).parts
-            short = "/".join(parts[-2:])
-            return f"{short}:{f.f_lineno} {f.f_code.co_name}"
+            return f"{'/'.join(Path(fn).parts[-2:])}:{f.f_lineno} {f.f_code.co_name}"
         f = f.f_back
     return "?"
 
@@ -161,49 +158,28 @@ class _FunctionCounter(TorchFunctionMode):
         return func(*args, **(kwargs or {}))
 
 
-def _already_installed() -> None:
-    raise B3dgsError("a host-sync counter is already installed: one counts at a time",
-                     "add one HostSyncCallback (+callbacks.host_sync._target_=b3dgs.host_sync.HostSyncCallback), or "
-                     "remove the counter installed first")
-
-
 class HostSyncCounter(_Counting):
     """Counts host syncs at torch's hooks (see the module docstring); use as a context manager or ``install``/``remove``."""
 
-    def __init__(self, keep_stacks: int = 0) -> None:
-        super().__init__(keep_stacks)
-        self._modes: list = []
+    _modes: list = []
 
-    def install(self) -> "HostSyncCounter":
-        global _COUNTER
-        if _COUNTER is not None:
-            _already_installed()
+    def _start(self) -> None:
         self._modes = [_FunctionCounter(self), _DispatchCounter(self)]
         for m in self._modes:
             m.__enter__()
-        _COUNTER = self
-        return self
 
-    def remove(self) -> None:
-        global _COUNTER
+    def _stop(self) -> None:
         for m in reversed(self._modes):
             m.__exit__(None, None, None)
         self._modes = []
-        _COUNTER = None
 
 
 class CudaSyncCounter(_Counting):
     """Counts the synchronisations the CUDA runtime really performs (``torch.cuda.set_sync_debug_mode("warn")``)."""
 
-    def __init__(self, keep_stacks: int = 0) -> None:
-        super().__init__(keep_stacks)
-        self._catch = None
-        self._old_showwarning = None
+    _catch = None
 
-    def install(self) -> "CudaSyncCounter":
-        global _COUNTER
-        if _COUNTER is not None:
-            _already_installed()
+    def _start(self) -> None:
         self._catch = warnings.catch_warnings()
         self._catch.__enter__()
         warnings.simplefilter("always")
@@ -218,16 +194,12 @@ class CudaSyncCounter(_Counting):
 
         warnings.showwarning = show
         torch.cuda.set_sync_debug_mode("warn")
-        _COUNTER = self
-        return self
 
-    def remove(self) -> None:
-        global _COUNTER
+    def _stop(self) -> None:
         torch.cuda.set_sync_debug_mode("default")
         if self._catch is not None:
             self._catch.__exit__(None, None, None)
             self._catch = None
-        _COUNTER = None
 
 
 class HostSyncCallback(L.Callback):
@@ -318,7 +290,3 @@ def summarise(result: dict[str, Any]) -> dict[str, dict[str, float]]:
         nsteps[kind] += 1
         rows[kind].update(result["per_step"].get(step, {}))
     return {k: {"steps": nsteps[k], **{s: rows[k][s] / nsteps[k] for s in sorted(rows[k])}} for k in sorted(nsteps)}
-
-
-def read(path: str) -> dict[str, Any]:
-    return json.loads(Path(path).read_text())

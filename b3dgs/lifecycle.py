@@ -1,16 +1,13 @@
-"""One run's lifecycle, the one home of what every run does: training (``b3dgs-train``), a study's rounds, the
-compression study's fine-tunes and loading a run (``b3dgs-eval``, the viewer, exports) all go through it.
+"""One run's lifecycle, the one home of what every run does (training, a study's rounds, the compression study's
+fine-tunes, loading a run):
 
-* :func:`start_run`: :func:`seed_run` (seed, guard counters, threads), the data module (:func:`data_module`: the
-  scene read once per run) and the model (:func:`build_run`);
-* :class:`Run`, one run's life: validation once, :meth:`Run.start`, :meth:`Run.fit` (the one trainer,
-  :func:`build_trainer`), ``b3dgs-train``'s run (:meth:`Run.train`), ``metrics.json`` (:meth:`Run.finish`,
-  :meth:`Run.amend_metrics`, :meth:`Run.share_training`) and a study's records of a run (:meth:`Run.record`: a row's
-  ``result.json``, phase 1's ``phase1.json``);
-* :func:`read_checkpoint` and :func:`load_checkpoint` (a checkpoint's model into a built module), and the checks of a
-  resume against the run it continues (:func:`check_resume`, :func:`check_resume_renderer`);
-* the checks of a run's settings that need its components (:func:`check_devices`, :func:`warn_slow_renderer`,
-  :func:`warn_settings`: :func:`warn_disabled_options`, :func:`warn_long_cpu_run`).
+* :func:`start_run`: :func:`seed_run`, the data module (:func:`data_module`) and the model (:func:`build_run`);
+* :class:`Run`, one run's life: validation once, :meth:`Run.fit` (the one trainer, :func:`build_trainer`),
+  ``b3dgs-train``'s run (:meth:`Run.train`), ``metrics.json`` (:meth:`Run.finish`, :meth:`Run.amend_metrics`) and a
+  study's records of a run (:meth:`Run.record`);
+* :func:`load_checkpoint` and the checks of a resume (:func:`check_resume`, :func:`check_resume_renderer`);
+* the checks of a run's settings (:func:`check_devices`, :func:`warn_slow_renderer`, :func:`warn_disabled_options`,
+  :func:`warn_long_cpu_run`).
 
 The run dir (lock, claim, resume and overwrite) is :mod:`b3dgs.rundir`'s.
 """
@@ -84,12 +81,9 @@ def build_module(cfg: DictConfig, strategy, blocks, renderer=None, schedule=None
 
 
 def build_run(cfg: DictConfig, scene: "Scene", *, renderer=None, init: bool = True, plugins: Optional[dict] = None):
-    """The model of a run, the one build sequence of b3dgs (training, rounds, loading a run, compression):
-    :func:`build_plugins` -> :func:`build_renderer` (unless ``renderer`` is given) -> :func:`build_module` ->
-    ``init_from_scene(scene)`` (the seeded initial Gaussians and every plugin's state). ``renderer``: a renderer
-    plugin, or a function of the config that makes one, in place of :func:`build_renderer`. ``init=False`` only
-    attaches ``scene``, for a caller that loads the parameters itself. ``plugins``: those built already, by path
-    (:func:`b3dgs.validation.validate_config`'s). The renderer is ``module.renderer``."""
+    """The model of a run, the one build sequence of b3dgs: :func:`build_plugins` (but ``plugins``, built already, by
+    path) -> :func:`build_renderer` (or ``renderer``: a plugin, or a function of the config that makes one) ->
+    :func:`build_module` -> ``init_from_scene(scene)``; ``init=False`` only attaches ``scene``."""
     plugins = plugins or {}
     strategy, blocks = build_plugins(cfg, plugins)
     if renderer is None or callable(renderer):
@@ -355,9 +349,7 @@ LONG_CPU_RUN_S = 3600.0
 
 def warn_long_cpu_run(scene, renderer, max_steps: int) -> Optional[str]:
     """A warning (logged and returned) when training ``max_steps`` steps on ``scene``'s training views with a CPU
-    renderer is expected to take over :data:`LONG_CPU_RUN_S` (e.g. ``experiment=paper``, the paper's 30k steps at
-    full resolution, which is meant for a GPU): the expected time at :data:`CPU_SECONDS_PER_PIXEL_STEP`, a lower
-    bound, since the cost grows with the Gaussian count."""
+    renderer is expected to take over :data:`LONG_CPU_RUN_S` at :data:`CPU_SECONDS_PER_PIXEL_STEP` (a lower bound)."""
     if torch.device(renderer.device).type != "cpu" or not scene.train:
         return None
     pixels = sum(int(c.width) * int(c.height) for c in scene.train) / len(scene.train)
@@ -374,12 +366,6 @@ def warn_long_cpu_run(scene, renderer, max_steps: int) -> Optional[str]:
     return msg
 
 
-def warn_settings(module, scene, max_steps: int) -> None:
-    """The warnings of a run's settings before it trains: :func:`warn_disabled_options`, :func:`warn_long_cpu_run`."""
-    warn_disabled_options(module)
-    warn_long_cpu_run(scene, module.renderer, int(max_steps))
-
-
 def warn_disabled_options(module) -> None:
     """Warn where one setting silently turns off another (``strategy.max_gaussians`` below the initial count)."""
     cap = getattr(module.strategy, "max_gaussians", None)
@@ -392,13 +378,10 @@ def warn_disabled_options(module) -> None:
 
 # ------------------------------------------------------------------------------------------------ a run
 class Run:
-    """One run's life, owned here for every command that trains (``b3dgs-train``: :meth:`train`; a study's rounds
-    and phase 1; the compression study's fine-tunes; bench's ``train_run`` through ``b3dgs-train``): the config
-    validated once (``app``, e.g. ``"train"``; ``None`` where the study that composed it validated it, giving
-    ``plugins``) with the plugins that check built going into the first model, seed and build (:meth:`start`), the one place a trainer is
-    assembled and fit (:meth:`fit`), resume, the final evaluation and ``metrics.json``, the done marker
-    (:meth:`finish`, its one writer), any later addition to a finished run (:meth:`amend_metrics`), and a study's
-    records of a run it trained (:meth:`record`; a study row is such a run, its ``result.json`` the done marker)."""
+    """One run's life, for every command that trains: the config validated once (``app``, e.g. ``"train"``; ``None``
+    where a study validated it, giving ``plugins``), seed and build (:meth:`start`), the one trainer (:meth:`fit`), the
+    final evaluation and ``metrics.json`` (:meth:`finish`, its one writer; :meth:`amend_metrics`), and a study's
+    records of a run it trained (:meth:`record`)."""
 
     def __init__(self, cfg: Optional[DictConfig] = None, run_dir=None, app: Optional[str] = None,
                  plugins: Optional[dict] = None):
@@ -413,10 +396,8 @@ class Run:
             check_devices(cfg)
             warn_slow_renderer(cfg)
         except Exception:
-            try:
+            with contextlib.suppress(OSError):
                 self.run_dir.rmdir()  # Hydra made it; a refused run leaves nothing
-            except OSError:
-                pass
             raise
 
     def start(self, data=None, **kw):
@@ -429,10 +410,8 @@ class Run:
     def fit(self, callbacks=(), ckpt_path: Optional[str] = None, *, claim=None, logger=False,
             final_after_eval: bool = False, **fixed):
         """The one place a trainer is assembled (:func:`build_trainer` with ``callbacks``, then the config's, and
-        ``fixed``) and fit (:func:`fit_on_renderer_device`) on the started model, from ``ckpt_path`` if given (b3dgs's
-        checkpoints hold plugin states: not ``weights_only``), without Lightning's warnings about the loader's workers
-        and ``training_step``'s return value (one camera per step, by design); ``claim()`` runs once the trainer is
-        built, before anything trains. Returns the trainer."""
+        ``fixed``) and fit (:func:`fit_on_renderer_device`) on the started model, from ``ckpt_path`` if given;
+        ``claim()`` runs once the trainer is built, before anything trains. Returns the trainer."""
         trainer = build_trainer(self.cfg.trainer, self.module.renderer,
                                 [*callbacks, *build_callbacks(self.cfg.get("callbacks"))], logger=logger,
                                 final_after_eval=final_after_eval, default_root_dir=str(self.run_dir), **fixed)
@@ -466,7 +445,8 @@ class Run:
                                            check_checkpoint=lambda path: check_resume_renderer(cfg, path))
         module = self.start()
         scene, renderer = self.dm.scene, module.renderer
-        warn_settings(module, scene, int(tcfg.max_steps))
+        warn_disabled_options(module)
+        warn_long_cpu_run(scene, renderer, int(tcfg.max_steps))
         if ckpt_path is not None:
             check_resume(module, ckpt_path)
         done = None if clear else finished_metrics(run_dir)

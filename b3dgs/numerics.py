@@ -76,11 +76,10 @@ def guard_where(name: str, mask: torch.Tensor, fixed, value: torch.Tensor) -> to
     that makes it, called only when needed). On the CPU path ``value`` itself comes back where the guard did not fire
     (as before); on the device path the ``where`` always runs and the count is deferred (:func:`guard_deferred`),
     so there is no host sync."""
-    if not on_device_path(mask):
-        if guard(name, mask):
-            return torch.where(mask, fixed() if callable(fixed) else fixed, value)
+    if on_device_path(mask):
+        guard_deferred(name, mask)
+    elif not guard(name, mask):
         return value
-    guard_deferred(name, mask)
     return torch.where(mask, fixed() if callable(fixed) else fixed, value)
 
 

@@ -115,7 +115,6 @@ class TopologyOps:
                 v = v[:, index].clone()
                 v[:, fresh] = 0
                 self.per_gaussian[key] = v
-        core = self.states["core"]
         n_fresh = int(fresh.sum())
         if n_fresh:
             start = int(core["next_id"])

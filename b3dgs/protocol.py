@@ -69,6 +69,14 @@ def describe_diff(a: Mapping, b: Mapping, keys: list[str], names=("there", "here
     return "; ".join(parts) + more
 
 
+def _stored(path: Path, key: str, fix: str, cast=lambda v: v) -> Any:
+    """``cast`` of ``key`` of the JSON object in ``path``, refused in one line when the file is damaged."""
+    try:
+        return cast(json.loads(path.read_text())[key])
+    except (ValueError, KeyError, TypeError):
+        raise B3dgsError(f"{path} is damaged", fix) from None
+
+
 def check_stored_protocol(folder: Path, settings: Mapping, fix: str,
                           legacy: Optional[Mapping] = None) -> str:
     """Refuse to add to ``folder`` results made with other ``settings``; record them on first use.
@@ -79,11 +87,8 @@ def check_stored_protocol(folder: Path, settings: Mapping, fix: str,
     settings = json.loads(json.dumps(dict(settings), default=str))
     path = Path(folder) / "protocol.json"
     if path.exists():
-        try:
-            stored = json.loads(path.read_text())["settings"]
-        except (ValueError, KeyError, TypeError):
-            raise B3dgsError(f"{path} is damaged", f"remove it only if the rows in {folder} match this run's "
-                             "settings, or pass another out_dir") from None
+        stored = _stored(path, "settings", f"remove it only if the rows in {folder} match this run's settings, or pass "
+                         "another out_dir")
     elif legacy is not None:
         stored = {k: settings.get(k) for k in settings}
         stored.update({k: v for k, v in json.loads(json.dumps(dict(legacy), default=str)).items() if v is not None})
@@ -93,7 +98,6 @@ def check_stored_protocol(folder: Path, settings: Mapping, fix: str,
     if keys:
         raise B3dgsError(f"{folder} holds results of other settings ({describe_diff(stored, settings, keys)})", fix)
     if not path.exists():
-        Path(folder).mkdir(parents=True, exist_ok=True)
         write_json(path, {"digest": digest(settings), "settings": settings})
     return digest(settings)
 
@@ -125,16 +129,12 @@ def check_stored_scene(folder: Path, scene: Any, fix: str) -> dict[str, str]:
     current = dict(scene) if isinstance(scene, Mapping) else scene_digest(scene)
     path = Path(folder) / "scene.json"
     if path.exists():
-        try:
-            stored = dict(json.loads(path.read_text())["digest"])
-        except (ValueError, KeyError, TypeError):
-            raise B3dgsError(f"{path} is damaged", f"remove it only if the rows in {folder} were made from this "
-                             "scene's data, or pass another out_dir") from None
+        stored = _stored(path, "digest", f"remove it only if the rows in {folder} were made from this scene's data, "
+                         "or pass another out_dir", dict)
         changed = [k for k in current if stored.get(k) != current[k]]
         if changed:
             raise B3dgsError(f"{folder} holds rows made from other data: the scene's {', '.join(changed)} changed "
                              "since they were made", fix)
     else:
-        Path(folder).mkdir(parents=True, exist_ok=True)
         write_json(path, {"digest": current})
     return current

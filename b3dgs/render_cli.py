@@ -274,17 +274,12 @@ def write_video(path: Path, frames: Sequence[np.ndarray], fps: int) -> Path:
 
 @contextmanager
 def _claim(out: Path, names: Sequence[str]):
-    """Make room for the frames and video ``names`` in ``out``: in a run dir (the rendered one or another), under its
-    lock, the frames of an earlier render that its manifest lists in ``out`` go (a shorter path must not leave those of
-    a longer one) and ``names`` join the manifest before they are written; elsewhere (or in a run dir written before
-    manifests), the files of ``out`` named as this command names frames (``frame_<5 digits>.png``). Nothing else in
-    ``out`` is touched: a user's ``frame_final_edit.png`` or ``my_cut.mp4`` stays, and one of ``names`` that exists and
-    is not b3dgs's (unlisted in a run dir; elsewhere any video, since no record says whose it is) is refused before
-    anything goes. Nothing is written into a run's ``checkpoints/``."""
-    from b3dgs.rundir import (FRAME_NAME, claim_in_run, holds_run, read_manifest, refuse_in_checkpoints,
-                              remove_listed, run_files)
+    """Make room for the frames and video ``names`` in ``out`` (never a run's ``checkpoints/``: :func:`render` checks):
+    in a run dir, under its lock, the earlier frames its manifest lists in ``out`` go and ``names`` join the manifest
+    before they are written; elsewhere, the files named as this command names frames (``frame_<5 digits>.png``).
+    Nothing else is touched, and one of ``names`` that exists and is not b3dgs's is refused before anything goes."""
+    from b3dgs.rundir import FRAME_NAME, claim_in_run, holds_run, read_manifest, remove_listed, run_files
 
-    refuse_in_checkpoints(out, "b3dgs-render")
     q = out.resolve()
     owner = next((d for d in (q, *q.parents) if holds_run(d)), None)
     if owner is not None and read_manifest(owner, fix=_FIX_OUT) is not None:

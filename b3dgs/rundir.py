@@ -1,27 +1,16 @@
 """A run dir that one process owns: its lock, its deferred job log and ``.hydra/``, stale temp files, signals.
 
-* :func:`run_dir_lock`: an exclusive lock (:mod:`b3dgs.locks`) on ``<run dir>/.b3dgs.lock`` (holding the owner's
-  pid), taken before anything else is written; a second process is refused with one line. The kernel drops
-  the lock when its process dies (even by ``kill -9``), so a lock file left behind is stale by
-  construction: the next run takes it over.
-* :class:`DeferredFileHandler`: Hydra's job-log handler (``conf/hydra/default.yaml``) that keeps records in
-  memory until :func:`arm_run_log` is called once every check has passed; a refused run writes no log.
-  ``.hydra/`` is written by :func:`write_hydra_files` at the same moment (``hydra.output_subdir`` is null).
-* :func:`remove_stale_tmp`: the ``.<name>.b3dgs-<random>.tmp`` files of :func:`b3dgs.io.atomic_path` that a kill
-  left behind (a user's own ``.*.tmp`` files stay).
+* :func:`run_dir_lock`: an exclusive lock on ``<run dir>/.b3dgs.lock`` (:mod:`b3dgs.locks`), taken before anything
+  else is written; the kernel drops it when its holder dies, so a lock file left behind is stale by construction.
+* :class:`DeferredFileHandler`: Hydra's job log, held in memory until :func:`arm_run_log` (a refused run writes none).
 * :class:`Interrupted` / :func:`interrupt_handlers`: SIGINT and SIGTERM become a checkpoint at the next step
-  boundary (:class:`b3dgs.callbacks.RunCheckpoint`) and an exit with 128 + the signal number.
-* The run manifest ``<run dir>/.b3dgs-run.json`` (:func:`write_manifest`), written when a run is accepted: what
-  marks a folder as a b3dgs run dir, its run's identity (``run_id``, :func:`run_dir_stamp`) and every file b3dgs
-  wrote there, by name (each writer lists its files before writing them, :func:`record_written`).
-  ``overwrite=true`` removes exactly the files it lists (:func:`remove_run_files`), a second b3dgs-render the frames
-  it lists (:func:`remove_recorded`); a non-empty folder without it is someone else's (:func:`run_dir_kind`).
-  Manifests of format 1 (patterns) are read by the names our writers give files
-  (:func:`b3dgs.upgrade.manifest_v1_files`).
-* Resume and overwrite: :func:`prepare_run_dir` decides whether a training may use a run dir (continue its run,
-  replace it, or start in an empty one) before anything is written; :func:`claim_run_dir` then takes the dir,
-  the manifest first, so that a kill at any later moment leaves a folder that ``resume=auto`` and
-  ``overwrite=true`` recognise as a b3dgs run dir.
+  boundary and an exit with 128 + the signal number.
+* The run manifest ``.b3dgs-run.json`` (:func:`write_manifest`): what marks a folder as a b3dgs run dir, its run's
+  identity and every file b3dgs wrote there, by name (listed before it is written, :func:`record_written`), so that
+  ``overwrite=true`` removes exactly those (:func:`remove_run_files`); a non-empty folder without one is someone
+  else's (:func:`run_dir_kind`).
+* :func:`prepare_run_dir` decides whether a training may use a run dir (continue, replace or start) before anything
+  is written; :func:`claim_run_dir` then takes it, the manifest first.
 """
 from __future__ import annotations
 
@@ -33,7 +22,8 @@ import signal
 import threading
 import time
 import uuid
-from contextlib import ExitStack, contextmanager
+from contextlib import ExitStack, contextmanager, suppress
+from itertools import islice
 from pathlib import Path
 from typing import Callable, Iterable, Iterator, Optional
 
@@ -74,10 +64,8 @@ def run_dir_lock(run_dir: Path, prog: str = "b3dgs-train") -> Iterator[None]:
         with held:
             yield
     finally:
-        try:
+        with suppress(OSError):
             run_dir.rmdir()  # only if the run left nothing (a refused run in a new dir)
-        except OSError:
-            pass
 
 
 #: a temp file of :func:`b3dgs.io.atomic_path`: ``.<name>.b3dgs-<random>.tmp`` (an older writer's:
@@ -135,11 +123,8 @@ def remove_stale_staging(folder: Path, owned: bool = False) -> list[Path]:
         if not p.is_dir() or p.is_symlink():
             continue
         parts = p.name[len(STAGING_PREFIX):].rsplit(".", 2)
-        if len(parts) == 3 and parts[1].isdigit():
-            stale = parts[0] == host and not pid_alive(int(parts[1]))
-        else:
-            stale = owned
-        if stale:
+        named = len(parts) == 3 and parts[1].isdigit()  # host and pid in the name
+        if (parts[0] == host and not pid_alive(int(parts[1]))) if named else owned:
             shutil.rmtree(p, ignore_errors=True)
             gone.append(p)
     return gone
@@ -204,8 +189,7 @@ def is_legacy_run(run_dir: Path) -> bool:
         return False
     if not isinstance(cfg, DictConfig) or not all(k in cfg for k in ("data", "model", "seed")):
         return False
-    m = read_json_dict(run_dir / "metrics.json")
-    return (m is not None and "checkpoint" in m) or (run_dir / "checkpoints" / "last.ckpt").is_file()
+    return finished_metrics(run_dir) is not None or (run_dir / "checkpoints" / "last.ckpt").is_file()
 
 
 def run_dir_kind(run_dir: Path) -> str:
@@ -224,13 +208,7 @@ def foreign_files(run_dir: Path, limit: Optional[int] = None) -> list[str]:
     folder such as a home directory is not walked to its end)."""
     if not Path(run_dir).is_dir():
         return []
-    out = []
-    for f in _iter_files(Path(run_dir)):
-        if f != LOCK_NAME:
-            out.append(f)
-            if limit is not None and len(out) >= limit:
-                break
-    return sorted(out)
+    return sorted(islice((f for f in _iter_files(Path(run_dir)) if f != LOCK_NAME), limit))
 
 
 def _listed(run_dir: Path, m: Optional[dict]) -> list[str]:
@@ -301,14 +279,9 @@ def start_manifest(folder: Path) -> None:
         _write_manifest(folder, [], None, None)
 
 
-def _check_names(names: Iterable[str]) -> list[str]:
-    out = []
-    for n in map(str, names):
-        parts = n.split("/")
-        if n.startswith("/") or any(p in ("", ".", "..") for p in parts) or n in (MANIFEST_NAME, LOCK_NAME):
-            raise B3dgsError(f"not a file name relative to a run dir: {n!r}", "pass its path inside the run dir")
-        out.append(n)
-    return out
+def _bad_name(rel: str) -> bool:
+    """``rel`` is no file of a run dir: absolute, with an empty, ``.`` or ``..`` part, or the manifest or the lock."""
+    return rel.startswith("/") or any(p in ("", ".", "..") for p in rel.split("/")) or rel in (MANIFEST_NAME, LOCK_NAME)
 
 
 def record_written(folder: Path, names: Iterable[str], forget: Iterable[str] = ()) -> None:
@@ -318,8 +291,11 @@ def record_written(folder: Path, names: Iterable[str], forget: Iterable[str] = (
     m = read_manifest(folder)
     if m is None:
         return
-    have, gone = _listed(folder, m), set(map(str, forget))
-    files = [f for f in dict.fromkeys([*have, *_check_names(names)]) if f not in gone]
+    names, have, gone = list(map(str, names)), _listed(folder, m), set(map(str, forget))
+    bad = [n for n in names if _bad_name(n)]
+    if bad:
+        raise B3dgsError(f"not a file name relative to a run dir: {bad[0]!r}", "pass its path inside the run dir")
+    files = [f for f in dict.fromkeys([*have, *names]) if f not in gone]
     if files != have or m.get("b3dgs_run") != MANIFEST_FORMAT:
         _write_manifest(folder, files, manifest_token(m), m.get("created"), m.get("writer"), m.get("amended"))
 
@@ -372,10 +348,9 @@ def run_files(run_dir: Path) -> list[str]:
 def _safe_target(root: Path, rel: str) -> Optional[Path]:
     """``root/rel`` if it is a file (or a link) reached through real folders of ``root``: never a path with ``..``,
     an absolute one, one through a symlinked folder, the manifest or the lock."""
-    parts = str(rel).split("/")
-    if str(rel).startswith("/") or any(p in ("", ".", "..") for p in parts) or rel in (MANIFEST_NAME, LOCK_NAME):
+    if _bad_name(str(rel)):
         return None
-    cur = Path(root)
+    parts, cur = str(rel).split("/"), Path(root)
     for p in parts[:-1]:
         cur = cur / p
         if cur.is_symlink() or not cur.is_dir():
@@ -397,10 +372,8 @@ def remove_listed(folder: Path, names: Iterable[str]) -> list[str]:
     for d in sorted({p for f in gone for p in Path(f).parents if p != Path(".")}, key=lambda p: -len(p.parts)):
         q = folder / d
         if not q.is_symlink():
-            try:
+            with suppress(OSError):  # not empty: someone else's files are in it
                 q.rmdir()
-            except OSError:
-                pass  # not empty: someone else's files are in it
     return gone
 
 
@@ -571,29 +544,15 @@ def finished_metrics(run_dir: Path) -> Optional[dict]:
     return m if m is not None and "checkpoint" in m else None
 
 
-def _foreign_dir_error(run_dir: Path) -> B3dgsError:
-    files = foreign_files(run_dir, limit=5)
-    shown = ", ".join(files[:4]) + (" and more" if len(files) > 4 else "")
-    return B3dgsError(f"{run_dir} is not empty and holds no b3dgs run ({shown})",
-                      "pass hydra.run.dir=PATH to a new or empty folder; b3dgs writes only there or into its own run "
-                      "dirs, and overwrite=true removes only files a b3dgs run wrote")
-
-
 def prepare_run_dir(run_dir: Path, resume=None, overwrite=False,
                     check_checkpoint: Optional[Callable[[str], None]] = None) -> tuple[Optional[str], bool]:
     """``(checkpoint to resume from or None, whether to remove the old run's outputs first)`` for a training into
-    ``run_dir`` with ``resume`` and ``overwrite`` (the config's values).
+    ``run_dir`` with the config's ``resume`` and ``overwrite``; writes nothing (:func:`claim_run_dir` does).
 
-    One that already holds a run (config.yaml, checkpoints/last.ckpt or metrics.json) is refused unless
-    ``resume=auto`` (or ``resume=`` one of its own checkpoints) continues it or ``overwrite=true`` replaces it
-    (removing only what its manifest lists). A non-empty folder without a manifest is someone else's: refused,
-    naming its files, whatever the flags. Run dirs written before manifests (a b3dgs config.yaml with metrics.json
-    or checkpoints/last.ckpt, e.g. the archived ``bench/results/runs/*``) count as runs: ``resume=auto`` continues
-    them, ``overwrite=true`` removes only the outputs a manifest would list (:func:`run_files`), and the run's claim
-    writes their manifest. ``check_checkpoint(path)`` vets the checkpoint to resume from (its renderer: the caller's
-    :func:`b3dgs.lifecycle.check_resume_renderer`). Nothing is written here (:func:`claim_run_dir` does, once every
-    other check has passed).
-    """
+    A run dir that holds a run (or one written before manifests, :func:`is_legacy_run`) is refused unless
+    ``resume=auto`` (or one of its own checkpoints) continues it or ``overwrite=true`` replaces it; a non-empty folder
+    without a manifest is someone else's, refused whatever the flags. ``check_checkpoint(path)`` vets the checkpoint to
+    resume from."""
     if not isinstance(overwrite, bool):
         raise B3dgsError(f"overwrite={overwrite} is invalid: it must be true or false",
                          "pass overwrite=true to replace the run in the run dir, or leave it out")
@@ -603,7 +562,11 @@ def prepare_run_dir(run_dir: Path, resume=None, overwrite=False,
     run_dir = Path(run_dir)
     kind = run_dir_kind(run_dir)
     if kind == "foreign":
-        raise _foreign_dir_error(run_dir)
+        files = foreign_files(run_dir, limit=5)
+        raise B3dgsError(f"{run_dir} is not empty and holds no b3dgs run ({', '.join(files[:4])}"
+                         f"{' and more' if len(files) > 4 else ''})", "pass hydra.run.dir=PATH to a new or empty "
+                         "folder; b3dgs writes only there or into its own run dirs, and overwrite=true removes only "
+                         "files a b3dgs run wrote")
     held = [n for n in RUN_MARKERS if (run_dir / n).exists()]
     if overwrite:
         return None, kind != "empty"
@@ -643,13 +606,10 @@ def save_config(cfg, path: Path) -> None:
 
 
 def claim_run_dir(run_dir: Path, cfg, clear: bool) -> None:
-    """Take ``run_dir`` for an accepted training (its lock held, every check passed), in this order: the run
-    manifest (:func:`write_manifest`, atomically) before anything else goes into the folder, so that a kill at any
-    later moment leaves a b3dgs run dir that ``resume=auto`` and ``overwrite=true`` take over; then the job log
-    (:func:`arm_run_log`); with ``clear`` (``overwrite=true``) the previous run's outputs go first, exactly what its
-    manifest lists (:func:`remove_run_files`, which then writes the new manifest: the folder holds one at every
-    moment), else a done marker to be written again; temp files and staging folders a kill
-    left; ``.hydra/`` and ``config.yaml``."""
+    """Take ``run_dir`` for an accepted training (its lock held, every check passed): the run manifest first (with
+    ``clear``, ``overwrite=true``, after removing what the old one lists), so that a kill at any later moment leaves a
+    run dir that ``resume=auto`` and ``overwrite=true`` take over; then the job log, the leftovers of a kill,
+    ``.hydra/`` and ``config.yaml``."""
     run_dir = Path(run_dir)
     if clear:  # the replaced run's files, exactly as its manifest lists them; then a new manifest, atomically
         log.warning("overwrite=true: removing the previous run's outputs from %s", run_dir)

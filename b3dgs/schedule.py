@@ -5,14 +5,9 @@ schedule (the trainer as it always was, bit for bit). ``schedule=dash`` follows 
 CVPR 2025): early steps train on downsampled views and the resolution rises, by the training images'
 frequency content, to full resolution at ``full_res_at`` of the run; the densification budget grows with it.
 
-What the core reads from a schedule (the trainer never asks which one it holds):
-
-* :meth:`TrainingSchedule.camera` — the training camera of a step (a downsampled copy, intrinsics scaled per
-  axis, image from a per-level cache that is built once per camera and level);
-* :meth:`TrainingSchedule.step_info` — what goes into the hooks' ``info``: ``resolution_scale`` (pixels of the
-  step's view over the full view's, per axis) and ``budget_fraction`` (the share of a strategy's densification
-  head-room it may fill by now; strategies read it, see :class:`b3dgs_plugins.strategy.default.AdaptiveDensityControl`);
-* :meth:`TrainingSchedule.lr_progress` — the progress t in [0, 1] of the means' learning-rate decay.
+What the core reads from a schedule (never which one it holds): :meth:`TrainingSchedule.camera`, the training camera
+of a step (a downsampled, cached copy); :meth:`TrainingSchedule.step_info`, the hooks' ``info`` (``resolution_scale``,
+``budget_fraction``); :meth:`TrainingSchedule.lr_progress`, the progress of the means' learning-rate decay.
 """
 from __future__ import annotations
 

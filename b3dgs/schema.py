@@ -1,13 +1,9 @@
 """Typed config nodes: the keys and value types of every ``_target_`` node are checked by OmegaConf.
 
-The schema of a node is a structured config made from its target's fields: a dataclass's (plugins, renderers,
-schedules, UQ regimes, acquisition policies) or, for a target that is no dataclass, its keyword parameters with
-their annotations (the model's ``SplatModule``, ``lightning.Trainer``, a logger, a callback; the data module gets its
-format loader's keywords too). :func:`check_node` sets the user's values into that schema one key at a time, so
-OmegaConf refuses an unknown key and a value of the wrong type; each refusal becomes one :class:`B3dgsError` line
-with the closest known key or the expected type and its default. Ranges: a component (plugin, renderer, data module)
-checks its own in ``validate``; those of the core's own values (model, trainer, top-level keys) are :data:`RULES`; the
-rules across fields are :mod:`b3dgs.validation`'s.
+A node's schema is a structured config made from its target's fields (a dataclass's, else its keyword parameters
+with their annotations); :func:`check_node` sets the user's values into it one key at a time, so an unknown key or a
+value of the wrong type becomes one :class:`B3dgsError` line. Ranges: a component checks its own in ``validate``; the
+core's own values follow :data:`RULES`; rules across fields are :mod:`b3dgs.validation`'s.
 """
 from __future__ import annotations
 

@@ -22,18 +22,12 @@ register_resolver()  # ${b3dgs.method:} in run dir names (conf/hydra/default.yam
 def train(cfg: DictConfig) -> dict:
     """Train one model into its run dir; returns the metrics dict.
 
-    Run dir contract: the run dir's lock (:func:`b3dgs.rundir.run_dir_lock`) first; once every check has
-    passed the run manifest, then the job log, ``.hydra/`` and ``config.yaml`` (:func:`b3dgs.rundir.claim_run_dir`),
-    ``checkpoints/last.ckpt`` (never ``last-v1.ckpt``)
-    every ``trainer.checkpoint_every`` steps and ``trainer.checkpoint_every_s`` seconds and at the end,
-    then the renders, ``point_cloud.ply`` and the curve files, and ``metrics.json`` last, as the "done"
-    marker (it records the final checkpoint's step, Gaussian count and parameter digest). A finished run
-    is never rewritten: ``resume=auto`` on it says so and returns its metrics (``overwrite=true`` trains it
-    again). A resume (``resume=auto``) is exact: it continues bit for bit as the uninterrupted run would
-    (RNGs, view sampler, guard counters and plugin states are in the checkpoint), also when the kill came
-    after the last checkpoint (then only the final evaluation runs), and is refused for another model,
-    posterior, strategy, scene, ``trainer.max_steps`` or seed. SIGINT / SIGTERM save a checkpoint and raise
-    :class:`b3dgs.rundir.Interrupted`.
+    Run dir contract: the lock first; once every check has passed the manifest, the job log, ``.hydra/`` and
+    ``config.yaml`` (:func:`b3dgs.rundir.claim_run_dir`); ``checkpoints/last.ckpt`` every ``trainer.checkpoint_every``
+    steps and ``trainer.checkpoint_every_s`` seconds and at the end; the renders, ``point_cloud.ply``, the curve, and
+    ``metrics.json`` last, the "done" marker. A finished run is never rewritten. ``resume=auto`` continues bit for bit
+    as the uninterrupted run would, and is refused for another model, posterior, strategy, scene, ``trainer.max_steps``
+    or seed. SIGINT / SIGTERM save a checkpoint and raise :class:`b3dgs.rundir.Interrupted`.
     """
     from b3dgs.lifecycle import Run
 

@@ -40,12 +40,10 @@ class Camera:
             raise B3dgsError(f"Camera {self.name!r}: width/height must be positive, got {self.width}x{self.height}",
                              fix="pass the image's width and height in pixels, both > 0")
         if self.image is not None and tuple(self.image.shape) != (self.height, self.width, 3):
-            raise B3dgsError(
-                f"Camera {self.name!r}: image must be (H, W, 3) = ({self.height}, {self.width}, 3), "
-                f"got {tuple(self.image.shape)}"
-,
-                      fix="pass the image at the camera's size, a float tensor of shape (height, width, 3), or scale "
-                          "K to the image's size")
+            raise B3dgsError(f"Camera {self.name!r}: image must be (H, W, 3) = ({self.height}, {self.width}, 3), "
+                             f"got {tuple(self.image.shape)}",
+                             fix="pass the image at the camera's size, a float tensor of shape (height, width, 3), or "
+                                 "scale K to the image's size")
         if not torch.isfinite(self.K).all() or not torch.isfinite(self.viewmat).all():
             raise B3dgsError(f"Camera {self.name!r}: K or viewmat contains NaN/Inf",
                              fix="pass finite intrinsics and pose; repair that camera's entry in the scene's poses "

@@ -1,19 +1,12 @@
 """Every older on-disk format b3dgs still reads, converted into the current one: one function per format, listed in
-:data:`UPGRADES` (format -> function). The readers call these; no other module carries a conversion of its own
-(``tests/test_upgrade.py`` has one test per format and checks that).
+:data:`UPGRADES` (format -> function); no other module carries a conversion of its own (``tests/test_upgrade.py``
+has one test per format). It imports nothing of b3dgs but ``conf_dir``, so every reader can call it; its functions
+take what was read and return the current form.
 
-The module imports nothing of b3dgs but ``conf_dir`` (floor 1 of ``docs/design.md``), so every reader can call
-it. Its functions take what was read (a config as plain dicts, a manifest, a ``uq.json``, a list of file names) and
-return the current form; reading files stays with the readers.
-
-Older forms that are tolerated where they are read rather than converted (a missing record skips a check):
-a checkpoint without a renderer identity (``b3dgs.lifecycle.check_resume_renderer`` compares its run dir's
-``config.yaml`` instead) or without a content digest (``b3dgs.checkpoint.check_sealed`` passes it), a ``uq.json``
-entry without ``run_checkpoints`` (``b3dgs.report.collect.uq_scores_other_run`` compares the run dir it names), a
-staging folder of b3dgs-eval named without host and pid (``b3dgs.rundir.remove_stale_staging``), a config without a
-``schedule`` node in a method label (``b3dgs.labels``: no ``+schedule``). Refused in one line, not converted: a
-relative ``data.path`` in ``config.yaml`` (``b3dgs.runs``), the acquisition settings' flat form
-(``b3dgs.study.active.load_policy`` names ``policy_settings.<name>.regime.<regime>.<key>``).
+Tolerated where read rather than converted (a missing record skips a check): a checkpoint without a renderer identity
+or content digest, a ``uq.json`` entry without ``run_checkpoints``, a b3dgs-eval staging folder without host and pid,
+a config without a ``schedule`` node in a method label. Refused in one line: a relative ``data.path`` in
+``config.yaml`` (``b3dgs.runs``), the acquisition settings' flat form (``b3dgs.study.active.load_policy``).
 """
 from __future__ import annotations
 
@@ -174,16 +167,11 @@ _GLOB = re.compile(r"[*?\[]")
 def _v1_matches(rel: str, pattern: str) -> bool:
     """Whether a format-1 ``pattern`` names the file ``rel``: component by component, a literal one equal, a
     wildcard one only as :data:`_V1_NAMES` says its writer names files."""
+    def part(x: str, y: str) -> bool:
+        return x == y if not _GLOB.search(y) else y in _V1_NAMES and re.fullmatch(_V1_NAMES[y], x) is not None
+
     a, b = rel.split("/"), pattern.split("/")
-    if len(a) != len(b):
-        return False
-    for x, y in zip(a, b):
-        if not _GLOB.search(y):
-            if x != y:
-                return False
-        elif y not in _V1_NAMES or not re.fullmatch(_V1_NAMES[y], x):
-            return False
-    return True
+    return len(a) == len(b) and all(map(part, a, b))
 
 
 def _uq_outputs(uq: Mapping) -> list[str]:

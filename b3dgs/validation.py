@@ -1,13 +1,9 @@
 """Config rules that no single target can check, run before any scene is loaded.
 
-:func:`validate_config` checks a composed ``b3dgs-train`` or ``b3dgs-eval`` config and raises
-:class:`~b3dgs.errors.B3dgsError` ``(problem, fix)`` for the first bad value. The keys and types of every ``_target_``
-node come from its target's schema (:mod:`b3dgs.schema`, checked by OmegaConf); each plugin (strategy, schedule,
-posterior block, UQ regime) is built and checks its own values in ``validate``. The renderer and the data module check
-theirs (``renderer.*``, ``data.*`` with ``data.path``) in their ``validate`` when the run builds them. What is left is
-here: the top-level keys, the ranges of the core's own values (:data:`RULES`), values that must agree across nodes, a
-``data.path`` that is not set, a posterior block listed twice, and files that must exist (a ``resume`` checkpoint,
-``b3dgs-eval``'s run dirs, ``lpips_weights``).
+:func:`validate_config` checks a composed config and raises :class:`~b3dgs.errors.B3dgsError` ``(problem, fix)`` for
+the first bad value. Node keys and types come from :mod:`b3dgs.schema`; each plugin is built and checks its own values
+in ``validate``. Here: the top-level keys, the core's ranges (:data:`RULES`), values that must agree across nodes, an
+unset ``data.path``, a posterior block listed twice, and files that must exist (``resume``, run dirs, lpips weights).
 """
 from __future__ import annotations
 
@@ -89,21 +85,11 @@ def _validate_plugins(nodes: list, **run) -> dict:
     return built
 
 
-def _hydra_choice(group: str):
-    """The option of ``group`` the running Hydra app composed (None outside one)."""
-    try:
-        from hydra.core.hydra_config import HydraConfig
-
-        return HydraConfig.get().runtime.choices.get(group) if HydraConfig.initialized() else None
-    except Exception:  # noqa: BLE001 - only a nicer message depends on it
-        return None
-
-
 def _refuse_other_apps_option(cfg: DictConfig, key: str, app: str) -> None:
     """A top-level ``key`` that the chosen option of a global group (``experiment=archived_posterior``) sets but only
     another b3dgs command reads: refuse the option by name (else the user sees "unknown config key <key>")."""
     for group in sorted(global_groups()):
-        choice = OmegaConf.select(cfg, f"hydra.runtime.choices.{group}", default=None) or _hydra_choice(group)
+        choice = _hydra(cfg, f"runtime.choices.{group}", None)
         option = load_option(group, str(choice)) if choice else None
         if not isinstance(option, dict) or key not in option:
             continue
@@ -121,7 +107,7 @@ def _check_top(cfg: DictConfig, app: str, values: dict) -> None:
         node = cfg.get(key)
         if key in global_groups() and isinstance(node, DictConfig) and len(node):
             # an option file of a global group without the header: its keys went under <key>.*, where nothing reads
-            choice = OmegaConf.select(cfg, f"hydra.runtime.choices.{key}", default=None) or _hydra_choice(key)
+            choice = _hydra(cfg, f"runtime.choices.{key}", None)
             keys = ", ".join(map(str, node.keys()))
             if choice:
                 raise B3dgsError(f"{key}/{choice}.yaml is not a global config file: its keys landed under {key}.{{{keys}}}, "
@@ -252,16 +238,13 @@ def _check_posterior_list(cfg: DictConfig) -> None:
 
 
 def _check_resume(cfg: DictConfig, resume: Any) -> None:
-    fix = "pass resume=null to start afresh, or resume=PATH to an intact .ckpt (e.g. an earlier stepN.ckpt)"
-    if resume in ("auto", True):
-        root = value(cfg.trainer, "default_root_dir", "trainer.default_root_dir")
-        last = None if root is UNRESOLVED else Path(str(root)) / "checkpoints" / "last.ckpt"
-        if last is not None and last.exists():
-            check_checkpoint(last, fix)
-    elif resume not in (None, False, "", "null"):
-        if not Path(str(resume)).exists():
-            raise B3dgsError(f"resume={resume}: no such checkpoint", "pass a .ckpt path, resume=auto or resume=null")
-        check_checkpoint(resume, fix)
+    from b3dgs.rundir import resolve_resume
+
+    root = value(cfg.trainer, "default_root_dir", "trainer.default_root_dir") if resume in ("auto", True) else ""
+    ckpt = None if root is UNRESOLVED else resolve_resume(resume, Path(str(root)))
+    if ckpt is not None:
+        check_checkpoint(ckpt, "pass resume=null to start afresh, or resume=PATH to an intact .ckpt (e.g. an earlier "
+                               "stepN.ckpt)")
 
 
 def _check_eval(cfg: DictConfig, values: dict) -> dict:

@@ -4,17 +4,17 @@ Hydra entry point (``conf/report.yaml``)."""
 from __future__ import annotations
 
 import logging
-import math
 import re
 import sys
+from contextlib import suppress
 from pathlib import Path
-from typing import Any, Optional
+from typing import Optional
 
 import hydra
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from b3dgs.errors import B3dgsError, cli_main
-from b3dgs.io import atomic_path, write_json
+from b3dgs.io import atomic_path, to_jsonable, write_json
 from b3dgs.report import analysis as A
 from b3dgs.report import plots
 from b3dgs.report.collect import ReportError, Run, group, load_runs, method_order
@@ -28,19 +28,6 @@ __all__ = ["build_report", "main"]
 SPECS = {"psnr": ".3f", "ssim": ".4f", "lpips": ".4f", "ause_rmse": ".4f", "ece": ".4f", "cov95": ".3f",
          "num_gaussians": ",.0f", "render_fps": ".1f", "train_time_s": ".1f", "block_time_pct": ".2f",
          "cov95_err": ".3f", "nll": ".3f", "spearman": ".3f", "time_s": ".1f"}
-
-
-def _clean(x: Any) -> Any:
-    """JSON-safe copy: NaN/Inf -> None, tuple keys -> strings."""
-    if isinstance(x, dict):
-        return {str(k): _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if isinstance(x, Path):
-        return str(x)
-    return x
 
 
 def _as_list(v) -> list:
@@ -398,7 +385,7 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
         tmp.write_text(to_markdown(title, bld.blocks) + "\n")
     with atomic_path(paths["html"]) as tmp:
         tmp.write_text(to_html(title, bld.blocks))
-    write_json(paths["json"], _clean(data))
+    write_json(paths["json"], to_jsonable(data))
     log.info("Report of %d runs -> %s", len(runs), out)
     return paths
 
@@ -413,10 +400,8 @@ def _hydra_main(cfg: DictConfig) -> None:
         paths = build_report(cfg)
     except B3dgsError as e:  # a ReportError, or a bad value (b3dgs.validation)
         if not existed:  # Hydra made the folder for the job log; a refused report leaves nothing
-            try:
+            with suppress(OSError):
                 out.rmdir()
-            except OSError:
-                pass
         print(f"b3dgs-report: error: {e}", file=sys.stderr)
         sys.exit(2)
     arm_run_log()  # the job log (conf/report.yaml: held in memory until the report is written)

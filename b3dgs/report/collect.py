@@ -1,19 +1,11 @@
 """Finished run dirs: finding them, reading them, and keying them by their own config.
 
-A run dir holds ``config.yaml`` (the composed config written by ``b3dgs-train``); ``metrics.json`` is
-its done marker. A run is keyed by (study, level, scene, method, seed), all read from ``config.yaml``:
-
-* scene = ``data.name``, seed = ``seed``, method = the label of what ran (:func:`b3dgs.labels.method_label`:
-  the model option that ran the most of it plus posterior / strategy / schedule changes and a non-paper NIW count,
-  so ``posterior=[niw,dp]`` on the standard model is ``niw+dp``, not ``standard``);
-* study = ``sparse`` when ``data.train_indices`` is set, else ``initcap`` when ``model.init_max_points``
-  is below the standard model's default (``conf/model/standard.yaml``), else ``canonical``; a ``study``
-  node (``name``, ``level``) in the config, where one is allowed, wins;
-* level = the study's variable: the number of train views (``sparse``), ``model.init_max_points``
-  (``initcap``), else ``study.level`` (or None: a run without a level, e.g. every canonical run).
-
-``group_by`` keys split a study by their values: ``canonical [trainer.max_steps=300]`` is still a canonical group
-(:attr:`Run.base_study`), reported as its own canonical benchmark.
+A run dir holds ``config.yaml``; ``metrics.json`` is its done marker. A run is keyed by (study, level, scene, method,
+seed), all read from ``config.yaml``: scene = ``data.name``; method = :func:`b3dgs.labels.method_label`; study =
+``sparse`` when ``data.train_indices`` is set, else ``initcap`` when ``model.init_max_points`` is below the standard
+model's default, else ``canonical`` (a ``study`` node, ``name`` and ``level``, wins); level = the study's variable
+(the number of train views, ``model.init_max_points``, else ``study.level`` or None). ``group_by`` keys split a study
+by their values (``canonical [trainer.max_steps=300]``, still a canonical group: :attr:`Run.base_study`).
 """
 from __future__ import annotations
 

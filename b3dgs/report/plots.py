@@ -50,8 +50,7 @@ def plot_curves(curves: dict, path: Path, ylabel: str = "test PSNR (dB)") -> Pat
                 hi = [y + s for y, s in zip(c["y"], c["sem"])]
                 ax.fill_between(c["t"], lo, hi, color=_color(m), alpha=0.2, lw=0)
         ax.set_title(scene, fontsize=10)
-        ax.set_xlabel("training time (s)")
-        ax.set_ylabel(ylabel)
+        ax.set(xlabel="training time (s)", ylabel=ylabel)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     return _save(fig, path)
@@ -74,8 +73,7 @@ def plot_pareto(panels: dict, path: Path) -> Path:
                 ax.plot([pts[m][axis] for m in front], [pts[m]["psnr"] for m in front], "k--", lw=1, zorder=2)
                 ax.scatter([pts[m][axis] for m in front], [pts[m]["psnr"] for m in front], s=140,
                            facecolors="none", edgecolors="k", zorder=4, label="frontier")
-            ax.set_xlabel(xlabel)
-            ax.set_ylabel("PSNR (dB)")
+            ax.set(xlabel=xlabel, ylabel="PSNR (dB)")
             ax.set_title(f"{label}", fontsize=9)
             ax.grid(alpha=0.3)
         row[0].legend(fontsize=7)
@@ -91,8 +89,7 @@ def plot_paired(results: Sequence[dict], path: Path) -> Path:
         if scenes and all(abs(v) <= ZERO for v in r["per_scene"].values()):  # identical runs: say so, not a 1e-17 axis
             ax.text(0.5, 0.5, f"Δ = 0 in all {len(scenes)} scenes\n({r['a']} and {r['b']} are identical)",
                     ha="center", va="center", transform=ax.transAxes, fontsize=9)
-            ax.set_xticks([])
-            ax.set_yticks([])
+            ax.set(xticks=[], yticks=[])
             ax.set_title(f"Δ{r['metric']} ({r['a']} − {r['b']})", fontsize=9)
             continue
         ax.axhline(0, color="grey", lw=1)
@@ -123,9 +120,7 @@ def plot_ood(views: Sequence[dict], path: Path) -> Path:
         for lab, (name, color) in names.items():
             vs = [v for v in sel if v["label"] == lab]
             ax.scatter([v["support"] for v in vs], [v["uncertainty"] for v in vs], s=14, color=color, label=name)
-        ax.set_yscale("log")
-        ax.set_xlabel("support score (nearest train camera / extent)")
-        ax.set_ylabel("mean per-view uncertainty")
+        ax.set(yscale="log", xlabel="support score (nearest train camera / extent)", ylabel="mean per-view uncertainty")
         ax.set_title(row, fontsize=9)
         ax.legend(fontsize=7)
     return _save(fig, path)
@@ -140,10 +135,7 @@ def plot_levels(table: dict, path: Path, xlabel: str, keys=(("psnr", "PSNR (dB)"
         for m in methods:
             xs = [i for i, lv in enumerate(levels) if table[lv].get(m, {}).get(key) is not None]
             ax.plot(xs, [table[levels[i]][m][key] for i in xs], "o-", color=_color(m), label=m)
-        ax.set_xticks(range(len(levels)))
-        ax.set_xticklabels([str(lv) for lv in levels])
-        ax.set_xlabel(xlabel)
-        ax.set_ylabel(label)
+        ax.set(xticks=range(len(levels)), xticklabels=[str(lv) for lv in levels], xlabel=xlabel, ylabel=label)
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     return _save(fig, path)
