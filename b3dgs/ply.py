@@ -119,13 +119,8 @@ def write_ply(path: str | os.PathLike, means: Tensor, scales_log: Tensor, quats:
     twice = [nm for i, nm in enumerate(names) if nm in names[:i]]
     if twice:
         raise B3dgsError(f"write_ply: property name {twice[0]!r} would appear twice (extra names clash)",
-<<<<<<< HEAD
                          fix="rename the extra property so it differs from the 3DGS fields (x, opacity, f_dc_0, ...) "
                              "and from the other extras")
-=======
-                         fix="rename the extra property so it differs from the 3DGS fields (x, opacity, f_dc_0, "
-                             "...) and from the other extras")
->>>>>>> h/cutcore
 
     from plyfile import PlyData, PlyElement
 

@@ -481,7 +481,7 @@ def change_md(early: list[dict], rows: list[dict]) -> str:
     pairs = [(before.get(r["id"]), r) for r in rows]
     changed = [(b, r) for b, r in pairs if (b or {}).get("verdict") != r["verdict"]]
     same = [(b, r) for b, r in pairs if (b or {}).get("verdict") == r["verdict"]]
-    lines = [f"## What the scenes since the earlier two changed", "",
+    lines = ["## What the scenes since the earlier two changed", "",
              f"The same claims restricted to {' and '.join(EARLIER_SCENES)} (the earlier conclusions' scenes; "
              f"`bench/results/claims_two_scenes.md`) against every scene above: {len(changed)} verdicts changed, "
              f"{len(same)} stayed.", "", "| claim | two scenes | all scenes |", "|---|---|---|"]

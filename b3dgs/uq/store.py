@@ -101,7 +101,7 @@ def read_uq(folder: Path) -> dict:
             raise B3dgsError("not a JSON object")
     except (OSError, ValueError) as e:
         raise B3dgsError(f"{path} is damaged ({' '.join(str(e).split())[:80]}); b3dgs-eval adds to it and never "
-                         "replaces it", f"move it away, or pass out=PATH to another folder") from None
+                         "replaces it", "move it away, or pass out=PATH to another folder") from None
     return d
 
 
