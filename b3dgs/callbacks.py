@@ -71,17 +71,6 @@ def set_rng_state(state: dict[str, Any]) -> None:
         torch.cuda.set_rng_state_all(state["cuda"])
 
 
-def _set_guard_counts(counts: dict[str, int], calls: dict[str, int]) -> None:
-    from b3dgs import numerics as guards
-
-    with guards._lock:  # noqa: SLF001 - the counters are module state; restore them as saved
-        guards._pending.clear()
-        guards._counts.clear()
-        guards._counts.update({str(k): int(v) for k, v in counts.items()})
-        guards._fired_calls.clear()
-        guards._fired_calls.update({str(k): int(v) for k, v in calls.items()})
-
-
 class ResumeState(L.Callback):
     """Saves the RNG states and the numerical-guard counters with every checkpoint and restores them at
     the first training step after a resume; tells the train sampler how many views each step consumed
@@ -101,9 +90,16 @@ class ResumeState(L.Callback):
     def _restore(self) -> None:
         if self._pending is None:
             return
+        from b3dgs import numerics as guards
+
         st, self._pending = self._pending, None
         set_rng_state(st["rng"])
-        _set_guard_counts(st.get("guards", {}), st.get("guard_calls", {}))
+        with guards._lock:  # noqa: SLF001 - the counters are module state; restore them as saved
+            guards._pending.clear()
+            guards._counts.clear()
+            guards._counts.update({str(k): int(v) for k, v in st.get("guards", {}).items()})
+            guards._fired_calls.clear()
+            guards._fired_calls.update({str(k): int(v) for k, v in st.get("guard_calls", {}).items()})
 
     def on_train_batch_start(self, trainer, pl_module, batch, batch_idx) -> None:
         # restored here, not at load time: nothing between the load and this step may draw from them
@@ -164,13 +160,12 @@ class RunCheckpoint(Checkpoint):
         due = bool(self.every_n_steps) and step % self.every_n_steps == 0
         if not due and self.every_s > 0 and self._t_last is not None:
             due = time.monotonic() - self._t_last >= self.every_s
-        if due and step != self._saved_step:
+        signum = PENDING.signum
+        if (due or signum is not None) and step != self._saved_step:
             self.save(trainer)
-        if PENDING.signum is not None:
-            if step != self._saved_step:
-                self.save(trainer)
+        if signum is not None:
             PENDING.deferred = False
-            raise Interrupted(PENDING.signum, step)
+            raise Interrupted(signum, step)
 
     def on_train_end(self, trainer, pl_module) -> None:
         PENDING.deferred = False
@@ -229,14 +224,10 @@ class RunFiles(L.Callback):
     def setup(self, trainer, pl_module, stage: str) -> None:
         self._record(trainer, planned=True)
 
-    def on_train_start(self, trainer, pl_module) -> None:
+    def on_train_start(self, trainer, *_: Any) -> None:
         self._record(trainer)
 
-    def on_fit_end(self, trainer, pl_module) -> None:
-        self._record(trainer)
-
-    def on_exception(self, trainer, pl_module, exception) -> None:
-        self._record(trainer)
+    on_fit_end = on_exception = on_train_start
 
 
 class CurveCallback(L.Callback):
@@ -280,13 +271,11 @@ class CurveCallback(L.Callback):
     def evaluate(self, trainer, pl_module, step: int) -> None:
         from b3dgs.metrics.image import psnr
 
-        vals = []
-        first = None
+        vals, first = [], None
         for cam in self.cameras:
             pred = pl_module.render_eval(cam).cpu()
             vals.append(float(psnr(pred, cam.image)))
-            if first is None:
-                first = (pred, cam.image)
+            first = first or (pred, cam.image)
         point = {"step": int(step), "train_time_s": round(self.train_time_s, 4), "psnr": sum(vals) / len(vals),
                  "num_gaussians": pl_module.num_gaussians}
         self.points.append(point)
@@ -366,11 +355,10 @@ class StepProgressBar(TQDMProgressBar):
     def on_train_start(self, trainer, *_: Any) -> None:
         self.train_progress_bar = self.init_train_tqdm()
 
-    def on_train_epoch_start(self, trainer, *_: Any) -> None:
+    def on_train_epoch_start(self, *_: Any) -> None:
         pass  # one bar for the whole run, not one per pass over the views
 
-    def on_train_epoch_end(self, trainer, pl_module) -> None:
-        pass
+    on_train_epoch_end = on_train_epoch_start
 
     def on_train_end(self, *_: Any) -> None:
         bar = self.train_progress_bar

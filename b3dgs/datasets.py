@@ -392,21 +392,6 @@ def apply_layout(folder: Path, scene: Scene) -> Path:
 
 
 # ---------------------------------------------------------------------------------------------- get
-def _fetch_files(source: Source, folder: Path, downloads: Path, scene: Scene) -> None:
-    for entry in source.files:
-        src, _, dst = (part.strip() for part in str(entry).partition("->"))
-        dst = dst or src
-        got = download(source.url + src, downloads / scene.name / dst, None, scene.name)
-        (folder / dst).parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(got, folder / dst)
-
-
-def _still_needed(source: Source, scenes: dict[str, Scene], root: Path, exclude: set[str]) -> list[str]:
-    """The missing scenes besides ``exclude`` that the same archive holds."""
-    return [s.name for s in scenes.values() if s.name not in exclude and any(o.url == source.url for o in s.sources)
-            and not is_present(s, root)]
-
-
 def get(scene: Scene, root: Path, scenes: Optional[dict[str, Scene]] = None) -> str:
     """Fetch and lay out ``scene`` in ``root`` (see the module docstring); returns what it did, as one line."""
     target = root / scene.name
@@ -424,14 +409,18 @@ def get(scene: Scene, root: Path, scenes: Optional[dict[str, Scene]] = None) -> 
     try:
         archives = []
         for source in scene.sources:
-            if source.files:
-                _fetch_files(source, folder, downloads, scene)
-            elif is_archive(source):
+            for entry in source.files:  # a base URL and files from it
+                src, _, dst = (part.strip() for part in str(entry).partition("->"))
+                dst = dst or src
+                got = download(source.url + src, downloads / scene.name / dst, None, scene.name)
+                (folder / dst).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copyfile(got, folder / dst)
+            if is_archive(source):
                 archive = download(source.url, downloads / source.name, source.sha256, scene.name)
                 _say(f"{scene.name}: extracting {source.subdir or 'everything'} from {archive.name}")
                 extract(archive, source.subdir, folder)
                 archives.append(source)
-            else:
+            elif not source.files:
                 got = download(source.url, downloads / scene.name / source.name, source.sha256, scene.name)
                 shutil.copyfile(got, folder / source.name)
         folder = apply_layout(folder, scene)
@@ -449,7 +438,8 @@ def get(scene: Scene, root: Path, scenes: Optional[dict[str, Scene]] = None) -> 
     kept = []  # reached only when the scene is in place
     shutil.rmtree(downloads / scene.name, ignore_errors=True)
     for source in archives:
-        others = _still_needed(source, scenes or {}, root, {scene.name})
+        others = [s.name for s in (scenes or {}).values()  # the missing scenes the same archive holds
+                  if s.name != scene.name and any(o.url == source.url for o in s.sources) and not is_present(s, root)]
         if others:
             kept.append(f"{source.name} kept for {', '.join(others)}")
         else:

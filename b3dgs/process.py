@@ -93,14 +93,6 @@ def list_photos(folder: Path) -> list[Path]:
     return photos
 
 
-def _listing(photos: list[Path]) -> list[list]:
-    return [[p.name, int((st := p.stat()).st_size), int(st.st_mtime_ns)] for p in photos]
-
-
-def _fingerprint(listing: list[list]) -> str:
-    return hashlib.sha256("".join(f"{n}\t{s}\t{m}\n" for n, s, m in listing).encode()).hexdigest()
-
-
 def _sizes(photos: list[Path]) -> list[tuple[int, int]]:
     """(width, height) of every photo, each decoded whole first (a JPEG at 1/8 scale, which still reads all of its
     data): a truncated or corrupt photo is refused in one line naming it, before anything is written (SfM would
@@ -458,12 +450,12 @@ class _Run:
                              "pass out= a new folder")
         remove_listed(self.out, [f for f in owned if f not in new])
         self.state["files"] = sorted(set(owned) | set(new))
-        _write_state(self.out, self.state)
+        write_json(self.out / STATE, self.state)
         for f, src in new.items():
             (self.out / f).parent.mkdir(parents=True, exist_ok=True)
             os.replace(src, self.out / f)
         self.state["files"] = sorted(new)
-        _write_state(self.out, self.state)
+        write_json(self.out / STATE, self.state)
 
     def undistort(self, pycolmap) -> dict:
         from PIL import Image
@@ -528,10 +520,6 @@ def _read_state(out: Path) -> Optional[dict]:
         return state
     raise B3dgsError(f"{path} is damaged ({why})",
                      f"delete {out} (or that file and {out / WORK}) and run again, or pass out= a new folder")
-
-
-def _write_state(out: Path, state: dict) -> None:
-    write_json(out / STATE, state)
 
 
 def _check_out(out: Path, images: Path, state: Optional[dict], key: str = "images") -> None:
@@ -824,8 +812,8 @@ def extract_frames(video: Path, folder: Path, fps: float, quality: int = 2) -> i
 
 def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, video=None) -> dict:
     t_start = time.perf_counter()
-    listing = _listing(photos)
-    fp = _fingerprint(listing)
+    listing = [[p.name, int((st := p.stat()).st_size), int(st.st_mtime_ns)] for p in photos]
+    fp = hashlib.sha256("".join(f"{n}\t{s}\t{m}\n" for n, s, m in listing).encode()).hexdigest()
     if state is not None and state.get("fingerprint") != fp:
         raise B3dgsError(f"images={images} changed since {out} was processed from it "
                          f"({_diff(state.get('photos', []), listing)})",
@@ -842,7 +830,7 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, vide
     run = _Run(cfg, photos, sizes, images, out, single, matcher, state)
     state["images"] = str(images)
     run.work.mkdir(parents=True, exist_ok=True)
-    _write_state(out, state)
+    write_json(out / STATE, state)
     keys = run.keys()
     cams = "one camera" if single else "one camera per photo"
     source = f"{images}" if video is None else f"{images} (frames of {video} at fps={cfg.fps:g})"
@@ -851,23 +839,21 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, vide
     for i, stage in enumerate(STAGES):
         _stop_if_signalled()
         tag = f"[{i + 1}/{len(STAGES)}] {stage}"
-        rec = state["stages"].get(stage)
-        if rec is not None and rec.get("key") == keys[stage] and all(p.exists() for p in run.outputs(stage)) \
-                and not (stage == "map" and run.may_retry(rec)):
+        rec, why = state["stages"].get(stage), ""
+        if rec is not None and rec.get("key") != keys[stage]:
+            changed = [f"{k} {rec['key'].get(k)} -> {v}" for k, v in keys[stage].items() if rec["key"].get(k) != v]
+            why = f" (options changed: {', '.join(changed)})"
+        elif rec is not None and stage == "map" and run.may_retry(rec):
+            why = f" (it registered {rec.get('registered', 0)}, fewer than {run.need()}, with tries left)"
+        elif rec is not None and not all(p.exists() for p in run.outputs(stage)):
+            why = " (its output is gone)"
+        if rec is not None and not why:
             _say(f"{tag}: done earlier ({rec['seconds']:.1f} s; {rec.get('note', '')}), skipped")
             report[stage] = {**rec, "skipped": True}
         else:
-            why = ""
-            if rec is not None and rec.get("key") != keys[stage]:
-                changed = [f"{k} {rec['key'].get(k)} -> {v}" for k, v in keys[stage].items() if rec["key"].get(k) != v]
-                why = f" (options changed: {', '.join(changed)})"
-            elif rec is not None and stage == "map" and run.may_retry(rec):
-                why = f" (it registered {rec.get('registered', 0)}, fewer than {run.need()}, with tries left)"
-            elif rec is not None:
-                why = " (its output is gone)"
             for later in STAGES[i:]:  # this stage and every later one are redone
                 state["stages"].pop(later, None)
-            _write_state(out, state)
+            write_json(out / STATE, state)
             _say(f"{tag}{why}")
             t0 = time.perf_counter()
             try:
@@ -878,7 +864,7 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, vide
                 raise
             seconds = time.perf_counter() - t0
             state["stages"][stage] = {"key": keys[stage], "seconds": round(seconds, 3), **stats}
-            _write_state(out, state)
+            write_json(out / STATE, state)
             _say(f"{tag}: {stats['note']} in {seconds:.1f} s")
             report[stage] = {**state["stages"][stage], "skipped": False}
         if stage == "map":
@@ -898,7 +884,7 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, vide
         with atomic_path(target) as tmp:
             tmp.write_text(text)
     state["scene_file"], state["name"] = scene_file, name
-    _write_state(out, state)
+    write_json(out / STATE, state)
     total = time.perf_counter() - t_start
     _say(f"b3dgs-process: {summary}; " + ", ".join(f"{s} {state['stages'][s]['seconds']:.1f} s" for s in STAGES)
          + f" (this run {total:.1f} s)")

@@ -22,6 +22,7 @@ the reason, never a made-up number.
 from __future__ import annotations
 
 import argparse
+import codecs
 import hashlib
 import io
 import math
@@ -128,8 +129,7 @@ class LPIPS(nn.Module):
         fx, fy = self.features(x), self.features(y)
         total = x.new_zeros(x.shape[0])
         for lin, a, b in zip(self.lins, fx, fy):
-            a = a / (a.square().sum(dim=1, keepdim=True).sqrt() + _EPS)
-            b = b / (b.square().sum(dim=1, keepdim=True).sqrt() + _EPS)
+            a, b = (f / (f.square().sum(dim=1, keepdim=True).sqrt() + _EPS) for f in (a, b))
             total = total + lin((a - b).square()).mean(dim=(1, 2, 3))
         return total
 
@@ -140,9 +140,7 @@ class LPIPS(nn.Module):
             raise B3dgsError(f"lpips: images must be at least {_MIN_SIZE}x{_MIN_SIZE}, got {h}x{w}",
                              fix=f"evaluate at a larger size (images of at least {_MIN_SIZE}x{_MIN_SIZE} pixels: "
                                  "raise data.max_side), or skip LPIPS for such tiny views")
-        dev, dt = self.shift.device, self.shift.dtype
-        x = p.to(device=dev, dtype=dt).permute(0, 3, 1, 2) * 2.0 - 1.0
-        y = g.to(device=dev, dtype=dt).permute(0, 3, 1, 2) * 2.0 - 1.0
+        x, y = (t.to(device=self.shift.device, dtype=self.shift.dtype).permute(0, 3, 1, 2) * 2.0 - 1.0 for t in (p, g))
         d = self.distance_nchw(x, y)
         return d if batched else d[0]
 
@@ -169,11 +167,14 @@ def load_lpips(path: str | os.PathLike) -> LPIPS:
     if not isinstance(sd, Mapping):
         raise B3dgsError(f"{path}: expected a state dict, got {type(sd).__name__}", _REBUILD_FIX)
     _check_state_dict(sd)
+    return _frozen(sd)
+
+
+def _frozen(sd: Mapping[str, Tensor]) -> LPIPS:
+    """The network with the (checked) state dict ``sd``, in eval mode, parameters frozen."""
     model = LPIPS()
     model.load_state_dict({k: v.float() for k, v in sd.items()}, strict=True)
-    model.eval()
-    model.requires_grad_(False)
-    return model
+    return model.eval().requires_grad_(False)
 
 
 # ------------------------------------------------------------------------------ finding the weights
@@ -294,23 +295,19 @@ def _read_member(archive: Path) -> bytes:
 class _NumpyOnlyUnpickler(pickle.Unpickler):
     """Unpickler that can rebuild numpy arrays and plain containers, and nothing else."""
 
+    ALLOWED = {("numpy", "ndarray"): np.ndarray, ("numpy", "dtype"): np.dtype, ("builtins", "dict"): dict,
+               ("collections", "OrderedDict"): OrderedDict,
+               ("_codecs", "encode"): codecs.encode}  # protocol-2 pickles store bytes this way
+
     def find_class(self, module: str, name: str):
-        if (module, name) == ("numpy", "ndarray"):
-            return np.ndarray
-        if (module, name) == ("numpy", "dtype"):
-            return np.dtype
+        if (module, name) in self.ALLOWED:
+            return self.ALLOWED[module, name]
         if module in ("numpy.core.multiarray", "numpy._core.multiarray") and name in ("_reconstruct", "scalar"):
             try:
                 from numpy._core import multiarray
             except ImportError:  # numpy < 2
                 from numpy.core import multiarray  # type: ignore[no-redef]
             return getattr(multiarray, name)
-        if (module, name) in (("collections", "OrderedDict"), ("builtins", "dict")):
-            return OrderedDict if name == "OrderedDict" else dict
-        if (module, name) == ("_codecs", "encode"):  # protocol-2 pickles store bytes this way
-            import codecs
-
-            return codecs.encode
         raise pickle.UnpicklingError(f"refusing to load {module}.{name} from the LPIPS checkpoint")
 
 
@@ -411,10 +408,7 @@ def verify_state_dict(sd: Mapping[str, Tensor], reference: str | os.PathLike | N
         if bad:
             raise B3dgsError(f"the converted weights differ from the reference {reference} in {bad}", _REFERENCE_FIX)
         done.append(f"equal to reference {reference}")
-    model = LPIPS()
-    model.load_state_dict(dict(sd), strict=True)
-    model.eval()
-    val = probe_value(model)
+    val = probe_value(_frozen(sd))
     if not math.isfinite(val) or abs(val - PROBE_VALUE) > PROBE_TOL:
         raise B3dgsError(f"the converted weights give the probe LPIPS value {val:.6f}, not {PROBE_VALUE:.6f}",
                          _WRONG_ARCHIVE_FIX)

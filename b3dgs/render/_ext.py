@@ -90,12 +90,6 @@ def _import_built(path: Path, name: str) -> ModuleType:
 BUILD_TIME = "about 1 minute"
 
 
-def announce_build(build_dir: Path) -> None:
-    """One stderr line before a build (only a build, never a cached load): a first run is otherwise a silent pause."""
-    sys.stderr.write(f"b3dgs: compiling the C++ CPU kernels once ({BUILD_TIME}; cached in {build_dir.parent})\n")
-    sys.stderr.flush()
-
-
 def _build_locked(build_dir: Path, name: str, verbose: bool) -> ModuleType:
     from torch.utils import cpp_extension
 
@@ -105,10 +99,10 @@ def _build_locked(build_dir: Path, name: str, verbose: bool) -> ModuleType:
     with process_lock(build_dir / "b3dgs_build.lock"):  # blocks while another process builds
         if so_path.exists():
             return _import_built(so_path, name)
-        stale = build_dir / "lock"  # torch FileBaton left over by a killed build
-        if stale.exists():
-            stale.unlink()
-        announce_build(build_dir)
+        (build_dir / "lock").unlink(missing_ok=True)  # torch FileBaton left over by a killed build
+        # one line before a build (never a cached load): a first run is otherwise a silent pause
+        sys.stderr.write(f"b3dgs: compiling the C++ CPU kernels once ({BUILD_TIME}; cached in {build_dir.parent})\n")
+        sys.stderr.flush()
         return cpp_extension.load(
             name=name,
             sources=[str(s) for s in _SOURCES],

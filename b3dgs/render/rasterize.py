@@ -125,10 +125,7 @@ def _bin_torch(means2d, radii, depths, extent, width, height, tile_size, tiles_x
     S, N = means2d.shape[:2]
     num_tiles = tiles_x * tiles_y
     dev = means2d.device
-    m = means2d.detach().double()
-    r = radii.detach().double()
-    d = depths.detach().double()
-    e = extent.detach().double()
+    m, r, d, e = (t.detach().double() for t in (means2d, radii, depths, extent))
     x, y, ex, ey = m[..., 0], m[..., 1], e[..., 0], e[..., 1]
     valid = (r > 0) & torch.isfinite(r) & torch.isfinite(x) & torch.isfinite(y) & torch.isfinite(d)
     reach = valid & (ex > 0) & (ey > 0)  # visible samples that can reach alpha 1/255

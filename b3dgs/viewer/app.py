@@ -36,7 +36,9 @@ def settings_from_cfg(cfg: DictConfig):
     from b3dgs.validation import validate_config
     from b3dgs.viewer.modes import MODES
 
-    check_port(cfg.get("port", 0))
+    port = cfg.get("port", 0)
+    if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
+        raise B3dgsError(f"port={port} is not a TCP port (0-65535)", "pass port=8080, or port=0 for any free port")
     validate_config(cfg, app="view")
     kw = {k: cfg.get(k) for k in SETTINGS if cfg.get(k) is not None}
     if str(kw.get("mode", "rgb")) not in MODES:
@@ -47,11 +49,6 @@ def settings_from_cfg(cfg: DictConfig):
         if key in cfg:
             kw[key] = cfg.get(key)
     return ViewerSettings(**kw)
-
-
-def check_port(port) -> None:
-    if not isinstance(port, int) or isinstance(port, bool) or not 0 <= port <= 65535:
-        raise B3dgsError(f"port={port} is not a TCP port (0-65535)", "pass port=8080, or port=0 for any free port")
 
 
 def check_host(host: str, timeout: float = 3.0) -> None:

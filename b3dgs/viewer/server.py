@@ -13,7 +13,6 @@ per frame up to the full size. The σ modes' colour scale is the 99th percentile
 """
 from __future__ import annotations
 
-import io
 import logging
 import math
 import threading
@@ -519,10 +518,7 @@ def _curve_png(x: np.ndarray, y: np.ndarray) -> np.ndarray:
     ax.set_xlabel("training time (s)")
     ax.set_ylabel("test PSNR (dB)")
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png")
+    fig.canvas.draw()
+    img = np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
     plt.close(fig)
-    from PIL import Image
-
-    buf.seek(0)
-    return np.asarray(Image.open(buf).convert("RGB"))
+    return img
