@@ -430,22 +430,20 @@ def get(scene: Scene, root: Path, scenes: Optional[dict[str, Scene]] = None) -> 
                              "the source changed since the registry was written; report it, or place the scene by "
                              f"hand in {target}")
         os.replace(folder, target)
+        kept = []  # the scene is in place: its downloads go, but an archive other missing scenes hold
+        shutil.rmtree(downloads / scene.name, ignore_errors=True)
+        for source in archives:
+            others = [s.name for s in (scenes or {}).values() if s.name != scene.name
+                      and any(o.url == source.url for o in s.sources) and not is_present(s, root)]
+            if others:
+                kept.append(f"{source.name} kept for {', '.join(others)}")
+            else:
+                (downloads / source.name).unlink(missing_ok=True)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
         for p in (downloads / scene.name, downloads):
             if p.is_dir() and not any(p.iterdir()):
                 p.rmdir()
-    kept = []  # reached only when the scene is in place
-    shutil.rmtree(downloads / scene.name, ignore_errors=True)
-    for source in archives:
-        others = [s.name for s in (scenes or {}).values()  # the missing scenes the same archive holds
-                  if s.name != scene.name and any(o.url == source.url for o in s.sources) and not is_present(s, root)]
-        if others:
-            kept.append(f"{source.name} kept for {', '.join(others)}")
-        else:
-            (downloads / source.name).unlink(missing_ok=True)
-    if downloads.is_dir() and not any(downloads.iterdir()):
-        downloads.rmdir()
     return f"{scene.name}: ready in {target}" + (f" ({'; '.join(kept)})" if kept else "")
 
 

@@ -23,7 +23,10 @@ into a run's ``checkpoints/``.
 from __future__ import annotations
 
 import logging
+import os
 import re
+import shutil
+import tempfile
 from contextlib import nullcontext
 from pathlib import Path
 from typing import Optional
@@ -84,9 +87,8 @@ def splat_records(splats: dict, inv) -> np.ndarray:
 
 def export_splat(run, path: Path) -> Path:
     splats, _, inv = _own_frame(run)
-    rec = splat_records(splats, inv)
     with atomic_path(path) as tmp:
-        tmp.write_bytes(rec.tobytes())
+        tmp.write_bytes(splat_records(splats, inv).tobytes())
     return path
 
 
@@ -167,10 +169,6 @@ def write_model_folder(run, out: Path, step: int, owner: Optional[Path]) -> Path
     and renamed into place (a previous export there, checked by :func:`_check_folder`, goes as a whole), so that ``out``
     holds one export or none; its files are listed in its own manifest (``writer: b3dgs-export``) and in ``owner``'s
     (the run dir it lies in), before they are moved in."""
-    import os
-    import shutil
-    import tempfile
-
     out.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.b3dgs-stage-", dir=out.parent))
     old = None

@@ -97,8 +97,7 @@ def ssim(pred: Tensor, gt: Tensor) -> Tensor:
                          fix=f"evaluate at a larger size (at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels: raise "
                              "data.max_side), or skip SSIM for such tiny views")
     dtype = torch.promote_types(p.dtype, g.dtype)
-    a = p.to(dtype).permute(0, 3, 1, 2)
-    b = g.to(dtype).permute(0, 3, 1, 2)
+    a, b = (t.to(dtype).permute(0, 3, 1, 2) for t in (p, g))
     smap = kornia.metrics.ssim(a, b, window_size=SSIM_WINDOW, max_val=1.0, eps=0.0, padding="valid")
     val = smap.mean(dim=(1, 2, 3))
     return val if batched else val[0]

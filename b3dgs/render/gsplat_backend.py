@@ -95,10 +95,8 @@ def _near_plane(near: float) -> float:
 def _identity_for_zero(quats: Tensor) -> Tensor:
     """Zero quaternions -> (1, 0, 0, 0): our contract renders them with the identity rotation (gsplat's
     unfloored rsqrt would make them NaN and cull them). Their quaternion gradient is zero here."""
-    zero = (quats == 0).all(-1, keepdim=True)
-    ident = torch.zeros_like(quats)
-    ident[..., 0] = 1
-    return torch.where(zero, ident, quats)
+    ident = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=quats.dtype, device=quats.device)
+    return torch.where((quats == 0).all(-1, keepdim=True), ident, quats)
 
 
 def gsplat_emulated() -> bool:

@@ -201,9 +201,7 @@ def _preprocess_cpu(params: Mapping[str, Tensor], camera: Camera, S: int, deg: i
     if rot_mode:
         quats, scales, cov6 = _lead(params["quats"], 1), _lead(params["scales"], 1), empty
     else:
-        cv = params["covars"]
-        quats, scales = empty, empty
-        cov6 = _lead(cv[..., list(_COV6_ROWS), list(_COV6_COLS)], 1)
+        quats, scales, cov6 = empty, empty, _lead(params["covars"][..., list(_COV6_ROWS), list(_COV6_COLS)], 1)
     logits = _lead(params["opacities"], 0)
     sh0 = _lead(params["sh0"], 2).reshape(-1, means.shape[1], 3)
     shN = _lead(params["shN"], 2)[..., : (deg + 1) ** 2 - 1, :].contiguous() if deg > 0 else empty

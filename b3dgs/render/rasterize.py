@@ -242,12 +242,14 @@ def _check_inputs(means2d, conics, colors, opacities, depths, bins, width, heigh
         _raise_stale_bins(N)
 
 
+_NAN_FIX = ("the Gaussians hold NaN/Inf (training diverged): lower the learning rates (e.g. model.lr_means) or check "
+            "the data")
+
+
 def _check_finite(**tensors: Tensor) -> None:
     for name, t in tensors.items():
         if not bool(torch.isfinite(t.detach()).all()):
-            raise B3dgsError(f"rasterize: {name} contains NaN or Inf",
-                             fix="the Gaussians hold NaN/Inf (training diverged): lower the learning rates (e.g. "
-                                 "model.lr_means) or check the data")
+            raise B3dgsError(f"rasterize: {name} contains NaN or Inf", fix=_NAN_FIX)
 
 
 def _raise_stale_bins(n: int) -> None:
@@ -263,9 +265,7 @@ def _raise_bad_inputs(flags: Tensor, n: int, **tensors: Tensor) -> None:
         _raise_stale_bins(n)
     if nonfinite:
         _check_finite(**tensors)  # names the first tensor holding a NaN / Inf
-        raise B3dgsError("rasterize: an input contains NaN or Inf",
-                         fix="the Gaussians hold NaN/Inf (training diverged): lower the learning rates (e.g. "
-                             "model.lr_means) or check the data")
+        raise B3dgsError("rasterize: an input contains NaN or Inf", fix=_NAN_FIX)
 
 
 # ----------------------------------------------------------------------------- Pure PyTorch backend
@@ -370,18 +370,13 @@ def _rasterize_torch(means2d, conics, colors, opacities, depths, bins, width, he
             mx, my, ca, cb, cc, op = (data[..., q] for q in range(6))
             col, z = data[..., 6:9], data[..., 9]
             args = (mx, my, ca, cb, cc, op, col, z, valid, pxc, pyc, inside, return_weights)
-            if need_grad:
-                out = checkpoint(_torch_chunk, *args, use_reentrant=False)
-            else:
-                out = _torch_chunk(*args)
+            out = checkpoint(_torch_chunk, *args, use_reentrant=False) if need_grad else _torch_chunk(*args)
             parts_s.append(out[:4])
             ws_c, wq_c = out[4:]
             if return_weights and kmax > 0:
                 flat = gidx.reshape(-1)
-                ws_c = torch.where(valid, ws_c, 0).reshape(s1 - s0, -1)
-                wq_c = torch.where(valid, wq_c, 0).reshape(s1 - s0, -1)
-                wsum[s0:s1].index_add_(1, flat, ws_c)
-                wsq[s0:s1].index_add_(1, flat, wq_c)
+                for acc, part in ((wsum, ws_c), (wsq, wq_c)):
+                    acc[s0:s1].index_add_(1, flat, torch.where(valid, part, 0).reshape(s1 - s0, -1))
         parts.append([torch.cat(p, 1) for p in zip(*parts_s)])
     inv = torch.empty_like(order)
     inv[order] = torch.arange(num_tiles, device=order.device)
@@ -437,9 +432,7 @@ class _RasterizeCPU(torch.autograd.Function):
             means2d, conics, colors, opacities, depths, tile_offsets, flat_ids, background, T, last,
             g_rgb, none if g_depth is None else g_depth.contiguous(), none if g_alpha is None else g_alpha.contiguous(),
             width, height, ts, tiles_x, tiles_y, torch.get_num_threads())
-        g_bg = None
-        if ctx.needs_input_grad[5]:
-            g_bg = (g_rgb * T[..., None]).sum(dim=(0, 1, 2))
+        g_bg = (g_rgb * T[..., None]).sum(dim=(0, 1, 2)) if ctx.needs_input_grad[5] else None
         return gm, gc, gcol, go, gz, g_bg, None, None, None, None
 
 

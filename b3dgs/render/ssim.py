@@ -2,6 +2,8 @@
 :func:`b3dgs.metrics.image.ssim` for one ``(H, W, 3)`` pair, separable (torch) or fused with its gradient (C++)."""
 from __future__ import annotations
 
+import functools
+
 import kornia
 import torch
 from torch import Tensor
@@ -15,17 +17,12 @@ SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5  # fixed inside kornia.metrics.ssim
 
 
-_WINDOWS: dict = {}
-
-
+@functools.cache
 def _separable_window(device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
     """kornia's 1-D Gaussian window as the two depthwise kernels, made once per device and dtype (kornia builds it
     from a Python sigma, a host-to-device copy that synchronises a GPU at every step)."""
-    key = (device, dtype)
-    if key not in _WINDOWS:
-        k = kornia.filters.get_gaussian_kernel1d(SSIM_WINDOW, SSIM_SIGMA, device=device, dtype=dtype).reshape(-1)
-        _WINDOWS[key] = (k.view(1, 1, 1, -1).repeat(15, 1, 1, 1), k.view(1, 1, -1, 1).repeat(15, 1, 1, 1))
-    return _WINDOWS[key]
+    k = kornia.filters.get_gaussian_kernel1d(SSIM_WINDOW, SSIM_SIGMA, device=device, dtype=dtype).reshape(-1)
+    return k.view(1, 1, 1, -1).repeat(15, 1, 1, 1), k.view(1, 1, -1, 1).repeat(15, 1, 1, 1)
 
 
 def ssim_separable(pred: Tensor, gt: Tensor) -> Tensor:

@@ -138,9 +138,8 @@ def help_text() -> str:
     and comments (``conf/view.yaml``)."""
     import re
 
-    from b3dgs.viewer.modes import MODES
-
     from b3dgs.confs import load_primary
+    from b3dgs.viewer.modes import MODES
 
     header = str(load_primary("view")["hydra"]["help"]["header"]).rstrip()  # the purpose and three examples
     lines = [header, "", "usage: b3dgs-view run=DIR [key=value ...]", "",

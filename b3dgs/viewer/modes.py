@@ -19,6 +19,7 @@ Nothing here imports viser: :class:`ModeRenderer` renders for tests and scripts 
 """
 from __future__ import annotations
 
+import functools
 import math
 import time
 from dataclasses import dataclass, replace
@@ -85,17 +86,13 @@ MODES: dict[str, ModeSpec] = {m.key: m for m in (
 )}
 
 
-_LUTS: dict[str, np.ndarray] = {}
-
-
+@functools.cache
 def colormap_lut(name: str) -> np.ndarray:
     """(256, 3) uint8 table of a matplotlib colour map."""
-    if name not in _LUTS:
-        import matplotlib
+    import matplotlib
 
-        cmap = matplotlib.colormaps[name]
-        _LUTS[name] = (np.asarray(cmap(np.linspace(0.0, 1.0, 256)))[:, :3] * 255.0 + 0.5).astype(np.uint8)
-    return _LUTS[name]
+    cmap = matplotlib.colormaps[name]
+    return (np.asarray(cmap(np.linspace(0.0, 1.0, 256)))[:, :3] * 255.0 + 0.5).astype(np.uint8)
 
 
 def normalise(values: Tensor, spec: ModeSpec) -> Tensor:
@@ -233,10 +230,7 @@ class ModeRenderer:
         if mode in ("depth", "alpha"):
             out = m.render_camera(camera)
             alpha = out.alpha.detach().cpu()
-            if mode == "alpha":
-                values, mask = alpha, None
-            else:
-                values, mask = out.depth.detach().cpu(), alpha >= MIN_ALPHA
+            values, mask = (alpha, None) if mode == "alpha" else (out.depth.detach().cpu(), alpha >= MIN_ALPHA)
         elif mode in SIGMA_MODES:
             s = int(samples or self.samples)
             values, mask = self.sigma(mode, camera, s, generator), None

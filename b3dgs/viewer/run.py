@@ -8,6 +8,7 @@ checkpoint this code cannot rebuild: unknown settings, plugins or parameters).
 from __future__ import annotations
 
 import json
+from contextlib import suppress
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
@@ -121,10 +122,8 @@ def open_run(run_dir, acquired: Optional[str] = None, renderer=None) -> ViewedRu
                          f"({type(e).__name__}: {' '.join(str(e).split())[:160]})",
                          f"view it with the b3dgs version that trained it, or train it again (`{again}`)") from None
     curve = []
-    if (run_dir / "curve.json").is_file():
-        try:
+    with suppress(ValueError, AttributeError):  # a damaged curve.json: no curve
+        if (run_dir / "curve.json").is_file():
             curve = list(json.loads((run_dir / "curve.json").read_text()).get("points") or [])
-        except (ValueError, AttributeError):
-            curve = []
     sel = Path(acquired) if acquired else (run_dir if (run_dir / "selection.json").is_file() else None)
     return ViewedRun(run_dir, loaded, metrics, curve, acquired_views(sel), suggested_cameras(run_dir))

@@ -286,9 +286,7 @@ class ViewerApp:
         if spec.kind == "rgb":
             return f"**{spec.label}**: {spec.what}."
         lo, hi = (f"{spec.lo:.3g}", f"{spec.hi:.3g}")
-        mid = ""
-        if spec.log:
-            mid = f" · middle {10 ** ((math.log10(spec.lo) + math.log10(spec.hi)) / 2):.3g}"
+        mid = f" · middle {10 ** ((math.log10(spec.lo) + math.log10(spec.hi)) / 2):.3g}" if spec.log else ""
         extra = (" Pixel: compositing-weighted mean of the Gaussians' values (of log10 on a log scale); "
                  f"dark grey where α < {MIN_ALPHA}." if spec.kind == "gaussian" else "")
         if spec.key == "depth":
