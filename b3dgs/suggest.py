@@ -25,9 +25,11 @@ and from the side) and ``suggest.json`` (each pose, score and rank, and the drop
 """
 from __future__ import annotations
 
+import json
 import logging
 import math
 import re
+import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional, Sequence
@@ -35,7 +37,7 @@ from typing import Optional, Sequence
 import hydra
 import numpy as np
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
 from b3dgs.acquisition import AcquisitionPolicy, ScoringContext, Selection
@@ -193,8 +195,6 @@ def read_candidates(path: str, scene) -> list[Camera]:
     ``camera_path``: :func:`b3dgs.render_cli.nerfstudio_path`), or a scene folder (colmap, transforms, llff: its
     training and test poses), all in the scene's own frame (that of ``point_cloud.ply`` and ``b3dgs-export``), mapped
     into the run's normalised frame. Names are made unique."""
-    import json
-
     p = Path(str(path)).expanduser()
     fix = ("pass candidates= a 3DGS cameras.json, a nerfstudio camera-path .json or a scene folder (colmap, "
            "transforms, llff), or null to generate them")
@@ -404,22 +404,18 @@ def _plot(path: Path, fr: dict, train: Sequence[Camera], cands: Sequence[Camera]
     fig, axes = plt.subplots(1, 2, figsize=(11, 5))
     ta, tb, tu = coords(train)
     ca, cb, cu = coords(cands)
-    for ax, (x, y), (tx, ty), lab in ((axes[0], (ca, cb), (ta, tb), ("a", "b")), (axes[1], (ca, cu), (ta, tu), ("a", "up"))):
-        if scores is not None:
-            sc = ax.scatter(x, y, c=scores, cmap="viridis", s=14, zorder=2)
-        else:
-            sc = ax.scatter(x, y, c="#999999", s=14, zorder=2)
+    for ax, (x, y), (tx, ty), (xlabel, ylabel, title) in ((axes[0], (ca, cb), (ta, tb), ("a", "b", "from above")),
+                                                         (axes[1], (ca, cu), (ta, tu), ("a", "up", "from the side"))):
+        colour = {"c": "#999999"} if scores is None else {"c": scores, "cmap": "viridis"}
+        sc = ax.scatter(x, y, s=14, zorder=2, **colour)
         ax.scatter(tx, ty, marker="^", c="black", s=24, label="training cameras", zorder=3)
         ax.scatter([x[i] for i in picks], [y[i] for i in picks], marker="*", c="#e6553a", s=160, edgecolors="black",
                    label="suggestions", zorder=4)
         for r, i in enumerate(picks):
             ax.annotate(str(r + 1), (x[i], y[i]), xytext=(5, 5), textcoords="offset points", fontsize=9, zorder=5)
         ax.scatter([0], [0], marker="+", c="red", s=60, label="scene centre", zorder=3)
-        ax.set_xlabel(lab[0])
-        ax.set_ylabel(lab[1])
+        ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
         ax.set_aspect("equal", adjustable="datalim")
-    axes[0].set_title("from above")
-    axes[1].set_title("from the side")
     axes[0].legend(loc="best", fontsize=8)
     if scores is not None:
         fig.colorbar(sc, ax=axes, shrink=0.8, label=f"{policy} score")
@@ -442,20 +438,14 @@ def _preview(rgb: Tensor, m: Tensor, rank: int, score: Optional[float]) -> np.nd
 
 # ---------------------------------------------------------------------------------------------- the command
 def _check_cfg(cfg: DictConfig) -> None:
-    def count(key, v, lo):
+    for key, lo in (("n", 1), ("generate.azimuths", 1), ("generate.elevations", 1), ("generate.distances", 1),
+                    ("generate.jitter_per_camera", 0), ("targets.azimuths", 1), ("targets.elevations", 1)):
+        v = OmegaConf.select(cfg, key)
         if isinstance(v, bool) or not isinstance(v, int) or v < lo:
             raise B3dgsError(f"{key}={v!r} must be an integer >= {lo}", f"pass {key}= an integer >= {lo}")
-
-    count("n", cfg.get("n"), 1)
-    for k in ("azimuths", "elevations", "distances"):
-        count(f"generate.{k}", cfg.generate.get(k), 1)
-    count("generate.jitter_per_camera", cfg.generate.get("jitter_per_camera"), 0)
-    for k in ("azimuths", "elevations"):
-        count(f"targets.{k}", cfg.targets.get(k), 1)
-    for key, v, lo, hi in (("core_quantile", cfg.get("core_quantile"), 0.0, 1.0),
-                           ("min_coverage", cfg.get("min_coverage"), 0.0, 1.0),
-                           ("generate.margin_deg", cfg.generate.get("margin_deg"), 0.0, 90.0),
-                           ("generate.jitter_scale", cfg.generate.get("jitter_scale"), 0.0, 10.0)):
+    for key, lo, hi in (("core_quantile", 0.0, 1.0), ("min_coverage", 0.0, 1.0), ("generate.margin_deg", 0.0, 90.0),
+                        ("generate.jitter_scale", 0.0, 10.0)):
+        v = OmegaConf.select(cfg, key)
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not lo <= v <= hi:
             raise B3dgsError(f"{key}={v!r} must be a number in [{lo}, {hi}]", f"pass {key}= a number in [{lo}, {hi}]")
     for key in ("score_max_side", "preview_max_side"):
@@ -480,8 +470,6 @@ def _claim(folder: Path, run_dir: Path, names: Sequence[str]):
 
 def suggest(cfg: DictConfig) -> dict:
     """Suggest ``cfg.n`` poses for ``cfg.run`` (module doc); returns what ``suggest.json`` holds."""
-    import time
-
     from b3dgs.data.images import save_png
     from b3dgs.export import camera_entries
     from b3dgs.viewer.run import open_run
@@ -536,18 +524,18 @@ def suggest(cfg: DictConfig) -> dict:
     cond = (sel.info or {}).get("conditioned_scores")
     # the per-pixel information maps: info_gain's own state (conditioned on the earlier picks, as its greedy scores
     # were), or, for another policy, a fresh info_gain's where the run allows it
-    map_policy, pool = (policy, list(cands) + list(targets)) if hasattr(policy, "sh_gains") else (None, None)
-    map_note = None
+    map_policy, map_note = (policy if hasattr(policy, "sh_gains") else None), None
     if map_policy is None:
         try:
             _, map_policy = load_policy("info_gain")
             targets = targets or target_ring(fr, train, cfg.targets)
-            pool = list(cands) + list(targets)
-            map_policy.prepare(ctx, pool)
+            map_policy.prepare(ctx, list(cands) + list(targets))
         except B3dgsError as e:
             map_policy, map_note = None, f"no information map: {e}"
+    pool = list(cands) + list(targets)
     side = cfg.get("preview_max_side")
     previews, maps = [], []
+    ranked = [None if sel.scores is None else float(cond[r] if cond else sel.scores[i]) for r, i in enumerate(picks)]
     try:
         for r, i in enumerate(picks):
             cam = cands[i].fit(side, upscale=True, min_side=8) if side else cands[i]
@@ -561,8 +549,7 @@ def suggest(cfg: DictConfig) -> dict:
                     rgb = module.render_eval(cam).cpu()
                 m = torch.zeros(cam.height, cam.width, dtype=torch.float64)
             maps.append(float(m.sum()))
-            score = None if sel.scores is None else float(cond[r] if cond else sel.scores[i])
-            previews.append(_preview(rgb, m, r + 1, score))
+            previews.append(_preview(rgb, m, r + 1, ranked[r]))
     finally:
         if map_policy is not None:
             map_policy.reset_conditioning(ctx)
@@ -575,7 +562,7 @@ def suggest(cfg: DictConfig) -> dict:
         c = cands[i]
         e.update({"id": r, "img_name": f"suggest_{r + 1:02d}"})
         suggestions.append({
-            "rank": r + 1, "name": c.name, "score": None if sel.scores is None else float(cond[r] if cond else sel.scores[i]),
+            "rank": r + 1, "name": c.name, "score": ranked[r],
             "first_score": None if sel.scores is None else float(sel.scores[i]),
             "position": e["position"], "rotation": e["rotation"], "fx": e["fx"], "fy": e["fy"],
             "width": int(c.width), "height": int(c.height),

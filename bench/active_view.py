@@ -39,7 +39,7 @@ import numpy as np
 from omegaconf import OmegaConf
 
 from b3dgs.io import save_figure, write_json
-from b3dgs.report.document import markdown_table
+from b3dgs.report.document import fmt, markdown_table
 from b3dgs.report.stats import mean_sem, p_floor, sign_flip_p
 
 from bench.common import (ARCHIVED_FAMILY_POSTERIOR, RESULTS, ROOT, compose, machine, n_train_views, PeriodicSync,
@@ -93,6 +93,10 @@ def ladder_of(n_train: int) -> str:
 def scene_ladders(scenes: list[str]) -> dict[str, str]:
     """scene -> its ladder, from the scene's training-view count (loads each scene's cameras once)."""
     return {sc: ladder_of(n_train_views(scene_overrides(sc))) for sc in scenes}
+
+
+def _mean(v: list) -> float | None:
+    return float(np.mean(v)) if v else None
 
 
 def run_scene(scene: str, seeds: list[int], study_out: Path, extra: list[str], score_side: str = "64",
@@ -211,7 +215,7 @@ def add_support(per_scene: dict, scene_args: dict | None = None) -> dict:
                 rhos.append(float(spearmanr([r["psnr"] for r in rows], dist).statistic))
         rhos = [x for x in rhos if math.isfinite(x)]  # constant PSNRs: undefined too
         out[scene] = {"initial": support_distance(init, meta["test_views"], centres, extent),
-                      "psnr_vs_support_spearman": float(np.mean(rhos)) if rhos else None, "per_seed": rhos}
+                      "psnr_vs_support_spearman": _mean(rhos), "per_seed": rhos}
     return out
 
 
@@ -229,10 +233,8 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict, scene_args: dict 
         s = write_report(out, plots=True, store=None, pairs=STUDY_PAIRS)
         dst = (results or RESULTS / NAME) / scene
         dst.mkdir(parents=True, exist_ok=True)
-        shutil.copy2(out / "study.md", dst / "study.md")
-        shutil.copy2(out / "study.json", dst / "study.json")
-        for png in (out / "plots").glob("*.png"):
-            shutil.copy2(png, dst / png.name)
+        for f in [out / "study.md", out / "study.json", *(out / "plots").glob("*.png")]:
+            shutil.copy2(f, dst / f.name)
         per_scene[scene] = s
     support = add_support(per_scene, scene_args)
     for scene, s in per_scene.items():  # a row's full cost: every phase-1 model it scored with, round 2, scoring
@@ -249,30 +251,21 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict, scene_args: dict 
         e = {"family": ents[0]["family"], "oracle": ents[0]["oracle"], "scenes": len(ents),
              "training_shared_with": ents[0].get("training_shared_with")}
         for k in ("psnr", "ssim", "lpips", "train_time_s", "scoring_time_s", "spearman_vs_oracle"):
-            vals = [x[k] for x in ents if x.get(k) is not None]
-            e[k] = float(np.mean(vals)) if vals else None
-        rs = [float(np.mean(v)) for s in per_scene.values()
-              if (v := [r["spearman_vs_support"] for r in s["runs"] if r["policy"] == p
-                        and r.get("spearman_vs_support") is not None])]
-        e["spearman_vs_support"] = float(np.mean(rs)) if rs else None  # macro over scenes of seed means
+            e[k] = _mean([x[k] for x in ents if x.get(k) is not None])
+        mine = [[r for r in s["runs"] if r["policy"] == p] for s in per_scene.values()]  # the policy's rows per scene
+        rho = [[r["spearman_vs_support"] for r in rs if r.get("spearman_vs_support") is not None] for rs in mine]
+        e["spearman_vs_support"] = _mean([float(np.mean(v)) for v in rho if v])  # macro over scenes of seed means
         for k in ("support_distance", "pick_spacing", "cost_s"):  # macro over scenes of the policy's row means
-            v = [float(np.mean([r[k] for r in s["runs"] if r["policy"] == p]))
-                 for s in per_scene.values() if any(r["policy"] == p for r in s["runs"])]
-            e[k] = float(np.mean(v)) if v else None
+            e[k] = _mean([float(np.mean([r[k] for r in rs])) for rs in mine if rs])
         # the batch selector's own time (beyond the policy's first scoring) and its exact re-scores per pick
-        infos = [r.get("batch_info") or {} for s in per_scene.values() for r in s["runs"] if r["policy"] == p]
-        bt = [i["batch_time_s"] for i in infos if i.get("batch_time_s") is not None]
-        e["batch_time_s"] = float(np.mean(bt)) if bt else None
-        rp = [x for i in infos for x in i.get("rescored_per_pick", [])]
-        e["rescored_per_pick"] = float(np.mean(rp)) if rp else None
+        infos = [r.get("batch_info") or {} for rs in mine for r in rs]
+        e["batch_time_s"] = _mean([i["batch_time_s"] for i in infos if i.get("batch_time_s") is not None])
+        e["rescored_per_pick"] = _mean([x for i in infos for x in i.get("rescored_per_pick", [])])
         e["batch_fallback"] = sorted({i["fallback"] for i in infos if i.get("fallback")}) or None
         # SEM over seeds of the per-seed macro mean (the paper's teaser error bars)
-        seeds = sorted({int(r["seed"]) for s in per_scene.values() for r in s["runs"] if r["policy"] == p})
-        per_seed = []
-        for sd in seeds:
-            v = [r["psnr"] for s in per_scene.values() for r in s["runs"] if r["policy"] == p and int(r["seed"]) == sd]
-            if len(v) == len(ents):
-                per_seed.append(float(np.mean(v)))
+        seeds = sorted({int(r["seed"]) for rs in mine for r in rs})
+        per_seed = [float(np.mean(v)) for sd in seeds
+                    if len(v := [r["psnr"] for rs in mine for r in rs if int(r["seed"]) == sd]) == len(ents)]
         e["psnr_sem_seeds"] = mean_sem(per_seed)[1]
         e["n_seeds"] = len(seeds)
         table[p] = e
@@ -286,7 +279,7 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict, scene_args: dict 
                   and by[(a, sd)].get("lpips") is not None and by[(b, sd)].get("lpips") is not None]
             if ds:
                 d += [(scene, x) for x in ds]
-                scene_means.append((scene, float(np.mean(ds)), float(np.mean(dl)) if dl else None))
+                scene_means.append((scene, float(np.mean(ds)), _mean(dl)))
         if d:
             vals = [x for _, x in d]
             m, sem = mean_sem(vals)
@@ -295,7 +288,7 @@ def aggregate(scenes: list[str], study_out: Path, walls: dict, scene_args: dict 
             paired[f"{a}-{b}"] = {"delta_psnr": m, "sem": sem, "wins": int(sum(x > 0 for x in vals)), "n": len(vals),
                                   "scene_sign_flip_p": sign_flip_p(sm), "p_floor": p_floor(len(sm)),
                                   "scene_wins": int(sum(x > 0 for _, x, _ in scene_means)), "n_scenes": len(scene_means),
-                                  "delta_lpips": float(np.mean(lp)) if lp else None,
+                                  "delta_lpips": _mean(lp),
                                   "per_scene": {sc: x for sc, x, _ in scene_means}, "paper": PAPER_PAIRED.get(f"{a}-{b}")}
     jac = {}
     for k in ("native|proxy", "native|ensemble", "proxy|ensemble", "native|fisher", "native|oracle", "ensemble|oracle",
@@ -354,9 +347,7 @@ def pooled_markdown(pooled: dict, ladders: dict) -> str:
 
 
 def _f(v, nd=3, sign=False):
-    if v is None:
-        return "—"
-    return f"{v:+.{nd}f}" if sign else f"{v:.{nd}f}"
+    return fmt(v, f".{nd}f", sign)
 
 
 def markdown(res: dict) -> str:
@@ -458,8 +449,7 @@ def plots(res: dict, d: Path) -> None:
         x = t[p].get("cost_s") or 0
         ax.scatter([x], [t[p]["psnr"]], color=col[names.index(p)])
         ax.annotate(p, (x, t[p]["psnr"]), fontsize=7, xytext=(3, 3), textcoords="offset points")
-    ax.set_xlabel("cost: phase-1 models + round 2 + scoring (s, 1 thread), macro mean")
-    ax.set_ylabel("final test PSNR (dB)")
+    ax.set(xlabel="cost: phase-1 models + round 2 + scoring (s, 1 thread), macro mean", ylabel="final test PSNR (dB)")
     ax.set_title("error against run time, per policy", fontsize=9)
     fig.tight_layout()
     save_figure(fig, d / "psnr_time.png", dpi=120)

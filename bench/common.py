@@ -5,9 +5,16 @@ its modules import each other as ``bench.<module>`` only and leave ``sys.path`` 
 """
 from __future__ import annotations
 
+import importlib.util
 import json
+import os
 import platform
+import shutil
 import statistics
+import subprocess
+import sys
+import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Callable, Sequence
@@ -165,8 +172,6 @@ def plain_overrides(overrides: Sequence[str]) -> list[str]:
 
 def load_file(path: Path):
     """The Python module in file ``path``, loaded without changing ``sys.path``."""
-    import importlib.util
-
     spec = importlib.util.spec_from_file_location(Path(path).stem, path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -190,10 +195,6 @@ def sync_results(src: Path, dst: Path, patterns: Sequence[str], only_missing: bo
     """Copies a study's small result files (``patterns`` under src) to dst atomically (a unique temporary file renamed
     into place, so overlapping syncs are safe); returns how many changed. A committed archive of them lets a study
     spread over sessions resume: restored rows count as finished."""
-    import os
-    import shutil
-    import tempfile
-
     try:  # an archive inside the study dir (the default <study-out>/archive) is never copied into itself
         inner = Path(dst).resolve().relative_to(Path(src).resolve()).parts
     except ValueError:
@@ -205,11 +206,8 @@ def sync_results(src: Path, dst: Path, patterns: Sequence[str], only_missing: bo
         target = dst / rel
         if target.exists() and (only_missing or target.read_bytes() == (src / rel).read_bytes()):
             continue
-        target.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", dir=target.parent)
-        os.close(fd)
-        shutil.copy2(src / rel, tmp)
-        os.replace(tmp, target)
+        with atomic_path(target) as tmp:
+            shutil.copy2(src / rel, tmp)
         n += 1
     return n
 
@@ -219,8 +217,6 @@ class PeriodicSync:
     thread while the block runs, and once more at its end: an interrupted session keeps every row finished so far."""
 
     def __init__(self, src: Path, dst: Path, patterns: Sequence[str], every_s: float = 60.0):
-        import threading
-
         self.args, self.every_s, self.stop = (src, dst, patterns), every_s, threading.Event()
         self.thread = threading.Thread(target=self._loop, daemon=True)
 
@@ -241,23 +237,16 @@ class PeriodicSync:
 def bench_child(name: str, *argv: str) -> tuple[list[str], dict[str, str]]:
     """The command and environment that run ``python -m bench.<name> argv...`` in a child process from any working
     directory: this checkout goes first on ``PYTHONPATH``, so the child imports this ``bench`` and ``b3dgs``."""
-    import os
-    import sys
-
     path = os.pathsep.join([str(ROOT), *[p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]])
     return [sys.executable, "-m", f"bench.{name}", *argv], dict(os.environ, PYTHONPATH=path)
 
 
 def shared_dir() -> Path:
-    import os
-
     return Path(os.environ.get("B3DGS_SHARED", ROOT.parent / "shared"))
 
 
 def fresh_dir(d: Path) -> Path:
     """``d`` emptied: removed with what it holds, made again."""
-    import shutil
-
     if d.exists():
         shutil.rmtree(d)
     d.mkdir(parents=True)
@@ -267,9 +256,6 @@ def fresh_dir(d: Path) -> Path:
 def archive_files(run_dir: Path, dest: Path, names: Sequence[str]) -> None:
     """Copies the files ``names`` of ``run_dir`` that exist into ``dest``, atomically: a temporary folder beside it,
     renamed into place (an earlier ``dest`` is replaced), so an archive never holds half a run."""
-    import shutil
-    import tempfile
-
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
     for name in names:
@@ -283,9 +269,6 @@ def archive_files(run_dir: Path, dest: Path, names: Sequence[str]) -> None:
 def train_run(run_dir: Path, overrides: list[str], timeout_s: int = 3600, force: bool = False) -> dict:
     """Train one configuration in a subprocess (isolated, killable) unless ``run_dir`` already holds
     a finished run; returns its metrics.json. Benchmarks are therefore resumable."""
-    import subprocess
-    import sys
-
     metrics = run_dir / "metrics.json"
     if metrics.exists() and not force:
         return json.loads(metrics.read_text())

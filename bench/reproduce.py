@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -29,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-from bench.common import RESULTS, ROOT
+from bench.common import RESULTS, ROOT, bench_child
 
 
 @dataclass(frozen=True)
@@ -233,13 +232,8 @@ def _shown(path: Path) -> str:
 
 def command(rb: Rebuild, results: Path, out: Path, tmp: Path) -> list[str]:
     """``rb``'s command line with its placeholders filled in."""
-    sub = {"{res}": _shown(results), "{out}": str(out), "{tmp}": str(tmp)}
-    args = []
-    for a in rb.command:
-        for k, v in sub.items():
-            a = a.replace(k, v)
-        args.append(a)
-    return ["python", "-m", *args]
+    res, out, tmp = _shown(results), str(out), str(tmp)
+    return ["python", "-m", *(a.replace("{res}", res).replace("{out}", out).replace("{tmp}", tmp) for a in rb.command)]
 
 
 def missing_scenes() -> Optional[str]:
@@ -263,10 +257,10 @@ def run(name: str, rb: Rebuild, results: Path, out: Path) -> list[dict]:
         for rel in rb.copy:
             src = results / rel
             (shutil.copytree if src.is_dir() else shutil.copy2)(src, (out if src.is_file() else tmp) / rel)
-        cmd = command(rb, results, out, tmp)
-        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), *filter(None, [os.environ.get("PYTHONPATH")])])}
+        _, _, module, *argv = command(rb, results, out, tmp)
+        cmd, env = bench_child(module.removeprefix("bench."), *argv)
         t0 = time.perf_counter()
-        proc = subprocess.run([sys.executable, *cmd[1:]], cwd=ROOT, env=env, capture_output=True, text=True)
+        proc = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True)
         secs = time.perf_counter() - t0
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -310,12 +304,11 @@ def main(argv: Optional[list[str]] = None) -> int:
     if unknown:
         names = ", ".join(sorted(known | set(NOT_REBUILDABLE)))
         ap.error(f"--only {' '.join(unknown)}: no such table (one of {names})")
-    chosen = {n: rb for n, rb in REBUILDS.items()
-              if (args.only is None or n in args.only or set(rb.tables) & set(args.only))
-              and not (args.skip_slow and rb.slow)}
+    asked = {n: rb for n, rb in REBUILDS.items()
+             if args.only is None or n in args.only or set(rb.tables) & set(args.only)}
+    chosen = {n: rb for n, rb in asked.items() if not (args.skip_slow and rb.slow)}
     skipped = {t: why for t, why in NOT_REBUILDABLE.items() if args.only is None or t in args.only}
-    skipped.update({t: "slow (--skip-slow)" for n, rb in REBUILDS.items() if n not in chosen and rb.slow
-                    and (args.only is None or n in args.only or set(rb.tables) & set(args.only)) for t in rb.tables})
+    skipped.update({t: "slow (--skip-slow)" for n, rb in asked.items() if n not in chosen for t in rb.tables})
     if args.list:
         for n, rb in REBUILDS.items():
             print(f"{', '.join(rb.tables)}: {' '.join(command(rb, results, Path('OUT'), Path('TMP')))}"

@@ -19,12 +19,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
+import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from omegaconf import OmegaConf
 
+from b3dgs.io import write_json
 from bench.common import (QUICK, RESULTS, ROOT, archive_files, bench_child, compose, model_overrides, n_train_views,
                           read_json, scene_names, scene_overrides, steps_overrides, threads_overrides, train_run)
 
@@ -83,11 +86,9 @@ def twins(jobs, studies=("sparse", "initcap")) -> dict[Path, Path]:
     for run_dir, overrides, study in jobs:
         if study not in studies:
             continue
-        k = study + training_signature(overrides)
-        if k in sig:
-            out[run_dir] = sig[k]
-        else:
-            sig[k] = run_dir
+        first = sig.setdefault(study + training_signature(overrides), run_dir)
+        if first != run_dir:
+            out[run_dir] = first
     return out
 
 
@@ -115,8 +116,6 @@ def uq_regimes(names: list[str], samples: int, seed: int) -> dict:
 
 def merge_uq(path: Path, new: dict) -> dict:
     """uq.json at path with the regimes of ``new`` added (atomically); both must score the same views."""
-    from b3dgs.io import write_json
-
     have = read_json(path, {})
     old_meta, new_meta = have.get("_meta", {}), new.get("_meta", {})
     for key in ("views", "seed"):
@@ -137,8 +136,6 @@ def ensure_uq(run_dir: Path, method: str, samples: int, seed: int) -> None:
 
 def ensure_regimes(run_dir: Path, names: list[str], samples: int, seed: int) -> None:
     """run_dir's uq.json with every regime of ``names``: those it lacks are computed and merged in."""
-    import tempfile
-
     from b3dgs.eval import evaluate_uq
 
     todo = [n for n in names if n not in read_json(run_dir / "uq.json", {})]
@@ -177,8 +174,6 @@ def ensure_ensemble(members: list[Path], out_dir: Path) -> bool:
 def archive_ensemble(args, scene: str) -> Path:
     """The ensemble's uq.json into the archive, its members named by their archive dirs (so the report, built from
     the archive, attaches it to the first member)."""
-    from b3dgs.io import write_json
-
     members = ensemble_members(args, scene)
     res = json.loads((Path(args.out) / scene / "ensemble" / "uq.json").read_text())
     res["ensemble"]["runs"] = [str(archive_dir(args, m).resolve()) for m in members]
@@ -214,8 +209,6 @@ def uq_subprocess(run_dir: Path, method: str, samples: int, seed: int, threads: 
 
 
 def _child(argv: list[str], threads: int | None, what: str) -> None:
-    import subprocess
-
     cmd, env = bench_child("studies", *argv, *(["--threads", str(threads)] if threads else []))
     res = subprocess.run(cmd, capture_output=True, text=True, env=env)
     if res.returncode != 0:
@@ -302,9 +295,8 @@ def main() -> None:
               flush=True)
 
     stale = [run_dir for run_dir, _, study in jobs if args.uq and not args.report_only and study == "canonical"
-             and (archive_dir(args, run_dir) / "metrics.json").is_file() and (run_dir / "metrics.json").is_file()
-             and missing_regimes(archive_dir(args, run_dir),
-                                 json.loads((archive_dir(args, run_dir) / "metrics.json").read_text())["method"])]
+             and (m := read_json(archive_dir(args, run_dir) / "metrics.json")) and (run_dir / "metrics.json").is_file()
+             and missing_regimes(archive_dir(args, run_dir), m["method"])]
     if stale:
         print(f"{len(stale)} archived runs lack a regime of conf/report.yaml: adding it", flush=True)
         with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as ex:

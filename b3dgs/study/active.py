@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import functools
 import json
 import logging
 import math
@@ -186,9 +187,8 @@ class StudyRow:
             return cls(**node)
         if not isinstance(entry, str) or not entry:
             raise B3dgsError(f"a study row must be a policy name or a node, got {entry!r}", f"pass e.g. {example}")
-        base, fam, batch = str(entry), "", None
-        if "@" in base:
-            base, _, fam = base.partition("@")
+        base, _, fam = str(entry).partition("@")
+        batch = None
         if "+" in fam:
             fam, _, batch = fam.partition("+")
         if "+" in base:
@@ -202,11 +202,16 @@ class StudyRow:
 
 
 def study_rows(cfg: DictConfig) -> list[StudyRow]:
-    """The study's rows (``policies``: nodes or their shorthand), with each row's ``blocks`` checked against the
-    other rows of its family and against ``family_posterior``."""
-    rows = [StudyRow.parse(e) for e in (cfg.get("policies") or [])]
-    pins = dict(cfg.get("family_posterior") or {})
-    for r in rows:
+    """The study's rows (``policies``: nodes or their shorthand), their ``blocks`` checked by :func:`row_pins`."""
+    row_pins(cfg)
+    return [StudyRow.parse(e) for e in (cfg.get("policies") or [])]
+
+
+def row_pins(cfg: DictConfig) -> dict:
+    """``family_posterior`` with the rows' ``blocks`` added, each row's checked against the other rows of its family
+    and against ``family_posterior``."""
+    pins = {k: list(v) for k, v in (cfg.get("family_posterior") or {}).items()}
+    for r in [StudyRow.parse(e) for e in (cfg.get("policies") or [])]:
         if r.blocks is None:
             continue
         fam = r.family or load_policy(r.policy)[1].family
@@ -216,15 +221,6 @@ def study_rows(cfg: DictConfig) -> list[StudyRow]:
                              f"another row or family_posterior.{fam} gives family {fam}",
                              "rows of one family train one phase-1 model: give them the same blocks")
         pins[fam] = list(r.blocks)
-    return rows
-
-
-def row_pins(cfg: DictConfig) -> dict:
-    """``family_posterior`` with the rows' ``blocks`` added (:func:`study_rows` checked that they agree)."""
-    pins = {k: list(v) for k, v in (cfg.get("family_posterior") or {}).items()}
-    for r in study_rows(cfg):
-        if r.blocks is not None:
-            pins[r.family or load_policy(r.policy)[1].family] = list(r.blocks)
     return pins
 
 
@@ -414,13 +410,10 @@ class ActiveStudy:
         # a label names the family when the policy's default family differs, e.g. uniform@niw
         out = []
         self.batches = {}
-        default_family: dict[str, str] = {}  # base policy -> its default family (each base built once to read it)
+        default_family = functools.cache(lambda base: load_policy(base)[1].family)  # each base built once to read it
         for label, p, b in rows:
             base = label.partition("@")[0]
-            if base not in default_family:
-                default_family[base] = load_policy(base)[1].family
-            default = default_family[base]
-            lab = base if p.family == default else f"{base}@{p.family}"
+            lab = base if p.family == default_family(base) else f"{base}@{p.family}"
             lab = lab if b == DEFAULT_BATCH else f"{lab}+{b}"  # top-k rows keep the label rows always had
             if lab not in self.batches:
                 out.append((lab, p))
@@ -438,22 +431,20 @@ class ActiveStudy:
         ckpt = run.run_dir / "checkpoints" / "last.ckpt"
         if (run.run_dir / PHASE1_DONE).exists() and ckpt.exists():
             return str(ckpt)
+        from b3dgs.study.rounds import fit_round
+
         with run.exclusive():  # seeds run as parallel jobs share phase-1 models (the ensemble's members)
             if (run.run_dir / PHASE1_DONE).exists() and ckpt.exists():  # another job trained it while this one waited
                 return str(ckpt)
-            return self._train_phase1(family, seed, run, ckpt)
-
-    def _train_phase1(self, family: str, seed: int, run, ckpt: Path) -> str:
-        from b3dgs.study.rounds import fit_round
-
-        t0 = time.perf_counter()
-        log.info("phase 1: %s seed %d, %d steps on %d views", family, seed, self.phase1, len(self.scene.train))
-        fit_round(self.family_cfg(family, seed), self.scene, run.run_dir, self.phase1,
-                  ckpt_path=str(ckpt) if ckpt.exists() else None, plugins=self.family_plugins(family))
-        run.record(PHASE1_DONE, {"family": family, "seed": seed, "steps": self.phase1,
-                                 "train_time_s": time.perf_counter() - t0,
-                                 "train_views": [c.name for c in self.scene.train], "scene_digest": self.scene_digest})
-        return str(ckpt)
+            t0 = time.perf_counter()
+            log.info("phase 1: %s seed %d, %d steps on %d views", family, seed, self.phase1, len(self.scene.train))
+            fit_round(self.family_cfg(family, seed), self.scene, run.run_dir, self.phase1,
+                      ckpt_path=str(ckpt) if ckpt.exists() else None, plugins=self.family_plugins(family))
+            run.record(PHASE1_DONE, {"family": family, "seed": seed, "steps": self.phase1,
+                                     "train_time_s": time.perf_counter() - t0,
+                                     "train_views": [c.name for c in self.scene.train],
+                                     "scene_digest": self.scene_digest})
+            return str(ckpt)
 
     def scoring_models(self, family: str, seed: int, members: int):
         return [load_round(self.family_cfg(family, seed + i), self.scene, self.phase1_model(family, seed + i),
@@ -482,7 +473,7 @@ class ActiveStudy:
 
     # ------------------------------------------------------------------ rows
     def run_row(self, label: str, policy, seed: int) -> dict:
-        from b3dgs.study.rounds import fit_round
+        from b3dgs.study.rounds import fit_round  # looked up per call (tests wrap it)
 
         row = Run(run_dir=self.out / f"{label}_s{seed}")  # a row is a run; result.json its done marker
         d, res = row.run_dir, row.recorded(ROW_DONE)
@@ -505,11 +496,11 @@ class ActiveStudy:
             row.record(ROW_SELECTION, sel)
             del models, ctx
         twin = self.training_twin(label, policy.family, seed, sel["selected"])
+        hole_hits = sum(1 for n in sel["selected"] if n in set(self.hole)) if self.hole else None
         if twin is not None:  # the same training run exists: share it, never retrain it
             res = {**sel, **{k: twin[k] for k in ("psnr", "ssim", "lpips", "train_time_s", "round2_time_s",
                                                   "num_gaussians", "steps")},
-                   "training_shared_with": twin["policy"],
-                   "hole_hits": sum(1 for n in sel["selected"] if n in set(self.hole)) if self.hole else None}
+                   "training_shared_with": twin["policy"], "hole_hits": hole_hits}
             return row.record(ROW_DONE, res)
         by_name = {c.name: c for c in cands}
         acquired = [self.store.acquire(by_name[n]) for n in sel["selected"]]
@@ -528,13 +519,9 @@ class ActiveStudy:
         ev = self.evaluate(module)
         res = {**sel, "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "lpips": ev.get("lpips"),
                "train_time_s": t_phase1 + t_round2, "round2_time_s": t_round2,
-               "num_gaussians": module.num_gaussians, "steps": int(module.global_step),
-               "hole_hits": sum(1 for n in sel["selected"] if n in set(self.hole)) if self.hole else None,
+               "num_gaussians": module.num_gaussians, "steps": int(module.global_step), "hole_hits": hole_hits,
                "scene_digest": self.scene_digest}
         return row.record(ROW_DONE, res)
-
-    def training_signature(self, family: str, seed: int) -> str:
-        return training_signature(self.family_cfg(family, seed))
 
     def training_twin(self, label: str, family: str, seed: int, selected: list[str]) -> Optional[dict]:
         """A finished, separately trained row of this seed whose second round is the same run: the same
@@ -542,13 +529,13 @@ class ActiveStudy:
         ``uniform``, since NIW only observes training). None when ``share_training`` is off."""
         if not self.cfg.get("share_training", True):
             return None
-        mine = self.training_signature(family, seed)
+        mine = training_signature(self.family_cfg(family, seed))
         for other, pol in self.labels_policies:
             res = None if other == label else Run(run_dir=self.out / f"{other}_s{seed}").recorded(ROW_DONE)
             if res is None:
                 continue
             if res.get("training_shared_with") is None and res["selected"] == list(selected) \
-                    and self.training_signature(pol.family, seed) == mine:
+                    and training_signature(self.family_cfg(pol.family, seed)) == mine:
                 return res
         return None
 
@@ -566,9 +553,9 @@ class ActiveStudy:
                 "candidates": [c.name for c in self.scene.candidates], "hole": self.hole,
                 "test_views": [c.name for c in self.scene.test], "phase1_steps": self.phase1, "total_steps": self.total,
                 "acquire": int(self.cfg.acquire), "score_max_side": self.cfg.acquisition.get("score_max_side"),
-                "point_filter": self.store.point_filter, "policies": [l for l, _ in self.labels_policies],
+                "point_filter": self.store.point_filter,
+                "policies": merged_policies(self.out / "meta.json", [l for l, _ in self.labels_policies]),
                 "pool_train_views": [c.name for c in self.pool_train]}
-        meta["policies"] = merged_policies(self.out / "meta.json", meta["policies"])
         meta["pairs"] = merged_policies(self.out / "meta.json", study_pairs(self.cfg), "pairs")
         write_json(self.out / "meta.json", meta)
         xy = pca_xy(self.pool_train)

@@ -174,9 +174,8 @@ def make_plots(out: Path, summary: dict, store=None) -> None:
     ax.bar(range(len(names)), m, yerr=e, color=colors, capsize=3)
     ax.set_xticks(range(len(names)), names, rotation=30, ha="right")
     lo = min(v - s for v, s in zip(m, e)) if m else 0
-    ax.set_ylim(lo - 0.5, max(v + s for v, s in zip(m, e)) + 0.3)
-    ax.set_ylabel("final test PSNR (dB)")
-    ax.set_title(f"{summary['scene']}: ±1 SEM over {len(summary['seeds'])} seeds (blue standard, orange NIW)")
+    ax.set(ylim=(lo - 0.5, max(v + s for v, s in zip(m, e)) + 0.3), ylabel="final test PSNR (dB)",
+           title=f"{summary['scene']}: ±1 SEM over {len(summary['seeds'])} seeds (blue standard, orange NIW)")
     fig.tight_layout()
     save_figure(fig, pdir / "psnr.png", dpi=120)
     layout = out / "layout.json"
@@ -200,9 +199,7 @@ def make_plots(out: Path, summary: dict, store=None) -> None:
             if px:
                 ax.scatter(*zip(*px), s=22, facecolors="none", edgecolors="r")
             ax.set_title(pol, fontsize=9)
-            ax.set_aspect("equal")
-            ax.set_xticks([])
-            ax.set_yticks([])
+            ax.set(aspect="equal", xticks=[], yticks=[])
         for ax in list(axes.flat)[k:]:
             ax.axis("off")
         fig.suptitle(f"top view (PCA plane), seed {seed}: black initial, grey candidates, red picks")

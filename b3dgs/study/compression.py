@@ -26,13 +26,14 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf, open_dict
 
+from b3dgs.acquisition import ScoringContext
 from b3dgs.compression import keep_top
 from b3dgs.errors import B3dgsError
 from b3dgs.io import atomic_path, save_figure, write_json
 from b3dgs.labels import method_label
 from b3dgs.lifecycle import Run
 from b3dgs.protocol import check_stored_protocol, check_stored_scene, flatten
-from b3dgs.report.document import markdown_table
+from b3dgs.report.document import fmt, markdown_table
 from b3dgs.report.stats import mean_sem, paired_stats
 
 log = logging.getLogger(__name__)
@@ -116,12 +117,6 @@ class CompressionStudy:
         module.eval()
         return module
 
-    def context(self, module, scene, seed: int):
-        from b3dgs.acquisition import ScoringContext
-
-        return ScoringContext([module], scene.train, score_max_side=self.cfg.get("score_max_side"),
-                              extent=float(scene.extent), seed=int(seed))
-
     def first_scores(self, name: str, score_fn, loaded, info: dict) -> tuple[torch.Tensor, float, dict]:
         """Round-1 scores of the base model (cached on disk: the same for every keep ratio)."""
         path = self.base_dir(loaded) / "scores" / f"{name}.pt"
@@ -139,38 +134,48 @@ class CompressionStudy:
         return s, dt, _plain(state)
 
     def run_row(self, name: str, score_fn, keep: float, loaded, base_eval: dict, lp) -> dict:
-        d = self.base_dir(loaded) / f"{name}_k{int(round(keep * 100)):02d}"
+        targets = round_targets(loaded.module.num_gaussians, keep, int(score_fn.rounds))
+        return self._rounds(self.base_dir(loaded) / f"{name}_k{int(round(keep * 100)):02d}", name, keep, targets,
+                            score_fn, loaded, base_eval, lp)
+
+    def _rounds(self, d: Path, name: str, keep: float, targets: list, score_fn, loaded, base_eval: dict, lp,
+                **control) -> dict:
+        """The row in ``d``: per round, prune to its target by ``score_fn`` (None: nothing pruned) and fine-tune."""
         done = Run(run_dir=d).recorded(ROW_DONE)
         if done is not None:  # a finished row is never recomputed
             return done
         seed = int(loaded.cfg.seed)
-        n_base = loaded.module.num_gaussians
-        targets = round_targets(n_base, keep, int(score_fn.rounds))
         ft_cfg = self.finetune_cfg(loaded.cfg)
         module, state, per_round = loaded.module, {}, []
         score_s = finetune_s = 0.0
         for r, target in enumerate(targets):
-            info = {"ctx": self.context(module, loaded.scene, seed), "cache": {},
-                    "generator": torch.Generator().manual_seed(seed * 1000003 + 7919 * r + 1)}
-            if r == 0:
-                s, dt, state = self.first_scores(name, score_fn, loaded, info)
-            else:
-                t0 = time.perf_counter()
-                s = score_fn.score(splats=module.params(), optimizers=None, state=state, step=r, info=info).detach().cpu()
-                dt = time.perf_counter() - t0
-                _check_score(name, s, module.num_gaussians)
+            params, dt = {k: v.detach().cpu() for k, v in module.params().items()}, 0.0
+            if score_fn is not None:
+                ctx = ScoringContext([module], loaded.scene.train, score_max_side=self.cfg.get("score_max_side"),
+                                     extent=float(loaded.scene.extent), seed=seed)
+                info = {"ctx": ctx, "cache": {},
+                        "generator": torch.Generator().manual_seed(seed * 1000003 + 7919 * r + 1)}
+                if r == 0:
+                    s, dt, state = self.first_scores(name, score_fn, loaded, info)
+                else:
+                    t0 = time.perf_counter()
+                    s = score_fn.score(splats=module.params(), optimizers=None, state=state, step=r,
+                                       info=info).detach().cpu()
+                    dt = time.perf_counter() - t0
+                    _check_score(name, s, module.num_gaussians)
+                mask = keep_top(s, target)
+                params = {k: v[mask] for k, v in params.items()}
             score_s += dt
-            mask = keep_top(s, target)
-            params = {k: v.detach().cpu()[mask] for k, v in module.params().items()}
             t0 = time.perf_counter()
             module = self.finetune(ft_cfg, loaded.scene, params, seed)
             ft = time.perf_counter() - t0
             finetune_s += ft
-            per_round.append({"round": r, "kept": int(mask.sum()), "score_s": dt, "finetune_s": ft})
+            kept = module.num_gaussians if score_fn is None else int(mask.sum())
+            per_round.append({"round": r, "kept": kept, "score_s": dt, "finetune_s": ft})
             log.info("%s %s keep %.2f round %d: %d Gaussians (score %.1f s, fine-tune %.1f s)",
-                     d.parent.name, name, keep, r, int(mask.sum()), dt, ft)
-        return self.write_row(d, module, loaded, lp, name, keep, int(score_fn.rounds), score_s, finetune_s, per_round,
-                              {k: v for k, v in state.items() if isinstance(v, (int, float))}, base_eval)
+                     d.parent.name, name, keep, r, kept, dt, ft)
+        return self.write_row(d, module, loaded, lp, name, keep, len(targets), score_s, finetune_s, per_round,
+                              {k: v for k, v in state.items() if isinstance(v, (int, float))}, base_eval, **control)
 
     def write_row(self, d: Path, module, loaded, lp, name: str, keep: float, rounds: int, score_s: float,
                   finetune_s: float, per_round: list, guards: dict, base_eval: dict, **control) -> dict:
@@ -195,21 +200,8 @@ class CompressionStudy:
         pruning row with that many rounds) with nothing pruned, so a row's PSNR change splits into pruning and the
         extra training steps (row − control, control − base)."""
         name = f"finetune_only_r{rounds}"
-        d = self.base_dir(loaded) / f"{name}_k100"
-        done = Run(run_dir=d).recorded(ROW_DONE)
-        if done is not None:
-            return done
-        seed, module, per_round, finetune_s = int(loaded.cfg.seed), loaded.module, [], 0.0
-        ft_cfg = self.finetune_cfg(loaded.cfg)
-        for r in range(rounds):
-            params = {k: v.detach().cpu() for k, v in module.params().items()}
-            t0 = time.perf_counter()
-            module = self.finetune(ft_cfg, loaded.scene, params, seed)
-            ft = time.perf_counter() - t0
-            finetune_s += ft
-            per_round.append({"round": r, "kept": module.num_gaussians, "score_s": 0.0, "finetune_s": ft})
-        return self.write_row(d, module, loaded, lp, name, 1.0, rounds, 0.0, finetune_s, per_round, {}, base_eval,
-                              control=True)
+        return self._rounds(self.base_dir(loaded) / f"{name}_k100", name, 1.0, [None] * rounds, None, loaded,
+                            base_eval, lp, control=True)
 
     def control_rounds(self) -> list[int]:
         """Round counts of the fine-tune-only controls: one per distinct ``rounds`` of the scores (none when off)."""
@@ -346,14 +338,9 @@ def summarize(out: Path) -> dict:
             for m in METRICS:
                 ent[m] = _macro({sc: [r[m] for r in rs if r["scene"] == sc and r.get(m) is not None] for sc in scenes})
             cells[f"{s}@{k}"] = ent
-    base = {}
-    for sc in scenes:
-        bs = [b for b in bases if b["scene"] == sc]
-        base[sc] = {m: mean_sem([b.get(m) for b in bs])[0] for m in ("psnr", "ssim", "lpips", "num_gaussians",
-                                                                     "render_fps", "train_time_s")}
-    base_macro = {m: (float(np.mean([base[sc][m] for sc in scenes if base[sc].get(m) is not None]))
-                      if any(base[sc].get(m) is not None for sc in scenes) else None)
-                  for m in ("psnr", "ssim", "lpips", "num_gaussians", "render_fps", "train_time_s")}
+    base_metrics = ("psnr", "ssim", "lpips", "num_gaussians", "render_fps", "train_time_s")
+    base = {sc: {m: mean_sem([b.get(m) for b in bases if b["scene"] == sc])[0] for m in base_metrics} for sc in scenes}
+    base_macro = {m: _macro({sc: [base[sc][m]] for sc in scenes if base[sc].get(m) is not None}) for m in base_metrics}
     pairs = []
     for a, b in PAIRS:
         if a not in strategies or b not in strategies:
@@ -374,9 +361,7 @@ def summarize(out: Path) -> dict:
 
 
 def _f(v, nd=3, signed=False) -> str:
-    if v is None:
-        return "—"
-    return f"{v:+.{nd}f}" if signed else f"{v:.{nd}f}"
+    return fmt(v, f".{nd}f", signed)
 
 
 def markdown(s: dict) -> str:
@@ -418,17 +403,10 @@ def markdown(s: dict) -> str:
     L += ["", "compression s = scoring (every round; the first round's scores are computed once per base and shared "
           "by the keep ratios, each row still counts them) + fine-tuning; the base's own training time is above.", ""]
     L += ["## Per-scene PSNR (seed mean ± SEM)", ""]
-    rows = []
-    for c in cols:
-        for k in keeps:
-            e = cells.get(f"{c}@{k}")
-            if not e:
-                continue
-            parts = []
-            for sc in s["scenes"]:
-                v = e["scenes"].get(sc)
-                parts.append("—" if not v else f"{_f(v['psnr'][0])} ± {_f(v['psnr'][1])} (n={v['n_seeds']})")
-            rows.append([c, str(int(round(k * 100))), *parts])
+    rows = [[c, str(int(round(k * 100))),
+             *(f"{_f(v['psnr'][0])} ± {_f(v['psnr'][1])} (n={v['n_seeds']})" if (v := e["scenes"].get(sc)) else "—"
+               for sc in s["scenes"])]
+            for c in cols for k in keeps for e in [cells.get(f"{c}@{k}")] if e]
     rows.append(["base", "100", *(_f(s["base"][sc].get("psnr")) for sc in s["scenes"])])
     L += markdown_table(["Score", "Keep %", *s["scenes"]], rows)
     if s["pairs"]:
@@ -455,7 +433,6 @@ def plot(s: dict, out: Path) -> list[str]:
 
     d = out / "plots"
     d.mkdir(parents=True, exist_ok=True)
-    written = []
     scenes = s["scenes"]
     fig, axes = plt.subplots(1, max(1, len(scenes)), figsize=(5.2 * max(1, len(scenes)), 4.0), squeeze=False)
     for ax, sc in zip(axes[0], scenes):
@@ -471,15 +448,11 @@ def plot(s: dict, out: Path) -> list[str]:
         b = s["base"].get(sc, {})
         if b.get("psnr") is not None:
             ax.plot([b["num_gaussians"]], [b["psnr"]], marker="*", ms=12, color="k", ls="none", label="base")
-        ax.set_xscale("log")
-        ax.set_xlabel("Gaussians kept")
-        ax.set_ylabel("test PSNR (dB)")
-        ax.set_title(sc)
+        ax.set(xscale="log", xlabel="Gaussians kept", ylabel="test PSNR (dB)", title=sc)
         ax.grid(alpha=0.3)
     axes[0][0].legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, d / "ladder.png", dpi=110)
-    written.append("plots/ladder.png")
 
     fig, ax = plt.subplots(figsize=(6.0, 4.2))
     for c in s["strategies"]:
@@ -490,14 +463,12 @@ def plot(s: dict, out: Path) -> list[str]:
             ax.plot(x, y, marker="o", ls="-", label=c)
             for xi, yi, li in pts:
                 ax.annotate(f"{li}%", (xi, yi), fontsize=6, xytext=(2, 2), textcoords="offset points")
-    ax.set_xlabel("compression time per row (s): scoring + fine-tuning")
-    ax.set_ylabel("test PSNR (dB), macro over scenes")
+    ax.set(xlabel="compression time per row (s): scoring + fine-tuning", ylabel="test PSNR (dB), macro over scenes")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
     save_figure(fig, d / "time.png", dpi=110)
-    written.append("plots/time.png")
-    return written
+    return ["plots/ladder.png", "plots/time.png"]
 
 
 def write_report(out: Path, plots: bool = True) -> dict:

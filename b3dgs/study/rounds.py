@@ -10,11 +10,13 @@ same run as fitting to T at once (``tests/test_rounds.py``).
 """
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 from typing import Optional
 
-from omegaconf import DictConfig
+from hydra.utils import get_class
+from omegaconf import DictConfig, OmegaConf
 
 from b3dgs.errors import B3dgsError
 from b3dgs.lifecycle import Run, build_run, checkpoint_every_s, load_checkpoint, read_checkpoint
@@ -61,11 +63,6 @@ def training_signature(cfg: DictConfig) -> str:
     """A run's training config as a string, without the model's name and without the posterior blocks that
     promise not to change training (``changes_training = False``, checked bit for bit in
     ``tests/test_rounds.py``): two configs with equal signatures train the same run."""
-    import json
-
-    from hydra.utils import get_class
-    from omegaconf import OmegaConf
-
     d = OmegaConf.to_container(cfg, resolve=True)
     d.pop("hydra", None)
     d["model"].pop("name", None)
