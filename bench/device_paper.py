@@ -12,12 +12,12 @@ points; the same metric code), then NIW and DPMM; (c) standard at 30k steps on o
 (b) standard and loop, (a) the other seeds, (b) NIW and DPMM, (c).
 
 Resumable: each run has its dir under ``--work`` (``runs/<part>/<scene>/<model>/s<seed>``) and a finished one
-(``metrics.json``) is kept, so a second call on the same warm machine continues. A run is started only if its
-estimated time (what the same kind of run took here, else standard's time per step scaled, else a prior) fits in
-what is left of ``--deadline-s``; a skipped run is listed. After every run ``device_<card>.{md,json}`` are rewritten
-(``--results``, default bench/results, and ``--out``; card: the GPU's short name, e.g. ``h200``). ``--dry-run
-[cpu|torch|gsplat]``: the CPU at a tiny size (32 px, 100 initial points, 8-16 steps with every step count of the
-schedules scaled down), b3dgs on that renderer (default ``cpu``: ``torch`` trained a 12-step run in 51 s against
+(``metrics.json``, the loop's ``loop.json``) is kept, so a second call on the same warm machine continues. A run is
+started only if its estimated time (what the same kind of run took here, else standard's time per step scaled, else a
+prior) fits in what is left of ``--deadline-s``; a skipped run is listed. After every run ``device_<card>.{md,json}``
+are rewritten (``--results``, default bench/results, and ``--out``; card: the GPU's short name, e.g. ``h200``).
+``--dry-run [cpu|torch|gsplat]``: the CPU at a tiny size (32 px, 100 initial points, 8-16 steps with every step count of
+the schedules scaled down), b3dgs on that renderer (default ``cpu``: ``torch`` trained a 12-step run in 51 s against
 4.4 s on this 2-core machine; ``gsplat``: gsplat's Python over the emulation), the loop on gsplat's Python over the CPU
 emulation of its kernels (tests/gsplat_cpu.py); card ``cpu``, results under ``--work``.
 """
@@ -184,12 +184,13 @@ def warm_up(scene: str, work: Path, dry: str | None) -> float:
 
 
 def finished(run: Run, work: Path) -> dict | None:
-    """The row of a run finished in an earlier call (its ``metrics.json``), else None."""
+    """The row of a run finished in an earlier call (its ``metrics.json``, the loop's ``loop.json``), else None."""
     run_dir = work / "runs" / run.key
-    if not (run_dir / "metrics.json").is_file():
+    done = run_dir / ("loop.json" if run.model == LOOP else "metrics.json")
+    if not done.is_file():
         return None
     wall = json.loads((run_dir / "wall.json").read_text())["wall_s"] if (run_dir / "wall.json").is_file() else None
-    return row_of(run, json.loads((run_dir / "metrics.json").read_text()), wall)
+    return row_of(run, json.loads(done.read_text()), wall)
 
 
 def paper_tables(rows: list[dict], part: str) -> tuple[list[dict], list[dict]]:

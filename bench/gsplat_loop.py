@@ -14,7 +14,7 @@ nearest neighbours, random quaternions, opacity 0.1). The test views are scored 
 ``scene_scale`` is the scene's ``extent`` (already 1.1 x the camera radius, as simple_trainer's), views come
 from memory, not a data loader, and the opacity reset every 3000 steps happens: gsplat 1.5.3's ``DefaultStrategy``
 never resets (its test ``step % reset_every == 0 & step > 0`` is always false; fixed upstream in gsplat #776), so
-where the installed gsplat has that test the loop resets as the fix does (``metrics.json`` ``opacity_reset_fix``).
+where the installed gsplat has that test the loop resets as the fix does (``loop.json`` ``opacity_reset_fix``).
 """
 from __future__ import annotations
 
@@ -138,7 +138,8 @@ def train_loop(scene, points, rgbs, lc: LoopConfig, seed: int, device, lpips_mod
 
 
 def run_from_config(cfg, out: Path, lc: LoopConfig, device, lpips_model=None) -> dict:
-    """The loop on the scene, split, resolution and initial points of b3dgs config ``cfg``; ``out/metrics.json``."""
+    """The loop on the scene, split, resolution and initial points of b3dgs config ``cfg``; ``out/loop.json``
+    (the comparator's record; ``metrics.json`` is a b3dgs run's)."""
     from b3dgs.init import init_gaussians
     from b3dgs.io import write_json
     from b3dgs.lifecycle import data_module, seed_run
@@ -152,7 +153,7 @@ def run_from_config(cfg, out: Path, lc: LoopConfig, device, lpips_model=None) ->
                          lpips_model)
     metrics.update(method="gsplat_loop", scene=scene.name, seed=int(cfg.seed), num_initial=int(init["means"].shape[0]),
                    num_train_views=len(scene.train), num_test_views=len(scene.test))
-    write_json(Path(out) / "metrics.json", metrics)
+    write_json(Path(out) / "loop.json", metrics)
     return metrics
 
 

@@ -104,7 +104,7 @@ def test_dry_run_end_to_end_and_resumed(tmp_path):
     assert side["standard"]["x_loop_time"] > 0 and len(data["paper_checks"]) == 1
     assert [r["steps"] for r in data["long_30k"]] == [16]
     assert len(data["runs"]) == 11
-    loop_metrics = json.loads((work / "runs" / "paper" / "synthetic" / dp.LOOP / "s0" / "metrics.json").read_text())
+    loop_metrics = json.loads((work / "runs" / "paper" / "synthetic" / dp.LOOP / "s0" / "loop.json").read_text())
     assert loop_metrics["num_test_views"] > 0 and loop_metrics["num_initial"] <= dp.DRY["init_points"]
     md = (out / "device_cpu.md").read_text()
     assert "gsplat_loop" in md and "(a) Training time against standard" in md and "(c) Standard at 30k" in md
