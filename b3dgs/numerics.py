@@ -180,8 +180,8 @@ def vector(name: str, x) -> torch.Tensor:
 
 
 def guard_fill(name: str, mask: torch.Tensor, x: torch.Tensor, value: float) -> torch.Tensor:
-    """``x`` set to ``value`` where ``mask``, counted as guard ``name`` (``x`` itself where the guard does not fire)."""
-    return torch.where(mask, torch.full_like(x, value), x) if guard(name, mask) else x
+    """``x`` set to ``value`` where ``mask``, counted as guard ``name``: :func:`guard_where` with a constant."""
+    return guard_where(name, mask, value, x)
 
 
 def zero_invalid(name: str, x: torch.Tensor) -> torch.Tensor:
