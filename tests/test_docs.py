@@ -28,6 +28,17 @@ def test_readme_fits_on_a_screen():
     assert text.index("## Two commands") < text.index("## Results")
 
 
+def test_ci_runs_exactly_the_readmes_test_command():
+    """.ci/run's command is the README's second command, word for word, and every pytest option it passes comes from a
+    plugin the test extras install (``-n``: pytest-xdist)."""
+    readme = (ROOT / "README.md").read_text()
+    ci = (ROOT / ".ci" / "run").read_text().strip().splitlines()[-1]
+    commands = [ln for ln in readme.splitlines() if ln.startswith("bash scripts/setup.sh && ")]
+    assert commands[-1] == ci, (commands, ci)
+    if " -n " in ci:
+        assert '"pytest-xdist"' in (ROOT / "pyproject.toml").read_text()
+
+
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
 def test_relative_links_resolve(page):
     bad = []
