@@ -423,16 +423,23 @@ def _plot(path: Path, fr: dict, train: Sequence[Camera], cands: Sequence[Camera]
     return save_figure(fig, path)
 
 
-def _preview(rgb: Tensor, m: Tensor, rank: int, score: Optional[float]) -> np.ndarray:
-    """The render beside its information map (inferno, 0 to its maximum), a caption under them."""
+def _preview(rgb: Tensor, m: Optional[Tensor], rank: int, score: Optional[float]) -> np.ndarray:
+    """The render beside its information map (inferno, 0 to its maximum; a grey panel where the run has none), a
+    caption under them."""
     from b3dgs.viewer.modes import colormap_lut
 
     a = (rgb.numpy() * 255.0 + 0.5).astype(np.uint8)
-    top = float(m.max())
-    idx = np.zeros(m.shape, np.int64) if not top > 0 else np.clip(m.numpy() / top * 255.0, 0, 255).round().astype(np.int64)
-    b = colormap_lut("inferno")[idx]
+    tail = "" if score is None else f", score {score:.3g}"
+    if m is None:
+        b = np.full_like(a, 64)
+        text = f"#{rank}: render | no information map (suggest.json says why){tail}"
+    else:
+        top = float(m.max())
+        idx = (np.zeros(m.shape, np.int64) if not top > 0
+               else np.clip(m.numpy() / top * 255.0, 0, 255).round().astype(np.int64))
+        b = colormap_lut("inferno")[idx]
+        text = f"#{rank}: render | information map (max {top:.3g}{tail})"
     img = np.concatenate([a, b], axis=1)
-    text = f"#{rank}: render | information map (max {top:.3g}{'' if score is None else f', score {score:.3g}'})"
     return np.concatenate([img, _caption(28, img.shape[1], text)], axis=0)
 
 
@@ -532,6 +539,7 @@ def suggest(cfg: DictConfig) -> dict:
             map_policy.prepare(ctx, list(cands) + list(targets))
         except B3dgsError as e:
             map_policy, map_note = None, f"no information map: {e}"
+            log.warning("%s", map_note)
     pool = list(cands) + list(targets)
     side = cfg.get("preview_max_side")
     previews, maps = [], []
@@ -547,8 +555,8 @@ def suggest(cfg: DictConfig) -> dict:
             else:
                 with torch.no_grad():
                     rgb = module.render_eval(cam).cpu()
-                m = torch.zeros(cam.height, cam.width, dtype=torch.float64)
-            maps.append(float(m.sum()))
+                m = None
+            maps.append(None if m is None else float(m.sum()))
             previews.append(_preview(rgb, m, r + 1, ranked[r]))
     finally:
         if map_policy is not None:

@@ -265,6 +265,13 @@ def test_info_gain_on_a_degree_0_run_is_refused_in_one_line(runs, monkeypatch):
     with pytest.raises(B3dgsError, match="SH degree 0.*policy=cover or farthest"):
         run_suggest(runs["std"], "out=" + str(runs["std"] / "deg0"))
     assert not (runs["std"] / "deg0").exists()
+    # cover still suggests there; the previews say the map is missing instead of drawing an empty one
+    out = runs["std"] / "deg0_cover"
+    run_suggest(runs["std"], "policy=cover", "n=2", "out=" + str(out))
+    rec = json.loads((out / "suggest.json").read_text())
+    assert rec["information_map"].startswith("no information map: ") and "SH degree 0" in rec["information_map"]
+    assert [s["information_map_sum"] for s in rec["suggestions"]] == [None, None]
+    assert (out / "preview_01.png").is_file()
 
 
 # ---------------------------------------------------------------------------------------------- the information map
