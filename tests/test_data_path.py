@@ -81,6 +81,24 @@ def test_a_folder_of_photos_only_names_b3dgs_process(tmp_path):
         infer_data_option(tmp_path / "nope")
 
 
+def test_a_path_inside_a_scene_or_above_several_names_the_scene_folder(tmp_path):
+    """A file of a scene, its COLMAP model or its image folder names the scene folder; a data root names its scenes."""
+    scene = _layout(tmp_path / "data" / "garden", ["sparse/0/cameras.bin", "sparse/0/images.bin",
+                                                   "sparse/0/points3D.bin", "images/a.png", "poses_bounds.npy"])
+    _layout(tmp_path / "data" / "fox", ["transforms.json", "images/a.png"])
+    for inside in ("poses_bounds.npy", "sparse/0", "sparse", "sparse/0/cameras.bin", "images", "images/a.png"):
+        with pytest.raises(B3dgsError) as e:
+            infer_data_option(scene / inside)
+        assert f"inside the scene folder {scene}" in str(e.value), inside
+        assert e.value.fix == f"pass the folder: data.path={scene}"
+    with pytest.raises(B3dgsError) as e:
+        infer_data_option(tmp_path / "data")
+    assert "holds 2 scene folders (fox, garden), not a scene" in str(e.value)
+    assert e.value.fix.endswith(f"data.path={tmp_path / 'data' / 'fox'}")
+    assert infer_data_option(tmp_path / "data" / "fox" / "transforms.json")[0] == "transforms"  # a .json stays a scene
+    assert infer_data_option(scene)[0] == "colmap"
+
+
 def test_synthetic_with_a_path_is_refused_naming_the_folders_format(tmp_path):
     _layout(tmp_path, ["transforms.json"])
     with pytest.raises(B3dgsError) as e:

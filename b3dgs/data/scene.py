@@ -673,6 +673,7 @@ def infer_data_option(path: str | os.PathLike) -> tuple[str, str]:
     p = Path(path).expanduser()
     if not p.exists():
         raise B3dgsError(f"data.path={path} does not exist", "pass data.path=PATH to an existing scene folder")
+    _refuse_inside_a_scene(p)
     kinds = guess_kinds(p)
     if "colmap" in kinds:
         return "colmap", "a COLMAP model"
@@ -683,6 +684,11 @@ def infer_data_option(path: str | os.PathLike) -> tuple[str, str]:
     if "llff" in kinds:
         return "llff", "an LLFF poses_bounds.npy"
     _refuse_photos_only(p)
+    scenes = sorted(d.name for d in p.iterdir() if d.is_dir() and guess_kinds(d)) if p.is_dir() else []
+    if scenes:
+        listed = ", ".join(scenes[:6]) + (", ..." if len(scenes) > 6 else "")
+        raise B3dgsError(f"data.path={path} holds {len(scenes)} scene folder{'s' * (len(scenes) > 1)} ({listed}), not "
+                         "a scene", f"pass one of them, e.g. data.path={shlex.quote(str(p / scenes[0]))}")
     raise B3dgsError(f"data.path={path} holds no scene: no COLMAP model (sparse/0), transforms*.json or "
                      "poses_bounds.npy",
                      "pass data.path=PATH to a scene folder, or name its format with data=colmap|transforms|llff")
@@ -723,6 +729,29 @@ def infer_data_override(prog: str, argv: list[str]) -> list[str]:
                      f"(pass data=FORMAT to choose another)\n")
     sys.stderr.flush()
     return [*argv[:at], f"data={option}", *argv[at:]]
+
+
+def _refuse_inside_a_scene(p: Path) -> None:
+    """Refuse a path inside a scene folder, naming the scene folder to pass instead: a file other than a ``.json``
+    (``poses_bounds.npy``, ``sparse/0/cameras.bin``, an image), a COLMAP model folder (``sparse/0``, ``sparse``)
+    without images beside it, or a folder holding no scene of its own (``images/``)."""
+    own = guess_kinds(p) if p.is_dir() else []
+    model = p.is_dir() and p.name in ("0", "sparse") and not image_folders(p)
+    if (p.is_file() and p.suffix.lower() == ".json") or (own and not model):
+        return
+    start = p if own else p.parent
+    scene = next((a for a in [start, *start.parents][:3] if guess_kinds(a)), None)
+    if scene is None:
+        return
+    if scene.name == "0" and scene.parent.name == "sparse":  # a COLMAP model's folder -> the scene folder
+        scene = scene.parent
+    if scene.name == "sparse":
+        scene = scene.parent
+    if scene == p:
+        return
+    what = "a file" if p.is_file() else "the COLMAP model" if model else "a folder"
+    raise B3dgsError(f"data.path={p} is {what} inside the scene folder {scene}",
+                     f"pass the folder: data.path={shlex.quote(str(scene))}")
 
 
 def _refuse_photos_only(p: Path) -> None:
