@@ -17,7 +17,7 @@ from typing import Optional
 
 import hydra
 import torch
-from omegaconf import DictConfig, ListConfig
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from b3dgs.errors import B3dgsError, cli_main, known_errors
 from b3dgs.progress import progress
@@ -77,7 +77,7 @@ def check_out_dir(out_dir: Path, first) -> None:
 
 def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Optional[int] = None,
                 panels: int = 3, out_dir: Optional[Path] = None, loaded: Optional[list] = None,
-                meta: Optional[dict] = None, lpips_weights: Optional[str] = None) -> dict:
+                meta: Optional[dict] = None, lpips_weights: Optional[str] = None, data_path: Optional[str] = None) -> dict:
     """Fit every regime on the loaded run(s), score it on the test views and add it to a ``uq.json``; returns this
     evaluation's regimes and ``_meta``.
 
@@ -85,7 +85,8 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
     ``loaded``: already loaded runs (:class:`b3dgs.runs.LoadedRun`) used instead of ``run_dirs``; ``meta``: extra
     ``_meta`` entries. Results go to ``out_dir`` (default: :func:`_destinations`), merged into its ``uq.json`` only if
     neither its run nor a scored run changed meanwhile (:func:`b3dgs.uq.store.merge_into`); each entry records its runs
-    and their parameter digests (``run_checkpoints``), views, seed, panels and mean curves.
+    and their parameter digests (``run_checkpoints``), views, seed, panels and mean curves. ``data_path``: the runs'
+    scene folder on this machine (:func:`b3dgs.runs.locate_scene`).
     """
     import tempfile
 
@@ -106,7 +107,7 @@ def evaluate_uq(run_dirs: list[str], regimes: dict, seed: int = 0, max_views: Op
         refuse_running(run_dirs)
         if len(run_dirs) > 1 and any(getattr(r, "min_members", 0) for r in regimes.values()):
             check_members(run_dirs)
-        first = load_run(run_dirs[0])
+        first = load_run(run_dirs[0], data_path=data_path)
         runs = [first] + [load_run(r, scene=first.scene) for r in run_dirs[1:]]
     scene = first.scene
     cams = scene.test[:max_views] if max_views else scene.test
@@ -237,7 +238,7 @@ def hydra_main(cfg: DictConfig) -> None:
             torch.set_num_threads(int(cfg.threads))
         evaluate_uq(run_dirs, regimes, seed=int(cfg.seed), max_views=cfg.get("max_views"),
                     panels=int(cfg.panels), out_dir=Path(cfg.out) if cfg.get("out") else None,
-                    lpips_weights=cfg.get("lpips_weights"))
+                    lpips_weights=cfg.get("lpips_weights"), data_path=OmegaConf.select(cfg, "data.path"))
 
 
 main = cli_main("b3dgs-eval", hydra_main, "eval")

@@ -34,7 +34,7 @@ from typing import Optional
 import hydra
 import numpy as np
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from b3dgs.errors import B3dgsError, cli_main, did_you_mean, known_errors
 from b3dgs.io import atomic_path, write_json
@@ -216,7 +216,7 @@ def export(cfg: DictConfig) -> dict:
     # what may be written there is settled before the (slow) load: nothing of a user's is replaced unasked
     owner = _check_folder(out) if fmt == "3dgs" else check_replace(
         out, "b3dgs-export", overwrite, "pass overwrite=true to replace it, or another out=")
-    run = load_run(run_dir, checkpoint=None if ckpt is None else str(ckpt))
+    run = load_run(run_dir, checkpoint=None if ckpt is None else str(ckpt), data_path=OmegaConf.select(cfg, "data.path"))
     step = int(getattr(run.module, "_loaded_step", 0) or 0)
     with manifest_lock(owner, "b3dgs-export") if owner is not None else nullcontext():
         if fmt == "3dgs":

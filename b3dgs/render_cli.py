@@ -21,7 +21,7 @@ from typing import Optional, Sequence
 import hydra
 import numpy as np
 import torch
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from b3dgs.data.scene import SceneTransform, look_at_point
 from b3dgs.errors import B3dgsError, cli_main, known_errors
@@ -326,7 +326,7 @@ def render(cfg: DictConfig) -> dict:
 
         renderer = make_renderer(str(cfg.renderer))
         renderer.check_available()
-    run = open_run(Path(str(cfg.run)), renderer=renderer)
+    run = open_run(Path(str(cfg.run)), renderer=renderer, data_path=OmegaConf.select(cfg, "data.path"))
     path = str(cfg.path)
     label = Path(path).stem if path.endswith(".json") else path  # the folder and video name of a path file
     out = Path(str(cfg.out)) if cfg.get("out") else run.path / "render" / label

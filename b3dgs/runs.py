@@ -36,12 +36,13 @@ class LoadedRun:
 
 
 def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Optional[str | Path] = None,
-             renderer=None) -> LoadedRun:
+             renderer=None, data_path: Optional[str | Path] = None) -> LoadedRun:
     """Rebuild the model of ``run_dir`` from its config and last checkpoint.
 
     ``scene`` may be passed to share one loaded scene between several runs (ensembles). ``renderer``
     (a renderer plugin) overrides the run's own, e.g. to score a CPU-trained run with gsplat; the module
-    is moved to the renderer's device.
+    is moved to the renderer's device. ``data_path`` is the run's scene folder on this machine where it is not the
+    recorded one (:func:`locate_scene`).
     """
     import json
 
@@ -64,14 +65,11 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
     if bad is not None:
         raise B3dgsError(f"{cfg_path} is damaged or not a b3dgs run config ({bad})",
                          f"train the run again with `b3dgs-train ... hydra.run.dir={run_dir} overwrite=true`")
-    data_path = cfg.data.get("path")
-    if data_path and not Path(str(data_path)).is_absolute() and not Path(str(data_path)).exists():
-        # runs trained before data.path was stored absolute: relative to the folder training ran in
-        raise B3dgsError(f"{cfg_path} has data.path={data_path}, relative to the folder the run was trained in, and "
-                         f"it is not below {Path.cwd()}",
-                         f"run from that folder, or write the absolute scene path as data.path in {cfg_path}")
+    moved = locate_scene(cfg, cfg_path, data_path) if scene is None else None
     if scene is None:
         scene = data_module(cfg.data).scene
+    if moved is not None:
+        check_same_scene(run_dir, scene, moved)
     module = build_run(cfg, scene, renderer=renderer if renderer is not None else _run_renderer, init=False)
     try:
         ck = read_checkpoint(ckpt_path)
@@ -95,6 +93,62 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
         f"b3dgs-train run (train it again with `b3dgs-train ... hydra.run.dir={run_dir} overwrite=true`)",
         suggest=False)
     return LoadedRun(run_dir, cfg, load_checkpoint(module, ck), scene, metrics)
+
+
+def locate_scene(cfg: DictConfig, cfg_path: Path, data_path: Optional[str | Path] = None) -> Optional[str]:
+    """Point ``cfg.data.path`` at the run's scene folder on this machine: ``data_path`` where given (``data.path=DIR``
+    of the command reading the run); else the recorded folder where it exists; else, for a run dir read on another
+    machine, the folder of the same name under this machine's data root (:func:`b3dgs.data_root`), said in the log.
+    Returns the folder read where it is not the recorded one (to be checked by :func:`check_same_scene`)."""
+    from b3dgs import data_root_and_origin
+
+    recorded = cfg.data.get("path")
+    if data_path is not None:
+        here = Path(str(data_path)).expanduser().resolve()
+        if not here.exists():
+            raise B3dgsError(f"data.path={data_path} does not exist", "pass data.path=DIR, the folder of the scene the "
+                             "run was trained on as it lies on this machine")
+        cfg.data.path = str(here)
+        return None if str(here) == str(recorded) else str(here)
+    if not recorded or Path(str(recorded)).exists():
+        return None
+    if not Path(str(recorded)).is_absolute():  # runs trained before data.path was stored absolute
+        raise B3dgsError(f"{cfg_path} has data.path={recorded}, relative to the folder the run was trained in, and "
+                         f"it is not below {Path.cwd()}",
+                         "run from that folder, or pass data.path=DIR, the scene's folder")
+    root, origin = data_root_and_origin()
+    here = Path(root) / Path(str(recorded)).name
+    if not here.is_dir():
+        raise B3dgsError(f"the run's scene folder {recorded} is not on this machine, nor is {here} (its name under "
+                         f"the data root, {origin})", "pass data.path=DIR, the scene's folder on this machine")
+    log.warning("the run's scene folder %s is not on this machine: reading %s (its name under the data root, %s)",
+                recorded, here, origin)
+    cfg.data.path = str(here)
+    return str(here)
+
+
+def check_same_scene(run_dir: Path, scene: Scene, folder: str) -> None:
+    """Refuse a scene read from another folder than the run's (:func:`locate_scene`) whose normalisation or view
+    counts differ from what the run's ``metrics.json`` recorded: it is not the scene the run was trained on."""
+    import json
+
+    import numpy as np
+
+    from b3dgs.data.scene import SceneTransform, scene_transform
+
+    try:
+        m = json.loads((run_dir / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return  # an unfinished run: load_run refuses it with its own reason
+    want = m.get("scene_transform")
+    have = scene_transform(scene)
+    same = want is None or (np.allclose(have.scale, SceneTransform.from_dict(want).scale, rtol=1e-6)
+                            and np.allclose(have.translation, SceneTransform.from_dict(want).translation, atol=1e-6))
+    same = same and all(m.get(k) in (None, n) for k, n in (("num_train_views", len(scene.train)),
+                                                             ("num_test_views", len(scene.test))))
+    if not same:
+        raise B3dgsError(f"{folder} is not the scene {run_dir} was trained on: its cameras or views differ from the "
+                         "run's metrics.json", "pass data.path=DIR, the folder of the scene the run was trained on")
 
 
 def check_run_checkpoint(run_dir: Path, ck: dict, metrics: Optional[dict]) -> None:

@@ -492,7 +492,7 @@ def suggest(cfg: DictConfig) -> dict:
 
         renderer = make_renderer(str(cfg.renderer))
         renderer.check_available()
-    run = open_run(Path(str(cfg.run)), renderer=renderer)
+    run = open_run(Path(str(cfg.run)), renderer=renderer, data_path=OmegaConf.select(cfg, "data.path"))
     out = Path(str(cfg.out)) if cfg.get("out") else run.path / "suggest"
     if out.exists() and not out.is_dir():
         raise B3dgsError(f"out={out} is a file", "pass out= a folder path")

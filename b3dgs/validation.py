@@ -255,6 +255,12 @@ def _check_eval(cfg: DictConfig, values: dict) -> dict:
     out = cfg.get("out")
     if out is not None and Path(str(out)).exists() and not Path(str(out)).is_dir():
         raise B3dgsError(f"out={out} is a file", "pass out=PATH to a folder (uq.json and the plots go there)")
+    data_keys = known_keys("data", "eval")  # data.path: the runs' scene folder on this machine
+    for key in map(str, cfg.get("data") or {}):
+        if key not in data_keys:
+            raise B3dgsError(f"unknown config key data.{key}{did_you_mean(key, data_keys)}",
+                             f"remove it (b3dgs-eval reads the run's own data settings; it takes only "
+                             f"{', '.join('data.' + k for k in data_keys)})")
     uq = cfg.get("uq")
     if not isinstance(uq, DictConfig) or not any(isinstance(uq[k], DictConfig) for k in uq.keys()):
         raise B3dgsError("no uncertainty regime selected", f"pass uq=[native,proxy] (options: {', '.join(option_names('uq'))})")

@@ -112,7 +112,7 @@ def test_the_override_is_added_only_when_no_format_or_scene_is_named(tmp_path, c
     assert infer_data_override("b3dgs-train", [f"data.path={colmap}", "seed=1"]) == \
         ["data=colmap", f"data.path={colmap}", "seed=1"]
     assert "reading it with data=colmap" in capsys.readouterr().err
-    for argv in ([f"data=llff", f"data.path={colmap}"], ["scene=fox", f"data.path={colmap}"], ["seed=1"],
+    for argv in (["data=llff", f"data.path={colmap}"], ["scene=fox", f"data.path={colmap}"], ["seed=1"],
                  ["data.path=${data_root}/fox"], ["data.path=/data/café shots"]):
         assert infer_data_override("b3dgs-train", argv) == argv
     quoted = f"data.path='{colmap}'"
@@ -147,3 +147,36 @@ def test_data_path_to_photos_only_is_one_line_and_writes_nothing(tmp_path):
     lines = [ln for ln in res.stderr.splitlines() if ln.strip()]
     assert res.returncode == 2 and len(lines) == 1 and "b3dgs-process" in lines[0], res.stderr[-2000:]
     assert not (tmp_path / "r").exists()
+
+
+def test_a_run_read_where_its_scene_moved_finds_it_or_names_data_path(tmp_path, monkeypatch, caplog):
+    """A run dir read on another machine (its scene folder elsewhere): the commands that load a run read the folder of
+    the same name under this machine's data root, or ``data.path=DIR``; a folder holding another scene, or none, is
+    refused in one line naming ``data.path``."""
+    from b3dgs.runs import load_run
+
+    scene, run = write_colmap_text(tmp_path / "a" / "kitchen"), tmp_path / "run"
+    res = subprocess.run([sys.executable, "-m", "b3dgs.train", f"data.path={scene}", "trainer.max_steps=6",
+                          "logger=none", "renderer=torch", f"hydra.run.dir={run}"],
+                         capture_output=True, text=True, timeout=300, cwd=tmp_path, env=ENV)
+    assert res.returncode == 0, res.stderr[-3000:]
+    moved = tmp_path / "b" / "kitchen"
+    moved.parent.mkdir()
+    scene.rename(moved)
+    monkeypatch.setenv("B3DGS_DATA", str(tmp_path / "b"))
+    with caplog.at_level("WARNING"):
+        loaded = load_run(run)
+    assert loaded.cfg.data.path == str(moved) and f"reading {moved}" in caplog.text
+    other = write_colmap_text(tmp_path / "c" / "kitchen", n_views=6)
+    with pytest.raises(B3dgsError, match="is not the scene .* was trained on") as e:
+        load_run(run, data_path=other)
+    assert "data.path=DIR" in e.value.fix
+    monkeypatch.setenv("B3DGS_DATA", str(tmp_path / "c" / "none"))
+    with pytest.raises(B3dgsError, match=f"scene folder {scene} is not on this machine") as e:
+        load_run(run)
+    assert "data.path=DIR" in e.value.fix
+    # the command's own data.path= (here b3dgs-export, with no data root holding the scene)
+    res = subprocess.run([sys.executable, "-m", "b3dgs.export", f"run={run}", f"data.path={moved}",
+                          f"out={tmp_path / 'x.ply'}"], capture_output=True, text=True, timeout=300, cwd=tmp_path,
+                         env={**ENV, "B3DGS_DATA": str(tmp_path / "c" / "none")})
+    assert res.returncode == 0 and (tmp_path / "x.ply").is_file(), res.stderr[-2000:]

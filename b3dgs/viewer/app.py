@@ -15,7 +15,7 @@ import time
 from pathlib import Path
 
 import hydra
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 from b3dgs.errors import B3dgsError, known_errors, quiet_known_noise, run_cli
 from b3dgs import conf_dir
@@ -99,7 +99,8 @@ def serve(cfg: DictConfig, settings=None):
 
         renderer = make_renderer(str(cfg.renderer))
         renderer.check_available()
-    run = open_run(Path(str(cfg.run)), acquired=cfg.get("acquired"), renderer=renderer)
+    run = open_run(Path(str(cfg.run)), acquired=cfg.get("acquired"), renderer=renderer,
+                   data_path=OmegaConf.select(cfg, "data.path"))
     app = ViewerApp(run, settings).start()
     extra = f", {len(run.acquired)} acquired views" if run.acquired else ""
     print(f"b3dgs-view: {run.path} (model={run.metrics.get('method')}, {run.module.num_gaussians} Gaussians, renderer "

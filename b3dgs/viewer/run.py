@@ -73,8 +73,9 @@ def suggested_cameras(run_dir: Path) -> list:
         return []
 
 
-def open_run(run_dir, acquired: Optional[str] = None, renderer=None) -> ViewedRun:
-    """Check and load ``run_dir`` (see the module doc for what is refused)."""
+def open_run(run_dir, acquired: Optional[str] = None, renderer=None, data_path: Optional[str] = None) -> ViewedRun:
+    """Check and load ``run_dir`` (see the module doc for what is refused); ``data_path``: its scene folder on this
+    machine (:func:`b3dgs.runs.locate_scene`)."""
     from hydra.errors import InstantiationException
 
     from b3dgs.rundir import run_dir_busy
@@ -109,7 +110,7 @@ def open_run(run_dir, acquired: Optional[str] = None, renderer=None) -> ViewedRu
     from b3dgs.render.renderers import RendererUnavailable
 
     try:
-        loaded = load_run(run_dir, renderer=renderer)
+        loaded = load_run(run_dir, renderer=renderer, data_path=data_path)
     except RendererUnavailable:  # about this machine, not the run: its own line
         raise
     except (FileNotFoundError, ValueError) as e:  # load_run's own one-line reasons (identity, digest, config)
