@@ -4,8 +4,8 @@
 * :class:`ResumeState`: every RNG, the numerical-guard counters and the view sampler's position go into each
   checkpoint and come back right before the first step after a resume (a resumed run is bit-identical).
 * :class:`RunCheckpoint`: ``checkpoints/last.ckpt`` (overwritten atomically) every ``every_n_steps`` steps, every
-  ``every_s`` seconds and at the end; after a SIGINT / SIGTERM (:func:`b3dgs.rundir.interrupt_handlers`) at the next
-  step boundary, then it raises :class:`b3dgs.rundir.Interrupted`.
+  ``every_s`` seconds and at the end; after a SIGINT / SIGTERM (:func:`b3dgs.signals.interrupt_handlers`) at the next
+  step boundary, then it raises :class:`b3dgs.signals.Interrupted`.
 * :class:`RunFiles`: the files the trainer's loggers write join the run manifest (:mod:`b3dgs.rundir`).
 * :class:`StepProgressBar`: one bar over the run's global steps with the Gaussian count, loss and last test PSNR.
 """
@@ -30,7 +30,8 @@ from tqdm.std import tqdm as std_tqdm
 from b3dgs.device import timed_clock
 from b3dgs.io import atomic_path, save_figure, write_json
 from b3dgs.progress import LINE_EVERY_S, is_terminal
-from b3dgs.rundir import LOCK_NAME, MANIFEST_NAME, PENDING, Interrupted, record_written
+from b3dgs.rundir import LOCK_NAME, MANIFEST_NAME, record_written
+from b3dgs.signals import PENDING, Interrupted
 
 log = logging.getLogger(__name__)
 

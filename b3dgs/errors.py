@@ -11,6 +11,7 @@ from __future__ import annotations
 import difflib
 import errno
 import os
+import signal
 import sys
 import traceback
 from contextlib import contextmanager
@@ -353,8 +354,16 @@ def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str
                 sys.argv[1:] = argv = prepared
         if config not in (None, *_VALIDATED_APPS):
             _refuse_unread_additions(prog, argv, config)
+        from b3dgs.signals import Interrupted, interrupt_handlers
+
         try:
-            hydra_main()
+            with interrupt_handlers():  # a signal unwinds finally blocks and locks (training nests its own, to save)
+                hydra_main()
+        except Interrupted as e:
+            sys.stdout.flush()
+            sys.stderr.write(f"{prog}: stopped by {signal.Signals(e.signum).name}; run the same command again\n")
+            sys.stderr.flush()
+            sys.exit(e.exit_code)
         except Exception as e:  # noqa: BLE001 - composition errors; task errors end in known_errors
             if debug:  # HYDRA_FULL_ERROR=1 or b3dgs.debug=true: Hydra passes the full traceback on
                 raise

@@ -30,9 +30,9 @@ from b3dgs.errors import B3dgsError
 from b3dgs.io import write_json
 from b3dgs.numerics import guard_counts, reset_guards as _reset
 from b3dgs.render.renderers import Renderer, make_renderer
-from b3dgs.rundir import (Interrupted, claim_run_dir, finished_metrics, interrupt_handlers, manifest_lock,
-                          prepare_run_dir, record_amended, record_written, run_dir_lock, save_config, start_manifest,
-                          write_manifest)
+from b3dgs.rundir import (claim_run_dir, finished_metrics, manifest_lock, prepare_run_dir, record_amended,
+                          record_written, run_dir_lock, save_config, start_manifest, write_manifest)
+from b3dgs.signals import Interrupted, interrupt_handlers
 from b3dgs.types import Scene
 from b3dgs.upgrade import renderer_option, trainer_arg
 
@@ -395,7 +395,7 @@ class Run:
             self.plugins = validate_config(cfg, app=app)
             check_devices(cfg)
             warn_slow_renderer(cfg)
-        except Exception:
+        except BaseException:  # also a signal (b3dgs.signals.Interrupted)
             with contextlib.suppress(OSError):
                 self.run_dir.rmdir()  # Hydra made it; a refused run leaves nothing
             raise

@@ -39,7 +39,8 @@ from omegaconf import DictConfig
 from b3dgs import conf_dir, data_root
 from b3dgs.errors import B3dgsError, cli_main, did_you_mean, known_errors
 from b3dgs.io import atomic_path, write_json
-from b3dgs.rundir import PENDING, Interrupted, interrupt_handlers, remove_listed
+from b3dgs.rundir import remove_listed
+from b3dgs.signals import PENDING, Interrupted, interrupt_handlers
 
 __all__ = ["EXHAUSTIVE_UP_TO", "STAGES", "extract_frames", "list_photos", "main", "process"]
 
@@ -134,7 +135,7 @@ def _advance(bar, n: int) -> None:
 
 
 def _stop_if_signalled() -> None:
-    """Raise :class:`b3dgs.rundir.Interrupted` for a SIGINT / SIGTERM recorded since :func:`process` began. The
+    """Raise :class:`b3dgs.signals.Interrupted` for a SIGINT / SIGTERM recorded since :func:`process` began. The
     handlers only record (``deferred``): an exception raised wherever the signal lands could be swallowed by a
     library's ``except Exception`` (tqdm's monitor thread start is one), so it is raised here, at known points."""
     if PENDING.signum is not None:
@@ -674,7 +675,7 @@ def process(cfg: DictConfig) -> dict:
 
     validate_config(cfg, app="process")
     import_pycolmap()  # first: importing pycolmap installs glog's handler (a stack trace) for SIGTERM
-    with interrupt_handlers() as pending:  # SIGINT / SIGTERM: b3dgs.rundir.Interrupted, also while a stage runs
+    with interrupt_handlers() as pending:  # SIGINT / SIGTERM: b3dgs.signals.Interrupted, also while a stage runs
         pending.deferred = True  # recorded, and raised by _stop_if_signalled
         return _process(cfg)
 

@@ -1,10 +1,8 @@
-"""A run dir that one process owns: its lock, its deferred job log and ``.hydra/``, stale temp files, signals.
+"""A run dir that one process owns: its lock, its deferred job log and ``.hydra/``, stale temp files.
 
 * :func:`run_dir_lock`: an exclusive lock on ``<run dir>/.b3dgs.lock`` (:mod:`b3dgs.locks`), taken before anything
   else is written; the kernel drops it when its holder dies, so a lock file left behind is stale by construction.
 * :class:`DeferredFileHandler`: Hydra's job log, held in memory until :func:`arm_run_log` (a refused run writes none).
-* :class:`Interrupted` / :func:`interrupt_handlers`: SIGINT and SIGTERM become a checkpoint at the next step
-  boundary and an exit with 128 + the signal number.
 * The run manifest ``.b3dgs-run.json`` (:func:`write_manifest`): what marks a folder as a b3dgs run dir, its run's
   identity and every file b3dgs wrote there, by name (listed before it is written, :func:`record_written`), so that
   ``overwrite=true`` removes exactly those (:func:`remove_run_files`); a non-empty folder without one is someone
@@ -18,8 +16,6 @@ import fnmatch
 import logging
 import os
 import re
-import signal
-import threading
 import time
 import uuid
 from contextlib import ExitStack, contextmanager, suppress
@@ -625,50 +621,3 @@ def claim_run_dir(run_dir: Path, cfg, clear: bool) -> None:
         log.info("removed %s, the staging folder of an interrupted b3dgs-eval", p.name)
     write_hydra_files(run_dir, cfg)
     save_config(cfg, run_dir / "config.yaml")
-
-
-# ---------------------------------------------------------------------------------------------- signals
-class Interrupted(Exception):
-    """SIGINT / SIGTERM received; ``exit_code`` is 128 + the signal number (130 / 143)."""
-
-    def __init__(self, signum: int, step: Optional[int] = None):
-        self.signum = int(signum)
-        self.step = step
-        super().__init__(f"interrupted by {signal.Signals(self.signum).name}")
-
-    @property
-    def exit_code(self) -> int:
-        return 128 + self.signum
-
-
-class _Pending:
-    signum: Optional[int] = None
-    deferred = False  # True while training: the signal is acted on at the next step boundary
-
-
-PENDING = _Pending()
-
-
-def _on_signal(signum, frame) -> None:
-    PENDING.signum = signum
-    if not PENDING.deferred:
-        raise Interrupted(signum)
-
-
-@contextmanager
-def interrupt_handlers() -> Iterator[_Pending]:
-    """SIGINT and SIGTERM raise :class:`Interrupted` here, or (while ``PENDING.deferred``) are recorded for
-    :class:`b3dgs.callbacks.RunCheckpoint` to act on after the current step."""
-    PENDING.signum, PENDING.deferred = None, False
-    if threading.current_thread() is not threading.main_thread():  # signal handlers live in the main thread only
-        yield PENDING
-        return
-    old = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-    for s in old:
-        signal.signal(s, _on_signal)
-    try:
-        yield PENDING
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
-        PENDING.deferred = False

@@ -27,7 +27,7 @@ def train(cfg: DictConfig) -> dict:
     steps and ``trainer.checkpoint_every_s`` seconds and at the end; the renders, ``point_cloud.ply``, the curve, and
     ``metrics.json`` last, the "done" marker. A finished run is never rewritten. ``resume=auto`` continues bit for bit
     as the uninterrupted run would, and is refused for another model, posterior, strategy, scene, ``trainer.max_steps``
-    or seed. SIGINT / SIGTERM save a checkpoint and raise :class:`b3dgs.rundir.Interrupted`.
+    or seed. SIGINT / SIGTERM save a checkpoint and raise :class:`b3dgs.signals.Interrupted`.
     """
     from b3dgs.lifecycle import Run
 
@@ -37,7 +37,7 @@ def train(cfg: DictConfig) -> dict:
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="train")
 def hydra_main(cfg: DictConfig) -> Optional[float]:
     from b3dgs.errors import known_errors
-    from b3dgs.rundir import Interrupted
+    from b3dgs.signals import Interrupted
 
     with known_errors("b3dgs-train", cfg, quiet=True):
         try:

@@ -31,7 +31,7 @@ ALLOWED = {
     ("b3dgs/errors.py", "ReportedError", ""):
         "a multirun job's error, already printed as its one line; the sweep goes on and exits 2",
     ("b3dgs/locks.py", "LockHeld", ""): "internal signal; run_dir_lock turns it into a B3dgsError naming the holder",
-    ("b3dgs/rundir.py", "Interrupted", ""): "a signal (SIGINT/SIGTERM) stopping a run, handled by the CLI, not an input error",
+    ("b3dgs/signals.py", "Interrupted", ""): "a signal (SIGINT/SIGTERM) stopping a run, handled by the CLI, not an input error",
     ("b3dgs/callbacks.py", "Interrupted", ""): "a signal (SIGINT/SIGTERM) stopping a run, handled by the CLI, not an input error",
     ("b3dgs/process.py", "Interrupted", ""): "a signal (SIGINT/SIGTERM) stopping b3dgs-process at a stage boundary, handled by the CLI",
     ("b3dgs/uq/store.py", "B3dgsError", "not a JSON object"):

@@ -116,7 +116,7 @@ def hydra_main(cfg: DictConfig) -> None:
         check_host(str(settings.host))
         quiet_known_noise()
         logging.getLogger("websockets").setLevel(logging.WARNING)
-        from b3dgs.rundir import interrupt_handlers
+        from b3dgs.signals import interrupt_handlers
 
         with interrupt_handlers() as pending:
             pending.deferred = True  # SIGINT / SIGTERM are recorded, and end the loop below (also while loading)
