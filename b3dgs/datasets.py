@@ -15,6 +15,7 @@ import hashlib
 import http.client
 import os
 import shutil
+import signal
 import stat
 import subprocess
 import sys
@@ -488,17 +489,21 @@ def main(argv: Optional[list[str]] = None) -> int:
     args = _parser().parse_args(argv)
     root_s, origin = data_root_and_origin()
     root = Path(root_s).expanduser()
+    from b3dgs.signals import Interrupted, interrupt_handlers
+
     try:
-        scenes = load_registry()
-        if args.command == "list":
-            _say("\n".join(list_lines(scenes, root, origin)))
+        with interrupt_handlers():  # SIGINT / SIGTERM unwind: the partial download is kept for the next run
+            scenes = load_registry()
+            if args.command == "list":
+                _say("\n".join(list_lines(scenes, root, origin)))
+                return 0
+            for scene in resolve(args.names, scenes):
+                _say(get(scene, root, scenes))
             return 0
-        for scene in resolve(args.names, scenes):
-            _say(get(scene, root, scenes))
-        return 0
-    except KeyboardInterrupt:
-        sys.stderr.write(f"{PROG}: interrupted; run the same command again to resume the download\n")
-        return 130
+    except Interrupted as e:
+        sys.stderr.write(f"{PROG}: stopped by {signal.Signals(e.signum).name}; run the same command again to resume "
+                         "the download\n")
+        return e.exit_code
     except Exception as e:  # noqa: BLE001 - known errors as one line; anything else is a bug with its traceback
         msg = format_error(e)
         if msg is None:

@@ -126,6 +126,35 @@ def test_a_part_file_left_by_an_earlier_run_is_resumed(server, env):
     assert datasets.is_present(datasets.load_registry()["mine"], root)
 
 
+def test_a_signal_mid_download_keeps_the_part_file_and_the_rerun_resumes(server, env, monkeypatch, capsys):
+    """SIGTERM (a cluster's, Docker's) while downloading: one line, exit code 143, the .part file kept; the same command
+    then asks only for the rest."""
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signal handlers live in the main thread, and this test runs in another")
+    root, registry = env
+    data = _archive("tar.gz", {f"pack/mine/{k}": v for k, v in SCENE.items()})
+    server.files["/mine.tar.gz"] = data
+    _registry(registry, {"mine": _entry(f"{server.url}/mine.tar.gz", hashlib.sha256(data).hexdigest())})
+    real = datasets._fetch_once
+
+    def cut(url, part, desc):
+        part.write_bytes(data[:100])
+        os.kill(os.getpid(), signal.SIGTERM)  # handled: raises b3dgs.signals.Interrupted here
+        raise AssertionError("the signal did not stop the download")
+
+    monkeypatch.setattr(datasets, "_fetch_once", cut)
+    assert datasets.main(["get", "mine"]) == 143
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == "b3dgs-data: stopped by SIGTERM; run the same command again to resume the download"
+    assert (root / ".downloads" / "mine.tar.gz.part").read_bytes() == data[:100]
+    monkeypatch.setattr(datasets, "_fetch_once", real)
+    assert datasets.main(["get", "mine"]) == 0
+    assert server.log == [("/mine.tar.gz", "bytes=100-")]
+
+
 def test_a_checksum_mismatch_is_refused_and_leaves_nothing_in_the_data_root(server, env, capsys):
     root, registry = env
     data = _archive("zip", {f"pack/mine/{k}": v for k, v in SCENE.items()})
