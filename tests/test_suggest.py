@@ -223,6 +223,9 @@ def test_n_above_the_candidates_and_the_candidate_file_formats(runs, tmp_path):
         "frames": frames}))
     cams = read_candidates(str(folder), scene)
     assert len(cams) == len(scene.test)
+    with pytest.raises(B3dgsError, match=f"candidates={folder / 'images'} is a folder inside the scene folder") as e:
+        read_candidates(str(folder / "images"), scene)  # the loader's words, naming the key it came as
+    assert e.value.fix == f"pass the folder: candidates={folder}"
     for c, t in zip(sorted(cams, key=lambda c: c.name), scene.test):
         assert np.allclose(c.viewmat.double().numpy(), t.viewmat.double().numpy(), atol=1e-4)
 
