@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# One-time set-up on a fresh machine: CPU torch first (a bare `torch` would pull a CUDA build),
+# One-time set-up on a fresh machine: torch 2.13.0 first (the CPU build where there is no NVIDIA GPU),
 # then b3dgs in editable mode with its test and viewer extras, then the offline LPIPS weights.
 # Each step says what it does and about how long it takes (about 2 minutes in all on a 2-core machine, less when
 # pip's cache already holds the wheels).
