@@ -47,12 +47,15 @@ SCRIPTS = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scrip
 # steps, pixels, samples, frames, policies, seeds of the active study, pruning rows). Keyed by the program (and the
 # study for b3dgs-study); a program the README uses that is missing here fails test_every_readme_block_is_accounted_for.
 TRAIN = ["trainer.max_steps=10", "trainer.eval_every=10", "trainer.checkpoint_every=10", "data.max_side=64",
-         "model.init_num_random=2000"]  # fox has no SfM points: 2000 random Gaussians instead of 20000
+         "model.init_num_random=2000",  # fox has no SfM points: 2000 random Gaussians instead of 20000
+         "model.sh_increase_every=3"]  # SH degree 3 by step 9, as a full run has it: b3dgs-suggest's info_gain needs >= 1
 SMOKE = {
     "b3dgs-data": [],  # downloads fox from the loopback server into the empty data root
     "b3dgs-process": [],  # the ten 160 px photos take seconds
     "b3dgs-train": TRAIN,
     "b3dgs-eval": ["uq.samples=4", "max_views=2"],
+    "b3dgs-suggest": ["generate.azimuths=8", "generate.elevations=2", "targets.azimuths=6", "score_max_side=16",
+                      "preview_max_side=32"],
     "b3dgs-view": ["port=0"],  # any free port; started, asked over HTTP, stopped
     "b3dgs-render": ["frames=4"],
     "b3dgs-export": [],
@@ -150,6 +153,12 @@ def check_made(argv: list[str], cwd: Path, stdout: str, env: dict) -> str:
         uq = json.loads((cwd / o["run"] / "uq.json").read_text())
         assert set(o["uq"].strip("[]").split(",")) <= set(uq), sorted(uq)
         return f"uq.json: {sorted(uq)}"
+    if prog == "b3dgs-suggest":
+        rec = json.loads((cwd / o["run"] / "suggest" / "suggest.json").read_text())
+        assert rec["policy"] == "info_gain" and rec["returned"] >= 1, rec["candidates"]
+        assert not rec["information_map"].startswith("no information map"), rec["information_map"]
+        assert all((cwd / o["run"] / "suggest" / s["preview"]).is_file() for s in rec["suggestions"])
+        return f"{rec['returned']} suggestions"
     if prog == "b3dgs-render":
         mp4 = cwd / o["run"] / "render" / o["path"] / f"{o['path']}.mp4"
         assert mp4.stat().st_size > 1000, mp4
