@@ -328,11 +328,13 @@ def multirun_first(argv: list[str]) -> list[str]:
 
 def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str]] = None,
             config: Optional[str] = None,
-            prepare_argv: Optional[Callable[[str, list[str]], list[str]]] = None) -> None:
+            prepare_argv: Optional[Callable[[str, list[str]], list[str]]] = None,
+            again: str = "run the same command again") -> None:
     """Call a ``@hydra.main`` function (with ``HYDRA_FULL_ERROR=1``, so Hydra passes exceptions on); print known
     composition errors as one line and exit with code 2 (errors inside the task: :func:`known_errors`). ``config``: the
     app's primary config, whose keys "did you mean" suggests first; ``prepare_argv(prog, argv)``: the overrides as the
-    app reads them (e.g. :func:`b3dgs.data.scene.infer_data_override`)."""
+    app reads them (e.g. :func:`b3dgs.data.scene.infer_data_override`); ``again``: what to do after a SIGINT / SIGTERM,
+    said in the one line it ends with."""
     global _APP_CONFIG, _PROG
     _APP_CONFIG, _PROG = config, prog
     argv = sys.argv[1:] if argv is None else argv
@@ -361,7 +363,7 @@ def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str
                 hydra_main()
         except Interrupted as e:
             sys.stdout.flush()
-            sys.stderr.write(f"{prog}: stopped by {signal.Signals(e.signum).name}; run the same command again\n")
+            sys.stderr.write(f"{prog}: stopped by {signal.Signals(e.signum).name}; {again}\n")
             sys.stderr.flush()
             sys.exit(e.exit_code)
         except Exception as e:  # noqa: BLE001 - composition errors; task errors end in known_errors

@@ -56,7 +56,8 @@ def main() -> None:
 
     from b3dgs.data.scene import infer_data_override
 
-    run_cli("b3dgs-train", hydra_main, config="train", prepare_argv=infer_data_override)
+    run_cli("b3dgs-train", hydra_main, config="train", prepare_argv=infer_data_override,
+            again="run the same command with resume=auto (a sweep's finished runs are kept)")
 
 
 if __name__ == "__main__":

@@ -55,3 +55,21 @@ def test_a_signal_mid_command_is_one_line_its_exit_code_and_a_clean_rerun(run, p
     again = subprocess.run([sys.executable, "-m", prog.replace("b3dgs-", "b3dgs."), *argv], capture_output=True,
                            text=True, timeout=600, cwd=ROOT, env=ENV)
     assert again.returncode == 0, again.stderr[-3000:]
+
+
+def test_run_cli_ends_an_interrupted_command_with_its_own_advice(capsys):
+    """The one line names what to do next: b3dgs-train's says resume=auto (a sweep stopped between its jobs)."""
+    import signal
+
+    from b3dgs.errors import run_cli
+    from b3dgs.signals import Interrupted
+
+    def stopped():
+        raise Interrupted(signal.SIGTERM)
+
+    with pytest.raises(SystemExit) as e:
+        run_cli("b3dgs-x", stopped, argv=[], again="run it with resume=auto")
+    assert e.value.code == 143
+    assert capsys.readouterr().err == "b3dgs-x: stopped by SIGTERM; run it with resume=auto\n"
+    src = (ROOT / "b3dgs" / "train.py").read_text()
+    assert 'again="run the same command with resume=auto' in src
