@@ -366,6 +366,20 @@ def warn_long_cpu_run(scene, renderer, max_steps: int) -> Optional[str]:
     return msg
 
 
+def warn_cpu_size_on_gpu(scene, renderer, max_side, experiment: Optional[str]) -> Optional[str]:
+    """A warning (logged and returned) when a CUDA run trains at the CPU protocol's image size: no ``experiment=``
+    chosen (``b3dgs-train data.path=DIR`` on a GPU) and the training views cut to ``data.max_side``;
+    ``experiment=paper`` is made for a GPU."""
+    if torch.device(renderer.device).type != "cuda" or max_side is None or experiment:
+        return None
+    if not any(max(int(c.width), int(c.height)) == int(max_side) for c in scene.train):
+        return None  # the files are no larger than the cap
+    msg = (f"training on a CUDA GPU at data.max_side={max_side} px, the CPU protocol's image size (fix: pass "
+           "experiment=paper for the paper's protocol, or data.max_side=null for the files' full size)")
+    log.warning(msg)
+    return msg
+
+
 def warn_disabled_options(module) -> None:
     """Warn where one setting silently turns off another (``strategy.max_gaussians`` below the initial count)."""
     cap = getattr(module.strategy, "max_gaussians", None)
@@ -439,6 +453,7 @@ class Run:
         from lightning.pytorch.loggers import TensorBoardLogger  # noqa: F401 - logger=tensorboard targets it
 
         from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint, RunFiles
+        from b3dgs.validation import _hydra
 
         every_s = checkpoint_every_s(tcfg)
         ckpt_path, clear = prepare_run_dir(run_dir, cfg.get("resume"), cfg.get("overwrite", False),
@@ -447,6 +462,7 @@ class Run:
         scene, renderer = self.dm.scene, module.renderer
         warn_disabled_options(module)
         warn_long_cpu_run(scene, renderer, int(tcfg.max_steps))
+        warn_cpu_size_on_gpu(scene, renderer, cfg.data.get("max_side"), _hydra(cfg, "runtime.choices.experiment", None))
         if ckpt_path is not None:
             check_resume(module, ckpt_path)
         done = None if clear else finished_metrics(run_dir)

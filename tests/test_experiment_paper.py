@@ -125,6 +125,39 @@ def test_a_long_cpu_run_is_warned_with_its_expected_time():
     assert warn_long_cpu_run(scene(256, 144), cpu, 3000) is None  # the study protocol: minutes
 
 
+def test_a_gpu_run_at_the_cpu_image_size_is_warned(caplog):
+    """b3dgs-train data.path=DIR on a GPU trains at the CPU default's 256 px: said, with experiment=paper as the fix;
+    not on the CPU, not under a chosen experiment, not where the files are no larger than the cap."""
+    from b3dgs.lifecycle import warn_cpu_size_on_gpu
+
+    def scene(w, h):
+        return SimpleNamespace(train=[SimpleNamespace(width=w, height=h)] * 3)
+
+    cpu, gpu = SimpleNamespace(device=torch.device("cpu")), SimpleNamespace(device="cuda:0")
+    msg = warn_cpu_size_on_gpu(scene(256, 192), gpu, 256, None)
+    assert msg is not None and "data.max_side=256" in msg and "experiment=paper" in msg and msg in caplog.text
+    assert warn_cpu_size_on_gpu(scene(256, 192), cpu, 256, None) is None
+    assert warn_cpu_size_on_gpu(scene(256, 192), gpu, 256, "study") is None
+    assert warn_cpu_size_on_gpu(scene(200, 150), gpu, 256, None) is None
+    assert warn_cpu_size_on_gpu(scene(1600, 1200), gpu, None, None) is None
+
+
+def test_downscaling_at_load_is_said_once_with_the_setting(tmp_path, caplog):
+    from b3dgs.data.scene import FrameSpec, materialize
+
+    save_png(tmp_path / "a.png", np.zeros((60, 80, 3), np.uint8))
+    K = np.array([[50.0, 0, 40], [0, 50.0, 30], [0, 0, 1]])
+    frames = [FrameSpec(name="a.png", path=tmp_path / "a.png", K=K, viewmat=np.eye(4), width=80, height=60)]
+    with caplog.at_level("INFO"):
+        cams = materialize(frames, max_side=40)
+    assert (cams[0].width, cams[0].height) == (40, 30)
+    assert "images downscaled to a longest side of 40 px (data.max_side" in caplog.text and "80x60 -> 40x30" in caplog.text
+    caplog.clear()
+    with caplog.at_level("INFO"):
+        materialize(frames, max_side=None)
+    assert "downscaled" not in caplog.text
+
+
 def test_paper_protocol_trains_a_few_steps_on_the_synthetic_scene(tmp_path):
     """experiment=paper end to end on the CPU, cut to 20 steps (the full run is a GPU's: docs/user-guide.md)."""
     from test_train import run_train

@@ -324,10 +324,12 @@ def materialize(
     :class:`Camera` with ``K`` scaled by the per-axis ratio; a frame with a ``distortion`` is then undistorted at that
     size (:func:`b3dgs.data.undistort.undistort_image`), frames sharing a lens, ``K`` and size sharing one sampling
     grid. The frames are not changed. Within :func:`poses_only` no file is read."""
-    cams, grids, pixels = [], {}, not _POSES_ONLY.get()
+    cams, grids, pixels, smaller = [], {}, not _POSES_ONLY.get(), []
     for f in frames:
         check_intrinsics(f.name, f.K, f.width, f.height)
         w2, h2 = fit_size(f.width, f.height, max_side)
+        if (w2, h2) != (f.width, f.height):
+            smaller.append(f"{f.width}x{f.height} -> {w2}x{h2}")
         img = load_image(f.path, size=(w2, h2), expected_size=(f.width, f.height), background=background) \
             if pixels else None
         K = scale_intrinsics(f.K, w2 / f.width, h2 / f.height)
@@ -336,6 +338,9 @@ def materialize(
         cams.append(Camera(f.name, torch.tensor(K, dtype=torch.float32),
                            torch.tensor(check_pose(f.name, f.viewmat), dtype=torch.float32), w2, h2,
                            None if img is None else torch.from_numpy(img)))
+    if smaller and pixels:
+        log.info("images downscaled to a longest side of %d px (data.max_side; null trains at the files' size): %d of "
+                 "%d, e.g. %s", max_side, len(smaller), len(frames), smaller[0])
     return cams
 
 
