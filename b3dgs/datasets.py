@@ -15,7 +15,6 @@ import hashlib
 import http.client
 import os
 import shutil
-import signal
 import stat
 import subprocess
 import sys
@@ -501,7 +500,7 @@ def main(argv: Optional[list[str]] = None) -> int:
                 _say(get(scene, root, scenes))
             return 0
     except Interrupted as e:
-        sys.stderr.write(f"{PROG}: stopped by {signal.Signals(e.signum).name}; run the same command again to resume "
+        sys.stderr.write(f"{PROG}: stopped by {e.signal_name}; run the same command again to resume "
                          "the download\n")
         return e.exit_code
     except Exception as e:  # noqa: BLE001 - known errors as one line; anything else is a bug with its traceback

@@ -11,7 +11,6 @@ from __future__ import annotations
 import difflib
 import errno
 import os
-import signal
 import sys
 import traceback
 from contextlib import contextmanager
@@ -363,7 +362,7 @@ def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str
                 hydra_main()
         except Interrupted as e:
             sys.stdout.flush()
-            sys.stderr.write(f"{prog}: stopped by {signal.Signals(e.signum).name}; {again}\n")
+            sys.stderr.write(f"{prog}: stopped by {e.signal_name}; {again}\n")
             sys.stderr.flush()
             sys.exit(e.exit_code)
         except Exception as e:  # noqa: BLE001 - composition errors; task errors end in known_errors

@@ -19,11 +19,15 @@ class Interrupted(BaseException):
     def __init__(self, signum: int, step: Optional[int] = None):
         self.signum = int(signum)
         self.step = step
-        super().__init__(f"interrupted by {signal.Signals(self.signum).name}")
+        super().__init__(f"interrupted by {self.signal_name}")
 
     @property
     def exit_code(self) -> int:
         return 128 + self.signum
+
+    @property
+    def signal_name(self) -> str:
+        return signal.Signals(self.signum).name
 
 
 class _Pending:

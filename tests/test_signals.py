@@ -73,3 +73,21 @@ def test_run_cli_ends_an_interrupted_command_with_its_own_advice(capsys):
     assert capsys.readouterr().err == "b3dgs-x: stopped by SIGTERM; run it with resume=auto\n"
     src = (ROOT / "b3dgs" / "train.py").read_text()
     assert 'again="run the same command with resume=auto' in src
+
+
+def test_b3dgs_lpips_stops_on_a_signal_with_one_line(monkeypatch, capsys):
+    import signal
+    import threading
+
+    from b3dgs.metrics import lpips
+
+    if threading.current_thread() is not threading.main_thread():
+        pytest.skip("signal handlers live in the main thread, and this test runs in another")
+
+    def build(*a):
+        os.kill(os.getpid(), signal.SIGTERM)  # handled: raises b3dgs.signals.Interrupted here
+        raise AssertionError("the signal did not stop it")
+
+    monkeypatch.setattr(lpips, "build_weights", build)
+    assert lpips.build_weights_cli([]) == 143
+    assert capsys.readouterr().err == "b3dgs-lpips: stopped by SIGTERM; run the same command again\n"

