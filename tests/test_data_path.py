@@ -180,3 +180,22 @@ def test_a_run_read_where_its_scene_moved_finds_it_or_names_data_path(tmp_path, 
                           f"out={tmp_path / 'x.ply'}"], capture_output=True, text=True, timeout=300, cwd=tmp_path,
                          env={**ENV, "B3DGS_DATA": str(tmp_path / "c" / "none")})
     assert res.returncode == 0 and (tmp_path / "x.ply").is_file(), res.stderr[-2000:]
+
+
+def test_a_named_scene_missing_from_the_data_root_names_b3dgs_data_get(tmp_path, monkeypatch):
+    """scene=fox on a fresh clone: the fix is to fetch it by name, into the data root; any other missing folder keeps
+    the plain fix."""
+    from b3dgs import datasets
+    from b3dgs.data.scene import missing_scene_fix
+
+    root = tmp_path / "root"
+    monkeypatch.setenv("B3DGS_DATA", str(root))
+    (tmp_path / "registry.yaml").write_text(yaml.safe_dump({"mine": {"group": "test", "sources": []}}))
+    monkeypatch.setenv(datasets.REGISTRY_ENV, str(tmp_path / "registry.yaml"))
+    with pytest.raises(B3dgsError, match="does not exist") as e:
+        infer_data_option(root / "mine")
+    assert e.value.fix.startswith(f"fetch it: b3dgs-data get mine (into {root})")
+    assert missing_scene_fix(tmp_path / "elsewhere" / "mine") == "pass data.path=PATH to an existing scene folder"
+    assert missing_scene_fix(root / "yours") == "pass data.path=PATH to an existing scene folder"
+    with pytest.raises(B3dgsError, match="b3dgs-data get mine"):  # a named scene's data= and data.path, as scene=mine
+        check_scene_settings("transforms", root / "mine", SceneSettings(), {})

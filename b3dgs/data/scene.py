@@ -677,7 +677,7 @@ def infer_data_option(path: str | os.PathLike) -> tuple[str, str]:
     (naming ``b3dgs-process``) and a folder of no known format."""
     p = Path(path).expanduser()
     if not p.exists():
-        raise B3dgsError(f"data.path={path} does not exist", "pass data.path=PATH to an existing scene folder")
+        raise B3dgsError(f"data.path={path} does not exist", missing_scene_fix(p))
     _refuse_inside_a_scene(p)
     kinds = guess_kinds(p)
     if "colmap" in kinds:
@@ -734,6 +734,22 @@ def infer_data_override(prog: str, argv: list[str]) -> list[str]:
                      f"(pass data=FORMAT to choose another)\n")
     sys.stderr.flush()
     return [*argv[:at], f"data={option}", *argv[at:]]
+
+
+def missing_scene_fix(path: str | os.PathLike) -> str:
+    """The fix for a scene folder that does not exist: ``b3dgs-data get NAME`` where the folder is a registry scene's
+    place in this machine's data root (``scene=fox`` on a fresh clone), else an existing folder."""
+    from b3dgs import data_root
+    from b3dgs.datasets import load_registry
+
+    p = Path(str(path)).expanduser()
+    try:
+        named = p.name in load_registry()
+    except B3dgsError:  # an unreadable $B3DGS_DATA_REGISTRY: the plain fix
+        named = False
+    if named and p.parent.resolve() == Path(data_root()).expanduser().resolve():
+        return f"fetch it: b3dgs-data get {p.name} (into {p.parent}), or set B3DGS_DATA to a folder that holds {p.name}"
+    return "pass data.path=PATH to an existing scene folder"
 
 
 def _refuse_inside_a_scene(p: Path) -> None:
@@ -868,7 +884,7 @@ def check_scene_settings(kind: str, path: str | os.PathLike | None, settings: Sc
         if path is None or str(path) == "":
             raise B3dgsError(f"data={kind} reads a scene folder, and data.path is not set", "pass data.path=PATH")
         if not Path(path).exists():
-            raise B3dgsError(f"data.path={path} does not exist", "pass data.path=PATH to an existing scene folder")
+            raise B3dgsError(f"data.path={path} does not exist", missing_scene_fix(path))
         if kind_kwargs.get("sparse_dir") is None:  # a custom model folder is the loader's to find
             check_layout(kind, path)
     if settings.images_dir is not None:
