@@ -46,14 +46,14 @@ def run(tmp_path_factory):
 def test_a_signal_mid_command_is_one_line_its_exit_code_and_a_clean_rerun(run, prog, hook, sig, args):
     argv = [f"run={run}", *args]
     res = subprocess.run([sys.executable, "-c", SELF_SIGNAL, *hook, sig, prog, *argv], capture_output=True, text=True,
-                         timeout=600, cwd=ROOT, env=ENV)
+                         timeout=600, cwd=run.parent, env=ENV)  # b3dgs-eval's job log goes below cwd, not the checkout
     ours = [ln for ln in res.stderr.splitlines() if ln.startswith(f"{prog}:")]
     assert res.returncode == {"TERM": 143, "INT": 130}[sig], res.stderr[-3000:]
     assert ours == [f"{prog}: stopped by SIG{sig}; run the same command again"], res.stderr[-3000:]
     assert "Traceback" not in res.stderr
     assert not [p for p in run.rglob("*.tmp")], "a temp file was left behind"
     again = subprocess.run([sys.executable, "-m", prog.replace("b3dgs-", "b3dgs."), *argv], capture_output=True,
-                           text=True, timeout=600, cwd=ROOT, env=ENV)
+                           text=True, timeout=600, cwd=run.parent, env=ENV)
     assert again.returncode == 0, again.stderr[-3000:]
 
 
