@@ -65,18 +65,6 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
     if bad is not None:
         raise B3dgsError(f"{cfg_path} is damaged or not a b3dgs run config ({bad})",
                          f"train the run again with `b3dgs-train ... hydra.run.dir={run_dir} overwrite=true`")
-    moved = locate_scene(cfg, cfg_path, data_path) if scene is None else None
-    if scene is None:
-        scene = data_module(cfg.data).scene
-    if moved is not None:
-        check_same_scene(run_dir, scene, moved)
-    module = build_run(cfg, scene, renderer=renderer if renderer is not None else _run_renderer, init=False)
-    try:
-        ck = read_checkpoint(ckpt_path)
-    except Exception as e:  # noqa: BLE001 - corrupt or truncated file
-        raise B3dgsError(f"cannot read the checkpoint {ckpt_path} ({' '.join(str(e).split())[:120]})",
-                         f"pass another checkpoint, or train the run again with `b3dgs-train ... "
-                         f"hydra.run.dir={run_dir} overwrite=true`") from e
     metrics = None
     if (run_dir / "metrics.json").exists():
         try:
@@ -84,6 +72,18 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
         except ValueError as e:
             raise B3dgsError(f"{run_dir / 'metrics.json'} is damaged ({e})",
                              f"finish the run again with `b3dgs-train ... hydra.run.dir={run_dir} resume=auto`") from None
+    moved = locate_scene(cfg, cfg_path, data_path) if scene is None else None
+    if scene is None:
+        scene = data_module(cfg.data).scene
+    if moved is not None:
+        check_same_scene(run_dir, scene, moved, metrics)
+    module = build_run(cfg, scene, renderer=renderer if renderer is not None else _run_renderer, init=False)
+    try:
+        ck = read_checkpoint(ckpt_path)
+    except Exception as e:  # noqa: BLE001 - corrupt or truncated file
+        raise B3dgsError(f"cannot read the checkpoint {ckpt_path} ({' '.join(str(e).split())[:120]})",
+                         f"pass another checkpoint, or train the run again with `b3dgs-train ... "
+                         f"hydra.run.dir={run_dir} overwrite=true`") from e
     if checkpoint is None:  # the run's own last.ckpt must be the model its metrics.json describes
         check_run_checkpoint(run_dir, ck, metrics)
     # the commands that load a run take no training options: the fix names none (no model=, seed=)
@@ -127,23 +127,19 @@ def locate_scene(cfg: DictConfig, cfg_path: Path, data_path: Optional[str | Path
     return str(here)
 
 
-def check_same_scene(run_dir: Path, scene: Scene, folder: str) -> None:
+def check_same_scene(run_dir: Path, scene: Scene, folder: str, m: Optional[dict]) -> None:
     """Refuse a scene read from another folder than the run's (:func:`locate_scene`) whose normalisation or view
-    counts differ from what the run's ``metrics.json`` recorded: it is not the scene the run was trained on."""
-    import json
-
+    counts differ from what the run's ``metrics.json`` (``m``) recorded: it is not the scene the run was trained on."""
     import numpy as np
 
     from b3dgs.data.scene import SceneTransform, scene_transform
 
-    try:
-        m = json.loads((run_dir / "metrics.json").read_text())
-    except (OSError, ValueError):
+    if m is None:
         return  # an unfinished run: load_run refuses it with its own reason
-    want = m.get("scene_transform")
+    want = None if m.get("scene_transform") is None else SceneTransform.from_dict(m["scene_transform"])
     have = scene_transform(scene)
-    same = want is None or (np.allclose(have.scale, SceneTransform.from_dict(want).scale, rtol=1e-6)
-                            and np.allclose(have.translation, SceneTransform.from_dict(want).translation, atol=1e-6))
+    same = want is None or (np.allclose(have.scale, want.scale, rtol=1e-6)
+                            and np.allclose(have.translation, want.translation, atol=1e-6))
     same = same and all(m.get(k) in (None, n) for k, n in (("num_train_views", len(scene.train)),
                                                              ("num_test_views", len(scene.test))))
     if not same:
