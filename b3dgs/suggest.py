@@ -202,11 +202,7 @@ def read_candidates(path: str, scene) -> list[Camera]:
         raise B3dgsError(f"candidates={path}: no such file or folder", fix)
     T = scene_transform(scene)
     if p.is_dir():
-        try:
-            kind, _ = infer_data_option(p)
-        except B3dgsError as e:  # its words name data.path=; here the folder came as candidates=
-            raise B3dgsError(e.problem.replace("data.path=", "candidates="),
-                             None if e.fix is None else e.fix.replace("data.path=", "candidates=")) from None
+        kind, _ = infer_data_option(p, key="candidates")
         other = load_scene("transforms" if kind == "blender" else kind, str(p), test_every=0, normalize=False)
         cams = _move([c.with_image(None) for c in list(other.train) + list(other.test)], T)
     else:

@@ -99,6 +99,21 @@ def test_a_path_inside_a_scene_or_above_several_names_the_scene_folder(tmp_path)
     assert infer_data_option(scene)[0] == "colmap"
 
 
+def test_each_refusal_names_the_option_the_folder_came_as(tmp_path):
+    """b3dgs-suggest's candidates=DIR reads a folder as data.path does; every refusal names candidates=, and none offers
+    data=FORMAT (which candidates= does not take)."""
+    scene = _layout(tmp_path / "data" / "garden", ["poses_bounds.npy", "images/a.png"])
+    _layout(tmp_path / "data" / "fox", ["transforms.json", "images/a.png"])
+    cases = [tmp_path / "nope", scene / "images", tmp_path / "data", _layout(tmp_path / "empty", ["notes.txt"]),
+             _layout(tmp_path / "photos", ["a.jpg"])]
+    for path in cases:
+        with pytest.raises(B3dgsError) as e:
+            infer_data_option(path, key="candidates")
+        assert str(e.value).startswith(f"candidates={path}"), path
+        assert "data.path" not in str(e.value) and "data=" not in (e.value.fix or ""), path
+        assert "candidates=" in e.value.fix, path
+
+
 def test_synthetic_with_a_path_is_refused_naming_the_folders_format(tmp_path):
     _layout(tmp_path, ["transforms.json"])
     with pytest.raises(B3dgsError) as e:

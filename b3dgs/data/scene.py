@@ -669,16 +669,17 @@ def guess_kinds(path: str | os.PathLike) -> list[str]:
     return [k for k, (_, test) in _MARKERS.items() if p.is_dir() and test(p)]
 
 
-def infer_data_option(path: str | os.PathLike) -> tuple[str, str]:
+def infer_data_option(path: str | os.PathLike, key: str = "data.path") -> tuple[str, str]:
     """The ``data=`` option of a scene folder given alone as ``data.path`` (no ``data=``), and what decided it:
     a COLMAP model (``sparse/0``, ``sparse/`` or the folder) -> ``colmap``; ``transforms.json`` -> ``transforms``;
     only Blender's ``transforms_{train,val,test}.json`` -> ``blender`` (NeRF-synthetic: alpha on white);
     ``poses_bounds.npy`` -> ``llff``. Raises :class:`B3dgsError` for a missing folder, a folder of photos only
-    (naming ``b3dgs-process``) and a folder of no known format."""
+    (naming ``b3dgs-process``) and a folder of no known format; its words name the option ``key`` that gave the
+    folder (``candidates`` for b3dgs-suggest)."""
     p = Path(path).expanduser()
     if not p.exists():
-        raise B3dgsError(f"data.path={path} does not exist", missing_scene_fix(p))
-    _refuse_inside_a_scene(p)
+        raise B3dgsError(f"{key}={path} does not exist", missing_scene_fix(p, key))
+    _refuse_inside_a_scene(p, key)
     kinds = guess_kinds(p)
     if "colmap" in kinds:
         return "colmap", "a COLMAP model"
@@ -688,15 +689,15 @@ def infer_data_option(path: str | os.PathLike) -> tuple[str, str]:
         return "blender", "Blender's transforms_*.json (NeRF-synthetic: alpha on white)"
     if "llff" in kinds:
         return "llff", "an LLFF poses_bounds.npy"
-    _refuse_photos_only(p)
+    _refuse_photos_only(p, key)
     scenes = sorted(d.name for d in p.iterdir() if d.is_dir() and guess_kinds(d)) if p.is_dir() else []
     if scenes:
         listed = ", ".join(scenes[:6]) + (", ..." if len(scenes) > 6 else "")
-        raise B3dgsError(f"data.path={path} holds {len(scenes)} scene folder{'s' * (len(scenes) > 1)} ({listed}), not "
-                         "a scene", f"pass one of them, e.g. data.path={shlex.quote(str(p / scenes[0]))}")
-    raise B3dgsError(f"data.path={path} holds no scene: no COLMAP model (sparse/0), transforms*.json or "
-                     "poses_bounds.npy",
-                     "pass data.path=PATH to a scene folder, or name its format with data=colmap|transforms|llff")
+        raise B3dgsError(f"{key}={path} holds {len(scenes)} scene folder{'s' * (len(scenes) > 1)} ({listed}), not "
+                         "a scene", f"pass one of them, e.g. {key}={shlex.quote(str(p / scenes[0]))}")
+    named = ", or name its format with data=colmap|transforms|llff" if key == "data.path" else ""
+    raise B3dgsError(f"{key}={path} holds no scene: no COLMAP model (sparse/0), transforms*.json or "
+                     "poses_bounds.npy", f"pass {key}=PATH to a scene folder{named}")
 
 
 def infer_data_override(prog: str, argv: list[str]) -> list[str]:
@@ -736,7 +737,7 @@ def infer_data_override(prog: str, argv: list[str]) -> list[str]:
     return [*argv[:at], f"data={option}", *argv[at:]]
 
 
-def missing_scene_fix(path: str | os.PathLike) -> str:
+def missing_scene_fix(path: str | os.PathLike, key: str = "data.path") -> str:
     """The fix for a scene folder that does not exist: ``b3dgs-data get NAME`` where the folder is a registry scene's
     place in this machine's data root (``scene=fox`` on a fresh clone), else an existing folder."""
     from b3dgs import data_root
@@ -749,10 +750,10 @@ def missing_scene_fix(path: str | os.PathLike) -> str:
         named = False
     if named and p.parent.resolve() == Path(data_root()).expanduser().resolve():
         return f"fetch it: b3dgs-data get {p.name} (into {p.parent}), or set B3DGS_DATA to a folder that holds {p.name}"
-    return "pass data.path=PATH to an existing scene folder"
+    return f"pass {key}=PATH to an existing scene folder"
 
 
-def _refuse_inside_a_scene(p: Path) -> None:
+def _refuse_inside_a_scene(p: Path, key: str = "data.path") -> None:
     """Refuse a path inside a scene folder, naming the scene folder to pass instead: a file other than a ``.json``
     (``poses_bounds.npy``, ``sparse/0/cameras.bin``, an image), a COLMAP model folder (``sparse/0``, ``sparse``)
     without images beside it, or a folder holding no scene of its own (``images/``)."""
@@ -771,17 +772,17 @@ def _refuse_inside_a_scene(p: Path) -> None:
     if scene == p:
         return
     what = "a file" if p.is_file() else "the COLMAP model" if model else "a folder"
-    raise B3dgsError(f"data.path={p} is {what} inside the scene folder {scene}",
-                     f"pass the folder: data.path={shlex.quote(str(scene))}")
+    raise B3dgsError(f"{key}={p} is {what} inside the scene folder {scene}",
+                     f"pass the folder: {key}={shlex.quote(str(scene))}")
 
 
-def _refuse_photos_only(p: Path) -> None:
+def _refuse_photos_only(p: Path, key: str = "data.path") -> None:
     """Refuse a folder that holds photos (directly or in image folders) and no camera poses: b3dgs-process makes a
     scene of it."""
     if p.is_dir() and (image_folders(p) or any(f.suffix in IMAGE_EXTENSIONS for f in p.iterdir() if f.is_file())):
-        raise B3dgsError(f"data.path={p} holds photos but no camera poses (no COLMAP model, transforms*.json or "
+        raise B3dgsError(f"{key}={p} holds photos but no camera poses (no COLMAP model, transforms*.json or "
                          "poses_bounds.npy)",
-                         f"run `b3dgs-process images={shlex.quote(str(p))} out=SCENE` (structure from motion), then pass data.path=SCENE")
+                         f"run `b3dgs-process images={shlex.quote(str(p))} out=SCENE` (structure from motion), then pass {key}=SCENE")
 
 
 def check_layout(kind: str, path: str | os.PathLike) -> None:
