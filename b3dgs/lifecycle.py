@@ -453,7 +453,7 @@ class Run:
         from lightning.pytorch.loggers import TensorBoardLogger  # noqa: F401 - logger=tensorboard targets it
 
         from b3dgs.callbacks import CurveCallback, ResumeState, RunCheckpoint, RunFiles
-        from b3dgs.validation import _hydra
+        from b3dgs.validation import hydra_value
 
         every_s = checkpoint_every_s(tcfg)
         ckpt_path, clear = prepare_run_dir(run_dir, cfg.get("resume"), cfg.get("overwrite", False),
@@ -462,7 +462,7 @@ class Run:
         scene, renderer = self.dm.scene, module.renderer
         warn_disabled_options(module)
         warn_long_cpu_run(scene, renderer, int(tcfg.max_steps))
-        warn_cpu_size_on_gpu(scene, renderer, cfg.data.get("max_side"), _hydra(cfg, "runtime.choices.experiment", None))
+        warn_cpu_size_on_gpu(scene, renderer, cfg.data.get("max_side"), hydra_value(cfg, "runtime.choices.experiment", None))
         if ckpt_path is not None:
             check_resume(module, ckpt_path)
         done = None if clear else finished_metrics(run_dir)

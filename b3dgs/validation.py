@@ -18,10 +18,10 @@ from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.schema import RULES, UNRESOLVED, apply_rules, check_node, is_int, is_number, locate, show, value
 from b3dgs.upgrade import schedule_node
 
-__all__ = ["check_checkpoint", "validate_config"]
+__all__ = ["check_checkpoint", "hydra_value", "validate_config"]
 
 
-def _hydra(cfg: DictConfig, key: str, default: Any) -> Any:
+def hydra_value(cfg: DictConfig, key: str, default: Any) -> Any:
     """``hydra.<key>`` of the composed config, else of the running Hydra app."""
     if "hydra" in cfg and OmegaConf.select(cfg, f"hydra.{key}", default=None) is not None:
         return OmegaConf.select(cfg, f"hydra.{key}")
@@ -89,7 +89,7 @@ def _refuse_other_apps_option(cfg: DictConfig, key: str, app: str) -> None:
     """A top-level ``key`` that the chosen option of a global group (``experiment=archived_posterior``) sets but only
     another b3dgs command reads: refuse the option by name (else the user sees "unknown config key <key>")."""
     for group in sorted(global_groups()):
-        choice = _hydra(cfg, f"runtime.choices.{group}", None)
+        choice = hydra_value(cfg, f"runtime.choices.{group}", None)
         option = load_option(group, str(choice)) if choice else None
         if not isinstance(option, dict) or key not in option:
             continue
@@ -107,7 +107,7 @@ def _check_top(cfg: DictConfig, app: str, values: dict) -> None:
         node = cfg.get(key)
         if key in global_groups() and isinstance(node, DictConfig) and len(node):
             # an option file of a global group without the header: its keys went under <key>.*, where nothing reads
-            choice = _hydra(cfg, f"runtime.choices.{key}", None)
+            choice = hydra_value(cfg, f"runtime.choices.{key}", None)
             keys = ", ".join(map(str, node.keys()))
             if choice:
                 raise B3dgsError(f"{key}/{choice}.yaml is not a global config file: its keys landed under {key}.{{{keys}}}, "
@@ -160,7 +160,7 @@ def _check_train(cfg: DictConfig, values: dict) -> dict:
     trainer = {}
     for name in option_names("trainer"):
         trainer.update({k: v for k, v in _option("trainer", name).items() if not k.startswith("_")})
-    chosen = _option("trainer", _hydra(cfg, "runtime.choices.trainer", "default"))
+    chosen = _option("trainer", hydra_value(cfg, "runtime.choices.trainer", "default"))
     extra = {"data": {"also": loader}, "trainer": {"extra": trainer, "shown": chosen}}
     logger_target = OmegaConf.select(cfg, "logger._target_", default=None)
     if logger_target in KWARGS_FORWARDED_TO:  # the logger's **kwargs go to its writer: check them against the writer's
@@ -226,7 +226,7 @@ def _check_posterior_list(cfg: DictConfig) -> None:
     from hydra.core.override_parser.overrides_parser import OverridesParser
 
     try:
-        parsed = OverridesParser.create().parse_overrides([str(o) for o in _hydra(cfg, "overrides.task", []) or []])
+        parsed = OverridesParser.create().parse_overrides([str(o) for o in hydra_value(cfg, "overrides.task", []) or []])
     except Exception:  # noqa: BLE001 - Hydra parsed them already to compose this config
         return
     for o in parsed:

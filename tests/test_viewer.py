@@ -149,6 +149,9 @@ def test_camera_conversions_round_trip():
         R = wxyz_to_mat(q)
         assert np.allclose(R @ R.T, np.eye(3), atol=1e-12) and np.linalg.det(R) == pytest.approx(1.0)
         assert np.allclose(wxyz_to_mat(mat_to_wxyz(R)), R, atol=1e-10)
+    quarter = [math.cos(math.pi / 4), 0.0, 0.0, math.sin(math.pi / 4)]  # 90 degrees about +z, (w, x, y, z) order
+    assert np.allclose(wxyz_to_mat(quarter), [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-12)
+    assert np.allclose(mat_to_wxyz([[0, 1, 0], [-1, 0, 0], [0, 0, 1]]), [quarter[0], 0, 0, -quarter[3]])  # w >= 0
     _, cam = one_gaussian_scene()
     cam = Camera("c", cam.K, torch.tensor([[0.0, 0, 1, 0.3], [1, 0, 0, -0.2], [0, 1, 0, 2.0], [0, 0, 0, 1]]), SIZE, SIZE)
     wxyz, pos = camera_pose(cam)
