@@ -500,9 +500,7 @@ def main(argv: Optional[list[str]] = None) -> int:
                 _say(get(scene, root, scenes))
             return 0
     except Interrupted as e:
-        sys.stderr.write(f"{PROG}: stopped by {e.signal_name}; run the same command again to resume "
-                         "the download\n")
-        return e.exit_code
+        return e.report(PROG, "run the same command again to resume the download")
     except Exception as e:  # noqa: BLE001 - known errors as one line; anything else is a bug with its traceback
         msg = format_error(e)
         if msg is None:

