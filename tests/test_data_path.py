@@ -137,6 +137,22 @@ def test_the_override_is_added_only_when_no_format_or_scene_is_named(tmp_path, c
         infer_data_override("b3dgs-train", ["-m", f"data.path={colmap},{nerf}"])
 
 
+def test_a_home_folder_path_is_read_or_its_fix_writes_it_out(tmp_path, monkeypatch):
+    """zsh leaves ``data.path=~/scene`` unexpanded and Hydra cannot read ``~``: the fix writes the home folder out; the
+    quoted form (``data.path='~/scene'``) is read from the home folder (it said "does not exist" before)."""
+    from b3dgs.data.datamodule import SceneDataModule
+    from b3dgs.errors import _parse_fix
+
+    monkeypatch.setenv("HOME", str(tmp_path))
+    write_colmap_text(tmp_path / "scenes" / "mine")
+    assert _parse_fix("data.path=~/scenes/mine") == \
+        f"write the home folder out: data.path={tmp_path}/scenes/mine (Hydra cannot read ~)"
+    dm = SceneDataModule("colmap", "~/scenes/mine", max_side=None)
+    assert dm.path == str(tmp_path / "scenes" / "mine")
+    dm.setup()
+    assert len(dm.scene.train) + len(dm.scene.test) == 8
+
+
 def test_data_path_alone_trains_that_colmap_scene(tmp_path):
     """The newcomer's command: ``b3dgs-train data.path=DIR`` (a COLMAP scene made here) trains DIR, not the synthetic
     scene; config.yaml and metrics.json say so."""

@@ -1,6 +1,7 @@
 """Lightning DataModule over a :class:`~b3dgs.types.Scene`: one camera per step."""
 from __future__ import annotations
 
+import os
 from dataclasses import replace
 from typing import Any, Iterator, Optional, Sequence
 
@@ -109,7 +110,7 @@ class SceneDataModule(L.LightningDataModule):
                  name: Optional[str] = None, scene: Optional[Scene] = None, **keys: Any):
         super().__init__()
         self.kind = str(kind)
-        self.path = None if path is None else str(path)
+        self.path = None if path is None else os.path.expanduser(str(path))  # data.path='~/scene' (quoted for Hydra)
         self.name = name
         self.settings, self.kind_kwargs = SceneSettings.split(keys, settings)
         self._scene: Optional[Scene] = scene

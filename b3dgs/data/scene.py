@@ -962,5 +962,6 @@ def load_scene(kind: str, path: str | os.PathLike | None, settings: Optional[Sce
     :func:`read_raw` read it with these settings (nothing is read again; its point tracks serve
     ``init_points_from_train_only``)."""
     settings, kind_kwargs = SceneSettings.split(keys, settings)
+    path = None if path is None else os.path.expanduser(path)
     loader = check_scene_settings(kind, path, settings, kind_kwargs)
     return read_scene(loader, kind, path, settings, kind_kwargs, raw=raw)
