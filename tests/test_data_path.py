@@ -133,6 +133,8 @@ def test_the_override_is_added_only_when_no_format_or_scene_is_named(tmp_path, c
     quoted = f"data.path='{colmap}'"
     assert infer_data_override("b3dgs-train", [quoted]) == ["data=colmap", quoted]
     assert infer_data_override("b3dgs-train", ["-m", f"data.path={colmap},{colmap}"])[1] == "data=colmap"
+    comma = [f"data.path={colmap},1"]  # without -m: a folder named "c,1", or a sweep: Hydra's words say which
+    assert infer_data_override("b3dgs-train", comma) == comma
     with pytest.raises(B3dgsError, match="different formats"):
         infer_data_override("b3dgs-train", ["-m", f"data.path={colmap},{nerf}"])
 

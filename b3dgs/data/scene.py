@@ -720,6 +720,8 @@ def infer_data_override(prog: str, argv: list[str]) -> list[str]:
             at, override = i, parsed
     if at is None or groups & {"data", "scene"}:
         return argv
+    if override.is_sweep_override() and not {"-m", "--multirun"} & set(argv):
+        return argv  # data.path=a,b without -m: Hydra's words (a sweep, a list or a string, e.g. a folder "scan,1")
     values = list(override.sweep_string_iterator()) if override.is_sweep_override() else [override.value()]
     if not all(isinstance(v, str) and v and "${" not in v for v in values):
         return argv  # null or an interpolation: the data module checks what it resolves to
