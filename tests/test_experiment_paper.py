@@ -91,6 +91,23 @@ def _colmap_with_folders(root: Path) -> None:
         save_png(root / folder / "a.png", np.full((h, w, 3), 0.5))
 
 
+def test_images_shrunk_after_colmap_ran_are_read_with_k_scaled(tmp_path, caplog):
+    """images/ replaced by a uniform half-size copy (the model still says 64x48): read at the files' size, K scaled, one
+    log line (the official 3DGS code reads any size); a size that is no uniform downscale stays refused."""
+    import logging
+
+    _colmap_with_folders(tmp_path)
+    save_png(tmp_path / "images" / "a.png", np.full((24, 32, 3), 0.5))
+    with caplog.at_level(logging.INFO, logger="b3dgs.data.colmap"):
+        cam = load_scene("colmap", str(tmp_path), test_every=0, normalize=False).train[0]
+    assert (cam.width, cam.height) == (32, 24)
+    assert torch.allclose(cam.K, torch.tensor([[25.0, 0, 16], [0, 25, 12], [0, 0, 1]]))
+    assert "1 of 1 images in" in caplog.text and "a.png: 32x24, camera 64x48" in caplog.text
+    save_png(tmp_path / "images" / "a.png", np.full((40, 32, 3), 0.5))
+    with pytest.raises(B3dgsError, match=r"a\.png is 32x40 but its camera says 64x48"):
+        load_scene("colmap", str(tmp_path), test_every=0)
+
+
 def test_images_dir_loads_a_downscaled_folder_and_refuses_what_it_cannot(tmp_path):
     from b3dgs.data.datamodule import SceneDataModule
 

@@ -122,8 +122,16 @@ def read_colmap(
                          fix="rerun COLMAP's mapper (or b3dgs-process) until images register, and point data.path at "
                              "that model")
     frames.sort(key=lambda f: f.name)
-    if images_dir != "images":  # e.g. Mip-NeRF 360's images_4: a uniform downscale of the model's cameras
-        frames = [_at_file_size(f) for f in frames]
+    # image files that are a uniform downscale of the model's cameras (Mip-NeRF 360's images_4, or images/ shrunk
+    # after COLMAP ran): K scaled to the files, as the official 3DGS code reads them at any size
+    sized = [_at_file_size(f) for f in frames]
+    shrunk = [(f, g) for f, g in zip(frames, sized) if g is not f]
+    if shrunk and images_dir == "images":
+        f, g = shrunk[0]
+        log.info("%d of %d images in %s are smaller than their COLMAP cameras (e.g. %s: %dx%d, camera %dx%d): "
+                 "intrinsics scaled to the files", len(shrunk), len(frames), img_root, f.name, g.width, g.height,
+                 f.width, f.height)
+    frames = sized
 
     points = colors = tracks = None
     if len(model.point_ids) > 0:
