@@ -1,6 +1,7 @@
 """``experiment=paper``: the paper's protocol (30k steps, full resolution, its image-folder policy, the staged posterior
 schedule) composes for every model with the paper's numbers; ``data.images_dir`` picks, checks and loads an image folder
 (a downscaled one too); a long CPU run is warned about with its expected time."""
+import json
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -93,12 +94,13 @@ def _colmap_with_folders(root: Path) -> None:
 
 def test_images_shrunk_after_colmap_ran_are_read_with_k_scaled(tmp_path, caplog):
     """images/ replaced by a uniform half-size copy (the model still says 64x48): read at the files' size, K scaled, one
-    log line (the official 3DGS code reads any size); a size that is no uniform downscale stays refused."""
+    log line (the official 3DGS code reads any size); a size that is no uniform downscale stays refused. The same for a
+    transforms.json whose w/h are those of the images before they were shrunk."""
     import logging
 
     _colmap_with_folders(tmp_path)
     save_png(tmp_path / "images" / "a.png", np.full((24, 32, 3), 0.5))
-    with caplog.at_level(logging.INFO, logger="b3dgs.data.colmap"):
+    with caplog.at_level(logging.INFO, logger="b3dgs.data.scene"):
         cam = load_scene("colmap", str(tmp_path), test_every=0, normalize=False).train[0]
     assert (cam.width, cam.height) == (32, 24)
     assert torch.allclose(cam.K, torch.tensor([[25.0, 0, 16], [0, 25, 12], [0, 0, 1]]))
@@ -106,6 +108,15 @@ def test_images_shrunk_after_colmap_ran_are_read_with_k_scaled(tmp_path, caplog)
     save_png(tmp_path / "images" / "a.png", np.full((40, 32, 3), 0.5))
     with pytest.raises(B3dgsError, match=r"a\.png is 32x40 but its camera says 64x48"):
         load_scene("colmap", str(tmp_path), test_every=0)
+    nerf = tmp_path / "nerf"
+    (nerf / "images").mkdir(parents=True)
+    save_png(nerf / "images" / "a.png", np.full((24, 32, 3), 0.5))
+    (nerf / "transforms.json").write_text(json.dumps({"fl_x": 50.0, "fl_y": 50.0, "cx": 32.0, "cy": 24.0, "w": 64,
+                                                      "h": 48, "frames": [{"file_path": "images/a.png",
+                                                                           "transform_matrix": np.eye(4).tolist()}]}))
+    cam = load_scene("transforms", str(nerf), test_every=0, normalize=False).train[0]
+    assert (cam.width, cam.height) == (32, 24)
+    assert torch.allclose(cam.K, torch.tensor([[25.0, 0, 16], [0, 25, 12], [0, 0, 1]]))
 
 
 def test_images_dir_loads_a_downscaled_folder_and_refuses_what_it_cannot(tmp_path):

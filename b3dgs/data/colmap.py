@@ -16,15 +16,14 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import replace
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import numpy as np
 
 from b3dgs.data.colmap_model import ColmapCamera, model_format, read_model, unordered_map_order
-from b3dgs.data.images import image_folders, image_size
-from b3dgs.data.scene import FrameSpec, RawScene, materialize, scale_intrinsics, select_evenly
+from b3dgs.data.images import image_folders
+from b3dgs.data.scene import FrameSpec, RawScene, fit_to_files, materialize, select_evenly
 from b3dgs.data.undistort import MODELS, Distortion, describe
 from b3dgs.errors import B3dgsError
 
@@ -122,16 +121,7 @@ def read_colmap(
                          fix="rerun COLMAP's mapper (or b3dgs-process) until images register, and point data.path at "
                              "that model")
     frames.sort(key=lambda f: f.name)
-    # image files that are a uniform downscale of the model's cameras (Mip-NeRF 360's images_4, or images/ shrunk
-    # after COLMAP ran): K scaled to the files, as the official 3DGS code reads them at any size
-    sized = [_at_file_size(f) for f in frames]
-    shrunk = [(f, g) for f, g in zip(frames, sized) if g is not f]
-    if shrunk and images_dir == "images":
-        f, g = shrunk[0]
-        log.info("%d of %d images in %s are smaller than their COLMAP cameras (e.g. %s: %dx%d, camera %dx%d): "
-                 "intrinsics scaled to the files", len(shrunk), len(frames), img_root, f.name, g.width, g.height,
-                 f.width, f.height)
-    frames = sized
+    frames = fit_to_files(frames, str(img_root))  # images_4, or images/ shrunk after COLMAP ran: K scaled
 
     points = colors = tracks = None
     if len(model.point_ids) > 0:
@@ -143,19 +133,6 @@ def read_colmap(
             ids, s = model.track["image_id"].tolist(), model.track_start
             tracks = [sorted({names[k] for k in ids[s[i]:s[i + 1]]}) for i in order.tolist()]
     return (frames, points, colors, tracks) if point_tracks else (frames, points, colors)
-
-
-def _at_file_size(f: FrameSpec) -> FrameSpec:
-    """``f`` at the size of its image file when that file is a uniform downscale of the camera (a folder such as
-    ``images_4``: K scaled by the per-axis ratio, as :func:`b3dgs.data.scene.materialize` scales it); any other size
-    is left for :func:`b3dgs.data.images.load_image` to refuse, naming the file."""
-    if not Path(f.path).is_file():
-        return f  # load_image names the missing file
-    w, h = image_size(f.path)
-    s = w / f.width
-    if (w, h) == (f.width, f.height) or s > 1.0 or abs(f.height * s - h) > 1.0:
-        return f
-    return replace(f, K=scale_intrinsics(f.K, w / f.width, h / f.height), width=w, height=h)
 
 
 def load_colmap(path: str | os.PathLike, max_side: Optional[int] = None, background: Sequence[float] = (0.0, 0.0, 0.0),

@@ -28,14 +28,14 @@ import math
 import os
 import shlex
 import sys
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import numpy as np
 import torch
 
-from b3dgs.data.images import IMAGE_EXTENSIONS, image_folders, load_image
+from b3dgs.data.images import IMAGE_EXTENSIONS, image_folders, image_size, load_image
 from b3dgs.data.undistort import undistort_image
 from b3dgs.errors import B3dgsError, did_you_mean
 from b3dgs.schema import RGB_RULE, apply_rules, is_int, positive_rule
@@ -71,6 +71,7 @@ __all__ = [
     "check_scene_settings",
     "check_undistort",
     "compute_bounds",
+    "fit_to_files",
     "get_loader",
     "guess_kinds",
     "infer_data_option",
@@ -298,6 +299,27 @@ def scale_intrinsics(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
     K[1, :] *= sy
     K[2] = (0, 0, 1)
     return K
+
+
+def fit_to_files(frames: Sequence[FrameSpec], where: str) -> list[FrameSpec]:
+    """``frames`` at the size of their image files where a file is a uniform downscale of its camera (Mip-NeRF 360's
+    ``images_4``, or images shrunk after the poses were computed): ``K`` scaled by the per-axis ratio, one log line
+    naming ``where`` (the image folder or file). Any other size is left for :func:`b3dgs.data.images.load_image` to
+    refuse, naming the file; the official 3DGS code reads images of any size."""
+    out, shrunk = [], []
+    for f in frames:
+        w, h = image_size(f.path) if Path(f.path).is_file() else (f.width, f.height)  # load_image names a missing one
+        s = w / f.width
+        if (w, h) == (f.width, f.height) or s > 1.0 or abs(f.height * s - h) > 1.0:
+            out.append(f)
+            continue
+        out.append(replace(f, K=scale_intrinsics(f.K, w / f.width, h / f.height), width=w, height=h))
+        shrunk.append((f, out[-1]))
+    if shrunk:
+        f, g = shrunk[0]
+        log.info("%d of %d images in %s are smaller than their cameras (e.g. %s: %dx%d, camera %dx%d): intrinsics "
+                 "scaled to the files", len(shrunk), len(frames), where, f.name, g.width, g.height, f.width, f.height)
+    return out
 
 
 _POSES_ONLY = contextvars.ContextVar("b3dgs_poses_only", default=False)

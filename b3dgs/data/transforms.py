@@ -32,7 +32,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from b3dgs.data.images import image_size
-from b3dgs.data.scene import FrameSpec, RawScene, materialize, scale_intrinsics, select_evenly
+from b3dgs.data.scene import FrameSpec, RawScene, fit_to_files, materialize, scale_intrinsics, select_evenly
 from b3dgs.data.undistort import FISHEYE, MODELS, Distortion
 from b3dgs.errors import B3dgsError
 
@@ -258,7 +258,7 @@ def read_transforms(
                     "have, ignored", ", ".join(sorted({f.distortion.model for f in frames if f.distortion})),
                     ", ".join(f"{k}={v:.3g}" for k, v in dropped.items()))
     frames.sort(key=lambda f: f.name)
-    return frames, points, colors, distortion
+    return fit_to_files(frames, str(path)), points, colors, distortion
 
 
 def load_transforms(path: str | os.PathLike, max_side: Optional[int] = None,
