@@ -281,7 +281,9 @@ def _check_eval(cfg: DictConfig, values: dict) -> dict:
         seen[Path(str(r)).resolve()] = str(r)
     for d in map(Path, map(str, runs)):
         if not (d / "config.yaml").is_file():
-            raise B3dgsError(f"{d} is not a b3dgs run dir (no config.yaml)", "pass run=RUN_DIR of a finished b3dgs-train run")
+            from b3dgs.runs import not_a_run_dir
+
+            raise not_a_run_dir(d)
         check_checkpoint(d / "checkpoints" / "last.ckpt",
                          f"finish the run with `b3dgs-train ... hydra.run.dir={d} resume=auto`, or train it again")
     return {path[len("uq."):]: regime for path, regime in built.items()}

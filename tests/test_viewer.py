@@ -209,7 +209,7 @@ def test_run_dir_errors_are_one_line(tiny_runs, tmp_path):
     (tmp_path / "file").write_text("x")
     refused(tmp_path / "file", "is a file")
     (tmp_path / "empty").mkdir()
-    refused(tmp_path / "empty", "not a b3dgs run dir: no config.yaml")
+    refused(tmp_path / "empty", r"not a b3dgs run dir \(no config.yaml\)")
     unfinished = copy_run(tiny_runs["niw"], tmp_path / "unfinished")
     (unfinished / "metrics.json").unlink()
     refused(unfinished, "unfinished run: no metrics.json.*resume=auto")
@@ -232,6 +232,9 @@ def test_run_dir_errors_are_one_line(tiny_runs, tmp_path):
     with run_dir_lock(busy):
         refused(busy, "still training")
     assert open_run(busy).metrics["method"] == "niw"
+    # the folder above them (a sweep, outputs/train) names its finished runs (not the unfinished one) and one to pass
+    refused(tmp_path, r"holds 4 finished run dirs \(busy, foreign, old, stray\), not a run \(fix: pass one of them, "
+                      rf"e\.g\. run={tmp_path / 'stray'}\)")
 
 
 def test_cli_refuses_in_one_line(tiny_runs, tmp_path):

@@ -79,7 +79,7 @@ def open_run(run_dir, acquired: Optional[str] = None, renderer=None, data_path: 
     from hydra.errors import InstantiationException
 
     from b3dgs.rundir import run_dir_busy
-    from b3dgs.runs import load_run
+    from b3dgs.runs import load_run, not_a_run_dir
 
     run_dir = Path(str(run_dir)).expanduser()
     again = f"b3dgs-train ... hydra.run.dir={run_dir} overwrite=true"
@@ -88,8 +88,7 @@ def open_run(run_dir, acquired: Optional[str] = None, renderer=None, data_path: 
     if not run_dir.is_dir():
         raise B3dgsError(f"{run_dir} is a file, not a run dir", "pass run=DIR of a finished b3dgs-train run")
     if not (run_dir / "config.yaml").is_file():
-        raise B3dgsError(f"{run_dir} is not a b3dgs run dir: no config.yaml",
-                         "pass run=DIR of a finished b3dgs-train run (outputs/train/...)")
+        raise not_a_run_dir(run_dir)
     pid = run_dir_busy(run_dir)  # a live process holding the run dir's lock
     if pid is not None:
         raise B3dgsError(f"{run_dir} is still training (b3dgs-train pid {pid}); it has no final model yet",
