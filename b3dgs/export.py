@@ -211,8 +211,11 @@ def export(cfg: DictConfig) -> dict:
     out = Path(str(cfg.out)) if cfg.get("out") else default
     if fmt == "3dgs" and out.exists() and not out.is_dir():
         raise B3dgsError(f"out={out} is a file; format=3dgs writes a folder", "pass out= a folder path")
-    if fmt != "3dgs" and out.is_dir():
-        raise B3dgsError(f"out={out} is a folder; format={fmt} writes one file", f"pass out=PATH/NAME.{fmt}")
+    if fmt != "3dgs" and (out.is_dir() or not out.suffix):  # out= a folder, as for b3dgs-render, -eval, -suggest
+        out = out / default.name
+    elif fmt != "3dgs" and out.suffix.lower() != f".{fmt}":
+        raise B3dgsError(f"out={out} ends in {out.suffix}, but format={fmt} writes a .{fmt} file",
+                         f"pass out={out.with_suffix('.' + fmt)}, or the format its name says")
     # what may be written there is settled before the (slow) load: nothing of a user's is replaced unasked
     owner = _check_folder(out) if fmt == "3dgs" else check_replace(
         out, "b3dgs-export", overwrite, "pass overwrite=true to replace it, or another out=")

@@ -114,7 +114,14 @@ def test_bad_input_is_one_line(run, tmp_path):
     assert res.returncode == 2 and len(lines) == 1 and "format=spz is not an export format" in lines[0] \
         and "fix:" in lines[0], res.stderr[-2000:]
     for kw, want in (({"checkpoint": str(tmp_path / "no.ckpt")}, "no such file"),
-                     ({"format": "splat", "out": str(tmp_path)}, "is a folder")):
+                     ({"format": "splat", "out": str(tmp_path / "m.ply")}, r"ends in \.ply, but format=splat")):
         with pytest.raises(B3dgsError, match=want) as e:
             _export(run=str(run), **kw)
         assert e.value.fix
+
+
+def test_out_a_folder_gets_the_formats_file_inside(run, tmp_path):
+    """out= a folder (existing, or a new name without a suffix), as b3dgs-render, -eval and -suggest take it."""
+    for out, fmt, name in ((tmp_path, "splat", "scene.splat"), (tmp_path / "shared", "ply", "point_cloud.ply")):
+        w = _export(run=str(run), format=fmt, out=str(out))
+        assert w["out"] == str(out / name) and (out / name).is_file() and (out / name).stat().st_size > 0
