@@ -39,8 +39,12 @@ def _register_resolvers() -> None:
 
     from omegaconf import OmegaConf
 
+    def scene_name(p) -> str:  # a scene's folder name; data.path=.../lego/transforms_train.json: lego
+        path = Path(str(p)) if p else None
+        return "scene" if path is None else path.parent.name if path.suffix.lower() == ".json" else path.name
+
     if not OmegaConf.has_resolver("b3dgs.basename"):
-        OmegaConf.register_new_resolver("b3dgs.basename", lambda p: Path(str(p)).name if p else "scene")
+        OmegaConf.register_new_resolver("b3dgs.basename", scene_name)
     if not OmegaConf.has_resolver("b3dgs.div"):
         # integer division, for schedules that scale with trainer.max_steps (t_dp = max_steps / 6)
         OmegaConf.register_new_resolver("b3dgs.div", lambda a, b: int(a) // int(b))

@@ -68,6 +68,24 @@ def test_the_folder_names_its_format(tmp_path, files, option):
     assert infer_data_option(_layout(tmp_path, files))[0] == option
 
 
+def test_a_blender_split_file_reads_as_blender_and_names_its_folder(tmp_path):
+    """data.path=lego/transforms_train.json: Blender's alpha-on-white format (as its folder is) and the scene name lego
+    (it was transforms_train.json, the name reports group runs by); a split file beside a transforms.json stays one."""
+    from omegaconf import OmegaConf
+
+    import b3dgs  # noqa: F401 - registers the resolvers
+
+    lego = _layout(tmp_path / "lego", ["transforms_train.json", "transforms_test.json", "train/r_0.png"])
+    assert infer_data_option(lego / "transforms_train.json")[0] == "blender"
+    assert infer_data_option(lego / "transforms_test.json")[0] == "blender"
+    both = _layout(tmp_path / "ns", ["transforms.json", "transforms_train.json", "images/a.png"])
+    assert infer_data_option(both / "transforms_train.json")[0] == "transforms"
+    assert infer_data_option(_layout(tmp_path / "own", ["cams.json"]) / "cams.json")[0] == "transforms"
+    for path, name in ((lego / "transforms_train.json", "lego"), (lego, "lego"), (f"{lego}/", "lego"), (None, "scene")):
+        cfg = OmegaConf.create({"path": None if path is None else str(path), "name": "${b3dgs.basename:${path}}"})
+        assert cfg.name == name, path
+
+
 def test_a_folder_of_photos_only_names_b3dgs_process(tmp_path):
     for root in (_layout(tmp_path / "flat", ["a.jpg", "b.jpg"]), _layout(tmp_path / "nested", ["images/a.png"])):
         with pytest.raises(B3dgsError) as e:

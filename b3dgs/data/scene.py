@@ -706,8 +706,12 @@ def infer_data_option(path: str | os.PathLike, key: str = "data.path") -> tuple[
     if "colmap" in kinds:
         return "colmap", "a COLMAP model"
     if "transforms" in kinds:
-        if p.is_file() or (p / "transforms.json").is_file():
+        blender_split = p.is_file() and p.name.lower() in ("transforms_train.json", "transforms_val.json",
+                                                           "transforms_test.json")
+        if (p.is_file() and not blender_split) or (p / "transforms.json").is_file():
             return "transforms", "a transforms.json"
+        if blender_split and (p.parent / "transforms.json").is_file():
+            return "transforms", "a transforms file"
         return "blender", "Blender's transforms_*.json (NeRF-synthetic: alpha on white)"
     if "llff" in kinds:
         return "llff", "an LLFF poses_bounds.npy"
