@@ -134,8 +134,9 @@ def locate_scene(cfg: DictConfig, cfg_path: Path, data_path: Optional[str | Path
                          f"it is not below {Path.cwd()}",
                          "run from that folder, or pass data.path=DIR, the scene's folder")
     root, origin = data_root_and_origin()
-    here = Path(root) / Path(str(recorded)).name
-    if not here.is_dir():
+    rec = Path(str(recorded))
+    here = Path(root) / rec.parent.name / rec.name if rec.suffix.lower() == ".json" else Path(root) / rec.name
+    if not here.exists():
         raise B3dgsError(f"the run's scene folder {recorded} is not on this machine, nor is {here} (its name under "
                          f"the data root, {origin})", "pass data.path=DIR, the scene's folder on this machine")
     log.warning("the run's scene folder %s is not on this machine: reading %s (its name under the data root, %s)",

@@ -231,6 +231,15 @@ def test_a_run_read_where_its_scene_moved_finds_it_or_names_data_path(tmp_path, 
                           f"out={tmp_path / 'x.ply'}"], capture_output=True, text=True, timeout=300, cwd=tmp_path,
                          env={**ENV, "B3DGS_DATA": str(tmp_path / "c" / "none")})
     assert res.returncode == 0 and (tmp_path / "x.ply").is_file(), res.stderr[-2000:]
+    # a run trained on a transforms file: the file of the same folder name under the data root
+    from omegaconf import OmegaConf
+
+    from b3dgs.runs import locate_scene
+
+    lego = _layout(tmp_path / "d" / "lego", ["transforms_train.json"])
+    monkeypatch.setenv("B3DGS_DATA", str(tmp_path / "d"))
+    cfg = OmegaConf.create({"data": {"path": "/elsewhere/lego/transforms_train.json"}})
+    assert locate_scene(cfg, run / "config.yaml") == str(lego / "transforms_train.json") == cfg.data.path
 
 
 def test_a_named_scene_missing_from_the_data_root_names_b3dgs_data_get(tmp_path, monkeypatch):
