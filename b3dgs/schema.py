@@ -159,8 +159,28 @@ def positive_rule(name: str, fix: str):
     return lambda v: is_number(v) and v > 0, f"a positive number{name}", fix
 
 
-_MODEL = "see conf/model/standard.yaml for the defaults"
-_TRAINER = "see conf/trainer/default.yaml for the defaults"
+def default_fix(conf_file: str) -> Callable[[str], str]:
+    """A rule's fix that names the key's default in ``conf_file`` (relative to the config folder): ``pass
+    trainer.max_steps=30000 (the default of conf/trainer/default.yaml)``."""
+    def fix(key: str) -> str:
+        from pathlib import Path
+
+        from b3dgs.paths import conf_dir
+
+        conf, missing = OmegaConf.load(Path(conf_dir()) / conf_file), object()
+        for k in (key, key.partition(".")[2]):  # a @package _global_ file holds model.*; a group's file its own keys
+            try:
+                value = OmegaConf.select(conf, k, default=missing)
+            except Exception:  # noqa: BLE001 - an interpolation to another group: no default to name
+                value = missing
+            if value is not missing and not isinstance(value, (DictConfig, ListConfig)):
+                return f"pass {key}={show(value)} (the default of conf/{conf_file})"
+        return f"see conf/{conf_file} for the defaults"
+    return fix
+
+
+_MODEL = default_fix("model/standard.yaml")
+_TRAINER = default_fix("trainer/default.yaml")
 RGB_RULE = (lambda v: isinstance(v, list) and len(v) == 3 and all(is_number(x) and 0 <= x <= 1 for x in v), "3 numbers in [0, 1] (RGB)")
 #: the ranges of the core's own values (the top-level keys, model, trainer, uq), in the order they are checked: a dotted
 #: key (a pattern) -> (test, what the value must be, fix); a key ending in ``?`` also takes null. Keys a config does not
@@ -195,4 +215,4 @@ def apply_rules(values: Dict[str, Any], rules: Optional[Dict[str, tuple]] = None
         for key, v in values.items():
             if fnmatch(key, pattern.rstrip("?")) and v is not UNRESOLVED and not (v is None and pattern.endswith("?")) \
                     and not ok(v):
-                raise B3dgsError(f"{key}={show(v)} is invalid: it must be {what}", fix)
+                raise B3dgsError(f"{key}={show(v)} is invalid: it must be {what}", fix(key) if callable(fix) else fix)

@@ -257,3 +257,16 @@ def test_config_stores_data_path_absolute(tmp_path, monkeypatch):
     cfg = cfg_of(["data=transforms", "data.path=scenes/fox", f"trainer.default_root_dir={tmp_path}"])
     save_config(cfg, tmp_path / "config.yaml")
     assert OmegaConf.load(tmp_path / "config.yaml").data.path == str(tmp_path / "scenes" / "fox")
+
+
+def test_a_value_out_of_range_names_the_default_to_pass():
+    """The fix of a core value out of range names its default, read from the config file that declares it."""
+    from b3dgs.schema import apply_rules
+
+    for values, fix in (({"trainer.max_steps": 0}, "pass trainer.max_steps=3000 (the default of conf/trainer/default.yaml)"),
+                        ({"model.sh_degree": 7}, "pass model.sh_degree=3 (the default of conf/model/standard.yaml)"),
+                        ({"trainer.curve_max_views": 0}, "pass trainer.curve_max_views=null (the default of "
+                                                         "conf/trainer/default.yaml)")):
+        with pytest.raises(B3dgsError) as e:
+            apply_rules(values)
+        assert e.value.fix == fix
