@@ -154,6 +154,14 @@ def _hydra_error(exc: BaseException) -> Optional[B3dgsError]:
         key = head.split("'")[1] if "'" in head else head
         return B3dgsError(f"unknown config key {key}{_key_suggestion(key)}",
                           "check its spelling; `--cfg job` prints every key of the composed config")
+    unloaded = re.search(r"Could not load '([\w./-]+)/([^'/]+)'", head)
+    if unloaded is not None:  # a list option (uq=[nativ]): Hydra names no options; the group's files do
+        from b3dgs.confs import option_names
+
+        group, wanted = unloaded.groups()
+        names = option_names(group)
+        return B3dgsError(f"{group}={wanted} is not an option of {group}{did_you_mean(wanted, names)}",
+                          f"pick an existing option: {' '.join(names)}" if names else "pick an existing option")
     if "Could not find" in head or "In '" in head:
         avail = [ln for ln in lines[1:] if not ln.startswith(("Config search path", "provider=", "In "))]
         opts = " ".join(avail)[:200]

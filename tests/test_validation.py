@@ -270,3 +270,12 @@ def test_a_value_out_of_range_names_the_default_to_pass():
         with pytest.raises(B3dgsError) as e:
             apply_rules(values)
         assert e.value.fix == fix
+
+
+def test_an_unknown_option_in_a_list_names_the_nearest_and_the_options():
+    """uq=[nativ] (a list of options): Hydra's "Could not load 'uq/nativ'" names no option; the line does."""
+    from hydra.errors import MissingConfigException
+
+    msg = format_error(MissingConfigException("In 'eval': Could not load 'uq/nativ'.", missing_cfg_file="uq/nativ"))
+    assert msg.startswith("uq=nativ is not an option of uq; did you mean native? (fix: pick an existing option: ")
+    assert " proxy " in msg and " ensemble " in msg
