@@ -1,9 +1,10 @@
-"""``b3dgs-render run=DIR [path=test|train|interpolate|orbit|FILE.json] [panel=native_sigma]``: a finished run rendered
+"""``b3dgs-render run=DIR [path=test|train|interpolate|orbit|spiral|FILE.json] [panel=native_sigma]``: a finished run rendered
 along a camera path to PNG frames and an MP4 (``conf/render.yaml``).
 
 The path is the run's test (or training) cameras in name order, a smooth closed loop through them
 (:func:`interpolate_cameras`: centres on a periodic cubic spline, orientations by spherical interpolation, the first
-camera's intrinsics), a circle around the point they look at (:func:`orbit_cameras`), or a nerfstudio camera-path JSON
+camera's intrinsics), a circle around the point they look at (:func:`orbit_cameras`), a spiral in front of a
+forward-facing capture (:func:`spiral_cameras`, LLFF's render path), or a nerfstudio camera-path JSON
 (:func:`nerfstudio_path`, the format ``ns-render camera-path`` reads). A panel frame names both panels. ``panel=`` puts one of ``b3dgs-view``'s modes beside the RGB (:class:`b3dgs.viewer.modes.
 ModeRenderer`), with one colour scale for the whole path (``panel_max``, by default the 99th percentile over the
 frames) drawn under it. The video is encoded by imageio-ffmpeg's own ffmpeg binary. Known problems print one line
@@ -25,7 +26,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from b3dgs.data.scene import SceneTransform, look_at_point
 from b3dgs.errors import B3dgsError, cli_main, known_errors
-from b3dgs.io import atomic_path
+from b3dgs.io import atomic_path, read_json_dict, write_json
 from b3dgs.train import CONF_DIR
 from b3dgs.types import Camera
 from b3dgs.viewer.modes import MODES, ModeRenderer, colorize, colormap_lut, normalise, robust_max
@@ -33,9 +34,10 @@ from b3dgs.viewer.modes import MODES, ModeRenderer, colorize, colormap_lut, norm
 log = logging.getLogger(__name__)
 
 __all__ = ["camera_path", "interpolate_cameras", "main", "nerfstudio_path", "orbit_cameras", "render_path",
-           "write_video"]
+           "spiral_cameras", "write_video"]
 
-PATHS = ("test", "train", "interpolate", "orbit")  # or a nerfstudio camera-path JSON file
+PATHS = ("test", "train", "interpolate", "orbit", "spiral")  # or a nerfstudio camera-path JSON file
+MADE = ("interpolate", "orbit", "spiral")  # the paths made of ``frames`` new cameras
 
 
 def interpolate_cameras(cams: Sequence[Camera], frames: int) -> list[Camera]:
@@ -79,7 +81,7 @@ def orbit_cameras(cams: Sequence[Camera], frames: int) -> list[Camera]:
     """``frames`` cameras on a circle around the point the cameras look at (least squares over their optical axes,
     :func:`b3dgs.data.scene.look_at_point`; their mean centre when the axes are parallel), in the plane orthogonal to
     their mean up direction, at their mean distance from that axis and mean height along it, all looking at the point;
-    the first camera's intrinsics and size."""
+    the first camera's intrinsics and size. :func:`camera_path` passes every camera of the capture."""
     cams = list(cams)
     c2w = np.stack([c.camtoworld.double().cpu().numpy() for c in cams])
     centres = c2w[:, :3, 3]
@@ -93,6 +95,9 @@ def orbit_cameras(cams: Sequence[Camera], frames: int) -> list[Camera]:
     height = float((rel @ up).mean())
     flat = rel - np.outer(rel @ up, up)
     radius = float(np.linalg.norm(flat, axis=1).mean())
+    if not radius > 1e-9:  # one camera, or every camera on the axis: no circle to draw
+        raise B3dgsError("path=orbit: the cameras all lie on their own viewing axis, so there is no circle around it",
+                         "pass path=spiral or path=interpolate")
     a = flat[0] / np.linalg.norm(flat[0]) if np.linalg.norm(flat[0]) > 1e-9 else np.cross(up, [1.0, 0.0, 0.0])
     a = a / np.linalg.norm(a)
     b = np.cross(up, a)
@@ -101,6 +106,42 @@ def orbit_cameras(cams: Sequence[Camera], frames: int) -> list[Camera]:
     for i, t in enumerate(np.linspace(0.0, 2 * np.pi, frames, endpoint=False)):
         pos = target + height * up + radius * (np.cos(t) * a + np.sin(t) * b)
         out.append(Camera(f"orbit_{i:05d}", ref.K.clone(), torch.from_numpy(_look_at(pos, target, up)).float(),
+                          ref.width, ref.height))
+    return out
+
+
+def spiral_cameras(cams: Sequence[Camera], frames: int, points: Optional[np.ndarray] = None,
+                   rotations: float = 2.0) -> list[Camera]:
+    """``frames`` cameras on LLFF's forward-facing render path: around the mean camera (mean centre, mean axes), in
+    its image plane by the 90th percentile of the centres' offsets along its x and y and along its view axis at half
+    the rate, ``rotations`` turns, all looking at the point the cameras look at (:func:`b3dgs.data.scene.look_at_point`
+    where it lies in front of them; else the median depth of ``points`` (M, 3) in front; else 4 offsets ahead)."""
+    cams = list(cams)
+    c2w = np.stack([c.camtoworld.double().cpu().numpy() for c in cams])
+    centres, mean = c2w[:, :3, 3], c2w[:, :3, 3].mean(0)
+    z = c2w[:, :3, 2].mean(0)
+    down = c2w[:, :3, 1].mean(0)
+    if not (np.linalg.norm(z) > 1e-9 and np.linalg.norm(down) > 1e-9):
+        raise B3dgsError("path=spiral: the cameras have no common view direction", "pass path=interpolate or orbit")
+    z = z / np.linalg.norm(z)
+    x = np.cross(down, z)
+    x = x / np.linalg.norm(x)
+    down = np.cross(z, x)
+    rel = centres - mean
+    rads = np.percentile(np.abs(rel @ np.stack([x, down, z], axis=1)), 90, axis=0)
+    target, ok = look_at_point(np.stack([c.viewmat.double().cpu().numpy() for c in cams])) if len(cams) > 1 else (
+        mean, False)
+    depth = float((target - mean) @ z) if ok else 0.0
+    if not depth > 0:
+        ahead = None if points is None else (np.asarray(points, np.float64) - mean) @ z
+        ahead = None if ahead is None else ahead[ahead > 0]
+        depth = float(np.median(ahead)) if ahead is not None and len(ahead) else 4.0 * max(float(rads.max()), 0.05)
+        target = mean + depth * z
+    rads = np.maximum(rads, 0.02 * depth)  # one camera, or a capture along a line: a small circle still moves
+    ref, out = cams[0], []
+    for i, t in enumerate(np.linspace(0.0, 2 * np.pi * rotations, frames, endpoint=False)):
+        pos = mean + rads[0] * np.cos(t) * x - rads[1] * np.sin(t) * down - rads[2] * np.sin(0.5 * t) * z
+        out.append(Camera(f"spiral_{i:05d}", ref.K.clone(), torch.from_numpy(_look_at(pos, target, -down)).float(),
                           ref.width, ref.height))
     return out
 
@@ -114,7 +155,7 @@ def nerfstudio_path(file: Path, scene) -> list[Camera]:
     import json
 
     fix = ("pass a camera-path JSON as nerfstudio's viewer exports it (camera_path with camera_to_world and fov, "
-           "render_height), or path=test|train|interpolate|orbit")
+           "render_height), or path=test|train|interpolate|orbit|spiral")
     try:
         data = json.loads(Path(file).read_text())
         entries, H = data["camera_path"], int(data.get("render_height") or 0)
@@ -149,7 +190,7 @@ def check_path(path: str, frames) -> None:
     if path not in PATHS:
         raise B3dgsError(f"path={path} is not a camera path",
                          f"pass path= one of {', '.join(PATHS)}, or a nerfstudio camera-path .json file")
-    if path in ("interpolate", "orbit") and (not isinstance(frames, int) or isinstance(frames, bool) or frames < 2):
+    if path in MADE and (not isinstance(frames, int) or isinstance(frames, bool) or frames < 2):
         raise B3dgsError(f"frames={frames} is too few for a path", "pass frames= an integer >= 2, e.g. frames=120")
 
 
@@ -165,13 +206,23 @@ def camera_path(scene, path: str, frames: int) -> list[Camera]:
     check_path(path, frames)
     if str(path).endswith(".json"):
         return nerfstudio_path(Path(path), scene)
+    if path in ("spiral", "orbit"):  # the whole capture sets the point looked at, the mean pose and the spread
+        every = [c.with_image(None) for c in sorted([*scene.train, *scene.test], key=lambda c: c.name)]
+        if path == "spiral":
+            return spiral_cameras(every, frames, getattr(scene, "points", None))
+        from b3dgs.suggest import scene_frame
+
+        if len(every) > 1 and scene_frame(every)["forward"]:
+            log.warning("path=orbit: the capture is forward-facing (every camera on one side), so half the circle looks "
+                        "at the scene from where no photo was taken; path=spiral stays in front of it")
+        return orbit_cameras(every, frames)
     source = scene.train if path == "train" else (scene.test or scene.train)
     cams = [c.with_image(None) for c in sorted(source, key=lambda c: c.name)]
     if not cams:
         raise B3dgsError(f"the run's scene has no {path} cameras", "pass path=train")
-    if path not in ("interpolate", "orbit"):
+    if path not in MADE:
         return cams
-    return interpolate_cameras(cams, frames) if path == "interpolate" else orbit_cameras(cams, frames)
+    return interpolate_cameras(cams, frames)
 
 
 @lru_cache(maxsize=None)
@@ -287,14 +338,22 @@ def _claim(out: Path, names: Sequence[str]):
             yield
         return
     frames = [p.name for p in out.glob("frame_*.png") if FRAME_NAME.fullmatch(p.name)] if out.is_dir() else []
-    # no record says whose a video is (in a run written before manifests: the names its outputs had)
+    # a video is b3dgs's where a record says so: the run's (written before manifests: the names its outputs had), or
+    # outside a run the folder's RENDER_RECORD, written before the files
     theirs = set(run_files(owner)) if owner is not None else set()
     rel = "." if owner is None else q.relative_to(owner).as_posix()
-    _refuse_foreign(out, [n for n in names if not FRAME_NAME.fullmatch(n)
+    recorded = set((read_json_dict(out / RENDER_RECORD) or {}).get("files") or []) if owner is None else set()
+    _refuse_foreign(out, [n for n in names if not FRAME_NAME.fullmatch(n) and n not in recorded
                           and (n if rel == "." else f"{rel}/{n}") not in theirs])
     out.mkdir(parents=True, exist_ok=True)
     remove_listed(out, frames)
+    if owner is None:
+        kept = {n for n in recorded if not FRAME_NAME.fullmatch(n) and (out / n).exists()}  # earlier paths' videos
+        write_json(out / RENDER_RECORD, {"written_by": "b3dgs-render", "files": sorted(kept | set(names))})
     yield
+
+
+RENDER_RECORD = ".b3dgs-render.json"  # outside a run dir: the videos b3dgs-render wrote into an out= folder
 
 
 _FIX_OUT = "pass out=DIR to write the frames into another folder"

@@ -107,7 +107,8 @@ def test_a_second_render_keeps_a_users_frame(run_copy, tmp_path):
     (loose / "frame_00007.png").write_bytes(b"an old frame")
     (loose / "frame_final_edit.png").write_bytes(b"edited")
     render(d, "path=interpolate", "frames=2", f"out={loose}", "video=false")
-    assert sorted(p.name for p in loose.iterdir()) == ["frame_00000.png", "frame_00001.png", "frame_final_edit.png"]
+    assert sorted(p.name for p in loose.iterdir()) == [".b3dgs-render.json", "frame_00000.png", "frame_00001.png",
+                                                       "frame_final_edit.png"]  # the record of what it wrote there
 
 
 def test_a_format_1_manifest_is_read_by_the_names_b3dgs_gives_files(tmp_path):

@@ -90,11 +90,19 @@ def test_render_writes_pngs_and_an_mp4_of_the_test_path(niw_run, tmp_path):
     assert video_frames(tmp_path / "loop" / "interpolate.mp4")[0] == 10
     frames = [np.asarray(Image.open(p)).astype(float) for p in sorted((tmp_path / "loop").glob("frame_*.png"))]
     assert all(np.abs(a - b).mean() > 0.5 for a, b in zip(frames, frames[1:]))  # the camera moves
+    # a rerun into that folder replaces its own video (.b3dgs-render.json records it); a video it did not write stays
+    res = cli(f"run={niw_run}", "path=interpolate", "frames=4", f"out={tmp_path / 'loop'}", "fps=10")
+    assert res.returncode == 0 and video_frames(tmp_path / "loop" / "interpolate.mp4")[0] == 4, res.stderr[-2000:]
+    assert len(list((tmp_path / "loop").glob("frame_*.png"))) == 4
+    (tmp_path / "loop" / "orbit.mp4").write_bytes(b"mine")
+    res = cli(f"run={niw_run}", "path=orbit", "frames=4", f"out={tmp_path / 'loop'}")
+    assert res.returncode == 2 and "holds orbit.mp4, which b3dgs did not write" in res.stderr, res.stderr[-2000:]
+    assert (tmp_path / "loop" / "orbit.mp4").read_bytes() == b"mine"
 
 
 def test_render_refuses_in_one_line(niw_run, tmp_path):
     for args, match in ((["run=" + str(tmp_path / "missing")], "no run dir at"),
-                        ([f"run={niw_run}", "path=spiral"], "path=spiral is not a camera path"),
+                        ([f"run={niw_run}", "path=helix"], "path=helix is not a camera path"),
                         ([f"run={niw_run}", "panel=pos"], "panel=pos is not a panel mode"),
                         ([f"run={niw_run}", "path=interpolate", "frames=1"], "frames=1 is too few"),
                         ([f"run={niw_run}", "fps=0"], "fps=0 is invalid: it must be a frame rate")):
@@ -106,8 +114,8 @@ def test_render_refuses_in_one_line(niw_run, tmp_path):
 
 
 def test_orbit_and_nerfstudio_camera_paths(tmp_path):
-    """path=orbit: a closed circle around the point the cameras look at, every frame looking at it, at the cameras'
-    mean distance; path=FILE.json (nerfstudio's camera-path format, OpenGL axes, the scene's own frame): a scene's own
+    """path=orbit: a closed circle around the point the capture's cameras look at, every frame looking at it, at the
+    cameras' mean distance; path=FILE.json (nerfstudio's camera-path format, OpenGL axes, the scene's own frame): a scene's own
     cameras written in that format come back as the same cameras (poses and intrinsics); a bad file is one line."""
     import json
 
@@ -119,7 +127,7 @@ def test_orbit_and_nerfstudio_camera_paths(tmp_path):
     scene = load_scene("synthetic", None, max_side=32, n_views=16)
     orbit = camera_path(scene, "orbit", 12)
     assert len(orbit) == 12
-    target, _ = look_at_point(np.stack([c.viewmat.double().numpy() for c in scene.test]))
+    target, _ = look_at_point(np.stack([c.viewmat.double().numpy() for c in [*scene.train, *scene.test]]))
     for c in orbit:
         c2w = c.camtoworld.double().numpy()
         to = target - c2w[:3, 3]
@@ -147,3 +155,54 @@ def test_orbit_and_nerfstudio_camera_paths(tmp_path):
     (tmp_path / "bad.json").write_text("{}")
     with pytest.raises(B3dgsError, match="not a readable nerfstudio camera path"):
         camera_path(scene, str(tmp_path / "bad.json"), 0)
+
+
+def _forward_capture(n_side: int = 3, depth: float = 4.0):
+    """A forward-facing capture: n_side x n_side cameras on a grid in the plane z = 0, all looking at (0, 0, depth)
+    (OpenCV: +z forward, +y down = world +y), and points around it."""
+    from types import SimpleNamespace
+
+    from b3dgs.render_cli import _look_at
+
+    K = torch.tensor([[40.0, 0, 20], [0, 40.0, 15], [0, 0, 1]])
+    cams = []
+    for i, (x, y) in enumerate((x, y) for x in np.linspace(-0.3, 0.3, n_side) for y in np.linspace(-0.2, 0.2, n_side)):
+        view = _look_at(np.array([x, y, 0.0]), np.array([0.0, 0.0, depth]), np.array([0.0, -1.0, 0.0]))
+        cams.append(Camera(f"c{i:02d}", K, torch.from_numpy(view).float(), 40, 30))
+    pts = np.random.default_rng(0).normal([0.0, 0.0, depth], 0.2, size=(200, 3))
+    return SimpleNamespace(train=cams[1:], test=cams[:1], points=pts)
+
+
+def test_spiral_stays_in_front_of_a_forward_capture_and_orbit_warns(caplog):
+    """path=spiral (LLFF's render path): every frame near the capture's plane, within its spread, looking at the point
+    in front of it; path=orbit on such a capture says half its circle looks from where no photo was taken."""
+    import logging
+
+    from b3dgs.render_cli import camera_path
+
+    scene = _forward_capture()
+    spiral = camera_path(scene, "spiral", 24)
+    centres = np.stack([c.center.double().numpy() for c in spiral])
+    assert len(spiral) == 24 and np.linalg.norm(np.diff(centres, axis=0), axis=1).min() > 1e-3  # it moves each frame
+    target = np.array([0.0, 0.0, 4.0])  # where the capture's axes meet
+    for c in spiral:
+        c2w, pos = c.camtoworld.double().numpy(), c.center.double().numpy()
+        assert abs(pos[0]) <= 0.3 + 1e-6 and abs(pos[1]) <= 0.2 + 1e-6 and abs(pos[2]) < 0.2  # within the spread
+        to = target - pos
+        assert np.dot(to / np.linalg.norm(to), c2w[:3, 2]) > 0.9999  # looks at the point in front
+        assert c2w[:3, 1] @ np.array([0.0, 1.0, 0.0]) > 0.99  # the capture's own down
+    # parallel axes (no point where they meet): the points' median depth in front sets the point looked at
+    from b3dgs.render_cli import spiral_cameras
+
+    parallel = []
+    for c in scene.train:
+        view = torch.eye(4)
+        view[:3, 3] = -c.center
+        parallel.append(Camera(c.name, c.K, view, c.width, c.height))
+    depth = float(np.median(scene.points[:, 2]))
+    for c in spiral_cameras(parallel, 8, scene.points):
+        to = np.array([0.0, 0.0, depth]) - c.center.double().numpy()
+        assert np.dot(to / np.linalg.norm(to), c.camtoworld.double().numpy()[:3, 2]) > 0.99
+    with caplog.at_level(logging.WARNING, logger="b3dgs.render_cli"):
+        camera_path(scene, "orbit", 8)
+    assert "the capture is forward-facing" in caplog.text and "path=spiral" in caplog.text
