@@ -335,7 +335,7 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
     protocols = sorted({f"{r.study}: {r.config.get('trainer', {}).get('max_steps')} steps, "
                         f"max_side {r.config.get('data', {}).get('max_side')}" for r in runs})
     bld.blocks.append(Para(
-        f"{len(runs)} finished runs from "
+        f"{len(runs)} finished run{'s' * (len(runs) != 1)} from "
         + (f"runs={patterns}" if len(patterns) <= 6 else f"{len(patterns)} run-dir patterns (each run's path is in report.json)")
         + (f" ({len(unfinished)} unfinished run dirs without metrics.json skipped)" if unfinished else "")
         + f"; scenes {sorted({r.scene for r in runs})}, methods {method_order(r.method for r in runs)}, seeds "
@@ -386,7 +386,7 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
     with atomic_path(paths["html"]) as tmp:
         tmp.write_text(to_html(title, bld.blocks))
     write_json(paths["json"], to_jsonable(data))
-    log.info("Report of %d runs -> %s", len(runs), out)
+    log.info("Report of %d run%s -> %s", len(runs), "s" * (len(runs) != 1), out)
     return paths
 
 
