@@ -117,6 +117,21 @@ def test_images_shrunk_after_colmap_ran_are_read_with_k_scaled(tmp_path, caplog)
     cam = load_scene("transforms", str(nerf), test_every=0, normalize=False).train[0]
     assert (cam.width, cam.height) == (32, 24)
     assert torch.allclose(cam.K, torch.tensor([[25.0, 0, 16], [0, 25, 12], [0, 0, 1]]))
+    # nerfstudio's images_N (--downscale-factor): data.images_dir reads the file of the same name there
+    (nerf / "images_2").mkdir()
+    save_png(nerf / "images" / "a.png", np.full((48, 64, 3), 0.5))
+    save_png(nerf / "images_2" / "a.png", np.full((24, 32, 3), 0.25))
+    cam = load_scene("transforms", str(nerf), test_every=0, normalize=False, images_dir="images_2").train[0]
+    assert (cam.width, cam.height) == (32, 24) and float(cam.image.mean()) == pytest.approx(0.25, abs=0.01)
+    assert torch.allclose(cam.K, torch.tensor([[25.0, 0, 16], [0, 25, 12], [0, 0, 1]]))
+    meta = json.loads((nerf / "transforms.json").read_text())
+    del meta["w"], meta["h"]
+    (nerf / "transforms.json").write_text(json.dumps(meta))  # the size comes from the full-size image then
+    cam = load_scene("transforms", str(nerf), test_every=0, normalize=False, images_dir="images_2").train[0]
+    assert torch.allclose(cam.K, torch.tensor([[25.0, 0, 16], [0, 25, 12], [0, 0, 1]]))
+    (nerf / "images" / "a.png").unlink()
+    with pytest.raises(B3dgsError, match=r"data\.images_dir=images_2 scales the intrinsics .* no w and h"):
+        load_scene("transforms", str(nerf), test_every=0, images_dir="images_2")
 
 
 def test_images_dir_loads_a_downscaled_folder_and_refuses_what_it_cannot(tmp_path):

@@ -167,7 +167,7 @@ class SceneSettings:
     normalize: bool = True  # centre on the mean camera centre and scale the camera extent to 1
     background: Sequence[float] = (0.0, 0.0, 0.0)  # RGB in [0, 1]: transparent pixels over it, stored on the Scene
     max_images: Optional[int] = None  # keep at most this many views, spread evenly, before splitting; None: all
-    images_dir: Optional[str] = None  # the image folder inside path (colmap, llff), e.g. images_4; None: images/
+    images_dir: Optional[str] = None  # image folder in path (colmap, llff, transforms), e.g. images_4; None: images/
     undistort: Optional[bool] = None  # lens distortion (colmap, transforms): True undistorts, False ignores; None: the
     # format's default (b3dgs.data.undistort)
     calib_every: Optional[int] = None  # every calib_every-th train view becomes a calibration view (split_calibration)

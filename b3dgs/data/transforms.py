@@ -19,6 +19,9 @@
   ``ply_file_path`` (nerfstudio) gives initial points (xyz, and colours if present).
 * A folder without ``transforms.json`` but with Blender's ``transforms_{train,val,test}.json``: their frames are merged
   (the held-out split is then re-made by :func:`b3dgs.data.load_scene`).
+* ``images_dir`` (``data.images_dir=images_2``): each frame's image is that folder's file of the same name, as
+  nerfstudio's ``--downscale-factor`` reads ``images_N/``; the intrinsics, which name the full-size images, are scaled
+  to the files (:func:`b3dgs.data.scene.fit_to_files`).
 """
 from __future__ import annotations
 
@@ -157,9 +160,11 @@ def _rescale_shared_intrinsics(jf: Path, meta: dict, frames: list[FrameSpec], un
 def read_transforms(
     path: str | os.PathLike,
     undistort: Optional[bool] = None,
+    images_dir: Optional[str] = None,
 ) -> tuple[list[FrameSpec], Optional[np.ndarray], Optional[np.ndarray], dict[str, float]]:
     """Parse transforms JSON file(s): (frames sorted by name, points, colours, max |coefficient| per key of the
-    distortion left ignored). Frames to undistort (``undistort``, see the module docstring) carry their lens."""
+    distortion left ignored). Frames to undistort (``undistort``, see the module docstring) carry their lens;
+    ``images_dir``: the folder whose files of the frames' names are read (module docstring)."""
     path = Path(path)
     files = _resolve_json(path)
     frames: list[FrameSpec] = []
@@ -194,7 +199,17 @@ def read_transforms(
                                  fix="undistort the images to a pinhole model first (e.g. nerfstudio's "
                                      "ns-process-data or COLMAP's image_undistorter) and write camera_model PINHOLE "
                                      "or OPENCV with zero distortion")
-            img_path = _resolve_image(root, fr["file_path"])
+            if images_dir is None:
+                img_path = full = _resolve_image(root, fr["file_path"])
+            else:  # the intrinsics name the full-size image: its size comes from w/h, else from that image
+                img_path = _resolve_image(root / images_dir, Path(fr["file_path"]).name)
+                try:
+                    full = None if "w" in g and "h" in g else _resolve_image(root, fr["file_path"])
+                except B3dgsError:
+                    raise B3dgsError(f"{jf}: data.images_dir={images_dir} scales the intrinsics from the full-size "
+                                     f"image of {fr['file_path']!r}, which is missing, and the file gives no w and h",
+                                     f"add \"w\" and \"h\" (the full image size) to {jf.name}, or restore the "
+                                     "full-size images") from None
             name = Path(os.path.relpath(img_path, path if path.is_dir() else root)).as_posix()
             lens, vals = None, {k: float(g[k]) for k in DISTORTION_KEYS if g.get(k) is not None and float(g[k]) != 0.0}
             lens_model = "OPENCV_FISHEYE" if model == "OPENCV_FISHEYE" else "NERFSTUDIO_OPENCV"
@@ -208,8 +223,8 @@ def read_transforms(
                 into[k] = max(into.get(k, 0.0), abs(v))
             if "w" in g and "h" in g:
                 w, h = int(round(float(g["w"]))), int(round(float(g["h"])))
-            else:
-                w, h = image_size(img_path)
+            else:  # the full-size image's (with images_dir, the intrinsics still name it)
+                w, h = image_size(full)
                 if not any(k in fr for k in ("fl_x", "fl_y", "cx", "cy", "camera_angle_x")) and (
                         "fl_x" in meta or "fl_y" in meta):
                     unsized.append(len(frames) - first)
@@ -263,10 +278,11 @@ def read_transforms(
 
 def load_transforms(path: str | os.PathLike, max_side: Optional[int] = None,
                     background: Sequence[float] = (0.0, 0.0, 0.0), max_images: Optional[int] = None,
-                    undistort: Optional[bool] = None) -> RawScene:
+                    undistort: Optional[bool] = None, images_dir: Optional[str] = None) -> RawScene:
     """Load a ``transforms.json`` scene (see the module docstring: ``undistort`` None ignores OPENCV distortion with a
-    warning and undistorts OPENCV_FISHEYE, True undistorts every frame, False ignores all distortion)."""
-    frames, points, colors, distortion = read_transforms(path, undistort=undistort)
+    warning and undistorts OPENCV_FISHEYE, True undistorts every frame, False ignores all distortion; ``images_dir``
+    reads a downscaled copy such as nerfstudio's ``images_2``)."""
+    frames, points, colors, distortion = read_transforms(path, undistort=undistort, images_dir=images_dir)
     if distortion:
         log.warning(
             "transforms.json: lens distortion is IGNORED (images used as pinhole, not undistorted); "
