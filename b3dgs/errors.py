@@ -183,6 +183,8 @@ _IO_FIX = {
     errno.EISDIR: ("it is a folder, not a file", "pass the path of a file"),
     errno.EEXIST: ("a file is in the way of a folder", "pass hydra.run.dir / out= to a folder"),
 }
+_OUTPUT_KEYS = {"train": "hydra.run.dir=DIR", **{c: "out=DIR" for c in ("eval", "export", "process", "render", "report",
+                                                                           "suggest")}}  # where each app writes
 _TORCH_WRITE = ("file write failed", "iostream error", "unexpected pos")  # torch.save's C++ writer
 _OOM = ("can't allocate memory", "out of memory", "cannot allocate memory")
 
@@ -197,6 +199,7 @@ def _io_error(exc: BaseException) -> Optional[str]:
                 "space, or pass hydra.run.dir on another disk)")
     if isinstance(exc, OSError) and exc.errno in _IO_FIX:
         what, fix = _IO_FIX[exc.errno]
+        fix = fix.replace("hydra.run.dir / out=", _OUTPUT_KEYS.get(_APP_CONFIG, "hydra.run.dir / out="))
         name = exc.filename if exc.filename is not None else ""
         return f"cannot write {name}: {what} (fix: {fix})" if name else f"{what} (fix: {fix})"
     return None

@@ -199,12 +199,20 @@ def test_cli_one_line_error_and_debug(tmp_path):
     assert res.returncode != 0 and "Traceback" in res.stderr and "data.max_side=0" in res.stderr
 
 
-def test_io_and_memory_errors_are_one_line():
+def test_io_and_memory_errors_are_one_line(monkeypatch):
     import errno
 
+    from b3dgs import errors
+
     full = OSError(errno.ENOSPC, "No space left on device", "/runs/a/point_cloud.ply")
+    monkeypatch.setattr(errors, "_APP_CONFIG", None)  # no app: both keys
     assert format_error(full) == ("cannot write /runs/a/point_cloud.ply: no space left on the device (fix: free disk "
                                   "space, or pass hydra.run.dir / out= on another disk)")
+    for app, key in (("train", "hydra.run.dir=DIR"), ("render", "out=DIR"), ("suggest", "out=DIR")):  # the app's own
+        monkeypatch.setattr(errors, "_APP_CONFIG", app)
+        assert format_error(OSError(errno.EROFS, "Read-only file system", "/x")).endswith(
+            f"(fix: pass {key} to a writable folder)"), app
+    monkeypatch.setattr(errors, "_APP_CONFIG", None)
     assert "read-only" in format_error(OSError(errno.EROFS, "Read-only file system", "/x"))
     assert format_error(MemoryError()).startswith("ran out of memory (fix: lower data.max_side or data.resolution")
     assert "disk is full" in format_error(RuntimeError("PytorchStreamWriter failed writing file data/0: file write failed"))
