@@ -544,9 +544,10 @@ class Run:
         def fmt(v, digits):
             return "n/a" if v is None else f"{v:.{digits}f}"
 
-        log.info("Done: PSNR %s dB, SSIM %s, LPIPS %s, %d Gaussians, %.1f s training -> %s", fmt(metrics["psnr"], 3),
-                 fmt(metrics["ssim"], 4), fmt(metrics["lpips"], 4), metrics["num_gaussians"], metrics["train_time_s"],
-                 run_dir)
+        quality = ("no test views to score (data.test_every=0)" if metrics["psnr"] is None else
+                   f"PSNR {fmt(metrics['psnr'], 3)} dB, SSIM {fmt(metrics['ssim'], 4)}, LPIPS {fmt(metrics['lpips'], 4)}")
+        log.info("Done: %s, %d Gaussians, %.1f s training -> %s", quality, metrics["num_gaussians"],
+                 metrics["train_time_s"], run_dir)
         return metrics
 
     def amend_metrics(self, update: dict, prog: str = "b3dgs") -> dict:

@@ -217,6 +217,8 @@ def camera_path(scene, path: str, frames: int) -> list[Camera]:
                         "at the scene from where no photo was taken; path=spiral stays in front of it")
         return orbit_cameras(every, frames)
     source = scene.train if path == "train" else (scene.test or scene.train)
+    if path != "train" and not scene.test:
+        log.info("path=%s: the run's scene has no test views (data.test_every=0): its training cameras instead", path)
     cams = [c.with_image(None) for c in sorted(source, key=lambda c: c.name)]
     if not cams:
         raise B3dgsError(f"the run's scene has no {path} cameras", "pass path=train")
