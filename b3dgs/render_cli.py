@@ -1,5 +1,5 @@
-"""``b3dgs-render run=DIR [path=test|train|interpolate|orbit|spiral|FILE.json] [panel=native_sigma]``: a finished run rendered
-along a camera path to PNG frames and an MP4 (``conf/render.yaml``).
+"""``b3dgs-render run=DIR [path=test|train|interpolate|orbit|spiral|FILE.json] [panel=native_sigma]``: a finished run
+rendered along a camera path to PNG frames and an MP4 (``conf/render.yaml``).
 
 The path is the run's test (or training) cameras in name order, a smooth closed loop through them
 (:func:`interpolate_cameras`: centres on a periodic cubic spline, orientations by spherical interpolation, the first

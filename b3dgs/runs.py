@@ -108,7 +108,7 @@ def not_a_run_dir(path: Path, key: str = "run") -> B3dgsError:
         listed = ", ".join(str(r.relative_to(path)) for r in runs[:4]) + (", ..." if len(runs) > 4 else "")
         return B3dgsError(f"{key}={path} holds {len(runs)} finished run dir{'s' * (len(runs) > 1)} ({listed}), not a run",
                           f"pass one of them, e.g. {key}={runs[-1]}")
-    return B3dgsError(f"{path} is not a b3dgs run dir (no config.yaml)",
+    return B3dgsError(f"no run dir at {path}" if not path.exists() else f"{path} is not a b3dgs run dir (no config.yaml)",
                       f"pass {key}=DIR of a finished b3dgs-train run (outputs/train/...)")
 
 

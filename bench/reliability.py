@@ -400,15 +400,22 @@ def sc_eval_concurrent() -> dict:
 
 
 def sc_eval_other_run() -> dict:
-    """b3dgs-eval run=A out=B, then b3dgs-report runs=B: B's row must not show A's uncertainty."""
+    """b3dgs-eval run=A out=B, then b3dgs-report runs=B: B's row must not show A's uncertainty (b3dgs-eval now refuses
+    out= another run's dir up front; a uq.json put there by hand is still left out of the report)."""
     base = _fresh("eval_other_run")
     a, b = _finished_run(base / "A", *EVAL_SIDE), _finished_run(base / "B", *EVAL_SIDE, "seed=1")
-    rc0, _, _ = _eval([f"run={a}", "uq=[proxy]", f"out={b}"], base / "ev")
+    rc0, out0, err0 = _eval([f"run={a}", "uq=[proxy]", f"out={b}"], base / "ev")
+    if rc0 == 2 and "is the run dir of another run" in err0:
+        rc1, _, _ = _eval([f"run={a}", "uq=[proxy]", f"out={base / 'A_uq'}"], base / "ev")  # elsewhere, then by hand
+        if rc1 == 0:
+            shutil.copy(base / "A_uq" / "uq.json", b / "uq.json")
     rc, out, err = _run("b3dgs.report.app", [f"runs={b}", f"out={base / 'report'}"])
     rows = json.loads((base / "report" / "report.json").read_text())["runs"] if rc == 0 else []
     flagged = [ln.split("] - ", 1)[-1] for ln in (out + err).splitlines() if "left out of the report" in ln]
-    ok = rc0 == 0 and rc == 0 and bool(flagged) and all(not r["uq_regimes"] for r in rows)
-    return {"exit_code": rc, "message": flagged[0] if flagged else _message("report", rc, out, err), "ok": ok,
+    refused = _message("eval", rc0, out0, err0) if rc0 == 2 else None
+    ok = rc0 in (0, 2) and rc == 0 and bool(flagged) and all(not r["uq_regimes"] for r in rows)
+    return {"exit_code": rc, "message": (refused + " / " if refused else "")
+            + (flagged[0] if flagged else _message("report", rc, out, err)), "ok": ok,
             "checked": f"B's report row has uq regimes {[r['uq_regimes'] for r in rows]}"}
 
 
