@@ -213,12 +213,12 @@ def export(cfg: DictConfig) -> dict:
         raise B3dgsError(f"out={out} is a file; format=3dgs writes a folder", "pass out= a folder path")
     if fmt != "3dgs" and (out.is_dir() or not out.suffix):  # out= a folder, as for b3dgs-render, -eval, -suggest
         out = out / default.name
-    elif fmt != "3dgs" and out.suffix.lower() != f".{fmt}":
-        raise B3dgsError(f"out={out} ends in {out.suffix}, but format={fmt} writes a .{fmt} file",
-                         f"pass out={out.with_suffix('.' + fmt)}, or the format its name says")
     # what may be written there is settled before the (slow) load: nothing of a user's is replaced unasked
     owner = _check_folder(out) if fmt == "3dgs" else check_replace(
         out, "b3dgs-export", overwrite, "pass overwrite=true to replace it, or another out=")
+    if fmt != "3dgs" and out.suffix.lower() != f".{fmt}":
+        raise B3dgsError(f"out={out} ends in {out.suffix}, but format={fmt} writes a .{fmt} file",
+                         f"pass out={out.with_suffix('.' + fmt)}, or the format its name says")
     run = load_run(run_dir, checkpoint=None if ckpt is None else str(ckpt), data_path=OmegaConf.select(cfg, "data.path"))
     step = int(getattr(run.module, "_loaded_step", 0) or 0)
     with manifest_lock(owner, "b3dgs-export") if owner is not None else nullcontext():

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from b3dgs.data.scene import SceneTransform, look_at_point
+from b3dgs.data.scene import SceneTransform, look_at_point, scene_frame
 from b3dgs.errors import B3dgsError, cli_main, known_errors
 from b3dgs.io import atomic_path, read_json_dict, write_json
 from b3dgs.train import CONF_DIR
@@ -210,8 +210,6 @@ def camera_path(scene, path: str, frames: int) -> list[Camera]:
         every = [c.with_image(None) for c in sorted([*scene.train, *scene.test], key=lambda c: c.name)]
         if path == "spiral":
             return spiral_cameras(every, frames, getattr(scene, "points", None))
-        from b3dgs.suggest import scene_frame
-
         if len(every) > 1 and scene_frame(every)["forward"]:
             log.warning("path=orbit: the capture is forward-facing (every camera on one side), so half the circle looks "
                         "at the scene from where no photo was taken; path=spiral stays in front of it")

@@ -33,6 +33,24 @@ log = logging.getLogger(__name__)
 LOCK_NAME = ".b3dgs.lock"
 
 
+def not_a_run_dir(path: Path, key: str = "run") -> B3dgsError:
+    """The refusal of a folder without ``config.yaml`` given as ``key=``: a folder of run dirs (a sweep, outputs/train)
+    names them and the one to pass; any other says what a run dir is."""
+    path = Path(path)
+    runs: list[Path] = []
+    if path.is_dir():
+        for depth in ("*", "*/*"):  # a sweep's or outputs/train's runs; outputs/ holds train/<run>
+            runs = sorted(d.parent for d in path.glob(f"{depth}/config.yaml") if (d.parent / "metrics.json").is_file())
+            if runs:
+                break
+    if runs:
+        listed = ", ".join(str(r.relative_to(path)) for r in runs[:4]) + (", ..." if len(runs) > 4 else "")
+        return B3dgsError(f"{key}={path} holds {len(runs)} finished run dir{'s' * (len(runs) > 1)} ({listed}), not a run",
+                          f"pass one of them, e.g. {key}={runs[-1]}")
+    return B3dgsError(f"no run dir at {path}" if not path.exists() else f"{path} is not a b3dgs run dir (no config.yaml)",
+                      f"pass {key}=DIR of a finished b3dgs-train run (outputs/train/...)")
+
+
 @contextmanager
 def run_dir_lock(run_dir: Path, prog: str = "b3dgs-train") -> Iterator[None]:
     """Hold ``run_dir``'s lock for the block; refuse (one line) if another live process holds it.

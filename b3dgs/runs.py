@@ -10,6 +10,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from b3dgs.errors import B3dgsError
 from b3dgs.lifecycle import build_renderer, build_run, data_module, load_checkpoint, read_checkpoint
+from b3dgs.rundir import not_a_run_dir
 from b3dgs.types import Scene
 
 log = logging.getLogger(__name__)
@@ -92,24 +93,6 @@ def load_run(run_dir: str | Path, scene: Optional[Scene] = None, checkpoint: Opt
         f"b3dgs-train run (train it again with `b3dgs-train ... hydra.run.dir={run_dir} overwrite=true`)",
         suggest=False)
     return LoadedRun(run_dir, cfg, load_checkpoint(module, ck), scene, metrics)
-
-
-def not_a_run_dir(path: Path, key: str = "run") -> B3dgsError:
-    """The refusal of a folder without ``config.yaml`` given as ``key=``: a folder of run dirs (a sweep, outputs/train)
-    names them and the one to pass; any other says what a run dir is."""
-    path = Path(path)
-    runs: list[Path] = []
-    if path.is_dir():
-        for depth in ("*", "*/*"):  # a sweep's or outputs/train's runs; outputs/ holds train/<run>
-            runs = sorted(d.parent for d in path.glob(f"{depth}/config.yaml") if (d.parent / "metrics.json").is_file())
-            if runs:
-                break
-    if runs:
-        listed = ", ".join(str(r.relative_to(path)) for r in runs[:4]) + (", ..." if len(runs) > 4 else "")
-        return B3dgsError(f"{key}={path} holds {len(runs)} finished run dir{'s' * (len(runs) > 1)} ({listed}), not a run",
-                          f"pass one of them, e.g. {key}={runs[-1]}")
-    return B3dgsError(f"no run dir at {path}" if not path.exists() else f"{path} is not a b3dgs run dir (no config.yaml)",
-                      f"pass {key}=DIR of a finished b3dgs-train run (outputs/train/...)")
 
 
 def locate_scene(cfg: DictConfig, cfg_path: Path, data_path: Optional[str | Path] = None) -> Optional[str]:

@@ -41,7 +41,8 @@ from omegaconf import DictConfig, OmegaConf
 from torch import Tensor
 
 from b3dgs.acquisition import AcquisitionPolicy, ScoringContext, Selection
-from b3dgs.data.scene import infer_data_option, load_scene, look_at_point, scene_transform
+from b3dgs.data.scene import infer_data_option, load_scene, scene_frame, scene_transform
+from b3dgs.data.scene import unit_rows as _unit
 from b3dgs.errors import B3dgsError, cli_main, known_errors
 from b3dgs.io import save_figure, write_json
 from b3dgs.render_cli import _caption, _look_at as look_at_view, nerfstudio_path
@@ -58,48 +59,6 @@ __all__ = ["TargetPool", "generate_candidates", "information_map", "main", "read
 #: the files one b3dgs-suggest writes into its folder (a rerun removes exactly these, then writes its own)
 OWN_FILE = re.compile(r"(cameras|path|suggest)\.json|plot\.png|preview_\d{2,}\.png")
 DEFAULT_BATCH = "greedy_conditioned"
-#: the length of the training cameras' mean unit direction from the centre from which a capture with every camera within
-#: 90° of that mean is forward-facing (LLFF ≈ 0.99, a half circle 2/π ≈ 0.64, a hemisphere ≈ 0.6; a ring 20° above the
-#: equator ≈ 0.34: not)
-FORWARD_RESULTANT = 0.5
-
-
-# ---------------------------------------------------------------------------------------------- the scene's frame
-def _unit(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
-    return v / np.where(n > 1e-12, n, 1.0)
-
-
-def scene_frame(train: Sequence[Camera], margin_deg: float = 10.0) -> dict:
-    """The training cameras' centre (the point they look at, :func:`b3dgs.data.scene.look_at_point`; their mean centre
-    when that is not well posed), up (their mean −y), basis ``a``, ``b`` of the plane orthogonal to it, their
-    distances and elevations from the centre, and whether they are forward-facing: all within 90° of their mean
-    direction from the centre (``axis``) and that mean's length at least :data:`FORWARD_RESULTANT` (a low orbit all
-    around is not); ``cos_limit``: a candidate direction d is frontal when d · axis >= it."""
-    if not train:
-        raise B3dgsError("the run's scene has no training cameras", "pass run=DIR of a run trained on a scene")
-    vms = np.stack([c.viewmat.double().cpu().numpy() for c in train])
-    c2w = np.stack([c.camtoworld.double().cpu().numpy() for c in train])
-    centres = c2w[:, :3, 3]
-    if len(train) >= 2:
-        target, ok = look_at_point(vms)
-        centre = target if ok else centres.mean(0)
-    else:  # one camera: the point one rig radius in front of it
-        centre = centres[0] + c2w[0, :3, 2]
-    up = -c2w[:, :3, 1].mean(0)
-    up = _unit(up) if np.linalg.norm(up) > 1e-9 else np.array([0.0, 0.0, 1.0])
-    a = np.cross(up, [1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.cross(up, [0.0, 1.0, 0.0])
-    a = _unit(a)
-    b = np.cross(up, a)
-    rel = centres - centre
-    dist = np.linalg.norm(rel, axis=1)
-    dirs = _unit(rel)
-    elev = np.arcsin(np.clip(dirs @ up, -1.0, 1.0))
-    mean = dirs.mean(0)
-    axis = _unit(mean) if np.linalg.norm(mean) > 1e-6 else up
-    forward = bool(np.linalg.norm(mean) >= FORWARD_RESULTANT and (dirs @ axis).min() > 0.0)
-    return {"centre": centre, "up": up, "a": a, "b": b, "dist": dist, "elev": elev, "axis": axis,
-            "forward": forward, "cos_limit": -math.sin(math.radians(float(margin_deg))) if forward else -1.0 - 1e-9}
 
 
 def _look_at(name: str, pos: np.ndarray, target: np.ndarray, up: np.ndarray, ref: Camera) -> Camera:

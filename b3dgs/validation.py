@@ -281,7 +281,7 @@ def _check_eval(cfg: DictConfig, values: dict) -> dict:
         seen[Path(str(r)).resolve()] = str(r)
     for d in map(Path, map(str, runs)):
         if not (d / "config.yaml").is_file():
-            from b3dgs.runs import not_a_run_dir
+            from b3dgs.rundir import not_a_run_dir
 
             raise not_a_run_dir(d)
         check_checkpoint(d / "checkpoints" / "last.ckpt",

@@ -78,8 +78,8 @@ def open_run(run_dir, acquired: Optional[str] = None, renderer=None, data_path: 
     machine (:func:`b3dgs.runs.locate_scene`)."""
     from hydra.errors import InstantiationException
 
-    from b3dgs.rundir import run_dir_busy
-    from b3dgs.runs import load_run, not_a_run_dir
+    from b3dgs.rundir import not_a_run_dir, run_dir_busy
+    from b3dgs.runs import load_run
 
     run_dir = Path(str(run_dir)).expanduser()
     again = f"b3dgs-train ... hydra.run.dir={run_dir} overwrite=true"
