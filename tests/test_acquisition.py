@@ -2,7 +2,6 @@
 an installed package, and the study's resume between rounds."""
 import json
 import math
-import os
 import subprocess
 import sys
 import time

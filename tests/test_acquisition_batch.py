@@ -14,7 +14,7 @@ import torch
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
 
-from b3dgs.acquisition import AcquisitionPolicy, ScoringContext, camera_centres, top_k
+from b3dgs.acquisition import AcquisitionPolicy, ScoringContext, camera_centres
 from b3dgs.errors import B3dgsError
 from b3dgs.train import CONF_DIR
 from b3dgs.types import Camera

@@ -32,8 +32,6 @@ def test_extension_builds_with_clang(tmp_path):
 
 def render_and_grads():
     """A small render with weight sums and the gradients of every parameter (the kernels' code paths)."""
-    import torch
-
     from b3dgs.render.renderers import CPURenderer
     from tests.test_renderers import _camera, _params
 

@@ -5,7 +5,7 @@ take any key (free-form mappings and ``_target_`` nodes, whose classes decide wh
 import pytest
 from hydra import compose, initialize_config_dir
 from hydra.core.global_hydra import GlobalHydra
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
 from b3dgs.confs import added_key_problem
 from b3dgs.errors import B3dgsError

@@ -11,7 +11,6 @@ then twice after the last checkpoint. The steps are printed on failure. A finish
 by ``resume=auto``.
 """
 import json
-import os
 import random
 import signal
 import subprocess

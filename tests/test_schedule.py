@@ -1,14 +1,12 @@
 """Training schedules (``schedule=constant|dash``): the frequency criterion, the levels, the downsampled
 cameras, the primitive budget, the pixel-unit conversions of the posterior blocks, and a dash training run
 that resumes bit for bit."""
-import math
 
 import pytest
 import torch
 
 from b3dgs.data.scene import load_scene
 from b3dgs.schedule import ConstantSchedule, DashSchedule, band_energy, mean_spectrum
-from b3dgs.types import Camera, resize_image
 
 
 def _scene(n_views=12, side=64):
