@@ -106,10 +106,12 @@ def _parse_fix(override: Optional[str]) -> str:
     as syntax or does not read at all (spaces, non-ASCII letters, brackets, quotes); else the override forms."""
     text = str(override or "")
     key, eq, value = text.partition("=")
-    if eq and key and value.startswith("~") and all(c.isascii() and (c.isalnum() or c in "_./:-+@*%? ")
-                                                    for c in value[1:]):  # zsh leaves ~ after = unexpanded
+    def plain(text: str) -> bool:  # characters Hydra's grammar reads in an unquoted value
+        return all(c.isascii() and (c.isalnum() or c in "_./:-+@*%? ") for c in text)
+
+    if eq and key and value.startswith("~") and plain(value[1:]):  # zsh leaves ~ after = unexpanded
         return f"write the home folder out: {key}={os.path.expanduser(value)} (Hydra cannot read ~)"
-    if eq and key and value and not all(c.isascii() and (c.isalnum() or c in "_./:-+@*%? ") for c in value):
+    if eq and key and value and not plain(value):
         inner = value.replace("'", "\\'")
         return f"quote the value: \"{key}='{inner}'\" (the outer quotes for the shell, the inner ones for Hydra)"
     return "write overrides as key=value, group=option or +key=value"

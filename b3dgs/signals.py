@@ -30,10 +30,10 @@ class Interrupted(BaseException):
     def signal_name(self) -> str:
         return signal.Signals(self.signum).name
 
-    def report(self, prog: str, advice: str) -> int:
-        """Write ``PROG: stopped by SIGTERM; ADVICE`` on stderr (after what stdout holds) and return the exit code."""
+    def report(self, prog: str, advice: Optional[str] = None) -> int:
+        """Write ``PROG: stopped by SIGTERM[; ADVICE]`` on stderr (after what stdout holds) and return the exit code."""
         sys.stdout.flush()
-        sys.stderr.write(f"{prog}: stopped by {self.signal_name}; {advice}\n")
+        sys.stderr.write(f"{prog}: stopped by {self.signal_name}{'; ' + advice if advice else ''}\n")
         sys.stderr.flush()
         return self.exit_code
 

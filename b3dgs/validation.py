@@ -15,6 +15,7 @@ from omegaconf import DictConfig, OmegaConf
 from b3dgs.checkpoint import check_checkpoint
 from b3dgs.confs import conf_roots, global_groups, known_keys, load_option, option_names
 from b3dgs.errors import B3dgsError, did_you_mean
+from b3dgs.rundir import not_a_run_dir
 from b3dgs.schema import RULES, UNRESOLVED, apply_rules, check_node, is_int, is_number, locate, show, value
 from b3dgs.upgrade import schedule_node
 
@@ -281,8 +282,6 @@ def _check_eval(cfg: DictConfig, values: dict) -> dict:
         seen[Path(str(r)).resolve()] = str(r)
     for d in map(Path, map(str, runs)):
         if not (d / "config.yaml").is_file():
-            from b3dgs.rundir import not_a_run_dir
-
             raise not_a_run_dir(d)
         check_checkpoint(d / "checkpoints" / "last.ckpt",
                          f"finish the run with `b3dgs-train ... hydra.run.dir={d} resume=auto`, or train it again")

@@ -56,6 +56,8 @@ NEAR_REFUSE = 3.0  # refuse when the median camera-to-scene distance is below NE
 NEAR_WARN = 30.0  # warn below NEAR_WARN x NEAR_PLANE
 
 __all__ = [
+    "BLENDER_SPLITS",
+    "FORWARD_RESULTANT",
     "LOADERS",
     "NEAR_PLANE",
     "SCENE_KINDS",
@@ -74,7 +76,6 @@ __all__ = [
     "fit_to_files",
     "get_loader",
     "guess_kinds",
-    "FORWARD_RESULTANT",
     "infer_data_option",
     "infer_data_override",
     "load_scene",
@@ -694,6 +695,9 @@ def guess_kinds(path: str | os.PathLike) -> list[str]:
     return [k for k, (_, test) in _MARKERS.items() if p.is_dir() and test(p)]
 
 
+#: Blender's (NeRF-synthetic) split files are transforms_<split>.json
+BLENDER_SPLITS = ("train", "val", "test")
+
 #: the length of the training cameras' mean unit direction from the centre from which a capture with every camera within
 #: 90° of that mean is forward-facing (LLFF ≈ 0.99, a half circle 2/π ≈ 0.64, a hemisphere ≈ 0.6; a ring 20° above the
 #: equator ≈ 0.34: not)
@@ -753,8 +757,7 @@ def infer_data_option(path: str | os.PathLike, key: str = "data.path") -> tuple[
     if "colmap" in kinds:
         return "colmap", "a COLMAP model"
     if "transforms" in kinds:
-        blender_split = p.is_file() and p.name.lower() in ("transforms_train.json", "transforms_val.json",
-                                                           "transforms_test.json")
+        blender_split = p.is_file() and p.name.lower() in {f"transforms_{s}.json" for s in BLENDER_SPLITS}
         if (p.is_file() and not blender_split) or (p / "transforms.json").is_file():
             return "transforms", "a transforms.json"
         if blender_split and (p.parent / "transforms.json").is_file():

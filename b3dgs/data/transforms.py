@@ -35,7 +35,8 @@ from typing import Optional, Sequence
 import numpy as np
 
 from b3dgs.data.images import image_size
-from b3dgs.data.scene import FrameSpec, RawScene, fit_to_files, materialize, scale_intrinsics, select_evenly
+from b3dgs.data.scene import (BLENDER_SPLITS, FrameSpec, RawScene, fit_to_files, materialize, scale_intrinsics,
+                              select_evenly)
 from b3dgs.data.undistort import FISHEYE, MODELS, Distortion
 from b3dgs.errors import B3dgsError
 
@@ -86,7 +87,7 @@ def _resolve_json(path: Path) -> list[Path]:
                          "pass data.path=PATH to an existing scene folder (or its transforms*.json file)")
     if (path / "transforms.json").is_file():
         return [path / "transforms.json"]
-    split = [p for p in (path / f"transforms_{s}.json" for s in ("train", "val", "test")) if p.is_file()]
+    split = [p for p in (path / f"transforms_{s}.json" for s in BLENDER_SPLITS) if p.is_file()]
     if split:
         return split
     raise B3dgsError(f"{path} has no transforms.json (nor transforms_train.json)",

@@ -116,7 +116,7 @@ def hydra_main(cfg: DictConfig) -> None:
         check_host(str(settings.host))
         quiet_known_noise()
         logging.getLogger("websockets").setLevel(logging.WARNING)
-        from b3dgs.signals import interrupt_handlers
+        from b3dgs.signals import Interrupted, interrupt_handlers
 
         with interrupt_handlers() as pending:
             pending.deferred = True  # SIGINT / SIGTERM are recorded, and end the loop below (also while loading)
@@ -129,9 +129,7 @@ def hydra_main(cfg: DictConfig) -> None:
             finally:
                 app.stop()
             if pending.signum not in (None, signal.SIGINT):  # Ctrl-C is the way to stop it: exit code 0
-                sys.stderr.write(f"b3dgs-view: stopped by {signal.Signals(pending.signum).name}\n")
-                sys.stderr.flush()
-                sys.exit(128 + pending.signum)
+                sys.exit(Interrupted(pending.signum).report("b3dgs-view"))
 
 
 def help_text() -> str:
