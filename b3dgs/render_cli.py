@@ -329,7 +329,8 @@ def _claim(out: Path, names: Sequence[str]):
     in a run dir, under its lock, the earlier frames its manifest lists in ``out`` go and ``names`` join the manifest
     before they are written; elsewhere, the files named as this command names frames (``frame_<5 digits>.png``).
     Nothing else is touched, and one of ``names`` that exists and is not b3dgs's is refused before anything goes."""
-    from b3dgs.rundir import FRAME_NAME, claim_in_run, holds_run, read_manifest, remove_listed, run_files
+    from b3dgs.rundir import (FRAME_NAME, claim_in_run, holds_run, out_dir_lock, read_manifest, remove_listed,
+                              run_files)
 
     q = out.resolve()
     owner = next((d for d in (q, *q.parents) if holds_run(d)), None)
@@ -337,20 +338,20 @@ def _claim(out: Path, names: Sequence[str]):
         with claim_in_run(owner, out, names, "b3dgs-render", FRAME_NAME, check=lambda new: _refuse_foreign(out, new)):
             yield
         return
-    frames = [p.name for p in out.glob("frame_*.png") if FRAME_NAME.fullmatch(p.name)] if out.is_dir() else []
-    # a video is b3dgs's where a record says so: the run's (written before manifests: the names its outputs had), or
-    # outside a run the folder's RENDER_RECORD, written before the files
-    theirs = set(run_files(owner)) if owner is not None else set()
-    rel = "." if owner is None else q.relative_to(owner).as_posix()
-    recorded = set((read_json_dict(out / RENDER_RECORD) or {}).get("files") or []) if owner is None else set()
-    _refuse_foreign(out, [n for n in names if not FRAME_NAME.fullmatch(n) and n not in recorded
-                          and (n if rel == "." else f"{rel}/{n}") not in theirs])
-    out.mkdir(parents=True, exist_ok=True)
-    remove_listed(out, frames)
-    if owner is None:
-        kept = {n for n in recorded if not FRAME_NAME.fullmatch(n) and (out / n).exists()}  # earlier paths' videos
-        write_json(out / RENDER_RECORD, {"written_by": "b3dgs-render", "files": sorted(kept | set(names))})
-    yield
+    with out_dir_lock(out, "b3dgs-render"):  # a second render into this folder is refused, not interleaved
+        frames = [p.name for p in out.glob("frame_*.png") if FRAME_NAME.fullmatch(p.name)]
+        # a video is b3dgs's where a record says so: the run's (written before manifests: the names its outputs had),
+        # or outside a run the folder's RENDER_RECORD, written before the files
+        theirs = set(run_files(owner)) if owner is not None else set()
+        rel = "." if owner is None else q.relative_to(owner).as_posix()
+        recorded = set((read_json_dict(out / RENDER_RECORD) or {}).get("files") or []) if owner is None else set()
+        _refuse_foreign(out, [n for n in names if not FRAME_NAME.fullmatch(n) and n not in recorded
+                              and (n if rel == "." else f"{rel}/{n}") not in theirs])
+        remove_listed(out, frames)
+        if owner is None:
+            kept = {n for n in recorded if not FRAME_NAME.fullmatch(n) and (out / n).exists()}  # earlier paths' videos
+            write_json(out / RENDER_RECORD, {"written_by": "b3dgs-render", "files": sorted(kept | set(names))})
+        yield
 
 
 RENDER_RECORD = ".b3dgs-render.json"  # outside a run dir: the videos b3dgs-render wrote into an out= folder

@@ -56,30 +56,42 @@ def run_dir_lock(run_dir: Path, prog: str = "b3dgs-train") -> Iterator[None]:
     """Hold ``run_dir``'s lock for the block; refuse (one line) if another live process holds it.
 
     An empty run dir left by a refused run is removed on the way out."""
-    run_dir = Path(run_dir)
+    with _folder_lock(Path(run_dir), LOCK_NAME, f"the run dir {run_dir}", prog, "hydra.run.dir"):
+        yield
+
+
+@contextmanager
+def out_dir_lock(out: Path, prog: str) -> Iterator[None]:
+    """Hold ``prog``'s lock on an ``out=`` folder outside a run dir (``.<prog>.lock``) while it writes there, so
+    that two of its jobs into one folder cannot mix their files; the second is refused in one line."""
+    with _folder_lock(Path(out), f".{prog}.lock", f"out={out}", prog, "out"):
+        yield
+
+
+@contextmanager
+def _folder_lock(folder: Path, lock_name: str, what: str, prog: str, key: str) -> Iterator[None]:
+    """:func:`run_dir_lock` and :func:`out_dir_lock`: create ``folder``, hold the lock file ``lock_name`` in it, and
+    remove the folder on the way out if it is left empty (a refused first run)."""
     try:
-        run_dir.mkdir(parents=True, exist_ok=True)
+        folder.mkdir(parents=True, exist_ok=True)
     except (FileExistsError, NotADirectoryError):
-        raise B3dgsError(f"the run dir {run_dir} is a file (or lies below one)",
-                         "pass hydra.run.dir=PATH to a folder") from None
+        raise B3dgsError(f"{what} is a file (or lies below one)", f"pass {key}=PATH to a folder") from None
     except PermissionError:
-        raise B3dgsError(f"cannot create the run dir {run_dir}: permission denied",
-                         "pass hydra.run.dir=PATH to a writable folder") from None
+        raise B3dgsError(f"cannot create {what}: permission denied", f"pass {key}=PATH to a writable folder") from None
     held = ExitStack()
     try:
-        held.enter_context(process_lock(run_dir / LOCK_NAME, wait=False, remove=True))
+        held.enter_context(process_lock(folder / lock_name, wait=False, remove=True))
     except PermissionError:
-        raise B3dgsError(f"the run dir {run_dir} is not writable",
-                         "pass hydra.run.dir=PATH to a writable folder") from None
+        raise B3dgsError(f"{what} is not writable", f"pass {key}=PATH to a writable folder") from None
     except LockHeld as e:
-        raise B3dgsError(f"the run dir {run_dir} is in use by another {prog} (pid {e.pid})",
-                         "wait for it to finish, or pass another hydra.run.dir") from None
+        raise B3dgsError(f"{what} is in use by another {prog} (pid {e.pid})",
+                         f"wait for it to finish, or pass another {key}") from None
     try:
         with held:
             yield
     finally:
         with suppress(OSError):
-            run_dir.rmdir()  # only if the run left nothing (a refused run in a new dir)
+            folder.rmdir()  # only if nothing was left (a refused run in a new folder)
 
 
 #: a temp file of :func:`b3dgs.io.atomic_path`: ``.<name>.b3dgs-<random>.tmp`` (an older writer's:

@@ -46,7 +46,7 @@ from b3dgs.data.scene import unit_rows as _unit
 from b3dgs.errors import B3dgsError, cli_main, known_errors
 from b3dgs.io import save_figure, write_json
 from b3dgs.render_cli import _caption, _look_at as look_at_view, nerfstudio_path
-from b3dgs.rundir import claim_in_run, read_manifest, remove_listed
+from b3dgs.rundir import claim_in_run, out_dir_lock, read_manifest, remove_listed
 from b3dgs.study.active import load_batch, load_policy
 from b3dgs.train import CONF_DIR
 from b3dgs.types import Camera
@@ -429,9 +429,9 @@ def _claim(folder: Path, run_dir: Path, names: Sequence[str]):
         with claim_in_run(run_dir, folder, names, "b3dgs-suggest", OWN_FILE):
             yield
         return
-    folder.mkdir(parents=True, exist_ok=True)
-    remove_listed(folder, [p.name for p in folder.iterdir() if p.is_file() and OWN_FILE.fullmatch(p.name)])
-    yield
+    with out_dir_lock(folder, "b3dgs-suggest"):  # a second suggest into this folder is refused, not interleaved
+        remove_listed(folder, [p.name for p in folder.iterdir() if p.is_file() and OWN_FILE.fullmatch(p.name)])
+        yield
 
 
 def suggest(cfg: DictConfig) -> dict:

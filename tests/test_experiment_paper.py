@@ -13,7 +13,7 @@ from hydra.core.global_hydra import GlobalHydra
 from omegaconf import OmegaConf
 
 from b3dgs.data.images import save_png
-from b3dgs.data.scene import load_scene
+from b3dgs.data.scene import FrameSpec, load_scene
 from b3dgs.errors import B3dgsError
 from b3dgs.train import CONF_DIR
 
@@ -210,3 +210,27 @@ def test_paper_protocol_trains_a_few_steps_on_the_synthetic_scene(tmp_path):
     cfg = OmegaConf.load(tmp_path / "config.yaml")
     assert m["steps"] == 20 and cfg.data.max_side is None and cfg.strategy.refine_stop == 15000
     assert m["num_train_views"] == 7 and np.isfinite(m["psnr"])
+
+
+def test_a_smaller_copy_of_the_images_is_hinted_when_max_side_shrinks_them(tmp_path, caplog):
+    """data.max_side that halves the files, with a uniform images_N copy still at least that large: one log line
+    names data.images_dir=images_N (not applied: its resampling differs). No hint for a copy that is no uniform
+    downscale (images_3 here), one smaller than max_side, or no shrinking."""
+    import logging
+
+    from b3dgs.data.scene import hint_smaller_copies
+
+    _colmap_with_folders(tmp_path)
+    with caplog.at_level(logging.INFO, logger="b3dgs.data.scene"):
+        load_scene("colmap", str(tmp_path), test_every=0, max_side=16)
+    hint = ("data.max_side=16 shrinks 64-px images from images/; images_2/ holds copies 2x smaller: "
+            "data.images_dir=images_2 loads them faster (its resampling differs, so the pixels do too)")
+    assert hint in caplog.text
+    frames = [FrameSpec("a.png", tmp_path / "images" / "a.png", np.eye(3), np.eye(4), 64, 48)]
+    assert hint_smaller_copies(tmp_path / "images", frames, 16) == hint
+    assert hint_smaller_copies(tmp_path / "images", frames, 40) is None  # images_2 (32 px) would be upscaled
+    assert hint_smaller_copies(tmp_path / "images", frames, 64) is None and \
+        hint_smaller_copies(tmp_path / "images", frames, None) is None
+    (tmp_path / "images_2" / "a.png").unlink()
+    save_png(tmp_path / "images_2" / "a.png", np.full((30, 40, 3), 0.5))  # not 1/2 of 64x48
+    assert hint_smaller_copies(tmp_path / "images", frames, 16) is None

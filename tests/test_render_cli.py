@@ -206,3 +206,20 @@ def test_spiral_stays_in_front_of_a_forward_capture_and_orbit_warns(caplog):
     with caplog.at_level(logging.WARNING, logger="b3dgs.render_cli"):
         camera_path(scene, "orbit", 8)
     assert "the capture is forward-facing" in caplog.text and "path=spiral" in caplog.text
+
+
+def test_a_second_render_into_one_out_folder_is_refused(niw_run, tmp_path):
+    """Two renders into one out= folder outside a run would mix their frame sets: the second is refused in one line
+    naming the first's pid, and the folder keeps the first's files."""
+    from b3dgs.locks import process_lock
+
+    out = tmp_path / "shared"
+    out.mkdir()
+    (out / "frame_00000.png").write_bytes(b"first")
+    with process_lock(out / ".b3dgs-render.lock", remove=True):  # this process stands for a render that is writing there
+        res = cli(f"run={niw_run}", "path=interpolate", "frames=4", f"out={out}")
+    lines = [ln for ln in res.stderr.splitlines() if ln.startswith("b3dgs-render: error:")]
+    assert res.returncode == 2 and lines == [f"b3dgs-render: error: out={out} is in use by another b3dgs-render "
+                                             f"(pid {os.getpid()}) (fix: wait for it to finish, or pass another out)"], \
+        res.stderr[-2000:]
+    assert sorted(p.name for p in out.iterdir()) == ["frame_00000.png"] and (out / "frame_00000.png").read_bytes() == b"first"

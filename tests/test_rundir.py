@@ -50,6 +50,34 @@ def test_lock_refuses_a_second_holder_and_cleans_up(tmp_path):
             pass
 
 
+def test_an_out_folder_takes_one_writer_of_a_command_at_a_time(tmp_path):
+    """out= outside a run dir (b3dgs-render, b3dgs-suggest): a second job of the same command into the folder is
+    refused in one line naming the holder, and leaves nothing; another command's lock does not block it."""
+    from b3dgs.rundir import out_dir_lock
+    from b3dgs.suggest import _claim
+
+    out = tmp_path / "renders"
+    with out_dir_lock(out, "b3dgs-render"):
+        assert (out / ".b3dgs-render.lock").read_text().strip() == str(os.getpid())
+        with pytest.raises(B3dgsError, match=rf"^out={out} is in use by another b3dgs-render \(pid {os.getpid()}\)"
+                                             r" \(fix: wait for it to finish, or pass another out\)$"):
+            with out_dir_lock(out, "b3dgs-render"):
+                pass
+        with _claim(out, tmp_path / "some_run", ["suggest.json"]):  # suggest's lock is its own
+            (out / "suggest.json").write_text("{}")
+            with pytest.raises(B3dgsError, match="in use by another b3dgs-suggest"):
+                with _claim(out, tmp_path / "some_run", ["suggest.json"]):
+                    pass
+    assert sorted(p.name for p in out.iterdir()) == ["suggest.json"]  # the lock files go, the written file stays
+    with pytest.raises(B3dgsError, match=r"^out=.* is a file \(or lies below one\) \(fix: pass out=PATH to a folder\)$"):
+        with out_dir_lock(out / "suggest.json", "b3dgs-render"):
+            pass
+    fresh = tmp_path / "new"
+    with out_dir_lock(fresh, "b3dgs-render"):
+        pass
+    assert not fresh.exists()  # a refused or empty first job leaves no folder
+
+
 def test_another_process_holding_the_lock_is_named_and_its_death_frees_it(tmp_path):
     """b3dgs.locks across processes: the holder's pid in the refusal and in run_dir_busy; a killed holder
     (kill -9) leaves a lock file that holds nothing."""

@@ -23,7 +23,7 @@ import numpy as np
 
 from b3dgs.data.colmap_model import ColmapCamera, model_format, read_model, unordered_map_order
 from b3dgs.data.images import image_folders
-from b3dgs.data.scene import FrameSpec, RawScene, fit_to_files, materialize, select_evenly
+from b3dgs.data.scene import FrameSpec, RawScene, fit_to_files, hint_smaller_copies, materialize, select_evenly
 from b3dgs.data.undistort import MODELS, Distortion, describe
 from b3dgs.errors import B3dgsError
 
@@ -144,6 +144,7 @@ def load_colmap(path: str | os.PathLike, max_side: Optional[int] = None, backgro
                       undistort=undistort)
     frames, points, colors = out[:3]
     frames = [frames[i] for i in select_evenly(len(frames), max_images)]
+    hint_smaller_copies(Path(path) / images_dir, frames, max_side)
     cams = materialize(frames, max_side=max_side, background=background)
     extras = {"point_views": out[3]} if point_tracks and out[3] is not None else {}
     return RawScene(name=Path(path).resolve().name, cameras=cams, points=points, point_colors=colors, extras=extras)

@@ -21,7 +21,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from b3dgs.data.images import image_size, list_images
-from b3dgs.data.scene import FrameSpec, RawScene, materialize, select_evenly
+from b3dgs.data.scene import FrameSpec, RawScene, hint_smaller_copies, materialize, select_evenly
 from b3dgs.errors import B3dgsError
 from b3dgs.io import atomic_path
 from b3dgs.types import Camera
@@ -92,6 +92,7 @@ def load_llff(path: str | os.PathLike, max_side: Optional[int] = None, backgroun
     """Load an LLFF scene: cameras (K at the loaded size, OpenCV w2c) and images; no points."""
     frames, bounds = read_llff(path, images_dir=images_dir)
     keep = select_evenly(len(frames), max_images)
+    hint_smaller_copies(Path(path) / images_dir, [frames[i] for i in keep], max_side)
     cams = materialize([frames[i] for i in keep], max_side=max_side, background=background)
     near, far = np.median(bounds[keep], axis=0)
     # LLFF's own focus depth (as in its spiral-path code), used when the optical axes do not meet

@@ -76,6 +76,7 @@ __all__ = [
     "fit_to_files",
     "get_loader",
     "guess_kinds",
+    "hint_smaller_copies",
     "infer_data_option",
     "infer_data_override",
     "load_scene",
@@ -324,6 +325,42 @@ def fit_to_files(frames: Sequence[FrameSpec], where: str) -> list[FrameSpec]:
         log.info("%d of %d images in %s are smaller than their cameras (e.g. %s: %dx%d, camera %dx%d): intrinsics "
                  "scaled to the files", len(shrunk), len(frames), where, f.name, g.width, g.height, f.width, f.height)
     return out
+
+
+def hint_smaller_copies(folder: Path, frames: Sequence[FrameSpec], max_side: Optional[int]) -> Optional[str]:
+    """Log (and return) a hint when ``data.max_side`` shrinks the files of ``folder`` to half or less and a sibling
+    copy ``<name>_<k>`` (Mip-NeRF 360's ``images_4``, LLFF's ``images_8``) is still at least ``max_side``: decoding
+    the smaller copy is faster. Not applied by itself: another resampling changes a run's pixels."""
+    if not max_side or not frames or _POSES_ONLY.get():
+        return None
+    folder = Path(folder)
+    base, _, factor = folder.name.rpartition("_")
+    base, now = (base, int(factor)) if base and factor.isdigit() and int(factor) > 0 else (folder.name, 1)
+    side = max(max(f.width, f.height) for f in frames)
+    if side < 2 * max_side:
+        return None
+    f = frames[0]
+
+    def uniform_copy(k: int) -> bool:  # its first image is the first frame's at 1/k (LLFF's copies rename the files)
+        d = folder.parent / f"{base}_{k}"
+        first = d / Path(f.path).name
+        if not first.is_file():
+            first = next(iter(sorted(p for p in d.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)), None)
+        if first is None:
+            return False
+        w, h = image_size(first)
+        return abs(w - f.width * now / k) <= 1 and abs(h - f.height * now / k) <= 1
+
+    ks = sorted((int(d.name[len(base) + 1:]) for d in folder.parent.glob(f"{base}_*")
+                 if d.is_dir() and d.name[len(base) + 1:].isdigit()), reverse=True)
+    k = next((k for k in ks if k > now and side * now / k >= max_side and uniform_copy(k)), None)
+    if k is None:
+        return None
+    hint = (f"data.max_side={max_side} shrinks {side}-px images from {folder.name}/; {base}_{k}/ holds copies "
+            f"{k // now if k % now == 0 else k / now:g}x smaller: data.images_dir={base}_{k} loads them faster (its "
+            "resampling differs, so the pixels do too)")
+    log.info(hint)
+    return hint
 
 
 _POSES_ONLY = contextvars.ContextVar("b3dgs_poses_only", default=False)
