@@ -327,7 +327,8 @@ def write_video(path: Path, frames: Sequence[np.ndarray], fps: int) -> Path:
 def _claim(out: Path, names: Sequence[str]):
     """Make room for the frames and video ``names`` in ``out`` (never a run's ``checkpoints/``: :func:`render` checks):
     in a run dir, under its lock, the earlier frames its manifest lists in ``out`` go and ``names`` join the manifest
-    before they are written; elsewhere, the files named as this command names frames (``frame_<5 digits>.png``).
+    before they are written; elsewhere, under the folder's own b3dgs-render lock, the files named as this command
+    names frames (``frame_<5 digits>.png``).
     Nothing else is touched, and one of ``names`` that exists and is not b3dgs's is refused before anything goes."""
     from b3dgs.rundir import (FRAME_NAME, claim_in_run, holds_run, out_dir_lock, read_manifest, remove_listed,
                               run_files)

@@ -423,8 +423,8 @@ def _check_cfg(cfg: DictConfig) -> None:
 @contextmanager
 def _claim(folder: Path, run_dir: Path, names: Sequence[str]):
     """Make room for ``names`` in ``folder``: in the run dir (under its lock) the files an earlier b3dgs-suggest
-    recorded there go and ``names`` join the manifest before they are written; elsewhere the files named as this
-    command names its own go. Nothing else is touched."""
+    recorded there go and ``names`` join the manifest before they are written; elsewhere (under the folder's own
+    b3dgs-suggest lock) the files named as this command names its own go. Nothing else is touched."""
     if folder.resolve().is_relative_to(run_dir.resolve()) and read_manifest(run_dir) is not None:
         with claim_in_run(run_dir, folder, names, "b3dgs-suggest", OWN_FILE):
             yield
