@@ -361,10 +361,16 @@ def _process(folder: Path, step: dict, name: str) -> Path:
         if p.is_file() and fnmatch.fnmatch(p.name, step.get("pattern", "*")):
             os.replace(p, photos / p.name)
     out = folder.parent / f"{folder.name}-sfm"
+    # scene_file=false: the registry's scenes have their own conf/scene/<name>.yaml (b3dgs-process would refuse the
+    # name), and its scene file would name this staging folder
     cmd = [sys.executable, "-m", "b3dgs.process", f"images={photos}", f"out={out}", f"name={name}",
-           f"max_side={int(step.get('max_side', 1600))}"]
+           f"max_side={int(step.get('max_side', 1600))}", "scene_file=false"]
     _say(f"{name}: structure from motion: {' '.join(cmd[1:])}")
-    if subprocess.run(cmd).returncode != 0:
+    res = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)  # its progress bars and errors: on stderr, as they come
+    for line in res.stdout.splitlines():  # its summary, without the lines naming the staging folder
+        if not line.startswith(("scene: ", "train it: ")):
+            _say(line)
+    if res.returncode != 0:
         raise B3dgsError(f"b3dgs-process could not make a COLMAP model of {name}'s photos (its error is above)",
                          f"rerun `{PROG} get {name}`; the download is kept")
     shutil.rmtree(photos)
@@ -444,7 +450,18 @@ def get(scene: Scene, root: Path, scenes: Optional[dict[str, Scene]] = None) -> 
         for p in (downloads / scene.name, downloads):
             if p.is_dir() and not any(p.iterdir()):
                 p.rmdir()
-    return f"{scene.name}: ready in {target}" + (f" ({'; '.join(kept)})" if kept else "")
+    return f"{scene.name}: ready in {target}" + (f" ({'; '.join(kept)})" if kept else "") + f"; {train_command(scene.name, root)}"
+
+
+def train_command(name: str, root: Path) -> str:
+    """How to train a fetched scene: ``scene=<name>`` where ``conf/scene/<name>.yaml`` reads it from this data root,
+    else ``data.path=``."""
+    from b3dgs import conf_dir, data_root
+
+    if (Path(conf_dir()) / "scene" / f"{name}.yaml").is_file() and \
+            Path(data_root()).expanduser().resolve() == Path(root).expanduser().resolve():
+        return f"train it: b3dgs-train scene={name}"
+    return f"train it: b3dgs-train data.path={root / name}"
 
 
 # ---------------------------------------------------------------------------------------------- CLI

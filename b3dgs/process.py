@@ -29,7 +29,7 @@ import shutil
 import sys
 import threading
 import time
-from contextlib import closing, contextmanager
+from contextlib import closing, contextmanager, suppress
 from pathlib import Path
 from typing import Any, Callable, Iterator, Optional
 
@@ -603,7 +603,7 @@ def _scene_name(cfg: DictConfig, out: Path) -> str:
     name = str(given) if given is not None else re.sub(r"[^A-Za-z0-9_.-]", "_", out.name).lstrip("_.-") or "scene"
     if not NAME_RE.match(name):
         raise B3dgsError(f"name={name} is not a scene name", "pass name= letters, digits, _ . - (a letter or digit first)")
-    if (Path(CONF_DIR) / "scene" / f"{name}.yaml").is_file():
+    if cfg.get("scene_file", True) and (Path(CONF_DIR) / "scene" / f"{name}.yaml").is_file():
         raise B3dgsError(f"name={name} is a scene b3dgs already has (conf/scene/{name}.yaml); scene={name} would load "
                          "that one", "pass name= another name")
     return name
@@ -870,20 +870,26 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, vide
             report[stage] = {**state["stages"][stage], "skipped": False}
         if stage == "map":
             _registration_check(state["stages"]["map"], len(photos), run)
-    # the scene file: written every run (the name may have changed)
-    conf = out / "conf"
-    command = f"b3dgs-train scene={name} {shlex.quote(_searchpath_override(conf))}"
+    # the scene file: written every run (the name may have changed); scene_file=false: none (b3dgs-data get, whose
+    # scenes have their own in conf/scene/), and the one an earlier run wrote goes
     m, u = state["stages"]["map"], state["stages"]["undistort"]
     summary = f"{m['registered']} of {len(photos)} photos registered; PINHOLE, {u['size']} px (max_side={cfg.max_side})"
-    scene_file = f"conf/scene/{name}.yaml"
-    text = _scene_yaml(name, out, images if video is None else video, summary, command)
+    with_file = bool(cfg.get("scene_file", True))
+    plain = f"b3dgs-train data=colmap {_shell_override('data.path', str(out))}"
+    command = f"b3dgs-train scene={name} {shlex.quote(_searchpath_override(out / 'conf'))}" if with_file else plain
+    scene_file = f"conf/scene/{name}.yaml" if with_file else None
     old = state.get("scene_file")
     if old and old != scene_file:
         _remove(out / old)
-    target = out / scene_file
-    if not target.is_file() or target.read_text() != text:
-        with atomic_path(target) as tmp:
-            tmp.write_text(text)
+        for folder in ((out / old).parent, out / "conf"):  # the folders it leaves empty
+            with suppress(OSError):
+                folder.rmdir()
+    target = out / scene_file if scene_file else None
+    if target is not None:
+        text = _scene_yaml(name, out, images if video is None else video, summary, command)
+        if not target.is_file() or target.read_text() != text:
+            with atomic_path(target) as tmp:
+                tmp.write_text(text)
     state["scene_file"], state["name"] = scene_file, name
     write_json(out / STATE, state)
     total = time.perf_counter() - t_start
@@ -896,10 +902,12 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, vide
     skipped = _not_photos(images) if video is None else []
     if skipped:
         _say(f"not read (not a photo: {' '.join(PHOTO_SUFFIXES)}): {', '.join(skipped)}")
-    _say(f"scene: {out}/images, {out}/sparse/0, {target}")
+    _say(f"scene: {out}/images, {out}/sparse/0" + (f", {target}" if target is not None else ""))
     _say(f"train it: {command}")
-    _say(f"      or: b3dgs-train data=colmap {_shell_override('data.path', str(out))}")
-    return {"out": str(out), "name": name, "command": command, "scene_file": str(target), "stages": report,
+    if target is not None:
+        _say(f"      or: {plain}")
+    return {"out": str(out), "name": name, "command": command, "scene_file": None if target is None else str(target),
+            "stages": report,
             "registered": int(m["registered"]), "photos": len(photos), "seconds": total, "left_out": left_out,
             "not_photos": skipped}
 

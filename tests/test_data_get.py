@@ -96,7 +96,7 @@ def test_an_archive_is_fetched_checked_and_extracted_into_the_data_root(server, 
     server.files[f"/mine.{kind}"] = data
     _registry(registry, {"mine": _entry(f"{server.url}/mine.{kind}", hashlib.sha256(data).hexdigest())})
     assert datasets.main(["get", "mine"]) == 0
-    assert f"mine: ready in {root / 'mine'}" in capsys.readouterr().out
+    assert f"mine: ready in {root / 'mine'}; train it: b3dgs-train data.path={root / 'mine'}\n" in capsys.readouterr().out
     assert sorted(p.relative_to(root / "mine").as_posix() for p in (root / "mine").rglob("*") if p.is_file()) == \
         sorted(SCENE)
     assert (root / "mine" / "images" / "a.png").read_bytes() == SCENE["images/a.png"]
@@ -288,7 +288,7 @@ def test_get_fox_runs_against_the_loopback_fixture_because_this_machine_has_no_i
                                  "sys.exit(main())", "get", "fox"]
     res = subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-2000:]
-    assert f"fox: ready in {root / 'fox'}" in res.stdout
+    assert f"fox: ready in {root / 'fox'}; train it: b3dgs-train scene=fox\n" in res.stdout
     assert len(server.log) == 69 and all(rng is None for _, rng in server.log)  # transforms, LICENSE, 67 frames
     meta = json.loads((root / "fox" / "transforms.json").read_text())
     assert (meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], meta["w"], meta["h"]) == (10, 10.25, 5, 10, 10, 20)
@@ -315,7 +315,10 @@ PAPER = ["bicycle", "bonsai", "counter", "flowers", "garden", "kitchen", "room",
 def test_the_registry_names_every_configured_scene_and_the_papers_thirteen():
     scenes = datasets.load_registry(datasets.REGISTRY_FILE)
     configured = {p.stem for p in (ROOT / "conf" / "scene").glob("*.yaml")} - {"synthetic"}
-    assert configured | set(PAPER) <= set(scenes), sorted(configured | set(PAPER) - set(scenes))
+    assert set(PAPER) <= set(scenes) and configured == set(scenes), sorted(configured ^ set(scenes))  # scene=<name>
+    for name in PAPER:  # what b3dgs-data get fetches, scene=<name> reads: its loader and folder
+        text = (ROOT / "conf" / "scene" / f"{name}.yaml").read_text()
+        assert "override /data: colmap" in text and f"path: ${{data_root}}/{name}\n" in text, name
     raw = yaml.safe_load(datasets.REGISTRY_FILE.read_text())
     for name, s in scenes.items():
         assert s.licence and s.required and s.sources and s.checked, name

@@ -82,6 +82,16 @@ def test_the_image_folder_policy(data, name, folder):
     assert compose_train([f"data={data}", f"data.path=/x/{name}"]).data.images_dir is None
 
 
+@pytest.mark.parametrize("name,folder", [("bicycle", "images_4"), ("room", "images_2"), ("truck", None)])
+def test_a_fetched_paper_scene_by_name_gets_the_folder_policy(name, folder):
+    """b3dgs-data get NAME, then scene=NAME experiment=paper: the COLMAP loader on <data_root>/NAME, in the paper's
+    image folder."""
+    from b3dgs import data_root
+
+    cfg = compose_train([f"scene={name}", "experiment=paper"])
+    assert (cfg.data.kind, cfg.data.path, cfg.data.images_dir) == ("colmap", f"{data_root()}/{name}", folder)
+
+
 def _colmap_with_folders(root: Path) -> None:
     """A one-view PINHOLE model (64x48, fx = fy = 50) with images/ and a half-size images_2/ (and a odd images_3/)."""
     from test_data import _write_colmap

@@ -454,3 +454,37 @@ def test_a_video_goes_on_as_photos_and_a_rerun_reuses_its_frames(tmp_path):
     other = _video(tmp_path / "other.mp4", frames=12)
     with pytest.raises(B3dgsError, match="was processed from video=.*clip.mp4 fps=2, not this video="):
         process(_cfg(video=str(other), fps=2, out=str(out)))
+
+
+def test_scene_file_false_writes_no_scene_file_and_takes_a_packaged_name(synthetic, tmp_path):
+    """scene_file=false (what b3dgs-data get runs, for scenes with their own conf/scene/<name>.yaml): a packaged
+    scene's name is accepted, no conf/ is written (an earlier run's scene file goes), and the printed command is
+    data.path=; the default still refuses that name."""
+    photos, out = tmp_path / "photos", tmp_path / "scene"
+    shutil.copytree(synthetic["photos"], photos)
+    shutil.copytree(synthetic["out"], out)  # holds conf/scene/synthetic_mine.yaml
+    res = _cli([f"images={photos}", f"out={out}", f"max_side={MAX_SIDE}", "name=dtu_scan24"])
+    assert res.returncode == 2 and "name=dtu_scan24 is a scene b3dgs already has" in res.stderr, res.stderr[-2000:]
+    res = _cli([f"images={photos}", f"out={out}", f"max_side={MAX_SIDE}", "name=dtu_scan24", "scene_file=false"])
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert not (out / "conf").exists() and (out / "sparse" / "0").is_dir()
+    lines = res.stdout.splitlines()
+    assert f"scene: {out}/images, {out}/sparse/0" in lines and f"train it: b3dgs-train data=colmap data.path={out}" in lines
+
+
+def test_b3dgs_data_gets_a_photo_scene_of_a_packaged_name(synthetic, tmp_path, capsys):
+    """The registry's `process` layout step (dtu_scan24, dtu_scan65, ethiopian_head on a fresh clone) makes the
+    COLMAP scene under the scene's own name; b3dgs-process's lines naming its staging folder are not passed on. The
+    SfM stages resume from a copy of the fixture's (same photos), so only the layout is new here."""
+    from b3dgs.datasets import _process
+
+    folder = tmp_path / "scene"
+    shutil.copytree(synthetic["photos"], folder)
+    shutil.copytree(synthetic["out"], tmp_path / "scene-sfm")
+    got = _process(folder, {"images": ".", "pattern": "*.png", "max_side": MAX_SIDE}, "dtu_scan24")
+    assert got == tmp_path / "scene-sfm" and not folder.exists() and not (tmp_path / "scene-photos").exists()
+    assert (got / "sparse" / "0").is_dir() and not (got / "conf").exists()
+    said = capsys.readouterr().out.splitlines()
+    assert said[0].startswith("dtu_scan24: structure from motion: ") and "scene_file=false" in said[0]
+    assert any(s.startswith("b3dgs-process: ") and "photos registered" in s for s in said), said
+    assert not any(s.startswith(("scene: ", "train it: ")) for s in said), said

@@ -129,7 +129,7 @@ def check_made(argv: list[str], cwd: Path, stdout: str, env: dict) -> str:
         from b3dgs import datasets
 
         folder = Path(env["B3DGS_DATA"]) / argv[-1]
-        assert f"{argv[-1]}: ready in {folder}" in stdout.splitlines(), stdout
+        assert f"{argv[-1]}: ready in {folder}; train it: b3dgs-train scene={argv[-1]}" in stdout.splitlines(), stdout
         assert datasets.missing(datasets.load_registry(env[datasets.REGISTRY_ENV])[argv[-1]], folder) == []
         return f"{folder}: {len(list((folder / 'images').iterdir()))} images"
     if prog == "b3dgs-process":
