@@ -373,8 +373,12 @@ def _process(folder: Path, step: dict, name: str) -> Path:
     if res.returncode != 0:
         raise B3dgsError(f"b3dgs-process could not make a COLMAP model of {name}'s photos (its error is above)",
                          f"rerun `{PROG} get {name}`; the download is kept")
+    from b3dgs.process import STATE, WORK
+
     shutil.rmtree(photos)
     shutil.rmtree(folder)
+    shutil.rmtree(out / WORK)  # SfM's databases and raw model (larger than the scene): the scene needs none of them
+    (out / STATE).unlink()
     return out
 
 
