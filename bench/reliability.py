@@ -343,6 +343,42 @@ def sc_png16() -> dict:
             "ok": all(abs(v - 200 / 65535) < 1e-7 for v in vals), "checked": "b3dgs.data.images.load_image"}
 
 
+def sc_get_photo_scene() -> dict:
+    """``b3dgs-data get dtu_scan24`` into an empty data root with the shipped registry entry, only its host replaced by
+    a loopback server (tests/loopback.py) serving a zip shaped as the entry's GitHub archive, of the shared copy's 49
+    photos: its SfM layout step, then ``scene=dtu_scan24`` finds the scene."""
+    import io
+    import zipfile
+
+    import yaml
+
+    from b3dgs import datasets
+
+    loopback = load_file(ROOT / "tests" / "loopback.py")
+    d = _fresh("get_photo_scene")
+    photos = sorted((shared_dir() / "data" / "dtu_scan24" / "images").iterdir())
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as z:
+        for i, ph in enumerate(photos):  # NeuF's monosdf_DTU/scan24 names: <index>_rgb.png, beside other files
+            z.writestr(f"NeuF-ebe501d/data/monosdf_DTU/scan24/{i:06d}_rgb.png", ph.read_bytes())
+            z.writestr(f"NeuF-ebe501d/data/monosdf_DTU/scan24/{i:06d}_depth.npy", b"")
+    with loopback.serve() as srv:
+        reg = yaml.safe_load(datasets.REGISTRY_FILE.read_text())
+        src = reg["dtu_scan24"]["sources"][0]
+        path = "/" + src["url"].split("://", 1)[1].partition("/")[2]
+        src["url"], srv.files[path] = srv.url + path, buf.getvalue()
+        (d / "registry.yaml").write_text(yaml.safe_dump(reg))
+        env = {k: v for k, v in os.environ.items() if k != "HYDRA_FULL_ERROR"}
+        env.update({"B3DGS_DATA": str(d / "root"), datasets.REGISTRY_ENV: str(d / "registry.yaml")})
+        rc, out, err = _wait(_popen("b3dgs.datasets", ["get", "dtu_scan24"], env=env, limit=False), 600)
+    lines = [ln for ln in (out + err).splitlines() if ln.startswith(("dtu_scan24: ready", "b3dgs-data: error",
+                                                                     "b3dgs-process: error"))]
+    scene = d / "root" / "dtu_scan24"
+    made = sorted(p.name for p in scene.iterdir()) if scene.is_dir() else []
+    return {"exit_code": rc, "message": lines[-1] if lines else (err or out)[-300:],
+            "ok": rc == 0 and made == ["images", "sparse"], "checked": f"the scene folder holds {made}"}
+
+
 TRUNCATED_METRICS = '{"psnr": 2'
 
 
@@ -619,6 +655,9 @@ def rows() -> list[dict]:
     scen("report_mixed_protocols", "`b3dgs-report` over runs of 4 and 6 steps (pooled as seeds)", sc_report_pool)
     scen("eval_ensemble_twice", "`b3dgs-eval uq=[ensemble]` with one run twice (zero spread)", sc_eval_twice)
     scen("eval_other_cwd", "`b3dgs-eval` from another folder, run trained with a relative data.path", sc_eval_elsewhere,
+         "accepted")
+    scen("get_photo_scene", "`b3dgs-data get dtu_scan24` (a registry scene made by SfM) into an empty data root "
+         "(refused at its SfM step: b3dgs-process would not take a name conf/scene/ has)", sc_get_photo_scene,
          "accepted")
     scen("png16_scaling", "16-bit PNGs: one raw value in a dark and in a bright frame (0.784 vs 0.003)", sc_png16,
          "accepted")
