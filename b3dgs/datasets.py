@@ -373,12 +373,17 @@ def _process(folder: Path, step: dict, name: str) -> Path:
     if res.returncode != 0:
         raise B3dgsError(f"b3dgs-process could not make a COLMAP model of {name}'s photos (its error is above)",
                          f"rerun `{PROG} get {name}`; the download is kept")
-    from b3dgs.process import STATE, WORK
-
     shutil.rmtree(photos)
     shutil.rmtree(folder)
-    shutil.rmtree(out / WORK)  # SfM's databases and raw model (larger than the scene): the scene needs none of them
-    (out / STATE).unlink()
+    # the scene is images/ and sparse/0/: b3dgs-process's work files (SfM's databases and raw model, larger than the
+    # scene) and its state go
+    for p in out.iterdir():
+        if p.name in ("images", "sparse"):
+            continue
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
     return out
 
 
