@@ -366,7 +366,7 @@ def _process(folder: Path, step: dict, name: str) -> Path:
     cmd = [sys.executable, "-m", "b3dgs.process", f"images={photos}", f"out={out}", f"name={name}",
            f"max_side={int(step.get('max_side', 1600))}", "scene_file=false"]
     _say(f"{name}: structure from motion: {' '.join(cmd[1:])}")
-    res = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)  # its progress bars and errors: on stderr, as they come
+    res = subprocess.run(cmd, stdout=subprocess.PIPE, text=True)  # progress bars and errors: on stderr, as they come
     for line in res.stdout.splitlines():  # its summary, without the lines naming the staging folder
         if not line.startswith(("scene: ", "train it: ")):
             _say(line)
@@ -459,7 +459,8 @@ def get(scene: Scene, root: Path, scenes: Optional[dict[str, Scene]] = None) -> 
         for p in (downloads / scene.name, downloads):
             if p.is_dir() and not any(p.iterdir()):
                 p.rmdir()
-    return f"{scene.name}: ready in {target}" + (f" ({'; '.join(kept)})" if kept else "") + f"; {train_command(scene.name, root)}"
+    kept_note = f" ({'; '.join(kept)})" if kept else ""
+    return f"{scene.name}: ready in {target}{kept_note}; {train_command(scene.name, root)}"
 
 
 def train_command(name: str, root: Path) -> str:

@@ -212,7 +212,8 @@ APP_RULES = {
                 "min_registered": (lambda v: is_number(v) and 0 <= v <= 1, "a share of the photos, in [0, 1]",
                                    "pass min_registered=0.5"),
                 "fps": (lambda v: is_number(v) and 0 < v <= 120, "a frame rate in (0, 120]", "pass fps=2"),
-                **{k: (*_BOOL, f"pass {k.rstrip('?')}=true or false") for k in ("single_camera?", "overwrite", "verbose", "scene_file")}},
+                **{k: (*_BOOL, f"pass {k.rstrip('?')}=true or false")
+                   for k in ("single_camera?", "overwrite", "verbose", "scene_file")}},
     "report": {"on_duplicate": (lambda v: v in ("error", "newest"), "error or newest", "pass on_duplicate=newest"),
                "time_fractions": (lambda v: all(is_number(f) and 0 < f <= 1 for f in v), "fractions in (0, 1]",
                                   "pass time_fractions=[0.95,0.99]"),
