@@ -464,11 +464,12 @@ def get(scene: Scene, root: Path, scenes: Optional[dict[str, Scene]] = None) -> 
 
 
 def train_command(name: str, root: Path) -> str:
-    """How to train a fetched scene: ``scene=<name>`` where ``conf/scene/<name>.yaml`` reads it from this data root,
-    else ``data.path=``."""
-    from b3dgs import conf_dir, data_root
+    """How to train a fetched scene: ``scene=<name>`` where a ``scene/<name>.yaml`` (b3dgs's or a package's) reads it
+    from this data root, else ``data.path=``."""
+    from b3dgs import data_root
+    from b3dgs.confs import option_names
 
-    if (Path(conf_dir()) / "scene" / f"{name}.yaml").is_file() and \
+    if name in option_names("scene") and \
             Path(data_root()).expanduser().resolve() == Path(root).expanduser().resolve():
         return f"train it: b3dgs-train scene={name}"
     return f"train it: b3dgs-train data.path={root / name}"

@@ -907,9 +907,8 @@ def _process_locked(cfg, photos, sizes, images, out, name, state, pycolmap, vide
     if target is not None:
         _say(f"      or: {plain}")
     return {"out": str(out), "name": name, "command": command, "scene_file": None if target is None else str(target),
-            "stages": report,
-            "registered": int(m["registered"]), "photos": len(photos), "seconds": total, "left_out": left_out,
-            "not_photos": skipped}
+            "stages": report, "registered": int(m["registered"]), "photos": len(photos), "seconds": total,
+            "left_out": left_out, "not_photos": skipped}
 
 
 @hydra.main(version_base="1.3", config_path=CONF_DIR, config_name="process")

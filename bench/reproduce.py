@@ -95,6 +95,8 @@ REBUILDS: dict[str, Rebuild] = {
     "ood_sector": Rebuild(("bench.ood_sector", "--table-only", "--archive", "{res}/ood_sector_runs",
                            "--results-root", "{out}"), ("ood_sector",)),
     "schedule": Rebuild((*_SCHEDULE, "--archive", "{res}/schedule_runs"), ("schedule",)),
+    "dp_cadence": Rebuild(("bench.dp_cadence", "--seeds", "0", "1", "--table-only", "--out", "{tmp}/dp_cadence",
+                           "--results-root", "{out}", "--archive", "{res}/dp_cadence_runs"), ("dp_cadence",)),
     "schedule_models": Rebuild((*_SCHEDULE, "--models", "standard", "niw", "dpmm", "--seeds", "0",
                                 "--variant", "dash=schedule=dash", "--archive", "{res}/schedule_models_runs",
                                 "--name", "schedule_models", "--base-model", "standard",

@@ -351,8 +351,8 @@ def hint_smaller_copies(folder: Path, frames: Sequence[FrameSpec], max_side: Opt
         w, h = image_size(first)
         return abs(w - f.width * now / k) <= 1 and abs(h - f.height * now / k) <= 1
 
-    ks = sorted((int(d.name[len(base) + 1:]) for d in folder.parent.glob(f"{base}_*")
-                 if d.is_dir() and d.name[len(base) + 1:].isdigit()), reverse=True)
+    suffixes = (d.name[len(base) + 1:] for d in folder.parent.glob(f"{base}_*") if d.is_dir())
+    ks = sorted((int(s) for s in suffixes if s.isdigit()), reverse=True)
     k = next((k for k in ks if k > now and side * now / k >= max_side and uniform_copy(k)), None)
     if k is None:
         return None
