@@ -11,6 +11,7 @@ import copy
 from dataclasses import dataclass, field, replace
 from typing import Optional
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -71,6 +72,15 @@ class Camera:
     def center(self) -> Tensor:
         """Camera centre in world coordinates, -Rᵀt."""
         return -self.viewmat[:3, :3].T @ self.viewmat[:3, 3]
+
+    @property
+    def center64(self) -> np.ndarray:
+        """-Rᵀt in float64, the same bits on every CPU: the float32 products are exact in float64 and summed in a
+        fixed order. ``center``'s float32 matmul rounds differently across CPUs (and renders keep it for their bits);
+        analysis that must rebuild identically elsewhere (support distances) reads this one."""
+        v = self.viewmat.detach().cpu().double().numpy()
+        R, t = v[:3, :3], v[:3, 3]
+        return -(R[0] * t[0] + R[1] * t[1] + R[2] * t[2])
 
     def with_image(self, image: Optional[Tensor]) -> "Camera":
         return replace(self, image=image)

@@ -145,8 +145,8 @@ def compute_per_seed(out: Path, scene_summary: dict) -> dict:
 
 
 def camera_geometry(scene: str, scene_args: list[str] | None = None) -> tuple[dict, float]:
-    """{view name: camera centre} for the scene's train and test views, and the scene extent."""
-    from b3dgs.acquisition import camera_centres
+    """{view name: camera centre} for the scene's train and test views (:attr:`Camera.center64`: the tables rebuild
+    with the same bits on any CPU), and the scene extent."""
     from b3dgs.data.scene import poses_only
     from b3dgs.lifecycle import data_module
 
@@ -154,7 +154,7 @@ def camera_geometry(scene: str, scene_args: list[str] | None = None) -> tuple[di
     with poses_only():
         dm = data_module(cfg.data)
     cams = list(dm.scene.train) + list(dm.scene.test)
-    return dict(zip([c.name for c in cams], camera_centres(cams))), float(dm.scene.extent)
+    return {c.name: c.center64 for c in cams}, float(dm.scene.extent)
 
 
 def support_distance(train: list[str], test: list[str], centres: dict, extent: float) -> float:

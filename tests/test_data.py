@@ -816,3 +816,20 @@ def test_cameras_at_one_point_are_refused():
         pano.append(dataclasses.replace(c, viewmat=v.float()))
     with pytest.raises(B3dgsError, match="at one point"):
         preprocess(dataclasses.replace(raw, cameras=pano))
+
+
+def test_center64_is_the_fixed_order_float64_centre_on_any_cpu():
+    """Camera.center64 (support distances in the report and bench.active_view) is -Rᵀt summed in float64 in a fixed
+    order, so it equals plain Python floats' arithmetic, which no CPU's matmul kernel can change; ``center`` (float32
+    matmul, kept for the renders' bits) lies within float32 round-off of it."""
+    g = torch.Generator().manual_seed(3)
+    for _ in range(20):
+        q, _ = torch.linalg.qr(torch.randn(3, 3, generator=g, dtype=torch.float64))
+        vm = torch.eye(4)
+        vm[:3, :3], vm[:3, 3] = q.float(), torch.randn(3, generator=g) * 5
+        cam = Camera("c", torch.eye(3), vm, 4, 4)
+        R, t = vm[:3, :3].double().tolist(), vm[:3, 3].double().tolist()
+        want = [-(R[0][i] * t[0] + R[1][i] * t[1] + R[2][i] * t[2]) for i in range(3)]
+        got = cam.center64
+        assert got.dtype == np.float64 and got.tolist() == want
+        assert np.allclose(cam.center.double().numpy(), got, rtol=0, atol=1e-5)

@@ -53,8 +53,7 @@ def support_scores(data_cfg: dict) -> dict[str, float]:
                               fix="restore the scene at that path (the runs' data.path), or pass ood.enabled=false "
                                   "to skip the OOD study") from e
         scene = dm.scene
-        dist = support_distances([c.center.double().numpy() for c in scene.train],
-                                 [c.center.double().numpy() for c in scene.test], scene.extent)
+        dist = support_distances([c.center64 for c in scene.train], [c.center64 for c in scene.test], scene.extent)
         _SCENES[key] = {c.name: float(d) for c, d in zip(scene.test, dist)}
     return _SCENES[key]
 
