@@ -1,6 +1,7 @@
-"""Device helpers: move plugin state trees, synchronise before reading a clock."""
+"""Device helpers: move plugin state trees, synchronise before reading a clock, describe the machine."""
 from __future__ import annotations
 
+import platform
 import time
 from typing import Any
 
@@ -42,3 +43,25 @@ def bernoulli(p: torch.Tensor, generator: "torch.Generator | None" = None) -> to
     """Bernoulli(p) draws made on ``generator``'s device, returned on ``p``'s device."""
     gdev = generator.device if generator is not None else p.device
     return torch.bernoulli(p.to(gdev), generator=generator).to(p.device)
+
+
+def cpu_model() -> str:
+    """The CPU's model name (/proc/cpuinfo on Linux, else ``platform.processor()``; "" when neither says)."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor()
+
+
+def machine() -> dict:
+    """Where a run or benchmark ran: Python, torch, threads, the CPU and the kernels torch dispatches to on it
+    (``cpu_capability``: AVX2, AVX512, ...), and the GPU when CUDA is present. A seed reproduces a run bit for bit
+    on the same kind of machine; torch's float32 kernels round differently across CPU kinds, so this says which."""
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+    return {"python": platform.python_version(), "torch": torch.__version__, "threads": torch.get_num_threads(),
+            "machine": platform.machine(), "processor": platform.processor(), "cpu": cpu_model(),
+            "cpu_capability": torch.backends.cpu.get_cpu_capability(), "cuda_device": gpu}

@@ -26,6 +26,7 @@ import torch
 from omegaconf import DictConfig, OmegaConf
 
 from b3dgs.checkpoint import check_sealed, checkpoint_record, renderer_identity, renderer_mismatch
+from b3dgs.device import machine
 from b3dgs.errors import B3dgsError
 from b3dgs.io import write_json
 from b3dgs.numerics import guard_counts, reset_guards as _reset
@@ -535,6 +536,7 @@ class Run:
             "numerical_guards": guard_counts(),  # how often each clamp / jitter / floor fired (never silent)
             "checkpoint": final,  # b3dgs-eval refuses a last.ckpt that is not this model
             "scene_transform": frame.to_dict(),  # normalised frame <- the scene's own (point_cloud.ply is in the latter)
+            "machine": machine(),  # bits reproduce on the same kind of machine (b3dgs.device.machine)
             "per_view": ev["per_view"],
         }
         self._write_metrics(metrics)

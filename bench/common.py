@@ -8,7 +8,6 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
-import platform
 import shutil
 import statistics
 import subprocess
@@ -19,8 +18,7 @@ import time
 from pathlib import Path
 from typing import Callable, Sequence
 
-import torch
-
+from b3dgs.device import machine  # noqa: F401  (the benchmarks import it from here)
 from b3dgs.io import atomic_path, write_json
 from b3dgs.upgrade import FAMILY_POSTERIOR_UNRECORDED
 
@@ -40,13 +38,6 @@ def median_ms(fn: Callable[[], None], repeats: int = 7, warmup: int = 2, device=
         fn()
         times.append((timed_clock(device) - t0) * 1000)
     return statistics.median(times)
-
-
-def machine() -> dict:
-    """Where a benchmark ran: Python, torch, threads, CPU, and the GPU when CUDA is present."""
-    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
-    return {"python": platform.python_version(), "torch": torch.__version__, "threads": torch.get_num_threads(),
-            "machine": platform.machine(), "processor": platform.processor(), "cuda_device": gpu}
 
 
 def table(rows: Sequence[dict], cols: Sequence[str]) -> str:

@@ -30,6 +30,11 @@ def test_short_training_improves_and_writes_run_dir(tmp_path):
         assert key in metrics
     assert metrics["steps"] == 300
     assert metrics["lpips"] is not None or metrics["lpips_reason"]
+    # where it ran: bits reproduce on the same kind of machine, so the run says which kind
+    import torch
+
+    assert metrics["machine"]["torch"] == torch.__version__
+    assert metrics["machine"]["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
     curve = json.loads((tmp_path / "curve.json").read_text())["points"]
     assert [p["step"] for p in curve] == [100, 200, 300]
     assert curve[-1]["psnr"] > curve[0]["psnr"]
