@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 from typing import Callable, Sequence
 
-from b3dgs.device import machine  # noqa: F401  (the benchmarks import it from here)
+from b3dgs.device import machine
 from b3dgs.io import atomic_path, write_json
 from b3dgs.upgrade import FAMILY_POSTERIOR_UNRECORDED
 
@@ -273,6 +273,30 @@ def train_run(run_dir: Path, overrides: list[str], timeout_s: int = 3600, force:
     out = json.loads(metrics.read_text())
     out["wall_s"] = round(time.perf_counter() - t0, 2)
     return out
+
+
+def check_same_parameters(metrics: dict, archived: Path, what: str) -> None:
+    """Refuse a retrained run whose parameters differ from the archived run it stands in for (``archived``: that run's
+    metrics.json; nothing to check when it is absent or records no hash): the archive's later pieces were computed
+    from the archived parameters. Training reproduces its bits on the same kind of machine only, so the one line
+    names both machines."""
+    from b3dgs.errors import B3dgsError
+
+    if not archived.is_file():
+        return
+    old = json.loads(archived.read_text())
+    want = (old.get("checkpoint") or {}).get("params_sha256")
+    got = (metrics.get("checkpoint") or {}).get("params_sha256")
+    if want is None or got == want:
+        return
+
+    def kind(m) -> str:
+        return f"{m.get('cpu') or m.get('machine')} ({m.get('cpu_capability') or '?'})" if m else "a machine not recorded"
+
+    raise B3dgsError(f"{what}: retrained parameters {got} differ from the archived run's {want} "
+                     f"({archived}); it trained on {kind(old.get('machine'))}, this is {kind(machine())}",
+                     "resume on a machine of the kind that trained the archive (training reproduces its bits there "
+                     "only), or start afresh with another --archive")
 
 
 def scene_overrides(scene: str) -> list[str]:

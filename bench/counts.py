@@ -30,8 +30,9 @@ from typing import Optional
 
 import numpy as np
 
-from bench.common import (QUICK, RESULTS, SEVEN, bench_child, model_overrides, read_json, scene_overrides, train_run,
-                          write_results)
+from b3dgs.errors import B3dgsError
+from bench.common import (QUICK, RESULTS, SEVEN, bench_child, check_same_parameters, model_overrides, read_json,
+                          scene_overrides, train_run, write_results)
 COUNTS = ["weight", "fisher", "fisher3", "sh"]  # scored as the uq regimes native_<name>
 ALONE = ["sh"]  # --alone: uq regimes scored under their own name (sh: the SH posterior without the NIW geometry)
 #: every regime --alone accepts (native_plus_sh: uq=native's c = 0.1 plus the SH posterior)
@@ -76,10 +77,11 @@ def run_row(args, scene: str, seed: int) -> Optional[str]:
     run_dir = Path(args.out) / scene / "niw" / f"s{seed}"
     over = scene_overrides(scene) + QUICK + [*model_overrides("niw"), f"seed={seed}", f"threads={args.threads}"]
     m = train_run(run_dir, over, timeout_s=4 * 3600)
-    want = json.loads((archive_dir / "metrics.json").read_text())["checkpoint"]["params_sha256"]
+    try:
+        check_same_parameters(m, archive_dir / "metrics.json", f"{scene} s{seed}")
+    except B3dgsError as e:
+        return f"not merged: {e}"
     got = m["checkpoint"]["params_sha256"]
-    if got != want:
-        return f"{scene} s{seed}: retrained parameters {got} differ from the archived run's {want}; not merged"
     import subprocess
 
     cmd, env = bench_child("counts", "--score-one", str(run_dir), str(archive_dir), str(args.samples),

@@ -36,8 +36,9 @@ from pathlib import Path
 
 import numpy as np
 
-from bench.common import (QUICK, RESULTS, SECTOR_SPLIT, SEVEN, archive_files, model_overrides, read_json,
-                          scene_names, scene_overrides, steps_overrides, threads_overrides, train_run, write_results)
+from bench.common import (QUICK, RESULTS, SECTOR_SPLIT, SEVEN, archive_files, check_same_parameters, model_overrides,
+                          read_json, scene_names, scene_overrides, steps_overrides, threads_overrides, train_run,
+                          write_results)
 
 POLICIES = {"info_gain": "info_gain", "cover": "cover", "distance": "farthest", "uniform": "uniform"}
 ARCHIVED = ("config.yaml", "metrics.json")
@@ -246,6 +247,7 @@ def main() -> None:
         base = out / sc / "base" / f"s{seed}"
         arch = archive / sc / f"s{seed}"
         met = train_run(base, overrides)
+        check_same_parameters(met, arch / "base" / "metrics.json", f"{sc} s{seed} base")  # suggestions came from it
         archive_files(base, arch / "base", ARCHIVED)
         print(f"{sc} s{seed}: base PSNR {met['psnr']:.3f}", flush=True)
         recs = {}

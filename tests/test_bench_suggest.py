@@ -98,3 +98,29 @@ def test_table_pairs_over_scenes(tmp_path):
     assert abs(p["info_gain − uniform (sector PSNR)"]["mean"] - 1.0) < 1e-9
     assert abs(p["info_gain − cover (sector PSNR)"]["mean"] - 0.8) < 1e-9
     assert "| info_gain − uniform | sector PSNR | 3 | +1.0000 | 3/0 |" in text
+
+
+def test_a_base_retrained_with_other_parameters_is_refused_naming_both_machines(tmp_path):
+    """A campaign resumed where its base run must be retrained (the work folder is gone, a new machine) may not mix
+    that base with suggestions archived from the old one: other parameters are refused in one line that names the
+    archived machine and this one; the same parameters, or no archive yet, pass."""
+    import pytest
+
+    from b3dgs.device import machine
+    from b3dgs.errors import B3dgsError
+    from bench.common import check_same_parameters
+
+    arch = tmp_path / "base" / "metrics.json"
+    check_same_parameters({"checkpoint": {"params_sha256": "aa"}}, arch, "fox s0 base")  # nothing archived yet
+    arch.parent.mkdir(parents=True)
+    arch.write_text(json.dumps({"checkpoint": {"params_sha256": "aa"},
+                                "machine": {"cpu": "Old CPU", "cpu_capability": "AVX2"}}))
+    check_same_parameters({"checkpoint": {"params_sha256": "aa"}}, arch, "fox s0 base")
+    with pytest.raises(B3dgsError) as e:
+        check_same_parameters({"checkpoint": {"params_sha256": "bb"}}, arch, "fox s0 base")
+    msg = str(e.value)
+    assert "\n" not in msg and "fox s0 base: retrained parameters bb differ from the archived run's aa" in msg
+    assert "Old CPU (AVX2)" in msg and f"({machine()['cpu_capability']})" in msg and "--archive" in msg
+    arch.write_text(json.dumps({"checkpoint": {"params_sha256": "aa"}}))  # archived before runs recorded machines
+    with pytest.raises(B3dgsError, match="a machine not recorded"):
+        check_same_parameters({"checkpoint": {"params_sha256": "bb"}}, arch, "fox s0 base")
