@@ -610,3 +610,27 @@ def test_an_ensembles_uq_json_finds_its_runs_after_they_were_copied(tmp_path):
     f.write_text(json.dumps({"ensemble": {**summ, "runs": ["/q/fox/standard/s0"]}}))
     _attach_uq(runs, [f])
     assert all(r.uq == {} for r in runs)
+
+
+def test_runs_from_two_kinds_of_machine_get_a_line_saying_so(tmp_path):
+    """metrics.json records the machine; a report pooling runs of two kinds says which, and that times between them
+    compare machines too. Runs of one kind, or from before machines were recorded, get no such line."""
+    def runs(root, cpus):
+        for i, (m, cpu) in enumerate(zip(["standard", "niw"] * 2, cpus)):
+            p = write_run(root / f"r{i}", "sceneA" if i < 2 else "sceneB", m, 0, 20.0 + i)
+            if cpu is not None:
+                met = json.loads((p / "metrics.json").read_text())
+                met["machine"] = {"cpu": cpu, "cpu_capability": "AVX2" if "Old" in cpu else "AVX512",
+                                  "cuda_device": None}
+                (p / "metrics.json").write_text(json.dumps(met))
+
+    runs(tmp_path / "mixed", ["Old Xeon", "New Xeon", "Old Xeon", "New Xeon"])
+    md, _, js = build(str(tmp_path / "mixed" / "*"), tmp_path / "rep1")
+    md = " ".join(md.split())  # the paragraph is wrapped
+    assert "trained on 2 kinds of machine (New Xeon (AVX512): 2 runs; Old Xeon (AVX2): 2 runs)" in md
+    assert list(js["machine_kinds"].items()) == [("New Xeon (AVX512)", 2), ("Old Xeon (AVX2)", 2)]
+    runs(tmp_path / "one", ["New Xeon"] * 4)
+    runs(tmp_path / "old", [None] * 4)
+    for name in ("one", "old"):
+        md, _, js = build(str(tmp_path / name / "*"), tmp_path / f"rep_{name}")
+        assert "kinds of machine" not in md and "machine_kinds" not in js

@@ -17,7 +17,7 @@ from b3dgs.errors import B3dgsError, cli_main
 from b3dgs.io import atomic_path, to_jsonable, write_json
 from b3dgs.report import analysis as A
 from b3dgs.report import plots
-from b3dgs.report.collect import ReportError, Run, group, load_runs, method_order
+from b3dgs.report.collect import ReportError, Run, group, load_runs, machine_kinds, method_order
 from b3dgs.report.document import Figure, Heading, Para, Table, fmt, to_html, to_markdown
 from b3dgs.train import CONF_DIR
 
@@ -349,6 +349,13 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
             f"(`training_shared_with` in metrics.json; methods {method_order({r.method for r in shared})}): their "
             "posterior blocks only observe training (changes_training = False, tested bit for bit), so their "
             "differences to that run are zero by construction, not measured evidence."))
+    kinds = machine_kinds(runs)
+    if len(kinds) > 1:
+        bld.blocks.append(Para(
+            f"The runs trained on {len(kinds)} kinds of machine ("
+            + "; ".join(f"{k}: {n} run{'s' * (n != 1)}" for k, n in kinds.items())
+            + "): time and FPS differences between runs of different kinds measure the machines as much as the "
+            "methods, and training reproduces its bits on one kind only (a seed-sized difference elsewhere)."))
     data: dict = {"runs": [{"path": str(r.path), "study": r.study, "level": r.level, "scene": r.scene,
                             "method": r.method, "seed": r.seed, "uq_regimes": sorted(r.uq),
                             "training_shared_with": r.metrics.get("training_shared_with")} for r in runs],
@@ -364,6 +371,8 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
             data["canonical"] = res
             if cfg.ood.enabled:
                 data["ood"] = ood
+    if len(kinds) > 1:
+        data["machine_kinds"] = kinds
     if not canonical:
         bld.blocks.append(Para("No canonical runs (every run belongs to a study)."))
     data["studies"] = {}
