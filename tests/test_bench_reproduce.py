@@ -101,3 +101,20 @@ def test_an_altered_archived_record_fails_the_check_with_its_difference(tmp_path
     assert "| **no** | .md line " in line and "committed '" in line and "rebuilt '" in line, line
     rebuilt = (out / "schedule_screen3.md").read_text()
     assert "| fox | standard | dash | 0 | 31.250 |" in rebuilt
+
+
+def test_floats_equal_to_round_off_are_identical_and_said_a_float32_gap_is_not():
+    """Another kind of CPU may give a float64 LAPACK result's last bits differently: such floats count as equal and
+    are collected (the row says how many and how close); a difference at float32 round-off (the camera centres'
+    1e-7 of this session's new machine) is still a difference, and so is 0 against a tiny number."""
+    from bench.reproduce import ROUNDOFF
+
+    seen: list = []
+    a = {"ood": {"views": [{"support": 0.20856518864409718}, {"support": 0.5}]}}
+    b = {"ood": {"views": [{"support": 0.20856518864409718 * (1 + 4e-16)}, {"support": 0.5}]}}
+    assert first_json_difference(a, b, roundoff=seen) is None
+    assert [p for p, _, _ in seen] == ["/ood/views/0/support"] and ROUNDOFF <= 1e-12
+    b["ood"]["views"][0]["support"] = 0.20856517312148667
+    assert first_json_difference(a, b) == \
+        ".json /ood/views/0/support: committed 0.20856518864409718, rebuilt 0.20856517312148667"
+    assert first_json_difference({"d": 0.0}, {"d": 1e-300}) is not None
