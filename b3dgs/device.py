@@ -57,6 +57,13 @@ def cpu_model() -> str:
     return platform.processor()
 
 
+def machine_kind(m: dict) -> str:
+    """A :func:`machine` record as one label: "CPU model (cpu_capability)", with the GPU after a comma when there is
+    one (what decides whether training's bits reproduce)."""
+    gpu = f", {m['cuda_device']}" if m.get("cuda_device") else ""
+    return f"{m.get('cpu') or m.get('machine') or '?'} ({m.get('cpu_capability') or '?'}){gpu}"
+
+
 def machine() -> dict:
     """Where a run or benchmark ran: Python, torch, threads, the CPU and the kernels torch dispatches to on it
     (``cpu_capability``: AVX2, AVX512, ...), and the GPU when CUDA is present. A seed reproduces a run bit for bit

@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 from typing import Callable, Sequence
 
-from b3dgs.device import machine
+from b3dgs.device import machine, machine_kind
 from b3dgs.io import atomic_path, write_json
 from b3dgs.upgrade import FAMILY_POSTERIOR_UNRECORDED
 
@@ -291,7 +291,7 @@ def check_same_parameters(metrics: dict, archived: Path, what: str) -> None:
         return
 
     def kind(m) -> str:
-        return f"{m.get('cpu') or m.get('machine')} ({m.get('cpu_capability') or '?'})" if m else "a machine not recorded"
+        return machine_kind(m) if m else "a machine not recorded"
 
     raise B3dgsError(f"{what}: retrained parameters {got} differ from the archived run's {want} "
                      f"({archived}); it trained on {kind(old.get('machine'))}, this is {kind(machine())}",

@@ -31,8 +31,6 @@ def test_short_training_improves_and_writes_run_dir(tmp_path):
     assert metrics["steps"] == 300
     assert metrics["lpips"] is not None or metrics["lpips_reason"]
     # where it ran: bits reproduce on the same kind of machine, so the run says which kind
-    import torch
-
     assert metrics["machine"]["torch"] == torch.__version__
     assert metrics["machine"]["cpu_capability"] == torch.backends.cpu.get_cpu_capability()
     curve = json.loads((tmp_path / "curve.json").read_text())["points"]

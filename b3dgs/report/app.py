@@ -349,6 +349,10 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
             f"(`training_shared_with` in metrics.json; methods {method_order({r.method for r in shared})}): their "
             "posterior blocks only observe training (changes_training = False, tested bit for bit), so their "
             "differences to that run are zero by construction, not measured evidence."))
+    data: dict = {"runs": [{"path": str(r.path), "study": r.study, "level": r.level, "scene": r.scene,
+                            "method": r.method, "seed": r.seed, "uq_regimes": sorted(r.uq),
+                            "training_shared_with": r.metrics.get("training_shared_with")} for r in runs],
+                  "unfinished": [str(u) for u in unfinished], "config": OmegaConf.to_container(cfg, resolve=True)}
     kinds = machine_kinds(runs)
     if len(kinds) > 1:
         bld.blocks.append(Para(
@@ -356,10 +360,7 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
             + "; ".join(f"{k}: {n} run{'s' * (n != 1)}" for k, n in kinds.items())
             + "): time and FPS differences between runs of different kinds measure the machines as much as the "
             "methods, and training reproduces its bits on one kind only (a seed-sized difference elsewhere)."))
-    data: dict = {"runs": [{"path": str(r.path), "study": r.study, "level": r.level, "scene": r.scene,
-                            "method": r.method, "seed": r.seed, "uq_regimes": sorted(r.uq),
-                            "training_shared_with": r.metrics.get("training_shared_with")} for r in runs],
-                  "unfinished": [str(u) for u in unfinished], "config": OmegaConf.to_container(cfg, resolve=True)}
+        data["machine_kinds"] = kinds
     for study, rs in canonical.items():
         split = rs[0].split
         bld.tag, suffix = _group_tag(split)
@@ -371,8 +372,6 @@ def build_report(cfg: DictConfig) -> dict[str, Path]:
             data["canonical"] = res
             if cfg.ood.enabled:
                 data["ood"] = ood
-    if len(kinds) > 1:
-        data["machine_kinds"] = kinds
     if not canonical:
         bld.blocks.append(Para("No canonical runs (every run belongs to a study)."))
     data["studies"] = {}

@@ -305,12 +305,13 @@ def check_pooling(runs: Sequence[Run], group_by: Sequence[str] = ()) -> None:
 def machine_kinds(runs: Sequence[Run]) -> dict[str, int]:
     """{kind of machine: runs} over the runs whose metrics.json records ``machine`` (CPU model, torch's CPU
     dispatch, GPU: b3dgs.device.machine; runs from before it recorded one are left out), sorted by kind."""
+    from b3dgs.device import machine_kind
+
     kinds: dict[str, int] = {}
     for r in runs:
         m = r.metrics.get("machine")
         if isinstance(m, dict):
-            k = f"{m.get('cpu') or m.get('machine') or '?'} ({m.get('cpu_capability') or '?'})" + (
-                f", {m['cuda_device']}" if m.get("cuda_device") else "")
+            k = machine_kind(m)
             kinds[k] = kinds.get(k, 0) + 1
     return dict(sorted(kinds.items()))
 
